@@ -1,0 +1,54 @@
+"""Environment catalogue: the eight gymnasium MuJoCo v5 tasks with layouts, rewards and terminations.
+
+>>> import envs
+>>> spec = envs.get("HalfCheetah-v5")          # also "halfcheetah", "half_cheetah", "half-cheetah"
+>>> env = spec.make()                           # gymnasium env whose obs matches spec.layout
+>>> r = spec.reward(obs, act, next_obs)         # batched torch, any leading dims / dtype / device
+
+Measured agreement with the simulator: docs/envs.md.
+"""
+from __future__ import annotations
+
+import re
+from functools import lru_cache
+from typing import Any
+
+from envs.catalogue import GYM_IDS, build
+from envs.layout import Group, ObsLayout
+from envs.spec import AppendObservation, EnvSpec
+
+__all__ = ["names", "get", "canonical_name", "EnvSpec", "ObsLayout", "Group", "AppendObservation"]
+
+
+def names() -> list[str]:
+    """The canonical env names, in catalogue order."""
+    return list(GYM_IDS)
+
+
+def canonical_name(name: str) -> str:
+    """Canonical name of ``name``: case, ``_``, ``-``, spaces and a ``-v5`` suffix are ignored.
+
+    Raises ValueError (listing the valid names) for anything else.
+    """
+    if not isinstance(name, str):
+        raise ValueError(f"env name must be a string, got {type(name).__name__}; valid: {', '.join(names())}")
+    key = re.sub(r"[^a-z0-9]", "", name.lower())
+    key = re.sub(r"v5$", "", key) if key not in GYM_IDS else key
+    if key not in GYM_IDS:
+        valid = ", ".join(f"{n} ({g})" for n, g in GYM_IDS.items())
+        raise ValueError(f"unknown env {name!r}; valid names (or gymnasium ids): {valid}")
+    return key
+
+
+@lru_cache(maxsize=None)
+def _default(name: str) -> EnvSpec:
+    return build(name, {})
+
+
+def get(name: str, **env_kwargs: Any) -> EnvSpec:
+    """The spec of env ``name``; ``env_kwargs`` override gymnasium constructor defaults (e.g. ``ctrl_cost_weight``).
+
+    The spec's reward and termination read their constants from the env built with those kwargs.
+    """
+    key = canonical_name(name)
+    return build(key, env_kwargs) if env_kwargs else _default(key)

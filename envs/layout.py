@@ -1,0 +1,76 @@
+"""Observation layouts: which observation indices form which Lie group, which are velocities.
+
+A layout is the single source of truth that both dynamics heads read:
+the delta head uses it to drop position-invariant coordinates from the network
+inputs; the GEM head uses it to encode an observation into group elements and
+to decode predicted group elements back into an observation.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+GroupKind = Literal["Rn", "SO2_angle", "SO2_cossin", "SO3_quat"]
+
+#: Number of observation entries each group kind occupies (None: any n >= 1).
+KIND_WIDTH: dict[str, int | None] = {"Rn": None, "SO2_angle": 1, "SO2_cossin": 2, "SO3_quat": 4}
+
+
+@dataclass(frozen=True)
+class Group:
+    """One group-valued part of the observation.
+
+    kind:
+      - ``Rn``: translations; ``indices`` are the n coordinates.
+      - ``SO2_angle``: a hinge angle in radians; ``indices == (i,)``.
+      - ``SO2_cossin``: a hinge angle given as ``(cos_index, sin_index)``.
+      - ``SO3_quat``: an orientation as a unit quaternion, ``indices == (w, x, y, z)``.
+    """
+
+    name: str
+    kind: GroupKind
+    indices: tuple[int, ...]
+
+    def __post_init__(self) -> None:
+        if self.kind not in KIND_WIDTH:
+            raise ValueError(f"group {self.name!r}: unknown kind {self.kind!r}; accepted: {sorted(KIND_WIDTH)}")
+        width = KIND_WIDTH[self.kind]
+        if width is None and len(self.indices) < 1 or width is not None and len(self.indices) != width:
+            raise ValueError(f"group {self.name!r} of kind {self.kind} has {len(self.indices)} indices, expected {width or '>= 1'}")
+
+
+@dataclass(frozen=True)
+class ObsLayout:
+    """Index-by-index description of an observation vector.
+
+    Every index in ``range(obs_dim)`` belongs to exactly one of: a group, ``velocities``
+    or ``other``. ``invariant`` lists the group (Rn) coordinates the dynamics do not
+    depend on (root x, and y for Ant/Humanoid): they are never network inputs.
+    """
+
+    obs_dim: int
+    groups: tuple[Group, ...]
+    velocities: tuple[int, ...] = ()
+    other: tuple[int, ...] = ()
+    invariant: tuple[int, ...] = field(default=())
+
+    def __post_init__(self) -> None:
+        seen: list[int] = [i for g in self.groups for i in g.indices] + list(self.velocities) + list(self.other)
+        if sorted(seen) != list(range(self.obs_dim)):
+            dup = sorted({i for i in seen if seen.count(i) > 1})
+            missing = sorted(set(range(self.obs_dim)) - set(seen))
+            extra = sorted(set(seen) - set(range(self.obs_dim)))
+            raise ValueError(f"layout does not cover 0..{self.obs_dim - 1} exactly once: "
+                             f"duplicated {dup}, missing {missing}, out of range {extra}")
+        rn = {i for g in self.groups if g.kind == "Rn" for i in g.indices}
+        if not set(self.invariant) <= rn:
+            raise ValueError(f"invariant indices {sorted(set(self.invariant) - rn)} are not Rn group coordinates")
+
+    @property
+    def model_indices(self) -> tuple[int, ...]:
+        """Observation indices a model may see (all but the position-invariant ones), in order."""
+        inv = set(self.invariant)
+        return tuple(i for i in range(self.obs_dim) if i not in inv)
+
+    def groups_of(self, kind: GroupKind) -> tuple[Group, ...]:
+        return tuple(g for g in self.groups if g.kind == kind)

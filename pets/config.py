@@ -1,0 +1,197 @@
+"""All configuration in one place: global defaults, per-env defaults, presets, `key=value` overrides.
+
+Resolution order (later wins): ``Config`` defaults -> ``ENV_DEFAULTS[env]`` -> ``PRESETS[preset]``
+-> command-line ``key=value`` overrides. Values are parsed against the declared field types
+(``trials=00143`` is 143, never the YAML-octal 99), then range-checked.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Optional
+
+from omegaconf import DictConfig, OmegaConf
+
+HEADS = ("delta", "gem")
+PLANNERS = ("cem",)
+PROPAGATIONS = ("ts1", "tsinf", "expectation")
+
+
+class ConfigError(ValueError):
+    """A configuration value or key the user gave is not accepted; the message says what is."""
+
+
+@dataclass
+class ModelConfig:
+    ensemble_size: int = 7
+    num_elites: int = 5
+    hidden_size: int = 200
+    num_layers: int = 4
+    learn_logvar_bounds: bool = True
+    lr: float = 1e-3
+    batch_size: int = 256
+    max_epochs: int = 50
+    patience: int = 5
+    holdout_ratio: float = 0.1
+    max_holdout: int = 5000
+
+
+@dataclass
+class PlannerConfig:
+    name: str = "cem"
+    population: int = 400
+    elites: float = 0.1  # a ratio of the population when < 1, else a count
+    iterations: int = 5
+    alpha: float = 0.1  # CEM smoothing of mean and variance
+    horizon: int = 30
+    particles: int = 20
+    propagation: str = "tsinf"
+    replan_every: int = 1
+
+
+@dataclass
+class GemConfig:
+    compose: str = "right"  # right: G' = G exp(alpha) (body frame); left: G' = exp(alpha) G (the paper's notation)
+    loss: str = "nll"  # nll | frobenius | nll+frobenius
+    frobenius_weight: float = 1.0
+
+
+@dataclass
+class Config:
+    env: str = "halfcheetah"
+    head: str = "delta"
+    trials: int = 100
+    seed: int = 0
+    device: str = "auto"
+    seed_trials: int = 1  # trials with uniformly random actions before the first model is trained
+    episode_length: Optional[int] = None  # None: the env's own episode length
+    train_every: int = 0  # 0: train after every trial; N > 0: also every N env steps
+    model: ModelConfig = field(default_factory=ModelConfig)
+    planner: PlannerConfig = field(default_factory=PlannerConfig)
+    gem: GemConfig = field(default_factory=GemConfig)
+
+
+# Per-env research defaults, following the PETS references (REFERENCE.md section 1); envs without a
+# published PETS config borrow the nearest one (IDP from InvertedPendulum, Walker2d from Hopper,
+# Ant and Humanoid from HalfCheetah).
+_HALFCHEETAH = {"trials": 300, "planner": {"horizon": 30, "population": 400, "elites": 0.16, "particles": 20}}
+_HOPPER = {"trials": 300, "planner": {"horizon": 30, "population": 350, "elites": 0.1, "particles": 20}}
+_PENDULUM = {"trials": 20, "planner": {"horizon": 45, "population": 480, "elites": 0.078, "particles": 20}}
+ENV_DEFAULTS: dict[str, dict[str, Any]] = {
+    "invertedpendulum": _PENDULUM,
+    "inverteddoublependulum": _PENDULUM,
+    "reacher": {"trials": 100, "planner": {"horizon": 15, "population": 350, "elites": 0.1, "particles": 20}},
+    "hopper": _HOPPER,
+    "walker2d": _HOPPER,
+    "halfcheetah": _HALFCHEETAH,
+    "ant": _HALFCHEETAH,
+    "humanoid": _HALFCHEETAH,
+}
+
+# A CPU-friendly preset: ~20x fewer model evaluations per planning step than the research defaults.
+PRESETS: dict[str, dict[str, Any]] = {
+    "research": {},
+    "fast": {
+        "model": {"ensemble_size": 5, "num_elites": 5},
+        "planner": {"population": 100, "particles": 5, "horizon": 15, "iterations": 3, "elites": 0.1},
+    },
+}
+
+_POSITIVE_INTS = ["trials", "model.ensemble_size", "model.num_elites", "model.hidden_size", "model.num_layers",
+                  "model.batch_size", "model.max_epochs", "model.patience", "model.max_holdout",
+                  "planner.population", "planner.iterations", "planner.horizon", "planner.particles",
+                  "planner.replan_every"]
+_CHOICES = {"head": HEADS, "planner.name": PLANNERS, "planner.propagation": PROPAGATIONS,
+            "gem.compose": ("left", "right"), "gem.loss": ("nll", "frobenius", "nll+frobenius"),
+            "device": ("auto", "cpu", "cuda")}
+
+
+def all_keys(cfg: DictConfig | None = None, prefix: str = "") -> list[str]:
+    """Every dotted key of the config, e.g. ``planner.population``."""
+    cfg = OmegaConf.structured(Config) if cfg is None else cfg
+    keys: list[str] = []
+    for k, v in cfg.items():
+        name = f"{prefix}{k}"
+        keys.extend(all_keys(v, name + ".") if isinstance(v, DictConfig) else [name])
+    return keys
+
+
+def parse_overrides(items: list[str]) -> dict[str, str]:
+    """Split ``key=value`` strings; a malformed item raises ConfigError."""
+    out: dict[str, str] = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise ConfigError(f"expected key=value, got {item!r}")
+        out[key.strip()] = value.strip()
+    return out
+
+
+def _set(cfg: DictConfig, key: str, value: Any) -> None:
+    if key not in set(all_keys()):
+        raise ConfigError(f"unknown config key {key!r}; accepted keys: {', '.join(all_keys())}")
+    if isinstance(value, str) and value.lower() in ("null", "none") and OmegaConf.select(cfg, key) is None:
+        value = None
+    try:
+        OmegaConf.update(cfg, key, value, merge=True)
+    except Exception as err:  # omegaconf's validation errors carry a multi-line message
+        raise ConfigError(f"bad value for {key}: {str(err).splitlines()[0]}") from None
+
+
+def _merge_nested(cfg: DictConfig, values: dict[str, Any], prefix: str = "") -> None:
+    for k, v in values.items():
+        if isinstance(v, dict):
+            _merge_nested(cfg, v, f"{prefix}{k}.")
+        else:
+            _set(cfg, f"{prefix}{k}", v)
+
+
+def validate(cfg: DictConfig) -> None:
+    """Range and choice checks that the types alone do not express."""
+    for key in _POSITIVE_INTS:
+        if OmegaConf.select(cfg, key) < 1:
+            raise ConfigError(f"{key} must be >= 1, got {OmegaConf.select(cfg, key)}")
+    for key, choices in _CHOICES.items():
+        if OmegaConf.select(cfg, key) not in choices:
+            raise ConfigError(f"{key} must be one of {', '.join(choices)}, got {OmegaConf.select(cfg, key)!r}")
+    for key in ("model.lr", "planner.elites", "planner.alpha", "model.holdout_ratio", "gem.frobenius_weight"):
+        v = OmegaConf.select(cfg, key)
+        if not math.isfinite(v) or v < 0:
+            raise ConfigError(f"{key} must be a finite number >= 0, got {v}")
+    if not 0 <= cfg.planner.alpha < 1:
+        raise ConfigError(f"planner.alpha must be in [0, 1), got {cfg.planner.alpha}")
+    if not 0 <= cfg.model.holdout_ratio < 1:
+        raise ConfigError(f"model.holdout_ratio must be in [0, 1), got {cfg.model.holdout_ratio}")
+    if cfg.model.num_elites > cfg.model.ensemble_size:
+        raise ConfigError(f"model.num_elites ({cfg.model.num_elites}) must be <= model.ensemble_size "
+                          f"({cfg.model.ensemble_size})")
+    if cfg.seed < 0 or cfg.seed_trials < 0 or cfg.train_every < 0:
+        raise ConfigError("seed, seed_trials and train_every must be >= 0")
+    if cfg.planner.replan_every > cfg.planner.horizon:
+        raise ConfigError(f"planner.replan_every ({cfg.planner.replan_every}) must be <= planner.horizon "
+                          f"({cfg.planner.horizon})")
+    if cfg.episode_length is not None and cfg.episode_length < 1:
+        raise ConfigError(f"episode_length must be >= 1 or null, got {cfg.episode_length}")
+
+
+def make_config(env: str, head: str = "delta", preset: str = "research",
+                overrides: dict[str, Any] | None = None) -> DictConfig:
+    """Resolve the full config for ``env`` (a canonical env name) and validate it."""
+    if preset not in PRESETS:
+        raise ConfigError(f"unknown preset {preset!r}; accepted: {', '.join(PRESETS)}")
+    cfg = OmegaConf.structured(Config)
+    cfg.env = env
+    _merge_nested(cfg, ENV_DEFAULTS.get(env, {}))
+    _merge_nested(cfg, PRESETS[preset])
+    _set(cfg, "head", head)
+    for key, value in (overrides or {}).items():
+        _set(cfg, key, value)
+    validate(cfg)
+    return cfg
+
+
+def load_config(path: str) -> DictConfig:
+    """Load a run's resolved ``config.yaml`` back into the typed schema."""
+    cfg = OmegaConf.merge(OmegaConf.structured(Config), OmegaConf.load(path))
+    validate(cfg)
+    return cfg

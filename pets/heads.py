@@ -1,0 +1,74 @@
+"""Dynamics heads: the swappable part between observations and the Gaussian ensemble.
+
+Data flow:  (obs, act) --inputs--> ensemble --target sample--> next_obs(obs, sample)
+
+A head turns (obs, act) into network inputs, (obs, next_obs) into training targets,
+and (obs, predicted target) back into a next observation. The ensemble, the
+propagation, the planner and the loop only ever talk to this interface.
+"""
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from envs.layout import ObsLayout
+
+
+def gaussian_nll(mean: Tensor, logvar: Tensor, target: Tensor) -> Tensor:
+    """Gaussian negative log-likelihood without the constant, averaged over all but the first dim.
+
+    nll = 0.5 * mean((target - mean)^2 * exp(-logvar) + logvar); shape (E,) for (E, B, D) inputs.
+    """
+    per = (target - mean).pow(2) * torch.exp(-logvar) + logvar
+    return 0.5 * per.flatten(1).mean(dim=1)
+
+
+class DynamicsHead:
+    """Base class. Subclasses set ``name``, ``input_dim``, ``target_dim`` and implement the three maps."""
+
+    name: str = "base"
+    input_dim: int
+    target_dim: int
+
+    def __init__(self, layout: ObsLayout, act_dim: int) -> None:
+        self.layout = layout
+        self.obs_dim = layout.obs_dim
+        self.act_dim = act_dim
+
+    def inputs(self, obs: Tensor, act: Tensor) -> Tensor:
+        """Network inputs, shape (..., input_dim)."""
+        raise NotImplementedError
+
+    def targets(self, obs: Tensor, next_obs: Tensor) -> Tensor:
+        """Training targets, shape (..., target_dim)."""
+        raise NotImplementedError
+
+    def next_obs(self, obs: Tensor, target: Tensor) -> Tensor:
+        """Next observation from a (predicted or sampled) target, shape (..., obs_dim)."""
+        raise NotImplementedError
+
+    def loss(self, mean: Tensor, logvar: Tensor, target: Tensor, obs: Tensor, next_obs: Tensor) -> Tensor:
+        """Per-member training loss, shape (E,), for (E, B, .) batches. Default: Gaussian NLL."""
+        return gaussian_nll(mean, logvar, target)
+
+
+class DeltaHead(DynamicsHead):
+    """The PETS baseline: predict next_obs - obs; position-invariant coordinates are not inputs."""
+
+    name = "delta"
+
+    def __init__(self, layout: ObsLayout, act_dim: int) -> None:
+        super().__init__(layout, act_dim)
+        self._keep = torch.tensor(layout.model_indices, dtype=torch.long)
+        self.input_dim = len(layout.model_indices) + act_dim
+        self.target_dim = layout.obs_dim
+
+    def inputs(self, obs: Tensor, act: Tensor) -> Tensor:
+        keep = self._keep.to(obs.device)
+        return torch.cat([obs.index_select(-1, keep), act], dim=-1)
+
+    def targets(self, obs: Tensor, next_obs: Tensor) -> Tensor:
+        return next_obs - obs
+
+    def next_obs(self, obs: Tensor, target: Tensor) -> Tensor:
+        return obs + target

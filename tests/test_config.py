@@ -1,0 +1,69 @@
+"""Config: defaults, per-env defaults, presets, typed key=value overrides and clear errors."""
+import pytest
+from omegaconf import OmegaConf
+
+from pets.config import ConfigError, all_keys, load_config, make_config, parse_overrides
+
+REQUIRED = ["trials", "seed", "device", "planner.population", "planner.particles", "planner.horizon",
+            "planner.iterations", "model.ensemble_size", "model.hidden_size", "model.num_layers"]
+
+
+def test_required_keys_exist():
+    assert set(REQUIRED) <= set(all_keys())
+
+
+def test_per_env_defaults_follow_pets_references():
+    cheetah = make_config("halfcheetah")
+    assert (cheetah.planner.horizon, cheetah.planner.population, cheetah.planner.particles) == (30, 400, 20)
+    assert cheetah.planner.iterations == 5 and cheetah.planner.elites == pytest.approx(0.16)
+    reacher = make_config("reacher")
+    assert (reacher.planner.horizon, reacher.planner.population) == (15, 350)
+    assert make_config("invertedpendulum").planner.horizon == 45
+
+
+def test_overrides_are_typed_and_never_octal():
+    cfg = make_config("hopper", overrides=parse_overrides(["trials=00143", "planner.alpha=1e-3", "seed=7"]))
+    assert cfg.trials == 143 and isinstance(cfg.trials, int)
+    assert cfg.planner.alpha == pytest.approx(1e-3)
+    assert cfg.seed == 7
+
+
+def test_override_beats_preset_beats_env_default():
+    fast = make_config("halfcheetah", preset="fast")
+    assert fast.planner.population == 100
+    cfg = make_config("halfcheetah", preset="fast", overrides={"planner.population": "64"})
+    assert cfg.planner.population == 64
+
+
+@pytest.mark.parametrize("item, fragment", [
+    ("planner.popsize=3", "unknown config key"),
+    ("trials=1.5", "bad value for trials"),
+    ("trials=abc", "bad value for trials"),
+    ("trials=0", "trials must be >= 1"),
+    ("planner.propagation=ts2", "must be one of ts1, tsinf, expectation"),
+    ("planner.alpha=nan", "planner.alpha"),
+    ("model.num_elites=9", "num_elites"),
+    ("planner.replan_every=99", "replan_every"),
+])
+def test_bad_values_raise_config_error(item, fragment):
+    with pytest.raises(ConfigError, match=fragment.replace(".", r"\.").replace("(", r"\(")):
+        make_config("invertedpendulum", overrides=parse_overrides([item]))
+
+
+def test_unknown_key_error_lists_accepted_keys():
+    with pytest.raises(ConfigError) as info:
+        make_config("reacher", overrides={"nope": "1"})
+    assert "planner.population" in str(info.value)
+
+
+def test_malformed_override():
+    with pytest.raises(ConfigError, match="key=value"):
+        parse_overrides(["population"])
+
+
+def test_saved_config_round_trips(tmp_path):
+    cfg = make_config("ant", head="gem", overrides={"episode_length": "200"})
+    path = tmp_path / "config.yaml"
+    path.write_text(OmegaConf.to_yaml(cfg))
+    back = load_config(str(path))
+    assert OmegaConf.to_container(back) == OmegaConf.to_container(cfg)
