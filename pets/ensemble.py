@@ -1,0 +1,192 @@
+"""Probabilistic ensemble of Gaussian MLPs (the PETS dynamics model).
+
+All members are evaluated at once: every layer stores its weights stacked as an
+``(E, in, out)`` parameter and its bias as ``(E, 1, out)``, and a layer is one
+``torch.baddbmm``. Each member outputs a mean and a soft-bounded log-variance per
+target dimension. Inputs are normalised inside the module with a mean/std fitted on
+the data (``fit_normaliser``), stored as buffers so they travel with ``state_dict``.
+"""
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+#: Per-layer L2 coefficients of the original PETS code (input layer, hidden layers, output layer).
+_DECAY_FIRST, _DECAY_SECOND, _DECAY_HIDDEN, _DECAY_OUT = 2.5e-5, 5e-5, 7.5e-5, 1e-4
+
+
+def _layer_decays(num_linear: int) -> list[float]:
+    """Weight-decay coefficient per linear layer: 2.5e-5, 5e-5, 7.5e-5, ..., 7.5e-5, 1e-4.
+
+    With 4 hidden layers (5 linear layers) this is exactly the original PETS list
+    (2.5e-5, 5e-5, 7.5e-5, 7.5e-5, 1e-4).
+    """
+    if num_linear == 1:
+        return [_DECAY_OUT]
+    hidden = [_DECAY_FIRST, _DECAY_SECOND] + [_DECAY_HIDDEN] * max(0, num_linear - 3)
+    return hidden[: num_linear - 1] + [_DECAY_OUT]
+
+
+class GaussianEnsemble(nn.Module):
+    """``ensemble_size`` independent Gaussian MLPs ``x -> (mean, logvar)`` evaluated in one batched pass.
+
+    Architecture per member: ``num_layers`` hidden layers of ``hidden_size`` SiLU units, then a
+    linear output of ``2 * out_dim`` (mean and raw log-variance). The log-variance is soft-bounded:
+    ``lv = max_lv - softplus(max_lv - lv)``; ``lv = min_lv + softplus(lv - min_lv)``.
+
+    Buffers: ``input_mean``, ``input_std`` (normaliser) and ``elites`` (long indices of the elite
+    members, all members until a trainer sets them).
+    """
+
+    def __init__(self, in_dim: int, out_dim: int, ensemble_size: int = 7, hidden_size: int = 200,
+                 num_layers: int = 4, min_logvar: float = -10.0, max_logvar: float = 0.5,
+                 learn_logvar_bounds: bool = True, num_elites: int | None = None) -> None:
+        super().__init__()
+        for name, value in (("in_dim", in_dim), ("out_dim", out_dim), ("ensemble_size", ensemble_size),
+                            ("hidden_size", hidden_size)):
+            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+                raise ValueError(f"{name} must be a positive int, got {value!r}")
+        if not isinstance(num_layers, int) or isinstance(num_layers, bool) or num_layers < 0:
+            raise ValueError(f"num_layers (hidden layers) must be an int >= 0, got {num_layers!r}")
+        if not (math.isfinite(min_logvar) and math.isfinite(max_logvar) and min_logvar < max_logvar):
+            raise ValueError(f"need finite min_logvar < max_logvar, got min {min_logvar}, max {max_logvar}")
+        if num_elites is None:
+            num_elites = ensemble_size
+        if not isinstance(num_elites, int) or not 1 <= num_elites <= ensemble_size:
+            raise ValueError(f"num_elites must be an int in [1, ensemble_size={ensemble_size}], got {num_elites!r}")
+
+        self.in_dim = in_dim
+        self.out_dim = out_dim
+        self.ensemble_size = ensemble_size
+        self.hidden_size = hidden_size
+        self.num_layers = num_layers
+        self.num_elites = num_elites
+        self.learn_logvar_bounds = learn_logvar_bounds
+
+        sizes = [in_dim] + [hidden_size] * num_layers + [2 * out_dim]
+        self.weights = nn.ParameterList()
+        self.biases = nn.ParameterList()
+        for fan_in, fan_out in zip(sizes[:-1], sizes[1:]):
+            w = torch.empty(ensemble_size, fan_in, fan_out)
+            std = 1.0 / (2.0 * math.sqrt(fan_in))
+            nn.init.trunc_normal_(w, mean=0.0, std=std, a=-2.0 * std, b=2.0 * std)
+            self.weights.append(nn.Parameter(w))
+            self.biases.append(nn.Parameter(torch.zeros(ensemble_size, 1, fan_out)))
+        self.decays: list[float] = _layer_decays(len(sizes) - 1)
+
+        max_lv = torch.full((out_dim,), float(max_logvar))
+        min_lv = torch.full((out_dim,), float(min_logvar))
+        if learn_logvar_bounds:
+            self.max_logvar = nn.Parameter(max_lv)
+            self.min_logvar = nn.Parameter(min_lv)
+        else:
+            self.register_buffer("max_logvar", max_lv)
+            self.register_buffer("min_logvar", min_lv)
+
+        self.register_buffer("input_mean", torch.zeros(in_dim))
+        self.register_buffer("input_std", torch.ones(in_dim))
+        self.register_buffer("elites", torch.arange(ensemble_size, dtype=torch.long))
+
+    # ------------------------------------------------------------------ normaliser
+    @torch.no_grad()
+    def fit_normaliser(self, x: Tensor) -> None:
+        """Set the input mean/std from raw inputs ``x`` of shape (N, in_dim); a std < 1e-5 becomes 1."""
+        if x.dim() != 2 or x.shape[1] != self.in_dim or x.shape[0] < 1:
+            raise ValueError(f"fit_normaliser expects raw inputs of shape (N >= 1, in_dim={self.in_dim}), "
+                             f"got {tuple(x.shape)}")
+        if not torch.isfinite(x).all():
+            raise ValueError("fit_normaliser got non-finite inputs (nan or inf)")
+        x64 = x.detach().to(torch.float64)
+        mean = x64.mean(dim=0)
+        std = x64.std(dim=0, correction=0)
+        std = torch.where(std < 1e-5, torch.ones_like(std), std)
+        self.input_mean.copy_(mean.to(self.input_mean))
+        self.input_std.copy_(std.to(self.input_std))
+
+    def normalise(self, x: Tensor) -> Tensor:
+        """``(x - input_mean) / input_std`` (broadcast over leading dims)."""
+        return (x - self.input_mean) / self.input_std
+
+    # ------------------------------------------------------------------ elites
+    def set_elites(self, elites: Tensor) -> None:
+        """Store the elite member indices (1-D, unique, in ``[0, ensemble_size)``)."""
+        elites = torch.as_tensor(elites, dtype=torch.long).flatten()
+        if elites.numel() < 1 or int(elites.min()) < 0 or int(elites.max()) >= self.ensemble_size \
+                or torch.unique(elites).numel() != elites.numel():
+            raise ValueError(f"elites must be unique member indices in [0, {self.ensemble_size}), "
+                             f"got {elites.tolist()}")
+        self.elites = elites.to(self.input_mean.device)
+
+    def _load_from_state_dict(self, state_dict: dict[str, Any], prefix: str, *args: Any, **kwargs: Any) -> None:
+        # The number of elites may differ from the freshly built default: adopt the stored shape.
+        key = prefix + "elites"
+        if key in state_dict and state_dict[key].shape != self.elites.shape:
+            self.elites = torch.empty_like(state_dict[key], device=self.elites.device, dtype=torch.long)
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
+    # ------------------------------------------------------------------ forward
+    def member_parameters(self) -> list[Tensor]:
+        """Parameters with a leading member dimension (weights and biases), in a fixed order."""
+        return [*self.weights, *self.biases]
+
+    def _member_index(self, members: Tensor | None) -> Tensor | None:
+        if members is None:
+            return None
+        if not isinstance(members, Tensor):
+            members = torch.as_tensor(members)
+        if members.dim() != 1 or members.dtype not in (torch.int64, torch.int32) or members.numel() < 1:
+            raise ValueError(f"members must be a non-empty 1-D integer tensor of member indices, "
+                             f"got shape {tuple(members.shape)} dtype {members.dtype}")
+        return members.to(device=self.weights[0].device, dtype=torch.long)
+
+    def forward(self, x: Tensor, members: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """Mean and log-variance, each (M, B, out_dim), of raw (unnormalised) inputs.
+
+        ``x`` is (M, B, in_dim), one batch per evaluated member, or (B, in_dim), shared by all of
+        them. M is ``ensemble_size`` when ``members`` is None, else ``len(members)`` (members are
+        gathered from the stacked weights by index, e.g. the elites).
+        """
+        idx = self._member_index(members)
+        m = self.ensemble_size if idx is None else idx.numel()
+        if x.dim() not in (2, 3) or x.shape[-1] != self.in_dim or (x.dim() == 3 and x.shape[0] != m):
+            raise ValueError(f"inputs must be (B, {self.in_dim}) or ({m}, B, {self.in_dim}) for {m} members, "
+                             f"got {tuple(x.shape)}")
+        h = self.normalise(x)
+        last = len(self.weights) - 1
+        for i, (w, b) in enumerate(zip(self.weights, self.biases)):
+            if idx is not None:
+                w, b = w.index_select(0, idx), b.index_select(0, idx)
+            if h.dim() == 2:  # shared inputs: one broadcast matmul gives (M, B, out)
+                h = torch.matmul(h, w) + b
+            else:
+                h = torch.baddbmm(b, h, w)
+            if i < last:
+                h = F.silu(h)
+        mean, logvar = h[..., : self.out_dim], h[..., self.out_dim:]
+        return mean, self.bound_logvar(logvar)
+
+    def bound_logvar(self, logvar: Tensor) -> Tensor:
+        """Soft bounds: lv = max - softplus(max - lv); lv = min + softplus(lv - min)."""
+        logvar = self.max_logvar - F.softplus(self.max_logvar - logvar)
+        return self.min_logvar + F.softplus(logvar - self.min_logvar)
+
+    # ------------------------------------------------------------------ regularisers
+    def weight_decay_loss(self) -> Tensor:
+        """Per-layer L2 penalty of the original PETS: sum_l decay_l * 0.5 * ||W_l||^2 (all members, no biases)."""
+        total = self.weights[0].new_zeros(())
+        for decay, w in zip(self.decays, self.weights):
+            total = total + decay * 0.5 * w.pow(2).sum()
+        return total
+
+    def logvar_bound_penalty(self) -> Tensor:
+        """``sum(max_logvar) - sum(min_logvar)``: the original adds 0.01 times this to the loss."""
+        return self.max_logvar.sum() - self.min_logvar.sum()
+
+    def extra_repr(self) -> str:
+        return (f"in_dim={self.in_dim}, out_dim={self.out_dim}, ensemble_size={self.ensemble_size}, "
+                f"hidden_size={self.hidden_size}, num_layers={self.num_layers}, num_elites={self.num_elites}, "
+                f"learn_logvar_bounds={self.learn_logvar_bounds}")

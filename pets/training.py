@@ -1,0 +1,216 @@
+"""Training of the Gaussian ensemble: bootstrap, holdout early stopping, per-member snapshots, elites.
+
+The dynamics head decides what the network sees and predicts (``head.inputs``, ``head.targets``) and
+how a batch is scored (``head.loss``, per member); the trainer itself is head-agnostic.
+
+One epoch: every member walks through its own shuffled bootstrap resample of the training split;
+each step gathers an (E, B, .) batch from the per-member indices and does one forward/backward for
+all members. After each epoch the holdout MSE of the mean prediction is computed per member; a
+member whose holdout error improved by more than ``improvement_threshold`` (relative) gets its
+weights snapshotted. Training stops after ``patience`` epochs without any member improving; the
+snapshot is restored and the ``num_elites`` members with the lowest holdout error become elites.
+"""
+from __future__ import annotations
+
+import copy
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+from tqdm.auto import tqdm
+
+from pets.ensemble import GaussianEnsemble
+from pets.heads import DynamicsHead
+
+
+@dataclass
+class TrainResult:
+    """Outcome of one ``ModelTrainer.train`` call."""
+
+    train_loss: float  # final epoch's mean training loss (head loss, mean over members and samples)
+    val_loss: float  # holdout MSE of the mean prediction of the selected model, mean over elites (nan: no holdout)
+    epochs: int  # epochs actually run
+
+
+def bootstrap_indices(n: int, ensemble_size: int, generator: torch.Generator) -> Tensor:
+    """Per-member bootstrap resamples: (ensemble_size, n) indices drawn uniformly with replacement from [0, n)."""
+    if n < 1 or ensemble_size < 1:
+        raise ValueError(f"bootstrap needs n >= 1 and ensemble_size >= 1, got n={n}, ensemble_size={ensemble_size}")
+    return torch.randint(n, (ensemble_size, n), generator=generator, device=generator.device)
+
+
+def split_holdout(n: int, holdout_ratio: float, max_holdout: int, generator: torch.Generator) -> tuple[Tensor, Tensor]:
+    """Random (train, holdout) index split: holdout size min(int(n * ratio), max_holdout), empty if that is 0
+    or would leave no training sample."""
+    n_hold = min(int(n * holdout_ratio), max_holdout)
+    if n_hold < 1 or n - n_hold < 1:
+        n_hold = 0
+    perm = torch.randperm(n, generator=generator, device=generator.device)
+    return perm[n_hold:], perm[:n_hold]
+
+
+class ModelTrainer:
+    """Adam training of a :class:`GaussianEnsemble` through a :class:`DynamicsHead`.
+
+    Loss per step: ``head.loss(...).sum()`` (members summed) + ``ensemble.weight_decay_loss()``
+    + ``logvar_bound_coef * (sum max_logvar - sum min_logvar)`` when the bounds are learnt.
+    The optimiser persists across ``train`` calls (one call per PETS trial).
+    """
+
+    def __init__(self, ensemble: GaussianEnsemble, head: DynamicsHead, *, lr: float = 1e-3, batch_size: int = 256,
+                 max_epochs: int = 50, patience: int = 5, holdout_ratio: float = 0.1, max_holdout: int = 5000,
+                 num_elites: int | None = None, logvar_bound_coef: float = 0.01, grad_clip: float | None = None,
+                 improvement_threshold: float = 0.01, eval_batch_size: int = 8192) -> None:
+        if head.input_dim != ensemble.in_dim or head.target_dim != ensemble.out_dim:
+            raise ValueError(f"head {head.name!r} has input_dim {head.input_dim} / target_dim {head.target_dim} but the "
+                             f"ensemble has in_dim {ensemble.in_dim} / out_dim {ensemble.out_dim}")
+        if not (math.isfinite(lr) and lr >= 0):
+            raise ValueError(f"lr must be a finite number >= 0, got {lr}")
+        for name, value, low in (("batch_size", batch_size, 1), ("max_epochs", max_epochs, 0),
+                                 ("patience", patience, 1), ("max_holdout", max_holdout, 0),
+                                 ("eval_batch_size", eval_batch_size, 1)):
+            if not isinstance(value, int) or isinstance(value, bool) or value < low:
+                raise ValueError(f"{name} must be an int >= {low}, got {value!r}")
+        if not 0.0 <= holdout_ratio < 1.0:
+            raise ValueError(f"holdout_ratio must be in [0, 1), got {holdout_ratio}")
+        if num_elites is None:
+            num_elites = ensemble.num_elites
+        if not isinstance(num_elites, int) or not 1 <= num_elites <= ensemble.ensemble_size:
+            raise ValueError(f"num_elites must be an int in [1, {ensemble.ensemble_size}], got {num_elites!r}")
+        if grad_clip is not None and not grad_clip > 0:
+            raise ValueError(f"grad_clip must be None or > 0, got {grad_clip}")
+        if not improvement_threshold >= 0:
+            raise ValueError(f"improvement_threshold must be >= 0, got {improvement_threshold}")
+
+        self.ensemble = ensemble
+        self.head = head
+        self.lr = lr
+        self.batch_size = batch_size
+        self.max_epochs = max_epochs
+        self.patience = patience
+        self.holdout_ratio = holdout_ratio
+        self.max_holdout = max_holdout
+        self.num_elites = num_elites
+        self.logvar_bound_coef = logvar_bound_coef
+        self.grad_clip = grad_clip
+        self.improvement_threshold = improvement_threshold
+        self.eval_batch_size = eval_batch_size
+        self.optimizer = torch.optim.Adam(ensemble.parameters(), lr=lr)
+
+    # ------------------------------------------------------------------ checkpoints
+    def state_dict(self) -> dict:
+        """Optimiser state (the ensemble has its own ``state_dict``)."""
+        return {"optimizer": self.optimizer.state_dict()}
+
+    def load_state_dict(self, d: dict) -> None:
+        """Restore the optimiser state saved by :meth:`state_dict`."""
+        if "optimizer" not in d:
+            raise ValueError(f"trainer state must have an 'optimizer' entry, got keys {sorted(d)}")
+        # Deep copy: torch's Adam would otherwise share the moment tensors with the source optimiser.
+        self.optimizer.load_state_dict(copy.deepcopy(d["optimizer"]))
+
+    # ------------------------------------------------------------------ evaluation
+    @torch.no_grad()
+    def evaluate(self, x: Tensor, y: Tensor) -> Tensor:
+        """Per-member MSE of the mean prediction on (x, y): shape (E,). ``x`` raw inputs (N, in), ``y`` (N, out)."""
+        total = x.new_zeros(self.ensemble.ensemble_size, dtype=torch.float64)
+        for start in range(0, x.shape[0], self.eval_batch_size):
+            mean, _ = self.ensemble(x[start:start + self.eval_batch_size])
+            err = (mean - y[start:start + self.eval_batch_size]).pow(2)
+            total += err.sum(dim=(1, 2)).double()
+        return total / (x.shape[0] * y.shape[1])
+
+    # ------------------------------------------------------------------ training
+    def _check_data(self, obs: Tensor, act: Tensor, next_obs: Tensor) -> None:
+        if obs.dim() != 2 or next_obs.shape != obs.shape or act.dim() != 2 or act.shape[0] != obs.shape[0]:
+            raise ValueError(f"train expects obs (N, obs_dim), act (N, act_dim), next_obs (N, obs_dim); got obs "
+                             f"{tuple(obs.shape)}, act {tuple(act.shape)}, next_obs {tuple(next_obs.shape)}")
+        if obs.shape[0] < 1:
+            raise ValueError("train got an empty data set (N = 0)")
+        for name, t in (("obs", obs), ("act", act), ("next_obs", next_obs)):
+            if not torch.isfinite(t).all():
+                raise ValueError(f"train got non-finite values (nan/inf) in {name}")
+
+    def train(self, obs: Tensor, act: Tensor, next_obs: Tensor, generator: torch.Generator,
+              progress: bool = False) -> TrainResult:
+        """Fit the ensemble on transitions (obs, act, next_obs), each (N, .); all randomness from ``generator``.
+
+        Refits the input normaliser on all inputs, splits off a holdout, trains with per-member bootstraps
+        and early stopping, restores the best per-member weights and sets ``ensemble.elites``.
+        """
+        self._check_data(obs, act, next_obs)
+        ens = self.ensemble
+        ref = ens.weights[0]
+        obs, act, next_obs = (t.to(device=ref.device, dtype=ref.dtype) for t in (obs, act, next_obs))
+        x = self.head.inputs(obs, act)
+        y = self.head.targets(obs, next_obs)
+        if x.shape != (obs.shape[0], ens.in_dim) or y.shape != (obs.shape[0], ens.out_dim):
+            raise ValueError(f"head {self.head.name!r} produced inputs {tuple(x.shape)} / targets {tuple(y.shape)}, "
+                             f"expected (N, {ens.in_dim}) / (N, {ens.out_dim})")
+        ens.fit_normaliser(x)
+
+        n = x.shape[0]
+        train_idx, hold_idx = split_holdout(n, self.holdout_ratio, self.max_holdout, generator)
+        train_idx, hold_idx = train_idx.to(ref.device), hold_idx.to(ref.device)
+        has_holdout = hold_idx.numel() > 0
+        x_tr, y_tr, o_tr, no_tr = (t.index_select(0, train_idx) for t in (x, y, obs, next_obs))
+        x_ho, y_ho = x.index_select(0, hold_idx), y.index_select(0, hold_idx)
+        n_tr = x_tr.shape[0]
+        boot = bootstrap_indices(n_tr, ens.ensemble_size, generator).to(ref.device)  # (E, n_tr)
+
+        params = ens.member_parameters()
+        best = self.evaluate(x_ho, y_ho) if has_holdout else None
+        snapshot = [p.detach().clone() for p in params] if has_holdout else None
+        since_improved = 0
+        epochs = 0
+        train_loss = float("nan")
+        bar = tqdm(range(self.max_epochs), disable=not progress, desc="model", leave=False)
+        for _ in bar:
+            # Per-member shuffle of the member's bootstrap resample (one argsort for all members).
+            order = torch.argsort(torch.rand(ens.ensemble_size, n_tr, generator=generator, device=generator.device),
+                                  dim=1).to(ref.device)
+            epoch_idx = torch.gather(boot, 1, order)
+            loss_sum = x_tr.new_zeros(())
+            for start in range(0, n_tr, self.batch_size):
+                idx = epoch_idx[:, start:start + self.batch_size]  # (E, B)
+                mean, logvar = ens(x_tr[idx])
+                member_loss = self.head.loss(mean, logvar, y_tr[idx], o_tr[idx], no_tr[idx])  # (E,)
+                loss = member_loss.sum() + ens.weight_decay_loss()
+                if ens.learn_logvar_bounds and self.logvar_bound_coef:
+                    loss = loss + self.logvar_bound_coef * ens.logvar_bound_penalty()
+                self.optimizer.zero_grad(set_to_none=True)
+                loss.backward()
+                if self.grad_clip is not None:
+                    torch.nn.utils.clip_grad_norm_(ens.parameters(), self.grad_clip)
+                self.optimizer.step()
+                loss_sum = loss_sum + member_loss.detach().mean() * idx.shape[1]
+            epochs += 1
+            train_loss = float(loss_sum) / n_tr
+
+            if not has_holdout:
+                bar.set_postfix(loss=f"{train_loss:.4g}")
+                continue
+            score = self.evaluate(x_ho, y_ho)
+            improved = (best - score) / best.abs().clamp_min(1e-12) > self.improvement_threshold  # (E,)
+            best = torch.where(improved, score, best)
+            mask = improved.to(ref.device).view(-1, 1, 1)
+            for snap, p in zip(snapshot, params):
+                snap.copy_(torch.where(mask, p.detach(), snap))
+            since_improved = 0 if bool(improved.any()) else since_improved + 1
+            bar.set_postfix(loss=f"{train_loss:.4g}", val=f"{float(best.mean()):.4g}")
+            if since_improved >= self.patience:
+                break
+        bar.close()
+
+        if has_holdout:
+            with torch.no_grad():
+                for snap, p in zip(snapshot, params):
+                    p.copy_(snap)
+            scores = best
+        else:  # no holdout: rank members on their training-split error
+            scores = self.evaluate(x_tr, y_tr)
+        elites = torch.sort(torch.argsort(scores, stable=True)[: self.num_elites]).values
+        ens.set_elites(elites)
+        val_loss = float(scores[elites].mean()) if has_holdout else float("nan")
+        return TrainResult(train_loss=train_loss, val_loss=val_loss, epochs=epochs)

@@ -1,0 +1,217 @@
+"""Tests of the batched Gaussian ensemble (pets/ensemble.py)."""
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from pets.ensemble import GaussianEnsemble
+from pets.heads import gaussian_nll
+
+IN, OUT, E = 5, 3, 4
+
+
+@pytest.fixture(autouse=True)
+def _single_thread():
+    """These models are tiny: one intra-op thread is faster and immune to OpenMP oversubscription
+    when the (2-core) machine is busy. Restored afterwards."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+def make(**kw) -> GaussianEnsemble:
+    torch.manual_seed(0)
+    kw = {"ensemble_size": E, "hidden_size": 32, **kw}
+    return GaussianEnsemble(IN, OUT, **kw)
+
+
+def single_member_reference(ens: GaussianEnsemble, k: int, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Member k evaluated as an ordinary MLP with torch.nn.functional.linear, layer by layer."""
+    h = (x - ens.input_mean) / ens.input_std
+    n = len(ens.weights)
+    for i, (w, b) in enumerate(zip(ens.weights, ens.biases)):
+        h = F.linear(h, w[k].T, b[k, 0])
+        if i < n - 1:
+            h = h * torch.sigmoid(h)
+    mean, lv = h[:, :OUT], h[:, OUT:]
+    lv = ens.max_logvar - F.softplus(ens.max_logvar - lv)
+    lv = ens.min_logvar + F.softplus(lv - ens.min_logvar)
+    return mean, lv
+
+
+def test_architecture_and_init() -> None:
+    ens = GaussianEnsemble(IN, OUT)  # defaults: 7 members, 4 hidden layers of 200
+    shapes = [tuple(w.shape) for w in ens.weights]
+    assert shapes == [(7, IN, 200), (7, 200, 200), (7, 200, 200), (7, 200, 200), (7, 200, 2 * OUT)]
+    assert ens.decays == [2.5e-5, 5e-5, 7.5e-5, 7.5e-5, 1e-4]
+    assert all(torch.count_nonzero(b) == 0 for b in ens.biases)
+    w = ens.weights[1]
+    std = 1 / (2 * math.sqrt(200))
+    assert w.abs().max() <= 2 * std + 1e-7  # truncated at two standard deviations
+    assert 0.75 * std < w.std() < 0.95 * std  # a normal truncated at +-2 sigma has std 0.88 sigma
+    assert torch.equal(ens.elites, torch.arange(7))
+    assert torch.allclose(ens.max_logvar, torch.full((OUT,), 0.5))
+    assert torch.allclose(ens.min_logvar, torch.full((OUT,), -10.0))
+
+
+def test_output_shapes_shared_stacked_and_members() -> None:
+    ens = make()
+    x2 = torch.randn(9, IN)
+    mean, lv = ens(x2)
+    assert mean.shape == lv.shape == (E, 9, OUT)
+    x3 = torch.randn(E, 9, IN)
+    mean3, lv3 = ens(x3)
+    assert mean3.shape == lv3.shape == (E, 9, OUT)
+    # Shared inputs are the same as the stacked copy.
+    m_rep, lv_rep = ens(x2.expand(E, 9, IN).contiguous())
+    torch.testing.assert_close(mean, m_rep)
+    torch.testing.assert_close(lv, lv_rep)
+    # A subset of members, with shared and with per-member inputs, equals the full result indexed.
+    members = torch.tensor([3, 1])
+    ms, lvs = ens(x2, members)
+    assert ms.shape == (2, 9, OUT)
+    torch.testing.assert_close(ms, mean[members])
+    torch.testing.assert_close(lvs, lv[members])
+    ms3, lvs3 = ens(x3[members], members)
+    torch.testing.assert_close(ms3, mean3[members])
+    torch.testing.assert_close(lvs3, lv3[members])
+    # Each member equals a plain per-member MLP.
+    for k in range(E):
+        rm, rlv = single_member_reference(ens, k, x3[k])
+        torch.testing.assert_close(mean3[k], rm, rtol=1e-5, atol=1e-6)
+        torch.testing.assert_close(lv3[k], rlv, rtol=1e-5, atol=1e-6)
+
+
+def test_bad_inputs_raise() -> None:
+    ens = make()
+    with pytest.raises(ValueError, match="inputs must be"):
+        ens(torch.randn(9, IN + 1))
+    with pytest.raises(ValueError, match="inputs must be"):
+        ens(torch.randn(E + 1, 9, IN))
+    with pytest.raises(ValueError, match="inputs must be"):
+        ens(torch.randn(E, 9, IN), torch.tensor([0, 1]))
+    with pytest.raises(ValueError, match="members"):
+        ens(torch.randn(9, IN), torch.tensor([[0, 1]]))
+    with pytest.raises(ValueError, match="fit_normaliser"):
+        ens.fit_normaliser(torch.randn(9, IN, 1))
+    with pytest.raises(ValueError, match="num_elites"):
+        GaussianEnsemble(IN, OUT, ensemble_size=3, num_elites=4)
+    with pytest.raises(ValueError, match="min_logvar"):
+        GaussianEnsemble(IN, OUT, min_logvar=1.0, max_logvar=0.5)
+
+
+def test_members_are_independent() -> None:
+    ens = make()
+    x = torch.randn(E, 16, IN)
+    mean0, lv0 = ens(x)
+    with torch.no_grad():
+        for w in ens.weights:
+            w[2] += 0.3 * torch.randn_like(w[2])
+    mean1, lv1 = ens(x)
+    others = [0, 1, 3]
+    assert torch.equal(mean1[others], mean0[others])
+    assert torch.equal(lv1[others], lv0[others])
+    assert (mean1[2] - mean0[2]).abs().max() > 1e-3
+
+
+@pytest.mark.parametrize("learn", [True, False])
+def test_logvar_soft_bounds(learn: bool) -> None:
+    ens = make(learn_logvar_bounds=learn)
+    assert isinstance(ens.max_logvar, torch.nn.Parameter) == learn
+    with torch.no_grad():
+        ens.biases[-1][..., OUT:] = 0.0
+        ens.weights[-1][..., OUT:] *= 1e4  # raw log-variances far outside the bounds, both signs
+    x = torch.randn(E, 256, IN) * 1e3
+    _, lv = ens(x)
+    assert torch.isfinite(lv).all()
+    raw = torch.cat([torch.full((1,), 1e6), torch.full((1,), -1e6), torch.linspace(-30, 30, 101)])
+    bounded = ens.bound_logvar(raw[:, None].expand(-1, OUT))
+    for out in (lv, bounded):
+        # The double softplus exceeds max by softplus(-(max - min)) = 2.8e-5 at most.
+        assert out.max() <= 0.5 + 3e-5
+        assert out.min() >= -10.0
+    assert lv.max() > 0.4 and lv.min() < -9.9  # the extremes really reach both bounds
+    # Inside the bounds the map is close to the identity.
+    mid = ens.bound_logvar(torch.full((OUT,), -4.0))
+    torch.testing.assert_close(mid, torch.full((OUT,), -4.0), atol=0.02, rtol=0)
+
+
+def test_normaliser_mean_std_constant_column_and_state_dict() -> None:
+    ens = make()
+    x = torch.randn(500, IN) * torch.tensor([1.0, 10.0, 0.1, 1.0, 1.0]) + torch.tensor([0.0, 5.0, -3.0, 2.0, 0.0])
+    x[:, 3] = 2.0  # constant column
+    x[:, 4] = 1e-7 * torch.randn(500)  # essentially constant column
+    ens.fit_normaliser(x)
+    torch.testing.assert_close(ens.input_mean, x.mean(0), atol=1e-5, rtol=1e-5)
+    expected_std = x.double().std(0, correction=0).float()
+    torch.testing.assert_close(ens.input_std[:3], expected_std[:3], rtol=1e-5, atol=0)
+    assert ens.input_std[3] == 1.0 and ens.input_std[4] == 1.0
+    z = ens.normalise(x)
+    assert torch.isfinite(z).all()
+    torch.testing.assert_close(z[:, :3].mean(0), torch.zeros(3), atol=1e-4, rtol=0)
+    torch.testing.assert_close(z[:, :3].std(0, correction=0), torch.ones(3), atol=1e-4, rtol=0)
+    assert torch.all(z[:, 3] == 0)
+    mean, lv = ens(x)
+    assert torch.isfinite(mean).all() and torch.isfinite(lv).all()
+    # A single sample: std 0 everywhere -> 1, no nan.
+    ens1 = make()
+    ens1.fit_normaliser(x[:1])
+    assert torch.all(ens1.input_std == 1.0)
+    with pytest.raises(ValueError, match="non-finite"):
+        ens1.fit_normaliser(torch.full((3, IN), float("nan")))
+
+    # The normaliser and the elites travel with the state dict (elites of another length included).
+    ens.set_elites(torch.tensor([2, 0]))
+    sd = ens.state_dict()
+    assert {"input_mean", "input_std", "elites", "max_logvar", "min_logvar"} <= set(sd)
+    fresh = GaussianEnsemble(IN, OUT, ensemble_size=E, hidden_size=32)
+    fresh.load_state_dict(sd)
+    assert torch.equal(fresh.elites, torch.tensor([2, 0]))
+    torch.testing.assert_close(fresh(x)[0], mean)
+    with pytest.raises(ValueError, match="elites"):
+        ens.set_elites(torch.tensor([0, E]))
+
+
+def test_nll_matches_torch_gaussian_nll_loss() -> None:
+    ens = make()
+    x = torch.randn(E, 64, IN)
+    target = torch.randn(E, 64, OUT)
+    mean, lv = ens(x)
+    ours = gaussian_nll(mean, lv, target)  # (E,), no constant
+    ref = F.gaussian_nll_loss(mean, target, lv.exp(), full=False, reduction="none", eps=1e-12)
+    torch.testing.assert_close(ours, ref.flatten(1).mean(1), rtol=1e-5, atol=1e-6)
+    # Hand formula on a known case: mean 0, var e^1 = e, target 1 -> 0.5 * (1/e + 1).
+    one = gaussian_nll(torch.zeros(1, 1, 1), torch.ones(1, 1, 1), torch.ones(1, 1, 1))
+    torch.testing.assert_close(one, torch.tensor([0.5 * (math.exp(-1) + 1)]))
+
+
+def test_gradients_flow_to_all_parameters() -> None:
+    ens = make()
+    x = torch.randn(E, 32, IN)
+    mean, lv = ens(x)
+    loss = gaussian_nll(mean, lv, torch.randn(E, 32, OUT)).sum() + ens.weight_decay_loss() \
+        + 0.01 * ens.logvar_bound_penalty()
+    loss.backward()
+    for name, p in ens.named_parameters():
+        assert p.grad is not None, name
+        assert torch.isfinite(p.grad).all(), name
+        assert p.grad.abs().sum() > 0, name
+    # Member-wise: member 1's loss reaches only member 1's weights.
+    ens.zero_grad()
+    mean, lv = ens(x)
+    gaussian_nll(mean, lv, torch.zeros(E, 32, OUT))[1].backward()
+    for w in ens.weights:
+        assert w.grad[1].abs().sum() > 0
+        assert torch.count_nonzero(w.grad[[0, 2, 3]]) == 0
+
+
+def test_weight_decay_loss_formula() -> None:
+    ens = make()
+    expected = sum(d * 0.5 * (w.detach() ** 2).sum() for d, w in zip([2.5e-5, 5e-5, 7.5e-5, 7.5e-5, 1e-4], ens.weights))
+    torch.testing.assert_close(ens.weight_decay_loss().detach(), expected)
+    small = GaussianEnsemble(IN, OUT, ensemble_size=2, hidden_size=8, num_layers=1)
+    assert small.decays == [2.5e-5, 1e-4]

@@ -1,0 +1,245 @@
+"""Tests of the ensemble trainer (pets/training.py)."""
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from torch import Tensor
+
+from envs.layout import ObsLayout
+from pets.ensemble import GaussianEnsemble
+from pets.heads import DeltaHead, DynamicsHead
+from pets.training import ModelTrainer, TrainResult, bootstrap_indices, split_holdout
+
+LAYOUT_1D = ObsLayout(obs_dim=1, groups=(), velocities=(0,))
+
+
+@pytest.fixture(autouse=True)
+def _single_thread():
+    """These models are tiny: one intra-op thread is faster and immune to OpenMP oversubscription
+    when the (2-core) machine is busy. Restored afterwards."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+class IdentityHead(DynamicsHead):
+    """Tiny head: input = obs, target = next_obs; optionally records what each member is trained on."""
+
+    name = "identity"
+
+    def __init__(self, record: bool = False, target_shift: float = 0.0) -> None:
+        super().__init__(LAYOUT_1D, 0)
+        self.input_dim = 1
+        self.target_dim = 1
+        self.record = record
+        self.target_shift = target_shift
+        self.seen: list[Tensor] = []
+
+    def inputs(self, obs: Tensor, act: Tensor) -> Tensor:
+        return obs
+
+    def targets(self, obs: Tensor, next_obs: Tensor) -> Tensor:
+        return next_obs
+
+    def next_obs(self, obs: Tensor, target: Tensor) -> Tensor:
+        return target
+
+    def loss(self, mean: Tensor, logvar: Tensor, target: Tensor, obs: Tensor, next_obs: Tensor) -> Tensor:
+        if self.record:
+            self.seen.append(obs[..., 0].detach().clone())  # (E, B)
+        if self.target_shift:  # adversarial: pull the mean away from the true target
+            return (mean - target - self.target_shift).pow(2).flatten(1).mean(1)
+        return super().loss(mean, logvar, target, obs, next_obs)
+
+
+def small_ensemble(seed: int = 0, ensemble_size: int = 5, hidden: int = 32, layers: int = 2, **kw) -> GaussianEnsemble:
+    torch.manual_seed(seed)
+    return GaussianEnsemble(1, 1, ensemble_size=ensemble_size, hidden_size=hidden, num_layers=layers, **kw)
+
+
+def sine_data(n: int, seed: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """x ~ U(-3, 3); y = sin(x) + sigma(x) * eps with sigma(x) = 0.05 + 0.25 * (x + 3) / 6."""
+    g = torch.Generator().manual_seed(seed)
+    x = torch.rand(n, 1, generator=g) * 6 - 3
+    sigma = 0.05 + 0.25 * (x + 3) / 6
+    y = torch.sin(x) + sigma * torch.randn(n, 1, generator=g)
+    return x, torch.zeros(n, 0), y, sigma
+
+
+def test_bootstrap_indices_with_replacement_and_distinct_per_member() -> None:
+    g = torch.Generator().manual_seed(3)
+    idx = bootstrap_indices(2000, 7, g)
+    assert idx.shape == (7, 2000) and idx.dtype == torch.long
+    assert idx.min() >= 0 and idx.max() < 2000
+    unique_frac = torch.tensor([row.unique().numel() / 2000 for row in idx])
+    # With replacement: about 1 - 1/e = 63.2% distinct indices per resample.
+    assert torch.all((unique_frac > 0.60) & (unique_frac < 0.66))
+    for a in range(7):
+        for b in range(a + 1, 7):
+            assert not torch.equal(idx[a], idx[b])
+    assert torch.equal(idx, bootstrap_indices(2000, 7, torch.Generator().manual_seed(3)))
+
+
+def test_split_holdout_sizes() -> None:
+    g = torch.Generator().manual_seed(0)
+    tr, ho = split_holdout(1000, 0.1, 5000, g)
+    assert ho.numel() == 100 and tr.numel() == 900
+    assert torch.equal(torch.sort(torch.cat([tr, ho])).values, torch.arange(1000))
+    assert split_holdout(100_000, 0.1, 5000, g)[1].numel() == 5000  # capped
+    assert split_holdout(9, 0.1, 5000, g)[1].numel() == 0  # too few samples: no holdout
+    assert split_holdout(1, 0.9, 5000, g)[1].numel() == 0  # would leave no training sample
+
+
+def test_trainer_feeds_each_member_its_own_bootstrap_of_the_train_split() -> None:
+    n = 200
+    obs = torch.arange(n, dtype=torch.float32)[:, None]
+    head = IdentityHead(record=True)
+    ens = small_ensemble(ensemble_size=4)
+    trainer = ModelTrainer(ens, head, batch_size=32, max_epochs=2, patience=5, holdout_ratio=0.1)
+    trainer.train(obs, torch.zeros(n, 0), obs.clone(), torch.Generator().manual_seed(1))
+    batches_per_epoch = math.ceil(180 / 32)
+    assert len(head.seen) == 2 * batches_per_epoch
+    epoch1 = torch.cat(head.seen[:batches_per_epoch], dim=1).long()  # (E, 180)
+    epoch2 = torch.cat(head.seen[batches_per_epoch:], dim=1).long()
+    assert epoch1.shape == (4, 180)
+    train_ids = torch.unique(epoch1)
+    assert train_ids.numel() <= 180  # the 20 holdout samples are never trained on
+    counts = torch.stack([torch.bincount(row, minlength=n) for row in epoch1])  # (E, n)
+    assert torch.all(counts.max(dim=1).values >= 2)  # drawn with replacement
+    assert all(not torch.equal(counts[a], counts[b]) for a in range(4) for b in range(a + 1, 4))
+    # The same resample every epoch, in a new order.
+    counts2 = torch.stack([torch.bincount(row, minlength=n) for row in epoch2])
+    assert torch.equal(counts, counts2)
+    assert not torch.equal(epoch1, epoch2)
+
+
+def _train_once(seed: int, gen_seed: int) -> tuple[TrainResult, dict]:
+    x, act, y, _ = sine_data(300, seed=0)
+    ens = small_ensemble(seed=seed, num_elites=3)
+    trainer = ModelTrainer(ens, DeltaHead(LAYOUT_1D, 0), batch_size=32, max_epochs=4, patience=2)
+    result = trainer.train(x, act, x + y, torch.Generator().manual_seed(gen_seed))
+    return result, ens.state_dict()
+
+
+def test_reproducible_with_same_generator_seed() -> None:
+    r1, s1 = _train_once(0, 7)
+    r2, s2 = _train_once(0, 7)
+    assert r1 == r2
+    assert s1.keys() == s2.keys()
+    for k in s1:
+        assert torch.equal(s1[k], s2[k]), k
+    r3, s3 = _train_once(0, 8)
+    assert r3.train_loss != r1.train_loss
+    assert not torch.equal(s3["weights.0"], s1["weights.0"])
+
+
+def test_early_stopping_with_no_progress_stops_after_patience() -> None:
+    x, act, y, _ = sine_data(200, seed=1)
+    ens = small_ensemble()
+    trainer = ModelTrainer(ens, DeltaHead(LAYOUT_1D, 0), lr=0.0, batch_size=64, max_epochs=50, patience=3)
+    result = trainer.train(x, act, x + y, torch.Generator().manual_seed(0))
+    assert result.epochs == 3
+
+
+def test_early_stopping_restores_best_weights_when_validation_gets_worse() -> None:
+    # The adversarial head trains every member towards target + 5, so the holdout error only grows:
+    # training must stop after `patience` epochs and hand back the untouched initial weights.
+    n = 300
+    obs = torch.rand(n, 1) * 2 - 1
+    ens = small_ensemble()
+    initial = [p.detach().clone() for p in ens.member_parameters()]
+    trainer = ModelTrainer(ens, IdentityHead(target_shift=5.0), lr=1e-2, batch_size=32, max_epochs=50, patience=4)
+    result = trainer.train(obs, torch.zeros(n, 0), torch.zeros(n, 1), torch.Generator().manual_seed(0))
+    assert result.epochs == 4
+    for before, after in zip(initial, ens.member_parameters()):
+        assert torch.equal(before, after)
+    with torch.no_grad():
+        mean, _ = ens(obs)
+    assert mean.abs().max() < 2.0  # nowhere near the adversarial target 5
+
+
+def test_elites_are_lowest_holdout_error_members() -> None:
+    # Constant predictors (zero output weights, mean bias b_k) against target 0: holdout MSE_k = b_k^2.
+    n = 400
+    obs = torch.randn(n, 1)
+    ens = small_ensemble(ensemble_size=7)
+    offsets = torch.tensor([3.0, 0.1, 2.0, 0.0, 5.0, -0.2, 1.0])
+    with torch.no_grad():
+        ens.weights[-1].zero_()
+        ens.biases[-1][:, 0, 0] = offsets
+    trainer = ModelTrainer(ens, IdentityHead(), lr=0.0, max_epochs=2, patience=1, num_elites=3)
+    result = trainer.train(obs, torch.zeros(n, 0), torch.zeros(n, 1), torch.Generator().manual_seed(0))
+    assert ens.elites.tolist() == [1, 3, 5]
+    assert result.val_loss == pytest.approx((0.1 ** 2 + 0.0 + 0.2 ** 2) / 3, rel=1e-5)
+    # Without a holdout the elites come from the training error: the same ranking here.
+    ens.set_elites(torch.arange(7))
+    trainer2 = ModelTrainer(ens, IdentityHead(), lr=0.0, max_epochs=2, patience=1, num_elites=2, holdout_ratio=0.0)
+    result2 = trainer2.train(obs, torch.zeros(n, 0), torch.zeros(n, 1), torch.Generator().manual_seed(0))
+    assert ens.elites.tolist() == [1, 3]
+    assert math.isnan(result2.val_loss) and result2.epochs == 2
+
+
+def test_fits_heteroscedastic_sine_with_delta_head() -> None:
+    x, act, y, _ = sine_data(1200, seed=2)
+    obs, next_obs = x, x + y  # delta target = next_obs - obs = y
+    ens = small_ensemble(seed=1, ensemble_size=4, hidden=64, layers=3, num_elites=3)
+    trainer = ModelTrainer(ens, DeltaHead(LAYOUT_1D, 0), batch_size=64, max_epochs=60, patience=8)
+    result = trainer.train(obs, act, next_obs, torch.Generator().manual_seed(0), progress=True)
+    assert result.epochs > trainer.patience  # it did learn for a while
+    assert ens.elites.numel() == 3
+    grid = torch.linspace(-2.8, 2.8, 57)[:, None]
+    with torch.no_grad():
+        mean, logvar = ens(grid, ens.elites)
+    mean = mean.mean(0)[:, 0]
+    std = logvar.mean(0)[:, 0].mul(0.5).exp()
+    true_std = (0.05 + 0.25 * (grid[:, 0] + 3) / 6)
+    assert (mean - torch.sin(grid[:, 0])).abs().max() < 0.15
+    assert (mean - torch.sin(grid[:, 0])).abs().mean() < 0.05
+    ratio = std / true_std
+    assert ratio.min() > 0.5 and ratio.max() < 2.0  # the learned noise level tracks sigma(x) roughly
+    assert std[-5:].mean() > 2.5 * std[:5].mean()  # and grows with x like the true noise (x4 end to end)
+    # The holdout MSE of the mean is about the average noise variance (~0.033) plus a small fit error.
+    assert 0.015 < result.val_loss < 0.06
+    assert result.train_loss < -0.8  # NLL/2 without the constant: about mean(log sigma) + 0.5 = -1.3 at best
+
+
+def test_optimizer_checkpoint_roundtrip_continues_identically() -> None:
+    x, act, y, _ = sine_data(300, seed=3)
+    head = DeltaHead(LAYOUT_1D, 0)
+    ens_a = small_ensemble(seed=4)
+    trainer_a = ModelTrainer(ens_a, head, batch_size=32, max_epochs=2, patience=5)
+    trainer_a.train(x, act, x + y, torch.Generator().manual_seed(0))
+    ens_b = small_ensemble(seed=99)
+    trainer_b = ModelTrainer(ens_b, head, batch_size=32, max_epochs=2, patience=5)
+    ens_b.load_state_dict(ens_a.state_dict())
+    trainer_b.load_state_dict(trainer_a.state_dict())
+    ra = trainer_a.train(x, act, x + y, torch.Generator().manual_seed(1))
+    rb = trainer_b.train(x, act, x + y, torch.Generator().manual_seed(1))
+    assert ra == rb
+    for (k, pa), pb in zip(ens_a.state_dict().items(), ens_b.state_dict().values()):
+        assert torch.equal(pa, pb), k
+    with pytest.raises(ValueError, match="optimizer"):
+        trainer_b.load_state_dict({})
+
+
+def test_bad_arguments_raise() -> None:
+    ens = small_ensemble()
+    head = DeltaHead(ObsLayout(obs_dim=2, groups=(), velocities=(0, 1)), 1)  # input_dim 3, target_dim 2
+    with pytest.raises(ValueError, match="input_dim"):
+        ModelTrainer(ens, head)
+    ok_head = DeltaHead(LAYOUT_1D, 0)
+    with pytest.raises(ValueError, match="num_elites"):
+        ModelTrainer(ens, ok_head, num_elites=6)
+    with pytest.raises(ValueError, match="holdout_ratio"):
+        ModelTrainer(ens, ok_head, holdout_ratio=1.0)
+    with pytest.raises(ValueError, match="patience"):
+        ModelTrainer(ens, ok_head, patience=0)
+    trainer = ModelTrainer(ens, ok_head)
+    g = torch.Generator().manual_seed(0)
+    with pytest.raises(ValueError, match="obs"):
+        trainer.train(torch.zeros(10, 1), torch.zeros(9, 0), torch.zeros(10, 1), g)
+    with pytest.raises(ValueError, match="non-finite"):
+        trainer.train(torch.full((10, 1), float("nan")), torch.zeros(10, 0), torch.zeros(10, 1), g)
