@@ -1,0 +1,234 @@
+"""Trajectory sampling through a probabilistic ensemble (PETS, Chua et al. 2018).
+
+A :class:`TrajectoryEvaluator` scores N candidate action sequences from one start
+observation: each candidate is rolled out as P particles through the learned model,
+rewards are summed over the horizon and averaged over the particles.
+
+Propagation modes (``PROPAGATIONS``):
+
+- ``ts1``: every particle re-draws its ensemble member at every step. As in PETS this is
+  done with a fresh random permutation of all rows per step, so that every member gets
+  the same number of rows (each row's member is uniform over the members).
+- ``tsinf``: every particle keeps one member for the whole horizon. Particle ``p`` of
+  candidate ``n`` uses member ``(n * P + p) % M``: the particles of one candidate cycle
+  through the members (exactly ``P / M`` particles per member when ``M`` divides ``P``).
+  The assignment is deterministic; candidates are i.i.d. samples of the planner, so a
+  candidate's index carries no information and this adds no bias between candidates.
+- ``expectation``: no sampling; the next target is the mean over the members' predicted
+  means (taken in target space, before ``head.next_obs``). All particles would be
+  identical, so each candidate is rolled out once.
+
+Sampling: ``target = mean + exp(0.5 * logvar) * eps`` with ``eps ~ N(0, I)`` drawn from the
+given generator, then ``next_obs = head.next_obs(obs, target)``.
+
+Vectorised layout: the rows (N * P, padded up to a multiple of M with dummy rows that are
+dropped at the end) are arranged member-major, so the ensemble gets one ``(M, B / M, in)``
+input per step (one batched GEMM per layer). For ``tsinf`` the layout is fixed for the whole
+rollout (no gather per step); for ``ts1`` rows are gathered into a fresh random permutation
+before the model and scattered back after. The only Python loop is over the horizon and
+there is no host synchronisation inside it.
+
+Terminations and the non-finite guard: ``terminated_fn(obs, act, next_obs)`` marks a row
+done; the reward of the terminating transition counts, later rewards are zero and the state
+is frozen (a terminated state is absorbing). A transition whose predicted next state or
+reward is not finite (NaN/inf, e.g. a diverging model) is treated as a termination whose
+reward is ``nonfinite_reward`` (default -1e6) instead of the (non-finite) reward, so the
+planner always gets finite returns that rank such candidates at the bottom.
+"""
+from __future__ import annotations
+
+from typing import Callable
+
+import torch
+from torch import Tensor
+
+from pets.heads import DynamicsHead
+
+PROPAGATIONS = ("ts1", "tsinf", "expectation")
+
+#: ``fn(obs, act, next_obs) -> (...,)`` batched torch reward / termination function.
+TransitionFn = Callable[[Tensor, Tensor, Tensor], Tensor]
+
+
+class TrajectoryEvaluator:
+    """Scores action sequences by trajectory sampling through a Gaussian ensemble.
+
+    ensemble: ``forward(x, members=None) -> (mean, logvar)``, each ``(M, B, target_dim)``, for
+      ``x`` of shape ``(M, B, input_dim)`` or ``(B, input_dim)`` (shared by the members);
+      ``ensemble.elites`` (long tensor) lists the elite members, ``ensemble.ensemble_size`` all.
+    head: maps ``(obs, act)`` to model inputs and ``(obs, target)`` to the next observation.
+    reward_fn, terminated_fn: batched ``(obs, act, next_obs) -> (...,)``; ``terminated_fn``
+      may be ``None`` (never terminates).
+    particles: particles per candidate (P).
+    propagation: one of ``PROPAGATIONS``.
+    use_elites: propagate through the elite members only (else through all members).
+    nonfinite_reward: reward given to a transition into a non-finite state (then terminated).
+    """
+
+    def __init__(self, ensemble: torch.nn.Module, head: DynamicsHead, reward_fn: TransitionFn,
+                 terminated_fn: TransitionFn | None, *, particles: int = 20, propagation: str = "tsinf",
+                 use_elites: bool = True, nonfinite_reward: float = -1e6) -> None:
+        if propagation not in PROPAGATIONS:
+            raise ValueError(f"unknown propagation {propagation!r}; accepted: {PROPAGATIONS}")
+        if isinstance(particles, bool) or not isinstance(particles, int) or particles < 1:
+            raise ValueError(f"particles must be a positive int, got {particles!r}")
+        if not callable(reward_fn):
+            raise ValueError("reward_fn must be callable as reward_fn(obs, act, next_obs)")
+        if terminated_fn is not None and not callable(terminated_fn):
+            raise ValueError("terminated_fn must be None or callable as terminated_fn(obs, act, next_obs)")
+        self.ensemble = ensemble
+        self.head = head
+        self.reward_fn = reward_fn
+        self.terminated_fn = terminated_fn
+        self.particles = particles
+        self.propagation = propagation
+        self.use_elites = use_elites
+        self.nonfinite_reward = float(nonfinite_reward)
+
+    # ------------------------------------------------------------------ helpers
+    def members(self, device: torch.device) -> Tensor | None:
+        """Member indices propagated through (``None``: all members, in order).
+
+        The elites when ``use_elites`` and the ensemble has a non-empty ``elites`` buffer.
+        """
+        if not self.use_elites:
+            return None
+        elites = getattr(self.ensemble, "elites", None)
+        if elites is None or elites.numel() == 0:
+            return None
+        return elites.to(device=device, dtype=torch.long)
+
+    def _num_members(self, members: Tensor | None) -> int:
+        return int(self.ensemble.ensemble_size) if members is None else members.numel()
+
+    def _check(self, obs0: Tensor, actions: Tensor, generator: torch.Generator | None) -> tuple[Tensor, Tensor]:
+        if not isinstance(actions, Tensor) or actions.dim() != 3:
+            shape = tuple(actions.shape) if isinstance(actions, Tensor) else type(actions).__name__
+            raise ValueError(f"actions must be a tensor of shape (N, H, act_dim), got {shape}")
+        if actions.shape[0] < 1 or actions.shape[1] < 1:
+            raise ValueError(f"actions must have N >= 1 candidates and H >= 1 steps, got shape {tuple(actions.shape)}")
+        act_dim = getattr(self.head, "act_dim", actions.shape[2])
+        if actions.shape[2] != act_dim:
+            raise ValueError(f"actions have act_dim {actions.shape[2]}, the head expects {act_dim}")
+        if not actions.is_floating_point():
+            actions = actions.float()
+        obs0 = torch.as_tensor(obs0, device=actions.device, dtype=actions.dtype)
+        obs_dim = getattr(self.head, "obs_dim", obs0.shape[-1] if obs0.dim() else 0)
+        if obs0.shape != (obs_dim,):
+            raise ValueError(f"obs0 must have shape ({obs_dim},), got {tuple(obs0.shape)}")
+        if generator is not None and generator.device.type != actions.device.type:
+            raise ValueError(f"generator is on {generator.device}, the actions on {actions.device}: "
+                             "pass a generator created on the actions' device")
+        return obs0, actions
+
+    # ------------------------------------------------------------------ core
+    def _run(self, obs0: Tensor, actions: Tensor, generator: torch.Generator | None,
+             record: bool) -> tuple[Tensor, Tensor | None, Tensor | None, int]:
+        """Roll out all rows. Returns (per-row return in natural order (R,), obs trace, reward trace, P_eff).
+
+        Natural order: row ``n * P_eff + p`` is particle ``p`` of candidate ``n``.
+        Traces (when ``record``) are ``(R, H + 1, obs_dim)`` and ``(R, H)`` in natural order.
+        """
+        device, dtype = actions.device, actions.dtype
+        n_cand, horizon, _ = actions.shape
+        members = self.members(device)
+        m = self._num_members(members)
+        mode = self.propagation
+        p_eff = 1 if mode == "expectation" else self.particles
+        rows = n_cand * p_eff
+        per_member = -(-rows // m)  # rows of each member block (ts modes)
+        b = rows if mode == "expectation" else per_member * m
+
+        # Flat row index -> candidate, and natural row -> flat row.
+        if mode == "tsinf":
+            # Flat (slot) s = k * per_member + j holds virtual row r = j * m + k, which uses member k.
+            slot = torch.arange(b, device=device)
+            virtual = (slot % per_member) * m + slot // per_member
+            cand = torch.clamp(virtual // p_eff, max=n_cand - 1)
+            natural = torch.arange(rows, device=device)
+            nat_to_flat = (natural % m) * per_member + natural // m
+        else:
+            flat = torch.arange(b, device=device)
+            cand = torch.clamp(flat // p_eff, max=n_cand - 1)  # padded rows replay candidate N-1
+            nat_to_flat = None
+        act_rows = actions.index_select(0, cand)  # (b, H, A)
+
+        obs = obs0.expand(b, -1).clone()
+        done = torch.zeros(b, dtype=torch.bool, device=device)
+        total = torch.zeros(b, dtype=dtype, device=device)
+        penalty = torch.tensor(self.nonfinite_reward, dtype=dtype, device=device)
+        zero = torch.zeros((), dtype=dtype, device=device)
+        obs_trace = [obs] if record else None
+        rew_trace: list[Tensor] | None = [] if record else None
+        arange_b = torch.arange(b, device=device) if mode == "ts1" else None
+
+        for t in range(horizon):
+            act = act_rows[:, t]
+            inp = self.head.inputs(obs, act)  # (b, in)
+            if mode == "expectation":
+                mean, _ = self.ensemble(inp, members)  # (M, b, out), input shared by the members
+                target = mean.mean(dim=0)
+            else:
+                if mode == "ts1":
+                    perm = torch.randperm(b, generator=generator, device=device)
+                    inv = torch.empty_like(perm).scatter_(0, perm, arange_b)
+                    inp = inp.index_select(0, perm)
+                mean, logvar = self.ensemble(inp.reshape(m, per_member, -1), members)
+                noise = torch.randn(mean.shape, generator=generator, device=device, dtype=mean.dtype)
+                target = (mean + torch.exp(0.5 * logvar) * noise).reshape(b, -1)
+                if mode == "ts1":
+                    target = target.index_select(0, inv)
+            nxt = self.head.next_obs(obs, target.to(dtype))
+            reward = self.reward_fn(obs, act, nxt).to(dtype)
+            bad = ~(torch.isfinite(nxt).all(dim=-1) & torch.isfinite(reward))
+            step_reward = torch.where(done, zero, torch.where(bad, penalty, reward))
+            stop = done | bad
+            if self.terminated_fn is not None:
+                stop = stop | self.terminated_fn(obs, act, nxt).to(torch.bool)
+            nxt = torch.where((done | bad).unsqueeze(-1), obs, nxt)
+            total = total + step_reward
+            done = stop
+            obs = nxt
+            if record:
+                obs_trace.append(obs)
+                rew_trace.append(step_reward)
+
+        obs_all = torch.stack(obs_trace, dim=1) if record else None
+        rew_all = torch.stack(rew_trace, dim=1) if record else None
+        if nat_to_flat is not None:
+            total = total.index_select(0, nat_to_flat)
+            if record:
+                obs_all = obs_all.index_select(0, nat_to_flat)
+                rew_all = rew_all.index_select(0, nat_to_flat)
+        else:
+            total = total[:rows]
+            if record:
+                obs_all, rew_all = obs_all[:rows], rew_all[:rows]
+        return total, obs_all, rew_all, p_eff
+
+    @torch.no_grad()
+    def __call__(self, obs0: Tensor, actions: Tensor, generator: torch.Generator | None = None) -> Tensor:
+        """Mean over particles of the summed horizon rewards, shape (N,), for actions (N, H, act_dim).
+
+        Always finite for finite rewards of finite states (see the module docstring).
+        """
+        obs0, actions = self._check(obs0, actions, generator)
+        total, _, _, p_eff = self._run(obs0, actions, generator, record=False)
+        return total.view(actions.shape[0], p_eff).mean(dim=1)
+
+    @torch.no_grad()
+    def rollout(self, obs0: Tensor, actions: Tensor, generator: torch.Generator | None = None) -> tuple[Tensor, Tensor]:
+        """Particle trajectories for tests and diagnostics.
+
+        Returns observations (N, P, H + 1, obs_dim) (index 0 is ``obs0``; frozen after a termination)
+        and the rewards that count towards the return, (N, P, H) (zero after a termination,
+        ``nonfinite_reward`` on a transition into a non-finite state), so that
+        ``rewards.sum(-1).mean(-1)`` equals ``self(obs0, actions)`` for the same generator state.
+        For ``expectation`` the single rollout per candidate is repeated over the P particles.
+        """
+        obs0, actions = self._check(obs0, actions, generator)
+        n, h = actions.shape[:2]
+        _, obs_all, rew_all, p_eff = self._run(obs0, actions, generator, record=True)
+        obs_all = obs_all.view(n, p_eff, h + 1, -1).expand(n, self.particles, h + 1, obs_all.shape[-1])
+        rew_all = rew_all.view(n, p_eff, h).expand(n, self.particles, h)
+        return obs_all.contiguous(), rew_all.contiguous()
