@@ -1,0 +1,53 @@
+"""The MPC agent: plan with CEM through the learned model, execute, shift the plan, replan."""
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from pets.planners import CEMPlanner, shift_plan
+from pets.propagation import TrajectoryEvaluator
+
+
+class MPCAgent:
+    """Model-predictive control over a planner.
+
+    Every ``replan_every`` steps it plans a horizon-long action sequence from the current
+    observation (warm-started with the previous plan shifted by the steps executed since)
+    and executes its first actions.
+    """
+
+    def __init__(self, planner: CEMPlanner, evaluator: TrajectoryEvaluator, *, replan_every: int,
+                 action_low: np.ndarray, action_high: np.ndarray, device: torch.device,
+                 generator: torch.Generator) -> None:
+        self.planner = planner
+        self.evaluator = evaluator
+        self.replan_every = replan_every
+        self.device = device
+        self.generator = generator
+        self._low = torch.as_tensor(action_low, dtype=torch.float32, device=device)
+        self._high = torch.as_tensor(action_high, dtype=torch.float32, device=device)
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the plan (call at the start of every episode)."""
+        self._plan: Tensor | None = None
+        self._step_in_plan = 0
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        if self._plan is None or self._step_in_plan >= self.replan_every:
+            init = None
+            if self._plan is not None:
+                init = self._plan
+                for _ in range(self._step_in_plan):
+                    init = shift_plan(init, self._low, self._high)
+            obs_t = torch.as_tensor(obs, dtype=torch.float32, device=self.device)
+
+            def objective(actions: Tensor) -> Tensor:
+                return self.evaluator(obs_t, actions, self.generator)
+
+            self._plan = self.planner.plan(objective, init, self.generator)
+            self._step_in_plan = 0
+        action = self._plan[self._step_in_plan]
+        self._step_in_plan += 1
+        return action.detach().cpu().numpy().astype(np.float64)

@@ -1,0 +1,153 @@
+"""The model-based RL loop: seed trials with random actions, then alternate model training and MPC trials.
+
+After every completed trial the run directory gets an atomic checkpoint (model, optimiser,
+normaliser, replay buffer, all RNG states, metrics so far), then metrics.csv and rewards.png.
+``run(..., resume=True)`` continues from the last checkpoint; an interrupted trial is replayed
+from its start with the RNG states it began with, so a resumed run matches an uninterrupted one.
+"""
+from __future__ import annotations
+
+import random
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from omegaconf import DictConfig
+from tqdm import tqdm
+
+import envs
+from pets import builder, rundir
+from pets.buffer import ReplayBuffer
+from pets.training import TrainResult
+
+
+def seed_everything(seed: int) -> None:
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
+class PETSRun:
+    """Holds every stateful part of a run; ``state_dict``/``load_state_dict`` cover all of it."""
+
+    def __init__(self, cfg: DictConfig) -> None:
+        self.cfg = cfg
+        self.spec = envs.get(cfg.env)
+        self.device = builder.resolve_device(cfg.device)
+        seed_everything(cfg.seed)
+        self.env = self.spec.make()
+        self.episode_length = cfg.episode_length or self.spec.episode_length
+        self.head = builder.make_head(cfg, self.spec)
+        self.ensemble = builder.make_ensemble(cfg, self.head, self.device)
+        self.trainer = builder.make_trainer(cfg, self.ensemble, self.head)
+        self.train_gen = torch.Generator(device=self.device).manual_seed(cfg.seed + 1)
+        self.plan_gen = torch.Generator(device=self.device).manual_seed(cfg.seed + 2)
+        self.np_rng = np.random.default_rng(cfg.seed + 3)
+        self.agent = builder.make_agent(cfg, self.spec, self.ensemble, self.head, self.device, self.plan_gen)
+        self.buffer = ReplayBuffer(self.spec.obs_dim, self.spec.act_dim)
+        self.rows: list[dict[str, Any]] = []
+        self.trials_done = 0
+        self.env_steps = 0
+        self.wall_time_s = 0.0
+        self.last_train: TrainResult | None = None
+
+    # --- state -----------------------------------------------------------------------------
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "trials_done": self.trials_done, "env_steps": self.env_steps, "wall_time_s": self.wall_time_s,
+            "rows": self.rows, "ensemble": self.ensemble.state_dict(), "trainer": self.trainer.state_dict(),
+            "buffer": self.buffer.state_dict(), "train_gen": self.train_gen.get_state(),
+            "plan_gen": self.plan_gen.get_state(), "np_rng": self.np_rng.bit_generator.state,
+            "torch_rng": torch.get_rng_state(), "last_train": self.last_train,
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.trials_done, self.env_steps = state["trials_done"], state["env_steps"]
+        self.wall_time_s, self.rows = state["wall_time_s"], state["rows"]
+        self.ensemble.load_state_dict(state["ensemble"])
+        self.trainer.load_state_dict(state["trainer"])
+        self.buffer.load_state_dict(state["buffer"])
+        self.train_gen.set_state(state["train_gen"])
+        self.plan_gen.set_state(state["plan_gen"])
+        self.np_rng.bit_generator.state = state["np_rng"]
+        torch.set_rng_state(state["torch_rng"])
+        self.last_train = state["last_train"]
+
+    # --- one trial ---------------------------------------------------------------------------
+    def _train(self) -> None:
+        obs, act, next_obs = self.buffer.tensors(self.device)
+        self.last_train = self.trainer.train(obs, act, next_obs, self.train_gen)
+
+    def run_trial(self, progress: bool = True) -> dict[str, Any]:
+        """Collect one episode (random actions during the seed trials, MPC after), then train."""
+        trial = self.trials_done
+        random_policy = trial < self.cfg.seed_trials
+        obs, _ = self.env.reset(seed=self.cfg.seed * 100_003 + trial)
+        self.agent.reset()
+        ep_obs, ep_act, ep_next = [], [], []
+        total_reward, plan_time, start = 0.0, 0.0, time.perf_counter()
+        steps = tqdm(range(self.episode_length), desc=f"trial {trial}", leave=False, disable=not progress)
+        for t in steps:
+            if (self.cfg.train_every and not random_policy and len(self.buffer) > 0
+                    and (self.env_steps + t) % self.cfg.train_every == 0 and ep_obs):
+                self.buffer.add_episode(np.array(ep_obs), np.array(ep_act), np.array(ep_next))
+                ep_obs, ep_act, ep_next = [], [], []
+                self._train()
+            if random_policy:
+                action = self.np_rng.uniform(self.spec.action_low, self.spec.action_high)
+            else:
+                t0 = time.perf_counter()
+                action = self.agent.act(obs)
+                plan_time += time.perf_counter() - t0
+            next_obs, reward, terminated, truncated, _ = self.env.step(action)
+            ep_obs.append(obs)
+            ep_act.append(action)
+            ep_next.append(next_obs)
+            total_reward += float(reward)
+            obs = next_obs
+            steps.set_postfix(reward=f"{total_reward:.1f}")
+            if terminated or truncated:
+                break
+        length = t + 1
+        steps.close()
+        if ep_obs:
+            self.buffer.add_episode(np.array(ep_obs), np.array(ep_act), np.array(ep_next))
+        self._train()
+        self.env_steps += length
+        self.trials_done += 1
+        self.wall_time_s += time.perf_counter() - start
+        lt = self.last_train
+        row = {"trial": trial, "env_steps": self.env_steps, "episode_reward": total_reward,
+               "episode_length": length, "model_train_loss": lt.train_loss, "model_val_loss": lt.val_loss,
+               "model_epochs": lt.epochs, "plan_seconds_per_step": 0.0 if random_policy else plan_time / length,
+               "wall_time_s": round(self.wall_time_s, 3)}
+        self.rows.append(row)
+        return row
+
+
+def run(cfg: DictConfig, run_dir: Path, resume: bool = False, progress: bool = True) -> list[dict[str, Any]]:
+    """Run (or continue) the PETS loop in ``run_dir`` until ``cfg.trials`` trials are done."""
+    run_dir.mkdir(parents=True, exist_ok=True)
+    pets_run = PETSRun(cfg)
+    if resume:
+        state = rundir.load_checkpoint(run_dir)
+        if state is not None:
+            pets_run.load_state_dict(state)
+        rundir.write_metrics(run_dir, pets_run.rows)  # the checkpoint is the source of truth for the rows
+    else:
+        rundir.write_config(run_dir, cfg)
+    title = f"{cfg.env} / {cfg.head} / seed {cfg.seed}"
+    bar = tqdm(total=cfg.trials, initial=pets_run.trials_done, desc=f"{cfg.env}-{cfg.head}", unit="trial",
+               disable=not progress)
+    while pets_run.trials_done < cfg.trials:
+        row = pets_run.run_trial(progress=progress)
+        rundir.save_checkpoint(run_dir, pets_run.state_dict())
+        rundir.write_metrics(run_dir, pets_run.rows)
+        rundir.plot_rewards(run_dir, pets_run.rows, title)
+        bar.update(1)
+        bar.set_postfix(reward=f"{row['episode_reward']:.1f}", steps=row["env_steps"])
+    bar.close()
+    pets_run.env.close()
+    return pets_run.rows

@@ -1,0 +1,85 @@
+"""The run directory: resolved config, per-trial metrics, atomic checkpoints and the reward plot.
+
+Every file is written to a temporary name and moved into place with ``os.replace``, so a run
+killed at any moment (even ``kill -9``) leaves either the old or the new version, never half a file.
+"""
+from __future__ import annotations
+
+import csv
+import io
+import os
+from pathlib import Path
+from typing import Any
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+CONFIG_FILE = "config.yaml"
+METRICS_FILE = "metrics.csv"
+CHECKPOINT_FILE = "checkpoint.pt"
+PLOT_FILE = "rewards.png"
+
+METRIC_COLUMNS = ["trial", "env_steps", "episode_reward", "episode_length", "model_train_loss",
+                  "model_val_loss", "model_epochs", "plan_seconds_per_step", "wall_time_s"]
+
+
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` via a temporary file in the same directory and ``os.replace``."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    with open(tmp, "wb") as f:
+        f.write(data)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def write_config(run_dir: Path, cfg: DictConfig) -> None:
+    atomic_write_bytes(run_dir / CONFIG_FILE, OmegaConf.to_yaml(cfg, resolve=True).encode())
+
+
+def write_metrics(run_dir: Path, rows: list[dict[str, Any]]) -> None:
+    """Rewrite metrics.csv from the full list of rows (one per completed trial; never duplicates)."""
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=METRIC_COLUMNS, extrasaction="ignore")
+    writer.writeheader()
+    writer.writerows(rows)
+    atomic_write_bytes(run_dir / METRICS_FILE, buf.getvalue().encode())
+
+
+def read_metrics(path: Path) -> list[dict[str, float]]:
+    """Read a metrics.csv into rows of floats."""
+    with open(path, newline="") as f:
+        return [{k: float(v) for k, v in row.items()} for row in csv.DictReader(f)]
+
+
+def save_checkpoint(run_dir: Path, state: dict[str, Any]) -> None:
+    buf = io.BytesIO()
+    torch.save(state, buf)
+    atomic_write_bytes(run_dir / CHECKPOINT_FILE, buf.getvalue())
+
+
+def load_checkpoint(run_dir: Path) -> dict[str, Any] | None:
+    path = run_dir / CHECKPOINT_FILE
+    if not path.exists():
+        return None
+    return torch.load(path, map_location="cpu", weights_only=False)
+
+
+def plot_rewards(run_dir: Path, rows: list[dict[str, Any]], title: str) -> None:
+    """Episode reward against environment steps, written atomically to rewards.png."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    ax.plot([r["env_steps"] for r in rows], [r["episode_reward"] for r in rows], marker="o", ms=3)
+    ax.set_xlabel("environment steps")
+    ax.set_ylabel("episode reward")
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=100)
+    plt.close(fig)
+    atomic_write_bytes(run_dir / PLOT_FILE, buf.getvalue())

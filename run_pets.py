@@ -1,0 +1,99 @@
+#!/usr/bin/env python
+"""PETS with a swappable dynamics head.
+
+    python run_pets.py --model gem --env halfcheetah [--trials N] [--seed S] [--device cpu|cuda|auto]
+                       [--preset research|fast] [--out DIR] [--resume DIR] [key=value ...]
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+EXIT_USAGE = 2
+
+
+def _fail(message: str) -> "NoReturn":  # noqa: F821
+    print(f"run_pets.py: error: {message}", file=sys.stderr)
+    raise SystemExit(EXIT_USAGE)
+
+
+class _OneLineParser(argparse.ArgumentParser):
+    """Usage errors as one line ("what was wrong, what is accepted") and exit code 2."""
+
+    def error(self, message: str) -> "NoReturn":  # noqa: F821
+        _fail(message)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from pets.config import HEADS, PRESETS
+
+    p = _OneLineParser(description="PETS model-based RL with a delta or GEM dynamics head.",
+                                epilog="Any config key can be overridden as key=value, e.g. planner.population=200.")
+    p.add_argument("--model", choices=HEADS, help="dynamics head (default: delta)")
+    p.add_argument("--env", help="environment: one of the catalogue names or a gymnasium id")
+    p.add_argument("--trials", type=int, help="number of trials (episodes)")
+    p.add_argument("--seed", type=int, help="seed for every random source")
+    p.add_argument("--device", choices=("cpu", "cuda", "auto"), help="where the model and planner run")
+    p.add_argument("--preset", choices=tuple(PRESETS), default="research", help="research (default) or fast (CPU)")
+    p.add_argument("--out", type=Path, help="run directory (default: runs/ENV-MODEL-sSEED-TIME)")
+    p.add_argument("--resume", type=Path, metavar="DIR", help="continue the run in DIR from its last trial")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    import envs
+    from pets import loop, rundir
+    from pets.config import ConfigError, load_config, make_config, parse_overrides
+
+    try:
+        overrides = parse_overrides(args.overrides)
+        for flag in ("trials", "seed", "device"):
+            if getattr(args, flag) is not None:
+                overrides[flag] = str(getattr(args, flag))
+        if args.resume is not None:
+            if args.env or args.model or args.out:
+                _fail("--resume DIR takes the run's own config; do not pass --env, --model or --out with it")
+            path = args.resume / rundir.CONFIG_FILE
+            if not path.exists():
+                _fail(f"{args.resume} is not a run directory (no {rundir.CONFIG_FILE})")
+            cfg = load_config(str(path))
+            if "trials" in overrides:  # the only thing a resume may change: run longer
+                cfg.trials = int(overrides.pop("trials"))
+            if overrides:
+                _fail(f"--resume accepts only --trials besides the run directory, got {sorted(overrides)}")
+            run_dir = args.resume
+        else:
+            if not args.env:
+                _fail(f"--env is required; accepted: {', '.join(envs.names())}")
+            try:
+                env_name = envs.get(args.env).name
+            except ValueError as err:
+                _fail(str(err))
+            cfg = make_config(env_name, args.model or "delta", args.preset, overrides)
+            run_dir = args.out or Path("runs") / f"{env_name}-{cfg.head}-s{cfg.seed}-{time.strftime('%Y%m%d-%H%M%S')}"
+            if (run_dir / rundir.CONFIG_FILE).exists():
+                _fail(f"{run_dir} already holds a run; continue it with --resume {run_dir} or pick another --out")
+    except ConfigError as err:
+        _fail(str(err))
+    print(f"run directory: {run_dir}", file=sys.stderr)
+    try:
+        rows = loop.run(cfg, Path(run_dir), resume=args.resume is not None, progress=not args.quiet)
+    except ConfigError as err:
+        _fail(str(err))
+    except KeyboardInterrupt:
+        print(f"\ninterrupted; continue with: python run_pets.py --resume {run_dir}", file=sys.stderr)
+        return 130
+    if rows:
+        last = rows[-1]
+        print(f"done: {len(rows)} trials, {int(last['env_steps'])} env steps, "
+              f"last episode reward {last['episode_reward']:.2f}; results in {run_dir}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

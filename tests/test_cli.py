@@ -1,0 +1,100 @@
+"""The real CLI end to end: a short run, its run directory, resume (also after kill -9), errors."""
+import csv
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+TINY = ["--preset", "fast", "planner.population=16", "planner.particles=2", "planner.horizon=4",
+        "planner.iterations=2", "model.max_epochs=2", "model.hidden_size=32", "model.ensemble_size=2",
+        "model.num_elites=2", "episode_length=30", "--quiet"]
+
+
+def cli(*args, check=True, timeout=300):
+    proc = subprocess.run([sys.executable, str(ROOT / "run_pets.py"), *map(str, args)], cwd=ROOT,
+                          capture_output=True, text=True, timeout=timeout)
+    if check and proc.returncode != 0:
+        raise AssertionError(f"exit {proc.returncode}\n{proc.stdout}\n{proc.stderr}")
+    return proc
+
+
+def rows(run_dir):
+    with open(run_dir / "metrics.csv", newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def test_smoke_two_trials_invertedpendulum(tmp_path):
+    out = tmp_path / "run"
+    cli("--model", "delta", "--env", "invertedpendulum", "--trials", 2, "--seed", 3, "--out", out, *TINY)
+    for name in ("config.yaml", "metrics.csv", "checkpoint.pt", "rewards.png"):
+        assert (out / name).is_file(), name
+    metrics = rows(out)
+    assert [int(r["trial"]) for r in metrics] == [0, 1]
+    for col in ("trial", "env_steps", "episode_reward", "episode_length", "model_train_loss",
+                "model_val_loss", "wall_time_s"):
+        assert col in metrics[0]
+    assert int(metrics[1]["env_steps"]) == int(metrics[0]["episode_length"]) + int(metrics[1]["episode_length"])
+    assert all(float(r["episode_reward"]) >= 1 for r in metrics)
+    assert "planner:" in (out / "config.yaml").read_text() and "seed: 3" in (out / "config.yaml").read_text()
+
+
+def test_same_seed_same_metrics(tmp_path):
+    a, b = tmp_path / "a", tmp_path / "b"
+    for out in (a, b):
+        cli("--env", "invertedpendulum", "--trials", 3, "--seed", 5, "--out", out, *TINY)
+    key = lambda rs: [(r["episode_reward"], r["episode_length"], r["model_train_loss"]) for r in rs]
+    assert key(rows(a)) == key(rows(b))
+
+
+def test_resume_after_kill_matches_uninterrupted_run(tmp_path):
+    ref, killed = tmp_path / "ref", tmp_path / "killed"
+    args = ["--env", "invertedpendulum", "--trials", 4, "--seed", 11, *TINY]
+    cli(*args, "--out", ref)
+    proc = subprocess.Popen([sys.executable, str(ROOT / "run_pets.py"), *map(str, args), "--out", str(killed)],
+                            cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 240
+    while time.time() < deadline and not (killed / "metrics.csv").exists():
+        time.sleep(0.05)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    done_before = len(rows(killed)) if (killed / "metrics.csv").exists() else 0
+    assert done_before < 4, "the run finished before it could be killed; make it longer"
+    cli("--resume", killed)
+    got, want = rows(killed), rows(ref)
+    assert [int(r["trial"]) for r in got] == [0, 1, 2, 3]
+    assert [r["episode_reward"] for r in got] == [r["episode_reward"] for r in want]
+
+
+def test_resume_can_extend_a_finished_run(tmp_path):
+    out = tmp_path / "run"
+    cli("--env", "invertedpendulum", "--trials", 1, "--out", out, *TINY)
+    cli("--resume", out, "--trials", 2)
+    assert [int(r["trial"]) for r in rows(out)] == [0, 1]
+
+
+@pytest.mark.parametrize("args, fragment", [
+    (["--env", "pong"], "invertedpendulum"),
+    (["--env", "hopper", "--model", "transformer"], "delta"),
+    (["--env", "hopper", "planner.popsize=3"], "planner.population"),
+    (["--env", "hopper", "trials=abc"], "trials"),
+    (["--model", "delta"], "--env is required"),
+    (["--resume", "/nonexistent/run"], "not a run directory"),
+])
+def test_bad_input_exits_2_with_one_line(args, fragment):
+    proc = cli(*args, check=False, timeout=60)
+    assert proc.returncode == 2
+    lines = [l for l in proc.stderr.splitlines() if l.strip()]
+    assert len(lines) == 1, proc.stderr
+    assert fragment in lines[0]
+
+
+def test_existing_run_directory_is_not_overwritten(tmp_path):
+    out = tmp_path / "run"
+    cli("--env", "invertedpendulum", "--trials", 1, "--out", out, *TINY)
+    proc = cli("--env", "invertedpendulum", "--trials", 1, "--out", out, *TINY, check=False)
+    assert proc.returncode == 2 and "--resume" in proc.stderr
