@@ -63,7 +63,8 @@ class Config:
     trials: int = 100
     seed: int = 0
     device: str = "auto"
-    seed_trials: int = 1  # trials with uniformly random actions before the first model is trained
+    threads: int = 0  # torch CPU threads; 0: torch's default. Use 1 per process when running runs in parallel
+    seed_steps: int = 1000  # uniformly random steps (over as many episodes as needed) before trial 0
     episode_length: Optional[int] = None  # None: the env's own episode length
     train_every: int = 0  # 0: train after every trial; N > 0: also every N env steps
     model: ModelConfig = field(default_factory=ModelConfig)
@@ -165,8 +166,10 @@ def validate(cfg: DictConfig) -> None:
     if cfg.model.num_elites > cfg.model.ensemble_size:
         raise ConfigError(f"model.num_elites ({cfg.model.num_elites}) must be <= model.ensemble_size "
                           f"({cfg.model.ensemble_size})")
-    if cfg.seed < 0 or cfg.seed_trials < 0 or cfg.train_every < 0:
-        raise ConfigError("seed, seed_trials and train_every must be >= 0")
+    if cfg.threads < 0:
+        raise ConfigError(f"threads must be >= 0 (0: torch default), got {cfg.threads}")
+    if cfg.seed < 0 or cfg.seed_steps < 0 or cfg.train_every < 0:
+        raise ConfigError("seed, seed_steps and train_every must be >= 0")
     if cfg.planner.replan_every > cfg.planner.horizon:
         raise ConfigError(f"planner.replan_every ({cfg.planner.replan_every}) must be <= planner.horizon "
                           f"({cfg.planner.horizon})")

@@ -1,4 +1,4 @@
-"""The model-based RL loop: seed trials with random actions, then alternate model training and MPC trials.
+"""The model-based RL loop: random seed steps, then alternate model training and MPC trials.
 
 After every completed trial the run directory gets an atomic checkpoint (model, optimiser,
 normaliser, replay buffer, all RNG states, metrics so far), then metrics.csv and rewards.png.
@@ -36,6 +36,8 @@ class PETSRun:
         self.cfg = cfg
         self.spec = envs.get(cfg.env)
         self.device = builder.resolve_device(cfg.device)
+        if cfg.threads:
+            torch.set_num_threads(cfg.threads)
         seed_everything(cfg.seed)
         self.env = self.spec.make()
         self.episode_length = cfg.episode_length or self.spec.episode_length
@@ -80,14 +82,40 @@ class PETSRun:
         obs, act, next_obs = self.buffer.tensors(self.device)
         self.last_train = self.trainer.train(obs, act, next_obs, self.train_gen)
 
+    def _episode_seed(self, index: int) -> int:
+        return self.cfg.seed * 100_003 + index
+
+    def collect_seed_data(self) -> None:
+        """``seed_steps`` uniformly random steps over as many episodes as needed, then the first training."""
+        obs_l, act_l, next_l = [], [], []
+        episode = 0
+        while len(obs_l) < self.cfg.seed_steps:
+            obs, _ = self.env.reset(seed=self._episode_seed(50_000 + episode))
+            for _ in range(self.episode_length):
+                action = self.np_rng.uniform(self.spec.action_low, self.spec.action_high)
+                next_obs, _, terminated, truncated, _ = self.env.step(action)
+                obs_l.append(obs)
+                act_l.append(action)
+                next_l.append(next_obs)
+                obs = next_obs
+                if terminated or truncated or len(obs_l) >= self.cfg.seed_steps:
+                    break
+            episode += 1
+        if obs_l:
+            self.buffer.add_episode(np.array(obs_l), np.array(act_l), np.array(next_l))
+            self.env_steps += len(obs_l)
+            self._train()
+
     def run_trial(self, progress: bool = True) -> dict[str, Any]:
-        """Collect one episode (random actions during the seed trials, MPC after), then train."""
-        trial = self.trials_done
-        random_policy = trial < self.cfg.seed_trials
-        obs, _ = self.env.reset(seed=self.cfg.seed * 100_003 + trial)
+        """Collect one episode with the MPC agent, then train the model on all data so far."""
+        trial, start = self.trials_done, time.perf_counter()
+        if trial == 0 and len(self.buffer) == 0:
+            self.collect_seed_data()
+        random_policy = len(self.buffer) == 0  # seed_steps=0: the first trial explores at random
+        obs, _ = self.env.reset(seed=self._episode_seed(trial))
         self.agent.reset()
         ep_obs, ep_act, ep_next = [], [], []
-        total_reward, plan_time, start = 0.0, 0.0, time.perf_counter()
+        total_reward, plan_time = 0.0, 0.0
         steps = tqdm(range(self.episode_length), desc=f"trial {trial}", leave=False, disable=not progress)
         for t in steps:
             if (self.cfg.train_every and not random_policy and len(self.buffer) > 0

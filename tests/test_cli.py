@@ -12,7 +12,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ["--preset", "fast", "planner.population=16", "planner.particles=2", "planner.horizon=4",
         "planner.iterations=2", "model.max_epochs=2", "model.hidden_size=32", "model.ensemble_size=2",
-        "model.num_elites=2", "episode_length=30", "--quiet"]
+        "model.num_elites=2", "episode_length=30", "seed_steps=100", "--quiet"]
 
 
 def cli(*args, check=True, timeout=300):
