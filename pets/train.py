@@ -1,0 +1,170 @@
+"""Offline training of the dynamics ensemble on a collected data set, into a run directory.
+
+    python -m pets.train --data FILE.npz --model delta|gem --out RUN_DIR [--seed S] [--device D]
+                         [--epochs N] [--preset research|fast] [--quiet] [key=value ...]
+
+The run directory has the format of ``run_pets.py`` (:mod:`pets.rundir`), so
+``pets.builder.load_model``, ``pets.evaluate`` and ``pets.collect --policy run:DIR`` read it:
+
+- ``config.yaml``: the resolved config (env from the data set, ``head`` = MODEL, overrides applied);
+- ``checkpoint.pt``: ``ensemble`` and ``trainer`` (optimiser) state, ``trials_done`` = 0,
+  ``env_steps`` = 0, ``wall_time_s``, ``rows``, ``last_train`` (the ``TrainResult``) and ``offline``
+  (data file, episodes, transitions, the data set's policy and seed);
+- ``metrics.csv``: one row with ``model_train_loss``, ``model_val_loss``, ``model_epochs``,
+  ``wall_time_s`` and ``env_steps`` (= transitions trained on); NaN in the other columns.
+
+Training data: every real transition of the file (``lengths`` respected, padding never used). The
+trainer's holdout (``model.holdout_ratio``, at most ``model.max_holdout`` transitions, drawn at random)
+selects the elites and stops training early. Offline defaults (a fixed data set is seen once, so it
+pays to train to convergence; the online loop retrains a little every trial):
+``model.max_epochs = 300`` and ``model.patience = 20`` (epochs without a member improving its holdout
+error by more than 1 %). ``--epochs N`` (or ``model.max_epochs=N``) overrides the first; ``--epochs``
+wins over ``model.max_epochs=``.
+
+Randomness: ``torch.manual_seed(seed)`` before the ensemble is built (initial weights), and a
+generator seeded with ``seed + 1`` on the training device (holdout split, bootstraps, shuffles),
+as in the online loop. The same command on the same machine gives the same model.
+"""
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from pets.datasets import OneLineParser, check_dataset, env_name, fail, load_dataset, transitions
+
+PROG = "pets.train"
+#: Offline defaults, applied before the user's overrides (see the module docstring).
+OFFLINE_DEFAULTS: dict[str, Any] = {"model.max_epochs": 300, "model.patience": 20}
+
+
+def offline_config(env: str, head_name: str, overrides: Mapping[str, Any] | None = None, *,
+                   preset: str = "research", seed: int | None = None, device: str | None = None,
+                   epochs: int | None = None):
+    """The resolved config of an offline run: config defaults, env defaults, preset, :data:`OFFLINE_DEFAULTS`,
+    ``overrides``, then the explicit ``seed``/``device``/``epochs`` arguments (later wins). ConfigError if bad."""
+    from pets.config import make_config
+
+    merged: dict[str, Any] = {**OFFLINE_DEFAULTS, **dict(overrides or {})}
+    for key, value in (("seed", seed), ("device", device), ("model.max_epochs", epochs)):
+        if value is not None:
+            merged[key] = value
+    return make_config(env, head_name, preset, merged)
+
+
+def train_offline(data: str | Path | Mapping[str, np.ndarray], head_name: str, out: str | Path,
+                  overrides: Mapping[str, Any] | None = None, *, preset: str = "research", seed: int | None = None,
+                  device: str | None = None, epochs: int | None = None, progress: bool = False) -> Path:
+    """Train a fresh ensemble with head ``head_name`` on all real transitions of ``data`` and write run dir ``out``.
+
+    ``data``: a data set file or its arrays (:mod:`pets.datasets`). ``out`` must not hold a run yet.
+    Returns ``out`` as a Path. ValueError / ConfigError (one-line messages) for bad input.
+    """
+    import envs
+    import torch
+
+    from pets import builder, rundir
+    from pets.config import ConfigError
+
+    data_label = str(Path(data).resolve()) if isinstance(data, (str, Path)) else None
+    arrays = load_dataset(data) if isinstance(data, (str, Path)) else data
+    if data_label is None:
+        check_dataset(arrays)
+    env = envs.get(env_name(arrays)).name
+    out = Path(out)
+    if (out / rundir.CONFIG_FILE).exists():
+        raise ConfigError(f"{out} already holds a run; pick another --out")
+    cfg = offline_config(env, head_name, overrides, preset=preset, seed=seed, device=device, epochs=epochs)
+    spec = envs.get(cfg.env)
+    obs, act, next_obs = transitions(arrays)
+    if obs.shape[-1] != spec.obs_dim or act.shape[-1] != spec.act_dim:
+        raise ValueError(f"data set has obs_dim {obs.shape[-1]} / act_dim {act.shape[-1]}, but {env} has "
+                         f"{spec.obs_dim} / {spec.act_dim}")
+
+    dev = builder.resolve_device(cfg.device)
+    if cfg.threads:  # as the online loop: config key threads (0 = torch's default)
+        torch.set_num_threads(cfg.threads)
+    torch.manual_seed(cfg.seed)
+    head = builder.make_head(cfg, spec)
+    ensemble = builder.make_ensemble(cfg, head, dev)
+    trainer = builder.make_trainer(cfg, ensemble, head)
+    generator = torch.Generator(device=dev).manual_seed(cfg.seed + 1)
+    tensors = [torch.as_tensor(a, dtype=torch.float32, device=dev) for a in (obs, act, next_obs)]
+    start = time.perf_counter()
+    result = trainer.train(*tensors, generator, progress=progress)
+    wall = time.perf_counter() - start
+
+    nan = float("nan")
+    row = {"trial": nan, "env_steps": int(obs.shape[0]), "episode_reward": nan, "episode_length": nan,
+           "model_train_loss": result.train_loss, "model_val_loss": result.val_loss, "model_epochs": result.epochs,
+           "plan_seconds_per_step": nan, "wall_time_s": round(wall, 3)}
+    meta = {"data": data_label, "episodes": int(len(arrays["lengths"])), "transitions": int(obs.shape[0]),
+            "data_policy": str(np.asarray(arrays["policy"])[()]) if "policy" in arrays else None,
+            "data_seed": int(np.asarray(arrays["seed"])[()]) if "seed" in arrays else None}
+    state = {"trials_done": 0, "env_steps": 0, "wall_time_s": round(wall, 3), "rows": [row],
+             "ensemble": ensemble.state_dict(), "trainer": trainer.state_dict(), "last_train": result,
+             "offline": meta}
+    out.mkdir(parents=True, exist_ok=True)
+    rundir.save_checkpoint(out, state)
+    rundir.write_metrics(out, [row])
+    rundir.write_config(out, cfg)  # last: a directory with config.yaml is a complete run
+    return out
+
+
+def build_parser() -> OneLineParser:
+    p = OneLineParser(prog=PROG, description="Train a dynamics ensemble offline on a collected .npz data set.",
+                      epilog="Any config key can be overridden as key=value, e.g. model.hidden_size=200.")
+    p.add_argument("--data", type=Path, required=True, help="data set written by pets.collect")
+    p.add_argument("--model", required=True, help="dynamics head: delta or gem")
+    p.add_argument("--out", type=Path, required=True, help="run directory to create")
+    p.add_argument("--seed", type=int, help="seed (default 0)")
+    p.add_argument("--device", choices=("cpu", "cuda", "auto"), help="training device (default auto)")
+    p.add_argument("--epochs", type=int, help=f"max epochs (offline default {OFFLINE_DEFAULTS['model.max_epochs']}, "
+                                              f"patience {OFFLINE_DEFAULTS['model.patience']})")
+    p.add_argument("--preset", choices=("research", "fast"), default="research", help="config preset (model sizes)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    if args.model not in ("delta", "gem"):
+        fail(PROG, f"--model must be one of delta, gem, got {args.model!r}")
+    if not args.data.is_file():
+        fail(PROG, f"data file {args.data} does not exist")
+    if args.epochs is not None and args.epochs < 1:
+        fail(PROG, f"--epochs must be >= 1, got {args.epochs}")
+    if (args.out / "config.yaml").exists():
+        fail(PROG, f"{args.out} already holds a run; pick another --out")
+
+    from pets.config import ConfigError, parse_overrides
+
+    try:  # validate everything up front (torch only where needed); errors in training keep their traceback
+        overrides = parse_overrides(args.overrides)
+        arrays = load_dataset(args.data)
+        cfg = offline_config(env_name(arrays), args.model, overrides, preset=args.preset, seed=args.seed,
+                             device=args.device, epochs=args.epochs)
+        import envs
+        from pets.builder import resolve_device
+
+        if envs.get(cfg.env).name != cfg.env:
+            raise ValueError(f"data set env {cfg.env!r} is not a canonical env name; re-collect it with pets.collect")
+        resolve_device(cfg.device)
+    except (ValueError, ConfigError) as err:  # ConfigError is a ValueError; named for the reader
+        fail(PROG, str(err))
+    out = train_offline(args.data, args.model, args.out, overrides, preset=args.preset, seed=args.seed,
+                        device=args.device, epochs=args.epochs, progress=not args.quiet)
+    from pets import rundir
+
+    row = rundir.read_metrics(out / rundir.METRICS_FILE)[0]
+    print(f"{out}: {args.model} model trained on {int(row['env_steps'])} transitions, {int(row['model_epochs'])} "
+          f"epochs, train loss {row['model_train_loss']:.4g}, holdout MSE {row['model_val_loss']:.4g}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
