@@ -195,6 +195,9 @@ def make_config(env: str, head: str = "delta", preset: str = "research",
 
 def load_config(path: str) -> DictConfig:
     """Load a run's resolved ``config.yaml`` back into the typed schema."""
-    cfg = OmegaConf.merge(OmegaConf.structured(Config), OmegaConf.load(path))
+    try:
+        cfg = OmegaConf.merge(OmegaConf.structured(Config), OmegaConf.load(path))
+    except Exception as err:  # a file from another version of the schema, or not a config at all
+        raise ConfigError(f"{path} does not match this version's config schema: {str(err).splitlines()[0]}") from None
     validate(cfg)
     return cfg

@@ -20,6 +20,7 @@ from tqdm import tqdm
 import envs
 from pets import builder, rundir
 from pets.buffer import ReplayBuffer
+from pets.config import ConfigError
 from pets.training import TrainResult
 
 
@@ -161,6 +162,8 @@ def run(cfg: DictConfig, run_dir: Path, resume: bool = False, progress: bool = T
     pets_run = PETSRun(cfg)
     if resume:
         state = rundir.load_checkpoint(run_dir)
+        if state is not None and "offline" in state:
+            raise ConfigError(f"{run_dir} is an offline training run (pets.train); it cannot be resumed online")
         if state is not None:
             pets_run.load_state_dict(state)
         rundir.write_metrics(run_dir, pets_run.rows)  # the checkpoint is the source of truth for the rows

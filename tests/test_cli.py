@@ -12,7 +12,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ["--preset", "fast", "planner.population=16", "planner.particles=2", "planner.horizon=4",
         "planner.iterations=2", "model.max_epochs=2", "model.hidden_size=32", "model.ensemble_size=2",
-        "model.num_elites=2", "episode_length=30", "seed_steps=100", "--quiet"]
+        "model.num_elites=2", "episode_length=30", "seed_steps=100", "threads=1", "--quiet"]
 
 
 def cli(*args, check=True, timeout=300):
@@ -38,7 +38,9 @@ def test_smoke_two_trials_invertedpendulum(tmp_path):
     for col in ("trial", "env_steps", "episode_reward", "episode_length", "model_train_loss",
                 "model_val_loss", "wall_time_s"):
         assert col in metrics[0]
-    assert int(metrics[1]["env_steps"]) == int(metrics[0]["episode_length"]) + int(metrics[1]["episode_length"])
+    seed_steps = 100
+    assert int(metrics[0]["env_steps"]) == seed_steps + int(metrics[0]["episode_length"])
+    assert int(metrics[1]["env_steps"]) == int(metrics[0]["env_steps"]) + int(metrics[1]["episode_length"])
     assert all(float(r["episode_reward"]) >= 1 for r in metrics)
     assert "planner:" in (out / "config.yaml").read_text() and "seed: 3" in (out / "config.yaml").read_text()
 
