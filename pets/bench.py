@@ -1,26 +1,59 @@
-"""Planning-step benchmark: median seconds per MPC step, achieved model GFLOP/s, machine matmul peak.
+"""Planning-step benchmark: median seconds per MPC step, achieved model GFLOP/s, machine matmul peaks.
 
     python -m pets.bench --env halfcheetah --model delta [--preset fast] [--device cpu] [--repeats 5]
-                         [--json FILE] [key=value ...]
+                         [--compare] [--json FILE] [key=value ...]
 
 The model is fitted briefly on real random-action transitions first, so the rollouts run through
-realistic (normalised, finite) states. Figures are medians over ``--repeats`` timed planning steps
-after one warm-up step.
+realistic (normalised, finite) states. Every row times ``--repeats`` planning steps (``agent.act``
+from a fresh plan) after one warm-up step (reported separately: it includes any compilation);
+figures are medians. With ``--compare`` one run times, on the same model and start state, the
+rows: CEM eager fp32 (the precise path), CEM compiled fp32, CEM eager bf16, CEM compiled bf16,
+iCEM and MPPI (eager, the config's precision); the rows take turns within each repeat, so a
+change in machine load hits all of them alike. Use ``threads=1`` on a shared machine.
+
+Columns: wall and process-CPU seconds per step (CPU time is the steadier figure on a loaded
+machine; with one thread it is close to the compute time), model GFLOP per step (counted from the
+candidates the planner actually evaluated: 2 x multiply-adds of one member's MLP per particle row
+and step), achieved GFLOP/s (on wall time), the fraction of the measured GEMM peak of the row's
+precision (fp32 rows: fp32 peak, bf16 rows: bf16 peak; 2048^3 products) and the peak memory of
+one more (untimed) step: on CUDA ``torch.cuda.max_memory_allocated`` above the allocation before
+the step; on Linux CPUs the growth of the resident set during the step (free heap memory is first
+handed back with glibc's ``malloc_trim(0)``, then VmHWM is reset through ``/proc/self/clear_refs``;
+the figure is VmHWM after the step minus VmRSS before it: the step's peak working memory, model
+weights and earlier state excluded), elsewhere the growth of ``ru_maxrss`` (0 once an earlier,
+larger peak happened).
+``--json FILE`` writes the precise row's ``seconds_per_step``, ``model_gflops``, ``peak_gflops``
+(fp32) and ``model_gflop_per_step``, plus every row under ``rows``.
 """
 from __future__ import annotations
 
 import argparse
+import ctypes
 import json
+import resource
 import statistics
 import sys
 import time
+from typing import Any
 
 import numpy as np
 import torch
+from omegaconf import DictConfig, OmegaConf
+from torch import Tensor
 
 import envs
 from pets import builder
-from pets.config import ConfigError, make_config, parse_overrides
+from pets.config import ConfigError, make_config, parse_overrides, validate
+
+#: (label, planner overrides) of the ``--compare`` rows; the first is the precise reference.
+COMPARE_ROWS: list[tuple[str, dict[str, Any]]] = [
+    ("cem fp32 eager", {"name": "cem", "precision": "fp32", "compile": False}),
+    ("cem fp32 compiled", {"name": "cem", "precision": "fp32", "compile": True}),
+    ("cem bf16 eager", {"name": "cem", "precision": "bf16", "compile": False}),
+    ("cem bf16 compiled", {"name": "cem", "precision": "bf16", "compile": True}),
+    ("icem fp32 eager", {"name": "icem", "precision": "fp32", "compile": False}),
+    ("mppi fp32 eager", {"name": "mppi", "precision": "fp32", "compile": False}),
+]
 
 
 def model_flops_per_row(in_dim: int, out_dim: int, hidden: int, layers: int) -> int:
@@ -63,10 +96,81 @@ def collect_random(spec: envs.EnvSpec, steps: int, seed: int) -> tuple[np.ndarra
     return np.array(O, np.float32), np.array(A, np.float32), np.array(N, np.float32)
 
 
-def benchmark(cfg, repeats: int = 5) -> dict[str, float]:
-    """Time ``repeats`` planning steps of the configured agent; return the figures as a dict."""
+# ---------------------------------------------------------------------------------------------- memory
+def _proc_status_kib(field: str) -> int | None:
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith(field + ":"):
+                    return int(line.split()[1])
+    except OSError:
+        pass
+    return None
+
+
+class _PeakMemory:
+    """Peak memory of a code region in MiB (see the module docstring for what is measured where)."""
+
+    def __init__(self, device: torch.device) -> None:
+        self.device = device
+        self.start = 0.0
+        self.mode = "cuda" if device.type == "cuda" else "rss"
+
+    def __enter__(self) -> "_PeakMemory":
+        if self.mode == "cuda":
+            torch.cuda.synchronize(self.device)
+            torch.cuda.reset_peak_memory_stats(self.device)
+            self.start = torch.cuda.memory_allocated(self.device) / 2**20
+            return self
+        try:
+            ctypes.CDLL(None).malloc_trim(0)  # hand free heap memory back, so that the step's own peak shows
+        except (OSError, AttributeError):
+            pass
+        try:
+            with open("/proc/self/clear_refs", "w") as f:
+                f.write("5")  # resets VmHWM to the current VmRSS (Linux >= 4.0)
+            rss = _proc_status_kib("VmRSS")
+            self.mode = "rss" if rss is not None else "maxrss"
+            self.start = (rss or 0) / 1024
+        except OSError:
+            self.mode = "maxrss"
+        if self.mode == "maxrss":
+            self.start = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self.mode == "cuda":
+            torch.cuda.synchronize(self.device)
+            end = torch.cuda.max_memory_allocated(self.device) / 2**20
+        elif self.mode == "rss":
+            end = (_proc_status_kib("VmHWM") or 0) / 1024
+        else:
+            end = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # KiB on Linux
+        self.peak_mib = max(0.0, end - self.start)
+
+
+# ---------------------------------------------------------------------------------------------- timing
+class _CountingEvaluator:
+    """Wraps a TrajectoryEvaluator and counts the model rows (one member, one step) it computes."""
+
+    def __init__(self, evaluator: Any) -> None:
+        self.evaluator = evaluator
+        self.rows = 0
+
+    def __call__(self, obs0: Tensor, actions: Tensor, generator: torch.Generator | None = None) -> Tensor:
+        ev = self.evaluator
+        n, h = actions.shape[:2]
+        per = ev.particles if ev.propagation != "expectation" else ev._num_members(ev.members(actions.device))
+        self.rows += n * h * per
+        return ev(obs0, actions, generator)
+
+
+def prepare(cfg: DictConfig) -> dict[str, Any]:
+    """Env spec, head, a briefly trained ensemble (400 random transitions, 2 epochs) and a start state."""
     spec = envs.get(cfg.env)
     device = builder.resolve_device(cfg.device)
+    if cfg.threads > 0:
+        torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
     head = builder.make_head(cfg, spec)
     ensemble = builder.make_ensemble(cfg, head, device)
@@ -74,23 +178,106 @@ def benchmark(cfg, repeats: int = 5) -> dict[str, float]:
     obs, act, nxt = (torch.as_tensor(x, device=device) for x in collect_random(spec, 400, cfg.seed))
     trainer.max_epochs = 2
     trainer.train(obs, act, nxt, torch.Generator(device=device).manual_seed(cfg.seed))
-    gen = torch.Generator(device=device).manual_seed(cfg.seed)
-    agent = builder.make_agent(cfg, spec, ensemble, head, device, gen)
-    start = obs[-1].cpu().numpy()
-    times = []
-    for _ in range(repeats + 1):
+    ensemble.eval()
+    return {"spec": spec, "device": device, "head": head, "ensemble": ensemble, "start": obs[-1].cpu().numpy()}
+
+
+def _row_config(cfg: DictConfig, planner: dict[str, Any]) -> DictConfig:
+    row = OmegaConf.merge(cfg, {"planner": planner})
+    validate(row)
+    return row
+
+
+def time_rows(cfg: DictConfig, rows: list[tuple[str, dict[str, Any]]], repeats: int = 5,
+              parts: dict[str, Any] | None = None) -> list[dict[str, Any]]:
+    """Time every row (label, planner overrides) on one model: a warm-up step each, then ``repeats``
+    rounds in which every row plans once. Returns one dict of figures per row."""
+    if not isinstance(repeats, int) or repeats < 1:
+        raise ValueError(f"repeats must be a positive int, got {repeats!r}")
+    parts = prepare(cfg) if parts is None else parts
+    spec, device, head, ensemble, start = (parts[k] for k in ("spec", "device", "head", "ensemble", "start"))
+    flops_row = model_flops_per_row(head.input_dim, head.target_dim, cfg.model.hidden_size, cfg.model.num_layers)
+    agents, counters, results = [], [], []
+    for label, planner in rows:
+        row_cfg = _row_config(cfg, planner)
+        gen = torch.Generator(device=device).manual_seed(cfg.seed)
+        agent = builder.make_agent(row_cfg, spec, ensemble, head, device, gen)
+        counter = _CountingEvaluator(agent.evaluator)
+        agent.evaluator = counter
         agent.reset()
         _sync(device)
         t0 = time.perf_counter()
-        agent.act(start)
+        agent.act(start)  # warm-up (compiles the compiled rows)
         _sync(device)
-        times.append(time.perf_counter() - t0)
-    seconds = statistics.median(times[1:])
+        first = time.perf_counter() - t0
+        agents.append(agent)
+        counters.append(counter)
+        results.append({"label": label, "planner": row_cfg.planner.name, "precision": row_cfg.planner.precision,
+                        "compile": bool(row_cfg.planner.compile), "first_step_seconds": first,
+                        "wall": [], "cpu": [], "rows": []})
+    for _ in range(repeats):
+        for agent, counter, res in zip(agents, counters, results):
+            agent.reset()
+            counter.rows = 0
+            _sync(device)
+            t0, c0 = time.perf_counter(), time.process_time()
+            agent.act(start)
+            _sync(device)
+            wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+            res["wall"].append(wall)
+            res["cpu"].append(cpu)
+            res["rows"].append(counter.rows)
+    for agent, res in zip(agents, results):  # memory: one more step each, untimed (malloc_trim costs page faults)
+        agent.reset()
+        with _PeakMemory(device) as mem:
+            agent.act(start)
+        res["mem"] = mem.peak_mib
+    out = []
+    for res in results:
+        seconds = statistics.median(res["wall"])
+        gflop = statistics.median(res["rows"]) * flops_row / 1e9
+        out.append({"label": res["label"], "planner": res["planner"], "precision": res["precision"],
+                    "compile": res["compile"], "seconds_per_step": seconds,
+                    "cpu_seconds_per_step": statistics.median(res["cpu"]),
+                    "first_step_seconds": res["first_step_seconds"], "model_gflop_per_step": gflop,
+                    "model_gflops": gflop / seconds, "peak_memory_mib": res["mem"]})
+    return out
+
+
+def benchmark(cfg: DictConfig, repeats: int = 5) -> dict[str, float]:
+    """Time ``repeats`` planning steps of the configured agent; return the figures as a dict."""
     p = cfg.planner
-    rows = p.population * p.particles * p.horizon * p.iterations
-    flops = rows * model_flops_per_row(head.input_dim, head.target_dim, cfg.model.hidden_size, cfg.model.num_layers)
-    return {"seconds_per_step": seconds, "model_gflops": flops / seconds / 1e9,
-            "peak_gflops": matmul_peak_gflops(device), "model_gflop_per_step": flops / 1e9}
+    (row,) = time_rows(cfg, [(f"{p.name} {p.precision} {'compiled' if p.compile else 'eager'}", {})], repeats)
+    device = builder.resolve_device(cfg.device)
+    row["peak_gflops"] = matmul_peak_gflops(device)
+    if p.precision == "bf16":
+        row["peak_gflops_bf16"] = matmul_peak_gflops(device, torch.bfloat16)
+    return row
+
+
+def compare(cfg: DictConfig, repeats: int = 5) -> dict[str, Any]:
+    """The ``--compare`` rows on one model, the fp32 and bf16 GEMM peaks, and the precise row's figures."""
+    device = builder.resolve_device(cfg.device)
+    rows = time_rows(cfg, COMPARE_ROWS, repeats)
+    peaks = {"fp32": matmul_peak_gflops(device), "bf16": matmul_peak_gflops(device, torch.bfloat16)}
+    base = rows[0]
+    for r in rows:
+        r["fraction_of_peak"] = r["model_gflops"] / peaks[r["precision"]]
+        r["speedup_wall"] = base["seconds_per_step"] / r["seconds_per_step"]
+        r["speedup_cpu"] = base["cpu_seconds_per_step"] / r["cpu_seconds_per_step"]
+    keys = ("seconds_per_step", "cpu_seconds_per_step", "model_gflops", "model_gflop_per_step")
+    return {**{k: base[k] for k in keys}, "peak_gflops": peaks["fp32"], "peak_gflops_bf16": peaks["bf16"],
+            "rows": rows}
+
+
+def _print_rows(rows: list[dict[str, Any]], repeats: int) -> None:
+    print(f"{'row':<20} {'wall s':>8} {'cpu s':>8} {'x wall':>7} {'x cpu':>6} {'first s':>8} {'GFLOP':>7} "
+          f"{'GFLOP/s':>8} {'% peak':>7} {'mem MiB':>8}   (medians of {repeats} steps)")
+    for r in rows:
+        print(f"{r['label']:<20} {r['seconds_per_step']:8.3f} {r['cpu_seconds_per_step']:8.3f} "
+              f"{r.get('speedup_wall', 1.0):7.2f} {r.get('speedup_cpu', 1.0):6.2f} {r['first_step_seconds']:8.2f} "
+              f"{r['model_gflop_per_step']:7.2f} {r['model_gflops']:8.1f} {100 * r.get('fraction_of_peak', 0.0):6.0f}% "
+              f"{r['peak_memory_mib']:8.1f}")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -102,25 +289,39 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--preset", choices=tuple(PRESETS), default="research")
     ap.add_argument("--device", choices=("cpu", "cuda", "auto"), default="cpu")
     ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--compare", action="store_true",
+                    help="time eager fp32 / compiled / bf16 / compiled+bf16 CEM, iCEM and MPPI in one run")
     ap.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
     ap.add_argument("overrides", nargs="*", metavar="key=value")
     args = ap.parse_args(argv)
     try:
+        if args.repeats < 1:
+            raise ConfigError(f"--repeats must be >= 1, got {args.repeats}")
         overrides = parse_overrides(args.overrides)
         overrides["device"] = args.device
         cfg = make_config(envs.get(args.env).name, args.model, args.preset, overrides)
     except (ConfigError, ValueError) as err:
         print(f"pets.bench: error: {err}", file=sys.stderr)
         return 2
+    if cfg.threads > 0:
+        torch.set_num_threads(cfg.threads)
     p = cfg.planner
     print(f"{cfg.env} / {cfg.head} on {cfg.device} ({torch.get_num_threads()} threads): population {p.population}, "
           f"{p.particles} particles, horizon {p.horizon}, {p.iterations} iterations, ensemble {cfg.model.ensemble_size}"
           f"x{cfg.model.num_layers}x{cfg.model.hidden_size}, propagation {p.propagation}")
-    res = benchmark(cfg, args.repeats)
-    print(f"seconds per planning step (median of {args.repeats}): {res['seconds_per_step']:.3f}")
-    print(f"model work per step: {res['model_gflop_per_step']:.1f} GFLOP -> {res['model_gflops']:.1f} GFLOP/s "
-          f"({100 * res['model_gflops'] / res['peak_gflops']:.0f}% of the measured fp32 matmul peak "
-          f"{res['peak_gflops']:.1f} GFLOP/s)")
+    if args.compare:
+        res = compare(cfg, args.repeats)
+        print(f"measured GEMM peak (2048^3): fp32 {res['peak_gflops']:.1f} GFLOP/s, "
+              f"bf16 {res['peak_gflops_bf16']:.1f} GFLOP/s")
+        _print_rows(res["rows"], args.repeats)
+    else:
+        res = benchmark(cfg, args.repeats)
+        peak = res["peak_gflops_bf16"] if p.precision == "bf16" else res["peak_gflops"]
+        print(f"seconds per planning step (median of {args.repeats}): {res['seconds_per_step']:.3f} "
+              f"(process CPU {res['cpu_seconds_per_step']:.3f}; first step {res['first_step_seconds']:.2f})")
+        print(f"model work per step: {res['model_gflop_per_step']:.1f} GFLOP -> {res['model_gflops']:.1f} GFLOP/s "
+              f"({100 * res['model_gflops'] / peak:.0f}% of the measured {p.precision} matmul peak "
+              f"{peak:.1f} GFLOP/s); peak memory of a step {res['peak_memory_mib']:.1f} MiB")
     if args.json:
         with open(args.json, "w") as f:
             json.dump(res, f, indent=2)

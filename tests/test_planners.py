@@ -216,3 +216,298 @@ def test_bad_arguments() -> None:
         planner.plan(lambda a: torch.zeros(a.shape[0]), init_mean=torch.zeros(4, 2))
     with pytest.raises(ValueError, match="objective"):
         planner.plan(lambda a: torch.zeros(a.shape[0], 1))
+
+
+# ---------------------------------------------------------------------------------------------- iCEM / MPPI
+from pets.planners import ICEMPlanner, MPPIPlanner, colored_noise, smoothing_matrix  # noqa: E402
+
+TARGET = torch.tensor([[0.3, -1.2], [-0.4, -0.2], [0.0, -0.5], [0.5, -1.4], [-0.5, -0.5]])
+
+
+@pytest.mark.parametrize("t", [32, 15])
+@pytest.mark.parametrize("beta", [0.0, 1.0, 2.0, 2.5])
+def test_colored_noise_unit_variance_and_spectrum_slope(t: int, beta: float) -> None:
+    n = 40_000
+    y = colored_noise((n, t), beta, generator=torch.Generator().manual_seed(0))
+    assert y.shape == (n, t) and y.dtype == torch.float32
+    yd = y.double().numpy()
+    # Unit variance and zero mean at every step (stationary), Gaussian marginals (kurtosis 3).
+    np.testing.assert_allclose(yd.var(0), 1.0, atol=0.04)
+    assert np.abs(yd.mean(0)).max() < 0.04
+    np.testing.assert_allclose((yd ** 4).mean(0) / yd.var(0) ** 2, 3.0, atol=0.15)
+    # Periodogram (numpy's FFT, independent of torch's): log power vs log frequency has slope -beta.
+    power = (np.abs(np.fft.rfft(yd, axis=1)) ** 2).mean(0)
+    k = np.arange(1, (t - 1) // 2 + 1)  # interior frequencies (no DC, no Nyquist)
+    slope = np.polyfit(np.log(k / t), np.log(power[k]), 1)[0]
+    assert abs(slope + beta) < 0.05, slope
+    if beta == 0.0:  # white: no correlation between steps
+        assert abs(np.corrcoef(yd[:, 3], yd[:, 4])[0, 1]) < 0.02
+    else:  # red/pink: neighbouring steps are positively correlated
+        assert np.corrcoef(yd[:, 3], yd[:, 4])[0, 1] > 0.2
+
+
+def test_colored_noise_small_lengths_batches_and_generator() -> None:
+    for t in (1, 2, 3):
+        y = colored_noise((30_000, t), 2.0, generator=torch.Generator().manual_seed(1)).double()
+        torch.testing.assert_close(y.var(0), torch.ones(t, dtype=torch.double), rtol=0, atol=0.04)
+    a = colored_noise((4, 3, 10), 2.0, generator=torch.Generator().manual_seed(5))
+    b = colored_noise((4, 3, 10), 2.0, generator=torch.Generator().manual_seed(5))
+    c = colored_noise((4, 3, 10), 2.0, generator=torch.Generator().manual_seed(6))
+    assert a.shape == (4, 3, 10) and torch.equal(a, b) and not torch.equal(a, c)
+    assert colored_noise((2, 5), 1.0, dtype=torch.float64).dtype == torch.float64
+    with pytest.raises(ValueError, match="beta"):
+        colored_noise((3, 5), -1.0)
+    with pytest.raises(ValueError, match="shape"):
+        colored_noise((3, 0), 1.0)
+
+
+def test_smoothing_matrix_matches_the_recursion() -> None:
+    """u_0 = n_0, u_t = b n_t + (1 - b) u_{t-1}, each step scaled to unit variance (Python-loop ground truth)."""
+    h, b = 7, 0.4
+    n = torch.randn(h, 5, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    u = [n[0]]
+    var = [1.0]
+    for t in range(1, h):
+        u.append(b * n[t] + (1 - b) * u[-1])
+        # Var(u_t) = b^2 + (1 - b)^2 Var(u_{t-1}) for independent unit n.
+        var.append(b ** 2 + (1 - b) ** 2 * var[-1])
+    expected = torch.stack(u) / torch.tensor(var, dtype=torch.float64).sqrt()[:, None]
+    torch.testing.assert_close(smoothing_matrix(h, b, dtype=torch.float64) @ n, expected)
+    torch.testing.assert_close(smoothing_matrix(4, 1.0), torch.eye(4))
+    with pytest.raises(ValueError, match="smoothing"):
+        smoothing_matrix(4, 0.0)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_icem_finds_the_optimum_inside_the_bounds(device: str) -> None:
+    target = TARGET.to(device)
+    # White noise (beta = 0) for a target that jumps between steps; the mean as result is the most precise.
+    f, seen = quadratic(target)
+    planner = ICEMPlanner(LOW, HIGH, horizon=5, population=400, elites=40, iterations=12, noise_beta=0.0,
+                          device=device)
+    plan = planner.plan(f, generator=torch.Generator(device=device).manual_seed(0))
+    assert plan.shape == (5, 2) and plan.device.type == device
+    torch.testing.assert_close(plan, target, rtol=0, atol=0.03)
+    # A target that is smooth in time (and periodic over the horizon, like the FFT noise): the paper's red
+    # noise (beta = 2, default best-sample result) gets closer than white noise on the same budget.
+    t = torch.arange(10.0)
+    smooth = torch.stack([0.4 + 0.2 * torch.cos(2 * math.pi * t / 10), -1.0 + 0.3 * torch.sin(2 * math.pi * t / 10)],
+                         dim=1).to(device)
+    err = {}
+    for beta in (0.0, 2.0):
+        planner = ICEMPlanner(LOW, HIGH, horizon=10, population=300, elites=30, iterations=10, noise_beta=beta,
+                              device=device)
+        plan = planner.plan(quadratic(smooth)[0], generator=torch.Generator(device=device).manual_seed(0))
+        err[beta] = float((plan - smooth).abs().max())
+    assert err[2.0] < 0.08 and err[2.0] < err[0.0], err
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_icem_respects_the_bounds_and_ends_on_the_bound(seed: int) -> None:
+    lb, ub = torch.tensor(LOW, dtype=torch.float32), torch.tensor(HIGH, dtype=torch.float32)
+    target = torch.tensor([[3.0, -4.0], [-3.0, 3.0], [0.2, 9.0]])
+    f, seen = quadratic(target)
+    plan = ICEMPlanner(LOW, HIGH, horizon=3, population=400, elites=20, iterations=15, population_decay=1.1).plan(
+        f, generator=torch.Generator().manual_seed(seed))
+    allseen = torch.cat(seen)
+    assert (allseen >= lb).all() and (allseen <= ub).all()
+    assert (plan >= lb).all() and (plan <= ub).all()
+    torch.testing.assert_close(plan, torch.minimum(torch.maximum(target, lb), ub), rtol=0, atol=0.03)
+    # Red noise over a longer horizon with a target far outside: every sample stays in the box.
+    f, seen = quadratic(10 * TARGET)
+    plan = ICEMPlanner(LOW, HIGH, horizon=5, population=100, elites=10, iterations=4).plan(
+        f, generator=torch.Generator().manual_seed(seed))
+    allseen = torch.cat(seen)
+    assert (allseen >= lb).all() and (allseen <= ub).all()
+    assert (plan >= lb).all() and (plan <= ub).all()
+
+
+def test_icem_population_schedule_carried_elites_and_mean() -> None:
+    f, seen = quadratic(TARGET)
+    planner = ICEMPlanner(LOW, HIGH, horizon=5, population=100, elites=10, iterations=4, population_decay=2.0,
+                          keep_elites=0.3, alpha=0.0, return_mean_elites=True)
+    assert planner.populations == [100, 50, 25, 20]  # max(floor(100 / 2^i), 2 * elites)
+    assert planner.num_keep == 3
+    plan = planner.plan(f, generator=torch.Generator().manual_seed(0))
+    assert [s.shape[0] for s in seen] == [100, 53, 28, 24]  # + 3 carried elites (+ the mean at the last)
+    for i in range(1, 4):
+        prev = seen[i - 1]
+        top = prev[(-((prev - TARGET) ** 2).sum(dim=(1, 2))).argsort(descending=True)[:3]]
+        torch.testing.assert_close(seen[i][planner.populations[i]: planner.populations[i] + 3], top)
+    # alpha = 0: the mean added to the last population is the elite mean of iteration 2, and the
+    # result (return_mean_elites) is the elite mean of the last population.
+    third = seen[2]
+    elite2 = third[(-((third - TARGET) ** 2).sum(dim=(1, 2))).argsort(descending=True)[:10]]
+    torch.testing.assert_close(seen[3][-1], elite2.mean(0))
+    last = seen[3]
+    elite3 = last[(-((last - TARGET) ** 2).sum(dim=(1, 2))).argsort(descending=True)[:10]]
+    torch.testing.assert_close(plan, elite3.mean(0))
+    # Default result: the best sample of the last population.
+    f2, seen2 = quadratic(TARGET)
+    best = ICEMPlanner(LOW, HIGH, horizon=5, population=100, elites=10, iterations=2).plan(
+        f2, generator=torch.Generator().manual_seed(0))
+    last = seen2[-1]
+    torch.testing.assert_close(best, last[(-((last - TARGET) ** 2).sum(dim=(1, 2))).argmax()])
+
+
+def test_icem_keeps_shifted_elites_between_mpc_steps() -> None:
+    planner = ICEMPlanner(LOW, HIGH, horizon=5, population=60, elites=10, iterations=2, keep_elites=0.5)
+    f, seen = quadratic(TARGET)
+    plan = planner.plan(f, generator=torch.Generator().manual_seed(0))
+    last = seen[-1]
+    elites = last[(-((last - TARGET) ** 2).sum(dim=(1, 2))).argsort(descending=True)[:5]]
+    # The agent's warm start after executing 2 steps: the plan shifted twice.
+    init = shift_plan(shift_plan(plan, LOW, HIGH), LOW, HIGH)
+    f, seen = quadratic(TARGET)
+    planner.plan(f, init_mean=init, generator=torch.Generator().manual_seed(1))
+    mid = torch.tensor((LOW + HIGH) / 2, dtype=torch.float32)
+    expected = torch.cat([elites[:, 2:], mid.expand(5, 2, 2)], dim=1)
+    torch.testing.assert_close(seen[0][60:], expected)
+    # No warm start (a new episode) or a warm start that is not a shifted plan: nothing is carried.
+    for init in (None, torch.zeros(5, 2)):
+        f, seen = quadratic(TARGET)
+        planner.plan(f, init_mean=init, generator=torch.Generator().manual_seed(1))
+        assert seen[0].shape[0] == 60
+
+
+@pytest.mark.parametrize("cls", [ICEMPlanner, MPPIPlanner])
+def test_icem_and_mppi_are_deterministic_given_the_generator(cls) -> None:
+    target = torch.full((6, 2), 0.2)
+    kw = dict(horizon=6, population=50, iterations=3)
+    p1 = cls(LOW, HIGH, **kw).plan(quadratic(target)[0], generator=torch.Generator().manual_seed(7))
+    p2 = cls(LOW, HIGH, **kw).plan(quadratic(target)[0], generator=torch.Generator().manual_seed(7))
+    p3 = cls(LOW, HIGH, **kw).plan(quadratic(target)[0], generator=torch.Generator().manual_seed(8))
+    assert torch.equal(p1, p2)
+    assert not torch.equal(p1, p3)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_mppi_finds_the_optimum_inside_the_bounds(device: str) -> None:
+    target = TARGET.to(device)
+    planner = MPPIPlanner(LOW, HIGH, horizon=5, population=500, iterations=15, sigma=0.15, device=device)
+    f, seen = quadratic(target)
+    plan = planner.plan(f, generator=torch.Generator(device=device).manual_seed(0))
+    assert plan.shape == (5, 2) and plan.device.type == device
+    assert len(seen) == 15 and all(s.shape == (500, 5, 2) for s in seen)
+    torch.testing.assert_close(plan, target, rtol=0, atol=0.03)
+
+
+@pytest.mark.parametrize("smoothing", [1.0, 0.5])
+def test_mppi_respects_the_bounds(smoothing: float) -> None:
+    lb, ub = torch.tensor(LOW, dtype=torch.float32), torch.tensor(HIGH, dtype=torch.float32)
+    target = torch.tensor([[3.0, -4.0], [-3.0, 3.0], [0.2, 9.0]])
+    corner = torch.minimum(torch.maximum(target, lb), ub)
+    mid_error = float((0.5 * (lb + ub) - corner).abs().max())
+    for sigma in (1.0, 0.3):  # wide perturbations: many samples clipped
+        f, seen = quadratic(target)
+        plan = MPPIPlanner(LOW, HIGH, horizon=3, population=300, iterations=20, sigma=sigma, smoothing=smoothing).plan(
+            f, generator=torch.Generator().manual_seed(0))
+        allseen = torch.cat(seen)
+        assert (allseen >= lb).all() and (allseen <= ub).all()
+        assert (plan >= lb).all() and (plan <= ub).all()
+        # A weighted mean of samples never sits exactly on a bound: it approaches the corner.
+        assert float((plan - corner).abs().max()) < 0.6 * mid_error
+    if smoothing == 1.0:
+        torch.testing.assert_close(plan, corner, rtol=0, atol=0.15)
+
+
+def test_mppi_perturbations_std_and_smoothing() -> None:
+    """Wide bounds (no clipping): per-step std sigma * half-range; lag-1 correlation 1 - smoothing."""
+    lo, hi = np.array([-100.0]), np.array([100.0])
+    for smoothing in (1.0, 0.3):
+        f, seen = quadratic(torch.zeros(20, 1))
+        MPPIPlanner(lo, hi, horizon=20, population=20_000, iterations=1, sigma=0.02, smoothing=smoothing).plan(
+            f, init_mean=torch.full((20, 1), 5.0), generator=torch.Generator().manual_seed(0))
+        eps = (seen[0][..., 0] - 5.0).double()  # (N, H)
+        torch.testing.assert_close(eps.std(0), torch.full((20,), 2.0, dtype=torch.double), rtol=0.03, atol=0)
+        corr = np.corrcoef(eps[:, 15].numpy(), eps[:, 16].numpy())[0, 1]
+        assert abs(corr - (1.0 - smoothing)) < 0.03
+
+
+def test_mppi_weights() -> None:
+    planner = MPPIPlanner(LOW, HIGH, horizon=2, population=5, temperature=0.5)
+    v = torch.tensor([1.0, 3.0, 2.0, 0.0, 3.0])
+    # (v - max) / (max - median) / T with median 2 -> softmax of (v - 3) / 0.5
+    torch.testing.assert_close(planner.weights(v), torch.softmax((v - 3.0) / 0.5, dim=0))
+    torch.testing.assert_close(planner.weights(torch.full((5,), 7.0)), torch.full((5,), 0.2))
+    # Non-finite returns count as the worst finite one; all non-finite: uniform.
+    w = planner.weights(torch.tensor([1.0, torch.nan, 2.0, -torch.inf, 3.0]))
+    assert torch.isfinite(w).all() and w[1] == w[3] == w[0]
+    torch.testing.assert_close(planner.weights(torch.full((5,), torch.nan)), torch.full((5,), 0.2))
+    # A huge outlier (a diverged rollout scored -1e6) does not flatten the weights of the others.
+    w = planner.weights(torch.tensor([1.0, 3.0, 2.0, -1e6, 3.0]))
+    torch.testing.assert_close(w[:3], torch.softmax(torch.tensor([1.0, 3.0, 2.0, -1e6, 3.0]) * 2 - 6, 0)[:3])
+    # Temperature -> 0: the plan is the best sample of the single iteration (random shooting).
+    f, seen = quadratic(TARGET)
+    plan = MPPIPlanner(LOW, HIGH, horizon=5, population=100, iterations=1, alpha=0.0, temperature=1e-6).plan(
+        f, generator=torch.Generator().manual_seed(0))
+    values = -((seen[0] - TARGET) ** 2).sum(dim=(1, 2))
+    torch.testing.assert_close(plan, seen[0][values.argmax()])
+
+
+def test_icem_and_mppi_bad_arguments() -> None:
+    with pytest.raises(ValueError, match="population_decay"):
+        ICEMPlanner(LOW, HIGH, horizon=3, population=10, population_decay=0.5)
+    with pytest.raises(ValueError, match="keep_elites"):
+        ICEMPlanner(LOW, HIGH, horizon=3, population=10, keep_elites=1.5)
+    with pytest.raises(ValueError, match="noise_beta"):
+        ICEMPlanner(LOW, HIGH, horizon=3, population=10, noise_beta=-1.0)
+    with pytest.raises(ValueError, match="elites"):
+        ICEMPlanner(LOW, HIGH, horizon=3, population=10, elites=11)
+    with pytest.raises(ValueError, match="sigma"):
+        MPPIPlanner(LOW, HIGH, horizon=3, population=10, sigma=0.0)
+    with pytest.raises(ValueError, match="temperature"):
+        MPPIPlanner(LOW, HIGH, horizon=3, population=10, temperature=-1.0)
+    with pytest.raises(ValueError, match="smoothing"):
+        MPPIPlanner(LOW, HIGH, horizon=3, population=10, smoothing=1.5)
+    with pytest.raises(ValueError, match="horizon"):
+        MPPIPlanner(LOW, HIGH, horizon=0, population=10)
+    for planner in (ICEMPlanner(LOW, HIGH, horizon=3, population=10), MPPIPlanner(LOW, HIGH, horizon=3, population=10)):
+        with pytest.raises(ValueError, match="init_mean"):
+            planner.plan(lambda a: torch.zeros(a.shape[0]), init_mean=torch.zeros(4, 2))
+        with pytest.raises(ValueError, match="objective"):
+            planner.plan(lambda a: torch.zeros(a.shape[0], 1))
+
+
+@pytest.mark.parametrize("name, cls", [("cem", CEMPlanner), ("icem", ICEMPlanner), ("mppi", MPPIPlanner)])
+def test_config_builds_the_named_planner(name: str, cls) -> None:
+    import envs
+    from pets.builder import make_planner
+    from pets.config import ConfigError, make_config
+
+    cfg = make_config("hopper", preset="fast", overrides={"planner.name": name, "planner.noise_beta": "2.5",
+                                                           "planner.mppi_temperature": "0.2"})
+    planner = make_planner(cfg, envs.get("hopper"), torch.device("cpu"))
+    assert isinstance(planner, cls) and planner.horizon == cfg.planner.horizon
+    if name == "icem":
+        assert planner.noise_beta == 2.5 and planner.num_elites == 10
+    if name == "mppi":
+        assert planner.temperature == 0.2
+    for item in ("planner.name=random", "planner.mppi_sigma=0", "planner.icem_population_decay=0.9",
+                 "planner.icem_keep_elites=2", "planner.precision=fp16", "planner.mppi_smoothing=0"):
+        key, value = item.split("=")
+        with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
+            make_config("hopper", overrides={key: value})
+
+
+@pytest.mark.parametrize("replan_every", [1, 3])
+def test_icem_carries_elites_through_the_mpc_agent(replan_every: int) -> None:
+    """With pets.agent.MPCAgent's warm start (the plan shifted by the executed steps) iCEM recognises the shift."""
+    from pets.agent import MPCAgent
+
+    sizes: list[int] = []
+
+    def evaluator(obs: Tensor, actions: Tensor, generator: torch.Generator | None = None) -> Tensor:
+        sizes.append(actions.shape[0])
+        return -((actions - 0.3) ** 2).sum(dim=(1, 2))
+
+    planner = ICEMPlanner(LOW, HIGH, horizon=5, population=40, elites=10, iterations=2, keep_elites=0.3)
+    agent = MPCAgent(planner, evaluator, replan_every=replan_every, action_low=LOW, action_high=HIGH,
+                     device=torch.device("cpu"), generator=torch.Generator().manual_seed(0))
+    for _ in range(2 * replan_every):
+        agent.act(np.zeros(3))
+    # First plan: 40, then 32 + 3 carried + mean; second plan: 40 + 3 shifted elites, then 32 + 3 + 1.
+    assert sizes == [40, 36, 43, 36]
+    agent.reset()  # a new episode: nothing carried
+    agent.act(np.zeros(3))
+    assert sizes[4] == 40
