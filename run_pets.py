@@ -1,8 +1,12 @@
 #!/usr/bin/env python
 """PETS with a swappable dynamics head.
 
-    python run_pets.py --model gem --env halfcheetah [--trials N] [--seed S] [--device cpu|cuda|auto]
+    python run_pets.py --model MODEL --env halfcheetah [--trials N] [--seed S] [--device cpu|cuda|auto]
                        [--preset research|fast] [--out DIR] [--resume DIR] [key=value ...]
+
+MODEL (``pets.config.HEADS``): delta, gem (probabilistic ensembles, PETS), delta-det, gem2 (the GEM paper's
+deterministic baseline and two-stage GEM, member predictions averaged) or delta-groupfeat (delta with GEM's
+input features); ``pets/models.py`` describes each.
 """
 from __future__ import annotations
 
@@ -29,9 +33,9 @@ class _OneLineParser(argparse.ArgumentParser):
 def build_parser() -> argparse.ArgumentParser:
     from pets.config import HEADS, PRESETS
 
-    p = _OneLineParser(description="PETS model-based RL with a delta or GEM dynamics head.",
+    p = _OneLineParser(description="PETS model-based RL with a swappable dynamics model (delta, GEM and variants).",
                                 epilog="Any config key can be overridden as key=value, e.g. planner.population=200.")
-    p.add_argument("--model", choices=HEADS, help="dynamics head (default: delta)")
+    p.add_argument("--model", choices=HEADS, help="dynamics model (default: delta); see pets/models.py")
     p.add_argument("--env", help="environment: one of the catalogue names or a gymnasium id")
     p.add_argument("--trials", type=int, help="number of trials (episodes)")
     p.add_argument("--seed", type=int, help="seed for every random source")

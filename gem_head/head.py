@@ -168,8 +168,12 @@ class GemHead(DynamicsHead):
         add_pairs: list[tuple[int, int]] = []  # (obs index, target index) of the additive slots (incl. angles)
         ang_obs, ang_tgt, cs_c, cs_s, cs_tgt, q_obs, q_tgt, sq_tgt = ([] for _ in range(8))
         target_names: list[str] = []
+        dynamic_obs = set(layout.velocities) | set(layout.other)
+        group_slots: list[int] = []
         t = 0
         for _, kind, idx, label in units:
+            if kind != "add" or idx[0] not in dynamic_obs:
+                group_slots += list(range(t, t + (3 if kind == "quat" else 1)))
             if kind == "add":
                 add_pairs.append((idx[0], t))
                 sq_tgt.append(t)
@@ -194,6 +198,10 @@ class GemHead(DynamicsHead):
                 t += 3
         self.target_dim = t
         self.target_names: tuple[str, ...] = tuple(target_names)
+        #: Target slots of the group ("static") part: Rn coordinates and rotation coefficients, ascending.
+        self.group_slots: tuple[int, ...] = tuple(group_slots)
+        #: Target slots of the velocities and ``other`` entries (the "dynamic" part), ascending.
+        self.velocity_slots: tuple[int, ...] = tuple(sorted(set(range(t)) - set(group_slots)))
 
         # Contiguous runs (obs start, target start, length) of the additive slots: next = obs + target there.
         self._segments: list[tuple[int, int, int]] = []

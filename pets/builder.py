@@ -9,10 +9,10 @@ from omegaconf import DictConfig
 from envs import EnvSpec
 from pets.agent import MPCAgent
 from pets.config import ConfigError
-from pets.ensemble import GaussianEnsemble
+from pets.ensemble import GaussianEnsemble, MemberEnsemble
 from pets.heads import DeltaHead, DynamicsHead
-from pets.planners import CEMPlanner
-from pets.propagation import TrajectoryEvaluator
+from pets.planners import CEMPlanner, ICEMPlanner, MPPIPlanner
+from pets.propagation import TrajectoryEvaluator, retain_freed_memory
 from pets.training import ModelTrainer
 
 
@@ -26,6 +26,7 @@ def resolve_device(name: str) -> torch.device:
 
 
 def make_head(cfg: DictConfig, spec: EnvSpec) -> DynamicsHead:
+    """The dynamics head of ``cfg.head`` (the ``--model`` value; ``pets.models`` describes each)."""
     if cfg.head == "delta":
         return DeltaHead(spec.layout, spec.act_dim)
     if cfg.head == "gem":
@@ -33,17 +34,43 @@ def make_head(cfg: DictConfig, spec: EnvSpec) -> DynamicsHead:
 
         return GemHead(spec.layout, spec.act_dim, compose=cfg.gem.compose, loss=cfg.gem.loss,
                        frobenius_weight=cfg.gem.frobenius_weight)
-    raise ConfigError(f"unknown head {cfg.head!r}; accepted: delta, gem")
+    if cfg.head == "delta-det":
+        from pets.models import DeterministicDeltaHead
+
+        return DeterministicDeltaHead(spec.layout, spec.act_dim)
+    if cfg.head == "gem2":
+        from gem_head.two_stage import TwoStageGemHead
+
+        return TwoStageGemHead(spec.layout, spec.act_dim, compose=cfg.gem.compose)
+    if cfg.head == "delta-groupfeat":
+        from pets.models import GroupFeatureDeltaHead
+
+        return GroupFeatureDeltaHead(spec.layout, spec.act_dim)
+    raise ConfigError(f"unknown head {cfg.head!r}; accepted: delta, gem, delta-det, gem2, delta-groupfeat")
 
 
-def make_ensemble(cfg: DictConfig, head: DynamicsHead, device: torch.device) -> GaussianEnsemble:
+def make_ensemble(cfg: DictConfig, head: DynamicsHead, device: torch.device) -> MemberEnsemble:
+    """The model of ``cfg.head``: a Gaussian ensemble (delta, gem, delta-groupfeat), deterministic MLPs
+    (delta-det) or two-stage GEMs (gem2); ``model.*`` sets the sizes of all of them."""
     m = cfg.model
+    if cfg.head == "gem2":
+        from gem_head.two_stage import TwoStageGemEnsemble
+
+        return TwoStageGemEnsemble(head.input_dim, head.target_dim, head.group_slots, head.velocity_slots,
+                                   ensemble_size=m.ensemble_size, hidden_size=m.hidden_size,
+                                   num_layers=m.num_layers, num_elites=m.num_elites).to(device)
+    if head.deterministic:
+        from pets.models import DeterministicEnsemble
+
+        return DeterministicEnsemble(head.input_dim, head.target_dim, ensemble_size=m.ensemble_size,
+                                     hidden_size=m.hidden_size, num_layers=m.num_layers,
+                                     num_elites=m.num_elites).to(device)
     return GaussianEnsemble(head.input_dim, head.target_dim, ensemble_size=m.ensemble_size,
                             hidden_size=m.hidden_size, num_layers=m.num_layers,
                             learn_logvar_bounds=m.learn_logvar_bounds, num_elites=m.num_elites).to(device)
 
 
-def make_trainer(cfg: DictConfig, ensemble: GaussianEnsemble, head: DynamicsHead) -> ModelTrainer:
+def make_trainer(cfg: DictConfig, ensemble: MemberEnsemble, head: DynamicsHead) -> ModelTrainer:
     m = cfg.model
     return ModelTrainer(ensemble, head, lr=m.lr, batch_size=m.batch_size, max_epochs=m.max_epochs,
                         patience=m.patience, holdout_ratio=m.holdout_ratio, max_holdout=m.max_holdout,
@@ -53,13 +80,29 @@ def make_trainer(cfg: DictConfig, ensemble: GaussianEnsemble, head: DynamicsHead
 def make_agent(cfg: DictConfig, spec: EnvSpec, ensemble: GaussianEnsemble, head: DynamicsHead,
                device: torch.device, generator: torch.Generator) -> MPCAgent:
     p = cfg.planner
+    if device.type == "cpu":
+        retain_freed_memory()
     evaluator = TrajectoryEvaluator(ensemble, head, spec.reward, spec.terminated, particles=p.particles,
-                                    propagation=p.propagation)
-    planner = CEMPlanner(spec.action_low, spec.action_high, horizon=p.horizon, population=p.population,
-                         elites=p.elites if p.elites < 1 else int(p.elites), iterations=p.iterations,
-                         alpha=p.alpha, device=device)
+                                    propagation=p.propagation, precision=p.precision, compile=p.compile)
+    planner = make_planner(cfg, spec, device)
     return MPCAgent(planner, evaluator, replan_every=p.replan_every, action_low=spec.action_low,
                     action_high=spec.action_high, device=device, generator=generator)
+
+
+def make_planner(cfg: DictConfig, spec: EnvSpec, device: torch.device) -> CEMPlanner | ICEMPlanner | MPPIPlanner:
+    """The planner named by ``planner.name`` (cem, icem, mppi) with the config's settings."""
+    p = cfg.planner
+    common = dict(horizon=p.horizon, population=p.population, iterations=p.iterations, alpha=p.alpha, device=device)
+    elites = p.elites if p.elites < 1 else int(p.elites)
+    if p.name == "cem":
+        return CEMPlanner(spec.action_low, spec.action_high, elites=elites, **common)
+    if p.name == "icem":
+        return ICEMPlanner(spec.action_low, spec.action_high, elites=elites, noise_beta=p.noise_beta,
+                           population_decay=p.icem_population_decay, keep_elites=p.icem_keep_elites, **common)
+    if p.name == "mppi":
+        return MPPIPlanner(spec.action_low, spec.action_high, sigma=p.mppi_sigma, temperature=p.mppi_temperature,
+                           smoothing=p.mppi_smoothing, **common)
+    raise ConfigError(f"unknown planner {p.name!r}; accepted: cem, icem, mppi")
 
 
 def load_model(run_dir: str | Path, device: str | torch.device = "cpu"):

@@ -1,8 +1,8 @@
 """All configuration in one place: global defaults, per-env defaults, presets, `key=value` overrides.
 
 Resolution order (later wins): ``Config`` defaults -> ``ENV_DEFAULTS[env]`` -> ``PRESETS[preset]``
--> command-line ``key=value`` overrides. Values are parsed against the declared field types
-(``trials=00143`` is 143, never the YAML-octal 99), then range-checked.
+-> ``HEAD_DEFAULTS[head]`` -> command-line ``key=value`` overrides. Values are parsed against the declared
+field types (``trials=00143`` is 143, never the YAML-octal 99), then range-checked.
 """
 from __future__ import annotations
 
@@ -12,8 +12,12 @@ from typing import Any, Optional
 
 from omegaconf import DictConfig, OmegaConf
 
-HEADS = ("delta", "gem")
-PLANNERS = ("cem",)
+#: ``--model`` values (config key ``head``); ``pets.models`` describes each.
+HEADS = ("delta", "gem", "delta-det", "gem2", "delta-groupfeat")
+#: Heads whose model has no predictive variance (MSE / Frobenius training, zero sampling noise).
+DETERMINISTIC_HEADS = ("delta-det", "gem2")
+PLANNERS = ("cem", "icem", "mppi")
+PRECISIONS = ("fp32", "bf16")
 PROPAGATIONS = ("ts1", "tsinf", "expectation")
 
 
@@ -47,6 +51,17 @@ class PlannerConfig:
     particles: int = 20
     propagation: str = "tsinf"
     replan_every: int = 1
+    # iCEM (name=icem; population, elites, iterations, alpha as above)
+    noise_beta: float = 2.0  # colored-noise exponent: 0 white, 2 red (the iCEM paper's locomotion choice)
+    icem_population_decay: float = 1.25  # population_i = max(population * decay^-i, 2 * elites)
+    icem_keep_elites: float = 0.3  # fraction of the elites carried into the next iteration / MPC step
+    # MPPI (name=mppi; population, iterations, alpha as above)
+    mppi_sigma: float = 0.5  # perturbation std in units of the action half-range (ub - lb) / 2
+    mppi_temperature: float = 0.3  # softmax temperature on returns normalised by (max - median)
+    mppi_smoothing: float = 1.0  # low-pass coefficient in (0, 1] along the horizon; 1 = independent steps
+    # Speed of the rollouts (docs/performance.md)
+    precision: str = "fp32"  # fp32 | bf16 (ensemble matmuls under bfloat16 autocast; state and returns fp32)
+    compile: bool = False  # torch.compile the rollout step (eager fallback with a warning if it fails)
 
 
 @dataclass
@@ -89,6 +104,10 @@ ENV_DEFAULTS: dict[str, dict[str, Any]] = {
     "humanoid": _HALFCHEETAH,
 }
 
+# Per-model defaults: the deterministic models (delta-det, gem2) average their members' predictions, as the
+# paper's ensembles do, which is PETS' expectation propagation (pets.models explains; tsinf also works).
+HEAD_DEFAULTS: dict[str, dict[str, Any]] = {h: {"planner": {"propagation": "expectation"}} for h in DETERMINISTIC_HEADS}
+
 # A CPU-friendly preset: ~20x fewer model evaluations per planning step than the research defaults.
 PRESETS: dict[str, dict[str, Any]] = {
     "research": {},
@@ -103,6 +122,7 @@ _POSITIVE_INTS = ["trials", "model.ensemble_size", "model.num_elites", "model.hi
                   "planner.population", "planner.iterations", "planner.horizon", "planner.particles",
                   "planner.replan_every"]
 _CHOICES = {"head": HEADS, "planner.name": PLANNERS, "planner.propagation": PROPAGATIONS,
+            "planner.precision": PRECISIONS,
             "gem.compose": ("left", "right"), "gem.loss": ("nll", "frobenius", "nll+frobenius"),
             "device": ("auto", "cpu", "cuda")}
 
@@ -170,6 +190,16 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError(f"threads must be >= 0 (0: torch default), got {cfg.threads}")
     if cfg.seed < 0 or cfg.seed_steps < 0 or cfg.train_every < 0:
         raise ConfigError("seed, seed_steps and train_every must be >= 0")
+    for key, low, high, low_open in (("planner.noise_beta", 0.0, math.inf, False),
+                                     ("planner.icem_population_decay", 1.0, math.inf, False),
+                                     ("planner.icem_keep_elites", 0.0, 1.0, False),
+                                     ("planner.mppi_sigma", 0.0, math.inf, True),
+                                     ("planner.mppi_temperature", 0.0, math.inf, True),
+                                     ("planner.mppi_smoothing", 0.0, 1.0, True)):
+        v = OmegaConf.select(cfg, key)
+        if not (math.isfinite(v) and (v > low if low_open else v >= low) and v <= high):
+            interval = ("(" if low_open else "[") + f"{low}, {high}" + ("]" if math.isfinite(high) else ")")
+            raise ConfigError(f"{key} must be a finite number in {interval}, got {v}")
     if cfg.planner.replan_every > cfg.planner.horizon:
         raise ConfigError(f"planner.replan_every ({cfg.planner.replan_every}) must be <= planner.horizon "
                           f"({cfg.planner.horizon})")
@@ -187,6 +217,8 @@ def make_config(env: str, head: str = "delta", preset: str = "research",
     _merge_nested(cfg, ENV_DEFAULTS.get(env, {}))
     _merge_nested(cfg, PRESETS[preset])
     _set(cfg, "head", head)
+    head = (overrides or {}).get("head", head)  # head=... given as an override picks its defaults too
+    _merge_nested(cfg, HEAD_DEFAULTS.get(head if isinstance(head, str) else "", {}))
     for key, value in (overrides or {}).items():
         _set(cfg, key, value)
     validate(cfg)

@@ -5,6 +5,11 @@ All members are evaluated at once: every layer stores its weights stacked as an
 ``torch.baddbmm``. Each member outputs a mean and a soft-bounded log-variance per
 target dimension. Inputs are normalised inside the module with a mean/std fitted on
 the data (``fit_normaliser``), stored as buffers so they travel with ``state_dict``.
+
+The pieces every PETS dynamics model shares live here too: :class:`MemberEnsemble` (normaliser,
+elites, member selection) and the batched-member MLP helpers :func:`init_member_layers`,
+:func:`member_mlp` and :func:`decay_loss`; the deterministic models of ``pets.models`` and
+``gem_head.two_stage`` are built from them.
 """
 from __future__ import annotations
 
@@ -31,62 +36,77 @@ def _layer_decays(num_linear: int) -> list[float]:
     return hidden[: num_linear - 1] + [_DECAY_OUT]
 
 
-class GaussianEnsemble(nn.Module):
-    """``ensemble_size`` independent Gaussian MLPs ``x -> (mean, logvar)`` evaluated in one batched pass.
+def init_member_layers(sizes: list[int], ensemble_size: int) -> tuple[nn.ParameterList, nn.ParameterList]:
+    """Stacked per-member linear layers ``sizes[0] -> sizes[1] -> ... -> sizes[-1]``.
 
-    Architecture per member: ``num_layers`` hidden layers of ``hidden_size`` SiLU units, then a
-    linear output of ``2 * out_dim`` (mean and raw log-variance). The log-variance is soft-bounded:
-    ``lv = max_lv - softplus(max_lv - lv)``; ``lv = min_lv + softplus(lv - min_lv)``.
+    Weights ``(E, fan_in, fan_out)`` from a truncated normal (std ``1 / (2 sqrt(fan_in))``, cut at 2 std),
+    biases ``(E, 1, fan_out)`` zero: the initialisation of the original PETS code.
+    """
+    weights, biases = nn.ParameterList(), nn.ParameterList()
+    for fan_in, fan_out in zip(sizes[:-1], sizes[1:]):
+        w = torch.empty(ensemble_size, fan_in, fan_out)
+        std = 1.0 / (2.0 * math.sqrt(fan_in))
+        nn.init.trunc_normal_(w, mean=0.0, std=std, a=-2.0 * std, b=2.0 * std)
+        weights.append(nn.Parameter(w))
+        biases.append(nn.Parameter(torch.zeros(ensemble_size, 1, fan_out)))
+    return weights, biases
+
+
+def member_mlp(h: Tensor, weights: nn.ParameterList, biases: nn.ParameterList, idx: Tensor | None) -> Tensor:
+    """Run all (or the ``idx``-selected) members' MLPs at once: SiLU between layers, linear output.
+
+    ``h`` is (B, in), shared by the members (one broadcast matmul per layer), or (M, B, in), one batch per
+    member (one ``baddbmm`` per layer). Returns (M, B, out).
+    """
+    last = len(weights) - 1
+    for i, (w, b) in enumerate(zip(weights, biases)):
+        if idx is not None:
+            w, b = w.index_select(0, idx), b.index_select(0, idx)
+        if h.dim() == 2:  # shared inputs: one broadcast matmul gives (M, B, out)
+            h = torch.matmul(h, w) + b
+        else:
+            h = torch.baddbmm(b, h, w)
+        if i < last:
+            h = F.silu(h)
+    return h
+
+
+def check_member_args(**values: int) -> None:
+    """ValueError unless every value is a positive int (``num_layers`` may be 0)."""
+    for name, value in values.items():
+        low = 0 if name == "num_layers" else 1
+        if not isinstance(value, int) or isinstance(value, bool) or value < low:
+            what = "an int >= 0" if low == 0 else "a positive int"
+            raise ValueError(f"{name}{' (hidden layers)' if low == 0 else ''} must be {what}, got {value!r}")
+
+
+class MemberEnsemble(nn.Module):
+    """What every PETS dynamics model shares: input normaliser, elites and member selection.
+
+    Subclasses build their batched-member layers (:func:`init_member_layers`, :func:`member_mlp`),
+    implement ``forward(x, members=None) -> (mean, logvar)`` (each (M, B, out_dim)), ``member_parameters``,
+    ``weight_decay_loss`` and ``logvar_bound_penalty``, and set ``deterministic`` (True: the
+    log-variance is a constant that makes the sampling noise exactly zero, see ``pets.models``).
 
     Buffers: ``input_mean``, ``input_std`` (normaliser) and ``elites`` (long indices of the elite
     members, all members until a trainer sets them).
     """
 
-    def __init__(self, in_dim: int, out_dim: int, ensemble_size: int = 7, hidden_size: int = 200,
-                 num_layers: int = 4, min_logvar: float = -10.0, max_logvar: float = 0.5,
-                 learn_logvar_bounds: bool = True, num_elites: int | None = None) -> None:
+    #: True for models without a predictive variance (``pets.models``); the Gaussian ensemble has one.
+    deterministic: bool = False
+    #: Whether ``logvar_bound_penalty`` has trainable terms (the trainer adds it to the loss only then).
+    learn_logvar_bounds: bool = False
+
+    def __init__(self, in_dim: int, out_dim: int, ensemble_size: int, num_elites: int | None) -> None:
         super().__init__()
-        for name, value in (("in_dim", in_dim), ("out_dim", out_dim), ("ensemble_size", ensemble_size),
-                            ("hidden_size", hidden_size)):
-            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
-                raise ValueError(f"{name} must be a positive int, got {value!r}")
-        if not isinstance(num_layers, int) or isinstance(num_layers, bool) or num_layers < 0:
-            raise ValueError(f"num_layers (hidden layers) must be an int >= 0, got {num_layers!r}")
-        if not (math.isfinite(min_logvar) and math.isfinite(max_logvar) and min_logvar < max_logvar):
-            raise ValueError(f"need finite min_logvar < max_logvar, got min {min_logvar}, max {max_logvar}")
         if num_elites is None:
             num_elites = ensemble_size
         if not isinstance(num_elites, int) or not 1 <= num_elites <= ensemble_size:
             raise ValueError(f"num_elites must be an int in [1, ensemble_size={ensemble_size}], got {num_elites!r}")
-
         self.in_dim = in_dim
         self.out_dim = out_dim
         self.ensemble_size = ensemble_size
-        self.hidden_size = hidden_size
-        self.num_layers = num_layers
         self.num_elites = num_elites
-        self.learn_logvar_bounds = learn_logvar_bounds
-
-        sizes = [in_dim] + [hidden_size] * num_layers + [2 * out_dim]
-        self.weights = nn.ParameterList()
-        self.biases = nn.ParameterList()
-        for fan_in, fan_out in zip(sizes[:-1], sizes[1:]):
-            w = torch.empty(ensemble_size, fan_in, fan_out)
-            std = 1.0 / (2.0 * math.sqrt(fan_in))
-            nn.init.trunc_normal_(w, mean=0.0, std=std, a=-2.0 * std, b=2.0 * std)
-            self.weights.append(nn.Parameter(w))
-            self.biases.append(nn.Parameter(torch.zeros(ensemble_size, 1, fan_out)))
-        self.decays: list[float] = _layer_decays(len(sizes) - 1)
-
-        max_lv = torch.full((out_dim,), float(max_logvar))
-        min_lv = torch.full((out_dim,), float(min_logvar))
-        if learn_logvar_bounds:
-            self.max_logvar = nn.Parameter(max_lv)
-            self.min_logvar = nn.Parameter(min_lv)
-        else:
-            self.register_buffer("max_logvar", max_lv)
-            self.register_buffer("min_logvar", min_lv)
-
         self.register_buffer("input_mean", torch.zeros(in_dim))
         self.register_buffer("input_std", torch.ones(in_dim))
         self.register_buffer("elites", torch.arange(ensemble_size, dtype=torch.long))
@@ -100,10 +120,7 @@ class GaussianEnsemble(nn.Module):
                              f"got {tuple(x.shape)}")
         if not torch.isfinite(x).all():
             raise ValueError("fit_normaliser got non-finite inputs (nan or inf)")
-        x64 = x.detach().to(torch.float64)
-        mean = x64.mean(dim=0)
-        std = x64.std(dim=0, correction=0)
-        std = torch.where(std < 1e-5, torch.ones_like(std), std)
+        mean, std = _mean_std(x)
         self.input_mean.copy_(mean.to(self.input_mean))
         self.input_std.copy_(std.to(self.input_std))
 
@@ -128,10 +145,10 @@ class GaussianEnsemble(nn.Module):
             self.elites = torch.empty_like(state_dict[key], device=self.elites.device, dtype=torch.long)
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
-    # ------------------------------------------------------------------ forward
+    # ------------------------------------------------------------------ forward helpers
     def member_parameters(self) -> list[Tensor]:
         """Parameters with a leading member dimension (weights and biases), in a fixed order."""
-        return [*self.weights, *self.biases]
+        raise NotImplementedError
 
     def _member_index(self, members: Tensor | None) -> Tensor | None:
         if members is None:
@@ -141,7 +158,74 @@ class GaussianEnsemble(nn.Module):
         if members.dim() != 1 or members.dtype not in (torch.int64, torch.int32) or members.numel() < 1:
             raise ValueError(f"members must be a non-empty 1-D integer tensor of member indices, "
                              f"got shape {tuple(members.shape)} dtype {members.dtype}")
-        return members.to(device=self.weights[0].device, dtype=torch.long)
+        return members.to(device=self.input_mean.device, dtype=torch.long)
+
+    def _check_inputs(self, x: Tensor, members: Tensor | None) -> tuple[Tensor | None, int]:
+        """(member index or None, M) after checking that ``x`` is (B, in_dim) or (M, B, in_dim)."""
+        idx = self._member_index(members)
+        m = self.ensemble_size if idx is None else idx.numel()
+        if x.dim() not in (2, 3) or x.shape[-1] != self.in_dim or (x.dim() == 3 and x.shape[0] != m):
+            raise ValueError(f"inputs must be (B, {self.in_dim}) or ({m}, B, {self.in_dim}) for {m} members, "
+                             f"got {tuple(x.shape)}")
+        return idx, m
+
+
+def _mean_std(x: Tensor) -> tuple[Tensor, Tensor]:
+    """Column mean and std (float64, population std) of ``x`` (N, D); a std < 1e-5 becomes 1."""
+    x64 = x.detach().to(torch.float64)
+    mean = x64.mean(dim=0)
+    std = x64.std(dim=0, correction=0)
+    return mean, torch.where(std < 1e-5, torch.ones_like(std), std)
+
+
+def decay_loss(weights: nn.ParameterList, decays: list[float]) -> Tensor:
+    """sum_l decay_l * 0.5 * ||W_l||^2 over the stacked weights (all members, no biases)."""
+    total = weights[0].new_zeros(())
+    for decay, w in zip(decays, weights):
+        total = total + decay * 0.5 * w.pow(2).sum()
+    return total
+
+
+class GaussianEnsemble(MemberEnsemble):
+    """``ensemble_size`` independent Gaussian MLPs ``x -> (mean, logvar)`` evaluated in one batched pass.
+
+    Architecture per member: ``num_layers`` hidden layers of ``hidden_size`` SiLU units, then a
+    linear output of ``2 * out_dim`` (mean and raw log-variance). The log-variance is soft-bounded:
+    ``lv = max_lv - softplus(max_lv - lv)``; ``lv = min_lv + softplus(lv - min_lv)``.
+
+    Buffers: ``input_mean``, ``input_std`` (normaliser) and ``elites`` (long indices of the elite
+    members, all members until a trainer sets them).
+    """
+
+    def __init__(self, in_dim: int, out_dim: int, ensemble_size: int = 7, hidden_size: int = 200,
+                 num_layers: int = 4, min_logvar: float = -10.0, max_logvar: float = 0.5,
+                 learn_logvar_bounds: bool = True, num_elites: int | None = None) -> None:
+        check_member_args(in_dim=in_dim, out_dim=out_dim, ensemble_size=ensemble_size, hidden_size=hidden_size,
+                          num_layers=num_layers)
+        if not (math.isfinite(min_logvar) and math.isfinite(max_logvar) and min_logvar < max_logvar):
+            raise ValueError(f"need finite min_logvar < max_logvar, got min {min_logvar}, max {max_logvar}")
+        super().__init__(in_dim, out_dim, ensemble_size, num_elites)
+        self.hidden_size = hidden_size
+        self.num_layers = num_layers
+        self.learn_logvar_bounds = learn_logvar_bounds
+
+        sizes = [in_dim] + [hidden_size] * num_layers + [2 * out_dim]
+        self.weights, self.biases = init_member_layers(sizes, ensemble_size)
+        self.decays: list[float] = _layer_decays(len(sizes) - 1)
+
+        max_lv = torch.full((out_dim,), float(max_logvar))
+        min_lv = torch.full((out_dim,), float(min_logvar))
+        if learn_logvar_bounds:
+            self.max_logvar = nn.Parameter(max_lv)
+            self.min_logvar = nn.Parameter(min_lv)
+        else:
+            self.register_buffer("max_logvar", max_lv)
+            self.register_buffer("min_logvar", min_lv)
+
+    # ------------------------------------------------------------------ forward
+    def member_parameters(self) -> list[Tensor]:
+        """Parameters with a leading member dimension (weights and biases), in a fixed order."""
+        return [*self.weights, *self.biases]
 
     def forward(self, x: Tensor, members: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """Mean and log-variance, each (M, B, out_dim), of raw (unnormalised) inputs.
@@ -150,22 +234,8 @@ class GaussianEnsemble(nn.Module):
         them. M is ``ensemble_size`` when ``members`` is None, else ``len(members)`` (members are
         gathered from the stacked weights by index, e.g. the elites).
         """
-        idx = self._member_index(members)
-        m = self.ensemble_size if idx is None else idx.numel()
-        if x.dim() not in (2, 3) or x.shape[-1] != self.in_dim or (x.dim() == 3 and x.shape[0] != m):
-            raise ValueError(f"inputs must be (B, {self.in_dim}) or ({m}, B, {self.in_dim}) for {m} members, "
-                             f"got {tuple(x.shape)}")
-        h = self.normalise(x)
-        last = len(self.weights) - 1
-        for i, (w, b) in enumerate(zip(self.weights, self.biases)):
-            if idx is not None:
-                w, b = w.index_select(0, idx), b.index_select(0, idx)
-            if h.dim() == 2:  # shared inputs: one broadcast matmul gives (M, B, out)
-                h = torch.matmul(h, w) + b
-            else:
-                h = torch.baddbmm(b, h, w)
-            if i < last:
-                h = F.silu(h)
+        idx, _ = self._check_inputs(x, members)
+        h = member_mlp(self.normalise(x), self.weights, self.biases, idx)
         mean, logvar = h[..., : self.out_dim], h[..., self.out_dim:]
         return mean, self.bound_logvar(logvar)
 
@@ -177,10 +247,7 @@ class GaussianEnsemble(nn.Module):
     # ------------------------------------------------------------------ regularisers
     def weight_decay_loss(self) -> Tensor:
         """Per-layer L2 penalty of the original PETS: sum_l decay_l * 0.5 * ||W_l||^2 (all members, no biases)."""
-        total = self.weights[0].new_zeros(())
-        for decay, w in zip(self.decays, self.weights):
-            total = total + decay * 0.5 * w.pow(2).sum()
-        return total
+        return decay_loss(self.weights, self.decays)
 
     def logvar_bound_penalty(self) -> Tensor:
         """``sum(max_logvar) - sum(min_logvar)``: the original adds 0.01 times this to the loss."""

@@ -14,6 +14,10 @@ All K starts are rolled out together (one batched rollout), and every horizon us
 - ``sample``: TS-inf with one particle per start: each start keeps one elite member (uniform draw) for
   the whole rollout and samples ``target = mean + exp(logvar / 2) eps`` every step.
 
+Both modes work with every ``--model``. For the deterministic models (delta-det, gem2) ``mean`` is the paper's
+averaged ensemble and ``sample`` follows one member per start without noise (their log-variance makes
+``exp(logvar / 2)`` exactly 0, see :mod:`pets.models`).
+
 Step-wise error ``e_k`` (:func:`step_errors`): Euclidean in observation space with the differences taken
 on the groups: ``SO2_angle`` differences wrapped to (-pi, pi], ``SO3_quat`` compared up to sign
 (``min(|q - q'|, |q + q'|)``), everything else plain. It is split into a ``position`` part (all group

@@ -23,10 +23,20 @@ def gaussian_nll(mean: Tensor, logvar: Tensor, target: Tensor) -> Tensor:
     return 0.5 * per.flatten(1).mean(dim=1)
 
 
+def mse_loss(mean: Tensor, target: Tensor) -> Tensor:
+    """Mean squared error, averaged over all but the first dim: mean((target - mean)^2); (E,) for (E, B, D)."""
+    return (target - mean).pow(2).flatten(1).mean(dim=1)
+
+
 class DynamicsHead:
-    """Base class. Subclasses set ``name``, ``input_dim``, ``target_dim`` and implement the three maps."""
+    """Base class. Subclasses set ``name``, ``input_dim``, ``target_dim`` and implement the three maps.
+
+    ``deterministic`` heads (``pets.models``, ``gem_head.two_stage``) go with a model that has no
+    predictive variance: their ``loss`` ignores ``logvar`` (it is a constant that makes sampling noise zero).
+    """
 
     name: str = "base"
+    deterministic: bool = False
     input_dim: int
     target_dim: int
 

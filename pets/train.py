@@ -1,7 +1,12 @@
 """Offline training of the dynamics ensemble on a collected data set, into a run directory.
 
-    python -m pets.train --data FILE.npz --model delta|gem --out RUN_DIR [--seed S] [--device D]
+    python -m pets.train --data FILE.npz --model MODEL --out RUN_DIR [--seed S] [--device D]
                          [--epochs N] [--preset research|fast] [--quiet] [key=value ...]
+
+MODEL is any ``--model`` of ``run_pets.py`` (``pets.config.HEADS``: delta, gem, delta-det, gem2,
+delta-groupfeat; :mod:`pets.models` describes each). The deterministic ones (delta-det, gem2) train by MSE /
+the Frobenius loss; the paper's single model is ``model.ensemble_size=1 model.num_elites=1``, its averaged
+ensemble ``model.ensemble_size=5 model.num_elites=5``.
 
 The run directory has the format of ``run_pets.py`` (:mod:`pets.rundir`), so
 ``pets.builder.load_model``, ``pets.evaluate`` and ``pets.collect --policy run:DIR`` read it:
@@ -118,7 +123,7 @@ def build_parser() -> OneLineParser:
     p = OneLineParser(prog=PROG, description="Train a dynamics ensemble offline on a collected .npz data set.",
                       epilog="Any config key can be overridden as key=value, e.g. model.hidden_size=200.")
     p.add_argument("--data", type=Path, required=True, help="data set written by pets.collect")
-    p.add_argument("--model", required=True, help="dynamics head: delta or gem")
+    p.add_argument("--model", required=True, help="dynamics model: delta, gem, delta-det, gem2 or delta-groupfeat")
     p.add_argument("--out", type=Path, required=True, help="run directory to create")
     p.add_argument("--seed", type=int, help="seed (default 0)")
     p.add_argument("--device", choices=("cpu", "cuda", "auto"), help="training device (default auto)")
@@ -132,8 +137,10 @@ def build_parser() -> OneLineParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    if args.model not in ("delta", "gem"):
-        fail(PROG, f"--model must be one of delta, gem, got {args.model!r}")
+    from pets.config import HEADS
+
+    if args.model not in HEADS:
+        fail(PROG, f"--model must be one of {', '.join(HEADS)}, got {args.model!r}")
     if not args.data.is_file():
         fail(PROG, f"data file {args.data} does not exist")
     if args.epochs is not None and args.epochs < 1:

@@ -51,10 +51,13 @@ def split_holdout(n: int, holdout_ratio: float, max_holdout: int, generator: tor
 
 
 class ModelTrainer:
-    """Adam training of a :class:`GaussianEnsemble` through a :class:`DynamicsHead`.
+    """Adam training of a :class:`GaussianEnsemble` (or any ``pets.ensemble.MemberEnsemble``) through a
+    :class:`DynamicsHead`.
 
     Loss per step: ``head.loss(...).sum()`` (members summed) + ``ensemble.weight_decay_loss()``
     + ``logvar_bound_coef * (sum max_logvar - sum min_logvar)`` when the bounds are learnt.
+    Models with a ``fit_target_normaliser(y)`` method get the training targets after ``fit_normaliser(x)``
+    (the two-stage GEM normalises its predicted coefficients with them).
     The optimiser persists across ``train`` calls (one call per PETS trial).
     """
 
@@ -141,7 +144,7 @@ class ModelTrainer:
         """
         self._check_data(obs, act, next_obs)
         ens = self.ensemble
-        ref = ens.weights[0]
+        ref = ens.member_parameters()[0]  # device and dtype of the model
         obs, act, next_obs = (t.to(device=ref.device, dtype=ref.dtype) for t in (obs, act, next_obs))
         x = self.head.inputs(obs, act)
         y = self.head.targets(obs, next_obs)
@@ -149,6 +152,9 @@ class ModelTrainer:
             raise ValueError(f"head {self.head.name!r} produced inputs {tuple(x.shape)} / targets {tuple(y.shape)}, "
                              f"expected (N, {ens.in_dim}) / (N, {ens.out_dim})")
         ens.fit_normaliser(x)
+        fit_targets = getattr(ens, "fit_target_normaliser", None)  # models that feed targets back in (gem2)
+        if fit_targets is not None:
+            fit_targets(y)
 
         n = x.shape[0]
         train_idx, hold_idx = split_holdout(n, self.holdout_ratio, self.max_holdout, generator)
