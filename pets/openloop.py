@@ -1,0 +1,232 @@
+"""Open-loop planning with a trained model (the GEM paper's section 5.2, "Planning").
+
+    python -m pets.openloop --run RUN_DIR [--planner cem|mppi|icem] [--steps 50] [--episodes K] [--seed S]
+                            [--device D] [--threads T] [--json OUT] [planner.KEY=VALUE ...]
+
+For each of K episodes: reset the real env, plan ``--steps`` actions ONCE from the initial
+observation with the run's model (planner horizon = steps), then execute all of them in the real
+env without any feedback (no replanning, no model update). The reward of every step is recorded.
+
+- Model: the run's trained ensemble (online ``run_pets.py`` or offline ``pets.train`` run directory).
+- Planner: ``planner.name`` = ``--planner`` and ``planner.horizon`` = ``--steps``; every other planner
+  setting (population, particles, propagation, iterations, ...) comes from the run's config, and can
+  be overridden with ``planner.KEY=VALUE``. It is built by ``pets.builder.make_agent`` (the agent's
+  planner and trajectory evaluator, as MPC uses them); the planner's objective is the expected
+  return over the horizon under the model and the env's exact reward/termination functions.
+- Env: ``spec.make(max_episode_steps=steps)``, so the env's own time limit never cuts a plan short.
+- Termination: when the real env terminates at step t, the episode stops there; the rewards of the
+  steps after t are 0 (the plan's remaining actions are not executed). ``lengths`` gives the number
+  of executed steps, ``terminated`` whether the env terminated.
+- Seeding: episode i resets the env with the seed ``pets.collect.episode_seeds(seed, i)[0]`` (stored
+  as ``reset_seeds``); the planner draws from one ``torch.Generator`` seeded with ``seed``.
+
+Output (printed table and ``--json``): ``reward_per_step`` (mean over episodes and its 95 %
+percentile-bootstrap CI at every step), ``total`` (summed reward per episode: mean, CI, values),
+``mean_reward_per_step`` (total / steps), the planned ``actions`` and raw ``rewards`` of every episode,
+and ``predicted_return`` (the planner's own estimate of each plan's return under the model).
+"""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from pets.datasets import OneLineParser, atomic_write_bytes, fail
+
+PROG = "pets.openloop"
+DEFAULT_STEPS = 50
+DEFAULT_EPISODES = 5
+#: Planner keys that open-loop planning sets itself (and why), so they cannot be overridden.
+_FIXED = {"planner.name": "--planner", "planner.horizon": "--steps",
+          "planner.replan_every": "one plan per episode, never replanned"}
+
+
+def planner_names() -> tuple[str, ...]:
+    """The planner names the config accepts (``pets.config.PLANNERS``), read at run time."""
+    from pets import config
+
+    return tuple(config.PLANNERS)
+
+
+def planning_config(cfg: Any, planner: str, steps: int, overrides: Mapping[str, Any] | None = None) -> Any:
+    """A copy of the run config ``cfg`` with ``planner.name`` = ``planner``, ``planner.horizon`` = ``steps``
+    and the ``planner.*`` ``overrides`` applied (values parsed against the schema), then validated.
+
+    ConfigError for an unknown planner, a key outside ``planner.*``, ``planner.name``/``planner.horizon``
+    among the overrides (use ``planner``/``steps``), or a bad value.
+    """
+    from omegaconf import OmegaConf
+
+    from pets.config import ConfigError, all_keys, validate
+
+    names = planner_names()
+    if planner not in names:
+        raise ConfigError(f"unknown planner {planner!r}; accepted: {', '.join(names)}")
+    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
+        raise ConfigError(f"steps must be a positive int, got {steps!r}")
+    cfg = OmegaConf.merge(cfg)  # a typed deep copy
+    keys = set(all_keys())
+    for key, value in (overrides or {}).items():
+        if not key.startswith("planner.") or key not in keys:
+            accepted = ", ".join(k for k in all_keys() if k.startswith("planner.") and k not in _FIXED)
+            raise ConfigError(f"open-loop overrides must be planner keys; got {key!r}; accepted: {accepted}")
+        if key in _FIXED:
+            raise ConfigError(f"{key} is set by open-loop planning itself ({_FIXED[key]}), not by an override")
+        try:
+            OmegaConf.update(cfg, key, value, merge=True)
+        except Exception as err:  # omegaconf's validation errors carry a multi-line message
+            raise ConfigError(f"bad value for {key}: {str(err).splitlines()[0]}") from None
+    cfg.planner.name = planner
+    cfg.planner.horizon = steps
+    cfg.planner.replan_every = 1  # unused here (one plan per episode); keeps validate() happy for short plans
+    validate(cfg)
+    return cfg
+
+
+def open_loop(run_dir: str | Path, planner: str = "cem", steps: int = DEFAULT_STEPS,
+              episodes: int = DEFAULT_EPISODES, seed: int = 0, overrides: Mapping[str, Any] | None = None,
+              device: str = "auto", progress: bool = False) -> dict[str, Any]:
+    """Open-loop planning with the model of ``run_dir`` (module docstring); returns the JSON-ready result.
+
+    ValueError / ConfigError (one-line messages) for bad input.
+    """
+    import torch
+    from omegaconf import OmegaConf
+    from tqdm.auto import tqdm
+
+    from pets import builder
+    from pets.collect import episode_seeds
+    from pets.stats import bootstrap_band, summarise
+
+    if isinstance(episodes, bool) or not isinstance(episodes, int) or episodes < 1:
+        raise ValueError(f"episodes must be a positive int, got {episodes!r}")
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise ValueError(f"seed must be an int >= 0, got {seed!r}")
+    dev = builder.resolve_device(device)
+    run_cfg, spec, head, ensemble = builder.load_model(run_dir, dev)
+    cfg = planning_config(run_cfg, planner, steps, overrides)
+    generator = torch.Generator(device=dev).manual_seed(int(seed))
+    agent = builder.make_agent(cfg, spec, ensemble, head, dev, generator)
+    plan_with, evaluator = agent.planner, agent.evaluator
+
+    env = spec.make(max_episode_steps=steps)
+    rewards = np.zeros((episodes, steps))
+    actions = np.zeros((episodes, steps, spec.act_dim))
+    lengths = np.zeros(episodes, np.int64)
+    terminated = np.zeros(episodes, bool)
+    predicted, reset_seeds = [], []
+    try:
+        for i in tqdm(range(episodes), desc=f"open loop {spec.name}", unit="episode", disable=not progress):
+            reset_seed = episode_seeds(seed, i)[0]
+            obs, _ = env.reset(seed=reset_seed)
+            if hasattr(plan_with, "reset"):
+                plan_with.reset()  # iCEM: no elites carried over from another episode
+            obs0 = torch.as_tensor(obs, dtype=torch.float32, device=dev)
+            with torch.no_grad():
+                plan = plan_with.plan(lambda a: evaluator(obs0, a, generator), None, generator)  # (steps, act_dim)
+                predicted.append(float(evaluator(obs0, plan[None], generator)[0]))
+            plan_np = plan.detach().cpu().numpy().astype(np.float64)
+            actions[i] = plan_np
+            for t in range(steps):
+                _, reward, term, trunc, _ = env.step(plan_np[t])
+                rewards[i, t] = float(reward)
+                lengths[i] = t + 1
+                if term or trunc:
+                    terminated[i] = bool(term)
+                    break
+            reset_seeds.append(int(reset_seed))
+    finally:
+        env.close()
+
+    totals = rewards.sum(axis=1)
+    low, high = bootstrap_band(rewards, seed=seed)
+    total = summarise(totals, seed=seed)
+    per_step = summarise(totals / steps, seed=seed)
+    return {
+        "run": str(run_dir), "env": spec.name, "model": str(run_cfg.head), "planner": planner, "steps": steps,
+        "episodes": episodes, "seed": seed, "device": str(dev),
+        "planner_config": OmegaConf.to_container(cfg.planner),
+        "reward_per_step": {"mean": rewards.mean(axis=0).tolist(), "ci_low": low.tolist(), "ci_high": high.tolist()},
+        "total": {**total, "values": totals.tolist()},
+        "mean_reward_per_step": per_step,
+        "rewards": rewards.tolist(), "actions": actions.tolist(), "lengths": lengths.tolist(),
+        "terminated": terminated.tolist(), "reset_seeds": reset_seeds, "predicted_return": predicted,
+    }
+
+
+def format_table(result: Mapping[str, Any]) -> str:
+    """Reward per step (mean over episodes, 95 % CI) and the totals as a fixed-width text table."""
+    r = result["reward_per_step"]
+    lines = [f"open loop: {result['env']} / {result['model']} / {result['planner']} / {result['steps']} steps / "
+             f"{result['episodes']} episodes / seed {result['seed']}",
+             f"{'step':>5}  {'reward':>12}  {'ci_low':>12}  {'ci_high':>12}"]
+    for t, (m, lo, hi) in enumerate(zip(r["mean"], r["ci_low"], r["ci_high"])):
+        lines.append(f"{t:>5}  {m:>12.5g}  {lo:>12.5g}  {hi:>12.5g}")
+    tot, per = result["total"], result["mean_reward_per_step"]
+    lines.append(f"total reward {tot['mean']:.5g} [{tot['ci_low']:.5g}, {tot['ci_high']:.5g}]; "
+                 f"reward per step {per['mean']:.5g} [{per['ci_low']:.5g}, {per['ci_high']:.5g}]; "
+                 f"episodes terminated early: {sum(result['terminated'])}/{result['episodes']}")
+    return "\n".join(lines)
+
+
+def build_parser() -> OneLineParser:
+    p = OneLineParser(prog=PROG, description="Plan once from the initial state with a trained model and execute "
+                                             "the plan in the real env without feedback.",
+                      epilog="Planner settings can be overridden as planner.KEY=VALUE, e.g. planner.population=200.")
+    p.add_argument("--run", type=Path, required=True, help="run directory (run_pets.py or pets.train)")
+    p.add_argument("--planner", default="cem", help="planner: cem (default), mppi or icem")
+    p.add_argument("--steps", type=int, default=DEFAULT_STEPS, help=f"plan length = steps executed "
+                                                                    f"(default {DEFAULT_STEPS})")
+    p.add_argument("--episodes", type=int, default=DEFAULT_EPISODES, help=f"episodes (default {DEFAULT_EPISODES})")
+    p.add_argument("--seed", type=int, default=0, help="seed of the env resets and the planner (default 0)")
+    p.add_argument("--device", choices=("cpu", "cuda", "auto"), default="auto", help="where the model runs")
+    p.add_argument("--threads", type=int, default=0, help="torch CPU threads (default 0: torch's default)")
+    p.add_argument("--json", type=Path, help="write the result as JSON here (atomically)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("overrides", nargs="*", metavar="planner.KEY=VALUE", help="planner setting overrides")
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    if args.steps < 1:
+        fail(PROG, f"--steps must be >= 1, got {args.steps}")
+    if args.episodes < 1:
+        fail(PROG, f"--episodes must be >= 1, got {args.episodes}")
+    if args.seed < 0:
+        fail(PROG, f"--seed must be >= 0, got {args.seed}")
+    if args.threads < 0:
+        fail(PROG, f"--threads must be >= 0 (0: torch's default), got {args.threads}")
+    if not (args.run / "config.yaml").is_file():
+        fail(PROG, f"{args.run} is not a run directory (no config.yaml)")
+    from omegaconf.errors import OmegaConfBaseException
+
+    from pets.config import ConfigError, load_config, parse_overrides
+
+    try:
+        overrides = parse_overrides(args.overrides)
+        planning_config(load_config(str(args.run / "config.yaml")), args.planner, args.steps, overrides)
+        if not (args.run / "checkpoint.pt").is_file():
+            raise ConfigError(f"{args.run} has no checkpoint.pt yet (no trained model)")
+    except (ValueError, OmegaConfBaseException) as err:  # ConfigError is a ValueError
+        fail(PROG, str(err))
+    if args.threads:
+        import torch
+
+        torch.set_num_threads(args.threads)
+    try:
+        result = open_loop(args.run, args.planner, args.steps, args.episodes, args.seed, overrides, args.device,
+                           progress=not args.quiet)
+    except ConfigError as err:  # e.g. device=cuda without CUDA
+        fail(PROG, str(err))
+    print(format_table(result))
+    if args.json is not None:
+        atomic_write_bytes(args.json, (json.dumps(result, indent=1) + "\n").encode())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

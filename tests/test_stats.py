@@ -1,0 +1,124 @@
+"""pets.stats against exact small cases, scipy's bootstrap and trim_mean, and the normal-theory interval."""
+import math
+
+import numpy as np
+import pytest
+import scipy.stats
+
+from pets.stats import bootstrap_band, bootstrap_ci, iqm, summarise
+
+
+def test_two_point_sample_has_the_exact_bootstrap_distribution():
+    # resample means of [0, 1] are 0, 0.5, 1 with probabilities 1/4, 1/2, 1/4:
+    # the 2.5 % quantile is 0 and the 97.5 % quantile is 1
+    assert bootstrap_ci([0.0, 1.0]) == (0.0, 1.0)
+    # 50 % interval: quantiles 0.25 and 0.75 of that distribution lie at the edges of the 0.5 atom
+    low, high = bootstrap_ci([0.0, 1.0], confidence=0.4)
+    assert low == pytest.approx(0.5) and high == pytest.approx(0.5)
+
+
+def test_three_point_sample_matches_enumerated_bootstrap_distribution():
+    x = np.array([1.0, 4.0, 10.0])
+    grid = np.array(np.meshgrid(x, x, x)).reshape(3, -1).T  # all 27 equally likely resamples
+    exact = np.sort(grid.mean(axis=1))
+    low, high = bootstrap_ci(x, confidence=0.8, n_boot=20000, seed=3)
+    # the 10 % / 90 % quantiles of the discrete exact distribution (within one atom)
+    assert np.quantile(exact, 0.1) - 1.0 <= low <= np.quantile(exact, 0.1) + 1.0
+    assert np.quantile(exact, 0.9) - 1.0 <= high <= np.quantile(exact, 0.9) + 1.0
+    assert low < x.mean() < high
+
+
+@pytest.mark.parametrize("n, seed", [(8, 0), (25, 1), (200, 2)])
+def test_agrees_with_scipy_percentile_bootstrap(n, seed):
+    data = np.random.default_rng(seed).gamma(2.0, 3.0, size=n)  # skewed: the percentile method matters
+    ours = bootstrap_ci(data, confidence=0.95, n_boot=20000, seed=seed)
+    ref = scipy.stats.bootstrap((data,), np.mean, confidence_level=0.95, n_resamples=20000,
+                                method="percentile", random_state=np.random.default_rng(100 + seed))
+    half_width = (ref.confidence_interval.high - ref.confidence_interval.low) / 2
+    # two independent Monte-Carlo estimates of the same quantiles: a few % of the half-width apart
+    assert ours[0] == pytest.approx(ref.confidence_interval.low, abs=0.05 * half_width)
+    assert ours[1] == pytest.approx(ref.confidence_interval.high, abs=0.05 * half_width)
+
+
+def test_normal_data_gives_the_normal_theory_interval():
+    sigma, n = 3.0, 2000
+    x = np.random.default_rng(7).normal(5.0, sigma, size=n)
+    low, high = bootstrap_ci(x)
+    half = 1.96 * sigma / math.sqrt(n)
+    assert (low + high) / 2 == pytest.approx(x.mean(), abs=0.05 * half)
+    assert (high - low) / 2 == pytest.approx(half, rel=0.06)
+
+
+def test_ci_is_reproducible_and_equivariant():
+    x = np.random.default_rng(0).normal(size=30)
+    assert bootstrap_ci(x, seed=5) == bootstrap_ci(x, seed=5)
+    assert bootstrap_ci(x, seed=5) != bootstrap_ci(x, seed=6)
+    low, high = bootstrap_ci(x, seed=5)
+    low2, high2 = bootstrap_ci(2.0 * x + 10.0, seed=5)  # same resamples: affine map of the bounds
+    assert low2 == pytest.approx(2 * low + 10) and high2 == pytest.approx(2 * high + 10)
+    low3, high3 = bootstrap_ci(x, seed=5, confidence=0.5)
+    assert low < low3 < high3 < high
+
+
+def test_single_value_and_constant_samples_are_degenerate():
+    assert bootstrap_ci([3.5]) == (3.5, 3.5)
+    assert bootstrap_ci([2.0, 2.0, 2.0]) == (2.0, 2.0)
+    s = summarise([4.0])
+    assert s == {"mean": 4.0, "ci_low": 4.0, "ci_high": 4.0, "iqm": 4.0, "n": 1}
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 4, 5, 7, 8, 10, 13, 16, 101])
+def test_iqm_equals_scipy_trim_mean(n):
+    x = np.random.default_rng(n).standard_cauchy(size=n)
+    assert iqm(x) == pytest.approx(scipy.stats.trim_mean(x, 0.25), rel=1e-12, abs=1e-12)
+
+
+def test_iqm_is_the_middle_half_for_multiples_of_four_and_ignores_outliers():
+    x = np.array([100.0, -50.0, 1.0, 2.0, 3.0, 4.0, 1e9, -1e9])
+    assert iqm(x) == pytest.approx(np.mean([1.0, 2.0, 3.0, 4.0]))
+    assert iqm([5.0, 1.0, 3.0]) == pytest.approx(3.0)  # n < 4: nothing cut, the mean
+    assert math.isnan(iqm([1.0, float("nan"), 3.0, 4.0]))
+
+
+def test_summarise_reports_non_finite_values_instead_of_hiding_them():
+    s = summarise([1.0, 2.0, float("inf")])
+    assert s["mean"] == math.inf and math.isnan(s["ci_low"]) and math.isnan(s["ci_high"]) and s["n"] == 3
+    x = [1.0, 2.0, 3.0, 4.0, 5.0]
+    s = summarise(x, seed=1)
+    assert s["mean"] == 3.0 and s["iqm"] == pytest.approx(3.0) and s["n"] == 5
+    assert (s["ci_low"], s["ci_high"]) == bootstrap_ci(x, seed=1)
+
+
+@pytest.mark.parametrize("bad, match", [([], "empty"), ([[1.0, 2.0], [3.0, 4.0]], "1-D"),
+                                        ([1.0, float("nan")], "NaN")])
+def test_bad_input_raises_value_error(bad, match):
+    with pytest.raises(ValueError, match=match):
+        bootstrap_ci(bad)
+
+
+def test_bad_settings_raise_value_error():
+    with pytest.raises(ValueError, match="empty"):
+        iqm([])
+    with pytest.raises(ValueError, match="empty"):
+        summarise(np.array([]))
+    with pytest.raises(ValueError, match="confidence"):
+        bootstrap_ci([1.0, 2.0], confidence=1.0)
+    with pytest.raises(ValueError, match="n_boot"):
+        bootstrap_ci([1.0, 2.0], n_boot=0)
+
+
+def test_band_matches_columnwise_ci_and_handles_edge_cases():
+    rng = np.random.default_rng(0)
+    curves = rng.normal(size=(6, 4)) + np.arange(4)
+    low, high = bootstrap_band(curves, n_boot=20000, seed=0)
+    for j in range(4):
+        ref_low, ref_high = bootstrap_ci(curves[:, j], n_boot=20000, seed=11)
+        width = ref_high - ref_low
+        assert low[j] == pytest.approx(ref_low, abs=0.06 * width)
+        assert high[j] == pytest.approx(ref_high, abs=0.06 * width)
+    one_low, one_high = bootstrap_band(curves[:1])
+    np.testing.assert_array_equal(one_low, curves[0])
+    np.testing.assert_array_equal(one_high, curves[0])
+    curves[2, 1] = np.inf
+    low, high = bootstrap_band(curves)
+    assert np.isnan(low[1]) and np.isnan(high[1]) and np.isfinite(low[[0, 2, 3]]).all()
