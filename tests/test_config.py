@@ -28,6 +28,13 @@ def test_overrides_are_typed_and_never_octal():
     assert cfg.seed == 7
 
 
+def test_fast_preset_plans_the_pendulums_with_mppi():
+    ip = make_config("invertedpendulum", preset="fast")
+    assert (ip.planner.name, ip.planner.horizon, ip.model.batch_size) == ("mppi", 20, 32)
+    assert make_config("hopper", preset="fast").planner.name == "cem"
+    assert make_config("invertedpendulum", preset="fast", overrides={"planner.name": "cem"}).planner.name == "cem"
+
+
 def test_override_beats_preset_beats_env_default():
     fast = make_config("halfcheetah", preset="fast")
     assert fast.planner.population == 100
