@@ -149,15 +149,8 @@ class CEMPlanner:
         """
         h, a = self.horizon, self.act_dim
         lb, ub = self.low, self.high
-        if generator is not None and generator.device.type != self.device.type:
-            raise ValueError(f"generator is on {generator.device}, the planner on {self.device}")
-        if init_mean is None:
-            mu = (0.5 * (lb + ub)).expand(h, a).clone()
-        else:
-            mu = torch.as_tensor(init_mean, device=self.device, dtype=self.dtype)
-            if mu.shape != (h, a):
-                raise ValueError(f"init_mean must have shape ({h}, {a}), got {tuple(mu.shape)}")
-            mu = torch.minimum(torch.maximum(mu, lb), ub)
+        _check_generator(generator, self.device)
+        mu = _initial_mean(init_mean, lb, ub, h, a)
         var = ((ub - lb) ** 2 / 16.0).expand(h, a).clone()
         best_value = torch.full((), -math.inf, device=self.device, dtype=self.dtype)
         best = mu.clone()
@@ -216,6 +209,11 @@ def _check_real(name: str, value: object, low: float, high: float, *, low_open: 
         lo, hi = ("(" if low_open else "[") + f"{low}", f"{high}" + (")" if high_open else "]")
         raise ValueError(f"{name} must be in {lo}, {hi}, got {value}")
     return v
+
+
+def _check_generator(generator: torch.Generator | None, device: torch.device) -> None:
+    if generator is not None and generator.device.type != device.type:
+        raise ValueError(f"generator is on {generator.device}, the planner on {device}")
 
 
 def _initial_mean(init_mean: Tensor | None, lb: Tensor, ub: Tensor, h: int, a: int) -> Tensor:
@@ -376,8 +374,7 @@ class ICEMPlanner:
         """
         h, a = self.horizon, self.act_dim
         lb, ub = self.low, self.high
-        if generator is not None and generator.device.type != self.device.type:
-            raise ValueError(f"generator is on {generator.device}, the planner on {self.device}")
+        _check_generator(generator, self.device)
         carry = self._carried_from_last_call(init_mean)
         mu = _initial_mean(init_mean, lb, ub, h, a)
         std = (0.25 * (ub - lb)).expand(h, a).clone()
@@ -488,8 +485,7 @@ class MPPIPlanner:
         """
         h, a = self.horizon, self.act_dim
         lb, ub = self.low, self.high
-        if generator is not None and generator.device.type != self.device.type:
-            raise ValueError(f"generator is on {generator.device}, the planner on {self.device}")
+        _check_generator(generator, self.device)
         mu = _initial_mean(init_mean, lb, ub, h, a)
         scale = self.sigma * 0.5 * (ub - lb)
         for _ in range(self.iterations):

@@ -14,6 +14,8 @@ from typing import Any
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from pets.datasets import atomic_write_bytes
+
 CONFIG_FILE = "config.yaml"
 METRICS_FILE = "metrics.csv"
 CHECKPOINT_FILE = "checkpoint.pt"
@@ -21,16 +23,6 @@ PLOT_FILE = "rewards.png"
 
 METRIC_COLUMNS = ["trial", "env_steps", "episode_reward", "episode_length", "model_train_loss",
                   "model_val_loss", "model_epochs", "plan_seconds_per_step", "wall_time_s"]
-
-
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` via a temporary file in the same directory and ``os.replace``."""
-    tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "wb") as f:
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
 
 
 def write_config(run_dir: Path, cfg: DictConfig) -> None:
