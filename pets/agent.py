@@ -1,11 +1,11 @@
-"""The MPC agent: plan with CEM through the learned model, execute, shift the plan, replan."""
+"""The MPC agent: plan through the learned model (CEM, iCEM or MPPI), execute, shift the plan, replan."""
 from __future__ import annotations
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from pets.planners import CEMPlanner, shift_plan
+from pets.planners import Planner, shift_plan
 from pets.propagation import TrajectoryEvaluator
 
 
@@ -17,7 +17,7 @@ class MPCAgent:
     and executes its first actions.
     """
 
-    def __init__(self, planner: CEMPlanner, evaluator: TrajectoryEvaluator, *, replan_every: int,
+    def __init__(self, planner: Planner, evaluator: TrajectoryEvaluator, *, replan_every: int,
                  action_low: np.ndarray, action_high: np.ndarray, device: torch.device,
                  generator: torch.Generator) -> None:
         self.planner = planner

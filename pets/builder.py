@@ -11,7 +11,7 @@ from pets.agent import MPCAgent
 from pets.config import ConfigError
 from pets.ensemble import GaussianEnsemble, MemberEnsemble
 from pets.heads import DeltaHead, DynamicsHead
-from pets.planners import CEMPlanner, ICEMPlanner, MPPIPlanner
+from pets.planners import CEMPlanner, ICEMPlanner, MPPIPlanner, Planner
 from pets.propagation import TrajectoryEvaluator, retain_freed_memory
 from pets.training import ModelTrainer
 
@@ -89,7 +89,7 @@ def make_agent(cfg: DictConfig, spec: EnvSpec, ensemble: GaussianEnsemble, head:
                     action_high=spec.action_high, device=device, generator=generator)
 
 
-def make_planner(cfg: DictConfig, spec: EnvSpec, device: torch.device) -> CEMPlanner | ICEMPlanner | MPPIPlanner:
+def make_planner(cfg: DictConfig, spec: EnvSpec, device: torch.device) -> Planner:
     """The planner named by ``planner.name`` (cem, icem, mppi) with the config's settings."""
     p = cfg.planner
     common = dict(horizon=p.horizon, population=p.population, iterations=p.iterations, alpha=p.alpha, device=device)

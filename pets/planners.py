@@ -38,7 +38,7 @@ from __future__ import annotations
 
 import math
 import numbers
-from typing import Callable
+from typing import Callable, Protocol
 
 import torch
 from torch import Tensor
@@ -92,6 +92,15 @@ def shift_plan(plan: Tensor, action_low: object, action_high: object) -> Tensor:
         raise ValueError(f"plan has act_dim {plan.shape[1]} but the bounds have {lb.numel()} and {ub.numel()} entries")
     mid = 0.5 * (lb + ub)
     return torch.cat([plan[1:], mid.unsqueeze(0)], dim=0)
+
+
+class Planner(Protocol):
+    """What the MPC agent needs of a planner: one optimisation of a return objective."""
+
+    horizon: int
+
+    def plan(self, objective: Callable[[Tensor], Tensor], init_mean: Tensor | None = None,
+             generator: torch.Generator | None = None) -> Tensor: ...
 
 
 class CEMPlanner:
