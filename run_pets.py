@@ -14,11 +14,12 @@ import argparse
 import sys
 import time
 from pathlib import Path
+from typing import NoReturn
 
 EXIT_USAGE = 2
 
 
-def _fail(message: str) -> "NoReturn":  # noqa: F821
+def _fail(message: str) -> NoReturn:
     print(f"run_pets.py: error: {message}", file=sys.stderr)
     raise SystemExit(EXIT_USAGE)
 
@@ -26,7 +27,7 @@ def _fail(message: str) -> "NoReturn":  # noqa: F821
 class _OneLineParser(argparse.ArgumentParser):
     """Usage errors as one line ("what was wrong, what is accepted") and exit code 2."""
 
-    def error(self, message: str) -> "NoReturn":  # noqa: F821
+    def error(self, message: str) -> NoReturn:
         _fail(message)
 
 
@@ -34,7 +35,7 @@ def build_parser() -> argparse.ArgumentParser:
     from pets.config import HEADS, PRESETS
 
     p = _OneLineParser(description="PETS model-based RL with a swappable dynamics model (delta, GEM and variants).",
-                                epilog="Any config key can be overridden as key=value, e.g. planner.population=200.")
+                       epilog="Any config key can be overridden as key=value, e.g. planner.population=200.")
     p.add_argument("--model", choices=HEADS, help="dynamics model (default: delta); see pets/models.py")
     p.add_argument("--env", help="environment: one of the catalogue names or a gymnasium id")
     p.add_argument("--trials", type=int, help="number of trials (episodes)")
