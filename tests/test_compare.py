@@ -11,7 +11,8 @@ import math
 
 import numpy as np
 import pytest
-import torch
+
+from tests.threads import one_thread
 
 import envs
 from pets import compare, openloop, rundir
@@ -140,13 +141,9 @@ def test_openloop_on_an_online_run_replays_in_the_simulator(online, tmp_path, ca
     out, _ = online
     run = out / "runs" / "invertedpendulum-gem-s1"
     path = tmp_path / "ol.json"
-    with_one_thread = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
+    with one_thread():
         code = openloop.main(["--run", str(run), "--steps", "6", "--episodes", "3", "--seed", "4", "--device", "cpu",
                               "--json", str(path), "--quiet", "planner.population=12"])
-    finally:
-        torch.set_num_threads(with_one_thread)
     printed = capsys.readouterr().out
     assert code == 0 and "total reward" in printed and "open loop: invertedpendulum / gem / cem" in printed
     res = json.loads(path.read_text())

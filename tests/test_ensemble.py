@@ -13,14 +13,7 @@ from pets.heads import gaussian_nll
 IN, OUT, E = 5, 3, 4
 
 
-@pytest.fixture(autouse=True)
-def _single_thread():
-    """These models are tiny: one intra-op thread is faster and immune to OpenMP oversubscription
-    when the (2-core) machine is busy. Restored afterwards."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("single_thread")
 
 
 def make(**kw) -> GaussianEnsemble:

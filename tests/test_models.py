@@ -39,12 +39,7 @@ TINY_MODEL = ["model.hidden_size=16", "model.num_layers=2", "model.ensemble_size
               "model.batch_size=32"]
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("single_thread")
 
 
 _DATA: dict = {}

@@ -10,11 +10,12 @@ import os
 import shutil
 import subprocess
 import sys
-from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 import pytest
+
+from tests.threads import one_thread
 import torch
 from scipy.spatial.transform import Rotation
 
@@ -59,14 +60,6 @@ def run_parallel(jobs, timeout=300):
     return out
 
 
-@contextmanager
-def one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(before)
 
 
 @pytest.fixture(scope="module")

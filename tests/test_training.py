@@ -15,14 +15,7 @@ from pets.training import ModelTrainer, TrainResult, bootstrap_indices, split_ho
 LAYOUT_1D = ObsLayout(obs_dim=1, groups=(), velocities=(0,))
 
 
-@pytest.fixture(autouse=True)
-def _single_thread():
-    """These models are tiny: one intra-op thread is faster and immune to OpenMP oversubscription
-    when the (2-core) machine is busy. Restored afterwards."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("single_thread")
 
 
 class IdentityHead(DynamicsHead):
