@@ -115,15 +115,20 @@ def parse_envs(text: str) -> list[str]:
     return list(dict.fromkeys(out))
 
 
+def _parse_choices(text: str, what: str, accepted: tuple[str, ...]) -> list[str]:
+    """Comma-separated names for ``--what``, each one of ``accepted``."""
+    names = split_list(text, what)
+    bad = [n for n in names if n not in accepted]
+    if bad:
+        raise UsageError(f"unknown {what[:-1]} {bad[0]!r} in --{what}; accepted: {', '.join(accepted)}")
+    return names
+
+
 def parse_models(text: str) -> list[str]:
     """Model (head) names, each one of ``pets.config.HEADS`` (read now, so new heads are accepted)."""
     from pets import config
 
-    models = split_list(text, "models")
-    bad = [m for m in models if m not in config.HEADS]
-    if bad:
-        raise UsageError(f"unknown model {bad[0]!r} in --models; accepted: {', '.join(config.HEADS)}")
-    return models
+    return _parse_choices(text, "models", config.HEADS)
 
 
 def parse_seeds(text: str) -> list[int]:
@@ -142,11 +147,7 @@ def parse_planners(text: str) -> list[str]:
     """Planner names, each one of ``pets.config.PLANNERS``."""
     from pets import config
 
-    planners = split_list(text, "planners")
-    bad = [p for p in planners if p not in config.PLANNERS]
-    if bad:
-        raise UsageError(f"unknown planner {bad[0]!r} in --planners; accepted: {', '.join(config.PLANNERS)}")
-    return planners
+    return _parse_choices(text, "planners", config.PLANNERS)
 
 
 def run_name(env: str, model: str, seed: int) -> str:
