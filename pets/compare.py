@@ -1,8 +1,8 @@
 """A/B comparisons of dynamics heads over envs and seeds, with bootstrap statistics and plots.
 
     python -m pets.compare online  --envs E1,E2 --models M1,M2 --seeds 0,1,2 --trials N --out DIR
-                                   [--workers K] [--preset research|fast] [--final-window W] [--device D]
-                                   [--quiet] [key=value ...]
+                                   [--planners cem,icem] [--workers K] [--preset research|fast]
+                                   [--final-window W] [--device D] [--quiet] [key=value ...]
     python -m pets.compare offline --envs E1,E2 --models M1,M2 --seeds 0,1,2 --out DIR
                                    [--episodes E] [--test-episodes E2] [--max-steps T]
                                    [--policy random|smooth-random[:BETA]|existing] [--horizons 1,5,10,25,50]
@@ -28,12 +28,19 @@ online
 
     Per run: ``final`` = mean episode reward of the last W trials (W = ``--final-window``, default 3,
     at most N); ``auc`` = mean episode reward over all N trials (the area under the reward-per-trial
-    curve divided by N). Per (env, model) over seeds: mean, 95 % percentile-bootstrap CI and IQM
-    (:mod:`pets.stats`) of both. Files: ``summary.md``, ``summary.csv`` (per env and model),
-    ``summary_runs.csv`` (per run), ``rewards_ENV.png`` (episode reward vs env steps per model: every
-    seed's curve interpolated linearly onto a common grid of 200 env-step values spanning the range
-    that all seeds of the model cover, then the mean over seeds with the pointwise bootstrap band;
-    each seed's raw curve faintly behind it).
+    curve divided by N); the run's wall-clock time and median seconds per planning step. Per (env, model)
+    over seeds: mean, 95 % percentile-bootstrap CI and IQM (:mod:`pets.stats`) of final and auc, means
+    of the rest. Files: ``summary.md``, ``summary.csv`` (per env and model), ``summary_runs.csv`` (per
+    run), ``rewards_ENV.png`` (episode reward vs env steps per model: every seed's curve interpolated
+    linearly onto a common grid of 200 env-step values spanning the range that all seeds of the model
+    cover, then the mean over seeds with the pointwise bootstrap band; each seed's raw curve faintly
+    behind it) and ``walltime_ENV.png`` (the same against the run's wall-clock hours: reward per unit
+    of compute, e.g. for planners or heads of different cost).
+
+    ``--planners P1,P2`` makes the planner a second axis: every (model, planner) pair is an arm with
+    its runs in ``DIR/runs/ENV-MODEL-PLANNER-sSEED`` (``planner.name=P`` for the run), and the tables
+    and plots show ``MODEL+PLANNER``. Wall-clock figures compare fairly only between runs that shared
+    the machine alike (one worker per core, no other load).
 
 offline
     Per env: a training and a separate test data set with ``pets.collect`` (``DIR/data/ENV-train.npz``
@@ -150,9 +157,14 @@ def parse_planners(text: str) -> list[str]:
     return _parse_choices(text, "planners", config.PLANNERS)
 
 
-def run_name(env: str, model: str, seed: int) -> str:
-    """The run directory's name: ``ENV-MODEL-sSEED``."""
-    return f"{env}-{model}-s{seed}"
+def run_name(env: str, model: str, seed: int, planner: str | None = None) -> str:
+    """The run directory's name: ``ENV-MODEL-sSEED``, or ``ENV-MODEL-PLANNER-sSEED`` when planners are compared."""
+    return f"{env}-{model}-s{seed}" if planner is None else f"{env}-{model}-{planner}-s{seed}"
+
+
+def arm_label(model: str, planner: str | None) -> str:
+    """What the summaries call one compared arm: the model, or ``MODEL+PLANNER`` when planners are compared."""
+    return model if planner is None else f"{model}+{planner}"
 
 
 def _flatten(d: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
@@ -346,19 +358,27 @@ def run_logged(command: Sequence[str], log: Path) -> int:
 
 def online_run_stats(rows: Sequence[Mapping[str, float]], trials: int, final_window: int) -> dict[str, float]:
     """Per-run numbers from the first ``trials`` metrics rows: final (mean of the last ``final_window``
-    episode rewards), auc (mean episode reward over all trials), env_steps, wall_time_s."""
+    episode rewards), auc (mean episode reward over all trials), env_steps, wall_time_s (the run's
+    wall-clock seconds: planning, simulation and model training) and plan_seconds_per_step (median over
+    the planned trials; 0 if every trial was random)."""
     use = list(rows)[:trials]
     rewards = np.array([r["episode_reward"] for r in use], dtype=np.float64)
     w = min(final_window, len(use))
+    planned = [r["plan_seconds_per_step"] for r in use if r.get("plan_seconds_per_step", 0.0) > 0]
     return {"final_reward": float(rewards[-w:].mean()), "auc": float(rewards.mean()),
-            "env_steps": float(use[-1]["env_steps"]), "wall_time_s": float(use[-1]["wall_time_s"])}
+            "env_steps": float(use[-1]["env_steps"]), "wall_time_s": float(use[-1]["wall_time_s"]),
+            "plan_seconds_per_step": float(np.median(planned)) if planned else 0.0}
 
 
 def compare_online(env_names: Sequence[str], models: Sequence[str], seeds: Sequence[int], trials: int, out: Path,
                    *, workers: int = 1, preset: str = "research", overrides: Sequence[str] = (),
-                   final_window: int = 3, progress: bool = True) -> dict[str, Any]:
+                   final_window: int = 3, progress: bool = True,
+                   planners: Sequence[str] | None = None) -> dict[str, Any]:
     """Run (or reuse/resume) every online run, then write the summary. Returns ``{"actions", "failed",
-    "summary"}``. UsageError for bad settings or a run directory with another config."""
+    "summary"}``. UsageError for bad settings or a run directory with another config.
+
+    ``planners``: also compare these planners (``planner.name``); every (model, planner) pair is an arm.
+    """
     from pets.config import ConfigError, make_config, parse_overrides
 
     if trials < 1 or workers < 1 or final_window < 1:
@@ -373,16 +393,21 @@ def compare_online(env_names: Sequence[str], models: Sequence[str], seeds: Seque
         if key in extra:
             raise UsageError(f"{key}= is set by the command itself (--{'models' if key == 'head' else key + 's'}); "
                              "do not pass it as an override")
+    if planners is not None and "planner.name" in extra:
+        raise UsageError("give the planner once: --planners or planner.name=, not both")
     over_list = [f"{k}={v}" for k, v in extra.items()]
     out = Path(out).resolve()
     jobs, actions = [], {}
     for env in env_names:
-        for model in models:
+        for model, planner in online_arms(models, planners):
+            arm_extra = extra if planner is None else {**extra, "planner.name": planner}
+            arm_list = over_list if planner is None else [*over_list, f"planner.name={planner}"]
             for seed in seeds:
-                name = run_name(env, model, seed)
+                name = run_name(env, model, seed, planner)
                 run_dir = out / "runs" / name
                 try:
-                    expected = make_config(env, model, preset, {**extra, "seed": seed, "trials": trials, "threads": 1})
+                    expected = make_config(env, model, preset, {**arm_extra, "seed": seed, "trials": trials,
+                                                                "threads": 1})
                 except ConfigError as err:
                     raise UsageError(str(err)) from None
                 action = online_plan(run_dir, trials)
@@ -393,7 +418,7 @@ def compare_online(env_names: Sequence[str], models: Sequence[str], seeds: Seque
                                          "use separate --out directories for online and offline comparisons")
                 actions[name] = action
                 if action != "reuse":
-                    cmd = online_command(action, run_dir, env, model, seed, trials, preset, over_list)
+                    cmd = online_command(action, run_dir, env, model, seed, trials, preset, arm_list)
                     jobs.append((name, run_logged, (cmd, out / "logs" / f"{name}.log")))
     counts = {a: sum(1 for v in actions.values() if v == a) for a in ("reuse", "resume", "start")}
     print(f"{PROG}: {len(actions)} runs: {counts['reuse']} reused, {counts['resume']} to resume, "
@@ -401,100 +426,132 @@ def compare_online(env_names: Sequence[str], models: Sequence[str], seeds: Seque
     results = run_pool(jobs, min(workers, max(len(jobs), 1)), processes=False, progress=progress,
                        desc="online runs")
     failed = {name: msg for name, (ok, msg) in results.items() if not ok}
-    summary = summarise_online(out, env_names, models, seeds, trials, final_window, failed)
+    summary = summarise_online(out, env_names, models, seeds, trials, final_window, failed, planners)
     return {"actions": actions, "failed": failed, "summary": summary}
 
 
+def online_arms(models: Sequence[str], planners: Sequence[str] | None) -> list[tuple[str, str | None]]:
+    """The compared (model, planner) pairs; the planner is None when planners are not compared."""
+    return [(m, p) for m in models for p in (planners if planners is not None else [None])]
+
+
 def summarise_online(out: Path, env_names: Sequence[str], models: Sequence[str], seeds: Sequence[int], trials: int,
-                     final_window: int, failed: Mapping[str, str] | None = None) -> list[dict[str, Any]]:
-    """Write summary.md, summary.csv, summary_runs.csv and rewards_ENV.png from the complete runs."""
+                     final_window: int, failed: Mapping[str, str] | None = None,
+                     planners: Sequence[str] | None = None) -> list[dict[str, Any]]:
+    """Write summary.md, summary.csv, summary_runs.csv, rewards_ENV.png and walltime_ENV.png from the complete runs."""
     from pets.stats import summarise
 
     out = Path(out)
     per_run, summary, missing = [], [], []
     curves: dict[tuple[str, str], list[list[dict[str, float]]]] = {}
+    arms = online_arms(models, planners)
     for env in env_names:
-        for model in models:
-            finals, aucs, steps = [], [], []
+        for model, planner in arms:
+            label = arm_label(model, planner)
+            finals, aucs, stats = [], [], []
             for seed in seeds:
-                name = run_name(env, model, seed)
+                name = run_name(env, model, seed, planner)
                 rows = online_rows(out / "runs" / name)
                 if len(rows) < trials:
                     missing.append(f"{name} ({len(rows)}/{trials} trials"
                                    f"{'; failed: ' + failed[name] if failed and name in failed else ''})")
                     continue
                 s = online_run_stats(rows, trials, final_window)
-                per_run.append({"env": env, "model": model, "seed": seed, "trials": trials, **s})
+                per_run.append({"env": env, "model": model, "planner": planner or "", "seed": seed,
+                                "trials": trials, **s})
                 finals.append(s["final_reward"])
                 aucs.append(s["auc"])
-                steps.append(s["env_steps"])
-                curves.setdefault((env, model), []).append(rows[:trials])
+                stats.append(s)
+                curves.setdefault((env, label), []).append(rows[:trials])
             if not finals:
                 continue
             f, a = summarise(finals, seed=BOOT_SEED), summarise(aucs, seed=BOOT_SEED)
-            summary.append({"env": env, "model": model, "n_seeds": f["n"], "trials": trials,
-                            "final_window": min(final_window, trials),
+            summary.append({"env": env, "model": model, "planner": planner or "", "n_seeds": f["n"],
+                            "trials": trials, "final_window": min(final_window, trials),
                             "final_mean": f["mean"], "final_ci_low": f["ci_low"], "final_ci_high": f["ci_high"],
                             "final_iqm": f["iqm"], "auc_mean": a["mean"], "auc_ci_low": a["ci_low"],
-                            "auc_ci_high": a["ci_high"], "auc_iqm": a["iqm"], "env_steps_mean": float(np.mean(steps))})
+                            "auc_ci_high": a["ci_high"], "auc_iqm": a["iqm"],
+                            **{f"{k}_mean": float(np.mean([s[k] for s in stats]))
+                               for k in ("env_steps", "wall_time_s", "plan_seconds_per_step")}})
     write_csv(out / "summary.csv", summary, SUMMARY_COLUMNS)
-    write_csv(out / "summary_runs.csv", per_run, ["env", "model", "seed", "trials", "final_reward", "auc",
-                                                   "env_steps", "wall_time_s"])
+    write_csv(out / "summary_runs.csv", per_run, ["env", "model", "planner", "seed", "trials", "final_reward", "auc",
+                                                   "env_steps", "wall_time_s", "plan_seconds_per_step"])
     w = min(final_window, trials)
     text = [f"# Online comparison ({trials} trials per run)", "",
             f"final = mean episode reward of the last {w} trial{'s' if w > 1 else ''} of each run; "
             f"AUC = mean episode reward over all {trials} trials. Mean over seeds with the 95 % "
-            "percentile-bootstrap CI in brackets; IQM = interquartile mean over seeds.", ""]
+            "percentile-bootstrap CI in brackets; IQM = interquartile mean over seeds. Plan s/step: median "
+            "seconds per planning step of a run (mean over seeds); wall h: the run's wall-clock hours "
+            "(planning, simulation, model training; mean over seeds).", ""]
+    arm_header = ["model"] if planners is None else ["model", "planner"]
     for env in env_names:
         rows = [r for r in summary if r["env"] == env]
         if not rows:
             continue
         text += [f"## {env}", "", md_table(
-            ["model", "seeds", "final reward", "final IQM", "AUC", "AUC IQM", "env steps"],
-            [[r["model"], str(r["n_seeds"]),
+            [*arm_header, "seeds", "final reward", "final IQM", "AUC", "AUC IQM", "env steps", "plan s/step",
+             "wall h"],
+            [[*([r["model"]] if planners is None else [r["model"], r["planner"]]), str(r["n_seeds"]),
               fmt_ci({"mean": r["final_mean"], "ci_low": r["final_ci_low"], "ci_high": r["final_ci_high"]}),
               fmt(r["final_iqm"]), fmt_ci({"mean": r["auc_mean"], "ci_low": r["auc_ci_low"],
                                            "ci_high": r["auc_ci_high"]}),
-              fmt(r["auc_iqm"]), f"{r['env_steps_mean']:.0f}"] for r in rows]), "",
-            f"![rewards](rewards_{env}.png)", ""]
-        plot_online(out / f"rewards_{env}.png", env, {m: curves[(env, m)] for m in models if (env, m) in curves})
+              fmt(r["auc_iqm"]), f"{r['env_steps_mean']:.0f}", fmt(r["plan_seconds_per_step_mean"], 3),
+              fmt(r["wall_time_s_mean"] / 3600, 3)] for r in rows]), "",
+            f"![rewards](rewards_{env}.png) ![wall-clock](walltime_{env}.png)", ""]
+        runs = {arm_label(m, p): curves[(env, arm_label(m, p))] for m, p in arms if (env, arm_label(m, p)) in curves}
+        colors = model_colors(list(runs)) if planners is None else arm_colors(list(runs))
+        plot_online(out / f"rewards_{env}.png", env, runs, colors)
+        plot_online(out / f"walltime_{env}.png", env, runs, colors, x_key="wall_time_s")
     if missing:
         text += ["## Missing or incomplete runs (not in the statistics)", ""] + [f"- {m}" for m in missing] + [""]
     atomic_write_bytes(out / "summary.md", "\n".join(text).encode())
     return summary
 
 
-SUMMARY_COLUMNS = ["env", "model", "n_seeds", "trials", "final_window", "final_mean", "final_ci_low",
+SUMMARY_COLUMNS = ["env", "model", "planner", "n_seeds", "trials", "final_window", "final_mean", "final_ci_low",
                    "final_ci_high", "final_iqm", "auc_mean", "auc_ci_low", "auc_ci_high", "auc_iqm",
-                   "env_steps_mean"]
+                   "env_steps_mean", "wall_time_s_mean", "plan_seconds_per_step_mean"]
+
+#: x axis of the online plots: metrics column -> (axis label, scale applied to the column).
+ONLINE_X = {"env_steps": ("environment steps", 1.0), "wall_time_s": ("wall-clock hours of the run", 1 / 3600)}
 
 
-def plot_online(path: Path, env: str, runs: Mapping[str, Sequence[Sequence[Mapping[str, float]]]]) -> None:
-    """Episode reward vs env steps per model: mean over seeds on a common grid, bootstrap band (module docstring)."""
+def arm_colors(labels: Sequence[str]) -> dict[str, Any]:
+    """A colour per compared arm, in order (``tab10``)."""
+    import matplotlib
+
+    cmap = matplotlib.colormaps["tab10"]
+    return {label: cmap(i % 10) for i, label in enumerate(labels)}
+
+
+def plot_online(path: Path, env: str, runs: Mapping[str, Sequence[Sequence[Mapping[str, float]]]],
+                colors: Mapping[str, Any], x_key: str = "env_steps") -> None:
+    """Episode reward vs env steps (or wall-clock time) per arm: mean over seeds on a common grid, bootstrap
+    band (module docstring)."""
     from pets.stats import bootstrap_band
 
+    x_label, x_scale = ONLINE_X[x_key]
     plt = _pyplot()
-    colors = model_colors(list(runs))
     fig, ax = plt.subplots(figsize=(7, 4.5))
-    for model, seed_rows in runs.items():
-        c = colors[model]
-        xs = [np.array([r["env_steps"] for r in rows]) for rows in seed_rows]
+    for arm, seed_rows in runs.items():
+        c = colors[arm]
+        xs = [np.array([r[x_key] for r in rows]) * x_scale for rows in seed_rows]
         ys = [np.array([r["episode_reward"] for r in rows]) for rows in seed_rows]
         for x, y in zip(xs, ys):
             ax.plot(x, y, color=c, alpha=0.2, lw=0.8)
         lo, hi = max(x[0] for x in xs), min(x[-1] for x in xs)
-        label = f"{model} (n={len(seed_rows)})"
+        label = f"{arm} (n={len(seed_rows)})"
         if hi > lo:
             grid = np.linspace(lo, hi, 200)
             curves = np.stack([np.interp(grid, x, y) for x, y in zip(xs, ys)])
             band_low, band_high = bootstrap_band(curves, seed=BOOT_SEED)
             ax.plot(grid, curves.mean(axis=0), color=c, lw=2, label=label)
             ax.fill_between(grid, band_low, band_high, color=c, alpha=0.25, lw=0)
-        else:  # one trial, or seeds whose step ranges do not overlap: the final points only
+        else:  # one trial, or seeds whose ranges do not overlap: the final points only
             finals = np.array([y[-1] for y in ys])
             ax.errorbar([np.mean([x[-1] for x in xs])], [finals.mean()], yerr=[[finals.mean() - finals.min()],
                         [finals.max() - finals.mean()]], color=c, marker="o", capsize=4, label=label)
-    ax.set_xlabel("environment steps")
+    ax.set_xlabel(x_label)
     ax.set_ylabel("episode reward")
     ax.set_title(f"{env}: episode reward (mean over seeds, 95 % bootstrap CI)", fontsize=10)
     ax.grid(alpha=0.3)
@@ -925,6 +982,8 @@ def build_parser() -> OneLineParser:
     common(on)
     on.add_argument("--trials", type=int, required=True, help="trials per run")
     on.add_argument("--final-window", type=int, default=3, help="trials averaged for the final reward (default 3)")
+    on.add_argument("--planners", help="also compare these planners (comma-separated pets.config.PLANNERS); "
+                                       "every model x planner pair is an arm")
 
     off = sub.add_parser("offline", prog=f"{PROG} offline", help="offline training and prediction error")
     common(off)
@@ -959,9 +1018,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.mode == "online":
             if args.device is not None:
                 overrides.append(f"device={args.device}")
+            planners = None if args.planners is None else parse_planners(args.planners)
             result = compare_online(env_names, models, seeds, args.trials, args.out, workers=args.workers,
                                     preset=args.preset, overrides=overrides, final_window=args.final_window,
-                                    progress=not args.quiet)
+                                    progress=not args.quiet, planners=planners)
             report = args.out / "summary.md"
         else:
             from pets.evaluate import parse_horizons

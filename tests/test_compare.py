@@ -16,7 +16,7 @@ from tests.threads import one_thread
 
 import envs
 from pets import compare, openloop, rundir
-from pets.config import make_config
+from pets.config import load_config, make_config
 from pets.stats import bootstrap_ci, iqm
 
 TINY = ["planner.population=16", "planner.particles=2", "planner.horizon=4", "planner.iterations=2",
@@ -131,10 +131,30 @@ def test_online_summary_equals_statistics_recomputed_from_metrics(online):
         assert float(row["auc_mean"]) == pytest.approx(np.mean(aucs), rel=1e-12)
         assert (float(row["auc_ci_low"]), float(row["auc_ci_high"])) == pytest.approx(bootstrap_ci(aucs))
         assert min(finals) <= float(row["final_ci_low"]) <= float(row["final_ci_high"]) <= max(finals)
+        walls = [float(csv_rows(out / "runs" / f"invertedpendulum-{model}-s{seed}" / "metrics.csv")[1]["wall_time_s"])
+                 for seed in (0, 1)]
+        assert float(row["wall_time_s_mean"]) == pytest.approx(np.mean(walls), rel=1e-12) and min(walls) > 0
+        assert float(row["plan_seconds_per_step_mean"]) > 0 and row["planner"] == ""
     md = (out / "summary.md").read_text()
     assert "| delta | 2 |" in md and "| gem | 2 |" in md and "rewards_invertedpendulum.png" in md
     assert (out / "rewards_invertedpendulum.png").stat().st_size > 10_000
+    assert (out / "walltime_invertedpendulum.png").stat().st_size > 10_000
     assert len(csv_rows(out / "summary_runs.csv")) == 4
+
+
+def test_online_planners_axis_runs_every_model_planner_pair(tmp_path, capsys):
+    code, printed, _ = cli(capsys, "online", "--envs", "invertedpendulum", "--models", "delta", "--planners", "cem,icem",
+                           "--seeds", 3, "--trials", 1, "--out", tmp_path, "--workers", 2, "--preset", "fast",
+                           "--quiet", *TINY)
+    assert code == 0
+    for planner in ("cem", "icem"):
+        run = tmp_path / "runs" / f"invertedpendulum-delta-{planner}-s3"
+        assert load_config(str(run / "config.yaml")).planner.name == planner
+        assert len(csv_rows(run / "metrics.csv")) == 1
+    summary = csv_rows(tmp_path / "summary.csv")
+    assert [(r["model"], r["planner"], r["n_seeds"]) for r in summary] == [("delta", "cem", "1"), ("delta", "icem", "1")]
+    assert "| model | planner | seeds |" in printed and "| delta | icem | 1 |" in printed
+    assert (tmp_path / "walltime_invertedpendulum.png").stat().st_size > 10_000
 
 
 def test_openloop_on_an_online_run_replays_in_the_simulator(online, tmp_path, capsys):
@@ -320,6 +340,9 @@ def test_process_pool_reports_a_failed_job_and_finishes_the_others():
     (["online", "--envs", "reacher", "--models", "delta", "--trials", 0], "must be >= 1"),
     (["online", "--envs", "reacher", "--models", "delta", "--trials", 1, "planner.popsize=3"], "planner.population"),
     (["online", "--envs", "reacher", "--models", "delta", "--trials", 1, "seed=3"], "--seeds"),
+    (["online", "--envs", "reacher", "--models", "delta", "--trials", 1, "--planners", "cem,ddp"], "accepted: cem"),
+    (["online", "--envs", "reacher", "--models", "delta", "--trials", 1, "--planners", "cem",
+      "planner.name=mppi"], "--planners or planner.name="),
     (["offline", "--envs", "reacher", "--models", "delta", "--horizons", "1,a"], "comma-separated"),
     (["offline", "--envs", "reacher", "--models", "delta", "--planners", "cem,ddp"], "accepted: cem"),
     (["offline", "--envs", "reacher", "--models", "delta", "--policy", "run:x"], "smooth-random[:BETA] or existing"),
