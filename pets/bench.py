@@ -8,8 +8,9 @@ realistic (normalised, finite) states. Every row times ``--repeats`` planning st
 from a fresh plan) after one warm-up step (reported separately: it includes any compilation);
 figures are medians. With ``--compare`` one run times, on the same model and start state, the
 rows: CEM eager fp32 (the precise path), CEM compiled fp32, CEM eager bf16, CEM compiled bf16,
-iCEM and MPPI (eager, the config's precision); the rows take turns within each repeat, so a
-change in machine load hits all of them alike. Use ``threads=1`` on a shared machine.
+iCEM eager fp32, iCEM compiled bf16 and MPPI eager fp32, then the kernel floor at the config's
+shapes (:func:`kernel_floor`: the model's GEMMs alone, fp32 and bf16, and the bf16 GEMMs with SiLU);
+the rows take turns within each repeat, so a change in machine load hits all of them alike. Use ``threads=1`` on a shared machine.
 
 Columns: wall and process-CPU seconds per step (CPU time is the steadier figure on a loaded
 machine; with one thread it is close to the compute time), model GFLOP per step (counted from the
@@ -52,6 +53,7 @@ COMPARE_ROWS: list[tuple[str, dict[str, Any]]] = [
     ("cem bf16 eager", {"name": "cem", "precision": "bf16", "compile": False}),
     ("cem bf16 compiled", {"name": "cem", "precision": "bf16", "compile": True}),
     ("icem fp32 eager", {"name": "icem", "precision": "fp32", "compile": False}),
+    ("icem bf16 compiled", {"name": "icem", "precision": "bf16", "compile": True}),
     ("mppi fp32 eager", {"name": "mppi", "precision": "fp32", "compile": False}),
 ]
 
@@ -75,6 +77,50 @@ def matmul_peak_gflops(device: torch.device, dtype: torch.dtype = torch.float32,
         _sync(device)
         times.append(time.perf_counter() - t0)
     return 2 * n**3 / statistics.median(times[1:]) / 1e9
+
+
+def kernel_floor(cfg: DictConfig, input_dim: int, target_dim: int, device: torch.device,
+                 repeats: int = 10) -> dict[str, float]:
+    """Seconds per MPC step that the model's own kernels need at the planner's shapes, nothing else.
+
+    One model step of the evaluator is, per layer, one batched GEMM over the propagated members
+    (``num_elites`` members, ``ceil(population * particles / members)`` rows each for the ts modes; every
+    member sees all ``population`` rows for ``expectation``) plus a SiLU between layers. This times those
+    chained GEMMs alone (fp32 and bf16) and the bf16 GEMMs with the SiLUs, on random data (median of
+    ``repeats``), and multiplies by the model steps of one CEM planning step (``horizon x iterations``).
+    It is the floor the rollout code can reach with these kernels (sampling, head decode, reward and
+    planner cost nothing in it): the yardstick for the ``% floor`` figures.
+    """
+    p, mdl = cfg.planner, cfg.model
+    members = mdl.num_elites
+    rows = p.population if p.propagation == "expectation" else -(-p.population * p.particles // members)
+    dims = [input_dim] + [mdl.hidden_size] * mdl.num_layers + [2 * target_dim]
+    gen = torch.Generator(device=device).manual_seed(0)
+    steps = p.horizon * p.iterations
+    out: dict[str, float] = {}
+    for dtype, name in ((torch.float32, "fp32"), (torch.bfloat16, "bf16")):
+        x = torch.randn(members, rows, dims[0], generator=gen, device=device).to(dtype)
+        ws = [(torch.randn(members, a, b, generator=gen, device=device) / a**0.5).to(dtype)
+              for a, b in zip(dims[:-1], dims[1:])]
+
+        def forward(silu: bool) -> Tensor:
+            h = x
+            for i, w in enumerate(ws):
+                h = torch.bmm(h, w)
+                if silu and i < len(ws) - 1:
+                    h = torch.nn.functional.silu(h)
+            return h
+
+        for silu in ((False, True) if name == "bf16" else (False,)):
+            times = []
+            for _ in range(repeats + 2):
+                _sync(device)
+                t0 = time.perf_counter()
+                forward(silu)
+                _sync(device)
+                times.append(time.perf_counter() - t0)
+            out[f"{name}_gemm{'_silu' if silu else ''}_seconds_per_step"] = statistics.median(times[2:]) * steps
+    return out
 
 
 def _sync(device: torch.device) -> None:
@@ -258,8 +304,11 @@ def benchmark(cfg: DictConfig, repeats: int = 5) -> dict[str, float]:
 def compare(cfg: DictConfig, repeats: int = 5) -> dict[str, Any]:
     """The ``--compare`` rows on one model, the fp32 and bf16 GEMM peaks, and the precise row's figures."""
     device = builder.resolve_device(cfg.device)
-    rows = time_rows(cfg, COMPARE_ROWS, repeats)
+    parts = prepare(cfg)
+    rows = time_rows(cfg, COMPARE_ROWS, repeats, parts)
     peaks = {"fp32": matmul_peak_gflops(device), "bf16": matmul_peak_gflops(device, torch.bfloat16)}
+    head = parts["head"]
+    floor = kernel_floor(cfg, head.input_dim, head.target_dim, device)
     base = rows[0]
     for r in rows:
         r["fraction_of_peak"] = r["model_gflops"] / peaks[r["precision"]]
@@ -267,7 +316,7 @@ def compare(cfg: DictConfig, repeats: int = 5) -> dict[str, Any]:
         r["speedup_cpu"] = base["cpu_seconds_per_step"] / r["cpu_seconds_per_step"]
     keys = ("seconds_per_step", "cpu_seconds_per_step", "model_gflops", "model_gflop_per_step")
     return {**{k: base[k] for k in keys}, "peak_gflops": peaks["fp32"], "peak_gflops_bf16": peaks["bf16"],
-            "rows": rows}
+            "floor": floor, "rows": rows}
 
 
 def _print_rows(rows: list[dict[str, Any]], repeats: int) -> None:
@@ -314,6 +363,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"measured GEMM peak (2048^3): fp32 {res['peak_gflops']:.1f} GFLOP/s, "
               f"bf16 {res['peak_gflops_bf16']:.1f} GFLOP/s")
         _print_rows(res["rows"], args.repeats)
+        fl = res["floor"]
+        print(f"kernel floor at these shapes (s per CEM step; the model's GEMMs alone, see kernel_floor): "
+              f"fp32 {fl['fp32_gemm_seconds_per_step']:.3f}, bf16 {fl['bf16_gemm_seconds_per_step']:.3f}, "
+              f"bf16 GEMMs + SiLU {fl['bf16_gemm_silu_seconds_per_step']:.3f}")
     else:
         res = benchmark(cfg, args.repeats)
         peak = res["peak_gflops_bf16"] if p.precision == "bf16" else res["peak_gflops"]

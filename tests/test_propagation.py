@@ -547,3 +547,31 @@ def test_bench_rows_and_json_keys(tmp_path) -> None:
     assert rows[1]["model_gflop_per_step"] < rows[0]["model_gflop_per_step"]
     assert rows[2]["model_gflop_per_step"] == pytest.approx(rows[0]["model_gflop_per_step"])
     assert all(r["peak_memory_mib"] >= 0 and r["cpu_seconds_per_step"] > 0 for r in rows)
+
+
+def test_bench_kernel_floor_times_the_models_gemms_at_the_planners_shapes(monkeypatch) -> None:
+    """kernel_floor: one chained bmm per layer at (members, ceil(pop x particles / members), width), times
+    horizon x iterations model steps."""
+    from pets import bench
+    from pets.config import make_config
+
+    cfg = make_config("hopper", preset="fast", overrides={"planner.population": 15, "planner.particles": 2,
+                                                           "planner.horizon": 3, "planner.iterations": 2,
+                                                           "model.hidden_size": 32, "model.ensemble_size": 4,
+                                                           "model.num_elites": 4, "threads": 1})
+    shapes = []
+    real_bmm = torch.bmm
+
+    def spy(a, b):
+        shapes.append((tuple(a.shape), tuple(b.shape), a.dtype))
+        return real_bmm(a, b)
+
+    monkeypatch.setattr(torch, "bmm", spy)
+    floor = bench.kernel_floor(cfg, 14, 12, torch.device("cpu"), repeats=1)
+    layers = cfg.model.num_layers + 1
+    assert shapes[0] == ((4, 8, 14), (4, 14, 32), torch.float32)  # ceil(15 * 2 / 4) = 8 rows per member
+    assert shapes[layers - 1] == ((4, 8, 32), (4, 32, 24), torch.float32)  # output: mean and log-variance
+    assert {s[2] for s in shapes} == {torch.float32, torch.bfloat16} and len(shapes) == 3 * 3 * layers
+    assert set(floor) == {"fp32_gemm_seconds_per_step", "bf16_gemm_seconds_per_step",
+                          "bf16_gemm_silu_seconds_per_step"}
+    assert all(math.isfinite(v) and v > 0 for v in floor.values())
