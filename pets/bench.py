@@ -9,8 +9,9 @@ from a fresh plan) after one warm-up step (reported separately: it includes any 
 figures are medians. With ``--compare`` one run times, on the same model and start state, the
 rows: CEM eager fp32 (the precise path), CEM compiled fp32, CEM eager bf16, CEM compiled bf16,
 iCEM eager fp32, iCEM compiled bf16 and MPPI eager fp32, then the kernel floor at the config's
-shapes (:func:`kernel_floor`: the model's GEMMs alone, fp32 and bf16, and the bf16 GEMMs with SiLU);
-the rows take turns within each repeat, so a change in machine load hits all of them alike. Use ``threads=1`` on a shared machine.
+shapes (:func:`kernel_floor`: the model's GEMMs + bias alone, fp32 and bf16, and bf16 with SiLU);
+the rows take turns within each repeat, so a change in machine load hits all of them alike. Use
+``threads=1`` on a shared machine.
 
 Columns: wall and process-CPU seconds per step (CPU time is the steadier figure on a loaded
 machine; with one thread it is close to the compute time), model GFLOP per step (counted from the
@@ -83,10 +84,11 @@ def kernel_floor(cfg: DictConfig, input_dim: int, target_dim: int, device: torch
                  repeats: int = 10) -> dict[str, float]:
     """Seconds per MPC step that the model's own kernels need at the planner's shapes, nothing else.
 
-    One model step of the evaluator is, per layer, one batched GEMM over the propagated members
-    (``num_elites`` members, ``ceil(population * particles / members)`` rows each for the ts modes; every
-    member sees all ``population`` rows for ``expectation``) plus a SiLU between layers. This times those
-    chained GEMMs alone (fp32 and bf16) and the bf16 GEMMs with the SiLUs, on random data (median of
+    One model step of the evaluator is, per layer, one batched GEMM with bias (``torch.baddbmm``, as
+    ``pets.ensemble.member_mlp`` runs it) over the propagated members (``num_elites`` members,
+    ``ceil(population * particles / members)`` rows each for the ts modes; every member sees all
+    ``population`` rows for ``expectation``) plus a SiLU between layers. This times those chained
+    layers alone (fp32 and bf16) and the bf16 layers with the SiLUs, on random data (median of
     ``repeats``), and multiplies by the model steps of one CEM planning step (``horizon x iterations``).
     It is the floor the rollout code can reach with these kernels (sampling, head decode, reward and
     planner cost nothing in it): the yardstick for the ``% floor`` figures.
@@ -102,11 +104,12 @@ def kernel_floor(cfg: DictConfig, input_dim: int, target_dim: int, device: torch
         x = torch.randn(members, rows, dims[0], generator=gen, device=device).to(dtype)
         ws = [(torch.randn(members, a, b, generator=gen, device=device) / a**0.5).to(dtype)
               for a, b in zip(dims[:-1], dims[1:])]
+        bs = [torch.zeros(members, 1, b, device=device, dtype=dtype) for b in dims[1:]]
 
         def forward(silu: bool) -> Tensor:
             h = x
-            for i, w in enumerate(ws):
-                h = torch.bmm(h, w)
+            for i, (w, b) in enumerate(zip(ws, bs)):
+                h = torch.baddbmm(b, h, w)
                 if silu and i < len(ws) - 1:
                     h = torch.nn.functional.silu(h)
             return h
@@ -364,7 +367,7 @@ def main(argv: list[str] | None = None) -> int:
               f"bf16 {res['peak_gflops_bf16']:.1f} GFLOP/s")
         _print_rows(res["rows"], args.repeats)
         fl = res["floor"]
-        print(f"kernel floor at these shapes (s per CEM step; the model's GEMMs alone, see kernel_floor): "
+        print("kernel floor at these shapes (s per CEM step; the model's GEMMs + bias alone, see kernel_floor): "
               f"fp32 {fl['fp32_gemm_seconds_per_step']:.3f}, bf16 {fl['bf16_gemm_seconds_per_step']:.3f}, "
               f"bf16 GEMMs + SiLU {fl['bf16_gemm_silu_seconds_per_step']:.3f}")
     else:

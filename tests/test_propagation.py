@@ -550,7 +550,7 @@ def test_bench_rows_and_json_keys(tmp_path) -> None:
 
 
 def test_bench_kernel_floor_times_the_models_gemms_at_the_planners_shapes(monkeypatch) -> None:
-    """kernel_floor: one chained bmm per layer at (members, ceil(pop x particles / members), width), times
+    """kernel_floor: one chained baddbmm per layer at (members, ceil(pop x particles / members), width), times
     horizon x iterations model steps."""
     from pets import bench
     from pets.config import make_config
@@ -560,13 +560,14 @@ def test_bench_kernel_floor_times_the_models_gemms_at_the_planners_shapes(monkey
                                                            "model.hidden_size": 32, "model.ensemble_size": 4,
                                                            "model.num_elites": 4, "threads": 1})
     shapes = []
-    real_bmm = torch.bmm
+    real_baddbmm = torch.baddbmm
 
-    def spy(a, b):
+    def spy(bias, a, b):
         shapes.append((tuple(a.shape), tuple(b.shape), a.dtype))
-        return real_bmm(a, b)
+        assert bias.shape == (b.shape[0], 1, b.shape[2])
+        return real_baddbmm(bias, a, b)
 
-    monkeypatch.setattr(torch, "bmm", spy)
+    monkeypatch.setattr(torch, "baddbmm", spy)
     floor = bench.kernel_floor(cfg, 14, 12, torch.device("cpu"), repeats=1)
     layers = cfg.model.num_layers + 1
     assert shapes[0] == ((4, 8, 14), (4, 14, 32), torch.float32)  # ceil(15 * 2 / 4) = 8 rows per member
