@@ -91,7 +91,7 @@ def kernel_floor(cfg: DictConfig, input_dim: int, target_dim: int, device: torch
     layers alone (fp32 and bf16) and the bf16 layers with the SiLUs, on random data (median of
     ``repeats``), and multiplies by the model steps of one CEM planning step (``horizon x iterations``).
     It is the floor the rollout code can reach with these kernels (sampling, head decode, reward and
-    planner cost nothing in it): the yardstick for the ``% floor`` figures.
+    planner cost nothing in it), the yardstick for the rows' seconds per step.
     """
     p, mdl = cfg.planner, cfg.model
     members = mdl.num_elites

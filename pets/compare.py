@@ -395,13 +395,12 @@ def compare_online(env_names: Sequence[str], models: Sequence[str], seeds: Seque
                              "do not pass it as an override")
     if planners is not None and "planner.name" in extra:
         raise UsageError("give the planner once: --planners or planner.name=, not both")
-    over_list = [f"{k}={v}" for k, v in extra.items()]
     out = Path(out).resolve()
     jobs, actions = [], {}
     for env in env_names:
         for model, planner in online_arms(models, planners):
             arm_extra = extra if planner is None else {**extra, "planner.name": planner}
-            arm_list = over_list if planner is None else [*over_list, f"planner.name={planner}"]
+            arm_list = [f"{k}={v}" for k, v in arm_extra.items()]
             for seed in seeds:
                 name = run_name(env, model, seed, planner)
                 run_dir = out / "runs" / name
@@ -498,7 +497,8 @@ def summarise_online(out: Path, env_names: Sequence[str], models: Sequence[str],
               fmt(r["auc_iqm"]), f"{r['env_steps_mean']:.0f}", fmt(r["plan_seconds_per_step_mean"], 3),
               fmt(r["wall_time_s_mean"] / 3600, 3)] for r in rows]), "",
             f"![rewards](rewards_{env}.png) ![wall-clock](walltime_{env}.png)", ""]
-        runs = {arm_label(m, p): curves[(env, arm_label(m, p))] for m, p in arms if (env, arm_label(m, p)) in curves}
+        labels = [arm_label(m, p) for m, p in arms]
+        runs = {label: curves[(env, label)] for label in labels if (env, label) in curves}
         colors = model_colors(list(runs)) if planners is None else arm_colors(list(runs))
         plot_online(out / f"rewards_{env}.png", env, runs, colors)
         plot_online(out / f"walltime_{env}.png", env, runs, colors, x_key="wall_time_s")
