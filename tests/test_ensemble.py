@@ -208,3 +208,39 @@ def test_weight_decay_loss_formula() -> None:
     torch.testing.assert_close(ens.weight_decay_loss().detach(), expected)
     small = GaussianEnsemble(IN, OUT, ensemble_size=2, hidden_size=8, num_layers=1)
     assert small.decays == [2.5e-5, 1e-4]
+
+
+@pytest.mark.parametrize("kind", ["gaussian", "deterministic"])
+@pytest.mark.parametrize("shared", [False, True])
+def test_inference_pads_an_odd_output_width_and_changes_no_value(monkeypatch, kind: str, shared: bool) -> None:
+    """Without autograd the output layer (2 x 107 = 214 wide: the GEM head on Ant) runs padded to 216 columns;
+    the outputs equal the unpadded (autograd) forward: bit for bit with MKL on the machine tested, and within
+    float32 rounding anywhere."""
+    from pets import ensemble as ensemble_module
+    from pets.models import DeterministicEnsemble
+
+    torch.manual_seed(1)
+    in_dim, out_dim, hidden = 30, 107, 64
+    if kind == "gaussian":
+        ens = GaussianEnsemble(in_dim, out_dim, ensemble_size=3, hidden_size=hidden, num_layers=2)
+    else:
+        ens = DeterministicEnsemble(in_dim, out_dim, ensemble_size=3, hidden_size=hidden, num_layers=2)
+    x = torch.randn(50, in_dim) if shared else torch.randn(3, 50, in_dim)
+    with torch.enable_grad():
+        mean_ref, logvar_ref = ens(x)
+
+    widths = []
+    real_pad = F.pad
+
+    def spy_pad(t, pad, *args, **kwargs):
+        widths.append(t.shape[-1] + pad[1])
+        return real_pad(t, pad, *args, **kwargs)
+
+    monkeypatch.setattr(ensemble_module.F, "pad", spy_pad)
+    with torch.no_grad():
+        mean, logvar = ens(x)
+    out_width = 2 * out_dim if kind == "gaussian" else out_dim
+    assert widths == [out_width + (-out_width % 8)] * 2  # weight and bias of the output layer only
+    assert mean.shape == mean_ref.shape == (3, 50, out_dim) and logvar.shape == logvar_ref.shape
+    torch.testing.assert_close(mean, mean_ref.detach(), rtol=1e-6, atol=1e-6)
+    torch.testing.assert_close(logvar, logvar_ref.detach(), rtol=1e-6, atol=1e-6)
