@@ -36,7 +36,7 @@ import resource
 import statistics
 import sys
 import time
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 import torch
@@ -65,19 +65,24 @@ def model_flops_per_row(in_dim: int, out_dim: int, hidden: int, layers: int) -> 
     return 2 * sum(a * b for a, b in zip(dims[:-1], dims[1:]))
 
 
+def median_seconds(fn: Callable[[], object], device: torch.device, repeats: int, warmup: int = 1) -> float:
+    """Median wall seconds of ``repeats`` calls of ``fn`` after ``warmup`` untimed ones (CUDA: synchronised)."""
+    times = []
+    for _ in range(warmup + repeats):
+        _sync(device)
+        t0 = time.perf_counter()
+        fn()
+        _sync(device)
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times[warmup:])
+
+
 def matmul_peak_gflops(device: torch.device, dtype: torch.dtype = torch.float32, n: int = 2048,
                        repeats: int = 5) -> float:
     """Measured dense GEMM throughput (median of ``repeats``) for an n x n x n product."""
     a = torch.randn(n, n, device=device).to(dtype)
     b = torch.randn(n, n, device=device).to(dtype)
-    times = []
-    for _ in range(repeats + 1):
-        _sync(device)
-        t0 = time.perf_counter()
-        a @ b
-        _sync(device)
-        times.append(time.perf_counter() - t0)
-    return 2 * n**3 / statistics.median(times[1:]) / 1e9
+    return 2 * n**3 / median_seconds(lambda: a @ b, device, repeats) / 1e9
 
 
 def kernel_floor(cfg: DictConfig, input_dim: int, target_dim: int, device: torch.device,
@@ -115,14 +120,8 @@ def kernel_floor(cfg: DictConfig, input_dim: int, target_dim: int, device: torch
             return h
 
         for silu in ((False, True) if name == "bf16" else (False,)):
-            times = []
-            for _ in range(repeats + 2):
-                _sync(device)
-                t0 = time.perf_counter()
-                forward(silu)
-                _sync(device)
-                times.append(time.perf_counter() - t0)
-            out[f"{name}_gemm{'_silu' if silu else ''}_seconds_per_step"] = statistics.median(times[2:]) * steps
+            seconds = median_seconds(lambda: forward(silu), device, repeats, warmup=2)
+            out[f"{name}_gemm{'_silu' if silu else ''}_seconds_per_step"] = seconds * steps
     return out
 
 
