@@ -20,10 +20,10 @@ Index maps (obs_dim; "vel" = MuJoCo qvel entries, clipped to +-10 where noted):
 - walker2d (18): 0 x, 1 z | 2 pitch, 3-8 joints | 9-17 vel (clipped).
 - halfcheetah (18): 0 x, 1 z | 2 pitch, 3-8 joints | 9-17 vel.
 - ant (108): 0-2 torso x, y, z | 3-6 quaternion w, x, y, z | 7-14 hinges | 15-28 vel (3 linear
-  world, 3 angular body, 8 joints) | 29-106 contact forces cfrc_ext[1:] clipped to [-1, 1]
+  world, 3 angular body, 8 joints) | 29-106 derived: contact forces cfrc_ext[1:] clipped to [-1, 1]
   | 107 appended main-body x (``data.body(main_body).xpos[0]``, what the forward reward differences).
 - humanoid (351): 0-2 torso x, y, z | 3-6 quaternion | 7-23 hinges | 24-46 vel (6 free + 17)
-  | 47-176 cinert | 177-254 cvel | 255-271 qfrc_actuator | 272-349 cfrc_ext[1:] | 350 appended
+  | derived: 47-176 cinert, 177-254 cvel, 255-271 qfrc_actuator, 272-349 cfrc_ext[1:] | 350 appended
   mass-centre x (gymnasium's ``mass_center``, what the forward reward differences).
 """
 from __future__ import annotations
@@ -99,7 +99,7 @@ def ant_layout() -> ObsLayout:
               *(Group(j, "SO2_angle", (7 + k,)) for k, j in enumerate(ANT_HINGES)),
               Group("main_body_x", "Rn", (ANT_XREF,)))
     return ObsLayout(obs_dim=ANT_XREF + 1, groups=groups, velocities=_r(ANT_NQ, ANT_NQ + ANT_NV),
-                     other=_r(*ANT_CFRC), invariant=(0, 1, ANT_XREF))
+                     derived=_r(*ANT_CFRC), invariant=(0, 1, ANT_XREF))
 
 
 def humanoid_layout() -> ObsLayout:
@@ -107,7 +107,7 @@ def humanoid_layout() -> ObsLayout:
               *(Group(j, "SO2_angle", (7 + k,)) for k, j in enumerate(HUMANOID_HINGES)),
               Group("mass_centre_x", "Rn", (HUM_COMX,)))
     return ObsLayout(obs_dim=HUM_COMX + 1, groups=groups, velocities=_r(HUM_NQ, HUM_NQ + HUM_NV),
-                     other=_r(HUM_CINERT[0], HUM_CFRC[1]), invariant=(0, 1, HUM_COMX))
+                     derived=_r(HUM_CINERT[0], HUM_CFRC[1]), invariant=(0, 1, HUM_COMX))
 
 
 # --------------------------------------------------------------------------- rewards / terminations

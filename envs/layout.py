@@ -43,9 +43,14 @@ class Group:
 class ObsLayout:
     """Index-by-index description of an observation vector.
 
-    Every index in ``range(obs_dim)`` belongs to exactly one of: a group, ``velocities``
-    or ``other``. ``invariant`` lists the group (Rn) coordinates the dynamics do not
+    Every index in ``range(obs_dim)`` belongs to exactly one of: a group, ``velocities``,
+    ``other`` or ``derived``. ``invariant`` lists the group (Rn) coordinates the dynamics do not
     depend on (root x, and y for Ant/Humanoid): they are never network inputs.
+
+    ``derived`` entries are quantities MuJoCo computes from the state (contact forces, body inertias
+    and velocities, actuator forces): not part of the Markov state, never network inputs, never
+    predicted; a predicted next observation carries them over from the current one (docs/envs.md).
+    ``other`` entries (constraint forces, appended reward positions) are predicted like velocities.
     """
 
     obs_dim: int
@@ -53,9 +58,10 @@ class ObsLayout:
     velocities: tuple[int, ...] = ()
     other: tuple[int, ...] = ()
     invariant: tuple[int, ...] = field(default=())
+    derived: tuple[int, ...] = ()
 
     def __post_init__(self) -> None:
-        seen: list[int] = [i for g in self.groups for i in g.indices] + list(self.velocities) + list(self.other)
+        seen = [i for g in self.groups for i in g.indices] + [*self.velocities, *self.other, *self.derived]
         if sorted(seen) != list(range(self.obs_dim)):
             dup = sorted({i for i in seen if seen.count(i) > 1})
             missing = sorted(set(range(self.obs_dim)) - set(seen))
@@ -68,9 +74,15 @@ class ObsLayout:
 
     @property
     def model_indices(self) -> tuple[int, ...]:
-        """Observation indices a model may see (all but the position-invariant ones), in order."""
-        inv = set(self.invariant)
-        return tuple(i for i in range(self.obs_dim) if i not in inv)
+        """Observation indices a model may see (all but the invariant and derived ones), in order."""
+        skip = set(self.invariant) | set(self.derived)
+        return tuple(i for i in range(self.obs_dim) if i not in skip)
+
+    @property
+    def predicted_indices(self) -> tuple[int, ...]:
+        """Observation indices a model predicts (all but the derived ones), in order."""
+        skip = set(self.derived)
+        return tuple(i for i in range(self.obs_dim) if i not in skip)
 
     def groups_of(self, kind: GroupKind) -> tuple[Group, ...]:
         return tuple(g for g in self.groups if g.kind == kind)

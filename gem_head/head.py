@@ -9,7 +9,8 @@ Encoding (observation -> group state), one element per group of the env's ``ObsL
                     does with a free joint's quaternion; it matters only right after ``reset``, whose noise
                     leaves the quaternion non-unit, since every ``mj_step`` renormalises it);
 
-plus the velocities and the ``other`` coordinates as plain vectors.
+plus the velocities and the ``other`` coordinates as plain vectors. The layout's ``derived`` entries (contact
+forces and the like, not state) are neither inputs nor targets; ``next_obs`` copies them from the current obs.
 
 Targets, one slot per "unit" (an Rn coordinate, a velocity, an ``other`` entry or a rotation group), units in the
 order of their first observation index, rotation groups contributing their tangent dimensions (1 for SO(2),
@@ -109,6 +110,7 @@ class _Indices:
     q_obs: Sel  # (w, x, y, z) obs entries of the SO3_quat groups, 4 per group ...
     q_tgt: Sel  # ... and their target slots, 3 per group
     sq_tgt: Sel  # target slots scored by squared error in the Frobenius loss (Rn, velocities, other)
+    carry: Sel  # derived obs entries: not predicted, copied from the current observation
 
     def to(self, device: torch.device) -> "_Indices":
         return _Indices(**{k: v if isinstance(v, slice) else v.to(device) for k, v in self.__dict__.items()})
@@ -227,12 +229,12 @@ class GemHead(DynamicsHead):
         self.input_names: tuple[str, ...] = tuple(names)
         self.input_dim = len(names)
 
-        self._n_ang, self._n_cs, self._n_sq = len(ang_obs), len(cs_c), len(sq_tgt)
+        self._n_ang, self._n_cs, self._n_sq, self._n_carry = len(ang_obs), len(cs_c), len(sq_tgt), len(layout.derived)
         self._n_so2 = self._n_ang + self._n_cs
         self._cpu = _Indices(
             pass_obs=_sel(pass_obs), ang_obs=_sel(ang_obs), ang_tgt=_sel(ang_tgt), cs_c=_sel(cs_c), cs_s=_sel(cs_s),
             cs_tgt=_sel(cs_tgt), so2_tgt=_sel(ang_tgt + cs_tgt), q_obs=_sel(q_obs), q_tgt=_sel(q_tgt),
-            sq_tgt=_sel(sq_tgt))
+            sq_tgt=_sel(sq_tgt), carry=_sel(list(layout.derived)))
         self._by_device: dict[torch.device, _Indices] = {torch.device("cpu"): self._cpu}
 
     def __repr__(self) -> str:
@@ -335,39 +337,52 @@ class GemHead(DynamicsHead):
             qn = SO3.quat_mul(q, e) if self.compose == "right" else SO3.quat_mul(e, q)
             qn = torch.where((qn * q).sum(-1, keepdim=True) < 0, -qn, qn)
             _put(out, ix.q_obs, qn.flatten(-2))
+        if self._n_carry:
+            _put(out, ix.carry, _take(obs, ix.carry))
         return out
 
     # ------------------------------------------------------------------ losses
-    def frobenius_loss(self, mean: Tensor, target: Tensor, obs: Tensor, next_obs: Tensor) -> Tensor:
+    def frobenius_loss(self, mean: Tensor, target: Tensor, obs: Tensor, next_obs: Tensor,
+                       scale: Tensor | None = None) -> Tensor:
         """The paper's algebraic loss (Algorithm 1), per member: (E,) for (E, B, .) inputs.
 
         Per sample: [ sum over SO(2)/SO(3) groups of ||exp(alpha_hat) o G_t - G_{t+1}||_F^2 (2x2 / 3x3 matrices,
         o = this head's composition, G from ``obs`` and ``next_obs``) + sum of squared errors (mean - target)^2 of
         the Rn, velocity and other slots ] / target_dim, averaged over all leading dims but the first. For a
         rotation error of angle phi a group term is ||R1 - R2||_F^2 = 8 sin^2(phi / 2) ~ 2 phi^2 (SO(2), SO(3)).
+        With ``scale`` (target_dim,) (the model's target std) every term is in standardised units: a squared
+        error is divided by its slot's scale^2, a group term by the mean scale^2 of the group's slots.
         """
         self._check("frobenius_loss", mean=(mean, self.target_dim), target=(target, self.target_dim),
                     obs=(obs, self.obs_dim), next_obs=(next_obs, self.obs_dim))
         if mean.dim() < 2:
             raise ValueError(f"GemHead.frobenius_loss expects (E, B, .) batches, got mean of shape {tuple(mean.shape)}")
         ix = self._idx(mean.device)
+        inv_var = None if scale is None else scale.to(mean).reciprocal().square()
         per = mean.new_zeros(mean.shape[:-1])
         if self._n_sq:
-            per = per + (_take(mean, ix.sq_tgt) - _take(target, ix.sq_tgt)).square().sum(-1)
+            sq = (_take(mean, ix.sq_tgt) - _take(target, ix.sq_tgt)).square()
+            per = per + (sq if inv_var is None else sq * _take(inv_var, ix.sq_tgt)).sum(-1)
         if self._n_so2:
             g0 = SO2.from_cos_sin(*self._so2_cos_sin(obs, ix))
             g1 = SO2.from_cos_sin(*self._so2_cos_sin(next_obs, ix))
             pred = SO2.compose(SO2.exp(_take(mean, ix.so2_tgt).unsqueeze(-1)), g0)
-            per = per + (pred - g1).square().sum((-1, -2, -3))
+            sq = (pred - g1).square().sum((-1, -2))
+            per = per + (sq if inv_var is None else sq * _take(inv_var, ix.so2_tgt)).sum(-1)
         if self.num_quat:
             g0, g1 = SO3.from_quat(self._unit_quat(obs, ix)), SO3.from_quat(self._unit_quat(next_obs, ix))
             step = SO3.exp(_take(mean, ix.q_tgt).unflatten(-1, (self.num_quat, 3)))
             pred = SO3.compose(g0, step) if self.compose == "right" else SO3.compose(step, g0)
-            per = per + (pred - g1).square().sum((-1, -2, -3))
+            sq = (pred - g1).square().sum((-1, -2))
+            if inv_var is not None:
+                sq = sq * _take(inv_var, ix.q_tgt).unflatten(-1, (self.num_quat, 3)).mean(-1)
+            per = per + sq.sum(-1)
         return (per / self.target_dim).flatten(1).mean(dim=1)
 
-    def loss(self, mean: Tensor, logvar: Tensor, target: Tensor, obs: Tensor, next_obs: Tensor) -> Tensor:
-        """Per-member training loss (E,) for (E, B, .) batches, by ``self.loss_kind``:
+    def loss(self, mean: Tensor, logvar: Tensor, target: Tensor, obs: Tensor, next_obs: Tensor,
+             scale: Tensor | None = None) -> Tensor:
+        """Per-member training loss (E,) for (E, B, .) batches, by ``self.loss_kind`` (``scale``: see
+        ``frobenius_loss``; the NLL does not need it):
 
         - ``nll``: gaussian_nll(mean, logvar, target) in the algebra coordinates;
         - ``frobenius``: frobenius_loss(mean) + gaussian_nll(mean.detach(), logvar, target): the mean is fitted by
@@ -380,7 +395,7 @@ class GemHead(DynamicsHead):
             raise ValueError(f"GemHead.loss expects (E, B, .) batches, got mean of shape {tuple(mean.shape)}")
         if self.loss_kind == "nll":
             return gaussian_nll(mean, logvar, target)
-        frob = self.frobenius_loss(mean, target, obs, next_obs)
+        frob = self.frobenius_loss(mean, target, obs, next_obs, scale)
         if self.loss_kind == "frobenius":
             return frob + gaussian_nll(mean.detach(), logvar, target)
         return gaussian_nll(mean, logvar, target) + self.frobenius_weight * frob

@@ -10,9 +10,10 @@ Per member (``gem2`` as a ``--model``), with ``x = GemHead.inputs(obs, act)`` = 
                                                   ``GemHead.velocity_slots``: delta velocities and deltas
                                                   of the ``other`` entries
 
-``x`` is normalised by the model's input normaliser, and alpha_hat enters the velocity network standardised
-by the mean/std ``(mu, sigma)`` of the true coefficients of the training set (``fit_target_normaliser``, called
-by ``ModelTrainer``; identity until then). The gradient flows through alpha_hat into the coefficient network:
+``x`` is normalised by the model's input normaliser. Both networks predict standardised targets (the model's
+target normaliser, fitted by ``ModelTrainer`` on the true targets of the training set; identity until then),
+so alpha_hat enters the velocity network as ``(alpha_hat - mu) / sigma``, standardised by the mean/std of the
+true coefficients. The gradient flows through alpha_hat into the coefficient network:
 Algorithm 1 steps both parameter sets along the gradient of the total loss L(phi, psi).
 
 The output is the full target vector in ``GemHead``'s target order (alpha_hat and dv_hat scattered into their
@@ -38,7 +39,7 @@ from torch import Tensor
 
 from envs.layout import ObsLayout
 from gem_head.head import GemHead
-from pets.ensemble import MemberEnsemble, _layer_decays, _mean_std, check_member_args, decay_loss
+from pets.ensemble import MemberEnsemble, _layer_decays, check_member_args, decay_loss
 from pets.ensemble import init_member_layers, member_mlp
 from pets.models import DETERMINISTIC_LOGVAR
 
@@ -62,10 +63,11 @@ class TwoStageGemHead(GemHead):
         return (f"TwoStageGemHead(obs_dim={self.obs_dim}, act_dim={self.act_dim}, input_dim={self.input_dim}, "
                 f"target_dim={self.target_dim}, compose={self.compose!r})")
 
-    def loss(self, mean: Tensor, logvar: Tensor, target: Tensor, obs: Tensor, next_obs: Tensor) -> Tensor:
-        """Per-member (E,) Frobenius algebraic loss + squared errors of the other slots (``frobenius_loss``);
-        ``logvar`` is ignored."""
-        return self.frobenius_loss(mean, target, obs, next_obs)
+    def loss(self, mean: Tensor, logvar: Tensor, target: Tensor, obs: Tensor, next_obs: Tensor,
+             scale: Tensor | None = None) -> Tensor:
+        """Per-member (E,) Frobenius algebraic loss + squared errors of the other slots (``frobenius_loss``, with
+        ``scale``); ``logvar`` is ignored."""
+        return self.frobenius_loss(mean, target, obs, next_obs, scale)
 
 
 class TwoStageGemEnsemble(MemberEnsemble):
@@ -77,9 +79,6 @@ class TwoStageGemEnsemble(MemberEnsemble):
         exactly ``range(out_dim)``.
       ensemble_size, hidden_size, num_layers, num_elites: as for the Gaussian ensemble (each stage gets
         ``num_layers`` hidden layers of ``hidden_size``).
-
-    Buffers (besides the normaliser and elites): ``coef_mean``, ``coef_std``: statistics of the true group
-    targets, used to standardise alpha_hat before the velocity network.
     """
 
     deterministic = True
@@ -108,21 +107,6 @@ class TwoStageGemEnsemble(MemberEnsemble):
         order = torch.empty(out_dim, dtype=torch.long)
         order[torch.tensor(group_slots + velocity_slots)] = torch.arange(out_dim)
         self.register_buffer("_order", order, persistent=False)
-        self.register_buffer("coef_mean", torch.zeros(self.num_coef))
-        self.register_buffer("coef_std", torch.ones(self.num_coef))
-
-    # ------------------------------------------------------------------ normalisers
-    @torch.no_grad()
-    def fit_target_normaliser(self, y: Tensor) -> None:
-        """Set ``coef_mean`` / ``coef_std`` from the true targets ``y`` (N, out_dim) (group slots; std < 1e-5 -> 1)."""
-        if y.dim() != 2 or y.shape[1] != self.out_dim or y.shape[0] < 1:
-            raise ValueError(f"fit_target_normaliser expects targets of shape (N >= 1, out_dim={self.out_dim}), "
-                             f"got {tuple(y.shape)}")
-        if not torch.isfinite(y).all():
-            raise ValueError("fit_target_normaliser got non-finite targets (nan or inf)")
-        mean, std = _mean_std(y[:, list(self.group_slots)])
-        self.coef_mean.copy_(mean.to(self.coef_mean))
-        self.coef_std.copy_(std.to(self.coef_std))
 
     # ------------------------------------------------------------------ the two stages
     def member_parameters(self) -> list[Tensor]:
@@ -130,15 +114,15 @@ class TwoStageGemEnsemble(MemberEnsemble):
         return [*self.coef_weights, *self.coef_biases, *self.vel_weights, *self.vel_biases]
 
     def coefficient_net(self, h: Tensor, idx: Tensor | None) -> Tensor:
-        """alpha_hat (M, B, num_coef) from normalised inputs ``h`` ((B, in) shared or (M, B, in))."""
+        """Standardised alpha_hat (M, B, num_coef) from normalised inputs ``h`` ((B, in) shared or (M, B, in))."""
         return member_mlp(h, self.coef_weights, self.coef_biases, idx)
 
     def velocity_net(self, h: Tensor, alpha: Tensor, idx: Tensor | None) -> Tensor:
-        """dv_hat (M, B, len(velocity_slots)) from normalised inputs ``h`` and raw coefficients ``alpha`` (M, B, .)."""
+        """Standardised dv_hat (M, B, len(velocity_slots)) from normalised inputs ``h`` and standardised
+        coefficients ``alpha`` (M, B, .)."""
         if h.dim() == 2:
             h = h.expand(alpha.shape[0], *h.shape)
-        z = torch.cat([h, (alpha - self.coef_mean) / self.coef_std], dim=-1)
-        return member_mlp(z, self.vel_weights, self.vel_biases, idx)
+        return member_mlp(torch.cat([h, alpha], dim=-1), self.vel_weights, self.vel_biases, idx)
 
     def assemble(self, alpha: Tensor, dv: Tensor) -> Tensor:
         """The target vector (..., out_dim) in GemHead order: alpha in ``group_slots``, dv in ``velocity_slots``."""
@@ -150,7 +134,7 @@ class TwoStageGemEnsemble(MemberEnsemble):
         idx, _ = self._check_inputs(x, members)
         h = self.normalise(x)
         alpha = self.coefficient_net(h, idx)
-        mean = self.assemble(alpha, self.velocity_net(h, alpha, idx))
+        mean = self.denormalise_target(self.assemble(alpha, self.velocity_net(h, alpha, idx)))
         return mean, torch.full_like(mean, DETERMINISTIC_LOGVAR)
 
     # ------------------------------------------------------------------ regularisers

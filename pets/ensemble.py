@@ -106,8 +106,9 @@ class MemberEnsemble(nn.Module):
     ``weight_decay_loss`` and ``logvar_bound_penalty``, and set ``deterministic`` (True: the
     log-variance is a constant that makes the sampling noise exactly zero, see ``pets.models``).
 
-    Buffers: ``input_mean``, ``input_std`` (normaliser) and ``elites`` (long indices of the elite
-    members, all members until a trainer sets them).
+    Buffers: ``input_mean``, ``input_std`` (input normaliser), ``target_mean``, ``target_std`` (target
+    normaliser: the networks predict standardised targets, ``forward`` returns them in target units) and
+    ``elites`` (long indices of the elite members, all members until a trainer sets them).
     """
 
     #: True for models without a predictive variance (``pets.models``); the Gaussian ensemble has one.
@@ -127,6 +128,8 @@ class MemberEnsemble(nn.Module):
         self.num_elites = num_elites
         self.register_buffer("input_mean", torch.zeros(in_dim))
         self.register_buffer("input_std", torch.ones(in_dim))
+        self.register_buffer("target_mean", torch.zeros(out_dim))
+        self.register_buffer("target_std", torch.ones(out_dim))
         self.register_buffer("elites", torch.arange(ensemble_size, dtype=torch.long))
 
     # ------------------------------------------------------------------ normaliser
@@ -138,13 +141,29 @@ class MemberEnsemble(nn.Module):
                              f"got {tuple(x.shape)}")
         if not torch.isfinite(x).all():
             raise ValueError("fit_normaliser got non-finite inputs (nan or inf)")
-        mean, std = _mean_std(x)
+        mean, std = column_mean_std(x)
         self.input_mean.copy_(mean.to(self.input_mean))
         self.input_std.copy_(std.to(self.input_std))
 
     def normalise(self, x: Tensor) -> Tensor:
         """``(x - input_mean) / input_std`` (broadcast over leading dims)."""
         return (x - self.input_mean) / self.input_std
+
+    @torch.no_grad()
+    def fit_target_normaliser(self, y: Tensor) -> None:
+        """Set the target mean/std from training targets ``y`` of shape (N, out_dim); a std < 1e-5 becomes 1."""
+        if y.dim() != 2 or y.shape[1] != self.out_dim or y.shape[0] < 1:
+            raise ValueError(f"fit_target_normaliser expects targets of shape (N >= 1, out_dim={self.out_dim}), "
+                             f"got {tuple(y.shape)}")
+        if not torch.isfinite(y).all():
+            raise ValueError("fit_target_normaliser got non-finite targets (nan or inf)")
+        mean, std = column_mean_std(y)
+        self.target_mean.copy_(mean.to(self.target_mean))
+        self.target_std.copy_(std.to(self.target_std))
+
+    def denormalise_target(self, z: Tensor) -> Tensor:
+        """``target_mean + target_std * z``: standardised network outputs in target units."""
+        return torch.addcmul(self.target_mean, z, self.target_std)
 
     # ------------------------------------------------------------------ elites
     def set_elites(self, elites: Tensor) -> None:
@@ -157,6 +176,9 @@ class MemberEnsemble(nn.Module):
         self.elites = elites.to(self.input_mean.device)
 
     def _load_from_state_dict(self, state_dict: dict[str, Any], prefix: str, *args: Any, **kwargs: Any) -> None:
+        if prefix + "input_mean" in state_dict and prefix + "target_mean" not in state_dict:
+            raise ValueError("this checkpoint was written before models standardised their targets (gem-pets < 0.2): "
+                             "its networks predict other units; train the model again")
         # The number of elites may differ from the freshly built default: adopt the stored shape.
         key = prefix + "elites"
         if key in state_dict and state_dict[key].shape != self.elites.shape:
@@ -188,7 +210,7 @@ class MemberEnsemble(nn.Module):
         return idx, m
 
 
-def _mean_std(x: Tensor) -> tuple[Tensor, Tensor]:
+def column_mean_std(x: Tensor) -> tuple[Tensor, Tensor]:
     """Column mean and std (float64, population std) of ``x`` (N, D); a std < 1e-5 becomes 1."""
     x64 = x.detach().to(torch.float64)
     mean = x64.mean(dim=0)
@@ -208,11 +230,10 @@ class GaussianEnsemble(MemberEnsemble):
     """``ensemble_size`` independent Gaussian MLPs ``x -> (mean, logvar)`` evaluated in one batched pass.
 
     Architecture per member: ``num_layers`` hidden layers of ``hidden_size`` SiLU units, then a
-    linear output of ``2 * out_dim`` (mean and raw log-variance). The log-variance is soft-bounded:
-    ``lv = max_lv - softplus(max_lv - lv)``; ``lv = min_lv + softplus(lv - min_lv)``.
-
-    Buffers: ``input_mean``, ``input_std`` (normaliser) and ``elites`` (long indices of the elite
-    members, all members until a trainer sets them).
+    linear output of ``2 * out_dim`` (mean and raw log-variance of the standardised target). The
+    log-variance is soft-bounded in standardised units: ``lv = max_lv - softplus(max_lv - lv)``;
+    ``lv = min_lv + softplus(lv - min_lv)``; ``forward`` returns mean and log-variance in target units
+    (``target_mean + target_std * mean``, ``lv + 2 log target_std``).
     """
 
     def __init__(self, in_dim: int, out_dim: int, ensemble_size: int = 7, hidden_size: int = 200,
@@ -255,10 +276,10 @@ class GaussianEnsemble(MemberEnsemble):
         idx, _ = self._check_inputs(x, members)
         h = member_mlp(self.normalise(x), self.weights, self.biases, idx)
         mean, logvar = h[..., : self.out_dim], h[..., self.out_dim:]
-        return mean, self.bound_logvar(logvar)
+        return self.denormalise_target(mean), self.bound_logvar(logvar) + 2.0 * self.target_std.log()
 
     def bound_logvar(self, logvar: Tensor) -> Tensor:
-        """Soft bounds: lv = max - softplus(max - lv); lv = min + softplus(lv - min)."""
+        """Soft bounds on the standardised log-variance: lv = max - softplus(max - lv); lv = min + softplus(lv - min)."""
         logvar = self.max_logvar - F.softplus(self.max_logvar - logvar)
         return self.min_logvar + F.softplus(logvar - self.min_logvar)
 

@@ -22,7 +22,7 @@ Step-wise error ``e_k`` (:func:`step_errors`): Euclidean in observation space wi
 on the groups: ``SO2_angle`` differences wrapped to (-pi, pi], ``SO3_quat`` compared up to sign
 (``min(|q - q'|, |q + q'|)``), everything else plain. It is split into a ``position`` part (all group
 coordinates of the layout), a ``velocity`` part (``layout.velocities``) and an ``other`` part
-(``layout.other``); ``total^2 = position^2 + velocity^2 + other^2``.
+(``layout.other`` and ``layout.derived``); ``total^2 = position^2 + velocity^2 + other^2``.
 
 Per horizon h: ``mean_step_error`` = mean over starts and over k = 1..h of ``e_k`` (the paper's average
 step-wise error), ``final_step_error`` = mean over starts of ``e_h``; ``position_error``,
@@ -68,7 +68,7 @@ def squared_errors(pred: "Tensor", true: "Tensor", layout: "ObsLayout") -> dict[
 
     position = sum over groups: Rn and SO2_cossin ``|x - x'|^2``, SO2_angle ``wrap(x - x')^2``,
     SO3_quat ``min(|q - q'|^2, |q + q'|^2)``; velocity = ``|v - v'|^2`` on ``layout.velocities``;
-    other = ``|o - o'|^2`` on ``layout.other``.
+    other = ``|o - o'|^2`` on ``layout.other`` and ``layout.derived``.
     """
     import torch
 
@@ -101,7 +101,7 @@ def squared_errors(pred: "Tensor", true: "Tensor", layout: "ObsLayout") -> dict[
         q_true = true.index_select(-1, i).unflatten(-1, (len(quats), 4))
         minus, plus = (q - q_true).pow(2).sum(-1), (q + q_true).pow(2).sum(-1)
         position = position + torch.minimum(minus, plus).sum(-1)
-    return {"position": position, "velocity": sq(layout.velocities), "other": sq(layout.other)}
+    return {"position": position, "velocity": sq(layout.velocities), "other": sq(layout.other + layout.derived)}
 
 
 def step_errors(pred: "Tensor", true: "Tensor", layout: "ObsLayout") -> dict[str, "Tensor"]:

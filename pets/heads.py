@@ -23,9 +23,11 @@ def gaussian_nll(mean: Tensor, logvar: Tensor, target: Tensor) -> Tensor:
     return 0.5 * per.flatten(1).mean(dim=1)
 
 
-def mse_loss(mean: Tensor, target: Tensor) -> Tensor:
-    """Mean squared error, averaged over all but the first dim: mean((target - mean)^2); (E,) for (E, B, D)."""
-    return (target - mean).pow(2).flatten(1).mean(dim=1)
+def mse_loss(mean: Tensor, target: Tensor, scale: Tensor | None = None) -> Tensor:
+    """Mean squared error, averaged over all but the first dim: mean(((target - mean) / scale)^2); (E,) for
+    (E, B, D); ``scale`` (D,) per-dimension, None for 1."""
+    err = target - mean if scale is None else (target - mean) / scale
+    return err.pow(2).flatten(1).mean(dim=1)
 
 
 class DynamicsHead:
@@ -57,28 +59,47 @@ class DynamicsHead:
         """Next observation from a (predicted or sampled) target, shape (..., obs_dim)."""
         raise NotImplementedError
 
-    def loss(self, mean: Tensor, logvar: Tensor, target: Tensor, obs: Tensor, next_obs: Tensor) -> Tensor:
-        """Per-member training loss, shape (E,), for (E, B, .) batches. Default: Gaussian NLL."""
+    def loss(self, mean: Tensor, logvar: Tensor, target: Tensor, obs: Tensor, next_obs: Tensor,
+             scale: Tensor | None = None) -> Tensor:
+        """Per-member training loss, shape (E,), for (E, B, .) batches. Default: Gaussian NLL.
+
+        ``scale`` (target_dim,): the model's target std (the trainer passes it). Squared-error losses divide
+        each slot's error by it, so that every slot weighs the same; the NLL does not need it (its gradients
+        are the same in standardised and in target units).
+        """
         return gaussian_nll(mean, logvar, target)
 
 
 class DeltaHead(DynamicsHead):
-    """The PETS baseline: predict next_obs - obs; position-invariant coordinates are not inputs."""
+    """The PETS baseline: predict next_obs - obs; position-invariant coordinates are not inputs.
+
+    Derived entries of the layout (``ObsLayout.derived``) are neither inputs nor targets: ``next_obs``
+    carries them over from ``obs``.
+    """
 
     name = "delta"
 
     def __init__(self, layout: ObsLayout, act_dim: int) -> None:
         super().__init__(layout, act_dim)
         self._keep = torch.tensor(layout.model_indices, dtype=torch.long)
+        self._predicted = None if not layout.derived else torch.tensor(layout.predicted_indices, dtype=torch.long)
         self.input_dim = len(layout.model_indices) + act_dim
-        self.target_dim = layout.obs_dim
+        self.target_dim = len(layout.predicted_indices)
 
     def inputs(self, obs: Tensor, act: Tensor) -> Tensor:
         keep = self._keep.to(obs.device)
         return torch.cat([obs.index_select(-1, keep), act], dim=-1)
 
     def targets(self, obs: Tensor, next_obs: Tensor) -> Tensor:
-        return next_obs - obs
+        if self._predicted is None:
+            return next_obs - obs
+        idx = self._predicted.to(obs.device)
+        return next_obs.index_select(-1, idx) - obs.index_select(-1, idx)
 
     def next_obs(self, obs: Tensor, target: Tensor) -> Tensor:
-        return obs + target
+        if self._predicted is None:
+            return obs + target
+        idx = self._predicted.to(obs.device)
+        batch = torch.broadcast_shapes(obs.shape[:-1], target.shape[:-1])
+        out = obs.expand(*batch, self.obs_dim).to(torch.promote_types(obs.dtype, target.dtype), copy=True)
+        return out.index_add_(-1, idx, target.expand(*batch, self.target_dim).to(out.dtype))

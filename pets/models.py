@@ -83,7 +83,7 @@ class DeterministicEnsemble(MemberEnsemble):
         """Mean (M, B, out_dim) of raw inputs ``x`` ((B, in_dim) shared, or (M, B, in_dim)) and the constant
         log-variance :data:`DETERMINISTIC_LOGVAR` of the same shape."""
         idx, _ = self._check_inputs(x, members)
-        mean = member_mlp(self.normalise(x), self.weights, self.biases, idx)
+        mean = self.denormalise_target(member_mlp(self.normalise(x), self.weights, self.biases, idx))
         return mean, torch.full_like(mean, DETERMINISTIC_LOGVAR)
 
     def weight_decay_loss(self) -> Tensor:
@@ -106,9 +106,11 @@ class DeterministicDeltaHead(DeltaHead):
     name = "delta-det"
     deterministic = True
 
-    def loss(self, mean: Tensor, logvar: Tensor, target: Tensor, obs: Tensor, next_obs: Tensor) -> Tensor:
-        """Per-member mean squared error (E,) of the predicted deltas; ``logvar`` is ignored."""
-        return mse_loss(mean, target)
+    def loss(self, mean: Tensor, logvar: Tensor, target: Tensor, obs: Tensor, next_obs: Tensor,
+             scale: Tensor | None = None) -> Tensor:
+        """Per-member mean squared error (E,) of the predicted deltas, each divided by ``scale``; ``logvar`` is
+        ignored."""
+        return mse_loss(mean, target, scale)
 
 
 class GroupFeatureDeltaHead(DeltaHead):

@@ -169,7 +169,7 @@ def main(argv: list[str] | None = None) -> int:
 
     row = rundir.read_metrics(out / rundir.METRICS_FILE)[0]
     print(f"{out}: {args.model} model trained on {int(row['env_steps'])} transitions, {int(row['model_epochs'])} "
-          f"epochs, train loss {row['model_train_loss']:.4g}, holdout MSE {row['model_val_loss']:.4g}")
+          f"epochs, train loss {row['model_train_loss']:.4g}, holdout error {row['model_val_loss']:.4g} (standardised; no change ~ 1)")
     return 0
 
 

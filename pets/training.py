@@ -5,10 +5,15 @@ how a batch is scored (``head.loss``, per member); the trainer itself is head-ag
 
 One epoch: every member walks through its own shuffled bootstrap resample of the training split;
 each step gathers an (E, B, .) batch from the per-member indices and does one forward/backward for
-all members. After each epoch the holdout MSE of the mean prediction is computed per member; a
-member whose holdout error improved by more than ``improvement_threshold`` (relative) gets its
+all members. After each epoch every member's holdout error is computed (:meth:`ModelTrainer.evaluate`);
+a member whose holdout error improved by more than ``improvement_threshold`` (relative) gets its
 weights snapshotted. Training stops after ``patience`` epochs without any member improving; the
 snapshot is restored and the ``num_elites`` members with the lowest holdout error become elites.
+
+The holdout error is the same for every head: the standardised one-step error of the predicted next
+observation, ``mean_d (pred_d - next_obs_d)^2 / var_d(next_obs - obs)`` over the observation entries the
+model predicts (all but the layout's ``derived`` ones), ``var_d`` taken over the training data. It is
+unitless (velocities do not drown positions) and about 1 for the "no change" predictor.
 """
 from __future__ import annotations
 
@@ -20,7 +25,7 @@ import torch
 from torch import Tensor
 from tqdm.auto import tqdm
 
-from pets.ensemble import GaussianEnsemble
+from pets.ensemble import GaussianEnsemble, column_mean_std
 from pets.heads import DynamicsHead
 
 
@@ -29,8 +34,9 @@ class TrainResult:
     """Outcome of one ``ModelTrainer.train`` call."""
 
     train_loss: float  # final epoch's mean training loss (head loss, mean over members and samples)
-    val_loss: float  # holdout MSE of the mean prediction of the selected model, mean over elites (nan: no holdout)
+    val_loss: float  # holdout error (see the module docstring) of the selected model, mean over elites (nan: no holdout)
     epochs: int  # epochs actually run
+    initial_val_loss: float = float("nan")  # the same for the weights this call started from (same members)
 
 
 def bootstrap_indices(n: int, ensemble_size: int, generator: torch.Generator) -> Tensor:
@@ -56,8 +62,7 @@ class ModelTrainer:
 
     Loss per step: ``head.loss(...).sum()`` (members summed) + ``ensemble.weight_decay_loss()``
     + ``logvar_bound_coef * (sum max_logvar - sum min_logvar)`` when the bounds are learnt.
-    Models with a ``fit_target_normaliser(y)`` method get the training targets after ``fit_normaliser(x)``
-    (the two-stage GEM normalises its predicted coefficients with them).
+    Every ``train`` call refits the model's input and target normalisers on all its data.
     The optimiser persists across ``train`` calls (one call per PETS trial).
     """
 
@@ -100,6 +105,9 @@ class ModelTrainer:
         self.improvement_threshold = improvement_threshold
         self.eval_batch_size = eval_batch_size
         self.optimizer = torch.optim.Adam(ensemble.parameters(), lr=lr)
+        self._predicted = torch.tensor(head.layout.predicted_indices, dtype=torch.long)
+        #: Per-entry std of ``next_obs - obs`` (predicted entries) that :meth:`evaluate` divides by; set by ``train``.
+        self.error_scale: Tensor | None = None
 
     # ------------------------------------------------------------------ checkpoints
     def state_dict(self) -> dict:
@@ -114,15 +122,28 @@ class ModelTrainer:
         self.optimizer.load_state_dict(copy.deepcopy(d["optimizer"]))
 
     # ------------------------------------------------------------------ evaluation
+    def fit_error_scale(self, obs: Tensor, next_obs: Tensor) -> None:
+        """Set :attr:`error_scale` from transitions: the std of ``next_obs - obs`` per predicted entry (< 1e-5 -> 1)."""
+        idx = self._predicted.to(obs.device)
+        self.error_scale = column_mean_std(next_obs.index_select(-1, idx) - obs.index_select(-1, idx))[1].to(obs)
+
     @torch.no_grad()
-    def evaluate(self, x: Tensor, y: Tensor) -> Tensor:
-        """Per-member MSE of the mean prediction on (x, y): shape (E,). ``x`` raw inputs (N, in), ``y`` (N, out)."""
+    def evaluate(self, x: Tensor, obs: Tensor, next_obs: Tensor) -> Tensor:
+        """Per-member holdout error (E,) of the mean prediction: ``mean_d (pred_d - next_obs_d)^2 / error_scale_d^2``
+        over the predicted observation entries, ``pred = head.next_obs(obs, mean)``. ``x = head.inputs(obs, act)``;
+        all (N, .). :meth:`fit_error_scale` first (``train`` does)."""
+        if self.error_scale is None:
+            raise ValueError("evaluate needs error_scale: call fit_error_scale(obs, next_obs) (or train) first")
+        idx = self._predicted.to(obs.device)
+        scale = self.error_scale.to(obs)
         total = x.new_zeros(self.ensemble.ensemble_size, dtype=torch.float64)
         for start in range(0, x.shape[0], self.eval_batch_size):
-            mean, _ = self.ensemble(x[start:start + self.eval_batch_size])
-            err = (mean - y[start:start + self.eval_batch_size]).pow(2)
+            chunk = slice(start, start + self.eval_batch_size)
+            mean, _ = self.ensemble(x[chunk])
+            pred = self.head.next_obs(obs[chunk], mean)  # (E, B, obs_dim)
+            err = ((pred - next_obs[chunk]).index_select(-1, idx) / scale).pow(2)
             total += err.sum(dim=(1, 2)).double()
-        return total / (x.shape[0] * y.shape[1])
+        return total / (x.shape[0] * idx.numel())
 
     # ------------------------------------------------------------------ training
     def _check_data(self, obs: Tensor, act: Tensor, next_obs: Tensor) -> None:
@@ -152,21 +173,21 @@ class ModelTrainer:
             raise ValueError(f"head {self.head.name!r} produced inputs {tuple(x.shape)} / targets {tuple(y.shape)}, "
                              f"expected (N, {ens.in_dim}) / (N, {ens.out_dim})")
         ens.fit_normaliser(x)
-        fit_targets = getattr(ens, "fit_target_normaliser", None)  # models that feed targets back in (gem2)
-        if fit_targets is not None:
-            fit_targets(y)
+        ens.fit_target_normaliser(y)
+        self.fit_error_scale(obs, next_obs)
 
         n = x.shape[0]
         train_idx, hold_idx = split_holdout(n, self.holdout_ratio, self.max_holdout, generator)
         train_idx, hold_idx = train_idx.to(ref.device), hold_idx.to(ref.device)
         has_holdout = hold_idx.numel() > 0
         x_tr, y_tr, o_tr, no_tr = (t.index_select(0, train_idx) for t in (x, y, obs, next_obs))
-        x_ho, y_ho = x.index_select(0, hold_idx), y.index_select(0, hold_idx)
+        x_ho, o_ho, no_ho = (t.index_select(0, hold_idx) for t in (x, obs, next_obs))
         n_tr = x_tr.shape[0]
         boot = bootstrap_indices(n_tr, ens.ensemble_size, generator).to(ref.device)  # (E, n_tr)
 
         params = ens.member_parameters()
-        best = self.evaluate(x_ho, y_ho) if has_holdout else None
+        best = self.evaluate(x_ho, o_ho, no_ho) if has_holdout else None
+        initial = best
         snapshot = [p.detach().clone() for p in params] if has_holdout else None
         since_improved = 0
         epochs = 0
@@ -181,7 +202,8 @@ class ModelTrainer:
             for start in range(0, n_tr, self.batch_size):
                 idx = epoch_idx[:, start:start + self.batch_size]  # (E, B)
                 mean, logvar = ens(x_tr[idx])
-                member_loss = self.head.loss(mean, logvar, y_tr[idx], o_tr[idx], no_tr[idx])  # (E,)
+                member_loss = self.head.loss(mean, logvar, y_tr[idx], o_tr[idx], no_tr[idx],
+                                             scale=ens.target_std)  # (E,)
                 loss = member_loss.sum() + ens.weight_decay_loss()
                 if ens.learn_logvar_bounds and self.logvar_bound_coef:
                     loss = loss + self.logvar_bound_coef * ens.logvar_bound_penalty()
@@ -197,7 +219,7 @@ class ModelTrainer:
             if not has_holdout:
                 bar.set_postfix(loss=f"{train_loss:.4g}")
                 continue
-            score = self.evaluate(x_ho, y_ho)
+            score = self.evaluate(x_ho, o_ho, no_ho)
             improved = (best - score) / best.abs().clamp_min(1e-12) > self.improvement_threshold  # (E,)
             best = torch.where(improved, score, best)
             mask = improved.to(ref.device).view(-1, 1, 1)
@@ -215,8 +237,10 @@ class ModelTrainer:
                     p.copy_(snap)
             scores = best
         else:  # no holdout: rank members on their training-split error
-            scores = self.evaluate(x_tr, y_tr)
+            scores = self.evaluate(x_tr, o_tr, no_tr)
         elites = torch.sort(torch.argsort(scores, stable=True)[: self.num_elites]).values
         ens.set_elites(elites)
-        val_loss = float(scores[elites].mean()) if has_holdout else float("nan")
-        return TrainResult(train_loss=train_loss, val_loss=val_loss, epochs=epochs)
+        if not has_holdout:
+            return TrainResult(train_loss=train_loss, val_loss=float("nan"), epochs=epochs)
+        return TrainResult(train_loss=train_loss, val_loss=float(scores[elites].mean()), epochs=epochs,
+                           initial_val_loss=float(initial[elites].mean()))

@@ -134,7 +134,7 @@ def test_layout_validation_rejects_bad_layouts():
 def test_layout_covers_every_index_once_and_matches_env(name):
     spec = envs.get(name)
     lay = spec.layout
-    seen = [i for g in lay.groups for i in g.indices] + list(lay.velocities) + list(lay.other)
+    seen = [i for g in lay.groups for i in g.indices] + [*lay.velocities, *lay.other, *lay.derived]
     assert sorted(seen) == list(range(spec.obs_dim))
     env = spec.make()
     assert env.observation_space.shape == (spec.obs_dim,)
@@ -194,7 +194,7 @@ def test_layout_entries_mean_what_they_say(name):
     nv = 2 if name == "reacher" else m.nv
     vel_truth = np.clip(qvel[:nv], -10, 10) if name in CLIPPED_VEL else qvel[:nv]
     np.testing.assert_array_equal(obs[list(lay.velocities)], vel_truth)
-    other = obs[list(lay.other)]
+    other = obs[list(lay.other + lay.derived)]
     if name == "inverteddoublependulum":
         np.testing.assert_array_equal(other, [np.clip(d.qfrc_constraint[0], -10, 10), *d.site_xpos[0][[0, 2]]])
     elif name == "reacher":

@@ -55,6 +55,14 @@ def assert_close_scaled(got: torch.Tensor, want: torch.Tensor, tol: float) -> No
     assert err <= tol, f"max scaled error {err:.3e} > {tol:.1e}"
 
 
+def assert_round_trip(head: GemHead, obs: torch.Tensor, nxt: torch.Tensor, tol: float) -> None:
+    """next_obs(obs, targets(obs, nxt)) gives nxt on the predicted entries and carries obs on the derived ones."""
+    got = head.next_obs(obs, head.targets(obs, nxt))
+    pred, derived = list(head.layout.predicted_indices), list(head.layout.derived)
+    assert_close_scaled(got[..., pred], nxt[..., pred], tol)
+    torch.testing.assert_close(got[..., derived], obs[..., derived], rtol=0, atol=0)
+
+
 def step_from(env, qpos: np.ndarray, qvel: np.ndarray, act: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(obs, next_obs) of one env step from the state (qpos, qvel)."""
     env.unwrapped.set_state(qpos, qvel)
@@ -77,11 +85,10 @@ def test_round_trip_real_transitions(name: str, compose: str) -> None:
         assert (obs[:, list(grp.indices)].norm(dim=-1) - 1).abs().max() > 1e-3
     y = head.targets(obs, nxt)
     assert y.shape == (obs.shape[0], head.target_dim) and torch.isfinite(y).all()
-    assert_close_scaled(head.next_obs(obs, y), nxt, 1e-10)  # float64 (brief: 1e-5)
+    assert_round_trip(head, obs, nxt, 1e-10)  # float64 (brief: 1e-5)
     o32, n32 = obs.float(), nxt.float()
-    rec32 = head.next_obs(o32, head.targets(o32, n32))
-    assert rec32.dtype == torch.float32
-    assert_close_scaled(rec32, nxt, 1e-4)
+    assert head.next_obs(o32, head.targets(o32, n32)).dtype == torch.float32
+    assert_round_trip(head, o32, n32, 1e-4)
     # leading dims: (E, B, .) batches give the same rows
     e_obs, e_nxt = obs[:40].reshape(4, 10, -1), nxt[:40].reshape(4, 10, -1)
     torch.testing.assert_close(head.targets(e_obs, e_nxt), y[:40].reshape(4, 10, -1), rtol=0, atol=0)
@@ -187,12 +194,11 @@ def test_quaternion_sign_convention_ant(compose: str) -> None:
         o, n = torch.tensor(obs)[None], torch.tensor(nxt)[None]
         y = head.targets(o, n)
         results.append((o, n, y))
-        assert_close_scaled(head.next_obs(o, y), n, 1e-10)
+        assert_round_trip(head, o, n, 1e-10)
     (o1, n1, y1), (o2, n2, y2) = results
     torch.testing.assert_close(n2[0, 3:7], -n1[0, 3:7], rtol=0, atol=1e-9)  # same physics, opposite sign
-    # alpha does not depend on the sign (slots 0..27: positions, alpha, hinges, velocities; the contact forces
-    # in the obs after set_state are stale MuJoCo data from the previous step, so they differ between the runs)
-    torch.testing.assert_close(y2[:, :28], y1[:, :28], rtol=0, atol=1e-9)
+    # the targets (positions, alpha, hinges, velocities, main-body x) do not depend on the sign
+    torch.testing.assert_close(y2, y1, rtol=0, atol=1e-9)
     # a prediction made from the -q observation stays in the -q convention
     assert_close_scaled(head.next_obs(o2, y1)[:, :29], n2[:, :29], 1e-8)
     env.close()
@@ -269,11 +275,13 @@ def test_invariant_coordinates_never_enter_inputs(name: str) -> None:
 
 
 def test_input_encoding_ant() -> None:
-    """Ant inputs: z, velocities, forces pass through; hinges as cos/sin; torso as its 9 rotation entries."""
+    """Ant inputs: z and velocities pass through; hinges as cos/sin; torso as its 9 rotation entries; the
+    contact forces (derived) are not inputs."""
     obs, act, _ = rollout("ant")
     head = head_of("ant")
     x = head.inputs(obs, act)
-    assert x.shape == (obs.shape[0], 1 + 14 + 78 + 2 * 8 + 9 + 8) == (obs.shape[0], head.input_dim)
+    assert x.shape == (obs.shape[0], 1 + 14 + 2 * 8 + 9 + 8) == (obs.shape[0], head.input_dim)
+    assert not any(f"obs[{i}]" in head.input_names for i in envs.get("ant").layout.derived)
     names = head.input_names
     np.testing.assert_allclose(x[:, names.index("obs[2]")], obs[:, 2])
     np.testing.assert_allclose(x[:, names.index("cos obs[7]")], torch.cos(obs[:, 7]))
@@ -459,11 +467,11 @@ def test_bad_arguments_raise_value_error() -> None:
         head.inputs(obs, torch.zeros(3, 7))
     with pytest.raises(ValueError, match="next_obs must have shape"):
         head.targets(obs, obs[:, :10])
-    with pytest.raises(ValueError, match=r"target must have shape \(\.\.\., 107\)"):
+    with pytest.raises(ValueError, match=r"target must have shape \(\.\.\., 29\)"):
         head.next_obs(obs, torch.zeros(3, 108))
     with pytest.raises(ValueError, match="floating-point"):
-        head.next_obs(obs.long(), torch.zeros(3, 107))
+        head.next_obs(obs.long(), torch.zeros(3, 29))
     with pytest.raises(ValueError, match=r"\(E, B, \.\)"):
-        head.loss(torch.zeros(107), torch.zeros(107), torch.zeros(107), obs[0], obs[0])
+        head.loss(torch.zeros(29), torch.zeros(29), torch.zeros(29), obs[0], obs[0])
     with pytest.raises(ValueError, match="logvar must have shape"):
-        head.loss(torch.zeros(2, 3, 107), torch.zeros(2, 3, 106), torch.zeros(2, 3, 107), obs, obs)
+        head.loss(torch.zeros(2, 3, 29), torch.zeros(2, 3, 28), torch.zeros(2, 3, 29), obs, obs)

@@ -80,12 +80,14 @@ def test_every_model_builds_trains_and_plans(env, head_name):
     assert cfg.planner.propagation == ("expectation" if head_name in DETERMINISTIC_HEADS else "tsinf")
     obs, act, next_obs = tensors(env)
     trainer = builder.make_trainer(cfg, ens, head)
-    x, y = head.inputs(obs, act), head.targets(obs, next_obs)
-    before = trainer.evaluate(x, y)  # (E,) MSE of the untrained members
+    x = head.inputs(obs, act)
+    trainer.fit_error_scale(obs, next_obs)
+    before = trainer.evaluate(x, obs, next_obs)  # (E,) holdout criterion of the untrained members
     result = trainer.train(obs, act, next_obs, torch.Generator().manual_seed(1))
     assert math.isfinite(result.train_loss) and math.isfinite(result.val_loss) and result.epochs >= 1
+    assert result.val_loss < result.initial_val_loss  # the selected members are trained ones
     assert ens.elites.numel() == 2
-    assert float(trainer.evaluate(x, y).mean()) < float(before.mean())  # training moved towards the data
+    assert float(trainer.evaluate(x, obs, next_obs).mean()) < float(before.mean())  # training moved towards the data
     for propagation in ("tsinf", "ts1", "expectation"):
         evaluator = TrajectoryEvaluator(ens, head, spec.reward, spec.terminated, particles=4, propagation=propagation)
         actions = torch.rand(6, 5, spec.act_dim, generator=torch.Generator().manual_seed(2)) * 2 - 1
@@ -153,11 +155,12 @@ def test_delta_det_mse_training_learns_a_known_function():
     torch.manual_seed(0)
     ens = DeterministicEnsemble(head.input_dim, head.target_dim, ensemble_size=2, hidden_size=32, num_layers=2)
     trainer = ModelTrainer(ens, head, lr=3e-3, batch_size=64, max_epochs=30, patience=30, holdout_ratio=0.0)
-    x, y = head.inputs(obs, act), head.targets(obs, next_obs)
+    x = head.inputs(obs, act)
     ens.fit_normaliser(x)
-    before = trainer.evaluate(x, y)
+    trainer.fit_error_scale(obs, next_obs)
+    before = trainer.evaluate(x, obs, next_obs)
     trainer.train(obs, act, next_obs, torch.Generator().manual_seed(1))
-    after = trainer.evaluate(x, y)
+    after = trainer.evaluate(x, obs, next_obs)
     assert (after < 0.02 * before).all(), (before, after)
     with torch.no_grad():
         pred = head.next_obs(obs[:5], ens(x[:5])[0].mean(0))
@@ -179,9 +182,9 @@ def test_gem2_velocity_network_receives_the_predicted_coefficients():
     vs, gs = list(head.velocity_slots), list(head.group_slots)
     with torch.no_grad():
         before = ens(head.inputs(obs[:8], act[:8]))[0]
-        ens.coef_biases[-1].add_(0.3)
+        ens.coef_biases[-1].add_(0.3)  # standardised units
         after = ens(head.inputs(obs[:8], act[:8]))[0]
-    torch.testing.assert_close(after[..., gs], before[..., gs] + 0.3)
+    torch.testing.assert_close(after[..., gs], before[..., gs] + 0.3 * ens.target_std[gs])
     assert ((after[..., vs] - before[..., vs]).abs() > 0).any(-1).all()
     # Algorithm 1 steps both networks along the total loss: the velocity loss alone reaches the coefficient net
     ens.zero_grad()
@@ -213,8 +216,10 @@ def test_gem2_output_is_gemhead_target_order(env):
     ens.velocity_net = lambda h, alpha, idx: true[:, vs].expand(m, -1, -1)
     mean, logvar = ens(head.inputs(obs, act))
     assert torch.equal(mean, true.expand(m, -1, -1)) and (logvar == DETERMINISTIC_LOGVAR).all()
-    # exact up to float64 rounding (obs + (next - obs), exp(log(q0^* q1)) composed with q0, ...)
-    torch.testing.assert_close(head.next_obs(obs, mean[1]), next_obs, rtol=0, atol=1e-12)
+    # exact up to float64 rounding (obs + (next - obs), exp(log(q0^* q1)) composed with q0, ...); derived carried
+    pred, derived = list(layout.predicted_indices), list(layout.derived)
+    torch.testing.assert_close(head.next_obs(obs, mean[1])[:, pred], next_obs[:, pred], rtol=0, atol=1e-12)
+    assert torch.equal(head.next_obs(obs, mean[1])[:, derived], obs[:, derived])
 
 
 def _so2(theta: float) -> np.ndarray:
@@ -269,13 +274,15 @@ def test_gem2_loss_equals_the_hand_computed_frobenius_plus_velocity_mse_so3(comp
     torch.testing.assert_close(got, torch.tensor([np.mean(per)], dtype=torch.float64), rtol=1e-10, atol=0)
 
 
-def test_gem2_state_dict_round_trip_keeps_the_coefficient_normaliser():
+def test_gem2_state_dict_round_trip_keeps_the_target_normaliser():
     cfg, spec, head, ens = build("reacher", "gem2")
     obs, act, next_obs = tensors("reacher")
     builder.make_trainer(cfg, ens, head).train(obs, act, next_obs, torch.Generator().manual_seed(0))
-    y = head.targets(obs, next_obs)[:, list(head.group_slots)]
-    torch.testing.assert_close(ens.coef_mean, y.double().mean(0).float())  # set by ModelTrainer
-    assert not torch.equal(ens.coef_std, torch.ones_like(ens.coef_std))
+    y = head.targets(obs, next_obs)
+    torch.testing.assert_close(ens.target_mean, y.double().mean(0).float())  # set by ModelTrainer
+    std = y.double().std(0, correction=0)
+    assert (std < 1e-5).any()  # the target position never moves within an episode: its std is taken as 1
+    torch.testing.assert_close(ens.target_std, torch.where(std < 1e-5, 1.0, std).float())
     _, _, _, fresh = build("reacher", "gem2", seed=9)
     fresh.load_state_dict(ens.state_dict())
     x = head.inputs(obs, act)
@@ -294,7 +301,7 @@ def test_groupfeat_inputs_are_gem_inputs_and_targets_are_delta_targets(env):
                         DeltaHead(spec.layout, spec.act_dim))
     assert head.input_dim == gem.input_dim and head.input_names == gem.input_names
     assert torch.equal(head.inputs(obs, act), gem.inputs(obs, act))
-    assert head.target_dim == delta.target_dim == spec.obs_dim
+    assert head.target_dim == delta.target_dim == len(spec.layout.predicted_indices)
     assert torch.equal(head.targets(obs, next_obs), delta.targets(obs, next_obs))
     step = delta.targets(obs, next_obs)
     assert torch.equal(head.next_obs(obs, step), delta.next_obs(obs, step))
