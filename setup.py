@@ -2,7 +2,7 @@ from setuptools import find_packages, setup
 
 setup(
     name="gem-pets",
-    version="0.1.0",
+    version="0.2.0",
     description="PETS model-based RL with a swappable dynamics head: delta-state or GEM (Group Enhanced Model)",
     packages=find_packages(include=["pets", "pets.*", "gem_head", "gem_head.*", "envs", "envs.*"]),
     py_modules=["run_pets"],

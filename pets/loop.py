@@ -150,6 +150,7 @@ class PETSRun:
         lt = self.last_train
         row = {"trial": trial, "env_steps": self.env_steps, "episode_reward": total_reward,
                "episode_length": length, "model_train_loss": lt.train_loss, "model_val_loss": lt.val_loss,
+               "model_val_loss_initial": lt.initial_val_loss,
                "model_epochs": lt.epochs, "plan_seconds_per_step": 0.0 if random_policy else plan_time / length,
                "wall_time_s": round(self.wall_time_s, 3)}
         self.rows.append(row)

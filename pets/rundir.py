@@ -20,8 +20,10 @@ METRICS_FILE = "metrics.csv"
 CHECKPOINT_FILE = "checkpoint.pt"
 PLOT_FILE = "rewards.png"
 
+#: model_val_loss: the trainer's holdout error of the selected model after the trial's training;
+#: model_val_loss_initial: the same for the weights that training started from (a trained model has less).
 METRIC_COLUMNS = ["trial", "env_steps", "episode_reward", "episode_length", "model_train_loss",
-                  "model_val_loss", "model_epochs", "plan_seconds_per_step", "wall_time_s"]
+                  "model_val_loss", "model_val_loss_initial", "model_epochs", "plan_seconds_per_step", "wall_time_s"]
 
 
 def write_config(run_dir: Path, cfg: DictConfig) -> None:

@@ -15,7 +15,7 @@ The run directory has the format of ``run_pets.py`` (:mod:`pets.rundir`), so
 - ``checkpoint.pt``: ``ensemble`` and ``trainer`` (optimiser) state, ``trials_done`` = 0,
   ``env_steps`` = 0, ``wall_time_s``, ``rows``, ``last_train`` (the ``TrainResult``) and ``offline``
   (data file, episodes, transitions, the data set's policy and seed);
-- ``metrics.csv``: one row with ``model_train_loss``, ``model_val_loss``, ``model_epochs``,
+- ``metrics.csv``: one row with ``model_train_loss``, ``model_val_loss``, ``model_val_loss_initial``, ``model_epochs``,
   ``wall_time_s`` and ``env_steps`` (= transitions trained on); NaN in the other columns.
 
 Training data: every real transition of the file (``lengths`` respected, padding never used). The
@@ -104,7 +104,8 @@ def train_offline(data: str | Path | Mapping[str, np.ndarray], head_name: str, o
 
     nan = float("nan")
     row = {"trial": nan, "env_steps": int(obs.shape[0]), "episode_reward": nan, "episode_length": nan,
-           "model_train_loss": result.train_loss, "model_val_loss": result.val_loss, "model_epochs": result.epochs,
+           "model_train_loss": result.train_loss, "model_val_loss": result.val_loss,
+           "model_val_loss_initial": result.initial_val_loss, "model_epochs": result.epochs,
            "plan_seconds_per_step": nan, "wall_time_s": round(wall, 3)}
     meta = {"data": data_label, "episodes": int(len(arrays["lengths"])), "transitions": int(obs.shape[0]),
             "data_policy": str(np.asarray(arrays["policy"])[()]) if "policy" in arrays else None,
