@@ -8,6 +8,7 @@ MODEL (``pets.config.HEADS``): delta, gem (probabilistic ensembles, PETS), delta
 deterministic baseline and two-stage GEM, member predictions averaged) or delta-groupfeat (delta with GEM's
 input features); ``pets/models.py`` describes each.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -34,8 +35,10 @@ class _OneLineParser(argparse.ArgumentParser):
 def build_parser() -> argparse.ArgumentParser:
     from pets.config import HEADS, PRESETS
 
-    p = _OneLineParser(description="PETS model-based RL with a swappable dynamics model (delta, GEM and variants).",
-                       epilog="Any config key can be overridden as key=value, e.g. planner.population=200.")
+    p = _OneLineParser(
+        description="PETS model-based RL with a swappable dynamics model (delta, GEM and variants).",
+        epilog="Any config key can be overridden as key=value, e.g. planner.population=200.",
+    )
     p.add_argument("--model", choices=HEADS, help="dynamics model (default: delta); see pets/models.py")
     p.add_argument("--env", help="environment: one of the catalogue names or a gymnasium id")
     p.add_argument("--trials", type=int, help="number of trials (episodes)")
@@ -95,8 +98,10 @@ def main(argv: list[str] | None = None) -> int:
         return 130
     if rows:
         last = rows[-1]
-        print(f"done: {len(rows)} trials, {int(last['env_steps'])} env steps, "
-              f"last episode reward {last['episode_reward']:.2f}; results in {run_dir}")
+        print(
+            f"done: {len(rows)} trials, {int(last['env_steps'])} env steps, "
+            f"last episode reward {last['episode_reward']:.2f}; results in {run_dir}"
+        )
     return 0
 
 

@@ -19,7 +19,8 @@ setup(
     ],
     extras_require={
         # Tests: property-based tests (hypothesis) and scipy as an independent rotation reference.
-        "dev": ["pytest>=7", "hypothesis>=6", "scipy>=1.10"],
+        # ruff pinned: .ci/run checks lint and format, and the format can change between releases.
+        "dev": ["pytest>=7", "hypothesis>=6", "scipy>=1.10", "ruff==0.17.6"],
     },
     entry_points={"console_scripts": ["run-pets=run_pets:main"]},
 )

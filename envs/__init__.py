@@ -7,10 +7,11 @@
 
 Measured agreement with the simulator: docs/envs.md.
 """
+
 from __future__ import annotations
 
 import re
-from functools import lru_cache
+from functools import cache
 from typing import Any
 
 from envs.catalogue import GYM_IDS, build
@@ -40,7 +41,7 @@ def canonical_name(name: str) -> str:
     return key
 
 
-@lru_cache(maxsize=None)
+@cache
 def _default(name: str) -> EnvSpec:
     return build(name, {})
 

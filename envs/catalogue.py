@@ -26,10 +26,12 @@ Index maps (obs_dim; "vel" = MuJoCo qvel entries, clipped to +-10 where noted):
   | derived: 47-176 cinert, 177-254 cvel, 255-271 qfrc_actuator, 272-349 cfrc_ext[1:] | 350 appended
   mass-centre x (gymnasium's ``mass_center``, what the forward reward differences).
 """
+
 from __future__ import annotations
 
+from collections.abc import Callable
 from functools import partial
-from typing import Any, Callable
+from typing import Any
 
 import gymnasium
 import numpy as np
@@ -47,9 +49,25 @@ PLANAR_JOINTS = {
     "halfcheetah": ("bthigh", "bshin", "bfoot", "fthigh", "fshin", "ffoot"),
 }
 ANT_HINGES = ("hip_1", "ankle_1", "hip_2", "ankle_2", "hip_3", "ankle_3", "hip_4", "ankle_4")
-HUMANOID_HINGES = ("abdomen_z", "abdomen_y", "abdomen_x", "right_hip_x", "right_hip_z", "right_hip_y", "right_knee",
-                   "left_hip_x", "left_hip_z", "left_hip_y", "left_knee", "right_shoulder1", "right_shoulder2",
-                   "right_elbow", "left_shoulder1", "left_shoulder2", "left_elbow")
+HUMANOID_HINGES = (
+    "abdomen_z",
+    "abdomen_y",
+    "abdomen_x",
+    "right_hip_x",
+    "right_hip_z",
+    "right_hip_y",
+    "right_knee",
+    "left_hip_x",
+    "left_hip_z",
+    "left_hip_y",
+    "left_knee",
+    "right_shoulder1",
+    "right_shoulder2",
+    "right_elbow",
+    "left_shoulder1",
+    "left_shoulder2",
+    "left_elbow",
+)
 
 IDP_TIP = (9, 10)
 ANT_NQ, ANT_NV = 15, 14
@@ -68,46 +86,74 @@ def _r(a: int, b: int) -> tuple[int, ...]:
 
 
 def pendulum_layout() -> ObsLayout:
-    return ObsLayout(obs_dim=4, groups=(Group("cart", "Rn", (0,)), Group("hinge", "SO2_angle", (1,))),
-                     velocities=(2, 3))
+    return ObsLayout(
+        obs_dim=4, groups=(Group("cart", "Rn", (0,)), Group("hinge", "SO2_angle", (1,))), velocities=(2, 3)
+    )
 
 
 def double_pendulum_layout() -> ObsLayout:
-    return ObsLayout(obs_dim=11,
-                     groups=(Group("cart", "Rn", (0,)), Group("hinge", "SO2_cossin", (3, 1)),
-                             Group("hinge2", "SO2_cossin", (4, 2))),
-                     velocities=(5, 6, 7), other=(8, *IDP_TIP))
+    return ObsLayout(
+        obs_dim=11,
+        groups=(Group("cart", "Rn", (0,)), Group("hinge", "SO2_cossin", (3, 1)), Group("hinge2", "SO2_cossin", (4, 2))),
+        velocities=(5, 6, 7),
+        other=(8, *IDP_TIP),
+    )
 
 
 def reacher_layout() -> ObsLayout:
-    return ObsLayout(obs_dim=10,
-                     groups=(Group("joint0", "SO2_cossin", (0, 2)), Group("joint1", "SO2_cossin", (1, 3)),
-                             Group("target", "Rn", (4, 5))),
-                     velocities=(6, 7), other=(8, 9))
+    return ObsLayout(
+        obs_dim=10,
+        groups=(
+            Group("joint0", "SO2_cossin", (0, 2)),
+            Group("joint1", "SO2_cossin", (1, 3)),
+            Group("target", "Rn", (4, 5)),
+        ),
+        velocities=(6, 7),
+        other=(8, 9),
+    )
 
 
 def planar_layout(joints: tuple[str, ...]) -> ObsLayout:
     """Hopper/Walker2d/HalfCheetah: qpos = (rootx, rootz, rooty, joints...), then qvel."""
     nq = 3 + len(joints)
-    groups = (Group("root_xz", "Rn", (0, 1)), Group("rooty", "SO2_angle", (2,)),
-              *(Group(j, "SO2_angle", (3 + k,)) for k, j in enumerate(joints)))
+    groups = (
+        Group("root_xz", "Rn", (0, 1)),
+        Group("rooty", "SO2_angle", (2,)),
+        *(Group(j, "SO2_angle", (3 + k,)) for k, j in enumerate(joints)),
+    )
     return ObsLayout(obs_dim=2 * nq, groups=groups, velocities=_r(nq, 2 * nq), invariant=(0,))
 
 
 def ant_layout() -> ObsLayout:
-    groups = (Group("torso_pos", "Rn", (0, 1, 2)), Group("torso_quat", "SO3_quat", (3, 4, 5, 6)),
-              *(Group(j, "SO2_angle", (7 + k,)) for k, j in enumerate(ANT_HINGES)),
-              Group("main_body_x", "Rn", (ANT_XREF,)))
-    return ObsLayout(obs_dim=ANT_XREF + 1, groups=groups, velocities=_r(ANT_NQ, ANT_NQ + ANT_NV),
-                     derived=_r(*ANT_CFRC), invariant=(0, 1, ANT_XREF))
+    groups = (
+        Group("torso_pos", "Rn", (0, 1, 2)),
+        Group("torso_quat", "SO3_quat", (3, 4, 5, 6)),
+        *(Group(j, "SO2_angle", (7 + k,)) for k, j in enumerate(ANT_HINGES)),
+        Group("main_body_x", "Rn", (ANT_XREF,)),
+    )
+    return ObsLayout(
+        obs_dim=ANT_XREF + 1,
+        groups=groups,
+        velocities=_r(ANT_NQ, ANT_NQ + ANT_NV),
+        derived=_r(*ANT_CFRC),
+        invariant=(0, 1, ANT_XREF),
+    )
 
 
 def humanoid_layout() -> ObsLayout:
-    groups = (Group("torso_pos", "Rn", (0, 1, 2)), Group("torso_quat", "SO3_quat", (3, 4, 5, 6)),
-              *(Group(j, "SO2_angle", (7 + k,)) for k, j in enumerate(HUMANOID_HINGES)),
-              Group("mass_centre_x", "Rn", (HUM_COMX,)))
-    return ObsLayout(obs_dim=HUM_COMX + 1, groups=groups, velocities=_r(HUM_NQ, HUM_NQ + HUM_NV),
-                     derived=_r(HUM_CINERT[0], HUM_CFRC[1]), invariant=(0, 1, HUM_COMX))
+    groups = (
+        Group("torso_pos", "Rn", (0, 1, 2)),
+        Group("torso_quat", "SO3_quat", (3, 4, 5, 6)),
+        *(Group(j, "SO2_angle", (7 + k,)) for k, j in enumerate(HUMANOID_HINGES)),
+        Group("mass_centre_x", "Rn", (HUM_COMX,)),
+    )
+    return ObsLayout(
+        obs_dim=HUM_COMX + 1,
+        groups=groups,
+        velocities=_r(HUM_NQ, HUM_NQ + HUM_NV),
+        derived=_r(HUM_CINERT[0], HUM_CFRC[1]),
+        invariant=(0, 1, HUM_COMX),
+    )
 
 
 # --------------------------------------------------------------------------- rewards / terminations
@@ -164,7 +210,7 @@ def _z_angle_ok(p: dict, nobs: Tensor) -> Tensor:
 def _ant_healthy(p: dict, nobs: Tensor) -> Tensor:
     zlo, zhi = p["healthy_z_range"]
     z = nobs[..., 2]
-    return torch.isfinite(nobs[..., :ANT_NQ + ANT_NV]).all(-1) & (z >= zlo) & (z <= zhi)
+    return torch.isfinite(nobs[..., : ANT_NQ + ANT_NV]).all(-1) & (z >= zlo) & (z <= zhi)
 
 
 def _humanoid_healthy(p: dict, nobs: Tensor) -> Tensor:
@@ -174,7 +220,11 @@ def _humanoid_healthy(p: dict, nobs: Tensor) -> Tensor:
 
 
 HEALTHY: dict[str, Callable[[dict, Tensor], Tensor]] = {
-    "hopper": _hopper_healthy, "walker2d": _z_angle_ok, "ant": _ant_healthy, "humanoid": _humanoid_healthy}
+    "hopper": _hopper_healthy,
+    "walker2d": _z_angle_ok,
+    "ant": _ant_healthy,
+    "humanoid": _humanoid_healthy,
+}
 
 
 def _unhealthy_terminated(p: dict, obs: Tensor, act: Tensor, nobs: Tensor) -> Tensor:
@@ -193,10 +243,10 @@ def _locomotion_reward(p: dict, obs: Tensor, act: Tensor, nobs: Tensor) -> Tenso
     if p["family"] in HEALTHY:
         r = r + p["healthy_reward"] * HEALTHY[p["family"]](p, nobs).to(r.dtype)
     if p["family"] == "ant":  # the obs holds the clipped forces; cfrc_ext[0] (world) is always 0
-        r = r - p["contact_cost_weight"] * nobs[..., ANT_CFRC[0]:ANT_CFRC[1]].square().sum(-1)
+        r = r - p["contact_cost_weight"] * nobs[..., ANT_CFRC[0] : ANT_CFRC[1]].square().sum(-1)
     elif p["family"] == "humanoid":  # the obs holds the raw forces cfrc_ext[1:]; the cost is clipped
         lo, hi = p["contact_cost_range"]
-        cost = p["contact_cost_weight"] * nobs[..., HUM_CFRC[0]:HUM_CFRC[1]].square().sum(-1)
+        cost = p["contact_cost_weight"] * nobs[..., HUM_CFRC[0] : HUM_CFRC[1]].square().sum(-1)
         r = r - cost.clamp(min=float(lo), max=float(hi))
     return r
 
@@ -229,19 +279,29 @@ REWARD_ERROR = {
     "inverteddoublependulum": (
         "exact (tip from the appended site position) except that the velocity penalty 0.001 v1^2 + 0.005 v2^2 "
         "uses the unclipped qvel while the obs clips it at +-10: error = 0.001 (v1^2 - 100)_+ + 0.005 (v2^2 - 100)_+ "
-        "on the rare steps where a hinge spins faster than 10 rad/s; termination exact"),
+        "on the rare steps where a hinge spins faster than 10 rad/s; termination exact"
+    ),
     "reacher": "exact",
-    "hopper": ("exact; termination misses the healthy_state_range check on |qvel| > 100 (the obs clips qvel "
-               "at +-10), never seen in practice"),
+    "hopper": (
+        "exact; termination misses the healthy_state_range check on |qvel| > 100 (the obs clips qvel "
+        "at +-10), never seen in practice"
+    ),
     "walker2d": "exact",
     "halfcheetah": "exact",
     "ant": "exact (forward reward from the appended main-body x, contact cost from the clipped forces in the obs)",
     "humanoid": "exact (forward reward from the appended mass-centre x, contact cost from cfrc_ext in the obs)",
 }
 #: Constructor kwargs that change the observation layout: not supported.
-LAYOUT_KWARGS = frozenset({"xml_file", "exclude_current_positions_from_observation", "include_cfrc_ext_in_observation",
-                           "include_cinert_in_observation", "include_cvel_in_observation",
-                           "include_qfrc_actuator_in_observation"})
+LAYOUT_KWARGS = frozenset(
+    {
+        "xml_file",
+        "exclude_current_positions_from_observation",
+        "include_cfrc_ext_in_observation",
+        "include_cinert_in_observation",
+        "include_cvel_in_observation",
+        "include_qfrc_actuator_in_observation",
+    }
+)
 
 
 def _idp_tip_site(env: Any) -> np.ndarray:
@@ -254,6 +314,7 @@ def _ant_main_body_x(main_body: int | str, env: Any) -> np.ndarray:
 
 def _humanoid_mass_centre_x(env: Any) -> np.ndarray:
     from gymnasium.envs.mujoco.humanoid_v5 import mass_center
+
     return mass_center(env.model, env.data)[:1]
 
 
@@ -267,8 +328,10 @@ def build(name: str, overrides: dict[str, Any]) -> EnvSpec:
     unknown = sorted(set(overrides) - set(ctor))
     if unknown:
         accepted = sorted(set(ctor) - LAYOUT_KWARGS)
-        raise ValueError(f"{name}: unknown env kwargs {unknown}; accepted: {accepted} "
-                         f"(render/limit kwargs such as render_mode go to spec.make())")
+        raise ValueError(
+            f"{name}: unknown env kwargs {unknown}; accepted: {accepted} "
+            f"(render/limit kwargs such as render_mode go to spec.make())"
+        )
     env_kwargs = dict(overrides)
     if "exclude_current_positions_from_observation" in ctor:
         env_kwargs["exclude_current_positions_from_observation"] = False
@@ -282,44 +345,74 @@ def build(name: str, overrides: dict[str, Any]) -> EnvSpec:
         reward, term = _ip_reward, _ip_terminated
     elif name == "inverteddoublependulum":
         # hard-coded in InvertedDoublePendulumEnv.step/_get_rew
-        p.update(healthy_reward=float(u._healthy_reward), min_tip_height=1.0, target_height=2.0, dist_x_weight=0.01,
-                 vel_weights=(0.001, 0.005))
+        p.update(
+            healthy_reward=float(u._healthy_reward),
+            min_tip_height=1.0,
+            target_height=2.0,
+            dist_x_weight=0.01,
+            vel_weights=(0.001, 0.005),
+        )
         wrap = partial(AppendObservation, extra=_idp_tip_site, names=("tip_x", "tip_z"))
         reward, term = _idp_reward, _idp_terminated
     elif name == "reacher":
         env.reset(seed=0)
         dz = u.get_body_com("fingertip")[2] - u.get_body_com("target")[2]
-        p.update(reward_dist_weight=float(u._reward_dist_weight), reward_control_weight=float(u._reward_control_weight),
-                 fingertip_target_dz=float(dz))
+        p.update(
+            reward_dist_weight=float(u._reward_dist_weight),
+            reward_control_weight=float(u._reward_control_weight),
+            fingertip_target_dz=float(dz),
+        )
         reward, term = _reacher_reward, _never
     else:
-        p.update(forward_reward_weight=float(u._forward_reward_weight), ctrl_cost_weight=float(u._ctrl_cost_weight),
-                 x_index=0)
+        p.update(
+            forward_reward_weight=float(u._forward_reward_weight),
+            ctrl_cost_weight=float(u._ctrl_cost_weight),
+            x_index=0,
+        )
         if name != "halfcheetah":
-            p.update(healthy_reward=float(u._healthy_reward), terminate_when_unhealthy=bool(u._terminate_when_unhealthy),
-                     healthy_z_range=tuple(float(v) for v in u._healthy_z_range))
+            p.update(
+                healthy_reward=float(u._healthy_reward),
+                terminate_when_unhealthy=bool(u._terminate_when_unhealthy),
+                healthy_z_range=tuple(float(v) for v in u._healthy_z_range),
+            )
         if name in ("hopper", "walker2d"):
             p["healthy_angle_range"] = tuple(float(v) for v in u._healthy_angle_range)
         if name == "hopper":
             p["healthy_state_range"] = tuple(float(v) for v in u._healthy_state_range)
         if name == "ant":
-            p.update(contact_cost_weight=float(u._contact_cost_weight),
-                     contact_force_range=tuple(float(v) for v in u._contact_force_range), x_index=ANT_XREF)
+            p.update(
+                contact_cost_weight=float(u._contact_cost_weight),
+                contact_force_range=tuple(float(v) for v in u._contact_force_range),
+                x_index=ANT_XREF,
+            )
             wrap = partial(AppendObservation, extra=partial(_ant_main_body_x, u._main_body), names=("main_body_x",))
         if name == "humanoid":
-            p.update(contact_cost_weight=float(u._contact_cost_weight),
-                     contact_cost_range=tuple(float(v) for v in u._contact_cost_range), x_index=HUM_COMX)
+            p.update(
+                contact_cost_weight=float(u._contact_cost_weight),
+                contact_cost_range=tuple(float(v) for v in u._contact_cost_range),
+                x_index=HUM_COMX,
+            )
             wrap = partial(AppendObservation, extra=_humanoid_mass_centre_x, names=("mass_centre_x",))
         reward = _locomotion_reward
         term = _never if name == "halfcheetah" else _unhealthy_terminated
 
     p = ReadOnlyDict(p)  # what the reward functions see: read-only
-    spec = EnvSpec(name=name, gym_id=gym_id, layout=LAYOUTS[name](), act_dim=int(env.action_space.shape[0]),
-                   action_low=tuple(float(v) for v in env.action_space.low),
-                   action_high=tuple(float(v) for v in env.action_space.high), dt=float(u.dt),
-                   episode_length=int(gymnasium.spec(gym_id).max_episode_steps), params=p, env_kwargs=env_kwargs,
-                   reward_error=REWARD_ERROR[name], reward_fn=partial(reward, p), terminated_fn=partial(term, p),
-                   wrap=wrap)
+    spec = EnvSpec(
+        name=name,
+        gym_id=gym_id,
+        layout=LAYOUTS[name](),
+        act_dim=int(env.action_space.shape[0]),
+        action_low=tuple(float(v) for v in env.action_space.low),
+        action_high=tuple(float(v) for v in env.action_space.high),
+        dt=float(u.dt),
+        episode_length=int(gymnasium.spec(gym_id).max_episode_steps),
+        params=p,
+        env_kwargs=env_kwargs,
+        reward_error=REWARD_ERROR[name],
+        reward_fn=partial(reward, p),
+        terminated_fn=partial(term, p),
+        wrap=wrap,
+    )
     wrapped_dim = (wrap(env) if wrap is not None else env).observation_space.shape[0]
     env.close()
     if wrapped_dim != spec.obs_dim:

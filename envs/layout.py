@@ -5,6 +5,7 @@ the delta head uses it to drop position-invariant coordinates from the network
 inputs; the GEM head uses it to encode an observation into group elements and
 to decode predicted group elements back into an observation.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -36,7 +37,9 @@ class Group:
             raise ValueError(f"group {self.name!r}: unknown kind {self.kind!r}; accepted: {sorted(KIND_WIDTH)}")
         width = KIND_WIDTH[self.kind]
         if width is None and len(self.indices) < 1 or width is not None and len(self.indices) != width:
-            raise ValueError(f"group {self.name!r} of kind {self.kind} has {len(self.indices)} indices, expected {width or '>= 1'}")
+            raise ValueError(
+                f"group {self.name!r} of kind {self.kind} has {len(self.indices)} indices, expected {width or '>= 1'}"
+            )
 
 
 @dataclass(frozen=True)
@@ -66,8 +69,10 @@ class ObsLayout:
             dup = sorted({i for i in seen if seen.count(i) > 1})
             missing = sorted(set(range(self.obs_dim)) - set(seen))
             extra = sorted(set(seen) - set(range(self.obs_dim)))
-            raise ValueError(f"layout does not cover 0..{self.obs_dim - 1} exactly once: "
-                             f"duplicated {dup}, missing {missing}, out of range {extra}")
+            raise ValueError(
+                f"layout does not cover 0..{self.obs_dim - 1} exactly once: "
+                f"duplicated {dup}, missing {missing}, out of range {extra}"
+            )
         rn = {i for g in self.groups if g.kind == "Rn" for i in g.indices}
         if not set(self.invariant) <= rn:
             raise ValueError(f"invariant indices {sorted(set(self.invariant) - rn)} are not Rn group coordinates")

@@ -5,12 +5,14 @@ over any leading dims, float dtype and device. Their constants are read from the
 gymnasium env that ``make()`` builds (its defaults plus the overrides given to ``envs.get``),
 so they cannot drift from the simulator.
 """
+
 from __future__ import annotations
 
 import importlib
 import inspect
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Any, Callable, Mapping
+from typing import Any
 
 import gymnasium
 import numpy as np
@@ -50,8 +52,10 @@ class AppendObservation(gymnasium.ObservationWrapper):
         low, high = env.observation_space.low, env.observation_space.high
         k = len(names)
         self.observation_space = gymnasium.spaces.Box(
-            low=np.concatenate([low, np.full(k, -np.inf)]), high=np.concatenate([high, np.full(k, np.inf)]),
-            dtype=env.observation_space.dtype)
+            low=np.concatenate([low, np.full(k, -np.inf)]),
+            high=np.concatenate([high, np.full(k, np.inf)]),
+            dtype=env.observation_space.dtype,
+        )
 
     def observation(self, observation: np.ndarray) -> np.ndarray:
         extra = np.asarray(self._extra(self.env.unwrapped), dtype=observation.dtype).reshape(-1)
@@ -104,8 +108,10 @@ class EnvSpec:
         ctor = env_constructor_params(self.gym_id)
         fixed = sorted(k for k in kwargs if k in ctor and k not in HARMLESS_KWARGS)
         if fixed:
-            raise ValueError(f"{self.name}: make() does not accept {fixed}: they change the reward, termination or "
-                             f"observation; use envs.get({self.name!r}, {fixed[0]}=...) so the spec matches the env")
+            raise ValueError(
+                f"{self.name}: make() does not accept {fixed}: they change the reward, termination or "
+                f"observation; use envs.get({self.name!r}, {fixed[0]}=...) so the spec matches the env"
+            )
         env = gymnasium.make(self.gym_id, **{**self.env_kwargs, **kwargs})
         return self.wrap(env) if self.wrap is not None else env
 
@@ -121,8 +127,10 @@ class EnvSpec:
 
     def _check(self, obs: Tensor, act: Tensor, next_obs: Tensor) -> None:
         if obs.shape[-1:] != (self.obs_dim,) or next_obs.shape[-1:] != (self.obs_dim,):
-            raise ValueError(f"{self.name}: obs and next_obs must end in obs_dim={self.obs_dim}, "
-                             f"got {tuple(obs.shape)} and {tuple(next_obs.shape)}")
+            raise ValueError(
+                f"{self.name}: obs and next_obs must end in obs_dim={self.obs_dim}, "
+                f"got {tuple(obs.shape)} and {tuple(next_obs.shape)}"
+            )
         if act.shape[-1:] != (self.act_dim,):
             raise ValueError(f"{self.name}: act must end in act_dim={self.act_dim}, got {tuple(act.shape)}")
 
@@ -134,5 +142,8 @@ def env_constructor_params(gym_id: str) -> dict[str, Any]:
         module, _, attr = entry.partition(":")
         entry = getattr(importlib.import_module(module), attr)
     sig = inspect.signature(entry.__init__)
-    return {k: p.default for k, p in sig.parameters.items()
-            if k != "self" and p.kind not in (p.VAR_KEYWORD, p.VAR_POSITIONAL)}
+    return {
+        k: p.default
+        for k, p in sig.parameters.items()
+        if k != "self" and p.kind not in (p.VAR_KEYWORD, p.VAR_POSITIONAL)
+    }

@@ -2,6 +2,7 @@
 
 ``GemHead`` is re-exported lazily so that ``from gem_head import lie`` stays free of the pets/envs imports.
 """
+
 from __future__ import annotations
 
 from typing import Any

@@ -43,11 +43,11 @@ Network inputs, in this fixed order (``input_names`` lists them):
   | action ].
 Invariant coordinates never enter. For an Rn-only layout this is exactly ``DeltaHead``'s input.
 """
+
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Union
 
 import torch
 from torch import Tensor
@@ -73,7 +73,7 @@ def _quat_conj(q: Tensor) -> Tensor:
     return torch.cat([q[..., :1], -q[..., 1:]], dim=-1)
 
 
-Sel = Union[slice, Tensor]
+Sel = slice | Tensor
 
 
 def _sel(indices: list[int]) -> Sel:
@@ -112,7 +112,7 @@ class _Indices:
     sq_tgt: Sel  # target slots scored by squared error in the Frobenius loss (Rn, velocities, other)
     carry: Sel  # derived obs entries: not predicted, copied from the current observation
 
-    def to(self, device: torch.device) -> "_Indices":
+    def to(self, device: torch.device) -> _Indices:
         return _Indices(**{k: v if isinstance(v, slice) else v.to(device) for k, v in self.__dict__.items()})
 
 
@@ -132,19 +132,32 @@ class GemHead(DynamicsHead):
 
     name = "gem"
 
-    def __init__(self, layout: ObsLayout, act_dim: int, *, compose: str = "right", loss: str = "nll",
-                 frobenius_weight: float = 1.0) -> None:
+    def __init__(
+        self,
+        layout: ObsLayout,
+        act_dim: int,
+        *,
+        compose: str = "right",
+        loss: str = "nll",
+        frobenius_weight: float = 1.0,
+    ) -> None:
         if not isinstance(layout, ObsLayout):
             raise ValueError(f"GemHead needs an envs.layout.ObsLayout, got {type(layout).__name__}")
         if not isinstance(act_dim, int) or isinstance(act_dim, bool) or act_dim < 1:
             raise ValueError(f"act_dim must be a positive int, got {act_dim!r}")
         if compose not in COMPOSE_MODES:
-            raise ValueError(f"compose must be one of {COMPOSE_MODES} ('right': G' = G exp(alpha), body frame; "
-                             f"'left': G' = exp(alpha) G), got {compose!r}")
+            raise ValueError(
+                f"compose must be one of {COMPOSE_MODES} ('right': G' = G exp(alpha), body frame; "
+                f"'left': G' = exp(alpha) G), got {compose!r}"
+            )
         if loss not in LOSSES:
             raise ValueError(f"loss must be one of {LOSSES}, got {loss!r}")
-        if isinstance(frobenius_weight, bool) or not isinstance(frobenius_weight, (int, float)) \
-                or not math.isfinite(frobenius_weight) or frobenius_weight < 0:
+        if (
+            isinstance(frobenius_weight, bool)
+            or not isinstance(frobenius_weight, (int, float))
+            or not math.isfinite(frobenius_weight)
+            or frobenius_weight < 0
+        ):
             raise ValueError(f"frobenius_weight must be a finite number >= 0, got {frobenius_weight!r}")
         super().__init__(layout, act_dim)
         self.compose = compose
@@ -208,8 +221,11 @@ class GemHead(DynamicsHead):
         # Contiguous runs (obs start, target start, length) of the additive slots: next = obs + target there.
         self._segments: list[tuple[int, int, int]] = []
         for o, tt in add_pairs:
-            if self._segments and self._segments[-1][0] + self._segments[-1][2] == o \
-                    and self._segments[-1][1] + self._segments[-1][2] == tt:
+            if (
+                self._segments
+                and self._segments[-1][0] + self._segments[-1][2] == o
+                and self._segments[-1][1] + self._segments[-1][2] == tt
+            ):
                 so, st, ln = self._segments[-1]
                 self._segments[-1] = (so, st, ln + 1)
             else:
@@ -232,14 +248,25 @@ class GemHead(DynamicsHead):
         self._n_ang, self._n_cs, self._n_sq, self._n_carry = len(ang_obs), len(cs_c), len(sq_tgt), len(layout.derived)
         self._n_so2 = self._n_ang + self._n_cs
         self._cpu = _Indices(
-            pass_obs=_sel(pass_obs), ang_obs=_sel(ang_obs), ang_tgt=_sel(ang_tgt), cs_c=_sel(cs_c), cs_s=_sel(cs_s),
-            cs_tgt=_sel(cs_tgt), so2_tgt=_sel(ang_tgt + cs_tgt), q_obs=_sel(q_obs), q_tgt=_sel(q_tgt),
-            sq_tgt=_sel(sq_tgt), carry=_sel(list(layout.derived)))
+            pass_obs=_sel(pass_obs),
+            ang_obs=_sel(ang_obs),
+            ang_tgt=_sel(ang_tgt),
+            cs_c=_sel(cs_c),
+            cs_s=_sel(cs_s),
+            cs_tgt=_sel(cs_tgt),
+            so2_tgt=_sel(ang_tgt + cs_tgt),
+            q_obs=_sel(q_obs),
+            q_tgt=_sel(q_tgt),
+            sq_tgt=_sel(sq_tgt),
+            carry=_sel(list(layout.derived)),
+        )
         self._by_device: dict[torch.device, _Indices] = {torch.device("cpu"): self._cpu}
 
     def __repr__(self) -> str:
-        return (f"GemHead(obs_dim={self.obs_dim}, act_dim={self.act_dim}, input_dim={self.input_dim}, "
-                f"target_dim={self.target_dim}, compose={self.compose!r}, loss={self.loss_kind!r})")
+        return (
+            f"GemHead(obs_dim={self.obs_dim}, act_dim={self.act_dim}, input_dim={self.input_dim}, "
+            f"target_dim={self.target_dim}, compose={self.compose!r}, loss={self.loss_kind!r})"
+        )
 
     # ------------------------------------------------------------------ helpers
     def _idx(self, device: torch.device) -> _Indices:
@@ -303,7 +330,7 @@ class GemHead(DynamicsHead):
         obs, next_obs = obs.expand(*batch, self.obs_dim), next_obs.expand(*batch, self.obs_dim)
         out = obs.new_empty(*batch, self.target_dim, dtype=torch.promote_types(obs.dtype, next_obs.dtype))
         for o, t, n in self._segments:
-            torch.sub(next_obs[..., o:o + n], obs[..., o:o + n], out=out[..., t:t + n])
+            torch.sub(next_obs[..., o : o + n], obs[..., o : o + n], out=out[..., t : t + n])
         if self._n_ang:
             _put(out, ix.ang_tgt, wrap_angle(_take(out, ix.ang_tgt)))
         if self._n_cs:
@@ -326,7 +353,7 @@ class GemHead(DynamicsHead):
         obs, target = obs.expand(*batch, self.obs_dim), target.expand(*batch, self.target_dim)
         out = obs.new_empty(*batch, self.obs_dim, dtype=torch.promote_types(obs.dtype, target.dtype))
         for o, t, n in self._segments:
-            torch.add(obs[..., o:o + n], target[..., t:t + n], out=out[..., o:o + n])
+            torch.add(obs[..., o : o + n], target[..., t : t + n], out=out[..., o : o + n])
         if self._n_cs:
             theta = torch.atan2(_take(obs, ix.cs_s), _take(obs, ix.cs_c)) + _take(target, ix.cs_tgt)
             _put(out, ix.cs_c, torch.cos(theta))
@@ -342,8 +369,9 @@ class GemHead(DynamicsHead):
         return out
 
     # ------------------------------------------------------------------ losses
-    def frobenius_loss(self, mean: Tensor, target: Tensor, obs: Tensor, next_obs: Tensor,
-                       scale: Tensor | None = None) -> Tensor:
+    def frobenius_loss(
+        self, mean: Tensor, target: Tensor, obs: Tensor, next_obs: Tensor, scale: Tensor | None = None
+    ) -> Tensor:
         """The paper's algebraic loss (Algorithm 1), per member: (E,) for (E, B, .) inputs.
 
         Per sample: [ sum over SO(2)/SO(3) groups of ||exp(alpha_hat) o G_t - G_{t+1}||_F^2 (2x2 / 3x3 matrices,
@@ -353,8 +381,13 @@ class GemHead(DynamicsHead):
         With ``scale`` (target_dim,) (the model's target std) every term is in standardised units: a squared
         error is divided by its slot's scale^2, a group term by the mean scale^2 of the group's slots.
         """
-        self._check("frobenius_loss", mean=(mean, self.target_dim), target=(target, self.target_dim),
-                    obs=(obs, self.obs_dim), next_obs=(next_obs, self.obs_dim))
+        self._check(
+            "frobenius_loss",
+            mean=(mean, self.target_dim),
+            target=(target, self.target_dim),
+            obs=(obs, self.obs_dim),
+            next_obs=(next_obs, self.obs_dim),
+        )
         if mean.dim() < 2:
             raise ValueError(f"GemHead.frobenius_loss expects (E, B, .) batches, got mean of shape {tuple(mean.shape)}")
         ix = self._idx(mean.device)
@@ -379,8 +412,9 @@ class GemHead(DynamicsHead):
             per = per + sq.sum(-1)
         return (per / self.target_dim).flatten(1).mean(dim=1)
 
-    def loss(self, mean: Tensor, logvar: Tensor, target: Tensor, obs: Tensor, next_obs: Tensor,
-             scale: Tensor | None = None) -> Tensor:
+    def loss(
+        self, mean: Tensor, logvar: Tensor, target: Tensor, obs: Tensor, next_obs: Tensor, scale: Tensor | None = None
+    ) -> Tensor:
         """Per-member training loss (E,) for (E, B, .) batches, by ``self.loss_kind`` (``scale``: see
         ``frobenius_loss``; the NLL does not need it):
 
@@ -389,8 +423,14 @@ class GemHead(DynamicsHead):
           the algebraic loss only, the log-variance (which PETS samples from) by the NLL around that fixed mean;
         - ``nll+frobenius``: gaussian_nll(mean, logvar, target) + frobenius_weight * frobenius_loss(mean).
         """
-        self._check("loss", mean=(mean, self.target_dim), logvar=(logvar, self.target_dim),
-                    target=(target, self.target_dim), obs=(obs, self.obs_dim), next_obs=(next_obs, self.obs_dim))
+        self._check(
+            "loss",
+            mean=(mean, self.target_dim),
+            logvar=(logvar, self.target_dim),
+            target=(target, self.target_dim),
+            obs=(obs, self.obs_dim),
+            next_obs=(next_obs, self.obs_dim),
+        )
         if mean.dim() < 2:
             raise ValueError(f"GemHead.loss expects (E, B, .) batches, got mean of shape {tuple(mean.shape)}")
         if self.loss_kind == "nll":

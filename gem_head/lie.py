@@ -30,6 +30,7 @@ angles and at pi alike; at exactly pi the axis sign is arbitrary (both are valid
 
 Quaternions are (w, x, y, z), scalar first, as in MuJoCo observations.
 """
+
 from __future__ import annotations
 
 from collections.abc import Sequence
@@ -132,7 +133,9 @@ def _eye(n: int, like: Tensor) -> Tensor:
     return torch.eye(n, dtype=like.dtype, device=like.device)
 
 
-def _identity(n: int, batch_shape: Sequence[int], dtype: torch.dtype | None, device: torch.device | str | None) -> Tensor:
+def _identity(
+    n: int, batch_shape: Sequence[int], dtype: torch.dtype | None, device: torch.device | str | None
+) -> Tensor:
     eye = torch.eye(n, dtype=dtype if dtype is not None else torch.get_default_dtype(), device=device)
     return eye.expand(*batch_shape, n, n).clone()
 
@@ -228,8 +231,9 @@ class SO2:
         return r.transpose(-1, -2)
 
     @staticmethod
-    def identity(batch_shape: Sequence[int] = (), *, dtype: torch.dtype | None = None,
-                 device: torch.device | str | None = None) -> Tensor:
+    def identity(
+        batch_shape: Sequence[int] = (), *, dtype: torch.dtype | None = None, device: torch.device | str | None = None
+    ) -> Tensor:
         """Identity matrices of shape (*batch_shape, 2, 2)."""
         return _identity(2, batch_shape, dtype, device)
 
@@ -258,7 +262,8 @@ class SO3:
         """vee(M) = (M[2,1] - M[1,2], M[0,2] - M[2,0], M[1,0] - M[0,1]) / 2 (coefficients of the skew part)."""
         _check_mat(m, 3, "SO3.vee")
         return 0.5 * torch.stack(
-            [m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]], dim=-1)
+            [m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]], dim=-1
+        )
 
     @staticmethod
     def exp(v: Tensor) -> Tensor:
@@ -298,8 +303,9 @@ class SO3:
         return r.transpose(-1, -2)
 
     @staticmethod
-    def identity(batch_shape: Sequence[int] = (), *, dtype: torch.dtype | None = None,
-                 device: torch.device | str | None = None) -> Tensor:
+    def identity(
+        batch_shape: Sequence[int] = (), *, dtype: torch.dtype | None = None, device: torch.device | str | None = None
+    ) -> Tensor:
         """Identity matrices of shape (*batch_shape, 3, 3)."""
         return _identity(3, batch_shape, dtype, device)
 
@@ -314,7 +320,8 @@ class SO3:
     def from_quat(q: Tensor) -> Tensor:
         """Rotation matrix of the quaternion q = (w, x, y, z) (normalised first; q must be non-zero).
 
-        R = I + 2 [[-(y^2+z^2), xy - wz, xz + wy], [xy + wz, -(x^2+z^2), yz - wx], [xz - wy, yz + wx, -(x^2+y^2)]] / |q|^2.
+        R = I + 2 [[-(y^2+z^2), xy - wz, xz + wy], [xy + wz, -(x^2+z^2), yz - wx],
+                   [xz - wy, yz + wx, -(x^2+y^2)]] / |q|^2.
         """
         _check_vec(q, 4, "SO3.from_quat")
         w, x, y, z = q.unbind(-1)
@@ -323,11 +330,20 @@ class SO3:
         xy, xz, yz = s * x * y, s * x * z, s * y * z
         wx, wy, wz = s * w * x, s * w * y, s * w * z
         one = torch.ones_like(w)
-        return torch.stack([
-            one - yy - zz, xy - wz, xz + wy,
-            xy + wz, one - xx - zz, yz - wx,
-            xz - wy, yz + wx, one - xx - yy,
-        ], dim=-1).reshape(*w.shape, 3, 3)
+        return torch.stack(
+            [
+                one - yy - zz,
+                xy - wz,
+                xz + wy,
+                xy + wz,
+                one - xx - zz,
+                yz - wx,
+                xz - wy,
+                yz + wx,
+                one - xx - yy,
+            ],
+            dim=-1,
+        ).reshape(*w.shape, 3, 3)
 
     @staticmethod
     def to_quat(r: Tensor) -> Tensor:
@@ -353,12 +369,15 @@ class SO3:
         i0, i1, i2, i3 = inv.unbind(-1)
         a, b, c = r21 - r12, r02 - r20, r10 - r01  # 4 w (x, y, z)
         e, f, g = r01 + r10, r02 + r20, r12 + r21  # 4 (xy, xz, yz)
-        cand = torch.stack([
-            torch.stack([0.5 * s0, a * i0, b * i0, c * i0], dim=-1),
-            torch.stack([a * i1, 0.5 * s1, e * i1, f * i1], dim=-1),
-            torch.stack([b * i2, e * i2, 0.5 * s2, g * i2], dim=-1),
-            torch.stack([c * i3, f * i3, g * i3, 0.5 * s3], dim=-1),
-        ], dim=-2)  # (..., 4 candidates, 4 components)
+        cand = torch.stack(
+            [
+                torch.stack([0.5 * s0, a * i0, b * i0, c * i0], dim=-1),
+                torch.stack([a * i1, 0.5 * s1, e * i1, f * i1], dim=-1),
+                torch.stack([b * i2, e * i2, 0.5 * s2, g * i2], dim=-1),
+                torch.stack([c * i3, f * i3, g * i3, 0.5 * s3], dim=-1),
+            ],
+            dim=-2,
+        )  # (..., 4 candidates, 4 components)
         idx = d.argmax(dim=-1, keepdim=True)  # (..., 1)
         q = torch.gather(cand, -2, idx.unsqueeze(-1).expand(*idx.shape[:-1], 1, 4)).squeeze(-2)
         q = q / torch.linalg.vector_norm(q, dim=-1, keepdim=True)
@@ -393,7 +412,9 @@ class SO3:
 
     @staticmethod
     def _quat_log_unit(q: Tensor) -> Tensor:
-        """quat_log for a unit quaternion with w >= 0 (no checks). Taylor: atan2(n, w)/n = (1 - r^2/3 + r^4/5 - r^6/7)/w, r = n/w."""
+        """quat_log for a unit quaternion with w >= 0 (no checks).
+
+        Taylor: atan2(n, w)/n = (1 - r^2/3 + r^4/5 - r^6/7)/w, r = n/w."""
         w, xyz = q[..., 0], q[..., 1:]
         n2 = (xyz * xyz).sum(-1)
         small = n2 < 0.25 * _small_sq(q.dtype)  # theta ~ 2 n
@@ -410,12 +431,15 @@ class SO3:
         _check_vec(q, 4, "SO3.quat_mul")
         pw, px, py, pz = p.unbind(-1)
         qw, qx, qy, qz = q.unbind(-1)
-        return torch.stack([
-            pw * qw - px * qx - py * qy - pz * qz,
-            pw * qx + px * qw + py * qz - pz * qy,
-            pw * qy - px * qz + py * qw + pz * qx,
-            pw * qz + px * qy - py * qx + pz * qw,
-        ], dim=-1)
+        return torch.stack(
+            [
+                pw * qw - px * qx - py * qy - pz * qz,
+                pw * qx + px * qw + py * qz - pz * qy,
+                pw * qy - px * qz + py * qw + pz * qx,
+                pw * qz + px * qy - py * qx + pz * qw,
+            ],
+            dim=-1,
+        )
 
 
 # ----------------------------------------------------------------------------------------
@@ -484,8 +508,9 @@ class SE2:
         return _homogeneous(rt, -(rt @ t[..., :2, 2:]).squeeze(-1))
 
     @staticmethod
-    def identity(batch_shape: Sequence[int] = (), *, dtype: torch.dtype | None = None,
-                 device: torch.device | str | None = None) -> Tensor:
+    def identity(
+        batch_shape: Sequence[int] = (), *, dtype: torch.dtype | None = None, device: torch.device | str | None = None
+    ) -> Tensor:
         """Identity matrices of shape (*batch_shape, 3, 3)."""
         return _identity(3, batch_shape, dtype, device)
 
@@ -572,8 +597,9 @@ class SE3:
         return _homogeneous(rt, -(rt @ t[..., :3, 3:]).squeeze(-1))
 
     @staticmethod
-    def identity(batch_shape: Sequence[int] = (), *, dtype: torch.dtype | None = None,
-                 device: torch.device | str | None = None) -> Tensor:
+    def identity(
+        batch_shape: Sequence[int] = (), *, dtype: torch.dtype | None = None, device: torch.device | str | None = None
+    ) -> Tensor:
         """Identity matrices of shape (*batch_shape, 4, 4)."""
         return _identity(4, batch_shape, dtype, device)
 
@@ -658,11 +684,17 @@ class Rn:
         return -x
 
     @staticmethod
-    def identity(batch_shape: Sequence[int] = (), *, n: int, dtype: torch.dtype | None = None,
-                 device: torch.device | str | None = None) -> Tensor:
+    def identity(
+        batch_shape: Sequence[int] = (),
+        *,
+        n: int,
+        dtype: torch.dtype | None = None,
+        device: torch.device | str | None = None,
+    ) -> Tensor:
         """Zero vectors of shape (*batch_shape, n) (n is required: R^n has no fixed size)."""
-        return torch.zeros(*batch_shape, n, dtype=dtype if dtype is not None else torch.get_default_dtype(),
-                           device=device)
+        return torch.zeros(
+            *batch_shape, n, dtype=dtype if dtype is not None else torch.get_default_dtype(), device=device
+        )
 
     @staticmethod
     def to_matrix(x: Tensor) -> Tensor:

@@ -32,6 +32,7 @@ averaged over the batch: the paper's L = L_alpha + L_v divided by the constant t
 Config: ``gem.compose`` applies (composition in the loss and in decoding); ``gem.loss`` and
 ``gem.frobenius_weight`` belong to the single-network ``gem`` and are ignored; ``model.*`` sizes both stages.
 """
+
 from __future__ import annotations
 
 import torch
@@ -39,8 +40,7 @@ from torch import Tensor
 
 from envs.layout import ObsLayout
 from gem_head.head import GemHead
-from pets.ensemble import MemberEnsemble, _layer_decays, check_member_args, decay_loss
-from pets.ensemble import init_member_layers, member_mlp
+from pets.ensemble import MemberEnsemble, _layer_decays, check_member_args, decay_loss, init_member_layers, member_mlp
 from pets.models import DETERMINISTIC_LOGVAR
 
 __all__ = ["TwoStageGemHead", "TwoStageGemEnsemble"]
@@ -60,11 +60,14 @@ class TwoStageGemHead(GemHead):
         super().__init__(layout, act_dim, compose=compose, loss="frobenius")
 
     def __repr__(self) -> str:
-        return (f"TwoStageGemHead(obs_dim={self.obs_dim}, act_dim={self.act_dim}, input_dim={self.input_dim}, "
-                f"target_dim={self.target_dim}, compose={self.compose!r})")
+        return (
+            f"TwoStageGemHead(obs_dim={self.obs_dim}, act_dim={self.act_dim}, input_dim={self.input_dim}, "
+            f"target_dim={self.target_dim}, compose={self.compose!r})"
+        )
 
-    def loss(self, mean: Tensor, logvar: Tensor, target: Tensor, obs: Tensor, next_obs: Tensor,
-             scale: Tensor | None = None) -> Tensor:
+    def loss(
+        self, mean: Tensor, logvar: Tensor, target: Tensor, obs: Tensor, next_obs: Tensor, scale: Tensor | None = None
+    ) -> Tensor:
         """Per-member (E,) Frobenius algebraic loss + squared errors of the other slots (``frobenius_loss``, with
         ``scale``); ``logvar`` is ignored."""
         return self.frobenius_loss(mean, target, obs, next_obs, scale)
@@ -83,15 +86,26 @@ class TwoStageGemEnsemble(MemberEnsemble):
 
     deterministic = True
 
-    def __init__(self, in_dim: int, out_dim: int, group_slots: tuple[int, ...] | list[int],
-                 velocity_slots: tuple[int, ...] | list[int], ensemble_size: int = 5, hidden_size: int = 200,
-                 num_layers: int = 4, num_elites: int | None = None) -> None:
-        check_member_args(in_dim=in_dim, out_dim=out_dim, ensemble_size=ensemble_size, hidden_size=hidden_size,
-                          num_layers=num_layers)
+    def __init__(
+        self,
+        in_dim: int,
+        out_dim: int,
+        group_slots: tuple[int, ...] | list[int],
+        velocity_slots: tuple[int, ...] | list[int],
+        ensemble_size: int = 5,
+        hidden_size: int = 200,
+        num_layers: int = 4,
+        num_elites: int | None = None,
+    ) -> None:
+        check_member_args(
+            in_dim=in_dim, out_dim=out_dim, ensemble_size=ensemble_size, hidden_size=hidden_size, num_layers=num_layers
+        )
         group_slots, velocity_slots = [int(i) for i in group_slots], [int(i) for i in velocity_slots]
         if not group_slots or not velocity_slots or sorted(group_slots + velocity_slots) != list(range(out_dim)):
-            raise ValueError(f"group_slots and velocity_slots must be non-empty and split range({out_dim}) exactly, "
-                             f"got {group_slots} and {velocity_slots}")
+            raise ValueError(
+                f"group_slots and velocity_slots must be non-empty and split range({out_dim}) exactly, "
+                f"got {group_slots} and {velocity_slots}"
+            )
         super().__init__(in_dim, out_dim, ensemble_size, num_elites)
         self.hidden_size = hidden_size
         self.num_layers = num_layers
@@ -100,8 +114,9 @@ class TwoStageGemEnsemble(MemberEnsemble):
         self.num_coef = len(group_slots)
         hidden = [hidden_size] * num_layers
         self.coef_weights, self.coef_biases = init_member_layers([in_dim, *hidden, self.num_coef], ensemble_size)
-        self.vel_weights, self.vel_biases = init_member_layers([in_dim + self.num_coef, *hidden, len(velocity_slots)],
-                                                               ensemble_size)
+        self.vel_weights, self.vel_biases = init_member_layers(
+            [in_dim + self.num_coef, *hidden, len(velocity_slots)], ensemble_size
+        )
         self.decays: list[float] = _layer_decays(num_layers + 1)
         # cat([alpha, dv])[..., order] is the target vector: order[slot] = position of that slot in the cat.
         order = torch.empty(out_dim, dtype=torch.long)
@@ -147,7 +162,9 @@ class TwoStageGemEnsemble(MemberEnsemble):
         return self.coef_weights[0].new_zeros(())
 
     def extra_repr(self) -> str:
-        return (f"in_dim={self.in_dim}, out_dim={self.out_dim}, coefficients={self.num_coef}, "
-                f"velocities={len(self.velocity_slots)}, ensemble_size={self.ensemble_size}, "
-                f"hidden_size={self.hidden_size}, num_layers={self.num_layers}, num_elites={self.num_elites}, "
-                f"deterministic=True")
+        return (
+            f"in_dim={self.in_dim}, out_dim={self.out_dim}, coefficients={self.num_coef}, "
+            f"velocities={len(self.velocity_slots)}, ensemble_size={self.ensemble_size}, "
+            f"hidden_size={self.hidden_size}, num_layers={self.num_layers}, num_elites={self.num_elites}, "
+            f"deterministic=True"
+        )

@@ -1,4 +1,5 @@
 """The MPC agent: plan through the learned model (CEM, iCEM or MPPI), execute, shift the plan, replan."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -17,9 +18,17 @@ class MPCAgent:
     and executes its first actions.
     """
 
-    def __init__(self, planner: Planner, evaluator: TrajectoryEvaluator, *, replan_every: int,
-                 action_low: np.ndarray, action_high: np.ndarray, device: torch.device,
-                 generator: torch.Generator) -> None:
+    def __init__(
+        self,
+        planner: Planner,
+        evaluator: TrajectoryEvaluator,
+        *,
+        replan_every: int,
+        action_low: np.ndarray,
+        action_high: np.ndarray,
+        device: torch.device,
+        generator: torch.Generator,
+    ) -> None:
         self.planner = planner
         self.evaluator = evaluator
         self.replan_every = replan_every

@@ -27,6 +27,7 @@ larger peak happened).
 ``--json FILE`` writes the precise row's ``seconds_per_step``, ``model_gflops``, ``peak_gflops``
 (fp32) and ``model_gflop_per_step``, plus every row under ``rows``.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -36,7 +37,9 @@ import resource
 import statistics
 import sys
 import time
-from typing import Any, Callable
+from collections.abc import Callable
+from functools import partial
+from typing import Any
 
 import numpy as np
 import torch
@@ -77,16 +80,18 @@ def median_seconds(fn: Callable[[], object], device: torch.device, repeats: int,
     return statistics.median(times[warmup:])
 
 
-def matmul_peak_gflops(device: torch.device, dtype: torch.dtype = torch.float32, n: int = 2048,
-                       repeats: int = 5) -> float:
+def matmul_peak_gflops(
+    device: torch.device, dtype: torch.dtype = torch.float32, n: int = 2048, repeats: int = 5
+) -> float:
     """Measured dense GEMM throughput (median of ``repeats``) for an n x n x n product."""
     a = torch.randn(n, n, device=device).to(dtype)
     b = torch.randn(n, n, device=device).to(dtype)
     return 2 * n**3 / median_seconds(lambda: a @ b, device, repeats) / 1e9
 
 
-def kernel_floor(cfg: DictConfig, input_dim: int, target_dim: int, device: torch.device,
-                 repeats: int = 10) -> dict[str, float]:
+def kernel_floor(
+    cfg: DictConfig, input_dim: int, target_dim: int, device: torch.device, repeats: int = 10
+) -> dict[str, float]:
     """Seconds per MPC step that the model's own kernels need at the planner's shapes, nothing else.
 
     One model step of the evaluator is, per layer, one batched GEMM with bias (``torch.baddbmm``, as
@@ -107,11 +112,13 @@ def kernel_floor(cfg: DictConfig, input_dim: int, target_dim: int, device: torch
     out: dict[str, float] = {}
     for dtype, name in ((torch.float32, "fp32"), (torch.bfloat16, "bf16")):
         x = torch.randn(members, rows, dims[0], generator=gen, device=device).to(dtype)
-        ws = [(torch.randn(members, a, b, generator=gen, device=device) / a**0.5).to(dtype)
-              for a, b in zip(dims[:-1], dims[1:])]
+        ws = [
+            (torch.randn(members, a, b, generator=gen, device=device) / a**0.5).to(dtype)
+            for a, b in zip(dims[:-1], dims[1:])
+        ]
         bs = [torch.zeros(members, 1, b, device=device, dtype=dtype) for b in dims[1:]]
 
-        def forward(silu: bool) -> Tensor:
+        def forward(x: Tensor, ws: list[Tensor], bs: list[Tensor], silu: bool) -> Tensor:
             h = x
             for i, (w, b) in enumerate(zip(ws, bs)):
                 h = torch.baddbmm(b, h, w)
@@ -119,8 +126,8 @@ def kernel_floor(cfg: DictConfig, input_dim: int, target_dim: int, device: torch
                     h = torch.nn.functional.silu(h)
             return h
 
-        for silu in ((False, True) if name == "bf16" else (False,)):
-            seconds = median_seconds(lambda: forward(silu), device, repeats, warmup=2)
+        for silu in (False, True) if name == "bf16" else (False,):
+            seconds = median_seconds(partial(forward, x, ws, bs, silu), device, repeats, warmup=2)
             out[f"{name}_gemm{'_silu' if silu else ''}_seconds_per_step"] = seconds * steps
     return out
 
@@ -134,14 +141,16 @@ def collect_random(spec: envs.EnvSpec, steps: int, seed: int) -> tuple[np.ndarra
     env = spec.make()
     rng = np.random.default_rng(seed)
     obs, _ = env.reset(seed=seed)
-    O, A, N = [], [], []
+    obs_l, act_l, next_l = [], [], []
     for _ in range(steps):
         act = rng.uniform(spec.action_low, spec.action_high)
         nxt, _, term, trunc, _ = env.step(act)
-        O.append(obs); A.append(act); N.append(nxt)
+        obs_l.append(obs)
+        act_l.append(act)
+        next_l.append(nxt)
         obs = nxt if not (term or trunc) else env.reset()[0]
     env.close()
-    return np.array(O, np.float32), np.array(A, np.float32), np.array(N, np.float32)
+    return np.array(obs_l, np.float32), np.array(act_l, np.float32), np.array(next_l, np.float32)
 
 
 # ---------------------------------------------------------------------------------------------- memory
@@ -164,7 +173,7 @@ class _PeakMemory:
         self.start = 0.0
         self.mode = "cuda" if device.type == "cuda" else "rss"
 
-    def __enter__(self) -> "_PeakMemory":
+    def __enter__(self) -> _PeakMemory:
         if self.mode == "cuda":
             torch.cuda.synchronize(self.device)
             torch.cuda.reset_peak_memory_stats(self.device)
@@ -236,8 +245,9 @@ def _row_config(cfg: DictConfig, planner: dict[str, Any]) -> DictConfig:
     return row
 
 
-def time_rows(cfg: DictConfig, rows: list[tuple[str, dict[str, Any]]], repeats: int = 5,
-              parts: dict[str, Any] | None = None) -> list[dict[str, Any]]:
+def time_rows(
+    cfg: DictConfig, rows: list[tuple[str, dict[str, Any]]], repeats: int = 5, parts: dict[str, Any] | None = None
+) -> list[dict[str, Any]]:
     """Time every row (label, planner overrides) on one model: a warm-up step each, then ``repeats``
     rounds in which every row plans once. Returns one dict of figures per row."""
     if not isinstance(repeats, int) or repeats < 1:
@@ -260,9 +270,18 @@ def time_rows(cfg: DictConfig, rows: list[tuple[str, dict[str, Any]]], repeats: 
         first = time.perf_counter() - t0
         agents.append(agent)
         counters.append(counter)
-        results.append({"label": label, "planner": row_cfg.planner.name, "precision": row_cfg.planner.precision,
-                        "compile": bool(row_cfg.planner.compile), "first_step_seconds": first,
-                        "wall": [], "cpu": [], "rows": []})
+        results.append(
+            {
+                "label": label,
+                "planner": row_cfg.planner.name,
+                "precision": row_cfg.planner.precision,
+                "compile": bool(row_cfg.planner.compile),
+                "first_step_seconds": first,
+                "wall": [],
+                "cpu": [],
+                "rows": [],
+            }
+        )
     for _ in range(repeats):
         for agent, counter, res in zip(agents, counters, results):
             agent.reset()
@@ -284,11 +303,20 @@ def time_rows(cfg: DictConfig, rows: list[tuple[str, dict[str, Any]]], repeats: 
     for res in results:
         seconds = statistics.median(res["wall"])
         gflop = statistics.median(res["rows"]) * flops_row / 1e9
-        out.append({"label": res["label"], "planner": res["planner"], "precision": res["precision"],
-                    "compile": res["compile"], "seconds_per_step": seconds,
-                    "cpu_seconds_per_step": statistics.median(res["cpu"]),
-                    "first_step_seconds": res["first_step_seconds"], "model_gflop_per_step": gflop,
-                    "model_gflops": gflop / seconds, "peak_memory_mib": res["mem"]})
+        out.append(
+            {
+                "label": res["label"],
+                "planner": res["planner"],
+                "precision": res["precision"],
+                "compile": res["compile"],
+                "seconds_per_step": seconds,
+                "cpu_seconds_per_step": statistics.median(res["cpu"]),
+                "first_step_seconds": res["first_step_seconds"],
+                "model_gflop_per_step": gflop,
+                "model_gflops": gflop / seconds,
+                "peak_memory_mib": res["mem"],
+            }
+        )
     return out
 
 
@@ -317,18 +345,27 @@ def compare(cfg: DictConfig, repeats: int = 5) -> dict[str, Any]:
         r["speedup_wall"] = base["seconds_per_step"] / r["seconds_per_step"]
         r["speedup_cpu"] = base["cpu_seconds_per_step"] / r["cpu_seconds_per_step"]
     keys = ("seconds_per_step", "cpu_seconds_per_step", "model_gflops", "model_gflop_per_step")
-    return {**{k: base[k] for k in keys}, "peak_gflops": peaks["fp32"], "peak_gflops_bf16": peaks["bf16"],
-            "floor": floor, "rows": rows}
+    return {
+        **{k: base[k] for k in keys},
+        "peak_gflops": peaks["fp32"],
+        "peak_gflops_bf16": peaks["bf16"],
+        "floor": floor,
+        "rows": rows,
+    }
 
 
 def _print_rows(rows: list[dict[str, Any]], repeats: int) -> None:
-    print(f"{'row':<20} {'wall s':>8} {'cpu s':>8} {'x wall':>7} {'x cpu':>6} {'first s':>8} {'GFLOP':>7} "
-          f"{'GFLOP/s':>8} {'% peak':>7} {'mem MiB':>8}   (medians of {repeats} steps)")
+    print(
+        f"{'row':<20} {'wall s':>8} {'cpu s':>8} {'x wall':>7} {'x cpu':>6} {'first s':>8} {'GFLOP':>7} "
+        f"{'GFLOP/s':>8} {'% peak':>7} {'mem MiB':>8}   (medians of {repeats} steps)"
+    )
     for r in rows:
-        print(f"{r['label']:<20} {r['seconds_per_step']:8.3f} {r['cpu_seconds_per_step']:8.3f} "
-              f"{r.get('speedup_wall', 1.0):7.2f} {r.get('speedup_cpu', 1.0):6.2f} {r['first_step_seconds']:8.2f} "
-              f"{r['model_gflop_per_step']:7.2f} {r['model_gflops']:8.1f} {100 * r.get('fraction_of_peak', 0.0):6.0f}% "
-              f"{r['peak_memory_mib']:8.1f}")
+        print(
+            f"{r['label']:<20} {r['seconds_per_step']:8.3f} {r['cpu_seconds_per_step']:8.3f} "
+            f"{r.get('speedup_wall', 1.0):7.2f} {r.get('speedup_cpu', 1.0):6.2f} {r['first_step_seconds']:8.2f} "
+            f"{r['model_gflop_per_step']:7.2f} {r['model_gflops']:8.1f} {100 * r.get('fraction_of_peak', 0.0):6.0f}% "
+            f"{r['peak_memory_mib']:8.1f}"
+        )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -340,8 +377,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--preset", choices=tuple(PRESETS), default="research")
     ap.add_argument("--device", choices=("cpu", "cuda", "auto"), default="cpu")
     ap.add_argument("--repeats", type=int, default=5)
-    ap.add_argument("--compare", action="store_true",
-                    help="time eager fp32 / compiled / bf16 / compiled+bf16 CEM, iCEM and MPPI in one run")
+    ap.add_argument(
+        "--compare",
+        action="store_true",
+        help="time eager fp32 / compiled / bf16 / compiled+bf16 CEM, iCEM and MPPI in one run",
+    )
     ap.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
     ap.add_argument("overrides", nargs="*", metavar="key=value")
     args = ap.parse_args(argv)
@@ -357,26 +397,36 @@ def main(argv: list[str] | None = None) -> int:
     if cfg.threads > 0:
         torch.set_num_threads(cfg.threads)
     p = cfg.planner
-    print(f"{cfg.env} / {cfg.head} on {cfg.device} ({torch.get_num_threads()} threads): population {p.population}, "
-          f"{p.particles} particles, horizon {p.horizon}, {p.iterations} iterations, ensemble {cfg.model.ensemble_size}"
-          f"x{cfg.model.num_layers}x{cfg.model.hidden_size}, propagation {p.propagation}")
+    print(
+        f"{cfg.env} / {cfg.head} on {cfg.device} ({torch.get_num_threads()} threads): population {p.population}, "
+        f"{p.particles} particles, horizon {p.horizon}, {p.iterations} iterations, ensemble {cfg.model.ensemble_size}"
+        f"x{cfg.model.num_layers}x{cfg.model.hidden_size}, propagation {p.propagation}"
+    )
     if args.compare:
         res = compare(cfg, args.repeats)
-        print(f"measured GEMM peak (2048^3): fp32 {res['peak_gflops']:.1f} GFLOP/s, "
-              f"bf16 {res['peak_gflops_bf16']:.1f} GFLOP/s")
+        print(
+            f"measured GEMM peak (2048^3): fp32 {res['peak_gflops']:.1f} GFLOP/s, "
+            f"bf16 {res['peak_gflops_bf16']:.1f} GFLOP/s"
+        )
         _print_rows(res["rows"], args.repeats)
         fl = res["floor"]
-        print("kernel floor at these shapes (s per CEM step; the model's GEMMs + bias alone, see kernel_floor): "
-              f"fp32 {fl['fp32_gemm_seconds_per_step']:.3f}, bf16 {fl['bf16_gemm_seconds_per_step']:.3f}, "
-              f"bf16 GEMMs + SiLU {fl['bf16_gemm_silu_seconds_per_step']:.3f}")
+        print(
+            "kernel floor at these shapes (s per CEM step; the model's GEMMs + bias alone, see kernel_floor): "
+            f"fp32 {fl['fp32_gemm_seconds_per_step']:.3f}, bf16 {fl['bf16_gemm_seconds_per_step']:.3f}, "
+            f"bf16 GEMMs + SiLU {fl['bf16_gemm_silu_seconds_per_step']:.3f}"
+        )
     else:
         res = benchmark(cfg, args.repeats)
         peak = res["peak_gflops_bf16"] if p.precision == "bf16" else res["peak_gflops"]
-        print(f"seconds per planning step (median of {args.repeats}): {res['seconds_per_step']:.3f} "
-              f"(process CPU {res['cpu_seconds_per_step']:.3f}; first step {res['first_step_seconds']:.2f})")
-        print(f"model work per step: {res['model_gflop_per_step']:.1f} GFLOP -> {res['model_gflops']:.1f} GFLOP/s "
-              f"({100 * res['model_gflops'] / peak:.0f}% of the measured {p.precision} matmul peak "
-              f"{peak:.1f} GFLOP/s); peak memory of a step {res['peak_memory_mib']:.1f} MiB")
+        print(
+            f"seconds per planning step (median of {args.repeats}): {res['seconds_per_step']:.3f} "
+            f"(process CPU {res['cpu_seconds_per_step']:.3f}; first step {res['first_step_seconds']:.2f})"
+        )
+        print(
+            f"model work per step: {res['model_gflop_per_step']:.1f} GFLOP -> {res['model_gflops']:.1f} GFLOP/s "
+            f"({100 * res['model_gflops'] / peak:.0f}% of the measured {p.precision} matmul peak "
+            f"{peak:.1f} GFLOP/s); peak memory of a step {res['peak_memory_mib']:.1f} MiB"
+        )
     if args.json:
         with open(args.json, "w") as f:
             json.dump(res, f, indent=2)

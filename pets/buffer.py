@@ -1,4 +1,5 @@
 """Replay buffer of real transitions (float32), growing as trials are collected."""
+
 from __future__ import annotations
 
 import numpy as np

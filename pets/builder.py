@@ -1,4 +1,5 @@
 """Build the parts of a PETS run from a resolved config: head, ensemble, trainer, planner, agent."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -32,8 +33,13 @@ def make_head(cfg: DictConfig, spec: EnvSpec) -> DynamicsHead:
     if cfg.head == "gem":
         from gem_head.head import GemHead
 
-        return GemHead(spec.layout, spec.act_dim, compose=cfg.gem.compose, loss=cfg.gem.loss,
-                       frobenius_weight=cfg.gem.frobenius_weight)
+        return GemHead(
+            spec.layout,
+            spec.act_dim,
+            compose=cfg.gem.compose,
+            loss=cfg.gem.loss,
+            frobenius_weight=cfg.gem.frobenius_weight,
+        )
     if cfg.head == "delta-det":
         from pets.models import DeterministicDeltaHead
 
@@ -56,37 +62,84 @@ def make_ensemble(cfg: DictConfig, head: DynamicsHead, device: torch.device) -> 
     if cfg.head == "gem2":
         from gem_head.two_stage import TwoStageGemEnsemble
 
-        return TwoStageGemEnsemble(head.input_dim, head.target_dim, head.group_slots, head.velocity_slots,
-                                   ensemble_size=m.ensemble_size, hidden_size=m.hidden_size,
-                                   num_layers=m.num_layers, num_elites=m.num_elites).to(device)
+        return TwoStageGemEnsemble(
+            head.input_dim,
+            head.target_dim,
+            head.group_slots,
+            head.velocity_slots,
+            ensemble_size=m.ensemble_size,
+            hidden_size=m.hidden_size,
+            num_layers=m.num_layers,
+            num_elites=m.num_elites,
+        ).to(device)
     if head.deterministic:
         from pets.models import DeterministicEnsemble
 
-        return DeterministicEnsemble(head.input_dim, head.target_dim, ensemble_size=m.ensemble_size,
-                                     hidden_size=m.hidden_size, num_layers=m.num_layers,
-                                     num_elites=m.num_elites).to(device)
-    return GaussianEnsemble(head.input_dim, head.target_dim, ensemble_size=m.ensemble_size,
-                            hidden_size=m.hidden_size, num_layers=m.num_layers,
-                            learn_logvar_bounds=m.learn_logvar_bounds, num_elites=m.num_elites).to(device)
+        return DeterministicEnsemble(
+            head.input_dim,
+            head.target_dim,
+            ensemble_size=m.ensemble_size,
+            hidden_size=m.hidden_size,
+            num_layers=m.num_layers,
+            num_elites=m.num_elites,
+        ).to(device)
+    return GaussianEnsemble(
+        head.input_dim,
+        head.target_dim,
+        ensemble_size=m.ensemble_size,
+        hidden_size=m.hidden_size,
+        num_layers=m.num_layers,
+        learn_logvar_bounds=m.learn_logvar_bounds,
+        num_elites=m.num_elites,
+    ).to(device)
 
 
 def make_trainer(cfg: DictConfig, ensemble: MemberEnsemble, head: DynamicsHead) -> ModelTrainer:
     m = cfg.model
-    return ModelTrainer(ensemble, head, lr=m.lr, batch_size=m.batch_size, max_epochs=m.max_epochs,
-                        patience=m.patience, holdout_ratio=m.holdout_ratio, max_holdout=m.max_holdout,
-                        num_elites=m.num_elites)
+    return ModelTrainer(
+        ensemble,
+        head,
+        lr=m.lr,
+        batch_size=m.batch_size,
+        max_epochs=m.max_epochs,
+        patience=m.patience,
+        holdout_ratio=m.holdout_ratio,
+        max_holdout=m.max_holdout,
+        num_elites=m.num_elites,
+    )
 
 
-def make_agent(cfg: DictConfig, spec: EnvSpec, ensemble: GaussianEnsemble, head: DynamicsHead,
-               device: torch.device, generator: torch.Generator) -> MPCAgent:
+def make_agent(
+    cfg: DictConfig,
+    spec: EnvSpec,
+    ensemble: GaussianEnsemble,
+    head: DynamicsHead,
+    device: torch.device,
+    generator: torch.Generator,
+) -> MPCAgent:
     p = cfg.planner
     if device.type == "cpu":
         retain_freed_memory()
-    evaluator = TrajectoryEvaluator(ensemble, head, spec.reward, spec.terminated, particles=p.particles,
-                                    propagation=p.propagation, precision=p.precision, compile=p.compile)
+    evaluator = TrajectoryEvaluator(
+        ensemble,
+        head,
+        spec.reward,
+        spec.terminated,
+        particles=p.particles,
+        propagation=p.propagation,
+        precision=p.precision,
+        compile=p.compile,
+    )
     planner = make_planner(cfg, spec, device)
-    return MPCAgent(planner, evaluator, replan_every=p.replan_every, action_low=spec.action_low,
-                    action_high=spec.action_high, device=device, generator=generator)
+    return MPCAgent(
+        planner,
+        evaluator,
+        replan_every=p.replan_every,
+        action_low=spec.action_low,
+        action_high=spec.action_high,
+        device=device,
+        generator=generator,
+    )
 
 
 def make_planner(cfg: DictConfig, spec: EnvSpec, device: torch.device) -> Planner:
@@ -97,11 +150,24 @@ def make_planner(cfg: DictConfig, spec: EnvSpec, device: torch.device) -> Planne
     if p.name == "cem":
         return CEMPlanner(spec.action_low, spec.action_high, elites=elites, **common)
     if p.name == "icem":
-        return ICEMPlanner(spec.action_low, spec.action_high, elites=elites, noise_beta=p.noise_beta,
-                           population_decay=p.icem_population_decay, keep_elites=p.icem_keep_elites, **common)
+        return ICEMPlanner(
+            spec.action_low,
+            spec.action_high,
+            elites=elites,
+            noise_beta=p.noise_beta,
+            population_decay=p.icem_population_decay,
+            keep_elites=p.icem_keep_elites,
+            **common,
+        )
     if p.name == "mppi":
-        return MPPIPlanner(spec.action_low, spec.action_high, sigma=p.mppi_sigma, temperature=p.mppi_temperature,
-                           smoothing=p.mppi_smoothing, **common)
+        return MPPIPlanner(
+            spec.action_low,
+            spec.action_high,
+            sigma=p.mppi_sigma,
+            temperature=p.mppi_temperature,
+            smoothing=p.mppi_smoothing,
+            **common,
+        )
     raise ConfigError(f"unknown planner {p.name!r}; accepted: cem, icem, mppi")
 
 

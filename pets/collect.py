@@ -24,6 +24,7 @@ same machine) and the first k episodes do not depend on ``--episodes``.
 Episodes end at termination, at the env's time limit, or after ``--max-steps`` steps (which
 replaces the env's own time limit, so it can also lengthen episodes).
 """
+
 from __future__ import annotations
 
 import math
@@ -93,7 +94,7 @@ class SmoothRandomPolicy:
     def act(self, obs: np.ndarray) -> np.ndarray:
         action = self.low + (self.high - self.low) * self._ndtr(self._z)
         eps = self._rng.standard_normal(self.low.shape)
-        self._z = self.beta * self._z + math.sqrt(1.0 - self.beta ** 2) * eps
+        self._z = self.beta * self._z + math.sqrt(1.0 - self.beta**2) * eps
         return np.clip(action, self.low, self.high)
 
 
@@ -141,7 +142,7 @@ def parse_policy(text: str) -> tuple[str, Any]:
     raise ValueError(f"unknown policy {text!r}; accepted: {', '.join(POLICIES)}")
 
 
-def make_policy(text: str, spec: "EnvSpec", seed: int = 0, device: str = "auto") -> Policy:
+def make_policy(text: str, spec: EnvSpec, seed: int = 0, device: str = "auto") -> Policy:
     """Build the policy named by ``text`` (see :func:`parse_policy`) for env ``spec``.
 
     A ``run:`` policy must come from a run on the same env (ValueError otherwise).
@@ -153,8 +154,9 @@ def make_policy(text: str, spec: "EnvSpec", seed: int = 0, device: str = "auto")
         return SmoothRandomPolicy(spec.action_low, spec.action_high, arg)
     run_env = run_env_name(arg)
     if run_env != spec.name:
-        raise ValueError(f"run {arg} was trained on {run_env}, not on {spec.name}; "
-                         "collect on its env or pick another run")
+        raise ValueError(
+            f"run {arg} was trained on {run_env}, not on {spec.name}; collect on its env or pick another run"
+        )
     return AgentPolicy(arg, seed=seed, device=device)
 
 
@@ -177,8 +179,16 @@ def episode_seeds(seed: int, episode: int) -> tuple[int, np.random.SeedSequence]
     return int(ss.generate_state(1)[0]), ss
 
 
-def collect(spec: "EnvSpec", policy: Policy | str, episodes: int, seed: int = 0, max_steps: int | None = None,
-            *, device: str = "auto", progress: bool = False) -> dict[str, np.ndarray]:
+def collect(
+    spec: EnvSpec,
+    policy: Policy | str,
+    episodes: int,
+    seed: int = 0,
+    max_steps: int | None = None,
+    *,
+    device: str = "auto",
+    progress: bool = False,
+) -> dict[str, np.ndarray]:
     """Roll ``policy`` (a :class:`Policy` or a ``--policy`` string) in ``spec.make()`` for ``episodes`` episodes.
 
     Returns the data set arrays of :mod:`pets.datasets` (NaN-padded to the longest episode) plus
@@ -229,16 +239,25 @@ def collect(spec: "EnvSpec", policy: Policy | str, episodes: int, seed: int = 0,
         act_arr[i, :k] = act_eps[i]
         rew_arr[i, :k] = rew_eps[i]
         term_arr[i, :k] = term_eps[i]
-    return {"obs": obs_arr, "act": act_arr, "rew": rew_arr, "terminated": term_arr, "lengths": lengths,
-            "env": np.array(spec.name), "policy": np.array(policy.name), "seed": np.array(int(seed), np.int64),
-            "reset_seeds": np.array(reset_seeds, np.int64)}
+    return {
+        "obs": obs_arr,
+        "act": act_arr,
+        "rew": rew_arr,
+        "terminated": term_arr,
+        "lengths": lengths,
+        "env": np.array(spec.name),
+        "policy": np.array(policy.name),
+        "seed": np.array(int(seed), np.int64),
+        "reset_seeds": np.array(reset_seeds, np.int64),
+    }
 
 
 def build_parser() -> OneLineParser:
     p = OneLineParser(prog=PROG, description="Collect trajectories from a catalogue env into an .npz data set.")
     p.add_argument("--env", help="environment (catalogue name or gymnasium id); optional with --policy run:DIR")
-    p.add_argument("--policy", required=True,
-                   help="random | smooth-random[:BETA] (BETA in [0,1), default 0.9) | run:RUN_DIR")
+    p.add_argument(
+        "--policy", required=True, help="random | smooth-random[:BETA] (BETA in [0,1), default 0.9) | run:RUN_DIR"
+    )
     p.add_argument("--episodes", type=int, default=10, help="number of episodes (default 10)")
     p.add_argument("--seed", type=int, default=0, help="seed of resets and policy (default 0)")
     p.add_argument("--max-steps", type=int, help="steps per episode at most (default: the env's episode length)")
@@ -288,9 +307,11 @@ def main(argv: list[str] | None = None) -> int:
     data = collect(spec, policy, args.episodes, args.seed, args.max_steps, progress=not args.quiet)
     save_dataset(args.out, data)
     lengths = data["lengths"]
-    print(f"{args.out}: {spec.name}, {len(lengths)} episodes, {int(lengths.sum())} transitions "
-          f"(lengths {int(lengths.min())}..{int(lengths.max())}), policy {policy.name}, "
-          f"mean episode reward {float(np.nansum(data['rew'], axis=1).mean()):.3f}")
+    print(
+        f"{args.out}: {spec.name}, {len(lengths)} episodes, {int(lengths.sum())} transitions "
+        f"(lengths {int(lengths.min())}..{int(lengths.max())}), policy {policy.name}, "
+        f"mean episode reward {float(np.nansum(data['rew'], axis=1).mean()):.3f}"
+    )
     return 0
 
 

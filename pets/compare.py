@@ -66,6 +66,7 @@ offline
     reward per step and the total reward of the open-loop plans, mean and CI over seeds) and
     ``openloop_ENV.png`` (reward vs step per model, one panel per planner).
 """
+
 from __future__ import annotations
 
 import csv
@@ -77,9 +78,10 @@ import os
 import subprocess
 import sys
 import time
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor, as_completed
 from pathlib import Path
-from typing import Any, Callable, Iterable, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -186,8 +188,11 @@ def config_differences(run_dir: Path, expected: Any, ignore: Iterable[str] = ("t
     found = _flatten(OmegaConf.to_container(load_config(str(run_dir / "config.yaml"))))
     want = _flatten(OmegaConf.to_container(expected))
     skip = set(ignore)
-    return [f"{k}: {found.get(k)!r} != {want.get(k)!r}" for k in sorted(set(found) | set(want))
-            if k not in skip and found.get(k) != want.get(k)]
+    return [
+        f"{k}: {found.get(k)!r} != {want.get(k)!r}"
+        for k in sorted(set(found) | set(want))
+        if k not in skip and found.get(k) != want.get(k)
+    ]
 
 
 def check_same_config(run_dir: Path, expected: Any, ignore: Iterable[str] = ("trials",)) -> None:
@@ -197,11 +202,15 @@ def check_same_config(run_dir: Path, expected: Any, ignore: Iterable[str] = ("tr
     try:
         diff = config_differences(run_dir, expected, ignore)
     except (ValueError, OmegaConfBaseException) as err:
-        raise UsageError(f"{run_dir}/config.yaml cannot be read ({str(err).splitlines()[0]}); "
-                         "move that run directory away or pick another --out") from None
+        raise UsageError(
+            f"{run_dir}/config.yaml cannot be read ({str(err).splitlines()[0]}); "
+            "move that run directory away or pick another --out"
+        ) from None
     if diff:
-        raise UsageError(f"{run_dir} was made with another config ({'; '.join(diff[:4])}"
-                         f"{'; ...' if len(diff) > 4 else ''}); pass the same settings or pick another --out")
+        raise UsageError(
+            f"{run_dir} was made with another config ({'; '.join(diff[:4])}"
+            f"{'; ...' if len(diff) > 4 else ''}); pass the same settings or pick another --out"
+        )
 
 
 # =========================================================================== small file helpers
@@ -265,8 +274,9 @@ def _pyplot() -> Any:
     return plt
 
 
-def run_pool(jobs: Sequence[tuple[str, Callable[..., Any], tuple]], workers: int, *, processes: bool,
-             progress: bool, desc: str) -> dict[str, tuple[bool, Any]]:
+def run_pool(
+    jobs: Sequence[tuple[str, Callable[..., Any], tuple]], workers: int, *, processes: bool, progress: bool, desc: str
+) -> dict[str, tuple[bool, Any]]:
     """Run ``fn(*args)`` for every ``(name, fn, args)``; ``{name: (ok, result or error message)}``.
 
     ``processes``: a spawn ProcessPoolExecutor (workers > 1) or this process (workers = 1); else a thread
@@ -295,8 +305,9 @@ def run_pool(jobs: Sequence[tuple[str, Callable[..., Any], tuple]], workers: int
         if processes:
             import multiprocessing
 
-            pool: Any = ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
-                                            initializer=_worker_init)
+            pool: Any = ProcessPoolExecutor(
+                max_workers=workers, mp_context=multiprocessing.get_context("spawn"), initializer=_worker_init
+            )
         else:
             pool = ThreadPoolExecutor(max_workers=workers)
         with pool:
@@ -332,14 +343,31 @@ def online_plan(run_dir: Path, trials: int) -> str:
     return "reuse" if len(online_rows(run_dir)) >= trials else "resume"
 
 
-def online_command(action: str, run_dir: Path, env: str, model: str, seed: int, trials: int, preset: str,
-                   overrides: Sequence[str]) -> list[str]:
+def online_command(
+    action: str, run_dir: Path, env: str, model: str, seed: int, trials: int, preset: str, overrides: Sequence[str]
+) -> list[str]:
     """The ``run_pets.py`` command line that starts or resumes one run."""
     script = [sys.executable, str(ROOT / "run_pets.py")]
     if action == "resume":
         return [*script, "--resume", str(run_dir), "--trials", str(trials), "--quiet"]
-    return [*script, "--env", env, "--model", model, "--seed", str(seed), "--trials", str(trials),
-            "--out", str(run_dir), "--preset", preset, "--quiet", *overrides, "threads=1"]
+    return [
+        *script,
+        "--env",
+        env,
+        "--model",
+        model,
+        "--seed",
+        str(seed),
+        "--trials",
+        str(trials),
+        "--out",
+        str(run_dir),
+        "--preset",
+        preset,
+        "--quiet",
+        *overrides,
+        "threads=1",
+    ]
 
 
 def run_logged(command: Sequence[str], log: Path) -> int:
@@ -348,8 +376,9 @@ def run_logged(command: Sequence[str], log: Path) -> int:
     with open(log, "a") as f:
         f.write(f"\n[{time.strftime('%Y-%m-%d %H:%M:%S')}] {' '.join(command)}\n")
         f.flush()
-        proc = subprocess.run(command, stdout=f, stderr=subprocess.STDOUT, cwd=ROOT,
-                              env={**os.environ, **ONE_THREAD_ENV})
+        proc = subprocess.run(
+            command, stdout=f, stderr=subprocess.STDOUT, cwd=ROOT, env={**os.environ, **ONE_THREAD_ENV}
+        )
     if proc.returncode != 0:
         lines = [line for line in log.read_text(errors="replace").splitlines() if line.strip()]
         raise RuntimeError(f"exit {proc.returncode}; log {log}; last line: {lines[-1] if lines else ''}")
@@ -365,15 +394,29 @@ def online_run_stats(rows: Sequence[Mapping[str, float]], trials: int, final_win
     rewards = np.array([r["episode_reward"] for r in use], dtype=np.float64)
     w = min(final_window, len(use))
     planned = [r["plan_seconds_per_step"] for r in use if r.get("plan_seconds_per_step", 0.0) > 0]
-    return {"final_reward": float(rewards[-w:].mean()), "auc": float(rewards.mean()),
-            "env_steps": float(use[-1]["env_steps"]), "wall_time_s": float(use[-1]["wall_time_s"]),
-            "plan_seconds_per_step": float(np.median(planned)) if planned else 0.0}
+    return {
+        "final_reward": float(rewards[-w:].mean()),
+        "auc": float(rewards.mean()),
+        "env_steps": float(use[-1]["env_steps"]),
+        "wall_time_s": float(use[-1]["wall_time_s"]),
+        "plan_seconds_per_step": float(np.median(planned)) if planned else 0.0,
+    }
 
 
-def compare_online(env_names: Sequence[str], models: Sequence[str], seeds: Sequence[int], trials: int, out: Path,
-                   *, workers: int = 1, preset: str = "research", overrides: Sequence[str] = (),
-                   final_window: int = 3, progress: bool = True,
-                   planners: Sequence[str] | None = None) -> dict[str, Any]:
+def compare_online(
+    env_names: Sequence[str],
+    models: Sequence[str],
+    seeds: Sequence[int],
+    trials: int,
+    out: Path,
+    *,
+    workers: int = 1,
+    preset: str = "research",
+    overrides: Sequence[str] = (),
+    final_window: int = 3,
+    progress: bool = True,
+    planners: Sequence[str] | None = None,
+) -> dict[str, Any]:
     """Run (or reuse/resume) every online run, then write the summary. Returns ``{"actions", "failed",
     "summary"}``. UsageError for bad settings or a run directory with another config.
 
@@ -382,8 +425,9 @@ def compare_online(env_names: Sequence[str], models: Sequence[str], seeds: Seque
     from pets.config import ConfigError, make_config, parse_overrides
 
     if trials < 1 or workers < 1 or final_window < 1:
-        raise UsageError(f"--trials, --workers and --final-window must be >= 1, got {trials}, {workers}, "
-                         f"{final_window}")
+        raise UsageError(
+            f"--trials, --workers and --final-window must be >= 1, got {trials}, {workers}, {final_window}"
+        )
     try:
         extra = parse_overrides(list(overrides))
     except ConfigError as err:
@@ -391,8 +435,10 @@ def compare_online(env_names: Sequence[str], models: Sequence[str], seeds: Seque
     extra.pop("threads", None)  # every run uses one thread
     for key in ("trials", "seed", "head", "env"):
         if key in extra:
-            raise UsageError(f"{key}= is set by the command itself (--{'models' if key == 'head' else key + 's'}); "
-                             "do not pass it as an override")
+            raise UsageError(
+                f"{key}= is set by the command itself (--{'models' if key == 'head' else key + 's'}); "
+                "do not pass it as an override"
+            )
     if planners is not None and "planner.name" in extra:
         raise UsageError("give the planner once: --planners or planner.name=, not both")
     out = Path(out).resolve()
@@ -405,25 +451,30 @@ def compare_online(env_names: Sequence[str], models: Sequence[str], seeds: Seque
                 name = run_name(env, model, seed, planner)
                 run_dir = out / "runs" / name
                 try:
-                    expected = make_config(env, model, preset, {**arm_extra, "seed": seed, "trials": trials,
-                                                                "threads": 1})
+                    expected = make_config(
+                        env, model, preset, {**arm_extra, "seed": seed, "trials": trials, "threads": 1}
+                    )
                 except ConfigError as err:
                     raise UsageError(str(err)) from None
                 action = online_plan(run_dir, trials)
                 if action != "start":
                     check_same_config(run_dir, expected)
                     if any(math.isnan(r["trial"]) for r in online_rows(run_dir)):
-                        raise UsageError(f"{run_dir} is an offline training run (pets.train), not an online run; "
-                                         "use separate --out directories for online and offline comparisons")
+                        raise UsageError(
+                            f"{run_dir} is an offline training run (pets.train), not an online run; "
+                            "use separate --out directories for online and offline comparisons"
+                        )
                 actions[name] = action
                 if action != "reuse":
                     cmd = online_command(action, run_dir, env, model, seed, trials, preset, arm_list)
                     jobs.append((name, run_logged, (cmd, out / "logs" / f"{name}.log")))
     counts = {a: sum(1 for v in actions.values() if v == a) for a in ("reuse", "resume", "start")}
-    print(f"{PROG}: {len(actions)} runs: {counts['reuse']} reused, {counts['resume']} to resume, "
-          f"{counts['start']} to start ({workers} worker{'s' if workers > 1 else ''})", file=sys.stderr)
-    results = run_pool(jobs, min(workers, max(len(jobs), 1)), processes=False, progress=progress,
-                       desc="online runs")
+    print(
+        f"{PROG}: {len(actions)} runs: {counts['reuse']} reused, {counts['resume']} to resume, "
+        f"{counts['start']} to start ({workers} worker{'s' if workers > 1 else ''})",
+        file=sys.stderr,
+    )
+    results = run_pool(jobs, min(workers, max(len(jobs), 1)), processes=False, progress=progress, desc="online runs")
     failed = {name: msg for name, (ok, msg) in results.items() if not ok}
     summary = summarise_online(out, env_names, models, seeds, trials, final_window, failed, planners)
     return {"actions": actions, "failed": failed, "summary": summary}
@@ -434,9 +485,16 @@ def online_arms(models: Sequence[str], planners: Sequence[str] | None) -> list[t
     return [(m, p) for m in models for p in (planners if planners is not None else [None])]
 
 
-def summarise_online(out: Path, env_names: Sequence[str], models: Sequence[str], seeds: Sequence[int], trials: int,
-                     final_window: int, failed: Mapping[str, str] | None = None,
-                     planners: Sequence[str] | None = None) -> list[dict[str, Any]]:
+def summarise_online(
+    out: Path,
+    env_names: Sequence[str],
+    models: Sequence[str],
+    seeds: Sequence[int],
+    trials: int,
+    final_window: int,
+    failed: Mapping[str, str] | None = None,
+    planners: Sequence[str] | None = None,
+) -> list[dict[str, Any]]:
     """Write summary.md, summary.csv, summary_runs.csv, rewards_ENV.png and walltime_ENV.png from the complete runs."""
     from pets.stats import summarise
 
@@ -452,12 +510,15 @@ def summarise_online(out: Path, env_names: Sequence[str], models: Sequence[str],
                 name = run_name(env, model, seed, planner)
                 rows = online_rows(out / "runs" / name)
                 if len(rows) < trials:
-                    missing.append(f"{name} ({len(rows)}/{trials} trials"
-                                   f"{'; failed: ' + failed[name] if failed and name in failed else ''})")
+                    missing.append(
+                        f"{name} ({len(rows)}/{trials} trials"
+                        f"{'; failed: ' + failed[name] if failed and name in failed else ''})"
+                    )
                     continue
                 s = online_run_stats(rows, trials, final_window)
-                per_run.append({"env": env, "model": model, "planner": planner or "", "seed": seed,
-                                "trials": trials, **s})
+                per_run.append(
+                    {"env": env, "model": model, "planner": planner or "", "seed": seed, "trials": trials, **s}
+                )
                 finals.append(s["final_reward"])
                 aucs.append(s["auc"])
                 stats.append(s)
@@ -465,38 +526,95 @@ def summarise_online(out: Path, env_names: Sequence[str], models: Sequence[str],
             if not finals:
                 continue
             f, a = summarise(finals, seed=BOOT_SEED), summarise(aucs, seed=BOOT_SEED)
-            summary.append({"env": env, "model": model, "planner": planner or "", "n_seeds": f["n"],
-                            "trials": trials, "final_window": min(final_window, trials),
-                            "final_mean": f["mean"], "final_ci_low": f["ci_low"], "final_ci_high": f["ci_high"],
-                            "final_iqm": f["iqm"], "auc_mean": a["mean"], "auc_ci_low": a["ci_low"],
-                            "auc_ci_high": a["ci_high"], "auc_iqm": a["iqm"],
-                            **{f"{k}_mean": float(np.mean([s[k] for s in stats]))
-                               for k in ("env_steps", "wall_time_s", "plan_seconds_per_step")}})
+            summary.append(
+                {
+                    "env": env,
+                    "model": model,
+                    "planner": planner or "",
+                    "n_seeds": f["n"],
+                    "trials": trials,
+                    "final_window": min(final_window, trials),
+                    "final_mean": f["mean"],
+                    "final_ci_low": f["ci_low"],
+                    "final_ci_high": f["ci_high"],
+                    "final_iqm": f["iqm"],
+                    "auc_mean": a["mean"],
+                    "auc_ci_low": a["ci_low"],
+                    "auc_ci_high": a["ci_high"],
+                    "auc_iqm": a["iqm"],
+                    **{
+                        f"{k}_mean": float(np.mean([s[k] for s in stats]))
+                        for k in ("env_steps", "wall_time_s", "plan_seconds_per_step")
+                    },
+                }
+            )
     write_csv(out / "summary.csv", summary, SUMMARY_COLUMNS)
-    write_csv(out / "summary_runs.csv", per_run, ["env", "model", "planner", "seed", "trials", "final_reward", "auc",
-                                                   "env_steps", "wall_time_s", "plan_seconds_per_step"])
+    write_csv(
+        out / "summary_runs.csv",
+        per_run,
+        [
+            "env",
+            "model",
+            "planner",
+            "seed",
+            "trials",
+            "final_reward",
+            "auc",
+            "env_steps",
+            "wall_time_s",
+            "plan_seconds_per_step",
+        ],
+    )
     w = min(final_window, trials)
-    text = [f"# Online comparison ({trials} trials per run)", "",
-            f"final = mean episode reward of the last {w} trial{'s' if w > 1 else ''} of each run; "
-            f"AUC = mean episode reward over all {trials} trials. Mean over seeds with the 95 % "
-            "percentile-bootstrap CI in brackets; IQM = interquartile mean over seeds. Plan s/step: median "
-            "seconds per planning step of a run (mean over seeds); wall h: the run's wall-clock hours "
-            "(planning, simulation, model training; mean over seeds).", ""]
+    text = [
+        f"# Online comparison ({trials} trials per run)",
+        "",
+        f"final = mean episode reward of the last {w} trial{'s' if w > 1 else ''} of each run; "
+        f"AUC = mean episode reward over all {trials} trials. Mean over seeds with the 95 % "
+        "percentile-bootstrap CI in brackets; IQM = interquartile mean over seeds. Plan s/step: median "
+        "seconds per planning step of a run (mean over seeds); wall h: the run's wall-clock hours "
+        "(planning, simulation, model training; mean over seeds).",
+        "",
+    ]
     arm_header = ["model"] if planners is None else ["model", "planner"]
     for env in env_names:
         rows = [r for r in summary if r["env"] == env]
         if not rows:
             continue
-        text += [f"## {env}", "", md_table(
-            [*arm_header, "seeds", "final reward", "final IQM", "AUC", "AUC IQM", "env steps", "plan s/step",
-             "wall h"],
-            [[*([r["model"]] if planners is None else [r["model"], r["planner"]]), str(r["n_seeds"]),
-              fmt_ci({"mean": r["final_mean"], "ci_low": r["final_ci_low"], "ci_high": r["final_ci_high"]}),
-              fmt(r["final_iqm"]), fmt_ci({"mean": r["auc_mean"], "ci_low": r["auc_ci_low"],
-                                           "ci_high": r["auc_ci_high"]}),
-              fmt(r["auc_iqm"]), f"{r['env_steps_mean']:.0f}", fmt(r["plan_seconds_per_step_mean"], 3),
-              fmt(r["wall_time_s_mean"] / 3600, 3)] for r in rows]), "",
-            f"![rewards](rewards_{env}.png) ![wall-clock](walltime_{env}.png)", ""]
+        text += [
+            f"## {env}",
+            "",
+            md_table(
+                [
+                    *arm_header,
+                    "seeds",
+                    "final reward",
+                    "final IQM",
+                    "AUC",
+                    "AUC IQM",
+                    "env steps",
+                    "plan s/step",
+                    "wall h",
+                ],
+                [
+                    [
+                        *([r["model"]] if planners is None else [r["model"], r["planner"]]),
+                        str(r["n_seeds"]),
+                        fmt_ci({"mean": r["final_mean"], "ci_low": r["final_ci_low"], "ci_high": r["final_ci_high"]}),
+                        fmt(r["final_iqm"]),
+                        fmt_ci({"mean": r["auc_mean"], "ci_low": r["auc_ci_low"], "ci_high": r["auc_ci_high"]}),
+                        fmt(r["auc_iqm"]),
+                        f"{r['env_steps_mean']:.0f}",
+                        fmt(r["plan_seconds_per_step_mean"], 3),
+                        fmt(r["wall_time_s_mean"] / 3600, 3),
+                    ]
+                    for r in rows
+                ],
+            ),
+            "",
+            f"![rewards](rewards_{env}.png) ![wall-clock](walltime_{env}.png)",
+            "",
+        ]
         labels = [arm_label(m, p) for m, p in arms]
         runs = {label: curves[(env, label)] for label in labels if (env, label) in curves}
         colors = model_colors(list(runs)) if planners is None else arm_colors(list(runs))
@@ -508,9 +626,25 @@ def summarise_online(out: Path, env_names: Sequence[str], models: Sequence[str],
     return summary
 
 
-SUMMARY_COLUMNS = ["env", "model", "planner", "n_seeds", "trials", "final_window", "final_mean", "final_ci_low",
-                   "final_ci_high", "final_iqm", "auc_mean", "auc_ci_low", "auc_ci_high", "auc_iqm",
-                   "env_steps_mean", "wall_time_s_mean", "plan_seconds_per_step_mean"]
+SUMMARY_COLUMNS = [
+    "env",
+    "model",
+    "planner",
+    "n_seeds",
+    "trials",
+    "final_window",
+    "final_mean",
+    "final_ci_low",
+    "final_ci_high",
+    "final_iqm",
+    "auc_mean",
+    "auc_ci_low",
+    "auc_ci_high",
+    "auc_iqm",
+    "env_steps_mean",
+    "wall_time_s_mean",
+    "plan_seconds_per_step_mean",
+]
 
 #: x axis of the online plots: metrics column -> (axis label, scale applied to the column).
 ONLINE_X = {"env_steps": ("environment steps", 1.0), "wall_time_s": ("wall-clock hours of the run", 1 / 3600)}
@@ -524,8 +658,13 @@ def arm_colors(labels: Sequence[str]) -> dict[str, Any]:
     return {label: cmap(i % 10) for i, label in enumerate(labels)}
 
 
-def plot_online(path: Path, env: str, runs: Mapping[str, Sequence[Sequence[Mapping[str, float]]]],
-                colors: Mapping[str, Any], x_key: str = "env_steps") -> None:
+def plot_online(
+    path: Path,
+    env: str,
+    runs: Mapping[str, Sequence[Sequence[Mapping[str, float]]]],
+    colors: Mapping[str, Any],
+    x_key: str = "env_steps",
+) -> None:
     """Episode reward vs env steps (or wall-clock time) per arm: mean over seeds on a common grid, bootstrap
     band (module docstring)."""
     from pets.stats import bootstrap_band
@@ -549,8 +688,15 @@ def plot_online(path: Path, env: str, runs: Mapping[str, Sequence[Sequence[Mappi
             ax.fill_between(grid, band_low, band_high, color=c, alpha=0.25, lw=0)
         else:  # one trial, or seeds whose ranges do not overlap: the final points only
             finals = np.array([y[-1] for y in ys])
-            ax.errorbar([np.mean([x[-1] for x in xs])], [finals.mean()], yerr=[[finals.mean() - finals.min()],
-                        [finals.max() - finals.mean()]], color=c, marker="o", capsize=4, label=label)
+            ax.errorbar(
+                [np.mean([x[-1] for x in xs])],
+                [finals.mean()],
+                yerr=[[finals.mean() - finals.min()], [finals.max() - finals.mean()]],
+                color=c,
+                marker="o",
+                capsize=4,
+                label=label,
+            )
     ax.set_xlabel(x_label)
     ax.set_ylabel("episode reward")
     ax.set_title(f"{env}: episode reward (mean over seeds, 95 % bootstrap CI)", fontsize=10)
@@ -577,21 +723,23 @@ def expected_policy_name(policy: str) -> str:
     except ValueError as err:
         raise UsageError(str(err)) from None
     if kind == "run":
-        raise UsageError("--policy must be random, smooth-random[:BETA] or existing (one policy for every env; "
-                         "collect agent data with pets.collect --policy run:RUN_DIR into DIR/data and use existing)")
+        raise UsageError(
+            "--policy must be random, smooth-random[:BETA] or existing (one policy for every env; "
+            "collect agent data with pets.collect --policy run:RUN_DIR into DIR/data and use existing)"
+        )
     return "random" if kind == "random" else f"smooth-random:{(DEFAULT_BETA if arg is None else arg):g}"
 
 
-def prepare_data(path: Path, env: str, policy: str, episodes: int, seed: int, max_steps: int | None,
-                 progress: bool = False) -> str:
+def prepare_data(
+    path: Path, env: str, policy: str, episodes: int, seed: int, max_steps: int | None, progress: bool = False
+) -> str:
     """Collect the data set at ``path`` unless it exists; ``"collected"`` or ``"reused"``.
 
     UsageError if an existing file was collected for another env, policy, seed or episode count.
     """
+    import envs
     from pets.collect import collect
     from pets.datasets import load_dataset, save_dataset
-
-    import envs
 
     want = {"env": env, "policy": expected_policy_name(policy), "seed": seed, "episodes": episodes}
     if policy == EXISTING and not path.is_file():
@@ -605,14 +753,20 @@ def prepare_data(path: Path, env: str, policy: str, episodes: int, seed: int, ma
             if str(data["env"]) != env:
                 raise UsageError(f"{path} holds {data['env']} data, not {env}")
             return "reused"
-        got = {"env": str(data["env"]), "policy": str(data["policy"]) if "policy" in data else None,
-               "seed": int(data["seed"]) if "seed" in data else None, "episodes": int(len(data["lengths"]))}
+        got = {
+            "env": str(data["env"]),
+            "policy": str(data["policy"]) if "policy" in data else None,
+            "seed": int(data["seed"]) if "seed" in data else None,
+            "episodes": int(len(data["lengths"])),
+        }
         if max_steps is not None and int(data["lengths"].max()) > max_steps:
             got["max_steps"], want["max_steps"] = int(data["lengths"].max()), max_steps
         if got != want:
             diff = "; ".join(f"{k}: {got.get(k)!r} != {want.get(k)!r}" for k in want if got.get(k) != want.get(k))
-            raise UsageError(f"{path} was collected with other settings ({diff}); pass the same settings, "
-                             "delete the file or pick another --out")
+            raise UsageError(
+                f"{path} was collected with other settings ({diff}); pass the same settings, "
+                "delete the file or pick another --out"
+            )
         return "reused"
     save_dataset(path, collect(envs.get(env), policy, episodes, seed, max_steps, progress=progress))
     return "collected"
@@ -640,13 +794,28 @@ def _offline_job(job: Mapping[str, Any]) -> dict[str, Any]:
 
     run_dir, done = Path(job["run_dir"]), []
     if not (run_dir / "config.yaml").is_file():
-        train_offline(job["train_data"], job["model"], run_dir, job["overrides"], preset=job["preset"],
-                      seed=job["seed"], device=job["device"])
+        train_offline(
+            job["train_data"],
+            job["model"],
+            run_dir,
+            job["overrides"],
+            preset=job["preset"],
+            seed=job["seed"],
+            device=job["device"],
+        )
         done.append("train")
     eval_path, request = run_dir / "eval.json", job["eval_request"]
     if "train" in done or not _json_matches(eval_path, request):
-        result = evaluate(run_dir, job["test_data"], request["horizons"], request["starts"], seed=request["seed"],
-                          mode=request["mode"], device=job["device"], log=lambda message: None)
+        result = evaluate(
+            run_dir,
+            job["test_data"],
+            request["horizons"],
+            request["starts"],
+            seed=request["seed"],
+            mode=request["mode"],
+            device=job["device"],
+            log=lambda message: None,
+        )
         result["request"] = request
         atomic_write_bytes(eval_path, (json.dumps(result) + "\n").encode())
         done.append("eval")
@@ -668,9 +837,12 @@ def offline_todo(job: Mapping[str, Any]) -> list[str]:
     todo = [] if (run_dir / "config.yaml").is_file() else ["train"]
     if todo or not _json_matches(run_dir / "eval.json", job["eval_request"]):
         todo.append("eval")
-    todo += [f"openloop_{p}" for p in job["planners"]
-             if todo[:1] == ["train"] or not _json_matches(run_dir / f"openloop_{p}.json",
-                                                          {**job["openloop_request"], "planner": p})]
+    todo += [
+        f"openloop_{p}"
+        for p in job["planners"]
+        if todo[:1] == ["train"]
+        or not _json_matches(run_dir / f"openloop_{p}.json", {**job["openloop_request"], "planner": p})
+    ]
     return todo
 
 
@@ -684,12 +856,28 @@ def _json_matches(path: Path, request: Mapping[str, Any]) -> bool:
         return False
 
 
-def compare_offline(env_names: Sequence[str], models: Sequence[str], seeds: Sequence[int], out: Path, *,
-                    episodes: int = 100, test_episodes: int = 20, max_steps: int | None = None,
-                    policy: str = "random", horizons: Sequence[int] = (1, 5, 10, 25, 50), starts: int = 1000,
-                    openloop: bool = False, planners: Sequence[str] = ("cem", "mppi"), openloop_steps: int = 50,
-                    openloop_episodes: int = 5, workers: int = 1, preset: str = "research", device: str = "auto",
-                    overrides: Sequence[str] = (), progress: bool = True) -> dict[str, Any]:
+def compare_offline(
+    env_names: Sequence[str],
+    models: Sequence[str],
+    seeds: Sequence[int],
+    out: Path,
+    *,
+    episodes: int = 100,
+    test_episodes: int = 20,
+    max_steps: int | None = None,
+    policy: str = "random",
+    horizons: Sequence[int] = (1, 5, 10, 25, 50),
+    starts: int = 1000,
+    openloop: bool = False,
+    planners: Sequence[str] = ("cem", "mppi"),
+    openloop_steps: int = 50,
+    openloop_episodes: int = 5,
+    workers: int = 1,
+    preset: str = "research",
+    device: str = "auto",
+    overrides: Sequence[str] = (),
+    progress: bool = True,
+) -> dict[str, Any]:
     """Collect, train, evaluate (and open-loop plan) everything missing, then write the summaries.
 
     Returns ``{"data": {file: collected|reused}, "todo": {run: [what was missing]}, "done": {run: [what was
@@ -698,9 +886,14 @@ def compare_offline(env_names: Sequence[str], models: Sequence[str], seeds: Sequ
     from pets.config import ConfigError, parse_overrides
     from pets.train import offline_config
 
-    for name, value in (("episodes", episodes), ("test-episodes", test_episodes), ("starts", starts),
-                        ("workers", workers), ("openloop-steps", openloop_steps),
-                        ("openloop-episodes", openloop_episodes)):
+    for name, value in (
+        ("episodes", episodes),
+        ("test-episodes", test_episodes),
+        ("starts", starts),
+        ("workers", workers),
+        ("openloop-steps", openloop_steps),
+        ("openloop-episodes", openloop_episodes),
+    ):
         if value < 1:
             raise UsageError(f"--{name} must be >= 1, got {value}")
     if max_steps is not None and max_steps < 1:
@@ -733,28 +926,43 @@ def compare_offline(env_names: Sequence[str], models: Sequence[str], seeds: Sequ
         for part, seed, n in (("train", TRAIN_DATA_SEED, episodes), ("test", TEST_DATA_SEED, test_episodes)):
             path = data_dir / f"{env}-{part}.npz"
             data_actions[path.name] = prepare_data(path, env, policy, n, seed, max_steps, progress)
-    eval_request = {"horizons": sorted(set(int(h) for h in horizons)), "starts": starts, "seed": EVAL_SEED,
-                    "mode": "mean"}
+    eval_request = {
+        "horizons": sorted(set(int(h) for h in horizons)),
+        "starts": starts,
+        "seed": EVAL_SEED,
+        "mode": "mean",
+    }
     openloop_request = {"steps": openloop_steps, "episodes": openloop_episodes, "seed": OPENLOOP_SEED}
     for env in env_names:
         for model in models:
             for seed in seeds:
                 name = run_name(env, model, seed)
-                job = {"env": env, "model": model, "seed": seed, "run_dir": str(out / "runs" / name),
-                       "train_data": str(data_dir / f"{env}-train.npz"), "test_data": str(data_dir / f"{env}-test.npz"),
-                       "overrides": extra, "preset": preset, "device": device,
-                       "eval_request": {**eval_request, "data": f"data/{env}-test.npz"},
-                       "planners": list(planners) if openloop else [], "openloop_request": openloop_request}
+                job = {
+                    "env": env,
+                    "model": model,
+                    "seed": seed,
+                    "run_dir": str(out / "runs" / name),
+                    "train_data": str(data_dir / f"{env}-train.npz"),
+                    "test_data": str(data_dir / f"{env}-test.npz"),
+                    "overrides": extra,
+                    "preset": preset,
+                    "device": device,
+                    "eval_request": {**eval_request, "data": f"data/{env}-test.npz"},
+                    "planners": list(planners) if openloop else [],
+                    "openloop_request": openloop_request,
+                }
                 todo = offline_todo(job)
                 if todo:
                     jobs.append((name, job_fn, (job,)))
                     pending[name] = todo
     total = len(env_names) * len(models) * len(seeds)
-    print(f"{PROG}: {total} runs: {total - len(jobs)} reused, {len(jobs)} with work to do "
-          f"({workers} worker{'s' if workers > 1 else ''}); data: "
-          + ", ".join(f"{k} {v}" for k, v in data_actions.items()), file=sys.stderr)
-    results = run_pool(jobs, min(workers, max(len(jobs), 1)), processes=True, progress=progress,
-                       desc="offline runs")
+    print(
+        f"{PROG}: {total} runs: {total - len(jobs)} reused, {len(jobs)} with work to do "
+        f"({workers} worker{'s' if workers > 1 else ''}); data: "
+        + ", ".join(f"{k} {v}" for k, v in data_actions.items()),
+        file=sys.stderr,
+    )
+    results = run_pool(jobs, min(workers, max(len(jobs), 1)), processes=True, progress=progress, desc="offline runs")
     failed = {name: msg for name, (ok, msg) in results.items() if not ok}
     done = {name: res["done"] for name, (ok, res) in results.items() if ok}
     summary = summarise_offline(out, env_names, models, seeds, eval_request, failed)
@@ -763,8 +971,9 @@ def compare_offline(env_names: Sequence[str], models: Sequence[str], seeds: Sequ
     return {"data": data_actions, "todo": pending, "done": done, "failed": failed, "summary": summary}
 
 
-def load_evals(out: Path, env: str, models: Sequence[str], seeds: Sequence[int],
-               request: Mapping[str, Any]) -> dict[str, list[dict[str, Any]]]:
+def load_evals(
+    out: Path, env: str, models: Sequence[str], seeds: Sequence[int], request: Mapping[str, Any]
+) -> dict[str, list[dict[str, Any]]]:
     """{model: [eval.json of each seed that has one for this request]}."""
     found: dict[str, list[dict[str, Any]]] = {}
     for model in models:
@@ -776,17 +985,27 @@ def load_evals(out: Path, env: str, models: Sequence[str], seeds: Sequence[int],
     return found
 
 
-def summarise_offline(out: Path, env_names: Sequence[str], models: Sequence[str], seeds: Sequence[int],
-                      request: Mapping[str, Any], failed: Mapping[str, str] | None = None) -> list[dict[str, Any]]:
+def summarise_offline(
+    out: Path,
+    env_names: Sequence[str],
+    models: Sequence[str],
+    seeds: Sequence[int],
+    request: Mapping[str, Any],
+    failed: Mapping[str, str] | None = None,
+) -> list[dict[str, Any]]:
     """Write prediction.md, prediction.csv, prediction_runs.csv, relative_error.png, absolute_error_ENV.png."""
     from pets.stats import summarise
 
     out = Path(out)
     rows, per_run, relative, text = [], [], {}, []
-    text += ["# Offline comparison: long-horizon prediction error", "",
-             "Mean step-wise error (pets.evaluate, ensemble-mean rollouts on the test data, the same start "
-             "points for every model and seed of an env) per horizon; mean over seeds with the 95 % "
-             "percentile-bootstrap CI in brackets.", ""]
+    text += [
+        "# Offline comparison: long-horizon prediction error",
+        "",
+        "Mean step-wise error (pets.evaluate, ensemble-mean rollouts on the test data, the same start "
+        "points for every model and seed of an env) per horizon; mean over seeds with the 95 % "
+        "percentile-bootstrap CI in brackets.",
+        "",
+    ]
     for env in env_names:
         evals = load_evals(out, env, models, seeds, request)
         if not evals:
@@ -797,47 +1016,110 @@ def summarise_offline(out: Path, env_names: Sequence[str], models: Sequence[str]
             by_h = {h: [float(e["horizons"][str(h)]["mean_step_error"]) for e in runs] for h in common}
             for e in runs:
                 for h, m in e["horizons"].items():
-                    per_run.append({"env": env, "model": model, "seed": e["seed"], "horizon": int(h),
-                                    "starts": e["starts"], **m})
+                    per_run.append(
+                        {"env": env, "model": model, "seed": e["seed"], "horizon": int(h), "starts": e["starts"], **m}
+                    )
             stats_h = {}
             for h in common:
                 s = summarise(by_h[h], seed=BOOT_SEED)
                 finals = [float(e["horizons"][str(h)]["final_step_error"]) for e in runs]
                 nonfinite = [float(e["horizons"][str(h)]["nonfinite_fraction"]) for e in runs]
-                rows.append({"env": env, "model": model, "horizon": h, "n_seeds": s["n"],
-                             "mean_step_error": s["mean"], "ci_low": s["ci_low"], "ci_high": s["ci_high"],
-                             "iqm": s["iqm"], "final_step_error": float(np.mean(finals)),
-                             "nonfinite_fraction": float(np.mean(nonfinite))})
+                rows.append(
+                    {
+                        "env": env,
+                        "model": model,
+                        "horizon": h,
+                        "n_seeds": s["n"],
+                        "mean_step_error": s["mean"],
+                        "ci_low": s["ci_low"],
+                        "ci_high": s["ci_high"],
+                        "iqm": s["iqm"],
+                        "final_step_error": float(np.mean(finals)),
+                        "nonfinite_fraction": float(np.mean(nonfinite)),
+                    }
+                )
                 stats_h[h] = s
             curves[model] = (common, stats_h)
             table.append([model, str(len(runs))] + [fmt_ci(stats_h[h]) for h in common])
             # Fig. 2: per seed the error averaged over the horizons, then the statistics over seeds
             relative.setdefault(env, {})[model] = summarise(
                 [float(np.mean([e["horizons"][str(h)]["mean_step_error"] for h in common])) for e in runs],
-                seed=BOOT_SEED)
+                seed=BOOT_SEED,
+            )
         asked = set(request["horizons"])
         skipped = sorted(asked - set(common))
         note = f"; skipped: {', '.join(map(str, skipped))} (longer than the test episodes)" if skipped else ""
-        text += [f"## {env} (horizons {', '.join(map(str, common))}{note})", "",
-                 md_table(["model", "seeds"] + [f"h={h}" for h in common], table), "",
-                 f"![absolute error](absolute_error_{env}.png)", ""]
+        text += [
+            f"## {env} (horizons {', '.join(map(str, common))}{note})",
+            "",
+            md_table(["model", "seeds"] + [f"h={h}" for h in common], table),
+            "",
+            f"![absolute error](absolute_error_{env}.png)",
+            "",
+        ]
         plot_absolute(out / f"absolute_error_{env}.png", env, curves)
-    write_csv(out / "prediction.csv", rows, ["env", "model", "horizon", "n_seeds", "mean_step_error", "ci_low",
-                                             "ci_high", "iqm", "final_step_error", "nonfinite_fraction"])
-    write_csv(out / "prediction_runs.csv", per_run, ["env", "model", "seed", "horizon", "starts", "mean_step_error",
-                                                     "final_step_error", "position_error", "velocity_error",
-                                                     "other_error", "nonfinite_fraction"])
+    write_csv(
+        out / "prediction.csv",
+        rows,
+        [
+            "env",
+            "model",
+            "horizon",
+            "n_seeds",
+            "mean_step_error",
+            "ci_low",
+            "ci_high",
+            "iqm",
+            "final_step_error",
+            "nonfinite_fraction",
+        ],
+    )
+    write_csv(
+        out / "prediction_runs.csv",
+        per_run,
+        [
+            "env",
+            "model",
+            "seed",
+            "horizon",
+            "starts",
+            "mean_step_error",
+            "final_step_error",
+            "position_error",
+            "velocity_error",
+            "other_error",
+            "nonfinite_fraction",
+        ],
+    )
     if relative:
         plot_relative(out / "relative_error.png", relative)
-        text += ["## Relative error (Fig. 2)", "",
-                 "Step-wise error averaged over the horizons, divided by the largest model's mean in the env.", "",
-                 md_table(["env"] + list(models), [[env] + [fmt(vals[m]["mean"] / max(v["mean"] for v in vals.values()))
-                                                            if m in vals else "-" for m in models]
-                                                   for env, vals in relative.items()]), "",
-                 "![relative error](relative_error.png)", ""]
-    missing = [run_name(e, m, s) for e in env_names for m in models for s in seeds
-               if not _json_matches(out / "runs" / run_name(e, m, s) / "eval.json",
-                                    {**request, "data": f"data/{e}-test.npz"})]
+        text += [
+            "## Relative error (Fig. 2)",
+            "",
+            "Step-wise error averaged over the horizons, divided by the largest model's mean in the env.",
+            "",
+            md_table(
+                ["env"] + list(models),
+                [
+                    [env]
+                    + [
+                        fmt(vals[m]["mean"] / max(v["mean"] for v in vals.values())) if m in vals else "-"
+                        for m in models
+                    ]
+                    for env, vals in relative.items()
+                ],
+            ),
+            "",
+            "![relative error](relative_error.png)",
+            "",
+        ]
+    missing = [
+        run_name(e, m, s)
+        for e in env_names
+        for m in models
+        for s in seeds
+        if not _json_matches(out / "runs" / run_name(e, m, s) / "eval.json", {**request, "data": f"data/{e}-test.npz"})
+    ]
     if missing:
         text += ["## Missing runs (not in the statistics)", ""]
         text += [f"- {m}{': ' + failed[m] if failed and m in failed else ''}" for m in missing] + [""]
@@ -902,17 +1184,30 @@ def plot_relative(path: Path, relative: Mapping[str, Mapping[str, Mapping[str, f
     atomic_write_bytes(path, _figure_bytes(fig))
 
 
-def summarise_openloop(out: Path, env_names: Sequence[str], models: Sequence[str], seeds: Sequence[int],
-                       planners: Sequence[str], request: Mapping[str, Any]) -> list[dict[str, Any]]:
+def summarise_openloop(
+    out: Path,
+    env_names: Sequence[str],
+    models: Sequence[str],
+    seeds: Sequence[int],
+    planners: Sequence[str],
+    request: Mapping[str, Any],
+) -> list[dict[str, Any]]:
     """Write openloop.md, openloop.csv and openloop_ENV.png from the runs' openloop_PLANNER.json files."""
     from pets.stats import bootstrap_band, summarise
 
     out = Path(out)
-    rows, text = [], ["# Open-loop planning (GEM paper section 5.2)", "",
-                      f"Each trained model plans {request['steps']} actions once from the initial state of "
-                      f"{request['episodes']} episodes (seed {request['seed']}); the actions run in the real env "
-                      "without feedback (rewards after a real termination count as 0). Per seed: the mean over "
-                      "episodes; then mean over seeds with the 95 % percentile-bootstrap CI.", ""]
+    rows, text = (
+        [],
+        [
+            "# Open-loop planning (GEM paper section 5.2)",
+            "",
+            f"Each trained model plans {request['steps']} actions once from the initial state of "
+            f"{request['episodes']} episodes (seed {request['seed']}); the actions run in the real env "
+            "without feedback (rewards after a real termination count as 0). Per seed: the mean over "
+            "episodes; then mean over seeds with the 95 % percentile-bootstrap CI.",
+            "",
+        ],
+    )
     plt = _pyplot()
     colors = model_colors(list(models))
     for env in env_names:
@@ -928,18 +1223,34 @@ def summarise_openloop(out: Path, env_names: Sequence[str], models: Sequence[str
                     continue
                 per_step = summarise([r["mean_reward_per_step"]["mean"] for r in results], seed=BOOT_SEED)
                 total = summarise([r["total"]["mean"] for r in results], seed=BOOT_SEED)
-                rows.append({"env": env, "planner": planner, "model": model, "n_seeds": per_step["n"],
-                             "steps": request["steps"], "reward_per_step_mean": per_step["mean"],
-                             "reward_per_step_ci_low": per_step["ci_low"],
-                             "reward_per_step_ci_high": per_step["ci_high"],
-                             "reward_per_step_iqm": per_step["iqm"], "total_mean": total["mean"],
-                             "total_ci_low": total["ci_low"], "total_ci_high": total["ci_high"]})
+                rows.append(
+                    {
+                        "env": env,
+                        "planner": planner,
+                        "model": model,
+                        "n_seeds": per_step["n"],
+                        "steps": request["steps"],
+                        "reward_per_step_mean": per_step["mean"],
+                        "reward_per_step_ci_low": per_step["ci_low"],
+                        "reward_per_step_ci_high": per_step["ci_high"],
+                        "reward_per_step_iqm": per_step["iqm"],
+                        "total_mean": total["mean"],
+                        "total_ci_low": total["ci_low"],
+                        "total_ci_high": total["ci_high"],
+                    }
+                )
                 table.append([planner, model, str(per_step["n"]), fmt_ci(per_step), fmt_ci(total)])
                 panels.setdefault(planner, {})[model] = np.array([r["reward_per_step"]["mean"] for r in results])
         if not table:
             continue
-        text += [f"## {env}", "", md_table(["planner", "model", "seeds", "reward per step", "total reward"], table), "",
-                 f"![open loop](openloop_{env}.png)", ""]
+        text += [
+            f"## {env}",
+            "",
+            md_table(["planner", "model", "seeds", "reward per step", "total reward"], table),
+            "",
+            f"![open loop](openloop_{env}.png)",
+            "",
+        ]
         fig, axes = plt.subplots(1, len(panels), figsize=(5.5 * len(panels), 4), squeeze=False)
         for ax, (planner, by_model) in zip(axes[0], panels.items()):
             for model, curves in by_model.items():
@@ -954,17 +1265,35 @@ def summarise_openloop(out: Path, env_names: Sequence[str], models: Sequence[str
             ax.legend()
         fig.tight_layout()
         atomic_write_bytes(out / f"openloop_{env}.png", _figure_bytes(fig))
-    write_csv(out / "openloop.csv", rows, ["env", "planner", "model", "n_seeds", "steps", "reward_per_step_mean",
-                                           "reward_per_step_ci_low", "reward_per_step_ci_high", "reward_per_step_iqm",
-                                           "total_mean", "total_ci_low", "total_ci_high"])
+    write_csv(
+        out / "openloop.csv",
+        rows,
+        [
+            "env",
+            "planner",
+            "model",
+            "n_seeds",
+            "steps",
+            "reward_per_step_mean",
+            "reward_per_step_ci_low",
+            "reward_per_step_ci_high",
+            "reward_per_step_iqm",
+            "total_mean",
+            "total_ci_low",
+            "total_ci_high",
+        ],
+    )
     atomic_write_bytes(out / "openloop.md", "\n".join(text).encode())
     return rows
 
 
 # =========================================================================== CLI
 def build_parser() -> OneLineParser:
-    p = OneLineParser(prog=PROG, description="A/B comparison of dynamics heads over envs and seeds, with bootstrap "
-                                             "statistics and plots (resumable).")
+    p = OneLineParser(
+        prog=PROG,
+        description="A/B comparison of dynamics heads over envs and seeds, with bootstrap "
+        "statistics and plots (resumable).",
+    )
     sub = p.add_subparsers(dest="mode", required=True, parser_class=OneLineParser)
 
     def common(q: OneLineParser) -> None:
@@ -982,16 +1311,22 @@ def build_parser() -> OneLineParser:
     common(on)
     on.add_argument("--trials", type=int, required=True, help="trials per run")
     on.add_argument("--final-window", type=int, default=3, help="trials averaged for the final reward (default 3)")
-    on.add_argument("--planners", help="also compare these planners (comma-separated pets.config.PLANNERS); "
-                                       "every model x planner pair is an arm")
+    on.add_argument(
+        "--planners",
+        help="also compare these planners (comma-separated pets.config.PLANNERS); every model x planner pair is an arm",
+    )
 
     off = sub.add_parser("offline", prog=f"{PROG} offline", help="offline training and prediction error")
     common(off)
     off.add_argument("--episodes", type=int, default=100, help="training episodes per env (default 100)")
     off.add_argument("--test-episodes", type=int, default=20, help="test episodes per env (default 20)")
     off.add_argument("--max-steps", type=int, help="steps per collected episode at most (default: env's length)")
-    off.add_argument("--policy", default="random", help="data policy: random (default), smooth-random[:BETA], or "
-                                                        "existing (use DIR/data/ENV-{train,test}.npz as they are)")
+    off.add_argument(
+        "--policy",
+        default="random",
+        help="data policy: random (default), smooth-random[:BETA], or "
+        "existing (use DIR/data/ENV-{train,test}.npz as they are)",
+    )
     off.add_argument("--horizons", default="1,5,10,25,50", help="prediction horizons (default 1,5,10,25,50)")
     off.add_argument("--starts", type=int, default=1000, help="start points of the evaluation (default 1000)")
     off.add_argument("--openloop", action="store_true", help="also plan open loop with every trained model")
@@ -1019,9 +1354,19 @@ def main(argv: Sequence[str] | None = None) -> int:
             if args.device is not None:
                 overrides.append(f"device={args.device}")
             planners = None if args.planners is None else parse_planners(args.planners)
-            result = compare_online(env_names, models, seeds, args.trials, args.out, workers=args.workers,
-                                    preset=args.preset, overrides=overrides, final_window=args.final_window,
-                                    progress=not args.quiet, planners=planners)
+            result = compare_online(
+                env_names,
+                models,
+                seeds,
+                args.trials,
+                args.out,
+                workers=args.workers,
+                preset=args.preset,
+                overrides=overrides,
+                final_window=args.final_window,
+                progress=not args.quiet,
+                planners=planners,
+            )
             report = args.out / "summary.md"
         else:
             from pets.evaluate import parse_horizons
@@ -1031,12 +1376,27 @@ def main(argv: Sequence[str] | None = None) -> int:
             except ValueError as err:
                 raise UsageError(str(err)) from None
             planners = parse_planners(args.planners)
-            result = compare_offline(env_names, models, seeds, args.out, episodes=args.episodes,
-                                     test_episodes=args.test_episodes, max_steps=args.max_steps, policy=args.policy,
-                                     horizons=horizons, starts=args.starts, openloop=args.openloop, planners=planners,
-                                     openloop_steps=args.openloop_steps, openloop_episodes=args.openloop_episodes,
-                                     workers=args.workers, preset=args.preset, device=args.device or "auto",
-                                     overrides=overrides, progress=not args.quiet)
+            result = compare_offline(
+                env_names,
+                models,
+                seeds,
+                args.out,
+                episodes=args.episodes,
+                test_episodes=args.test_episodes,
+                max_steps=args.max_steps,
+                policy=args.policy,
+                horizons=horizons,
+                starts=args.starts,
+                openloop=args.openloop,
+                planners=planners,
+                openloop_steps=args.openloop_steps,
+                openloop_episodes=args.openloop_episodes,
+                workers=args.workers,
+                preset=args.preset,
+                device=args.device or "auto",
+                overrides=overrides,
+                progress=not args.quiet,
+            )
             report = args.out / "prediction.md"
     except UsageError as err:
         fail(PROG, str(err))

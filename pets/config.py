@@ -1,14 +1,16 @@
 """All configuration in one place: global defaults, per-env defaults, presets, `key=value` overrides.
 
 Resolution order (later wins): ``Config`` defaults -> ``ENV_DEFAULTS[env]`` -> ``PRESETS[preset]``
--> ``PRESET_ENV_DEFAULTS[(preset, env)]`` -> ``HEAD_DEFAULTS[head]`` -> command-line ``key=value`` overrides. Values are parsed against the declared
-field types (``trials=00143`` is 143, never the YAML-octal 99), then range-checked.
+-> ``PRESET_ENV_DEFAULTS[(preset, env)]`` -> ``HEAD_DEFAULTS[head]`` -> command-line ``key=value`` overrides.
+Values are parsed against the declared field types (``trials=00143`` is 143, never the YAML-octal 99), then
+range-checked.
 """
+
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any, Optional
+from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
@@ -80,7 +82,7 @@ class Config:
     device: str = "auto"
     threads: int = 0  # torch CPU threads; 0: torch's default. Use 1 per process when running runs in parallel
     seed_steps: int = 1000  # uniformly random steps (over as many episodes as needed) before trial 0
-    episode_length: Optional[int] = None  # None: the env's own episode length
+    episode_length: int | None = None  # None: the env's own episode length
     train_every: int = 0  # 0: train after every trial; N > 0: also every N env steps
     model: ModelConfig = field(default_factory=ModelConfig)
     planner: PlannerConfig = field(default_factory=PlannerConfig)
@@ -125,14 +127,31 @@ PRESET_ENV_DEFAULTS: dict[tuple[str, str], dict[str, Any]] = {
     ("fast", "inverteddoublependulum"): {"planner": {"name": "mppi", "horizon": 20}},
 }
 
-_POSITIVE_INTS = ["trials", "model.ensemble_size", "model.num_elites", "model.hidden_size", "model.num_layers",
-                  "model.batch_size", "model.max_epochs", "model.patience", "model.max_holdout",
-                  "planner.population", "planner.iterations", "planner.horizon", "planner.particles",
-                  "planner.replan_every"]
-_CHOICES = {"head": HEADS, "planner.name": PLANNERS, "planner.propagation": PROPAGATIONS,
-            "planner.precision": PRECISIONS,
-            "gem.compose": ("left", "right"), "gem.loss": ("nll", "frobenius", "nll+frobenius"),
-            "device": ("auto", "cpu", "cuda")}
+_POSITIVE_INTS = [
+    "trials",
+    "model.ensemble_size",
+    "model.num_elites",
+    "model.hidden_size",
+    "model.num_layers",
+    "model.batch_size",
+    "model.max_epochs",
+    "model.patience",
+    "model.max_holdout",
+    "planner.population",
+    "planner.iterations",
+    "planner.horizon",
+    "planner.particles",
+    "planner.replan_every",
+]
+_CHOICES = {
+    "head": HEADS,
+    "planner.name": PLANNERS,
+    "planner.propagation": PROPAGATIONS,
+    "planner.precision": PRECISIONS,
+    "gem.compose": ("left", "right"),
+    "gem.loss": ("nll", "frobenius", "nll+frobenius"),
+    "device": ("auto", "cpu", "cuda"),
+}
 
 
 def all_keys(cfg: DictConfig | None = None, prefix: str = "") -> list[str]:
@@ -192,31 +211,36 @@ def validate(cfg: DictConfig) -> None:
     if not 0 <= cfg.model.holdout_ratio < 1:
         raise ConfigError(f"model.holdout_ratio must be in [0, 1), got {cfg.model.holdout_ratio}")
     if cfg.model.num_elites > cfg.model.ensemble_size:
-        raise ConfigError(f"model.num_elites ({cfg.model.num_elites}) must be <= model.ensemble_size "
-                          f"({cfg.model.ensemble_size})")
+        raise ConfigError(
+            f"model.num_elites ({cfg.model.num_elites}) must be <= model.ensemble_size ({cfg.model.ensemble_size})"
+        )
     if cfg.threads < 0:
         raise ConfigError(f"threads must be >= 0 (0: torch default), got {cfg.threads}")
     if cfg.seed < 0 or cfg.seed_steps < 0 or cfg.train_every < 0:
         raise ConfigError("seed, seed_steps and train_every must be >= 0")
-    for key, low, high, low_open in (("planner.noise_beta", 0.0, math.inf, False),
-                                     ("planner.icem_population_decay", 1.0, math.inf, False),
-                                     ("planner.icem_keep_elites", 0.0, 1.0, False),
-                                     ("planner.mppi_sigma", 0.0, math.inf, True),
-                                     ("planner.mppi_temperature", 0.0, math.inf, True),
-                                     ("planner.mppi_smoothing", 0.0, 1.0, True)):
+    for key, low, high, low_open in (
+        ("planner.noise_beta", 0.0, math.inf, False),
+        ("planner.icem_population_decay", 1.0, math.inf, False),
+        ("planner.icem_keep_elites", 0.0, 1.0, False),
+        ("planner.mppi_sigma", 0.0, math.inf, True),
+        ("planner.mppi_temperature", 0.0, math.inf, True),
+        ("planner.mppi_smoothing", 0.0, 1.0, True),
+    ):
         v = OmegaConf.select(cfg, key)
         if not (math.isfinite(v) and (v > low if low_open else v >= low) and v <= high):
             interval = ("(" if low_open else "[") + f"{low}, {high}" + ("]" if math.isfinite(high) else ")")
             raise ConfigError(f"{key} must be a finite number in {interval}, got {v}")
     if cfg.planner.replan_every > cfg.planner.horizon:
-        raise ConfigError(f"planner.replan_every ({cfg.planner.replan_every}) must be <= planner.horizon "
-                          f"({cfg.planner.horizon})")
+        raise ConfigError(
+            f"planner.replan_every ({cfg.planner.replan_every}) must be <= planner.horizon ({cfg.planner.horizon})"
+        )
     if cfg.episode_length is not None and cfg.episode_length < 1:
         raise ConfigError(f"episode_length must be >= 1 or null, got {cfg.episode_length}")
 
 
-def make_config(env: str, head: str = "delta", preset: str = "research",
-                overrides: dict[str, Any] | None = None) -> DictConfig:
+def make_config(
+    env: str, head: str = "delta", preset: str = "research", overrides: dict[str, Any] | None = None
+) -> DictConfig:
     """Resolve the full config for ``env`` (a canonical env name) and validate it."""
     if preset not in PRESETS:
         raise ConfigError(f"unknown preset {preset!r}; accepted: {', '.join(PRESETS)}")

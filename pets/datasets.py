@@ -20,6 +20,7 @@ Files are written byte-for-byte reproducibly (fixed zip timestamps, fixed key or
 atomically (temporary file + ``os.replace``). Only numpy is imported at module level, so that the
 commands fail fast (without importing torch) on bad arguments.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -27,8 +28,9 @@ import io
 import os
 import sys
 import zipfile
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Mapping, NoReturn
+from typing import Any, NoReturn
 
 import numpy as np
 
@@ -65,8 +67,7 @@ def npz_bytes(arrays: Mapping[str, np.ndarray]) -> bytes:
             info = zipfile.ZipInfo(f"{key}.npy", date_time=(1980, 1, 1, 0, 0, 0))
             info.external_attr = 0o644 << 16
             with zf.open(info, "w", force_zip64=True) as f:
-                np.lib.format.write_array(f, arr if arr.flags.c_contiguous else arr.copy(order="C"),
-                                        allow_pickle=False)
+                np.lib.format.write_array(f, arr if arr.flags.c_contiguous else arr.copy(order="C"), allow_pickle=False)
     return buf.getvalue()
 
 
@@ -89,8 +90,10 @@ def load_dataset(path: str | Path) -> dict[str, np.ndarray]:
         with np.load(path, allow_pickle=False) as z:
             data = {k: z[k] for k in z.files}
     except Exception as err:  # zipfile.BadZipFile, ValueError (pickled arrays), OSError, ...
-        raise ValueError(f"{path} is not a readable .npz data set ({type(err).__name__}: "
-                         f"{str(err).splitlines()[0] if str(err) else ''})") from None
+        raise ValueError(
+            f"{path} is not a readable .npz data set ({type(err).__name__}: "
+            f"{str(err).splitlines()[0] if str(err) else ''})"
+        ) from None
     check_dataset(data, str(path))
     return data
 
@@ -106,14 +109,18 @@ def check_dataset(data: Mapping[str, Any], name: str = "data set") -> None:
     if env.shape != () or env.dtype.kind != "U":
         raise ValueError(f"{name}: 'env' must be a 0-d string array, got shape {env.shape} dtype {env.dtype}")
     if obs.ndim != 3 or act.ndim != 3 or rew.ndim != 2 or term.ndim != 2 or lengths.ndim != 1:
-        raise ValueError(f"{name}: expected obs (n, T+1, obs_dim), act (n, T, act_dim), rew (n, T), terminated (n, T), "
-                         f"lengths (n,); got {obs.shape}, {act.shape}, {rew.shape}, {term.shape}, {lengths.shape}")
+        raise ValueError(
+            f"{name}: expected obs (n, T+1, obs_dim), act (n, T, act_dim), rew (n, T), terminated (n, T), "
+            f"lengths (n,); got {obs.shape}, {act.shape}, {rew.shape}, {term.shape}, {lengths.shape}"
+        )
     n, t = act.shape[:2]
     if n < 1 or t < 1:
         raise ValueError(f"{name}: needs at least one episode with one step, got act shape {act.shape}")
     if obs.shape[:2] != (n, t + 1) or rew.shape != (n, t) or term.shape != (n, t) or lengths.shape != (n,):
-        raise ValueError(f"{name}: inconsistent shapes obs {obs.shape}, act {act.shape}, rew {rew.shape}, "
-                         f"terminated {term.shape}, lengths {lengths.shape} (expected n={n}, T={t})")
+        raise ValueError(
+            f"{name}: inconsistent shapes obs {obs.shape}, act {act.shape}, rew {rew.shape}, "
+            f"terminated {term.shape}, lengths {lengths.shape} (expected n={n}, T={t})"
+        )
     if obs.dtype.kind != "f" or act.dtype.kind != "f" or rew.dtype.kind != "f":
         raise ValueError(f"{name}: obs, act and rew must be float arrays, got {obs.dtype}, {act.dtype}, {rew.dtype}")
     if term.dtype != np.bool_ or lengths.dtype.kind not in "iu":

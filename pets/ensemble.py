@@ -11,6 +11,7 @@ elites, member selection) and the batched-member MLP helpers :func:`init_member_
 :func:`member_mlp` and :func:`decay_loss`; the deterministic models of ``pets.models`` and
 ``gem_head.two_stage`` are built from them.
 """
+
 from __future__ import annotations
 
 import math
@@ -137,8 +138,9 @@ class MemberEnsemble(nn.Module):
     def fit_normaliser(self, x: Tensor) -> None:
         """Set the input mean/std from raw inputs ``x`` of shape (N, in_dim); a std < 1e-5 becomes 1."""
         if x.dim() != 2 or x.shape[1] != self.in_dim or x.shape[0] < 1:
-            raise ValueError(f"fit_normaliser expects raw inputs of shape (N >= 1, in_dim={self.in_dim}), "
-                             f"got {tuple(x.shape)}")
+            raise ValueError(
+                f"fit_normaliser expects raw inputs of shape (N >= 1, in_dim={self.in_dim}), got {tuple(x.shape)}"
+            )
         if not torch.isfinite(x).all():
             raise ValueError("fit_normaliser got non-finite inputs (nan or inf)")
         mean, std = column_mean_std(x)
@@ -153,8 +155,9 @@ class MemberEnsemble(nn.Module):
     def fit_target_normaliser(self, y: Tensor) -> None:
         """Set the target mean/std from training targets ``y`` of shape (N, out_dim); a std < 1e-5 becomes 1."""
         if y.dim() != 2 or y.shape[1] != self.out_dim or y.shape[0] < 1:
-            raise ValueError(f"fit_target_normaliser expects targets of shape (N >= 1, out_dim={self.out_dim}), "
-                             f"got {tuple(y.shape)}")
+            raise ValueError(
+                f"fit_target_normaliser expects targets of shape (N >= 1, out_dim={self.out_dim}), got {tuple(y.shape)}"
+            )
         if not torch.isfinite(y).all():
             raise ValueError("fit_target_normaliser got non-finite targets (nan or inf)")
         mean, std = column_mean_std(y)
@@ -169,16 +172,23 @@ class MemberEnsemble(nn.Module):
     def set_elites(self, elites: Tensor) -> None:
         """Store the elite member indices (1-D, unique, in ``[0, ensemble_size)``)."""
         elites = torch.as_tensor(elites, dtype=torch.long).flatten()
-        if elites.numel() < 1 or int(elites.min()) < 0 or int(elites.max()) >= self.ensemble_size \
-                or torch.unique(elites).numel() != elites.numel():
-            raise ValueError(f"elites must be unique member indices in [0, {self.ensemble_size}), "
-                             f"got {elites.tolist()}")
+        if (
+            elites.numel() < 1
+            or int(elites.min()) < 0
+            or int(elites.max()) >= self.ensemble_size
+            or torch.unique(elites).numel() != elites.numel()
+        ):
+            raise ValueError(
+                f"elites must be unique member indices in [0, {self.ensemble_size}), got {elites.tolist()}"
+            )
         self.elites = elites.to(self.input_mean.device)
 
     def _load_from_state_dict(self, state_dict: dict[str, Any], prefix: str, *args: Any, **kwargs: Any) -> None:
         if prefix + "input_mean" in state_dict and prefix + "target_mean" not in state_dict:
-            raise ValueError("this checkpoint was written before models standardised their targets (gem-pets < 0.2): "
-                             "its networks predict other units; train the model again")
+            raise ValueError(
+                "this checkpoint was written before models standardised their targets (gem-pets < 0.2): "
+                "its networks predict other units; train the model again"
+            )
         # The number of elites may differ from the freshly built default: adopt the stored shape.
         key = prefix + "elites"
         if key in state_dict and state_dict[key].shape != self.elites.shape:
@@ -196,8 +206,10 @@ class MemberEnsemble(nn.Module):
         if not isinstance(members, Tensor):
             members = torch.as_tensor(members)
         if members.dim() != 1 or members.dtype not in (torch.int64, torch.int32) or members.numel() < 1:
-            raise ValueError(f"members must be a non-empty 1-D integer tensor of member indices, "
-                             f"got shape {tuple(members.shape)} dtype {members.dtype}")
+            raise ValueError(
+                f"members must be a non-empty 1-D integer tensor of member indices, "
+                f"got shape {tuple(members.shape)} dtype {members.dtype}"
+            )
         return members.to(device=self.input_mean.device, dtype=torch.long)
 
     def _check_inputs(self, x: Tensor, members: Tensor | None) -> tuple[Tensor | None, int]:
@@ -205,8 +217,9 @@ class MemberEnsemble(nn.Module):
         idx = self._member_index(members)
         m = self.ensemble_size if idx is None else idx.numel()
         if x.dim() not in (2, 3) or x.shape[-1] != self.in_dim or (x.dim() == 3 and x.shape[0] != m):
-            raise ValueError(f"inputs must be (B, {self.in_dim}) or ({m}, B, {self.in_dim}) for {m} members, "
-                             f"got {tuple(x.shape)}")
+            raise ValueError(
+                f"inputs must be (B, {self.in_dim}) or ({m}, B, {self.in_dim}) for {m} members, got {tuple(x.shape)}"
+            )
         return idx, m
 
 
@@ -236,11 +249,21 @@ class GaussianEnsemble(MemberEnsemble):
     (``target_mean + target_std * mean``, ``lv + 2 log target_std``).
     """
 
-    def __init__(self, in_dim: int, out_dim: int, ensemble_size: int = 7, hidden_size: int = 200,
-                 num_layers: int = 4, min_logvar: float = -10.0, max_logvar: float = 0.5,
-                 learn_logvar_bounds: bool = True, num_elites: int | None = None) -> None:
-        check_member_args(in_dim=in_dim, out_dim=out_dim, ensemble_size=ensemble_size, hidden_size=hidden_size,
-                          num_layers=num_layers)
+    def __init__(
+        self,
+        in_dim: int,
+        out_dim: int,
+        ensemble_size: int = 7,
+        hidden_size: int = 200,
+        num_layers: int = 4,
+        min_logvar: float = -10.0,
+        max_logvar: float = 0.5,
+        learn_logvar_bounds: bool = True,
+        num_elites: int | None = None,
+    ) -> None:
+        check_member_args(
+            in_dim=in_dim, out_dim=out_dim, ensemble_size=ensemble_size, hidden_size=hidden_size, num_layers=num_layers
+        )
         if not (math.isfinite(min_logvar) and math.isfinite(max_logvar) and min_logvar < max_logvar):
             raise ValueError(f"need finite min_logvar < max_logvar, got min {min_logvar}, max {max_logvar}")
         super().__init__(in_dim, out_dim, ensemble_size, num_elites)
@@ -275,11 +298,12 @@ class GaussianEnsemble(MemberEnsemble):
         """
         idx, _ = self._check_inputs(x, members)
         h = member_mlp(self.normalise(x), self.weights, self.biases, idx)
-        mean, logvar = h[..., : self.out_dim], h[..., self.out_dim:]
+        mean, logvar = h[..., : self.out_dim], h[..., self.out_dim :]
         return self.denormalise_target(mean), self.bound_logvar(logvar) + 2.0 * self.target_std.log()
 
     def bound_logvar(self, logvar: Tensor) -> Tensor:
-        """Soft bounds on the standardised log-variance: lv = max - softplus(max - lv); lv = min + softplus(lv - min)."""
+        """Soft bounds on the standardised log-variance: lv = max - softplus(max - lv), then
+        lv = min + softplus(lv - min)."""
         logvar = self.max_logvar - F.softplus(self.max_logvar - logvar)
         return self.min_logvar + F.softplus(logvar - self.min_logvar)
 
@@ -293,6 +317,8 @@ class GaussianEnsemble(MemberEnsemble):
         return self.max_logvar.sum() - self.min_logvar.sum()
 
     def extra_repr(self) -> str:
-        return (f"in_dim={self.in_dim}, out_dim={self.out_dim}, ensemble_size={self.ensemble_size}, "
-                f"hidden_size={self.hidden_size}, num_layers={self.num_layers}, num_elites={self.num_elites}, "
-                f"learn_logvar_bounds={self.learn_logvar_bounds}")
+        return (
+            f"in_dim={self.in_dim}, out_dim={self.out_dim}, ensemble_size={self.ensemble_size}, "
+            f"hidden_size={self.hidden_size}, num_layers={self.num_layers}, num_elites={self.num_elites}, "
+            f"learn_logvar_bounds={self.learn_logvar_bounds}"
+        )

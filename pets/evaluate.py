@@ -30,13 +30,15 @@ step-wise error), ``final_step_error`` = mean over starts of ``e_h``; ``position
 ``nonfinite_fraction``: the share of (start, step) pairs whose prediction is not finite (a diverging
 model: those make the averages inf/NaN, reported as such, never hidden).
 """
+
 from __future__ import annotations
 
 import json
 import math
 import sys
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Mapping, Sequence
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -56,14 +58,14 @@ METRICS = ("mean_step_error", "final_step_error", "position_error", "velocity_er
 
 
 # --------------------------------------------------------------------------- metric
-def wrap_angle(d: "Tensor") -> "Tensor":
+def wrap_angle(d: Tensor) -> Tensor:
     """Angle difference wrapped to (-pi, pi]: ``pi - ((pi - d) mod 2 pi)``."""
     import torch
 
     return math.pi - torch.remainder(math.pi - d, 2.0 * math.pi)
 
 
-def squared_errors(pred: "Tensor", true: "Tensor", layout: "ObsLayout") -> dict[str, "Tensor"]:
+def squared_errors(pred: Tensor, true: Tensor, layout: ObsLayout) -> dict[str, Tensor]:
     """Squared step-wise error parts, each of shape ``(...)`` for ``(..., obs_dim)`` inputs.
 
     position = sum over groups: Rn and SO2_cossin ``|x - x'|^2``, SO2_angle ``wrap(x - x')^2``,
@@ -73,11 +75,13 @@ def squared_errors(pred: "Tensor", true: "Tensor", layout: "ObsLayout") -> dict[
     import torch
 
     if pred.shape != true.shape or pred.shape[-1] != layout.obs_dim:
-        raise ValueError(f"pred and true must have the same shape (..., obs_dim={layout.obs_dim}), "
-                         f"got {tuple(pred.shape)} and {tuple(true.shape)}")
+        raise ValueError(
+            f"pred and true must have the same shape (..., obs_dim={layout.obs_dim}), "
+            f"got {tuple(pred.shape)} and {tuple(true.shape)}"
+        )
     dev = pred.device
 
-    def idx(ix: Sequence[int]) -> "Tensor":
+    def idx(ix: Sequence[int]) -> Tensor:
         return torch.tensor(list(ix), dtype=torch.long, device=dev)
 
     plain = [i for g in layout.groups if g.kind in ("Rn", "SO2_cossin") for i in g.indices]
@@ -85,7 +89,7 @@ def squared_errors(pred: "Tensor", true: "Tensor", layout: "ObsLayout") -> dict[
     quats = [g.indices for g in layout.groups if g.kind == "SO3_quat"]
     zero = pred.new_zeros(pred.shape[:-1])
 
-    def sq(ix: Sequence[int]) -> "Tensor":
+    def sq(ix: Sequence[int]) -> Tensor:
         if not ix:
             return zero
         i = idx(ix)
@@ -104,7 +108,7 @@ def squared_errors(pred: "Tensor", true: "Tensor", layout: "ObsLayout") -> dict[
     return {"position": position, "velocity": sq(layout.velocities), "other": sq(layout.other + layout.derived)}
 
 
-def step_errors(pred: "Tensor", true: "Tensor", layout: "ObsLayout") -> dict[str, "Tensor"]:
+def step_errors(pred: Tensor, true: Tensor, layout: ObsLayout) -> dict[str, Tensor]:
     """Step-wise errors ``total``, ``position``, ``velocity``, ``other`` (square roots of :func:`squared_errors`);
     ``total = sqrt(position^2 + velocity^2 + other^2)``."""
     sq = squared_errors(pred, true, layout)
@@ -138,8 +142,14 @@ def sample_starts(lengths: np.ndarray, horizon: int, starts: int, rng: np.random
     return pairs
 
 
-def rollout(ensemble: Any, head: Any, obs0: "Tensor", actions: "Tensor", mode: str = "mean",
-            generator: "torch.Generator | None" = None) -> "Tensor":
+def rollout(
+    ensemble: Any,
+    head: Any,
+    obs0: Tensor,
+    actions: Tensor,
+    mode: str = "mean",
+    generator: torch.Generator | None = None,
+) -> Tensor:
     """Predicted observations (K, H, obs_dim) for start observations (K, obs_dim) and actions (K, H, act_dim).
 
     Only the elite members are used. ``mean``: target = mean over elites of the predicted means;
@@ -169,8 +179,14 @@ def rollout(ensemble: Any, head: Any, obs0: "Tensor", actions: "Tensor", mode: s
     return torch.stack(preds, dim=1)
 
 
-def load_inputs(run_dir: str | Path, data: str | Path | Mapping[str, np.ndarray], horizons: Sequence[int],
-                starts: int, mode: str, device: str = "auto") -> dict[str, Any]:
+def load_inputs(
+    run_dir: str | Path,
+    data: str | Path | Mapping[str, np.ndarray],
+    horizons: Sequence[int],
+    starts: int,
+    mode: str,
+    device: str = "auto",
+) -> dict[str, Any]:
     """Validate the arguments of :func:`evaluate` and load the model and data (ValueError / ConfigError if bad)."""
     from pets.config import ConfigError, load_config
 
@@ -195,14 +211,31 @@ def load_inputs(run_dir: str | Path, data: str | Path | Mapping[str, np.ndarray]
 
     dev = builder.resolve_device(device)
     cfg, spec, head, ensemble = builder.load_model(run_dir, dev)
-    return {"run_dir": run_dir, "data_label": str(data) if isinstance(data, (str, Path)) else None,
-            "arrays": arrays, "horizons": horizons, "starts": starts, "mode": mode, "device": dev,
-            "cfg": cfg, "spec": spec, "head": head, "ensemble": ensemble}
+    return {
+        "run_dir": run_dir,
+        "data_label": str(data) if isinstance(data, (str, Path)) else None,
+        "arrays": arrays,
+        "horizons": horizons,
+        "starts": starts,
+        "mode": mode,
+        "device": dev,
+        "cfg": cfg,
+        "spec": spec,
+        "head": head,
+        "ensemble": ensemble,
+    }
 
 
-def evaluate(run_dir: str | Path, data: str | Path | Mapping[str, np.ndarray],
-             horizons: Sequence[int] = DEFAULT_HORIZONS, starts: int = DEFAULT_STARTS, seed: int = 0,
-             mode: str = "mean", device: str = "auto", log: Any = None) -> dict[str, Any]:
+def evaluate(
+    run_dir: str | Path,
+    data: str | Path | Mapping[str, np.ndarray],
+    horizons: Sequence[int] = DEFAULT_HORIZONS,
+    starts: int = DEFAULT_STARTS,
+    seed: int = 0,
+    mode: str = "mean",
+    device: str = "auto",
+    log: Any = None,
+) -> dict[str, Any]:
     """Long-horizon prediction errors of the model in ``run_dir`` on data set ``data`` (see the module docstring).
 
     Returns ``{"run", "data", "env", "model", "mode", "seed", "starts", "start_points", "skipped_horizons",
@@ -249,9 +282,18 @@ def evaluate_loaded(inputs: Mapping[str, Any], seed: int = 0, log: Any = None) -
             "other_error": float(errs["other"][:, :h].mean()),
             "nonfinite_fraction": float((~finite[:, :h]).double().mean()),
         }
-    return {"run": str(inputs["run_dir"]), "data": inputs["data_label"], "env": spec.name,
-            "model": str(inputs["cfg"].head), "mode": mode, "seed": int(seed), "starts": int(len(pairs)),
-            "start_points": pairs.tolist(), "skipped_horizons": skipped, "horizons": results}
+    return {
+        "run": str(inputs["run_dir"]),
+        "data": inputs["data_label"],
+        "env": spec.name,
+        "model": str(inputs["cfg"].head),
+        "mode": mode,
+        "seed": int(seed),
+        "starts": int(len(pairs)),
+        "start_points": pairs.tolist(),
+        "skipped_horizons": skipped,
+        "horizons": results,
+    }
 
 
 def format_table(result: Mapping[str, Any]) -> str:
@@ -267,8 +309,9 @@ def build_parser() -> OneLineParser:
     p = OneLineParser(prog=PROG, description="Long-horizon prediction error of a trained model on recorded data.")
     p.add_argument("--run", type=Path, required=True, help="run directory (run_pets.py or pets.train)")
     p.add_argument("--data", type=Path, required=True, help="data set written by pets.collect")
-    p.add_argument("--horizons", default=",".join(map(str, DEFAULT_HORIZONS)),
-                   help="comma-separated (default 1,5,10,25,50)")
+    p.add_argument(
+        "--horizons", default=",".join(map(str, DEFAULT_HORIZONS)), help="comma-separated (default 1,5,10,25,50)"
+    )
     p.add_argument("--starts", type=int, default=DEFAULT_STARTS, help=f"start points K (default {DEFAULT_STARTS})")
     p.add_argument("--seed", type=int, default=0, help="seed of the start points and of sampling (default 0)")
     p.add_argument("--mode", choices=MODES, default="mean", help="mean (ensemble mean, default) or sample (TS-inf)")

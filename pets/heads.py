@@ -6,6 +6,7 @@ A head turns (obs, act) into network inputs, (obs, next_obs) into training targe
 and (obs, predicted target) back into a next observation. The ensemble, the
 propagation, the planner and the loop only ever talk to this interface.
 """
+
 from __future__ import annotations
 
 import torch
@@ -59,8 +60,9 @@ class DynamicsHead:
         """Next observation from a (predicted or sampled) target, shape (..., obs_dim)."""
         raise NotImplementedError
 
-    def loss(self, mean: Tensor, logvar: Tensor, target: Tensor, obs: Tensor, next_obs: Tensor,
-             scale: Tensor | None = None) -> Tensor:
+    def loss(
+        self, mean: Tensor, logvar: Tensor, target: Tensor, obs: Tensor, next_obs: Tensor, scale: Tensor | None = None
+    ) -> Tensor:
         """Per-member training loss, shape (E,), for (E, B, .) batches. Default: Gaussian NLL.
 
         ``scale`` (target_dim,): the model's target std (the trainer passes it). Squared-error losses divide

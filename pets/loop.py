@@ -5,6 +5,7 @@ normaliser, replay buffer, all RNG states, metrics so far), then metrics.csv and
 ``run(..., resume=True)`` continues from the last checkpoint; an interrupted trial is replayed
 from its start with the RNG states it began with, so a resumed run matches an uninterrupted one.
 """
+
 from __future__ import annotations
 
 import random
@@ -59,11 +60,18 @@ class PETSRun:
     # --- state -----------------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:
         return {
-            "trials_done": self.trials_done, "env_steps": self.env_steps, "wall_time_s": self.wall_time_s,
-            "rows": self.rows, "ensemble": self.ensemble.state_dict(), "trainer": self.trainer.state_dict(),
-            "buffer": self.buffer.state_dict(), "train_gen": self.train_gen.get_state(),
-            "plan_gen": self.plan_gen.get_state(), "np_rng": self.np_rng.bit_generator.state,
-            "torch_rng": torch.get_rng_state(), "last_train": self.last_train,
+            "trials_done": self.trials_done,
+            "env_steps": self.env_steps,
+            "wall_time_s": self.wall_time_s,
+            "rows": self.rows,
+            "ensemble": self.ensemble.state_dict(),
+            "trainer": self.trainer.state_dict(),
+            "buffer": self.buffer.state_dict(),
+            "train_gen": self.train_gen.get_state(),
+            "plan_gen": self.plan_gen.get_state(),
+            "np_rng": self.np_rng.bit_generator.state,
+            "torch_rng": torch.get_rng_state(),
+            "last_train": self.last_train,
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -119,8 +127,13 @@ class PETSRun:
         total_reward, plan_time = 0.0, 0.0
         steps = tqdm(range(self.episode_length), desc=f"trial {trial}", leave=False, disable=not progress)
         for t in steps:
-            if (self.cfg.train_every and not random_policy and len(self.buffer) > 0
-                    and (self.env_steps + t) % self.cfg.train_every == 0 and ep_obs):
+            if (
+                self.cfg.train_every
+                and not random_policy
+                and len(self.buffer) > 0
+                and (self.env_steps + t) % self.cfg.train_every == 0
+                and ep_obs
+            ):
                 self.buffer.add_episode(np.array(ep_obs), np.array(ep_act), np.array(ep_next))
                 ep_obs, ep_act, ep_next = [], [], []
                 self._train()
@@ -148,11 +161,18 @@ class PETSRun:
         self.trials_done += 1
         self.wall_time_s += time.perf_counter() - start
         lt = self.last_train
-        row = {"trial": trial, "env_steps": self.env_steps, "episode_reward": total_reward,
-               "episode_length": length, "model_train_loss": lt.train_loss, "model_val_loss": lt.val_loss,
-               "model_val_loss_initial": lt.initial_val_loss,
-               "model_epochs": lt.epochs, "plan_seconds_per_step": 0.0 if random_policy else plan_time / length,
-               "wall_time_s": round(self.wall_time_s, 3)}
+        row = {
+            "trial": trial,
+            "env_steps": self.env_steps,
+            "episode_reward": total_reward,
+            "episode_length": length,
+            "model_train_loss": lt.train_loss,
+            "model_val_loss": lt.val_loss,
+            "model_val_loss_initial": lt.initial_val_loss,
+            "model_epochs": lt.epochs,
+            "plan_seconds_per_step": 0.0 if random_policy else plan_time / length,
+            "wall_time_s": round(self.wall_time_s, 3),
+        }
         self.rows.append(row)
         return row
 
@@ -171,8 +191,9 @@ def run(cfg: DictConfig, run_dir: Path, resume: bool = False, progress: bool = T
     else:
         rundir.write_config(run_dir, cfg)
     title = f"{cfg.env} / {cfg.head} / seed {cfg.seed}"
-    bar = tqdm(total=cfg.trials, initial=pets_run.trials_done, desc=f"{cfg.env}-{cfg.head}", unit="trial",
-               disable=not progress)
+    bar = tqdm(
+        total=cfg.trials, initial=pets_run.trials_done, desc=f"{cfg.env}-{cfg.head}", unit="trial", disable=not progress
+    )
     while pets_run.trials_done < cfg.trials:
         row = pets_run.run_trial(progress=progress)
         rundir.save_checkpoint(run_dir, pets_run.state_dict())

@@ -37,6 +37,7 @@ elites, and the original PETS per-layer weight decay. With ``model.ensemble_size
 averaged ensemble uses all five members (the paper's setting); ``model.ensemble_size=1 model.num_elites=1`` is
 the single model.
 """
+
 from __future__ import annotations
 
 import torch
@@ -64,10 +65,18 @@ class DeterministicEnsemble(MemberEnsemble):
 
     deterministic = True
 
-    def __init__(self, in_dim: int, out_dim: int, ensemble_size: int = 5, hidden_size: int = 200,
-                 num_layers: int = 4, num_elites: int | None = None) -> None:
-        check_member_args(in_dim=in_dim, out_dim=out_dim, ensemble_size=ensemble_size, hidden_size=hidden_size,
-                          num_layers=num_layers)
+    def __init__(
+        self,
+        in_dim: int,
+        out_dim: int,
+        ensemble_size: int = 5,
+        hidden_size: int = 200,
+        num_layers: int = 4,
+        num_elites: int | None = None,
+    ) -> None:
+        check_member_args(
+            in_dim=in_dim, out_dim=out_dim, ensemble_size=ensemble_size, hidden_size=hidden_size, num_layers=num_layers
+        )
         super().__init__(in_dim, out_dim, ensemble_size, num_elites)
         self.hidden_size = hidden_size
         self.num_layers = num_layers
@@ -95,9 +104,11 @@ class DeterministicEnsemble(MemberEnsemble):
         return self.weights[0].new_zeros(())
 
     def extra_repr(self) -> str:
-        return (f"in_dim={self.in_dim}, out_dim={self.out_dim}, ensemble_size={self.ensemble_size}, "
-                f"hidden_size={self.hidden_size}, num_layers={self.num_layers}, num_elites={self.num_elites}, "
-                f"deterministic=True")
+        return (
+            f"in_dim={self.in_dim}, out_dim={self.out_dim}, ensemble_size={self.ensemble_size}, "
+            f"hidden_size={self.hidden_size}, num_layers={self.num_layers}, num_elites={self.num_elites}, "
+            f"deterministic=True"
+        )
 
 
 class DeterministicDeltaHead(DeltaHead):
@@ -106,8 +117,9 @@ class DeterministicDeltaHead(DeltaHead):
     name = "delta-det"
     deterministic = True
 
-    def loss(self, mean: Tensor, logvar: Tensor, target: Tensor, obs: Tensor, next_obs: Tensor,
-             scale: Tensor | None = None) -> Tensor:
+    def loss(
+        self, mean: Tensor, logvar: Tensor, target: Tensor, obs: Tensor, next_obs: Tensor, scale: Tensor | None = None
+    ) -> Tensor:
         """Per-member mean squared error (E,) of the predicted deltas, each divided by ``scale``; ``logvar`` is
         ignored."""
         return mse_loss(mean, target, scale)

@@ -16,18 +16,32 @@ the variance of ``next_obs - obs`` on the train data (the trainer's holdout crit
 APIs only); ``l2``: the Euclidean step error of ``pets.evaluate`` (groups compared on the group). ``val_initial``
 and ``val_final`` are the trainer's holdout criterion before and after training.
 """
+
 from __future__ import annotations
 
 import csv
 import math
 import sys
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any
 
 TRAIN_POLICY = "smooth-random:0.9"
 HELDOUT_POLICY = "smooth-random:0.5"
-COLUMNS = ("env", "model", "transitions", "epochs", "val_initial", "val_final", "std_trained", "std_untrained",
-           "std_nochange", "l2_trained", "l2_untrained", "l2_nochange")
+COLUMNS = (
+    "env",
+    "model",
+    "transitions",
+    "epochs",
+    "val_initial",
+    "val_final",
+    "std_trained",
+    "std_untrained",
+    "std_nochange",
+    "l2_trained",
+    "l2_untrained",
+    "l2_nochange",
+)
 
 
 def _errors(pred: Any, obs: Any, next_obs: Any, scale: Any, predicted: Any, layout: Any) -> tuple[float, float]:
@@ -37,8 +51,16 @@ def _errors(pred: Any, obs: Any, next_obs: Any, scale: Any, predicted: Any, layo
     return std, float(step_errors(pred, next_obs, layout)["total"].mean())
 
 
-def one_step_check(env: str, models: Sequence[str], *, episodes: int = 60, max_steps: int | None = 200,
-                   epochs: int = 40, seed: int = 0, overrides: Mapping[str, Any] | None = None) -> list[dict[str, Any]]:
+def one_step_check(
+    env: str,
+    models: Sequence[str],
+    *,
+    episodes: int = 60,
+    max_steps: int | None = 200,
+    epochs: int = 40,
+    seed: int = 0,
+    overrides: Mapping[str, Any] | None = None,
+) -> list[dict[str, Any]]:
     """One row (:data:`COLUMNS`) per model for ``env``; see the module docstring."""
     import torch
 
@@ -50,10 +72,14 @@ def one_step_check(env: str, models: Sequence[str], *, episodes: int = 60, max_s
     from pets.train import offline_config
 
     spec = envs.get(env)
-    train = [torch.as_tensor(a, dtype=torch.float32) for a in
-             transitions(collect(spec, TRAIN_POLICY, episodes, seed=seed, max_steps=max_steps))]
-    held = [torch.as_tensor(a, dtype=torch.float32) for a in
-            transitions(collect(spec, HELDOUT_POLICY, episodes, seed=seed + 1, max_steps=max_steps))]
+    train = [
+        torch.as_tensor(a, dtype=torch.float32)
+        for a in transitions(collect(spec, TRAIN_POLICY, episodes, seed=seed, max_steps=max_steps))
+    ]
+    held = [
+        torch.as_tensor(a, dtype=torch.float32)
+        for a in transitions(collect(spec, HELDOUT_POLICY, episodes, seed=seed + 1, max_steps=max_steps))
+    ]
     predicted = [i for i in range(spec.obs_dim) if i not in set(getattr(spec.layout, "derived", ()))]
     scale = (train[2] - train[0])[:, predicted].double().std(0, correction=0)
     scale = torch.where(scale < 1e-5, torch.ones_like(scale), scale).float()
@@ -61,8 +87,9 @@ def one_step_check(env: str, models: Sequence[str], *, episodes: int = 60, max_s
     nochange = _errors(obs, obs, next_obs, scale, predicted, spec.layout)
     rows = []
     for model in models:
-        cfg = offline_config(spec.name, model, {**dict(overrides or {}), "model.max_epochs": epochs}, seed=seed,
-                             device="cpu")
+        cfg = offline_config(
+            spec.name, model, {**dict(overrides or {}), "model.max_epochs": epochs}, seed=seed, device="cpu"
+        )
         scores = {}
         for label, max_epochs in (("untrained", 0), ("trained", cfg.model.max_epochs)):
             torch.manual_seed(cfg.seed)
@@ -73,12 +100,22 @@ def one_step_check(env: str, models: Sequence[str], *, episodes: int = 60, max_s
             result = trainer.train(*train, torch.Generator().manual_seed(cfg.seed + 1))
             pred = rollout(ensemble, head, obs, act[:, None])[:, 0]
             scores[label] = _errors(pred, obs, next_obs, scale, predicted, spec.layout)
-        rows.append({"env": spec.name, "model": model, "transitions": int(train[0].shape[0]),
-                     "epochs": result.epochs, "val_initial": getattr(result, "initial_val_loss", math.nan),
-                     "val_final": result.val_loss,
-                     "std_trained": scores["trained"][0], "std_untrained": scores["untrained"][0],
-                     "std_nochange": nochange[0], "l2_trained": scores["trained"][1],
-                     "l2_untrained": scores["untrained"][1], "l2_nochange": nochange[1]})
+        rows.append(
+            {
+                "env": spec.name,
+                "model": model,
+                "transitions": int(train[0].shape[0]),
+                "epochs": result.epochs,
+                "val_initial": getattr(result, "initial_val_loss", math.nan),
+                "val_final": result.val_loss,
+                "std_trained": scores["trained"][0],
+                "std_untrained": scores["untrained"][0],
+                "std_nochange": nochange[0],
+                "l2_trained": scores["trained"][1],
+                "l2_untrained": scores["untrained"][1],
+                "l2_nochange": nochange[1],
+            }
+        )
     return rows
 
 
@@ -90,7 +127,9 @@ def main(argv: list[str] | None = None) -> int:
 
     parser = argparse.ArgumentParser(prog="pets.onestep", description=__doc__.split("\n\n")[0])
     parser.add_argument("--envs", default="all", help="all, or a comma list of env names")
-    parser.add_argument("--models", default="delta,gem,delta-det,gem2,delta-groupfeat", help="comma list of --model values")
+    parser.add_argument(
+        "--models", default="delta,gem,delta-det,gem2,delta-groupfeat", help="comma list of --model values"
+    )
     parser.add_argument("--episodes", type=int, default=60, help="episodes of train and of held-out data")
     parser.add_argument("--max-steps", type=int, default=200, help="episode length cap")
     parser.add_argument("--epochs", type=int, default=40, help="model.max_epochs")
@@ -101,16 +140,28 @@ def main(argv: list[str] | None = None) -> int:
     names = envs.names() if args.envs == "all" else args.envs.split(",")
     overrides = parse_overrides(args.overrides)
     rows = []
-    print("| env | model | n | epochs | val initial -> final | std: trained / untrained / no change "
-          "| l2: trained / untrained / no change |\n|---|---|---|---|---|---|---|")
+    print(
+        "| env | model | n | epochs | val initial -> final | std: trained / untrained / no change "
+        "| l2: trained / untrained / no change |\n|---|---|---|---|---|---|---|"
+    )
     for name in names:
-        for row in one_step_check(name, args.models.split(","), episodes=args.episodes, max_steps=args.max_steps,
-                                  epochs=args.epochs, seed=args.seed, overrides=overrides):
+        for row in one_step_check(
+            name,
+            args.models.split(","),
+            episodes=args.episodes,
+            max_steps=args.max_steps,
+            epochs=args.epochs,
+            seed=args.seed,
+            overrides=overrides,
+        ):
             rows.append(row)
-            print(f"| {row['env']} | {row['model']} | {row['transitions']} | {row['epochs']} | "
-                  f"{row['val_initial']:.3g} -> {row['val_final']:.3g} | {row['std_trained']:.3f} / "
-                  f"{row['std_untrained']:.3f} / {row['std_nochange']:.3f} | {row['l2_trained']:.4g} / "
-                  f"{row['l2_untrained']:.4g} / {row['l2_nochange']:.4g} |", flush=True)
+            print(
+                f"| {row['env']} | {row['model']} | {row['transitions']} | {row['epochs']} | "
+                f"{row['val_initial']:.3g} -> {row['val_final']:.3g} | {row['std_trained']:.3f} / "
+                f"{row['std_untrained']:.3f} / {row['std_nochange']:.3f} | {row['l2_trained']:.4g} / "
+                f"{row['l2_untrained']:.4g} / {row['l2_nochange']:.4g} |",
+                flush=True,
+            )
             if args.csv:
                 with open(args.csv, "w", newline="") as f:
                     writer = csv.DictWriter(f, fieldnames=COLUMNS)

@@ -25,12 +25,15 @@ percentile-bootstrap CI at every step), ``total`` (summed reward per episode: me
 ``mean_reward_per_step`` (total / steps), the planned ``actions`` and raw ``rewards`` of every episode,
 and ``predicted_return`` (the planner's own estimate of each plan's return under the model).
 """
+
 from __future__ import annotations
 
 import json
 import sys
+from collections.abc import Mapping, Sequence
+from functools import partial
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -40,8 +43,11 @@ PROG = "pets.openloop"
 DEFAULT_STEPS = 50
 DEFAULT_EPISODES = 5
 #: Planner keys that open-loop planning sets itself (and why), so they cannot be overridden.
-_FIXED = {"planner.name": "--planner", "planner.horizon": "--steps",
-          "planner.replan_every": "one plan per episode, never replanned"}
+_FIXED = {
+    "planner.name": "--planner",
+    "planner.horizon": "--steps",
+    "planner.replan_every": "one plan per episode, never replanned",
+}
 
 
 def planner_names() -> tuple[str, ...]:
@@ -86,9 +92,16 @@ def planning_config(cfg: Any, planner: str, steps: int, overrides: Mapping[str, 
     return cfg
 
 
-def open_loop(run_dir: str | Path, planner: str = "cem", steps: int = DEFAULT_STEPS,
-              episodes: int = DEFAULT_EPISODES, seed: int = 0, overrides: Mapping[str, Any] | None = None,
-              device: str = "auto", progress: bool = False) -> dict[str, Any]:
+def open_loop(
+    run_dir: str | Path,
+    planner: str = "cem",
+    steps: int = DEFAULT_STEPS,
+    episodes: int = DEFAULT_EPISODES,
+    seed: int = 0,
+    overrides: Mapping[str, Any] | None = None,
+    device: str = "auto",
+    progress: bool = False,
+) -> dict[str, Any]:
     """Open-loop planning with the model of ``run_dir`` (module docstring); returns the JSON-ready result.
 
     ValueError / ConfigError (one-line messages) for bad input.
@@ -126,7 +139,7 @@ def open_loop(run_dir: str | Path, planner: str = "cem", steps: int = DEFAULT_ST
                 plan_with.reset()  # iCEM: no elites carried over from another episode
             obs0 = torch.as_tensor(obs, dtype=torch.float32, device=dev)
             with torch.no_grad():
-                plan = plan_with.plan(lambda a: evaluator(obs0, a, generator), None, generator)  # (steps, act_dim)
+                plan = plan_with.plan(partial(evaluator, obs0, generator=generator), None, generator)  # (steps, act)
                 predicted.append(float(evaluator(obs0, plan[None], generator)[0]))
             plan_np = plan.detach().cpu().numpy().astype(np.float64)
             actions[i] = plan_np
@@ -146,40 +159,58 @@ def open_loop(run_dir: str | Path, planner: str = "cem", steps: int = DEFAULT_ST
     total = summarise(totals, seed=seed)
     per_step = summarise(totals / steps, seed=seed)
     return {
-        "run": str(run_dir), "env": spec.name, "model": str(run_cfg.head), "planner": planner, "steps": steps,
-        "episodes": episodes, "seed": seed, "device": str(dev),
+        "run": str(run_dir),
+        "env": spec.name,
+        "model": str(run_cfg.head),
+        "planner": planner,
+        "steps": steps,
+        "episodes": episodes,
+        "seed": seed,
+        "device": str(dev),
         "planner_config": OmegaConf.to_container(cfg.planner),
         "reward_per_step": {"mean": rewards.mean(axis=0).tolist(), "ci_low": low.tolist(), "ci_high": high.tolist()},
         "total": {**total, "values": totals.tolist()},
         "mean_reward_per_step": per_step,
-        "rewards": rewards.tolist(), "actions": actions.tolist(), "lengths": lengths.tolist(),
-        "terminated": terminated.tolist(), "reset_seeds": reset_seeds, "predicted_return": predicted,
+        "rewards": rewards.tolist(),
+        "actions": actions.tolist(),
+        "lengths": lengths.tolist(),
+        "terminated": terminated.tolist(),
+        "reset_seeds": reset_seeds,
+        "predicted_return": predicted,
     }
 
 
 def format_table(result: Mapping[str, Any]) -> str:
     """Reward per step (mean over episodes, 95 % CI) and the totals as a fixed-width text table."""
     r = result["reward_per_step"]
-    lines = [f"open loop: {result['env']} / {result['model']} / {result['planner']} / {result['steps']} steps / "
-             f"{result['episodes']} episodes / seed {result['seed']}",
-             f"{'step':>5}  {'reward':>12}  {'ci_low':>12}  {'ci_high':>12}"]
+    lines = [
+        f"open loop: {result['env']} / {result['model']} / {result['planner']} / {result['steps']} steps / "
+        f"{result['episodes']} episodes / seed {result['seed']}",
+        f"{'step':>5}  {'reward':>12}  {'ci_low':>12}  {'ci_high':>12}",
+    ]
     for t, (m, lo, hi) in enumerate(zip(r["mean"], r["ci_low"], r["ci_high"])):
         lines.append(f"{t:>5}  {m:>12.5g}  {lo:>12.5g}  {hi:>12.5g}")
     tot, per = result["total"], result["mean_reward_per_step"]
-    lines.append(f"total reward {tot['mean']:.5g} [{tot['ci_low']:.5g}, {tot['ci_high']:.5g}]; "
-                 f"reward per step {per['mean']:.5g} [{per['ci_low']:.5g}, {per['ci_high']:.5g}]; "
-                 f"episodes terminated early: {sum(result['terminated'])}/{result['episodes']}")
+    lines.append(
+        f"total reward {tot['mean']:.5g} [{tot['ci_low']:.5g}, {tot['ci_high']:.5g}]; "
+        f"reward per step {per['mean']:.5g} [{per['ci_low']:.5g}, {per['ci_high']:.5g}]; "
+        f"episodes terminated early: {sum(result['terminated'])}/{result['episodes']}"
+    )
     return "\n".join(lines)
 
 
 def build_parser() -> OneLineParser:
-    p = OneLineParser(prog=PROG, description="Plan once from the initial state with a trained model and execute "
-                                             "the plan in the real env without feedback.",
-                      epilog="Planner settings can be overridden as planner.KEY=VALUE, e.g. planner.population=200.")
+    p = OneLineParser(
+        prog=PROG,
+        description="Plan once from the initial state with a trained model and execute "
+        "the plan in the real env without feedback.",
+        epilog="Planner settings can be overridden as planner.KEY=VALUE, e.g. planner.population=200.",
+    )
     p.add_argument("--run", type=Path, required=True, help="run directory (run_pets.py or pets.train)")
     p.add_argument("--planner", default="cem", help="planner: cem (default), mppi or icem")
-    p.add_argument("--steps", type=int, default=DEFAULT_STEPS, help=f"plan length = steps executed "
-                                                                    f"(default {DEFAULT_STEPS})")
+    p.add_argument(
+        "--steps", type=int, default=DEFAULT_STEPS, help=f"plan length = steps executed (default {DEFAULT_STEPS})"
+    )
     p.add_argument("--episodes", type=int, default=DEFAULT_EPISODES, help=f"episodes (default {DEFAULT_EPISODES})")
     p.add_argument("--seed", type=int, default=0, help="seed of the env resets and the planner (default 0)")
     p.add_argument("--device", choices=("cpu", "cuda", "auto"), default="auto", help="where the model runs")
@@ -218,8 +249,16 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         torch.set_num_threads(args.threads)
     try:
-        result = open_loop(args.run, args.planner, args.steps, args.episodes, args.seed, overrides, args.device,
-                           progress=not args.quiet)
+        result = open_loop(
+            args.run,
+            args.planner,
+            args.steps,
+            args.episodes,
+            args.seed,
+            overrides,
+            args.device,
+            progress=not args.quiet,
+        )
     except ConfigError as err:  # e.g. device=cuda without CUDA
         fail(PROG, str(err))
     print(format_table(result))

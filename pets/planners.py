@@ -34,17 +34,21 @@ MPPI (``MPPIPlanner``, model-predictive path integral control as in the lifelong
 paper planned with): Gaussian perturbations of the current mean, optionally smoothed in time,
 weighted by a softmax of the normalised returns.
 """
+
 from __future__ import annotations
 
 import math
 import numbers
-from typing import Callable, Protocol
+from collections.abc import Callable
+from typing import Protocol
 
 import torch
 from torch import Tensor
 
-def truncated_normal(shape: tuple[int, ...], mean: Tensor, std: Tensor, *, bound: float = 2.0,
-                     generator: torch.Generator | None = None) -> Tensor:
+
+def truncated_normal(
+    shape: tuple[int, ...], mean: Tensor, std: Tensor, *, bound: float = 2.0, generator: torch.Generator | None = None
+) -> Tensor:
     """Samples of N(mean, std^2) truncated to ``mean +- bound * std``, shape ``shape + mean.shape``.
 
     Inverse-CDF method: ``u ~ U(Phi(-bound), Phi(bound))``, ``z = sqrt(2) erfinv(2 u - 1)``
@@ -63,14 +67,17 @@ def truncated_normal(shape: tuple[int, ...], mean: Tensor, std: Tensor, *, bound
     return mean + std * z
 
 
-def _as_bounds(low: object, high: object, device: torch.device | str | None,
-               dtype: torch.dtype) -> tuple[Tensor, Tensor]:
+def _as_bounds(
+    low: object, high: object, device: torch.device | str | None, dtype: torch.dtype
+) -> tuple[Tensor, Tensor]:
     """Validated (act_dim,) bound tensors on ``device`` (checked on the host, before the move)."""
     lb = torch.as_tensor(low).detach().to("cpu", torch.float64).reshape(-1)
     ub = torch.as_tensor(high).detach().to("cpu", torch.float64).reshape(-1)
     if lb.shape != ub.shape or lb.numel() == 0:
-        raise ValueError(f"action_low and action_high must be non-empty and of the same length, "
-                         f"got {tuple(lb.shape)} and {tuple(ub.shape)}")
+        raise ValueError(
+            f"action_low and action_high must be non-empty and of the same length, "
+            f"got {tuple(lb.shape)} and {tuple(ub.shape)}"
+        )
     if not (torch.isfinite(lb).all() and torch.isfinite(ub).all()):
         raise ValueError("action bounds must be finite")
     if not (lb < ub).all():
@@ -99,8 +106,12 @@ class Planner(Protocol):
 
     horizon: int
 
-    def plan(self, objective: Callable[[Tensor], Tensor], init_mean: Tensor | None = None,
-             generator: torch.Generator | None = None) -> Tensor: ...
+    def plan(
+        self,
+        objective: Callable[[Tensor], Tensor],
+        init_mean: Tensor | None = None,
+        generator: torch.Generator | None = None,
+    ) -> Tensor: ...
 
 
 class CEMPlanner:
@@ -116,10 +127,21 @@ class CEMPlanner:
     device, dtype: where the samples live (the objective gets tensors there).
     """
 
-    def __init__(self, action_low: object, action_high: object, *, horizon: int, population: int,
-                 elites: int | float = 0.1, iterations: int = 5, alpha: float = 0.1, epsilon: float = 0.0,
-                 return_mean_elites: bool = True, device: torch.device | str | None = None,
-                 dtype: torch.dtype = torch.float32) -> None:
+    def __init__(
+        self,
+        action_low: object,
+        action_high: object,
+        *,
+        horizon: int,
+        population: int,
+        elites: int | float = 0.1,
+        iterations: int = 5,
+        alpha: float = 0.1,
+        epsilon: float = 0.0,
+        return_mean_elites: bool = True,
+        device: torch.device | str | None = None,
+        dtype: torch.dtype = torch.float32,
+    ) -> None:
         for name, val in (("horizon", horizon), ("population", population), ("iterations", iterations)):
             if isinstance(val, bool) or not isinstance(val, int) or val < 1:
                 raise ValueError(f"{name} must be a positive int, got {val!r}")
@@ -149,8 +171,12 @@ class CEMPlanner:
         self.device = self.low.device
         self.dtype = dtype
 
-    def plan(self, objective: Callable[[Tensor], Tensor], init_mean: Tensor | None = None,
-             generator: torch.Generator | None = None) -> Tensor:
+    def plan(
+        self,
+        objective: Callable[[Tensor], Tensor],
+        init_mean: Tensor | None = None,
+        generator: torch.Generator | None = None,
+    ) -> Tensor:
         """Optimise ``objective`` ((N, H, act_dim) -> (N,), higher is better); returns (H, act_dim) in bounds.
 
         init_mean: warm start (H, act_dim), clipped to the bounds; default the middle of the bounds.
@@ -208,8 +234,9 @@ def _elite_count(elites: object, population: int) -> int:
     return min(population, max(1, math.ceil(round(float(elites) * population, 4))))
 
 
-def _check_real(name: str, value: object, low: float, high: float, *, low_open: bool = False,
-                high_open: bool = False) -> float:
+def _check_real(
+    name: str, value: object, low: float, high: float, *, low_open: bool = False, high_open: bool = False
+) -> float:
     """``value`` as a float in the interval [low, high] (open ends as asked), else a ValueError."""
     if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
         raise ValueError(f"{name} must be a finite number, got {value!r}")
@@ -243,8 +270,14 @@ def _check_values(values: Tensor, n: int, dtype: torch.dtype) -> Tensor:
 
 
 # ---------------------------------------------------------------------------------------------- iCEM
-def colored_noise(shape: tuple[int, ...], beta: float, *, generator: torch.Generator | None = None,
-                  device: torch.device | str | None = None, dtype: torch.dtype = torch.float32) -> Tensor:
+def colored_noise(
+    shape: tuple[int, ...],
+    beta: float,
+    *,
+    generator: torch.Generator | None = None,
+    device: torch.device | str | None = None,
+    dtype: torch.dtype = torch.float32,
+) -> Tensor:
     """Gaussian noise with power spectrum ``S(f) ~ 1 / f^beta`` along the last dimension, unit variance.
 
     ``shape = (..., T)``; every series of length T is independent. Built in the frequency domain
@@ -278,7 +311,7 @@ def colored_noise(shape: tuple[int, ...], beta: float, *, generator: torch.Gener
     re_scale = torch.where(real_only, math.sqrt(2.0) * s, s)
     im_scale = torch.where(real_only, torch.zeros_like(s), s)
     multiplicity = torch.where(real_only, 1.0, 2.0).to(work)  # interior terms appear twice (k and T - k)
-    sigma = torch.sqrt(((re_scale ** 2 + im_scale ** 2) * multiplicity).sum()) / t
+    sigma = torch.sqrt(((re_scale**2 + im_scale**2) * multiplicity).sum()) / t
     z = torch.randn(shape[:-1] + (nf, 2), generator=generator, device=device, dtype=work)
     spec = torch.complex(z[..., 0] * re_scale, z[..., 1] * im_scale)
     y = torch.fft.irfft(spec, n=t, dim=-1) / sigma
@@ -323,11 +356,24 @@ class ICEMPlanner:
     keep_between_steps: also carry the previous call's elites into the first iteration.
     """
 
-    def __init__(self, action_low: object, action_high: object, *, horizon: int, population: int,
-                 elites: int | float = 0.1, iterations: int = 5, alpha: float = 0.1, noise_beta: float = 2.0,
-                 population_decay: float = 1.25, keep_elites: float = 0.3, return_mean_elites: bool = False,
-                 keep_between_steps: bool = True, device: torch.device | str | None = None,
-                 dtype: torch.dtype = torch.float32) -> None:
+    def __init__(
+        self,
+        action_low: object,
+        action_high: object,
+        *,
+        horizon: int,
+        population: int,
+        elites: int | float = 0.1,
+        iterations: int = 5,
+        alpha: float = 0.1,
+        noise_beta: float = 2.0,
+        population_decay: float = 1.25,
+        keep_elites: float = 0.3,
+        return_mean_elites: bool = False,
+        keep_between_steps: bool = True,
+        device: torch.device | str | None = None,
+        dtype: torch.dtype = torch.float32,
+    ) -> None:
         _check_positive_ints(horizon=horizon, population=population, iterations=iterations)
         self.num_elites = _elite_count(elites, population)
         self.alpha = _check_real("alpha", alpha, 0.0, 1.0)
@@ -345,8 +391,9 @@ class ICEMPlanner:
         self.dtype = dtype
         self.num_keep = min(self.num_elites, math.ceil(round(self.keep_elites * self.num_elites, 4)))
         #: fresh samples per iteration (N_i)
-        self.populations = [max(int(population * self.population_decay ** (-i)), 2 * self.num_elites)
-                            for i in range(iterations)]
+        self.populations = [
+            max(int(population * self.population_decay ** (-i)), 2 * self.num_elites) for i in range(iterations)
+        ]
         self._last_plan: Tensor | None = None
         self._last_elites: Tensor | None = None
 
@@ -373,8 +420,12 @@ class ICEMPlanner:
             return None
         return _shift_rows(self._last_elites[: self.num_keep], hits[0], mid)
 
-    def plan(self, objective: Callable[[Tensor], Tensor], init_mean: Tensor | None = None,
-             generator: torch.Generator | None = None) -> Tensor:
+    def plan(
+        self,
+        objective: Callable[[Tensor], Tensor],
+        init_mean: Tensor | None = None,
+        generator: torch.Generator | None = None,
+    ) -> Tensor:
         """Optimise ``objective`` ((N, H, act_dim) -> (N,), higher is better); returns (H, act_dim) in bounds.
 
         init_mean: warm start (H, act_dim), clipped to the bounds; default the middle of the bounds
@@ -390,8 +441,9 @@ class ICEMPlanner:
         elite = best = None
         for i in range(self.iterations):
             n = self.populations[i]
-            noise = colored_noise((n, a, h), self.noise_beta, generator=generator, device=self.device,
-                                  dtype=self.dtype).transpose(1, 2)  # (n, H, A), colored along H
+            noise = colored_noise(
+                (n, a, h), self.noise_beta, generator=generator, device=self.device, dtype=self.dtype
+            ).transpose(1, 2)  # (n, H, A), colored along H
             parts = [torch.minimum(torch.maximum(mu + std * noise, lb), ub)]
             if carry is not None:
                 parts.append(carry)
@@ -413,8 +465,9 @@ class ICEMPlanner:
 
 
 # ---------------------------------------------------------------------------------------------- MPPI
-def smoothing_matrix(horizon: int, smoothing: float, *, device: torch.device | str | None = None,
-                     dtype: torch.dtype = torch.float32) -> Tensor:
+def smoothing_matrix(
+    horizon: int, smoothing: float, *, device: torch.device | str | None = None, dtype: torch.dtype = torch.float32
+) -> Tensor:
     """(H, H) lower-triangular filter ``L`` so that ``u = L @ n`` smooths i.i.d. N(0, 1) noise ``n`` in time.
 
     ``u_0 = n_0``, ``u_t = smoothing * n_t + (1 - smoothing) * u_{t-1}`` (a first-order low-pass), then
@@ -455,10 +508,21 @@ class MPPIPlanner:
     planner keeps no state between calls.
     """
 
-    def __init__(self, action_low: object, action_high: object, *, horizon: int, population: int,
-                 iterations: int = 5, alpha: float = 0.1, sigma: float = 0.5, temperature: float = 0.3,
-                 smoothing: float = 1.0, device: torch.device | str | None = None,
-                 dtype: torch.dtype = torch.float32) -> None:
+    def __init__(
+        self,
+        action_low: object,
+        action_high: object,
+        *,
+        horizon: int,
+        population: int,
+        iterations: int = 5,
+        alpha: float = 0.1,
+        sigma: float = 0.5,
+        temperature: float = 0.3,
+        smoothing: float = 1.0,
+        device: torch.device | str | None = None,
+        dtype: torch.dtype = torch.float32,
+    ) -> None:
         _check_positive_ints(horizon=horizon, population=population, iterations=iterations)
         self.alpha = _check_real("alpha", alpha, 0.0, 1.0)
         self.sigma = _check_real("sigma", sigma, 0.0, math.inf, low_open=True)
@@ -471,8 +535,11 @@ class MPPIPlanner:
         self.iterations = iterations
         self.device = self.low.device
         self.dtype = dtype
-        self._filter = None if self.smoothing == 1.0 else smoothing_matrix(horizon, self.smoothing, device=self.device,
-                                                                           dtype=dtype)
+        self._filter = (
+            None
+            if self.smoothing == 1.0
+            else smoothing_matrix(horizon, self.smoothing, device=self.device, dtype=dtype)
+        )
 
     def weights(self, values: Tensor) -> Tensor:
         """Softmax weights (N,) of returns (N,) after the normalisation above (see the class docstring)."""
@@ -485,8 +552,12 @@ class MPPIPlanner:
         spread = (top - v.median()).clamp(min=1e-12)
         return torch.softmax((v - top) / (spread * self.temperature), dim=0)
 
-    def plan(self, objective: Callable[[Tensor], Tensor], init_mean: Tensor | None = None,
-             generator: torch.Generator | None = None) -> Tensor:
+    def plan(
+        self,
+        objective: Callable[[Tensor], Tensor],
+        init_mean: Tensor | None = None,
+        generator: torch.Generator | None = None,
+    ) -> Tensor:
         """Optimise ``objective`` ((N, H, act_dim) -> (N,), higher is better); returns (H, act_dim) in bounds.
 
         init_mean: warm start (H, act_dim), clipped to the bounds; default the middle of the bounds.

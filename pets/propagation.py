@@ -53,12 +53,13 @@ The eager float32 path performs exactly the operations it always did (same gener
 stream, bit-identical returns); per-call buffers (time-major actions, one noise buffer
 refilled in place) remove the per-step strided action reads and noise allocations.
 """
+
 from __future__ import annotations
 
 import ctypes
 import sys
 import warnings
-from typing import Callable
+from collections.abc import Callable
 
 import torch
 from torch import Tensor
@@ -120,10 +121,21 @@ class TrajectoryEvaluator:
       tests use ``aot_eager``, which traces the same graph without code generation).
     """
 
-    def __init__(self, ensemble: torch.nn.Module, head: DynamicsHead, reward_fn: TransitionFn,
-                 terminated_fn: TransitionFn | None, *, particles: int = 20, propagation: str = "tsinf",
-                 use_elites: bool = True, nonfinite_reward: float = -1e6, precision: str = "fp32",
-                 compile: bool = False, compile_backend: str = "inductor") -> None:
+    def __init__(
+        self,
+        ensemble: torch.nn.Module,
+        head: DynamicsHead,
+        reward_fn: TransitionFn,
+        terminated_fn: TransitionFn | None,
+        *,
+        particles: int = 20,
+        propagation: str = "tsinf",
+        use_elites: bool = True,
+        nonfinite_reward: float = -1e6,
+        precision: str = "fp32",
+        compile: bool = False,
+        compile_backend: str = "inductor",
+    ) -> None:
         if propagation not in PROPAGATIONS:
             raise ValueError(f"unknown propagation {propagation!r}; accepted: {PROPAGATIONS}")
         if isinstance(particles, bool) or not isinstance(particles, int) or particles < 1:
@@ -182,8 +194,10 @@ class TrajectoryEvaluator:
         if obs0.shape != (obs_dim,):
             raise ValueError(f"obs0 must have shape ({obs_dim},), got {tuple(obs0.shape)}")
         if generator is not None and generator.device.type != actions.device.type:
-            raise ValueError(f"generator is on {generator.device}, the actions on {actions.device}: "
-                             "pass a generator created on the actions' device")
+            raise ValueError(
+                f"generator is on {generator.device}, the actions on {actions.device}: "
+                "pass a generator created on the actions' device"
+            )
         return obs0, actions
 
     def _model_dtype(self, fallback: torch.dtype) -> torch.dtype:
@@ -193,9 +207,19 @@ class TrajectoryEvaluator:
                 return t.dtype
         return fallback
 
-    def _step(self, obs: Tensor, act: Tensor, noise: Tensor | None, done: Tensor, total: Tensor,
-              members: Tensor | None, perm: Tensor | None, inv: Tensor | None, penalty: Tensor,
-              zero: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    def _step(
+        self,
+        obs: Tensor,
+        act: Tensor,
+        noise: Tensor | None,
+        done: Tensor,
+        total: Tensor,
+        members: Tensor | None,
+        perm: Tensor | None,
+        inv: Tensor | None,
+        penalty: Tensor,
+        zero: Tensor,
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """One model step for all rows: ``(obs, done, total) -> (next obs, done, total, step reward)``.
 
         ``noise`` ((M, B / M, target_dim), ts modes) and ``perm`` / ``inv`` (ts1) are drawn by the
@@ -248,14 +272,19 @@ class TrajectoryEvaluator:
         except Exception as err:  # compilation (or a compiled kernel) failed: warn once, eager from now on
             self._compile_failed = True
             self._compiled_step = None
-            warnings.warn(f"TrajectoryEvaluator: torch.compile of the rollout step failed "
-                          f"({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}); "
-                          "using eager mode from now on", RuntimeWarning, stacklevel=3)
+            warnings.warn(
+                f"TrajectoryEvaluator: torch.compile of the rollout step failed "
+                f"({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}); "
+                "using eager mode from now on",
+                RuntimeWarning,
+                stacklevel=3,
+            )
             return self._step(*args)  # the step is pure: rerun it eagerly on the same inputs
 
     # ------------------------------------------------------------------ core
-    def _run(self, obs0: Tensor, actions: Tensor, generator: torch.Generator | None,
-             record: bool) -> tuple[Tensor, Tensor | None, Tensor | None, int]:
+    def _run(
+        self, obs0: Tensor, actions: Tensor, generator: torch.Generator | None, record: bool
+    ) -> tuple[Tensor, Tensor | None, Tensor | None, int]:
         """Roll out all rows. Returns (per-row return in natural order (R,), obs trace, reward trace, P_eff).
 
         Natural order: row ``n * P_eff + p`` is particle ``p`` of candidate ``n``.
@@ -306,8 +335,9 @@ class TrajectoryEvaluator:
                 inv = torch.empty_like(perm).scatter_(0, perm, arange_b)
             if noise is not None:
                 torch.randn(noise.shape, generator=generator, device=device, dtype=noise.dtype, out=noise)
-            obs, done, total, step_reward = self._call_step(obs, act_rows[t], noise, done, total, members, perm, inv,
-                                                            penalty, zero)
+            obs, done, total, step_reward = self._call_step(
+                obs, act_rows[t], noise, done, total, members, perm, inv, penalty, zero
+            )
             if record:
                 obs_trace.append(obs)
                 rew_trace.append(step_reward)

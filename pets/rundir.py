@@ -3,6 +3,7 @@
 Every file is written to a temporary name and moved into place with ``os.replace``, so a run
 killed at any moment (even ``kill -9``) leaves either the old or the new version, never half a file.
 """
+
 from __future__ import annotations
 
 import csv
@@ -22,8 +23,18 @@ PLOT_FILE = "rewards.png"
 
 #: model_val_loss: the trainer's holdout error of the selected model after the trial's training;
 #: model_val_loss_initial: the same for the weights that training started from (a trained model has less).
-METRIC_COLUMNS = ["trial", "env_steps", "episode_reward", "episode_length", "model_train_loss",
-                  "model_val_loss", "model_val_loss_initial", "model_epochs", "plan_seconds_per_step", "wall_time_s"]
+METRIC_COLUMNS = [
+    "trial",
+    "env_steps",
+    "episode_reward",
+    "episode_length",
+    "model_train_loss",
+    "model_val_loss",
+    "model_val_loss_initial",
+    "model_epochs",
+    "plan_seconds_per_step",
+    "wall_time_s",
+]
 
 
 def write_config(run_dir: Path, cfg: DictConfig) -> None:

@@ -19,10 +19,12 @@ Non-finite values (a diverging model's error is ``inf`` or ``NaN``): :func:`boot
 ValueError; :func:`summarise` reports them instead of hiding them: mean and IQM as numpy computes
 them (``inf``/``NaN``) and the CI as ``(nan, nan)``.
 """
+
 from __future__ import annotations
 
 import math
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
@@ -62,8 +64,9 @@ def bootstrap_means(samples: np.ndarray, n_boot: int, rng: np.random.Generator) 
     return out
 
 
-def bootstrap_ci(values: Sequence[float] | np.ndarray, *, confidence: float = 0.95, n_boot: int = 10000,
-                 seed: int = 0) -> tuple[float, float]:
+def bootstrap_ci(
+    values: Sequence[float] | np.ndarray, *, confidence: float = 0.95, n_boot: int = 10000, seed: int = 0
+) -> tuple[float, float]:
     """Percentile-bootstrap ``confidence`` interval of the mean of ``values`` (module docstring).
 
     ``(low, high)`` are the ``(1 - confidence) / 2`` and ``(1 + confidence) / 2`` quantiles of the
@@ -83,8 +86,9 @@ def bootstrap_ci(values: Sequence[float] | np.ndarray, *, confidence: float = 0.
     return float(low), float(high)
 
 
-def bootstrap_band(curves: np.ndarray, *, confidence: float = 0.95, n_boot: int = 2000,
-                   seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+def bootstrap_band(
+    curves: np.ndarray, *, confidence: float = 0.95, n_boot: int = 2000, seed: int = 0
+) -> tuple[np.ndarray, np.ndarray]:
     """Pointwise percentile-bootstrap CI of the mean curve of ``curves`` (n_seeds, n_points).
 
     Seeds are resampled as whole curves; returns ``(low, high)``, each (n_points,). Columns with
@@ -111,11 +115,12 @@ def iqm(values: Sequence[float] | np.ndarray) -> float:
     if np.isnan(x).any():
         return math.nan
     cut = int(0.25 * x.size)
-    return float(np.sort(x)[cut:x.size - cut].mean())
+    return float(np.sort(x)[cut : x.size - cut].mean())
 
 
-def summarise(values: Sequence[float] | np.ndarray, *, confidence: float = 0.95, n_boot: int = 10000,
-              seed: int = 0) -> dict[str, float | int]:
+def summarise(
+    values: Sequence[float] | np.ndarray, *, confidence: float = 0.95, n_boot: int = 10000, seed: int = 0
+) -> dict[str, float | int]:
     """``{"mean", "ci_low", "ci_high", "iqm", "n"}`` of ``values`` (CI: :func:`bootstrap_ci`).
 
     Non-finite values are reported, not dropped: mean/IQM as numpy gives them, CI ``(nan, nan)``.

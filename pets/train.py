@@ -30,12 +30,14 @@ Randomness: ``torch.manual_seed(seed)`` before the ensemble is built (initial we
 generator seeded with ``seed + 1`` on the training device (holdout split, bootstraps, shuffles),
 as in the online loop. The same command on the same machine gives the same model.
 """
+
 from __future__ import annotations
 
 import sys
 import time
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 
@@ -46,9 +48,16 @@ PROG = "pets.train"
 OFFLINE_DEFAULTS: dict[str, Any] = {"model.max_epochs": 300, "model.patience": 20}
 
 
-def offline_config(env: str, head_name: str, overrides: Mapping[str, Any] | None = None, *,
-                   preset: str = "research", seed: int | None = None, device: str | None = None,
-                   epochs: int | None = None):
+def offline_config(
+    env: str,
+    head_name: str,
+    overrides: Mapping[str, Any] | None = None,
+    *,
+    preset: str = "research",
+    seed: int | None = None,
+    device: str | None = None,
+    epochs: int | None = None,
+):
     """The resolved config of an offline run: config defaults, env defaults, preset, :data:`OFFLINE_DEFAULTS`,
     ``overrides``, then the explicit ``seed``/``device``/``epochs`` arguments (later wins). ConfigError if bad."""
     from pets.config import make_config
@@ -60,17 +69,26 @@ def offline_config(env: str, head_name: str, overrides: Mapping[str, Any] | None
     return make_config(env, head_name, preset, merged)
 
 
-def train_offline(data: str | Path | Mapping[str, np.ndarray], head_name: str, out: str | Path,
-                  overrides: Mapping[str, Any] | None = None, *, preset: str = "research", seed: int | None = None,
-                  device: str | None = None, epochs: int | None = None, progress: bool = False) -> Path:
+def train_offline(
+    data: str | Path | Mapping[str, np.ndarray],
+    head_name: str,
+    out: str | Path,
+    overrides: Mapping[str, Any] | None = None,
+    *,
+    preset: str = "research",
+    seed: int | None = None,
+    device: str | None = None,
+    epochs: int | None = None,
+    progress: bool = False,
+) -> Path:
     """Train a fresh ensemble with head ``head_name`` on all real transitions of ``data`` and write run dir ``out``.
 
     ``data``: a data set file or its arrays (:mod:`pets.datasets`). ``out`` must not hold a run yet.
     Returns ``out`` as a Path. ValueError / ConfigError (one-line messages) for bad input.
     """
-    import envs
     import torch
 
+    import envs
     from pets import builder, rundir
     from pets.config import ConfigError
 
@@ -86,8 +104,10 @@ def train_offline(data: str | Path | Mapping[str, np.ndarray], head_name: str, o
     spec = envs.get(cfg.env)
     obs, act, next_obs = transitions(arrays)
     if obs.shape[-1] != spec.obs_dim or act.shape[-1] != spec.act_dim:
-        raise ValueError(f"data set has obs_dim {obs.shape[-1]} / act_dim {act.shape[-1]}, but {env} has "
-                         f"{spec.obs_dim} / {spec.act_dim}")
+        raise ValueError(
+            f"data set has obs_dim {obs.shape[-1]} / act_dim {act.shape[-1]}, but {env} has "
+            f"{spec.obs_dim} / {spec.act_dim}"
+        )
 
     dev = builder.resolve_device(cfg.device)
     if cfg.threads:  # as the online loop: config key threads (0 = torch's default)
@@ -103,16 +123,35 @@ def train_offline(data: str | Path | Mapping[str, np.ndarray], head_name: str, o
     wall = time.perf_counter() - start
 
     nan = float("nan")
-    row = {"trial": nan, "env_steps": int(obs.shape[0]), "episode_reward": nan, "episode_length": nan,
-           "model_train_loss": result.train_loss, "model_val_loss": result.val_loss,
-           "model_val_loss_initial": result.initial_val_loss, "model_epochs": result.epochs,
-           "plan_seconds_per_step": nan, "wall_time_s": round(wall, 3)}
-    meta = {"data": data_label, "episodes": int(len(arrays["lengths"])), "transitions": int(obs.shape[0]),
-            "data_policy": str(np.asarray(arrays["policy"])[()]) if "policy" in arrays else None,
-            "data_seed": int(np.asarray(arrays["seed"])[()]) if "seed" in arrays else None}
-    state = {"trials_done": 0, "env_steps": 0, "wall_time_s": round(wall, 3), "rows": [row],
-             "ensemble": ensemble.state_dict(), "trainer": trainer.state_dict(), "last_train": result,
-             "offline": meta}
+    row = {
+        "trial": nan,
+        "env_steps": int(obs.shape[0]),
+        "episode_reward": nan,
+        "episode_length": nan,
+        "model_train_loss": result.train_loss,
+        "model_val_loss": result.val_loss,
+        "model_val_loss_initial": result.initial_val_loss,
+        "model_epochs": result.epochs,
+        "plan_seconds_per_step": nan,
+        "wall_time_s": round(wall, 3),
+    }
+    meta = {
+        "data": data_label,
+        "episodes": int(len(arrays["lengths"])),
+        "transitions": int(obs.shape[0]),
+        "data_policy": str(np.asarray(arrays["policy"])[()]) if "policy" in arrays else None,
+        "data_seed": int(np.asarray(arrays["seed"])[()]) if "seed" in arrays else None,
+    }
+    state = {
+        "trials_done": 0,
+        "env_steps": 0,
+        "wall_time_s": round(wall, 3),
+        "rows": [row],
+        "ensemble": ensemble.state_dict(),
+        "trainer": trainer.state_dict(),
+        "last_train": result,
+        "offline": meta,
+    }
     out.mkdir(parents=True, exist_ok=True)
     rundir.save_checkpoint(out, state)
     rundir.write_metrics(out, [row])
@@ -121,15 +160,22 @@ def train_offline(data: str | Path | Mapping[str, np.ndarray], head_name: str, o
 
 
 def build_parser() -> OneLineParser:
-    p = OneLineParser(prog=PROG, description="Train a dynamics ensemble offline on a collected .npz data set.",
-                      epilog="Any config key can be overridden as key=value, e.g. model.hidden_size=200.")
+    p = OneLineParser(
+        prog=PROG,
+        description="Train a dynamics ensemble offline on a collected .npz data set.",
+        epilog="Any config key can be overridden as key=value, e.g. model.hidden_size=200.",
+    )
     p.add_argument("--data", type=Path, required=True, help="data set written by pets.collect")
     p.add_argument("--model", required=True, help="dynamics model: delta, gem, delta-det, gem2 or delta-groupfeat")
     p.add_argument("--out", type=Path, required=True, help="run directory to create")
     p.add_argument("--seed", type=int, help="seed (default 0)")
     p.add_argument("--device", choices=("cpu", "cuda", "auto"), help="training device (default auto)")
-    p.add_argument("--epochs", type=int, help=f"max epochs (offline default {OFFLINE_DEFAULTS['model.max_epochs']}, "
-                                              f"patience {OFFLINE_DEFAULTS['model.patience']})")
+    p.add_argument(
+        "--epochs",
+        type=int,
+        help=f"max epochs (offline default {OFFLINE_DEFAULTS['model.max_epochs']}, "
+        f"patience {OFFLINE_DEFAULTS['model.patience']})",
+    )
     p.add_argument("--preset", choices=("research", "fast"), default="research", help="config preset (model sizes)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides")
@@ -154,8 +200,15 @@ def main(argv: list[str] | None = None) -> int:
     try:  # validate everything up front (torch only where needed); errors in training keep their traceback
         overrides = parse_overrides(args.overrides)
         arrays = load_dataset(args.data)
-        cfg = offline_config(env_name(arrays), args.model, overrides, preset=args.preset, seed=args.seed,
-                             device=args.device, epochs=args.epochs)
+        cfg = offline_config(
+            env_name(arrays),
+            args.model,
+            overrides,
+            preset=args.preset,
+            seed=args.seed,
+            device=args.device,
+            epochs=args.epochs,
+        )
         import envs
         from pets.builder import resolve_device
 
@@ -164,13 +217,25 @@ def main(argv: list[str] | None = None) -> int:
         resolve_device(cfg.device)
     except (ValueError, ConfigError) as err:  # ConfigError is a ValueError; named for the reader
         fail(PROG, str(err))
-    out = train_offline(args.data, args.model, args.out, overrides, preset=args.preset, seed=args.seed,
-                        device=args.device, epochs=args.epochs, progress=not args.quiet)
+    out = train_offline(
+        args.data,
+        args.model,
+        args.out,
+        overrides,
+        preset=args.preset,
+        seed=args.seed,
+        device=args.device,
+        epochs=args.epochs,
+        progress=not args.quiet,
+    )
     from pets import rundir
 
     row = rundir.read_metrics(out / rundir.METRICS_FILE)[0]
-    print(f"{out}: {args.model} model trained on {int(row['env_steps'])} transitions, {int(row['model_epochs'])} "
-          f"epochs, train loss {row['model_train_loss']:.4g}, holdout error {row['model_val_loss']:.4g} (standardised; no change ~ 1)")
+    print(
+        f"{out}: {args.model} model trained on {int(row['env_steps'])} transitions, {int(row['model_epochs'])} "
+        f"epochs, train loss {row['model_train_loss']:.4g}, "
+        f"holdout error {row['model_val_loss']:.4g} (standardised; no change ~ 1)"
+    )
     return 0
 
 

@@ -15,6 +15,7 @@ observation, ``mean_d (pred_d - next_obs_d)^2 / var_d(next_obs - obs)`` over the
 model predicts (all but the layout's ``derived`` ones), ``var_d`` taken over the training data. It is
 unitless (velocities do not drown positions) and about 1 for the "no change" predictor.
 """
+
 from __future__ import annotations
 
 import copy
@@ -34,7 +35,9 @@ class TrainResult:
     """Outcome of one ``ModelTrainer.train`` call."""
 
     train_loss: float  # final epoch's mean training loss (head loss, mean over members and samples)
-    val_loss: float  # holdout error (see the module docstring) of the selected model, mean over elites (nan: no holdout)
+    val_loss: (
+        float  # holdout error (see the module docstring) of the selected model, mean over elites (nan: no holdout)
+    )
     epochs: int  # epochs actually run
     initial_val_loss: float = float("nan")  # the same for the weights this call started from (same members)
 
@@ -66,18 +69,37 @@ class ModelTrainer:
     The optimiser persists across ``train`` calls (one call per PETS trial).
     """
 
-    def __init__(self, ensemble: GaussianEnsemble, head: DynamicsHead, *, lr: float = 1e-3, batch_size: int = 256,
-                 max_epochs: int = 50, patience: int = 5, holdout_ratio: float = 0.1, max_holdout: int = 5000,
-                 num_elites: int | None = None, logvar_bound_coef: float = 0.01, grad_clip: float | None = None,
-                 improvement_threshold: float = 0.01, eval_batch_size: int = 8192) -> None:
+    def __init__(
+        self,
+        ensemble: GaussianEnsemble,
+        head: DynamicsHead,
+        *,
+        lr: float = 1e-3,
+        batch_size: int = 256,
+        max_epochs: int = 50,
+        patience: int = 5,
+        holdout_ratio: float = 0.1,
+        max_holdout: int = 5000,
+        num_elites: int | None = None,
+        logvar_bound_coef: float = 0.01,
+        grad_clip: float | None = None,
+        improvement_threshold: float = 0.01,
+        eval_batch_size: int = 8192,
+    ) -> None:
         if head.input_dim != ensemble.in_dim or head.target_dim != ensemble.out_dim:
-            raise ValueError(f"head {head.name!r} has input_dim {head.input_dim} / target_dim {head.target_dim} but the "
-                             f"ensemble has in_dim {ensemble.in_dim} / out_dim {ensemble.out_dim}")
+            raise ValueError(
+                f"head {head.name!r} has input_dim {head.input_dim} / target_dim {head.target_dim} but the "
+                f"ensemble has in_dim {ensemble.in_dim} / out_dim {ensemble.out_dim}"
+            )
         if not (math.isfinite(lr) and lr >= 0):
             raise ValueError(f"lr must be a finite number >= 0, got {lr}")
-        for name, value, low in (("batch_size", batch_size, 1), ("max_epochs", max_epochs, 0),
-                                 ("patience", patience, 1), ("max_holdout", max_holdout, 0),
-                                 ("eval_batch_size", eval_batch_size, 1)):
+        for name, value, low in (
+            ("batch_size", batch_size, 1),
+            ("max_epochs", max_epochs, 0),
+            ("patience", patience, 1),
+            ("max_holdout", max_holdout, 0),
+            ("eval_batch_size", eval_batch_size, 1),
+        ):
             if not isinstance(value, int) or isinstance(value, bool) or value < low:
                 raise ValueError(f"{name} must be an int >= {low}, got {value!r}")
         if not 0.0 <= holdout_ratio < 1.0:
@@ -148,16 +170,19 @@ class ModelTrainer:
     # ------------------------------------------------------------------ training
     def _check_data(self, obs: Tensor, act: Tensor, next_obs: Tensor) -> None:
         if obs.dim() != 2 or next_obs.shape != obs.shape or act.dim() != 2 or act.shape[0] != obs.shape[0]:
-            raise ValueError(f"train expects obs (N, obs_dim), act (N, act_dim), next_obs (N, obs_dim); got obs "
-                             f"{tuple(obs.shape)}, act {tuple(act.shape)}, next_obs {tuple(next_obs.shape)}")
+            raise ValueError(
+                f"train expects obs (N, obs_dim), act (N, act_dim), next_obs (N, obs_dim); got obs "
+                f"{tuple(obs.shape)}, act {tuple(act.shape)}, next_obs {tuple(next_obs.shape)}"
+            )
         if obs.shape[0] < 1:
             raise ValueError("train got an empty data set (N = 0)")
         for name, t in (("obs", obs), ("act", act), ("next_obs", next_obs)):
             if not torch.isfinite(t).all():
                 raise ValueError(f"train got non-finite values (nan/inf) in {name}")
 
-    def train(self, obs: Tensor, act: Tensor, next_obs: Tensor, generator: torch.Generator,
-              progress: bool = False) -> TrainResult:
+    def train(
+        self, obs: Tensor, act: Tensor, next_obs: Tensor, generator: torch.Generator, progress: bool = False
+    ) -> TrainResult:
         """Fit the ensemble on transitions (obs, act, next_obs), each (N, .); all randomness from ``generator``.
 
         Refits the input normaliser on all inputs, splits off a holdout, trains with per-member bootstraps
@@ -170,8 +195,10 @@ class ModelTrainer:
         x = self.head.inputs(obs, act)
         y = self.head.targets(obs, next_obs)
         if x.shape != (obs.shape[0], ens.in_dim) or y.shape != (obs.shape[0], ens.out_dim):
-            raise ValueError(f"head {self.head.name!r} produced inputs {tuple(x.shape)} / targets {tuple(y.shape)}, "
-                             f"expected (N, {ens.in_dim}) / (N, {ens.out_dim})")
+            raise ValueError(
+                f"head {self.head.name!r} produced inputs {tuple(x.shape)} / targets {tuple(y.shape)}, "
+                f"expected (N, {ens.in_dim}) / (N, {ens.out_dim})"
+            )
         ens.fit_normaliser(x)
         ens.fit_target_normaliser(y)
         self.fit_error_scale(obs, next_obs)
@@ -195,15 +222,17 @@ class ModelTrainer:
         bar = tqdm(range(self.max_epochs), disable=not progress, desc="model", leave=False)
         for _ in bar:
             # Per-member shuffle of the member's bootstrap resample (one argsort for all members).
-            order = torch.argsort(torch.rand(ens.ensemble_size, n_tr, generator=generator, device=generator.device),
-                                  dim=1).to(ref.device)
+            order = torch.argsort(
+                torch.rand(ens.ensemble_size, n_tr, generator=generator, device=generator.device), dim=1
+            ).to(ref.device)
             epoch_idx = torch.gather(boot, 1, order)
             loss_sum = x_tr.new_zeros(())
             for start in range(0, n_tr, self.batch_size):
-                idx = epoch_idx[:, start:start + self.batch_size]  # (E, B)
+                idx = epoch_idx[:, start : start + self.batch_size]  # (E, B)
                 mean, logvar = ens(x_tr[idx])
-                member_loss = self.head.loss(mean, logvar, y_tr[idx], o_tr[idx], no_tr[idx],
-                                             scale=ens.target_std)  # (E,)
+                member_loss = self.head.loss(
+                    mean, logvar, y_tr[idx], o_tr[idx], no_tr[idx], scale=ens.target_std
+                )  # (E,)
                 loss = member_loss.sum() + ens.weight_decay_loss()
                 if ens.learn_logvar_bounds and self.logvar_bound_coef:
                     loss = loss + self.logvar_bound_coef * ens.logvar_bound_penalty()
@@ -242,5 +271,9 @@ class ModelTrainer:
         ens.set_elites(elites)
         if not has_holdout:
             return TrainResult(train_loss=train_loss, val_loss=float("nan"), epochs=epochs)
-        return TrainResult(train_loss=train_loss, val_loss=float(scores[elites].mean()), epochs=epochs,
-                           initial_val_loss=float(initial[elites].mean()))
+        return TrainResult(
+            train_loss=train_loss,
+            val_loss=float(scores[elites].mean()),
+            epochs=epochs,
+            initial_val_loss=float(initial[elites].mean()),
+        )

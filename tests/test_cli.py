@@ -1,4 +1,5 @@
 """The real CLI end to end: a short run, its run directory, resume (also after kill -9), errors."""
+
 import csv
 import os
 import signal
@@ -10,14 +11,32 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-TINY = ["--preset", "fast", "planner.population=16", "planner.particles=2", "planner.horizon=4",
-        "planner.iterations=2", "model.max_epochs=2", "model.hidden_size=32", "model.ensemble_size=2",
-        "model.num_elites=2", "episode_length=30", "seed_steps=100", "threads=1", "--quiet"]
+TINY = [
+    "--preset",
+    "fast",
+    "planner.population=16",
+    "planner.particles=2",
+    "planner.horizon=4",
+    "planner.iterations=2",
+    "model.max_epochs=2",
+    "model.hidden_size=32",
+    "model.ensemble_size=2",
+    "model.num_elites=2",
+    "episode_length=30",
+    "seed_steps=100",
+    "threads=1",
+    "--quiet",
+]
 
 
 def cli(*args, check=True, timeout=300):
-    proc = subprocess.run([sys.executable, str(ROOT / "run_pets.py"), *map(str, args)], cwd=ROOT,
-                          capture_output=True, text=True, timeout=timeout)
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "run_pets.py"), *map(str, args)],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
     if check and proc.returncode != 0:
         raise AssertionError(f"exit {proc.returncode}\n{proc.stdout}\n{proc.stderr}")
     return proc
@@ -35,8 +54,15 @@ def test_smoke_two_trials_invertedpendulum(tmp_path):
         assert (out / name).is_file(), name
     metrics = rows(out)
     assert [int(r["trial"]) for r in metrics] == [0, 1]
-    for col in ("trial", "env_steps", "episode_reward", "episode_length", "model_train_loss",
-                "model_val_loss", "wall_time_s"):
+    for col in (
+        "trial",
+        "env_steps",
+        "episode_reward",
+        "episode_length",
+        "model_train_loss",
+        "model_val_loss",
+        "wall_time_s",
+    ):
         assert col in metrics[0]
     seed_steps = 100
     assert int(metrics[0]["env_steps"]) == seed_steps + int(metrics[0]["episode_length"])
@@ -49,7 +75,10 @@ def test_same_seed_same_metrics(tmp_path):
     a, b = tmp_path / "a", tmp_path / "b"
     for out in (a, b):
         cli("--env", "invertedpendulum", "--trials", 3, "--seed", 5, "--out", out, *TINY)
-    key = lambda rs: [(r["episode_reward"], r["episode_length"], r["model_train_loss"]) for r in rs]
+
+    def key(rs):
+        return [(r["episode_reward"], r["episode_length"], r["model_train_loss"]) for r in rs]
+
     assert key(rows(a)) == key(rows(b))
 
 
@@ -57,8 +86,12 @@ def test_resume_after_kill_matches_uninterrupted_run(tmp_path):
     ref, killed = tmp_path / "ref", tmp_path / "killed"
     args = ["--env", "invertedpendulum", "--trials", 4, "--seed", 11, *TINY]
     cli(*args, "--out", ref)
-    proc = subprocess.Popen([sys.executable, str(ROOT / "run_pets.py"), *map(str, args), "--out", str(killed)],
-                            cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = subprocess.Popen(
+        [sys.executable, str(ROOT / "run_pets.py"), *map(str, args), "--out", str(killed)],
+        cwd=ROOT,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     deadline = time.time() + 240
     while time.time() < deadline and not (killed / "metrics.csv").exists():
         time.sleep(0.05)
@@ -79,18 +112,21 @@ def test_resume_can_extend_a_finished_run(tmp_path):
     assert [int(r["trial"]) for r in rows(out)] == [0, 1]
 
 
-@pytest.mark.parametrize("args, fragment", [
-    (["--env", "pong"], "invertedpendulum"),
-    (["--env", "hopper", "--model", "transformer"], "delta"),
-    (["--env", "hopper", "planner.popsize=3"], "planner.population"),
-    (["--env", "hopper", "trials=abc"], "trials"),
-    (["--model", "delta"], "--env is required"),
-    (["--resume", "/nonexistent/run"], "not a run directory"),
-])
+@pytest.mark.parametrize(
+    "args, fragment",
+    [
+        (["--env", "pong"], "invertedpendulum"),
+        (["--env", "hopper", "--model", "transformer"], "delta"),
+        (["--env", "hopper", "planner.popsize=3"], "planner.population"),
+        (["--env", "hopper", "trials=abc"], "trials"),
+        (["--model", "delta"], "--env is required"),
+        (["--resume", "/nonexistent/run"], "not a run directory"),
+    ],
+)
 def test_bad_input_exits_2_with_one_line(args, fragment):
     proc = cli(*args, check=False, timeout=60)
     assert proc.returncode == 2
-    lines = [l for l in proc.stderr.splitlines() if l.strip()]
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
     assert len(lines) == 1, proc.stderr
     assert fragment in lines[0]
 
@@ -106,8 +142,11 @@ def test_existing_run_directory_is_not_overwritten(tmp_path):
 def test_online_training_selects_a_trained_model(tmp_path, env):
     """Issue 18: after every trial's training the selected model is a trained one."""
     out = tmp_path / env
-    changed = {"model.max_epochs=2": "model.max_epochs=10", "model.hidden_size=32": "model.hidden_size=64",
-               "seed_steps=100": "seed_steps=400"}
+    changed = {
+        "model.max_epochs=2": "model.max_epochs=10",
+        "model.hidden_size=32": "model.hidden_size=64",
+        "seed_steps=100": "seed_steps=400",
+    }
     cli("--model", "gem", "--env", env, "--trials", 2, "--seed", 0, "--out", out, *[changed.get(a, a) for a in TINY])
     for row in rows(out):
         # training starts from the previous model (the seed data's, for trial 0) and improves on it; the

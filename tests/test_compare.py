@@ -5,6 +5,7 @@ exit codes, files); the online runs themselves are real ``run_pets.py`` subproce
 the runs' own metrics.csv / eval.json, pets.stats recomputed here, and the MuJoCo simulator for the
 open-loop rewards.
 """
+
 import csv
 import json
 import math
@@ -12,18 +13,34 @@ import math
 import numpy as np
 import pytest
 
-from tests.threads import one_thread
-
 import envs
 from pets import compare, openloop, rundir
 from pets.config import load_config, make_config
 from pets.stats import bootstrap_ci, iqm
+from tests.threads import one_thread
 
-TINY = ["planner.population=16", "planner.particles=2", "planner.horizon=4", "planner.iterations=2",
-        "model.max_epochs=2", "model.hidden_size=32", "model.ensemble_size=2", "model.num_elites=2",
-        "episode_length=30", "seed_steps=100"]
-TINY_OFFLINE = ["model.max_epochs=3", "model.hidden_size=32", "model.ensemble_size=2", "model.num_elites=2",
-                "model.batch_size=32", "planner.population=16", "planner.particles=2", "planner.iterations=2"]
+TINY = [
+    "planner.population=16",
+    "planner.particles=2",
+    "planner.horizon=4",
+    "planner.iterations=2",
+    "model.max_epochs=2",
+    "model.hidden_size=32",
+    "model.ensemble_size=2",
+    "model.num_elites=2",
+    "episode_length=30",
+    "seed_steps=100",
+]
+TINY_OFFLINE = [
+    "model.max_epochs=3",
+    "model.hidden_size=32",
+    "model.ensemble_size=2",
+    "model.num_elites=2",
+    "model.batch_size=32",
+    "planner.population=16",
+    "planner.particles=2",
+    "planner.iterations=2",
+]
 
 
 def cli(capsys, *args):
@@ -56,22 +73,32 @@ def online(tmp_path_factory):
     broken = out / "runs" / "invertedpendulum-delta-s9"
     broken.mkdir(parents=True)
     overrides = dict(item.split("=") for item in TINY)
-    rundir.write_config(broken, make_config("invertedpendulum", "delta", "fast",
-                                            {**overrides, "seed": 9, "trials": 1, "threads": 1}))
+    rundir.write_config(
+        broken, make_config("invertedpendulum", "delta", "fast", {**overrides, "seed": 9, "trials": 1, "threads": 1})
+    )
     (broken / "checkpoint.pt").write_bytes(b"not a checkpoint")
 
     steps = {}
-    for key, args in (("first", ["--models", "delta", "--seeds", "0,9", "--trials", 1]),
-                      ("second", ["--models", "delta,gem", "--seeds", "0,1", "--trials", 2]),
-                      ("third", ["--models", "delta,gem", "--seeds", "0,1", "--trials", 2])):
-        before = {d.name: (snapshot(d), csv_rows(d / "metrics.csv"))
-                  for d in (out / "runs").iterdir() if (d / "metrics.csv").exists()}
+    for key, args in (
+        ("first", ["--models", "delta", "--seeds", "0,9", "--trials", 1]),
+        ("second", ["--models", "delta,gem", "--seeds", "0,1", "--trials", 2]),
+        ("third", ["--models", "delta,gem", "--seeds", "0,1", "--trials", 2]),
+    ):
+        before = {
+            d.name: (snapshot(d), csv_rows(d / "metrics.csv"))
+            for d in (out / "runs").iterdir()
+            if (d / "metrics.csv").exists()
+        }
         try:
             code = compare.main([str(a) for a in ["online", *args, *common]])
         except SystemExit as err:
             code = err.code
-        steps[key] = {"code": code, "before": before, "summary": (out / "summary.csv").read_text(),
-                      "md": (out / "summary.md").read_text()}
+        steps[key] = {
+            "code": code,
+            "before": before,
+            "summary": (out / "summary.csv").read_text(),
+            "md": (out / "summary.md").read_text(),
+        }
     return out, steps
 
 
@@ -131,8 +158,10 @@ def test_online_summary_equals_statistics_recomputed_from_metrics(online):
         assert float(row["auc_mean"]) == pytest.approx(np.mean(aucs), rel=1e-12)
         assert (float(row["auc_ci_low"]), float(row["auc_ci_high"])) == pytest.approx(bootstrap_ci(aucs))
         assert min(finals) <= float(row["final_ci_low"]) <= float(row["final_ci_high"]) <= max(finals)
-        walls = [float(csv_rows(out / "runs" / f"invertedpendulum-{model}-s{seed}" / "metrics.csv")[1]["wall_time_s"])
-                 for seed in (0, 1)]
+        walls = [
+            float(csv_rows(out / "runs" / f"invertedpendulum-{model}-s{seed}" / "metrics.csv")[1]["wall_time_s"])
+            for seed in (0, 1)
+        ]
         assert float(row["wall_time_s_mean"]) == pytest.approx(np.mean(walls), rel=1e-12) and min(walls) > 0
         assert float(row["plan_seconds_per_step_mean"]) > 0 and row["planner"] == ""
     md = (out / "summary.md").read_text()
@@ -143,16 +172,38 @@ def test_online_summary_equals_statistics_recomputed_from_metrics(online):
 
 
 def test_online_planners_axis_runs_every_model_planner_pair(tmp_path, capsys):
-    code, printed, _ = cli(capsys, "online", "--envs", "invertedpendulum", "--models", "delta", "--planners", "cem,icem",
-                           "--seeds", 3, "--trials", 1, "--out", tmp_path, "--workers", 2, "--preset", "fast",
-                           "--quiet", *TINY)
+    code, printed, _ = cli(
+        capsys,
+        "online",
+        "--envs",
+        "invertedpendulum",
+        "--models",
+        "delta",
+        "--planners",
+        "cem,icem",
+        "--seeds",
+        3,
+        "--trials",
+        1,
+        "--out",
+        tmp_path,
+        "--workers",
+        2,
+        "--preset",
+        "fast",
+        "--quiet",
+        *TINY,
+    )
     assert code == 0
     for planner in ("cem", "icem"):
         run = tmp_path / "runs" / f"invertedpendulum-delta-{planner}-s3"
         assert load_config(str(run / "config.yaml")).planner.name == planner
         assert len(csv_rows(run / "metrics.csv")) == 1
     summary = csv_rows(tmp_path / "summary.csv")
-    assert [(r["model"], r["planner"], r["n_seeds"]) for r in summary] == [("delta", "cem", "1"), ("delta", "icem", "1")]
+    assert [(r["model"], r["planner"], r["n_seeds"]) for r in summary] == [
+        ("delta", "cem", "1"),
+        ("delta", "icem", "1"),
+    ]
     assert "| model | planner | seeds |" in printed and "| delta | icem | 1 |" in printed
     assert (tmp_path / "walltime_invertedpendulum.png").stat().st_size > 10_000
 
@@ -162,8 +213,24 @@ def test_openloop_on_an_online_run_replays_in_the_simulator(online, tmp_path, ca
     run = out / "runs" / "invertedpendulum-gem-s1"
     path = tmp_path / "ol.json"
     with one_thread():
-        code = openloop.main(["--run", str(run), "--steps", "6", "--episodes", "3", "--seed", "4", "--device", "cpu",
-                              "--json", str(path), "--quiet", "planner.population=12"])
+        code = openloop.main(
+            [
+                "--run",
+                str(run),
+                "--steps",
+                "6",
+                "--episodes",
+                "3",
+                "--seed",
+                "4",
+                "--device",
+                "cpu",
+                "--json",
+                str(path),
+                "--quiet",
+                "planner.population=12",
+            ]
+        )
     printed = capsys.readouterr().out
     assert code == 0 and "total reward" in printed and "open loop: invertedpendulum / gem / cem" in printed
     res = json.loads(path.read_text())
@@ -175,9 +242,25 @@ def test_openloop_on_an_online_run_replays_in_the_simulator(online, tmp_path, ca
 # --------------------------------------------------------------------------- open loop (ground truth)
 def check_open_loop_result(res, env, steps, episodes):
     """Structure of an open-loop result, and its rewards equal the simulator's for the planned actions."""
-    assert {"run", "env", "model", "planner", "steps", "episodes", "seed", "reward_per_step", "total",
-            "mean_reward_per_step", "rewards", "actions", "lengths", "terminated", "reset_seeds",
-            "predicted_return", "planner_config"} <= set(res)
+    assert {
+        "run",
+        "env",
+        "model",
+        "planner",
+        "steps",
+        "episodes",
+        "seed",
+        "reward_per_step",
+        "total",
+        "mean_reward_per_step",
+        "rewards",
+        "actions",
+        "lengths",
+        "terminated",
+        "reset_seeds",
+        "predicted_return",
+        "planner_config",
+    } <= set(res)
     assert res["env"] == env and res["steps"] == steps and res["episodes"] == episodes
     spec = envs.get(env)
     rewards, actions = np.array(res["rewards"]), np.array(res["actions"])
@@ -203,29 +286,79 @@ def check_open_loop_result(res, env, steps, episodes):
 
 
 # --------------------------------------------------------------------------- offline
-OFFLINE_ARGS = ["offline", "--envs", "invertedpendulum", "--models", "delta,gem", "--seeds", "0,1", "--episodes", 8,
-                "--test-episodes", 4, "--horizons", "1,3,5", "--starts", 20, "--openloop", "--planners", "cem,mppi",
-                "--openloop-steps", 12, "--openloop-episodes", 2, "--preset", "fast", "--device", "cpu", "--quiet",
-                *TINY_OFFLINE]
+OFFLINE_ARGS = [
+    "offline",
+    "--envs",
+    "invertedpendulum",
+    "--models",
+    "delta,gem",
+    "--seeds",
+    "0,1",
+    "--episodes",
+    8,
+    "--test-episodes",
+    4,
+    "--horizons",
+    "1,3,5",
+    "--starts",
+    20,
+    "--openloop",
+    "--planners",
+    "cem,mppi",
+    "--openloop-steps",
+    12,
+    "--openloop-episodes",
+    2,
+    "--preset",
+    "fast",
+    "--device",
+    "cpu",
+    "--quiet",
+    *TINY_OFFLINE,
+]
 
 
 @pytest.fixture(scope="module")
 def offline(tmp_path_factory):
     out = tmp_path_factory.mktemp("offline")
     result = compare.compare_offline(
-        ["invertedpendulum"], ["delta", "gem"], [0, 1], out, episodes=8, test_episodes=4, horizons=[1, 3, 5],
-        starts=20, openloop=True, planners=["cem", "mppi"], openloop_steps=12, openloop_episodes=2, preset="fast",
-        device="cpu", overrides=TINY_OFFLINE, progress=False)
+        ["invertedpendulum"],
+        ["delta", "gem"],
+        [0, 1],
+        out,
+        episodes=8,
+        test_episodes=4,
+        horizons=[1, 3, 5],
+        starts=20,
+        openloop=True,
+        planners=["cem", "mppi"],
+        openloop_steps=12,
+        openloop_episodes=2,
+        preset="fast",
+        device="cpu",
+        overrides=TINY_OFFLINE,
+        progress=False,
+    )
     return out, result
 
 
 def test_offline_writes_data_runs_and_summaries(offline):
     out, result = offline
-    assert result["failed"] == {} and result["data"] == {"invertedpendulum-train.npz": "collected",
-                                                          "invertedpendulum-test.npz": "collected"}
+    assert result["failed"] == {} and result["data"] == {
+        "invertedpendulum-train.npz": "collected",
+        "invertedpendulum-test.npz": "collected",
+    }
     assert all(done == ["train", "eval", "openloop_cem", "openloop_mppi"] for done in result["done"].values())
-    for name in ("prediction.md", "prediction.csv", "prediction_runs.csv", "relative_error.png",
-                 "absolute_error_invertedpendulum.png", "openloop.md", "openloop.csv", "openloop_invertedpendulum.png"):
+    for name in (
+        "prediction.md",
+        "prediction.csv",
+        "prediction_runs.csv",
+        "relative_error.png",
+        "absolute_error_invertedpendulum.png",
+        "openloop.md",
+        "openloop.csv",
+        "openloop_invertedpendulum.png",
+    ):
         assert (out / name).is_file() and (out / name).stat().st_size > 100, name
     train, test = (np.load(out / "data" / f"invertedpendulum-{p}.npz") for p in ("train", "test"))
     assert int(train["seed"]) == 0 and int(test["seed"]) == 1 and len(train["lengths"]) == 8
@@ -238,8 +371,9 @@ def test_offline_prediction_csv_equals_the_runs_evaluations(offline):
     assert {(r["model"], r["horizon"]) for r in rows} == {(m, h) for m in ("delta", "gem") for h in ("1", "3", "5")}
     averaged = {}
     for r in rows:
-        evals = [json.loads((out / "runs" / f"invertedpendulum-{r['model']}-s{s}" / "eval.json").read_text())
-                 for s in (0, 1)]
+        evals = [
+            json.loads((out / "runs" / f"invertedpendulum-{r['model']}-s{s}" / "eval.json").read_text()) for s in (0, 1)
+        ]
         assert all(e["model"] == r["model"] and e["env"] == "invertedpendulum" for e in evals)
         assert evals[0]["start_points"] == evals[1]["start_points"]  # paired: the same starts for every run
         values = [e["horizons"][r["horizon"]]["mean_step_error"] for e in evals]
@@ -253,7 +387,8 @@ def test_offline_prediction_csv_equals_the_runs_evaluations(offline):
             per_seed.append(np.mean([e["horizons"][h]["mean_step_error"] for h in ("1", "3", "5")]))
         averaged[model] = np.mean(per_seed)
     top = max(averaged.values())
-    line = next(l for l in (out / "prediction.md").read_text().splitlines() if l.startswith("| invertedpendulum |"))
+    lines = (out / "prediction.md").read_text().splitlines()
+    line = next(row for row in lines if row.startswith("| invertedpendulum |"))
     delta, gem = (compare.fmt(averaged[m] / top) for m in ("delta", "gem"))
     assert line == f"| invertedpendulum | {delta} | {gem} |"
     assert "1" in {compare.fmt(v / top) for v in averaged.values()}
@@ -266,15 +401,18 @@ def test_offline_open_loop_results_replay_in_the_simulator(offline):
     assert set(table) == {(p, m) for p in ("cem", "mppi") for m in ("delta", "gem")}
     for planner in ("cem", "mppi"):
         for model in ("delta", "gem"):
-            results = [json.loads((out / "runs" / f"invertedpendulum-{model}-s{s}" / f"openloop_{planner}.json")
-                                  .read_text()) for s in (0, 1)]
+            results = [
+                json.loads((out / "runs" / f"invertedpendulum-{model}-s{s}" / f"openloop_{planner}.json").read_text())
+                for s in (0, 1)
+            ]
             for res in results:
                 assert res["planner"] == planner and res["model"] == model
                 check_open_loop_result(res, "invertedpendulum", steps=12, episodes=2)
                 terminated += sum(res["terminated"])
             row = table[(planner, model)]
             assert float(row["reward_per_step_mean"]) == pytest.approx(
-                np.mean([r["mean_reward_per_step"]["mean"] for r in results]), rel=1e-12)
+                np.mean([r["mean_reward_per_step"]["mean"] for r in results]), rel=1e-12
+            )
     assert terminated > 0  # 12 open-loop steps of a barely trained model: the pendulum falls somewhere
 
 
@@ -307,48 +445,104 @@ def test_offline_refuses_other_data_or_config_in_the_same_directory(offline, cap
 def test_offline_existing_policy_takes_the_data_files_as_they_are(offline, tmp_path, capsys):
     out, _ = offline
     result = compare.compare_offline(
-        ["invertedpendulum"], ["delta"], [0], out, episodes=1, test_episodes=1, policy="existing",
-        horizons=[1, 2], starts=20, preset="fast", device="cpu", overrides=TINY_OFFLINE, progress=False)
+        ["invertedpendulum"],
+        ["delta"],
+        [0],
+        out,
+        episodes=1,
+        test_episodes=1,
+        policy="existing",
+        horizons=[1, 2],
+        starts=20,
+        preset="fast",
+        device="cpu",
+        overrides=TINY_OFFLINE,
+        progress=False,
+    )
     assert result["data"] == {"invertedpendulum-train.npz": "reused", "invertedpendulum-test.npz": "reused"}
     assert result["failed"] == {} and all("train" not in todo for todo in result["todo"].values())
-    code, _, err = cli(capsys, "offline", "--envs", "reacher", "--models", "delta", "--policy", "existing",
-                       "--out", tmp_path)
+    code, _, err = cli(
+        capsys, "offline", "--envs", "reacher", "--models", "delta", "--policy", "existing", "--out", tmp_path
+    )
     assert code == 2 and "--policy existing needs the data file" in err
 
 
 def test_online_refuses_an_offline_run_directory(offline, capsys):
     out, _ = offline  # same config as the offline runs (trials aside): only the run kind differs
-    code, _, err = cli(capsys, "online", "--envs", "invertedpendulum", "--models", "delta", "--seeds", 0, "--trials", 1,
-                       "--out", out, "--preset", "fast", "--device", "cpu", *TINY_OFFLINE, "model.patience=20")
+    code, _, err = cli(
+        capsys,
+        "online",
+        "--envs",
+        "invertedpendulum",
+        "--models",
+        "delta",
+        "--seeds",
+        0,
+        "--trials",
+        1,
+        "--out",
+        out,
+        "--preset",
+        "fast",
+        "--device",
+        "cpu",
+        *TINY_OFFLINE,
+        "model.patience=20",
+    )
     assert code == 2 and "is an offline training run" in err
 
 
 # --------------------------------------------------------------------------- pool and usage errors
 def test_process_pool_reports_a_failed_job_and_finishes_the_others():
-    jobs = [("good", compare.split_list, ("a,b", "x")), ("bad", compare.split_list, ("a,,b", "x")),
-            ("also good", compare.parse_seeds, ("3,1",))]
+    jobs = [
+        ("good", compare.split_list, ("a,b", "x")),
+        ("bad", compare.split_list, ("a,,b", "x")),
+        ("also good", compare.parse_seeds, ("3,1",)),
+    ]
     results = compare.run_pool(jobs, 2, processes=True, progress=False, desc="test")
     assert results["good"] == (True, ["a", "b"]) and results["also good"] == (True, [3, 1])
     assert results["bad"][0] is False and "UsageError" in results["bad"][1] and "empty items" in results["bad"][1]
 
 
-@pytest.mark.parametrize("args, fragment", [
-    (["online", "--envs", "pong", "--models", "delta", "--trials", 1], "unknown env 'pong'"),
-    (["online", "--envs", "reacher", "--models", "delta,transformer", "--trials", 1], "accepted: delta, gem"),
-    (["online", "--envs", "reacher", "--models", "delta", "--seeds", "0,x", "--trials", 1], "--seeds"),
-    (["online", "--envs", "reacher,", "--models", "delta", "--trials", 1], "without empty items"),
-    (["online", "--envs", "reacher", "--models", "delta", "--trials", 0], "must be >= 1"),
-    (["online", "--envs", "reacher", "--models", "delta", "--trials", 1, "planner.popsize=3"], "planner.population"),
-    (["online", "--envs", "reacher", "--models", "delta", "--trials", 1, "seed=3"], "--seeds"),
-    (["online", "--envs", "reacher", "--models", "delta", "--trials", 1, "--planners", "cem,ddp"], "accepted: cem"),
-    (["online", "--envs", "reacher", "--models", "delta", "--trials", 1, "--planners", "cem",
-      "planner.name=mppi"], "--planners or planner.name="),
-    (["offline", "--envs", "reacher", "--models", "delta", "--horizons", "1,a"], "comma-separated"),
-    (["offline", "--envs", "reacher", "--models", "delta", "--planners", "cem,ddp"], "accepted: cem"),
-    (["offline", "--envs", "reacher", "--models", "delta", "--policy", "run:x"], "smooth-random[:BETA] or existing"),
-    (["online", "--envs", "reacher", "--models", "delta"], "--trials"),
-    (["sweep", "--envs", "reacher"], "invalid choice"),
-])
+@pytest.mark.parametrize(
+    "args, fragment",
+    [
+        (["online", "--envs", "pong", "--models", "delta", "--trials", 1], "unknown env 'pong'"),
+        (["online", "--envs", "reacher", "--models", "delta,transformer", "--trials", 1], "accepted: delta, gem"),
+        (["online", "--envs", "reacher", "--models", "delta", "--seeds", "0,x", "--trials", 1], "--seeds"),
+        (["online", "--envs", "reacher,", "--models", "delta", "--trials", 1], "without empty items"),
+        (["online", "--envs", "reacher", "--models", "delta", "--trials", 0], "must be >= 1"),
+        (
+            ["online", "--envs", "reacher", "--models", "delta", "--trials", 1, "planner.popsize=3"],
+            "planner.population",
+        ),
+        (["online", "--envs", "reacher", "--models", "delta", "--trials", 1, "seed=3"], "--seeds"),
+        (["online", "--envs", "reacher", "--models", "delta", "--trials", 1, "--planners", "cem,ddp"], "accepted: cem"),
+        (
+            [
+                "online",
+                "--envs",
+                "reacher",
+                "--models",
+                "delta",
+                "--trials",
+                1,
+                "--planners",
+                "cem",
+                "planner.name=mppi",
+            ],
+            "--planners or planner.name=",
+        ),
+        (["offline", "--envs", "reacher", "--models", "delta", "--horizons", "1,a"], "comma-separated"),
+        (["offline", "--envs", "reacher", "--models", "delta", "--planners", "cem,ddp"], "accepted: cem"),
+        (
+            ["offline", "--envs", "reacher", "--models", "delta", "--policy", "run:x"],
+            "smooth-random[:BETA] or existing",
+        ),
+        (["online", "--envs", "reacher", "--models", "delta"], "--trials"),
+        (["sweep", "--envs", "reacher"], "invalid choice"),
+    ],
+)
 def test_bad_input_exits_2_with_one_line(args, fragment, capsys, tmp_path):
     code, _, err = cli(capsys, *args, "--out", tmp_path / "never")
     lines = [line for line in err.splitlines() if line.strip()]
@@ -364,13 +558,16 @@ def test_models_come_from_config_heads_at_run_time(monkeypatch):
     assert compare.parse_models("novel,delta") == ["novel", "delta"]
 
 
-@pytest.mark.parametrize("args, fragment", [
-    (["--planner", "ddp"], "unknown planner 'ddp'"),
-    (["model.lr=0.1"], "must be planner keys"),
-    (["planner.horizon=3"], "--steps"),
-    (["planner.population=abc"], "planner.population"),
-    (["--steps", "0"], "--steps must be >= 1"),
-])
+@pytest.mark.parametrize(
+    "args, fragment",
+    [
+        (["--planner", "ddp"], "unknown planner 'ddp'"),
+        (["model.lr=0.1"], "must be planner keys"),
+        (["planner.horizon=3"], "--steps"),
+        (["planner.population=abc"], "planner.population"),
+        (["--steps", "0"], "--steps must be >= 1"),
+    ],
+)
 def test_openloop_bad_input_exits_2(args, fragment, offline, capsys):
     out, _ = offline
     with pytest.raises(SystemExit) as err:

@@ -1,11 +1,22 @@
 """Config: defaults, per-env defaults, presets, typed key=value overrides and clear errors."""
+
 import pytest
 from omegaconf import OmegaConf
 
 from pets.config import ConfigError, all_keys, load_config, make_config, parse_overrides
 
-REQUIRED = ["trials", "seed", "device", "planner.population", "planner.particles", "planner.horizon",
-            "planner.iterations", "model.ensemble_size", "model.hidden_size", "model.num_layers"]
+REQUIRED = [
+    "trials",
+    "seed",
+    "device",
+    "planner.population",
+    "planner.particles",
+    "planner.horizon",
+    "planner.iterations",
+    "model.ensemble_size",
+    "model.hidden_size",
+    "model.num_layers",
+]
 
 
 def test_required_keys_exist():
@@ -42,16 +53,19 @@ def test_override_beats_preset_beats_env_default():
     assert cfg.planner.population == 64
 
 
-@pytest.mark.parametrize("item, fragment", [
-    ("planner.popsize=3", "unknown config key"),
-    ("trials=1.5", "bad value for trials"),
-    ("trials=abc", "bad value for trials"),
-    ("trials=0", "trials must be >= 1"),
-    ("planner.propagation=ts2", "must be one of ts1, tsinf, expectation"),
-    ("planner.alpha=nan", "planner.alpha"),
-    ("model.num_elites=9", "num_elites"),
-    ("planner.replan_every=99", "replan_every"),
-])
+@pytest.mark.parametrize(
+    "item, fragment",
+    [
+        ("planner.popsize=3", "unknown config key"),
+        ("trials=1.5", "bad value for trials"),
+        ("trials=abc", "bad value for trials"),
+        ("trials=0", "trials must be >= 1"),
+        ("planner.propagation=ts2", "must be one of ts1, tsinf, expectation"),
+        ("planner.alpha=nan", "planner.alpha"),
+        ("model.num_elites=9", "num_elites"),
+        ("planner.replan_every=99", "replan_every"),
+    ],
+)
 def test_bad_values_raise_config_error(item, fragment):
     with pytest.raises(ConfigError, match=fragment.replace(".", r"\.").replace("(", r"\(")):
         make_config("invertedpendulum", overrides=parse_overrides([item]))

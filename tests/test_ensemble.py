@@ -1,4 +1,5 @@
 """Tests of the batched Gaussian ensemble (pets/ensemble.py)."""
+
 from __future__ import annotations
 
 import math
@@ -186,8 +187,11 @@ def test_gradients_flow_to_all_parameters() -> None:
     ens = make()
     x = torch.randn(E, 32, IN)
     mean, lv = ens(x)
-    loss = gaussian_nll(mean, lv, torch.randn(E, 32, OUT)).sum() + ens.weight_decay_loss() \
+    loss = (
+        gaussian_nll(mean, lv, torch.randn(E, 32, OUT)).sum()
+        + ens.weight_decay_loss()
         + 0.01 * ens.logvar_bound_penalty()
+    )
     loss.backward()
     for name, p in ens.named_parameters():
         assert p.grad is not None, name

@@ -4,6 +4,7 @@ Rewards and terminations are replayed on real transitions (random and smoothed-r
 several seeds, episodes run until they terminate, perturbed starts near Ant's termination), and
 the layouts are checked entry by entry against MuJoCo's qpos/qvel/data.
 """
+
 from __future__ import annotations
 
 import functools
@@ -41,7 +42,7 @@ def _perturbed_start(name: str, env: gymnasium.Env, rng: np.random.Generator) ->
     return env.observation(u._get_obs())  # env is the outer AppendObservation wrapper
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def transitions(name: str) -> dict[str, torch.Tensor]:
     """Real transitions of env ``name``: obs, act, next_obs, the env's reward and terminated, raw qvel."""
     spec = envs.get(name)
@@ -82,24 +83,50 @@ def reward_errors(name: str) -> tuple[float, float, int, int, int]:
     term = spec.terminated(d["obs"], d["act"], d["next_obs"])
     err = (r - d["reward"]).abs()
     rel = err / d["reward"].abs().clamp_min(1.0)
-    return (err.max().item(), rel.max().item(), int((term != d["terminated"]).sum()), len(err),
-            int(d["terminated"].sum()))
+    return (
+        err.max().item(),
+        rel.max().item(),
+        int((term != d["terminated"]).sum()),
+        len(err),
+        int(d["terminated"].sum()),
+    )
 
 
 # --------------------------------------------------------------------------- names
 
 
 def test_names_are_the_eight_canonical_ones():
-    assert NAMES == ["invertedpendulum", "inverteddoublependulum", "reacher", "hopper", "walker2d", "halfcheetah",
-                     "ant", "humanoid"]
+    assert NAMES == [
+        "invertedpendulum",
+        "inverteddoublependulum",
+        "reacher",
+        "hopper",
+        "walker2d",
+        "halfcheetah",
+        "ant",
+        "humanoid",
+    ]
 
 
-@pytest.mark.parametrize("alias,name", [
-    ("HalfCheetah-v5", "halfcheetah"), ("halfcheetah", "halfcheetah"), ("HALFCHEETAH", "halfcheetah"),
-    ("half_cheetah", "halfcheetah"), ("half-cheetah", "halfcheetah"), ("Walker2d-v5", "walker2d"),
-    ("walker2d", "walker2d"), ("InvertedDoublePendulum-v5", "inverteddoublependulum"),
-    ("inverted_double_pendulum", "inverteddoublependulum"), ("Humanoid-v5", "humanoid"), ("ant", "ant"),
-    ("Reacher-v5", "reacher"), ("Hopper", "hopper"), ("InvertedPendulum-v5", "invertedpendulum")])
+@pytest.mark.parametrize(
+    "alias,name",
+    [
+        ("HalfCheetah-v5", "halfcheetah"),
+        ("halfcheetah", "halfcheetah"),
+        ("HALFCHEETAH", "halfcheetah"),
+        ("half_cheetah", "halfcheetah"),
+        ("half-cheetah", "halfcheetah"),
+        ("Walker2d-v5", "walker2d"),
+        ("walker2d", "walker2d"),
+        ("InvertedDoublePendulum-v5", "inverteddoublependulum"),
+        ("inverted_double_pendulum", "inverteddoublependulum"),
+        ("Humanoid-v5", "humanoid"),
+        ("ant", "ant"),
+        ("Reacher-v5", "reacher"),
+        ("Hopper", "hopper"),
+        ("InvertedPendulum-v5", "invertedpendulum"),
+    ],
+)
 def test_aliases(alias, name):
     spec = envs.get(alias)
     assert spec.name == name
@@ -148,8 +175,16 @@ def test_layout_covers_every_index_once_and_matches_env(name):
     env.close()
 
 
-INVARIANT = {"invertedpendulum": (), "inverteddoublependulum": (), "reacher": (), "hopper": (0,), "walker2d": (0,),
-             "halfcheetah": (0,), "ant": (0, 1, 107), "humanoid": (0, 1, 350)}
+INVARIANT = {
+    "invertedpendulum": (),
+    "inverteddoublependulum": (),
+    "reacher": (),
+    "hopper": (0,),
+    "walker2d": (0,),
+    "halfcheetah": (0,),
+    "ant": (0, 1, 107),
+    "humanoid": (0, 1, 350),
+}
 
 
 @pytest.mark.parametrize("name", NAMES)
@@ -170,9 +205,14 @@ def test_layout_entries_mean_what_they_say(name):
     def adr(joint: str) -> int:
         return int(m.joint(joint).qposadr[0])
 
-    rn_truth = {"cart": lambda: qpos[[adr("slider")]], "target": lambda: qpos[[adr("target_x"), adr("target_y")]],
-                "root_xz": lambda: qpos[[adr("rootx"), adr("rootz")]], "torso_pos": lambda: qpos[0:3],
-                "main_body_x": lambda: d.body(1).xpos[:1], "mass_centre_x": lambda: mass_center(m, d)[:1]}
+    rn_truth = {
+        "cart": lambda: qpos[[adr("slider")]],
+        "target": lambda: qpos[[adr("target_x"), adr("target_y")]],
+        "root_xz": lambda: qpos[[adr("rootx"), adr("rootz")]],
+        "torso_pos": lambda: qpos[0:3],
+        "main_body_x": lambda: d.body(1).xpos[:1],
+        "mass_centre_x": lambda: mass_center(m, d)[:1],
+    }
     for g in lay.groups:
         got = obs[list(g.indices)]
         if g.kind == "Rn":
@@ -202,8 +242,10 @@ def test_layout_entries_mean_what_they_say(name):
     elif name == "ant":
         np.testing.assert_array_equal(other, np.clip(d.cfrc_ext[1:], -1, 1).ravel())
     elif name == "humanoid":
-        np.testing.assert_array_equal(other, np.concatenate([d.cinert[1:].ravel(), d.cvel[1:].ravel(),
-                                                             d.qfrc_actuator[6:], d.cfrc_ext[1:].ravel()]))
+        np.testing.assert_array_equal(
+            other,
+            np.concatenate([d.cinert[1:].ravel(), d.cvel[1:].ravel(), d.qfrc_actuator[6:], d.cfrc_ext[1:].ravel()]),
+        )
     else:
         assert other.size == 0
     env.close()
@@ -356,6 +398,7 @@ def test_functions_run_on_the_inputs_device(device):
 
 def test_spec_is_read_only_and_pickles():
     import pickle
+
     spec = envs.get("ant")
     with pytest.raises(TypeError):
         spec.params["ctrl_cost_weight"] = 0.0  # type: ignore[index]

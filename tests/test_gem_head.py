@@ -3,10 +3,11 @@
 Ground truth comes from the simulators (envs.get(name).make(), set_state), scipy.spatial.transform,
 torch.autograd.gradcheck and the DeltaHead baseline.
 """
+
 from __future__ import annotations
 
 import math
-from functools import lru_cache
+from functools import cache, partial
 
 import numpy as np
 import pytest
@@ -25,7 +26,7 @@ COMPOSE = ("right", "left")
 SMALL = {"ant": 120, "humanoid": 80}  # env steps per rollout (the slow envs get fewer)
 
 
-@lru_cache(maxsize=None)
+@cache
 def rollout(name: str, steps: int = 250, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """(obs, act, next_obs) float64 tensors of random-action steps; episodes reset on termination (reset
     transitions included: Ant/Humanoid start with a non-unit quaternion from the reset noise)."""
@@ -133,8 +134,11 @@ def test_hinge_alpha_is_the_log_of_the_relative_rotation() -> None:
     obs, _, nxt = rollout("halfcheetah")
     g = torch.Generator().manual_seed(8)
     o, n = obs[:64].clone(), nxt[:64].clone()
-    n[:, 2:9] = o[:, 2:9] + (torch.rand(64, 7, generator=g, dtype=torch.float64) * 2 - 1) * 3.1 \
+    n[:, 2:9] = (
+        o[:, 2:9]
+        + (torch.rand(64, 7, generator=g, dtype=torch.float64) * 2 - 1) * 3.1
         + 2 * math.pi * torch.randint(-3, 4, (64, 7), generator=g)
+    )
     o[:, 2:9] += 2 * math.pi * torch.randint(-50, 50, (64, 7), generator=g)
     y = head_of("halfcheetah").targets(o, n)[:, 2:9]
     d = n[:, 2:9] - o[:, 2:9]
@@ -163,8 +167,10 @@ def test_cossin_crossing_pi(name: str, joint: int, nq_hinges: tuple[int, int]) -
         o, n = torch.tensor(obs)[None], torch.tensor(nxt)[None]
         head = head_of(name)
         y = head.targets(o, n)
-        alphas = [y[0, head.target_names.index(f"alpha {g.name}")].item()
-                  for g in envs.get(name).layout.groups_of("SO2_cossin")]
+        alphas = [
+            y[0, head.target_names.index(f"alpha {g.name}")].item()
+            for g in envs.get(name).layout.groups_of("SO2_cossin")
+        ]
         np.testing.assert_allclose(alphas, dq, atol=1e-12)
         assert_close_scaled(head.next_obs(o, y), n, 1e-12)
     env.close()
@@ -287,7 +293,7 @@ def test_input_encoding_ant() -> None:
     np.testing.assert_allclose(x[:, names.index("cos obs[7]")], torch.cos(obs[:, 7]))
     k = names.index("R00 of obs[3:7]")
     want = Rotation.from_quat(obs[:, [4, 5, 6, 3]].numpy()).as_matrix().reshape(-1, 9)
-    np.testing.assert_allclose(x[:, k:k + 9].numpy(), want, atol=1e-12)
+    np.testing.assert_allclose(x[:, k : k + 9].numpy(), want, atol=1e-12)
     np.testing.assert_allclose(x[:, -8:], act)
 
 
@@ -296,10 +302,15 @@ def test_input_encoding_ant() -> None:
 
 @pytest.mark.parametrize("name", ["ant", "humanoid", "inverteddoublependulum", "reacher"])
 @settings(max_examples=6, deadline=None)
-@given(seed=st.integers(0, 2**31 - 1), scale=st.floats(0.05, 0.5),
-       dtype=st.sampled_from([torch.float32, torch.float64]), compose=st.sampled_from(COMPOSE))
-def test_states_stay_on_the_manifold_over_100_steps(name: str, seed: int, scale: float, dtype: torch.dtype,
-                                                    compose: str) -> None:
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    scale=st.floats(0.05, 0.5),
+    dtype=st.sampled_from([torch.float32, torch.float64]),
+    compose=st.sampled_from(COMPOSE),
+)
+def test_states_stay_on_the_manifold_over_100_steps(
+    name: str, seed: int, scale: float, dtype: torch.dtype, compose: str
+) -> None:
     obs, _, _ = rollout(name)
     head = head_of(name, compose=compose)
     g = torch.Generator().manual_seed(seed)
@@ -337,8 +348,12 @@ def test_states_stay_on_the_manifold_over_100_steps(name: str, seed: int, scale:
 
 def _rn_only_layout() -> ObsLayout:
     """HalfCheetah's observation with every position declared a translation (no rotation groups)."""
-    return ObsLayout(obs_dim=18, groups=(Group("root_xz", "Rn", (0, 1)), Group("angles", "Rn", tuple(range(2, 9)))),
-                     velocities=tuple(range(9, 18)), invariant=(0,))
+    return ObsLayout(
+        obs_dim=18,
+        groups=(Group("root_xz", "Rn", (0, 1)), Group("angles", "Rn", tuple(range(2, 9)))),
+        velocities=tuple(range(9, 18)),
+        invariant=(0,),
+    )
 
 
 def test_rn_only_layout_gem_equals_delta() -> None:
@@ -361,7 +376,7 @@ def test_rn_only_layout_gem_equals_delta() -> None:
         x, t = head.inputs(obs, act).float(), head.targets(obs, nxt).float()
         ens.fit_normaliser(x)
         opt = torch.optim.Adam(ens.parameters(), lr=1e-3)
-        for step in range(20):
+        for _ in range(20):
             idx = torch.randint(0, x.shape[0], (3, 32))
             mean, logvar = ens(x[idx])
             loss = head.loss(mean, logvar, t[idx], obs[idx].float(), nxt[idx].float()).sum()
@@ -426,7 +441,9 @@ def test_losses_gradients_and_modes() -> None:
         head = head_of("ant", compose=compose)
         for m in (mean0, y):
             mm = m[:, :3].clone().requires_grad_(True)
-            assert torch.autograd.gradcheck(lambda a: head.frobenius_loss(a, y[:, :3], o[:, :3], n[:, :3]), (mm,))
+            assert torch.autograd.gradcheck(
+                partial(head.frobenius_loss, target=y[:, :3], obs=o[:, :3], next_obs=n[:, :3]), (mm,)
+            )
     frob_ref = head_of("ant").frobenius_loss(mean0, y, o, n)
     from pets.heads import gaussian_nll
 

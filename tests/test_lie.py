@@ -4,6 +4,7 @@ References nobody here wrote: torch.linalg.matrix_exp (closed-form exp), scipy.s
 (quaternions, rotation vectors, axis-angle), torch.autograd.gradcheck (backward passes), and the group
 axioms / identities (round trips, R^T R = I, det R = 1, |R1 - R2|_F = 2 sqrt(2) sin(theta/2)).
 """
+
 from __future__ import annotations
 
 import math
@@ -24,8 +25,14 @@ DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 BATCHES = [(), (3,), (2, 4)]
 MATRIX_GROUPS = [SO2, SO3, SE2, SE3]
 ANGLES = {
-    "0": 0.0, "1e-8": 1e-8, "1e-5": 1e-5, "3e-3": 3e-3, "random": None,
-    "pi-1e-3": math.pi - 1e-3, "pi-1e-7": math.pi - 1e-7, "pi": math.pi,
+    "0": 0.0,
+    "1e-8": 1e-8,
+    "1e-5": 1e-5,
+    "3e-3": 3e-3,
+    "random": None,
+    "pi-1e-3": math.pi - 1e-3,
+    "pi-1e-7": math.pi - 1e-7,
+    "pi": math.pi,
 }
 # Absolute/relative tolerance per dtype; entries involved are O(1)..O(pi).
 TOL = {torch.float32: 1e-5, torch.float64: 1e-10}
@@ -125,7 +132,9 @@ def test_basis_is_the_papers():
     for i in range(3):
         t = SE3.hat(eye[3 + i])
         assert t[i, 3] == 1 and t.abs().sum() == 1
-    assert torch.equal(SO2.hat(torch.ones(1, dtype=torch.float64)), torch.tensor([[0.0, -1.0], [1.0, 0.0]], dtype=torch.float64))
+    assert torch.equal(
+        SO2.hat(torch.ones(1, dtype=torch.float64)), torch.tensor([[0.0, -1.0], [1.0, 0.0]], dtype=torch.float64)
+    )
     assert torch.equal(SE2.hat(torch.tensor([1.0, 2.0, 3.0])), torch.tensor([[0.0, -1, 2], [1, 0, 3], [0, 0, 0]]))
 
 
@@ -221,7 +230,9 @@ def test_threshold_continuity(group, dtype):
 
 
 @pytest.mark.parametrize("device", DEVICES)
-@pytest.mark.parametrize("angle", [0.0, 1e-8, math.pi - 1e-3, math.pi - 1e-7, math.pi], ids=["0", "1e-8", "pi-1e-3", "pi-1e-7", "pi"])
+@pytest.mark.parametrize(
+    "angle", [0.0, 1e-8, math.pi - 1e-3, math.pi - 1e-7, math.pi], ids=["0", "1e-8", "pi-1e-3", "pi-1e-7", "pi"]
+)
 @pytest.mark.parametrize("dtype", DTYPES, ids=dname)
 @pytest.mark.parametrize("group", MATRIX_GROUPS, ids=gid)
 def test_gradients_finite_and_nonzero(group, dtype, angle, device):
@@ -249,8 +260,11 @@ def test_differentials_at_identity(group, dtype):
     close(torch.einsum("ajk,bjk->ba", jl, group.hat(eye_t)), eye_t, TOL[dtype])
 
 
-@pytest.mark.parametrize("angle", [a for a in ANGLES.values() if a != math.pi] + [0.0999, 0.1001],
-                         ids=[k for k in ANGLES if k != "pi"] + ["thr32-", "thr32+"])
+@pytest.mark.parametrize(
+    "angle",
+    [a for a in ANGLES.values() if a != math.pi] + [0.0999, 0.1001],
+    ids=[k for k in ANGLES if k != "pi"] + ["thr32-", "thr32+"],
+)
 @pytest.mark.parametrize("group", MATRIX_GROUPS, ids=gid)
 def test_float32_jacobians_match_float64(group, angle):
     """No cancellation blow-up in float32 derivatives (Taylor vs closed-form branches, near pi, at 0)."""
@@ -311,7 +325,9 @@ def test_so3_against_scipy(dtype, angle):
     r_ref = torch.from_numpy(ref.as_matrix())
     x = v.to(dtype)
     close(SO3.exp(x), r_ref, tol, "exp vs from_rotvec")
-    axis = v / v.norm(dim=-1, keepdim=True).clamp_min(1e-300) if angle != 0.0 else torch.tensor([[0.0, 0, 1]]).expand(7, 3)
+    axis = (
+        v / v.norm(dim=-1, keepdim=True).clamp_min(1e-300) if angle != 0.0 else torch.tensor([[0.0, 0, 1]]).expand(7, 3)
+    )
     ang = v.norm(dim=-1)
     close(SO3.from_axis_angle((3.0 * axis).to(dtype), ang.to(dtype)), r_ref, tol, "from_axis_angle")
     _assert_quat_close(SO3.to_quat(r_ref.to(dtype)), _scipy_quat(ref), tol)
@@ -354,7 +370,7 @@ def test_so3_log_exactly_pi_axis_aligned(dtype):
 
 
 def test_frobenius_angle_identity():
-    """|R1 - R2|_F = 2 sqrt(2) sin(theta / 2), theta the angle of R1^T R2 (SO(3); SO(2) has 2 sin(theta/2) sqrt 2 too)."""
+    """|R1 - R2|_F = 2 sqrt(2) sin(theta / 2), theta the angle of R1^T R2 (SO(3); SO(2) too)."""
     for group, angle_of in ((SO3, SO3.angle), (SO2, lambda r: SO2.to_angle(r).abs())):
         a = group.exp(make_tangent(group, None, (50,), seed=10))
         b = group.exp(make_tangent(group, None, (50,), seed=11))
@@ -395,7 +411,9 @@ def test_se_from_rt_to_rt(group):
     r2, t2 = group.to_rt(x)
     assert torch.equal(r2, r) and torch.equal(t2, t)
     # the V-matrix: exp(0, u) is a pure translation by u
-    assert torch.equal(group.to_rt(group.exp(torch.cat([torch.zeros(4, rgroup.dim, dtype=torch.float64), t], -1)))[1], t)
+    assert torch.equal(
+        group.to_rt(group.exp(torch.cat([torch.zeros(4, rgroup.dim, dtype=torch.float64), t], -1)))[1], t
+    )
 
 
 @pytest.mark.parametrize("device", DEVICES)
@@ -403,7 +421,9 @@ def test_se_from_rt_to_rt(group):
 @pytest.mark.parametrize("dtype", DTYPES, ids=dname)
 def test_rn(dtype, batch, device):
     g = torch.Generator().manual_seed(13)
-    a, b, c = (torch.randn(*batch, 4, generator=g, dtype=torch.float64).to(dtype=dtype, device=device) for _ in range(3))
+    a, b, c = (
+        torch.randn(*batch, 4, generator=g, dtype=torch.float64).to(dtype=dtype, device=device) for _ in range(3)
+    )
     assert Rn.dim is None and Rn(4).dim == 4 and repr(Rn(4)) == "Rn(4)"
     assert torch.equal(Rn.vee(Rn.hat(a)), a) and torch.equal(Rn.hat(Rn.vee(Rn.hat(a))), Rn.hat(a))
     assert torch.equal(Rn.exp(a), a) and torch.equal(Rn.log(a), a)
@@ -453,7 +473,7 @@ def _clip_rotation(group, v: torch.Tensor, max_angle: float = math.pi - 1e-3) ->
     rot = v[..., s]
     n = rot.norm(dim=-1, keepdim=True)
     scale = torch.where(n > max_angle, max_angle / n.clamp_min(1e-300), torch.ones_like(n))
-    return torch.cat([rot * scale, v[..., s.stop:]], dim=-1)
+    return torch.cat([rot * scale, v[..., s.stop :]], dim=-1)
 
 
 @pytest.mark.parametrize("group", MATRIX_GROUPS, ids=gid)
@@ -467,6 +487,7 @@ def test_property_round_trips(group):
         close(group.log(x), v, TOL[dtype])
         close(group.exp(group.log(x)), x, TOL[dtype])
         assert torch.equal(group.vee(group.hat(v)), v)
+
     check()
 
 
@@ -485,6 +506,7 @@ def test_property_group_axioms(group):
         r = xy[..., :n, :n]
         close(r.transpose(-1, -2) @ r, torch.eye(n, dtype=torch.float64).expand_as(r), tol)
         close(torch.linalg.det(r), torch.ones(3, dtype=torch.float64), tol)
+
     check()
 
 

@@ -3,6 +3,7 @@
 Ground truth: real MuJoCo transitions (pets.collect), scipy rotations for the SO(3) Frobenius loss, closed-form
 2x2 rotations for SO(2), numpy for the squared errors; the CLIs end to end in subprocesses (one torch thread).
 """
+
 import math
 import os
 import subprocess
@@ -27,16 +28,27 @@ from pets.evaluate import evaluate, rollout
 from pets.heads import DeltaHead
 from pets.models import DETERMINISTIC_LOGVAR, DeterministicDeltaHead, DeterministicEnsemble, GroupFeatureDeltaHead
 from pets.propagation import TrajectoryEvaluator
-from pets.training import ModelTrainer
 from pets.train import train_offline
+from pets.training import ModelTrainer
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 CPU = torch.device("cpu")
-SMALL = {"model.hidden_size": 32, "model.num_layers": 2, "model.ensemble_size": 3, "model.num_elites": 2,
-         "model.batch_size": 32, "device": "cpu"}
-TINY_MODEL = ["model.hidden_size=16", "model.num_layers=2", "model.ensemble_size=2", "model.num_elites=2",
-              "model.batch_size=32"]
+SMALL = {
+    "model.hidden_size": 32,
+    "model.num_layers": 2,
+    "model.ensemble_size": 3,
+    "model.num_elites": 2,
+    "model.batch_size": 32,
+    "device": "cpu",
+}
+TINY_MODEL = [
+    "model.hidden_size=16",
+    "model.num_layers=2",
+    "model.ensemble_size=2",
+    "model.num_elites=2",
+    "model.batch_size=32",
+]
 
 
 pytestmark = pytest.mark.usefixtures("single_thread")
@@ -71,10 +83,13 @@ def build(env: str, head_name: str, seed: int = 0, **overrides):
 @pytest.mark.parametrize("head_name", HEADS)
 def test_every_model_builds_trains_and_plans(env, head_name):
     cfg, spec, head, ens = build(env, head_name, **{"model.max_epochs": 20, "model.patience": 20, "model.lr": 3e-3})
-    kinds = {"delta": (DeltaHead, GaussianEnsemble), "gem": (GemHead, GaussianEnsemble),
-             "delta-det": (DeterministicDeltaHead, DeterministicEnsemble),
-             "gem2": (TwoStageGemHead, TwoStageGemEnsemble),
-             "delta-groupfeat": (GroupFeatureDeltaHead, GaussianEnsemble)}
+    kinds = {
+        "delta": (DeltaHead, GaussianEnsemble),
+        "gem": (GemHead, GaussianEnsemble),
+        "delta-det": (DeterministicDeltaHead, DeterministicEnsemble),
+        "gem2": (TwoStageGemHead, TwoStageGemEnsemble),
+        "delta-groupfeat": (GroupFeatureDeltaHead, GaussianEnsemble),
+    }
     assert isinstance(head, kinds[head_name][0]) and type(ens) is kinds[head_name][1] and head.name == head_name
     assert head.deterministic == ens.deterministic == (head_name in DETERMINISTIC_HEADS)
     assert cfg.planner.propagation == ("expectation" if head_name in DETERMINISTIC_HEADS else "tsinf")
@@ -123,7 +138,7 @@ def test_deterministic_tsinf_rollouts_are_the_members_mean_paths(head_name):
             o = obs[3].expand(3, -1)
             path = [o]
             for t in range(actions.shape[1]):
-                mean, logvar = ens(head.inputs(o, actions[:, t]), elites[k:k + 1])
+                mean, logvar = ens(head.inputs(o, actions[:, t]), elites[k : k + 1])
                 assert (logvar == DETERMINISTIC_LOGVAR).all()
                 o = head.next_obs(o, mean[0])
                 path.append(o)
@@ -135,8 +150,12 @@ def test_deterministic_tsinf_rollouts_are_the_members_mean_paths(head_name):
     # with one member, ts-inf, ts1 and expectation all give the mean path
     cfg1, spec, head1, ens1 = build("reacher", head_name, **{"model.ensemble_size": 1, "model.num_elites": 1})
     ens1.fit_normaliser(head1.inputs(obs, act))
-    traj = {m: TrajectoryEvaluator(ens1, head1, spec.reward, spec.terminated, particles=3, propagation=m)
-            .rollout(obs[3], actions, torch.Generator().manual_seed(0))[0] for m in ("tsinf", "ts1", "expectation")}
+    traj = {
+        m: TrajectoryEvaluator(ens1, head1, spec.reward, spec.terminated, particles=3, propagation=m).rollout(
+            obs[3], actions, torch.Generator().manual_seed(0)
+        )[0]
+        for m in ("tsinf", "ts1", "expectation")
+    }
     torch.testing.assert_close(traj["tsinf"], traj["expectation"], rtol=1e-6, atol=1e-6)
     torch.testing.assert_close(traj["ts1"], traj["expectation"], rtol=1e-6, atol=1e-6)
 
@@ -244,14 +263,19 @@ def test_gem2_loss_equals_the_hand_computed_frobenius_plus_velocity_mse_so2():
         per.append((frob + cart + vel) / 4)
     torch.testing.assert_close(got, torch.tensor([np.mean(per)], dtype=torch.float64), rtol=1e-12, atol=0)
     # the logvar does not enter
-    assert torch.equal(got, head.loss(mean, torch.randn_like(mean), target.unsqueeze(0), obs.unsqueeze(0),
-                                      next_obs.unsqueeze(0)))
+    assert torch.equal(
+        got, head.loss(mean, torch.randn_like(mean), target.unsqueeze(0), obs.unsqueeze(0), next_obs.unsqueeze(0))
+    )
 
 
 @pytest.mark.parametrize("compose", ["right", "left"])
 def test_gem2_loss_equals_the_hand_computed_frobenius_plus_velocity_mse_so3(compose):
-    layout = ObsLayout(obs_dim=9, groups=(Group("pos", "Rn", (0, 1)), Group("q", "SO3_quat", (2, 3, 4, 5))),
-                       velocities=(6, 7), other=(8,))
+    layout = ObsLayout(
+        obs_dim=9,
+        groups=(Group("pos", "Rn", (0, 1)), Group("q", "SO3_quat", (2, 3, 4, 5))),
+        velocities=(6, 7),
+        other=(8,),
+    )
     head = TwoStageGemHead(layout, act_dim=1, compose=compose)
     assert head.group_slots == (0, 1, 2, 3, 4) and head.velocity_slots == (5, 6, 7)
     rng = np.random.default_rng(0)
@@ -297,8 +321,11 @@ def test_gem2_state_dict_round_trip_keeps_the_target_normaliser():
 def test_groupfeat_inputs_are_gem_inputs_and_targets_are_delta_targets(env):
     spec = envs.get(env)
     obs, act, next_obs = tensors(env)
-    head, gem, delta = (GroupFeatureDeltaHead(spec.layout, spec.act_dim), GemHead(spec.layout, spec.act_dim),
-                        DeltaHead(spec.layout, spec.act_dim))
+    head, gem, delta = (
+        GroupFeatureDeltaHead(spec.layout, spec.act_dim),
+        GemHead(spec.layout, spec.act_dim),
+        DeltaHead(spec.layout, spec.act_dim),
+    )
     assert head.input_dim == gem.input_dim and head.input_names == gem.input_names
     assert torch.equal(head.inputs(obs, act), gem.inputs(obs, act))
     assert head.target_dim == delta.target_dim == len(spec.layout.predicted_indices)
@@ -332,12 +359,15 @@ def test_groupfeat_equals_gem_on_a_planar_env():
 def test_offline_train_and_evaluate_every_model(head_name, tmp_path):
     arrays = data("reacher", episodes=4, steps=30)
     extra = {"model.ensemble_size": 1, "model.num_elites": 1} if head_name in DETERMINISTIC_HEADS else {}
-    out = train_offline(arrays, head_name, tmp_path / "run", {**dict(SMALL), **extra}, preset="fast", seed=0,
-                        device="cpu", epochs=3)
+    out = train_offline(
+        arrays, head_name, tmp_path / "run", {**dict(SMALL), **extra}, preset="fast", seed=0, device="cpu", epochs=3
+    )
     cfg, spec, head, ens = builder.load_model(out)
     assert cfg.head == head_name and head.name == head_name and ens.deterministic == (head_name in DETERMINISTIC_HEADS)
-    results = {mode: evaluate(out, arrays, horizons=(1, 5, 10), starts=20, mode=mode, device="cpu", log=lambda m: 0)
-               for mode in ("mean", "sample")}
+    results = {
+        mode: evaluate(out, arrays, horizons=(1, 5, 10), starts=20, mode=mode, device="cpu", log=lambda m: 0)
+        for mode in ("mean", "sample")
+    }
     for res in results.values():
         assert res["model"] == head_name
         for row in res["horizons"].values():
@@ -346,8 +376,9 @@ def test_offline_train_and_evaluate_every_model(head_name, tmp_path):
         assert results["mean"]["horizons"] == results["sample"]["horizons"]
         o = torch.as_tensor(arrays["obs"][:2, 0], dtype=torch.float32)
         a = torch.as_tensor(arrays["act"][:2, :6], dtype=torch.float32)
-        assert torch.equal(rollout(ens, head, o, a, "mean"),
-                           rollout(ens, head, o, a, "sample", torch.Generator().manual_seed(3)))
+        assert torch.equal(
+            rollout(ens, head, o, a, "mean"), rollout(ens, head, o, a, "sample", torch.Generator().manual_seed(3))
+        )
 
 
 # --------------------------------------------------------------------------- config and CLIs
@@ -366,8 +397,9 @@ def test_config_heads_and_deterministic_defaults():
 
 
 def _cli(args: list) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, *map(str, args)], cwd=ROOT, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, env=ENV)
+    return subprocess.Popen(
+        [sys.executable, *map(str, args)], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV
+    )
 
 
 def _wait(procs: dict, timeout: int = 240) -> dict:
@@ -381,11 +413,36 @@ def _wait(procs: dict, timeout: int = 240) -> dict:
 
 def test_cli_end_to_end_delta_det_and_gem2(tmp_path, capsys):
     npz = save_dataset(tmp_path / "ip.npz", collect(envs.get("invertedpendulum"), "random", 5, seed=1))
-    tiny_run = ["--preset", "fast", "planner.population=16", "planner.particles=2", "planner.horizon=4",
-                "planner.iterations=2", "model.max_epochs=2", "episode_length=15", "seed_steps=60", *TINY_MODEL,
-                "--quiet"]
-    train_args = {m: ["--data", str(npz), "--model", m, "--out", str(tmp_path / m), "--epochs", "3", "--device",
-                      "cpu", "--quiet", *TINY_MODEL] for m in ("delta-det", "gem2")}
+    tiny_run = [
+        "--preset",
+        "fast",
+        "planner.population=16",
+        "planner.particles=2",
+        "planner.horizon=4",
+        "planner.iterations=2",
+        "model.max_epochs=2",
+        "episode_length=15",
+        "seed_steps=60",
+        *TINY_MODEL,
+        "--quiet",
+    ]
+    train_args = {
+        m: [
+            "--data",
+            str(npz),
+            "--model",
+            m,
+            "--out",
+            str(tmp_path / m),
+            "--epochs",
+            "3",
+            "--device",
+            "cpu",
+            "--quiet",
+            *TINY_MODEL,
+        ]
+        for m in ("delta-det", "gem2")
+    }
     proc = _cli(["-m", "pets.train", *train_args["gem2"]])  # the real command, in a subprocess
     import run_pets
     from pets.train import main as train_main
@@ -394,8 +451,22 @@ def test_cli_end_to_end_delta_det_and_gem2(tmp_path, capsys):
     capsys.readouterr()
     assert train_main(train_args["delta-det"]) == 0
     out = {"delta-det": capsys.readouterr().out}
-    assert run_pets.main(["--model", "gem2", "--env", "invertedpendulum", "--trials", "1", "--out",
-                          str(tmp_path / "online"), *tiny_run]) == 0
+    assert (
+        run_pets.main(
+            [
+                "--model",
+                "gem2",
+                "--env",
+                "invertedpendulum",
+                "--trials",
+                "1",
+                "--out",
+                str(tmp_path / "online"),
+                *tiny_run,
+            ]
+        )
+        == 0
+    )
     out.update(_wait({"gem2": proc}))
     for m in ("delta-det", "gem2"):
         assert f"{m} model trained on" in out[m]
@@ -410,8 +481,10 @@ def test_cli_end_to_end_delta_det_and_gem2(tmp_path, capsys):
     cfg, spec, head, ens = builder.load_model(online)
     assert cfg.head == "gem2" and cfg.planner.propagation == "expectation" and isinstance(ens, TwoStageGemEnsemble)
     # a bad --model is one line naming the accepted ones, exit 2 (pets.train and run_pets.py)
-    for main, args in ((train_main, ["--data", str(npz), "--model", "gem3", "--out", str(tmp_path / "bad")]),
-                       (run_pets.main, ["--model", "gem3", "--env", "hopper"])):
+    for main, args in (
+        (train_main, ["--data", str(npz), "--model", "gem3", "--out", str(tmp_path / "bad")]),
+        (run_pets.main, ["--model", "gem3", "--env", "hopper"]),
+    ):
         capsys.readouterr()
         with pytest.raises(SystemExit) as exc:
             main(args)

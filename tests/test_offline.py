@@ -4,6 +4,7 @@ Ground truth comes from the simulator (reset observations, rewards) and from sci
 for the quaternion metric). Subprocesses run with one torch thread: tiny models on a shared 2-core
 machine are many times slower with two.
 """
+
 import json
 import math
 import os
@@ -14,8 +15,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from tests.threads import one_thread
 import torch
 from scipy.spatial.transform import Rotation
 
@@ -27,13 +26,26 @@ from pets.datasets import load_dataset, save_dataset, transitions
 from pets.evaluate import evaluate, rollout, sample_starts, step_errors, wrap_angle
 from pets.propagation import TrajectoryEvaluator
 from pets.train import OFFLINE_DEFAULTS, offline_config
+from tests.threads import one_thread
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 TINY_MODEL = ["model.hidden_size=32", "model.ensemble_size=2", "model.num_elites=2", "model.batch_size=32"]
-TINY_RUN = ["--preset", "fast", "planner.population=16", "planner.particles=2", "planner.horizon=4",
-            "planner.iterations=2", "model.max_epochs=2", "model.hidden_size=32", "model.ensemble_size=2",
-            "model.num_elites=2", "episode_length=15", "seed_steps=60", "--quiet"]
+TINY_RUN = [
+    "--preset",
+    "fast",
+    "planner.population=16",
+    "planner.particles=2",
+    "planner.horizon=4",
+    "planner.iterations=2",
+    "model.max_epochs=2",
+    "model.hidden_size=32",
+    "model.ensemble_size=2",
+    "model.num_elites=2",
+    "episode_length=15",
+    "seed_steps=60",
+    "--quiet",
+]
 
 
 def command(module, *args):
@@ -50,8 +62,12 @@ def run(module, *args, check=True, timeout=300):
 
 def run_parallel(jobs, timeout=300):
     """Run independent commands at once (one torch thread each); {name: stdout}, all must succeed."""
-    procs = {name: subprocess.Popen(command(*job), cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                    text=True, env=ENV) for name, job in jobs.items()}
+    procs = {
+        name: subprocess.Popen(
+            command(*job), cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV
+        )
+        for name, job in jobs.items()
+    }
     out = {}
     for name, proc in procs.items():
         stdout, stderr = proc.communicate(timeout=timeout)
@@ -60,28 +76,107 @@ def run_parallel(jobs, timeout=300):
     return out
 
 
-
-
 @pytest.fixture(scope="module")
 def work(tmp_path_factory):
     """Every command of the offline pipeline, run once for the whole module (independent ones in parallel)."""
     w = tmp_path_factory.mktemp("offline")
-    run_parallel({
-        "ip": ("pets.collect", "--env", "InvertedPendulum-v5", "--policy", "random", "--episodes", 6, "--seed", 1,
-               "--out", w / "ip.npz", "--quiet"),
-        "reacher": ("pets.collect", "--env", "reacher", "--policy", "smooth-random", "--episodes", 12, "--seed", 2,
-                    "--out", w / "reacher.npz", "--quiet"),
-        "online": ("run_pets.py", "--env", "invertedpendulum", "--trials", 1, "--seed", 0, "--out", w / "online",
-                   *TINY_RUN),
-    })
-    w.joinpath("agent.stdout").write_text(run_parallel({
-        "delta": ("pets.train", "--data", w / "reacher.npz", "--model", "delta", "--out", w / "delta", "--epochs", 60,
-                  "--seed", 0, "--device", "cpu", "--quiet", *TINY_MODEL, "model.hidden_size=64"),
-        "gem": ("pets.train", "--data", w / "reacher.npz", "--model", "gem", "--out", w / "gem", "--epochs", 3,
-                "--quiet", *TINY_MODEL),
-        "agent": ("pets.collect", "--policy", f"run:{w / 'online'}", "--episodes", 2, "--max-steps", 8, "--seed", 4,
-                  "--device", "cpu", "--out", w / "agent.npz", "--quiet"),
-    })["agent"])
+    run_parallel(
+        {
+            "ip": (
+                "pets.collect",
+                "--env",
+                "InvertedPendulum-v5",
+                "--policy",
+                "random",
+                "--episodes",
+                6,
+                "--seed",
+                1,
+                "--out",
+                w / "ip.npz",
+                "--quiet",
+            ),
+            "reacher": (
+                "pets.collect",
+                "--env",
+                "reacher",
+                "--policy",
+                "smooth-random",
+                "--episodes",
+                12,
+                "--seed",
+                2,
+                "--out",
+                w / "reacher.npz",
+                "--quiet",
+            ),
+            "online": (
+                "run_pets.py",
+                "--env",
+                "invertedpendulum",
+                "--trials",
+                1,
+                "--seed",
+                0,
+                "--out",
+                w / "online",
+                *TINY_RUN,
+            ),
+        }
+    )
+    w.joinpath("agent.stdout").write_text(
+        run_parallel(
+            {
+                "delta": (
+                    "pets.train",
+                    "--data",
+                    w / "reacher.npz",
+                    "--model",
+                    "delta",
+                    "--out",
+                    w / "delta",
+                    "--epochs",
+                    60,
+                    "--seed",
+                    0,
+                    "--device",
+                    "cpu",
+                    "--quiet",
+                    *TINY_MODEL,
+                    "model.hidden_size=64",
+                ),
+                "gem": (
+                    "pets.train",
+                    "--data",
+                    w / "reacher.npz",
+                    "--model",
+                    "gem",
+                    "--out",
+                    w / "gem",
+                    "--epochs",
+                    3,
+                    "--quiet",
+                    *TINY_MODEL,
+                ),
+                "agent": (
+                    "pets.collect",
+                    "--policy",
+                    f"run:{w / 'online'}",
+                    "--episodes",
+                    2,
+                    "--max-steps",
+                    8,
+                    "--seed",
+                    4,
+                    "--device",
+                    "cpu",
+                    "--out",
+                    w / "agent.npz",
+                    "--quiet",
+                ),
+            }
+        )["agent"]
+    )
     return w
 
 
@@ -120,7 +215,7 @@ def test_collect_file_format_and_simulator_ground_truth(name, ip_data, reacher_d
     real = np.arange(t)[None] < lengths[:, None]
     assert np.isfinite(act[real]).all() and np.isnan(act[~real]).all() and np.isnan(rew[~real]).all()
     for i, k in enumerate(lengths):
-        assert np.isfinite(obs[i, : k + 1]).all() and np.isnan(obs[i, k + 1:]).all()
+        assert np.isfinite(obs[i, : k + 1]).all() and np.isnan(obs[i, k + 1 :]).all()
         # an episode ends by termination exactly when it is shorter than the time limit
         assert term[i, : k - 1].sum() == 0 and bool(term[i, k - 1]) == (k < spec.episode_length)
     if env == "reacher":
@@ -224,14 +319,27 @@ def test_offline_defaults_and_epochs_precedence():
 # --------------------------------------------------------------------------- evaluate
 def test_evaluate_cli_json(work, delta_run, reacher_data):
     out = work / "eval.json"
-    proc = run("pets.evaluate", "--run", delta_run, "--data", reacher_data, "--starts", 50, "--seed", 3,
-               "--device", "cpu", "--json", out)
+    proc = run(
+        "pets.evaluate",
+        "--run",
+        delta_run,
+        "--data",
+        reacher_data,
+        "--starts",
+        50,
+        "--seed",
+        3,
+        "--device",
+        "cpu",
+        "--json",
+        out,
+    )
     res = json.loads(out.read_text())
     assert {"run", "data", "env", "model", "horizons"} <= set(res)
     assert res["env"] == "reacher" and res["model"] == "delta" and res["mode"] == "mean"
     assert list(res["horizons"]) == ["1", "5", "10", "25", "50"]
     assert res["starts"] == 12  # horizon 50 in 50-step episodes: only t = 0 of each of the 12 episodes
-    for h, row in res["horizons"].items():
+    for row in res["horizons"].values():
         assert set(row) >= {"mean_step_error", "final_step_error", "position_error", "velocity_error", "other_error"}
         assert all(math.isfinite(v) and v >= 0 for v in row.values())
         assert row["mean_step_error"] >= max(row["position_error"], row["velocity_error"], row["other_error"]) - 1e-12
@@ -260,8 +368,9 @@ def test_trained_model_beats_untrained_one_step(work, delta_run, reacher_data):
 def test_evaluate_sample_mode_and_an_online_run_with_skipped_horizons(online_run, ip_data, delta_run, reacher_data):
     messages = []
     with one_thread():
-        res = evaluate(online_run, ip_data, [1, 2, 3, 1000], starts=10, seed=0, mode="sample", device="cpu",
-                       log=messages.append)
+        res = evaluate(
+            online_run, ip_data, [1, 2, 3, 1000], starts=10, seed=0, mode="sample", device="cpu", log=messages.append
+        )
         a = evaluate(delta_run, reacher_data, [1, 10], starts=40, seed=5, mode="sample", device="cpu")
         b = evaluate(delta_run, reacher_data, [1, 10], starts=40, seed=5, mode="sample", device="cpu")
         m = evaluate(delta_run, reacher_data, [1, 10], starts=40, seed=5, mode="mean", device="cpu")
@@ -281,7 +390,7 @@ def test_mean_rollout_matches_the_planners_expectation_propagation(delta_run, re
         ours = rollout(ensemble, head, obs0, acts, "mean")
         for i in range(3):
             evaluator = TrajectoryEvaluator(ensemble, head, spec.reward, None, particles=1, propagation="expectation")
-            theirs, _ = evaluator.rollout(obs0[i], acts[i:i + 1])
+            theirs, _ = evaluator.rollout(obs0[i], acts[i : i + 1])
             torch.testing.assert_close(ours[i], theirs[0, 0, 1:], rtol=1e-5, atol=1e-5)
 
 
@@ -295,8 +404,9 @@ def test_sample_starts_leave_room_and_are_distinct():
 
 # --------------------------------------------------------------------------- metric (pure functions)
 def test_wrap_angle_range_and_values():
-    d = torch.tensor([0.0, 0.5, math.pi, -math.pi, 3 * math.pi, 2 * math.pi, -0.5 - 4 * math.pi, 1e-9],
-                     dtype=torch.float64)
+    d = torch.tensor(
+        [0.0, 0.5, math.pi, -math.pi, 3 * math.pi, 2 * math.pi, -0.5 - 4 * math.pi, 1e-9], dtype=torch.float64
+    )
     w = wrap_angle(d)
     expected = torch.tensor([0.0, 0.5, math.pi, math.pi, math.pi, 0.0, -0.5, 1e-9], dtype=torch.float64)
     torch.testing.assert_close(w, expected, atol=1e-12, rtol=0)
@@ -318,8 +428,12 @@ def test_step_error_compares_angles_modulo_two_pi():
 
 
 def test_step_error_compares_quaternions_up_to_sign_against_scipy_angles():
-    layout = ObsLayout(obs_dim=8, groups=(Group("pos", "Rn", (0,)), Group("q", "SO3_quat", (1, 2, 3, 4))),
-                       velocities=(5, 6), other=(7,))
+    layout = ObsLayout(
+        obs_dim=8,
+        groups=(Group("pos", "Rn", (0,)), Group("q", "SO3_quat", (1, 2, 3, 4))),
+        velocities=(5, 6),
+        other=(7,),
+    )
     r1 = Rotation.random(64, random_state=0)
     r2 = Rotation.random(64, random_state=1)
     sign = np.where(np.arange(64) % 2 == 0, 1.0, -1.0)[:, None]
@@ -353,21 +467,30 @@ def test_step_error_parts_follow_the_layout():
 
 
 # --------------------------------------------------------------------------- bad input
-@pytest.mark.parametrize("module, args, fragment", [
-    ("pets.collect", ["--env", "pong", "--policy", "random", "--out", "x.npz"], "invertedpendulum"),
-    ("pets.collect", ["--env", "reacher", "--policy", "greedy", "--out", "x.npz"], "smooth-random"),
-    ("pets.collect", ["--env", "reacher", "--policy", "run:/nonexistent/run", "--out", "x.npz"], "does not exist"),
-    ("pets.collect", ["--env", "reacher", "--policy", "smooth-random:1.5", "--out", "x.npz"], "[0, 1)"),
-    ("pets.collect", ["--policy", "random", "--out", "x.npz"], "--env is required"),
-    ("pets.train", ["--data", "/nonexistent.npz", "--model", "delta", "--out", "r"], "does not exist"),
-    ("pets.train", ["--data", "/nonexistent.npz", "--model", "mlp", "--out", "r"], "delta, gem"),
-    ("pets.evaluate", ["--run", "/nonexistent/run", "--data", "x.npz"], "not a run directory"),
-    ("pets.evaluate", ["--run", "r", "--data", "x.npz", "--horizons", "1,a"], "comma-separated"),
-    ("pets.evaluate", ["--run", "r", "--data", "x.npz", "--mode", "median"], "mean"),
-])
+@pytest.mark.parametrize(
+    "module, args, fragment",
+    [
+        ("pets.collect", ["--env", "pong", "--policy", "random", "--out", "x.npz"], "invertedpendulum"),
+        ("pets.collect", ["--env", "reacher", "--policy", "greedy", "--out", "x.npz"], "smooth-random"),
+        ("pets.collect", ["--env", "reacher", "--policy", "run:/nonexistent/run", "--out", "x.npz"], "does not exist"),
+        ("pets.collect", ["--env", "reacher", "--policy", "smooth-random:1.5", "--out", "x.npz"], "[0, 1)"),
+        ("pets.collect", ["--policy", "random", "--out", "x.npz"], "--env is required"),
+        ("pets.train", ["--data", "/nonexistent.npz", "--model", "delta", "--out", "r"], "does not exist"),
+        ("pets.train", ["--data", "/nonexistent.npz", "--model", "mlp", "--out", "r"], "delta, gem"),
+        ("pets.evaluate", ["--run", "/nonexistent/run", "--data", "x.npz"], "not a run directory"),
+        ("pets.evaluate", ["--run", "r", "--data", "x.npz", "--horizons", "1,a"], "comma-separated"),
+        ("pets.evaluate", ["--run", "r", "--data", "x.npz", "--mode", "median"], "mean"),
+    ],
+)
 def test_bad_input_exits_2_with_one_line(module, args, fragment, tmp_path):
-    proc = subprocess.run([sys.executable, "-m", module, *args], cwd=tmp_path, capture_output=True, text=True,
-                          timeout=120, env={**ENV, "PYTHONPATH": str(ROOT)})
+    proc = subprocess.run(
+        [sys.executable, "-m", module, *args],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={**ENV, "PYTHONPATH": str(ROOT)},
+    )
     lines = [line for line in proc.stderr.splitlines() if line.strip()]
     assert proc.returncode == 2 and len(lines) == 1, proc.stderr
     assert lines[0].startswith(f"{module}: error: ") and fragment in lines[0]
@@ -376,10 +499,15 @@ def test_bad_input_exits_2_with_one_line(module, args, fragment, tmp_path):
 def test_bad_data_and_mismatched_env_exit_2(work, delta_run, ip_data):
     broken = work / "broken.npz"
     broken.write_bytes(b"not a zip file")
-    cases = [("pets.train", ["--data", broken, "--model", "delta", "--out", work / "never"], "not a readable"),
-             ("pets.train", ["--data", ip_data, "--model", "delta", "--out", work / "never", "model.sizes=3"],
-              "unknown config key"),
-             ("pets.evaluate", ["--run", delta_run, "--data", ip_data], "invertedpendulum")]
+    cases = [
+        ("pets.train", ["--data", broken, "--model", "delta", "--out", work / "never"], "not a readable"),
+        (
+            "pets.train",
+            ["--data", ip_data, "--model", "delta", "--out", work / "never", "model.sizes=3"],
+            "unknown config key",
+        ),
+        ("pets.evaluate", ["--run", delta_run, "--data", ip_data], "invertedpendulum"),
+    ]
     for module, args, fragment in cases:
         proc = run(module, *args, check=False, timeout=120)
         lines = [line for line in proc.stderr.splitlines() if line.strip()]

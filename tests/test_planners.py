@@ -1,4 +1,5 @@
 """CEM planner, truncated-normal sampling and the MPC warm start (pets/planners.py)."""
+
 from __future__ import annotations
 
 import math
@@ -39,7 +40,8 @@ def test_cem_finds_the_optimum_inside_the_bounds(device: str) -> None:
     assert len(seen) == 15 and all(s.shape == (400, h, 2) for s in seen)
     # PETS defaults (5 iterations, alpha 0.1) already get close.
     plan5 = CEMPlanner(LOW, HIGH, horizon=h, population=400, elites=40, device=device).plan(
-        quadratic(target)[0], generator=torch.Generator(device=device).manual_seed(0))
+        quadratic(target)[0], generator=torch.Generator(device=device).manual_seed(0)
+    )
     torch.testing.assert_close(plan5, target, rtol=0, atol=0.1)
 
 
@@ -51,7 +53,8 @@ def test_cem_respects_the_bounds_and_ends_on_the_bound(seed: int) -> None:
     target = torch.tensor([[3.0, -4.0], [-3.0, 3.0]])
     f, seen = quadratic(target)
     plan = CEMPlanner(LOW, HIGH, horizon=2, population=400, elites=0.1, iterations=15).plan(
-        f, generator=torch.Generator().manual_seed(seed))
+        f, generator=torch.Generator().manual_seed(seed)
+    )
     allseen = torch.cat(seen)
     assert (allseen >= lb).all() and (allseen <= ub).all()
     assert (plan >= lb).all() and (plan <= ub).all()
@@ -60,7 +63,8 @@ def test_cem_respects_the_bounds_and_ends_on_the_bound(seed: int) -> None:
     target = torch.tensor([[3.0, 0.0], [-5.0, 2.0], [0.2, -4.0], [1.5, -1.0], [0.0, 9.0]])
     f, seen = quadratic(target)
     plan = CEMPlanner(LOW, HIGH, horizon=5, population=300, elites=0.1, iterations=8).plan(
-        f, generator=torch.Generator().manual_seed(seed))
+        f, generator=torch.Generator().manual_seed(seed)
+    )
     allseen = torch.cat(seen)
     assert (allseen >= lb).all() and (allseen <= ub).all()
     assert (plan >= lb).all() and (plan <= ub).all()
@@ -94,7 +98,8 @@ def test_update_rule_alpha_zero_returns_last_elite_mean() -> None:
     f, seen = quadratic(target)
     k = 7
     plan = CEMPlanner(LOW, HIGH, horizon=2, population=60, elites=k, iterations=2, alpha=0.0).plan(
-        f, generator=torch.Generator().manual_seed(0))
+        f, generator=torch.Generator().manual_seed(0)
+    )
     last = seen[-1]
     values = -((last - target) ** 2).sum(dim=(1, 2))
     elite = last[values.argsort(descending=True)[:k]]
@@ -108,7 +113,8 @@ def test_update_rule_smoothing_and_first_iteration_statistics() -> None:
     mu0 = torch.tensor([[-0.2, 0.1]])
     f, seen = quadratic(target)
     plan = CEMPlanner(LOW, HIGH, horizon=1, population=80, elites=8, iterations=1, alpha=alpha).plan(
-        f, init_mean=mu0, generator=torch.Generator().manual_seed(0))
+        f, init_mean=mu0, generator=torch.Generator().manual_seed(0)
+    )
     pop = seen[0]
     values = -((pop - target) ** 2).sum(dim=(1, 2))
     elite = pop[values.argsort(descending=True)[:8]]
@@ -147,7 +153,8 @@ def test_return_best_sample_and_nan_objective_values() -> None:
     target = torch.tensor([[0.25, -0.75], [0.1, 0.3]])
     f, seen = quadratic(target)
     plan = CEMPlanner(LOW, HIGH, horizon=2, population=50, elites=5, iterations=3, return_mean_elites=False).plan(
-        f, generator=torch.Generator().manual_seed(0))
+        f, generator=torch.Generator().manual_seed(0)
+    )
     allseen = torch.cat(seen)
     values = -((allseen - target) ** 2).sum(dim=(1, 2))
     torch.testing.assert_close(plan, allseen[values.argmax()])
@@ -158,7 +165,8 @@ def test_return_best_sample_and_nan_objective_values() -> None:
         return torch.where(a[:, 0, 0] > 0.3, torch.nan, v)
 
     plan = CEMPlanner(LOW, HIGH, horizon=2, population=200, elites=10, iterations=6).plan(
-        nan_half, generator=torch.Generator().manual_seed(0))
+        nan_half, generator=torch.Generator().manual_seed(0)
+    )
     assert torch.isfinite(plan).all()
     torch.testing.assert_close(plan, target, rtol=0, atol=0.05)
 
@@ -179,7 +187,7 @@ def test_truncated_normal_matches_scipy_moments(device: str) -> None:
     np.testing.assert_allclose(x.std(0).numpy(), ref_std, rtol=5e-3)
     # The standardised truncated normal has std ~0.880 (not 1): check the shape too, via the 4th moment.
     z = ((x - mean.cpu().double()) / std.cpu().double()).numpy()
-    np.testing.assert_allclose((z ** 4).mean(0), truncnorm.moment(4, -2, 2), rtol=2e-2)
+    np.testing.assert_allclose((z**4).mean(0), truncnorm.moment(4, -2, 2), rtol=2e-2)
     # Other truncations.
     y = truncated_normal((n,), torch.zeros(()), torch.ones(()), bound=1.0, generator=torch.Generator().manual_seed(1))
     assert y.abs().max() <= 1.0
@@ -234,7 +242,7 @@ def test_colored_noise_unit_variance_and_spectrum_slope(t: int, beta: float) -> 
     # Unit variance and zero mean at every step (stationary), Gaussian marginals (kurtosis 3).
     np.testing.assert_allclose(yd.var(0), 1.0, atol=0.04)
     assert np.abs(yd.mean(0)).max() < 0.04
-    np.testing.assert_allclose((yd ** 4).mean(0) / yd.var(0) ** 2, 3.0, atol=0.15)
+    np.testing.assert_allclose((yd**4).mean(0) / yd.var(0) ** 2, 3.0, atol=0.15)
     # Periodogram (numpy's FFT, independent of torch's): log power vs log frequency has slope -beta.
     power = (np.abs(np.fft.rfft(yd, axis=1)) ** 2).mean(0)
     k = np.arange(1, (t - 1) // 2 + 1)  # interior frequencies (no DC, no Nyquist)
@@ -270,7 +278,7 @@ def test_smoothing_matrix_matches_the_recursion() -> None:
     for t in range(1, h):
         u.append(b * n[t] + (1 - b) * u[-1])
         # Var(u_t) = b^2 + (1 - b)^2 Var(u_{t-1}) for independent unit n.
-        var.append(b ** 2 + (1 - b) ** 2 * var[-1])
+        var.append(b**2 + (1 - b) ** 2 * var[-1])
     expected = torch.stack(u) / torch.tensor(var, dtype=torch.float64).sqrt()[:, None]
     torch.testing.assert_close(smoothing_matrix(h, b, dtype=torch.float64) @ n, expected)
     torch.testing.assert_close(smoothing_matrix(4, 1.0), torch.eye(4))
@@ -283,20 +291,21 @@ def test_icem_finds_the_optimum_inside_the_bounds(device: str) -> None:
     target = TARGET.to(device)
     # White noise (beta = 0) for a target that jumps between steps; the mean as result is the most precise.
     f, seen = quadratic(target)
-    planner = ICEMPlanner(LOW, HIGH, horizon=5, population=400, elites=40, iterations=12, noise_beta=0.0,
-                          device=device)
+    planner = ICEMPlanner(LOW, HIGH, horizon=5, population=400, elites=40, iterations=12, noise_beta=0.0, device=device)
     plan = planner.plan(f, generator=torch.Generator(device=device).manual_seed(0))
     assert plan.shape == (5, 2) and plan.device.type == device
     torch.testing.assert_close(plan, target, rtol=0, atol=0.03)
     # A target that is smooth in time (and periodic over the horizon, like the FFT noise): the paper's red
     # noise (beta = 2, default best-sample result) gets closer than white noise on the same budget.
     t = torch.arange(10.0)
-    smooth = torch.stack([0.4 + 0.2 * torch.cos(2 * math.pi * t / 10), -1.0 + 0.3 * torch.sin(2 * math.pi * t / 10)],
-                         dim=1).to(device)
+    smooth = torch.stack(
+        [0.4 + 0.2 * torch.cos(2 * math.pi * t / 10), -1.0 + 0.3 * torch.sin(2 * math.pi * t / 10)], dim=1
+    ).to(device)
     err = {}
     for beta in (0.0, 2.0):
-        planner = ICEMPlanner(LOW, HIGH, horizon=10, population=300, elites=30, iterations=10, noise_beta=beta,
-                              device=device)
+        planner = ICEMPlanner(
+            LOW, HIGH, horizon=10, population=300, elites=30, iterations=10, noise_beta=beta, device=device
+        )
         plan = planner.plan(quadratic(smooth)[0], generator=torch.Generator(device=device).manual_seed(0))
         err[beta] = float((plan - smooth).abs().max())
     assert err[2.0] < 0.08 and err[2.0] < err[0.0], err
@@ -308,7 +317,8 @@ def test_icem_respects_the_bounds_and_ends_on_the_bound(seed: int) -> None:
     target = torch.tensor([[3.0, -4.0], [-3.0, 3.0], [0.2, 9.0]])
     f, seen = quadratic(target)
     plan = ICEMPlanner(LOW, HIGH, horizon=3, population=400, elites=20, iterations=15, population_decay=1.1).plan(
-        f, generator=torch.Generator().manual_seed(seed))
+        f, generator=torch.Generator().manual_seed(seed)
+    )
     allseen = torch.cat(seen)
     assert (allseen >= lb).all() and (allseen <= ub).all()
     assert (plan >= lb).all() and (plan <= ub).all()
@@ -316,7 +326,8 @@ def test_icem_respects_the_bounds_and_ends_on_the_bound(seed: int) -> None:
     # Red noise over a longer horizon with a target far outside: every sample stays in the box.
     f, seen = quadratic(10 * TARGET)
     plan = ICEMPlanner(LOW, HIGH, horizon=5, population=100, elites=10, iterations=4).plan(
-        f, generator=torch.Generator().manual_seed(seed))
+        f, generator=torch.Generator().manual_seed(seed)
+    )
     allseen = torch.cat(seen)
     assert (allseen >= lb).all() and (allseen <= ub).all()
     assert (plan >= lb).all() and (plan <= ub).all()
@@ -324,8 +335,18 @@ def test_icem_respects_the_bounds_and_ends_on_the_bound(seed: int) -> None:
 
 def test_icem_population_schedule_carried_elites_and_mean() -> None:
     f, seen = quadratic(TARGET)
-    planner = ICEMPlanner(LOW, HIGH, horizon=5, population=100, elites=10, iterations=4, population_decay=2.0,
-                          keep_elites=0.3, alpha=0.0, return_mean_elites=True)
+    planner = ICEMPlanner(
+        LOW,
+        HIGH,
+        horizon=5,
+        population=100,
+        elites=10,
+        iterations=4,
+        population_decay=2.0,
+        keep_elites=0.3,
+        alpha=0.0,
+        return_mean_elites=True,
+    )
     assert planner.populations == [100, 50, 25, 20]  # max(floor(100 / 2^i), 2 * elites)
     assert planner.num_keep == 3
     plan = planner.plan(f, generator=torch.Generator().manual_seed(0))
@@ -333,7 +354,7 @@ def test_icem_population_schedule_carried_elites_and_mean() -> None:
     for i in range(1, 4):
         prev = seen[i - 1]
         top = prev[(-((prev - TARGET) ** 2).sum(dim=(1, 2))).argsort(descending=True)[:3]]
-        torch.testing.assert_close(seen[i][planner.populations[i]: planner.populations[i] + 3], top)
+        torch.testing.assert_close(seen[i][planner.populations[i] : planner.populations[i] + 3], top)
     # alpha = 0: the mean added to the last population is the elite mean of iteration 2, and the
     # result (return_mean_elites) is the elite mean of the last population.
     third = seen[2]
@@ -345,7 +366,8 @@ def test_icem_population_schedule_carried_elites_and_mean() -> None:
     # Default result: the best sample of the last population.
     f2, seen2 = quadratic(TARGET)
     best = ICEMPlanner(LOW, HIGH, horizon=5, population=100, elites=10, iterations=2).plan(
-        f2, generator=torch.Generator().manual_seed(0))
+        f2, generator=torch.Generator().manual_seed(0)
+    )
     last = seen2[-1]
     torch.testing.assert_close(best, last[(-((last - TARGET) ** 2).sum(dim=(1, 2))).argmax()])
 
@@ -401,7 +423,8 @@ def test_mppi_respects_the_bounds(smoothing: float) -> None:
     for sigma in (1.0, 0.3):  # wide perturbations: many samples clipped
         f, seen = quadratic(target)
         plan = MPPIPlanner(LOW, HIGH, horizon=3, population=300, iterations=20, sigma=sigma, smoothing=smoothing).plan(
-            f, generator=torch.Generator().manual_seed(0))
+            f, generator=torch.Generator().manual_seed(0)
+        )
         allseen = torch.cat(seen)
         assert (allseen >= lb).all() and (allseen <= ub).all()
         assert (plan >= lb).all() and (plan <= ub).all()
@@ -417,7 +440,8 @@ def test_mppi_perturbations_std_and_smoothing() -> None:
     for smoothing in (1.0, 0.3):
         f, seen = quadratic(torch.zeros(20, 1))
         MPPIPlanner(lo, hi, horizon=20, population=20_000, iterations=1, sigma=0.02, smoothing=smoothing).plan(
-            f, init_mean=torch.full((20, 1), 5.0), generator=torch.Generator().manual_seed(0))
+            f, init_mean=torch.full((20, 1), 5.0), generator=torch.Generator().manual_seed(0)
+        )
         eps = (seen[0][..., 0] - 5.0).double()  # (N, H)
         torch.testing.assert_close(eps.std(0), torch.full((20,), 2.0, dtype=torch.double), rtol=0.03, atol=0)
         corr = np.corrcoef(eps[:, 15].numpy(), eps[:, 16].numpy())[0, 1]
@@ -440,7 +464,8 @@ def test_mppi_weights() -> None:
     # Temperature -> 0: the plan is the best sample of the single iteration (random shooting).
     f, seen = quadratic(TARGET)
     plan = MPPIPlanner(LOW, HIGH, horizon=5, population=100, iterations=1, alpha=0.0, temperature=1e-6).plan(
-        f, generator=torch.Generator().manual_seed(0))
+        f, generator=torch.Generator().manual_seed(0)
+    )
     values = -((seen[0] - TARGET) ** 2).sum(dim=(1, 2))
     torch.testing.assert_close(plan, seen[0][values.argmax()])
 
@@ -475,16 +500,25 @@ def test_config_builds_the_named_planner(name: str, cls) -> None:
     from pets.builder import make_planner
     from pets.config import ConfigError, make_config
 
-    cfg = make_config("hopper", preset="fast", overrides={"planner.name": name, "planner.noise_beta": "2.5",
-                                                           "planner.mppi_temperature": "0.2"})
+    cfg = make_config(
+        "hopper",
+        preset="fast",
+        overrides={"planner.name": name, "planner.noise_beta": "2.5", "planner.mppi_temperature": "0.2"},
+    )
     planner = make_planner(cfg, envs.get("hopper"), torch.device("cpu"))
     assert isinstance(planner, cls) and planner.horizon == cfg.planner.horizon
     if name == "icem":
         assert planner.noise_beta == 2.5 and planner.num_elites == 10
     if name == "mppi":
         assert planner.temperature == 0.2
-    for item in ("planner.name=random", "planner.mppi_sigma=0", "planner.icem_population_decay=0.9",
-                 "planner.icem_keep_elites=2", "planner.precision=fp16", "planner.mppi_smoothing=0"):
+    for item in (
+        "planner.name=random",
+        "planner.mppi_sigma=0",
+        "planner.icem_population_decay=0.9",
+        "planner.icem_keep_elites=2",
+        "planner.precision=fp16",
+        "planner.mppi_smoothing=0",
+    ):
         key, value = item.split("=")
         with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
             make_config("hopper", overrides={key: value})
@@ -502,8 +536,15 @@ def test_icem_carries_elites_through_the_mpc_agent(replan_every: int) -> None:
         return -((actions - 0.3) ** 2).sum(dim=(1, 2))
 
     planner = ICEMPlanner(LOW, HIGH, horizon=5, population=40, elites=10, iterations=2, keep_elites=0.3)
-    agent = MPCAgent(planner, evaluator, replan_every=replan_every, action_low=LOW, action_high=HIGH,
-                     device=torch.device("cpu"), generator=torch.Generator().manual_seed(0))
+    agent = MPCAgent(
+        planner,
+        evaluator,
+        replan_every=replan_every,
+        action_low=LOW,
+        action_high=HIGH,
+        device=torch.device("cpu"),
+        generator=torch.Generator().manual_seed(0),
+    )
     for _ in range(2 * replan_every):
         agent.act(np.zeros(3))
     # First plan: 40, then 32 + 3 carried + mean; second plan: 40 + 3 shifted elites, then 32 + 3 + 1.

@@ -4,6 +4,7 @@ The fake ensemble has the real forward contract (x (M, B, in) or shared (B, in) 
 logvar (M, B, out)) and linear members ``target = x @ W + c_m`` with a fixed log-variance,
 so every expected value below is computed independently with plain Python loops.
 """
+
 from __future__ import annotations
 
 import math
@@ -24,16 +25,24 @@ OBS_DIM, ACT_DIM = 3, 2
 class FakeEnsemble(torch.nn.Module):
     """Linear members on the delta head: next_obs = obs + obs @ A + act @ Bm + offsets[m] (+ noise)."""
 
-    def __init__(self, offsets: Tensor, *, a_mat: Tensor | None = None, b_mat: Tensor | None = None,
-                 logvar: float = -60.0, elites: list[int] | None = None) -> None:
+    def __init__(
+        self,
+        offsets: Tensor,
+        *,
+        a_mat: Tensor | None = None,
+        b_mat: Tensor | None = None,
+        logvar: float = -60.0,
+        elites: list[int] | None = None,
+    ) -> None:
         super().__init__()
         self.ensemble_size = offsets.shape[0]
         a_mat = torch.zeros(OBS_DIM, OBS_DIM) if a_mat is None else a_mat
         b_mat = torch.zeros(ACT_DIM, OBS_DIM) if b_mat is None else b_mat
         self.register_buffer("w", torch.cat([a_mat, b_mat], dim=0))  # (in, out)
         self.register_buffer("offsets", offsets.clone().float())
-        self.register_buffer("elites", torch.tensor(elites if elites is not None else range(self.ensemble_size),
-                                                    dtype=torch.long))
+        self.register_buffer(
+            "elites", torch.tensor(elites if elites is not None else range(self.ensemble_size), dtype=torch.long)
+        )
         self.logvar = logvar
         self.calls: list[tuple[tuple[int, ...], Tensor | None]] = []
 
@@ -53,19 +62,18 @@ def make_head() -> DeltaHead:
 
 
 def reward_fn(obs: Tensor, act: Tensor, nxt: Tensor) -> Tensor:
-    return -(nxt ** 2).sum(-1) - 0.1 * (act ** 2).sum(-1) + 0.5 * obs[..., 0]
+    return -(nxt**2).sum(-1) - 0.1 * (act**2).sum(-1) + 0.5 * obs[..., 0]
 
 
 def member_offsets(m: int) -> Tensor:
     """Member k moves coordinate 0 by 10^k (distinguishable after any number of steps)."""
     off = torch.zeros(m, OBS_DIM)
-    off[:, 0] = torch.tensor([10.0 ** k for k in range(m)])
+    off[:, 0] = torch.tensor([10.0**k for k in range(m)])
     off[:, 1] = 0.01 * torch.arange(m)
     return off
 
 
-def analytic_return(obs0: Tensor, actions: Tensor, a_mat: Tensor, b_mat: Tensor, c: Tensor,
-                    terminated=None) -> float:
+def analytic_return(obs0: Tensor, actions: Tensor, a_mat: Tensor, b_mat: Tensor, c: Tensor, terminated=None) -> float:
     """Python-loop ground truth for one action sequence (H, A) under obs' = obs + obs A + act B + c."""
     obs = obs0.double()
     total, done = 0.0, False
@@ -99,8 +107,9 @@ def test_shapes_and_deterministic_linear_returns(device: str, prop: str, n: int,
     obs, rew = ev.rollout(obs0, actions, g)
     assert obs.shape == (n, p, h + 1, OBS_DIM) and rew.shape == (n, p, h)
     assert torch.equal(obs[:, :, 0], obs0.expand(n, p, OBS_DIM))
-    expected = torch.tensor([analytic_return(obs0.cpu(), actions[i].cpu(), a_mat, b_mat, c) for i in range(n)],
-                            dtype=torch.double)
+    expected = torch.tensor(
+        [analytic_return(obs0.cpu(), actions[i].cpu(), a_mat, b_mat, c) for i in range(n)], dtype=torch.double
+    )
     torch.testing.assert_close(ret.cpu().double(), expected, rtol=1e-5, atol=1e-5)
     torch.testing.assert_close(rew.sum(-1).mean(-1), ret)
     # The ensemble was called once per step; ts modes with one (M, ceil(N*P/M), in) block input.
@@ -116,7 +125,7 @@ def test_shapes_and_deterministic_linear_returns(device: str, prop: str, n: int,
 def _member_per_step(obs: Tensor, m: int) -> Tensor:
     """Recover the member used at every step from the coordinate-0 increment (member k adds 10^k)."""
     inc = obs[..., 1:, 0] - obs[..., :-1, 0]
-    powers = torch.tensor([10.0 ** k for k in range(m)], device=obs.device)
+    powers = torch.tensor([10.0**k for k in range(m)], device=obs.device)
     dist = (inc.unsqueeze(-1) - powers).abs()
     member = dist.argmin(-1)
     assert dist.min(-1).values.max() < 0.1, "increment matches no member"
@@ -140,8 +149,10 @@ def test_tsinf_keeps_one_member_per_particle_and_spreads_particles(n: int, p: in
     ret = ev(torch.zeros(OBS_DIM), actions, torch.Generator().manual_seed(0))
     off = member_offsets(m)
     z = torch.zeros(OBS_DIM, OBS_DIM)
-    per_member = torch.tensor([analytic_return(torch.zeros(OBS_DIM), actions[0], z, torch.zeros(ACT_DIM, OBS_DIM),
-                                               off[k]) for k in range(m)], dtype=torch.double)
+    per_member = torch.tensor(
+        [analytic_return(torch.zeros(OBS_DIM), actions[0], z, torch.zeros(ACT_DIM, OBS_DIM), off[k]) for k in range(m)],
+        dtype=torch.double,
+    )
     expected = per_member[member[..., 0]].mean(1)
     torch.testing.assert_close(ret.double(), expected, rtol=1e-5, atol=1e-3)
 
@@ -174,8 +185,13 @@ def test_expectation_is_mean_over_member_means_and_ignores_noise() -> None:
     torch.testing.assert_close(inc, off.mean(0).expand_as(inc), rtol=0, atol=1e-4)
     ret = ev(torch.zeros(OBS_DIM), actions, torch.Generator().manual_seed(1))
     z = torch.zeros(OBS_DIM, OBS_DIM)
-    expected = torch.tensor([analytic_return(torch.zeros(OBS_DIM), actions[i], z, torch.zeros(ACT_DIM, OBS_DIM),
-                                             off.mean(0)) for i in range(3)], dtype=torch.double)
+    expected = torch.tensor(
+        [
+            analytic_return(torch.zeros(OBS_DIM), actions[i], z, torch.zeros(ACT_DIM, OBS_DIM), off.mean(0))
+            for i in range(3)
+        ],
+        dtype=torch.double,
+    )
     torch.testing.assert_close(ret.double(), expected, rtol=1e-5, atol=1e-3)
     assert len(ens.calls[0][0]) == 2  # input shared by the members, one row per candidate
 
@@ -229,8 +245,8 @@ def test_termination_is_absorbing(prop: str) -> None:
     ev2 = TrajectoryEvaluator(ens2, make_head(), unit_reward, term, particles=4, propagation=prop)
     obs, rew = ev2.rollout(torch.zeros(OBS_DIM), actions, torch.Generator().manual_seed(0))
     i = 2
-    assert torch.equal(obs[i, :, i + 1:], obs[i, :, i + 1:i + 2].expand_as(obs[i, :, i + 1:]))
-    assert torch.equal(rew[i, :, i + 1:], torch.zeros_like(rew[i, :, i + 1:]))
+    assert torch.equal(obs[i, :, i + 1 :], obs[i, :, i + 1 : i + 2].expand_as(obs[i, :, i + 1 :]))
+    assert torch.equal(rew[i, :, i + 1 :], torch.zeros_like(rew[i, :, i + 1 :]))
 
 
 def test_termination_from_state_with_analytic_return() -> None:
@@ -244,8 +260,9 @@ def test_termination_from_state_with_analytic_return() -> None:
 
     actions = torch.rand(6, 10, ACT_DIM, generator=torch.Generator().manual_seed(5)) * 2 - 1
     z = torch.zeros(OBS_DIM, OBS_DIM)
-    expected = torch.tensor([analytic_return(torch.zeros(OBS_DIM), actions[i], z, b_mat, c, term) for i in range(6)],
-                            dtype=torch.double)
+    expected = torch.tensor(
+        [analytic_return(torch.zeros(OBS_DIM), actions[i], z, b_mat, c, term) for i in range(6)], dtype=torch.double
+    )
     for prop in PROPAGATIONS:
         ev = TrajectoryEvaluator(ens, make_head(), reward_fn, term, particles=3, propagation=prop)
         torch.testing.assert_close(ev(torch.zeros(OBS_DIM), actions).double(), expected, rtol=1e-5, atol=1e-5)
@@ -337,8 +354,9 @@ def test_with_the_real_gaussian_ensemble(device: str) -> None:
     from pets.ensemble import GaussianEnsemble
 
     torch.manual_seed(0)
-    ens = GaussianEnsemble(OBS_DIM + ACT_DIM, OBS_DIM, ensemble_size=5, hidden_size=16, num_layers=2,
-                           min_logvar=-40.0, max_logvar=-30.0).to(device)
+    ens = GaussianEnsemble(
+        OBS_DIM + ACT_DIM, OBS_DIM, ensemble_size=5, hidden_size=16, num_layers=2, min_logvar=-40.0, max_logvar=-30.0
+    ).to(device)
     elites = torch.tensor([4, 0, 2], device=device)
     ens.set_elites(elites)
     head = make_head()
@@ -360,8 +378,9 @@ def test_with_the_real_gaussian_ensemble(device: str) -> None:
                 for t in range(h):
                     o = member_step(int(assigned[i, j]), o, actions[i, t])
                     torch.testing.assert_close(obs[i, j, t + 1], o, rtol=0, atol=1e-4)
-        torch.testing.assert_close(ev(obs0, actions, torch.Generator(device=device).manual_seed(0)),
-                                   rew.sum(-1).mean(-1))
+        torch.testing.assert_close(
+            ev(obs0, actions, torch.Generator(device=device).manual_seed(0)), rew.sum(-1).mean(-1)
+        )
 
         ev = TrajectoryEvaluator(ens, head, reward_fn, None, particles=p, propagation="expectation")
         obs, _ = ev.rollout(obs0, actions)
@@ -393,7 +412,7 @@ def _pinned_model():
     head = DeltaHead(ObsLayout(obs_dim=obs_dim, groups=(Group("pos", "Rn", tuple(range(obs_dim))),)), act_dim)
 
     def reward(o: Tensor, a: Tensor, n: Tensor) -> Tensor:
-        return -(n ** 2).sum(-1) - 0.1 * (a ** 2).sum(-1) + n[..., 0]
+        return -(n**2).sum(-1) - 0.1 * (a**2).sum(-1) + n[..., 0]
 
     def terminated(o: Tensor, a: Tensor, n: Tensor) -> Tensor:
         return n[..., 1].abs() > 1.5
@@ -408,12 +427,18 @@ def _pinned_model():
 # 13c8d14's propagation and planner). On the machine that recorded them the current code reproduces them bit
 # for bit; the tolerance only allows for other BLAS kernels.
 PINNED = {
-    "tsinf": ([-19.966518, -17.809109, -41.146027, -20.511639, -10.911757, -19.923323],
-              [[-0.03089, 0.175905], [-0.12029, 0.41263], [-0.088359, -0.264349]]),
-    "ts1": ([-40.096397, -23.418903, -18.48139, -30.797161, -41.992008, -33.41581],
-            [[-0.018033, -0.373152], [-0.278645, -0.143205], [0.017482, -0.275705]]),
-    "expectation": ([-1.937177, -1.485077, -1.001626, -1.562664, -1.158299, -1.753452],
-                    [[-0.283199, 0.224083], [-0.409664, 0.163936], [-0.310277, 0.133748]]),
+    "tsinf": (
+        [-19.966518, -17.809109, -41.146027, -20.511639, -10.911757, -19.923323],
+        [[-0.03089, 0.175905], [-0.12029, 0.41263], [-0.088359, -0.264349]],
+    ),
+    "ts1": (
+        [-40.096397, -23.418903, -18.48139, -30.797161, -41.992008, -33.41581],
+        [[-0.018033, -0.373152], [-0.278645, -0.143205], [0.017482, -0.275705]],
+    ),
+    "expectation": (
+        [-1.937177, -1.485077, -1.001626, -1.562664, -1.158299, -1.753452],
+        [[-0.283199, 0.224083], [-0.409664, 0.163936], [-0.310277, 0.133748]],
+    ),
 }
 
 
@@ -448,8 +473,9 @@ def cheetah_model():
     obs, act, nxt = (torch.as_tensor(x) for x in collect_random(spec, 500, 0))
     head = DeltaHead(spec.layout, spec.act_dim)
     torch.manual_seed(0)
-    ens = GaussianEnsemble(head.input_dim, head.target_dim, ensemble_size=5, hidden_size=200, num_layers=4,
-                           num_elites=4)
+    ens = GaussianEnsemble(
+        head.input_dim, head.target_dim, ensemble_size=5, hidden_size=200, num_layers=4, num_elites=4
+    )
     ModelTrainer(ens, head, max_epochs=20, batch_size=64).train(obs, act, nxt, torch.Generator().manual_seed(0))
     ens.eval()
     return spec, head, ens, obs[-1]
@@ -465,8 +491,9 @@ def test_bf16_returns_stay_close_to_fp32_on_a_real_model(cheetah_model, prop: st
     actions = torch.rand(100, 15, spec.act_dim, generator=torch.Generator().manual_seed(1)) * 2 - 1
     ret = {}
     for precision in ("fp32", "bf16"):
-        ev = TrajectoryEvaluator(ens, head, spec.reward, spec.terminated, particles=8, propagation=prop,
-                                 precision=precision)
+        ev = TrajectoryEvaluator(
+            ens, head, spec.reward, spec.terminated, particles=8, propagation=prop, precision=precision
+        )
         ret[precision] = ev(obs0, actions, torch.Generator().manual_seed(2))
         assert ret[precision].dtype == torch.float32 and torch.isfinite(ret[precision]).all()
     r32, r16 = ret["fp32"].double(), ret["bf16"].double()
@@ -487,8 +514,9 @@ def test_compiled_step_matches_eager() -> None:
     ens, head, reward, terminated, obs0, actions = _pinned_model()
     for prop in PROPAGATIONS:
         eager = TrajectoryEvaluator(ens, head, reward, terminated, particles=5, propagation=prop)
-        comp = TrajectoryEvaluator(ens, head, reward, terminated, particles=5, propagation=prop, compile=True,
-                                   compile_backend="aot_eager")
+        comp = TrajectoryEvaluator(
+            ens, head, reward, terminated, particles=5, propagation=prop, compile=True, compile_backend="aot_eager"
+        )
         with warnings.catch_warnings():
             warnings.simplefilter("error", RuntimeWarning)  # no fallback to eager
             got = comp(obs0, actions, torch.Generator().manual_seed(11))
@@ -504,6 +532,7 @@ def test_compile_failure_warns_once_and_falls_back_to_eager(monkeypatch) -> None
     def broken_compile(fn, **kwargs):
         def compiled(*args):
             raise RuntimeError("no C++ compiler found\nsecond line")
+
         return compiled
 
     monkeypatch.setattr(propagation.torch, "compile", broken_compile)
@@ -533,16 +562,25 @@ def test_bench_rows_and_json_keys(tmp_path) -> None:
     from pets import bench
     from pets.config import make_config
 
-    tiny = ["planner.population=16", "planner.particles=2", "planner.horizon=4", "planner.iterations=2",
-            "model.hidden_size=32", "model.ensemble_size=2", "model.num_elites=2", "threads=1"]
+    tiny = [
+        "planner.population=16",
+        "planner.particles=2",
+        "planner.horizon=4",
+        "planner.iterations=2",
+        "model.hidden_size=32",
+        "model.ensemble_size=2",
+        "model.num_elites=2",
+        "threads=1",
+    ]
     out = tmp_path / "bench.json"
     assert bench.main(["--env", "hopper", "--preset", "fast", "--repeats", "1", "--json", str(out), *tiny]) == 0
     res = json.loads(out.read_text())
     assert {"seconds_per_step", "model_gflops", "peak_gflops", "model_gflop_per_step"} <= set(res)
     assert res["seconds_per_step"] > 0 and res["peak_gflops"] > 0
     cfg = make_config("hopper", preset="fast", overrides=dict(item.split("=") for item in tiny))
-    rows = bench.time_rows(cfg, [("cem bf16", {"precision": "bf16"}), ("icem", {"name": "icem"}),
-                                 ("mppi", {"name": "mppi"})], repeats=1)
+    rows = bench.time_rows(
+        cfg, [("cem bf16", {"precision": "bf16"}), ("icem", {"name": "icem"}), ("mppi", {"name": "mppi"})], repeats=1
+    )
     per_row = bench.model_flops_per_row(14, 12, 32, cfg.model.num_layers)  # Hopper: 11 + 3 inputs, 12 targets
     # CEM: population x particles x horizon x iterations rows; iCEM: the shrinking population (+ carried, + mean).
     assert rows[0]["model_gflop_per_step"] == pytest.approx(16 * 2 * 4 * 2 * per_row / 1e9)
@@ -557,10 +595,20 @@ def test_bench_kernel_floor_times_the_models_gemms_at_the_planners_shapes(monkey
     from pets import bench
     from pets.config import make_config
 
-    cfg = make_config("hopper", preset="fast", overrides={"planner.population": 15, "planner.particles": 2,
-                                                           "planner.horizon": 3, "planner.iterations": 2,
-                                                           "model.hidden_size": 32, "model.ensemble_size": 4,
-                                                           "model.num_elites": 4, "threads": 1})
+    cfg = make_config(
+        "hopper",
+        preset="fast",
+        overrides={
+            "planner.population": 15,
+            "planner.particles": 2,
+            "planner.horizon": 3,
+            "planner.iterations": 2,
+            "model.hidden_size": 32,
+            "model.ensemble_size": 4,
+            "model.num_elites": 4,
+            "threads": 1,
+        },
+    )
     shapes = []
     real_baddbmm = torch.baddbmm
 
@@ -575,6 +623,5 @@ def test_bench_kernel_floor_times_the_models_gemms_at_the_planners_shapes(monkey
     assert shapes[0] == ((4, 8, 14), (4, 14, 32), torch.float32)  # ceil(15 * 2 / 4) = 8 rows per member
     assert shapes[layers - 1] == ((4, 8, 32), (4, 32, 24), torch.float32)  # output: mean and log-variance
     assert {s[2] for s in shapes} == {torch.float32, torch.bfloat16} and len(shapes) == 3 * 3 * layers
-    assert set(floor) == {"fp32_gemm_seconds_per_step", "bf16_gemm_seconds_per_step",
-                          "bf16_gemm_silu_seconds_per_step"}
+    assert set(floor) == {"fp32_gemm_seconds_per_step", "bf16_gemm_seconds_per_step", "bf16_gemm_silu_seconds_per_step"}
     assert all(math.isfinite(v) and v > 0 for v in floor.values())

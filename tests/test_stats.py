@@ -1,4 +1,5 @@
 """pets.stats against exact small cases, scipy's bootstrap and trim_mean, and the normal-theory interval."""
+
 import math
 
 import numpy as np
@@ -32,8 +33,14 @@ def test_three_point_sample_matches_enumerated_bootstrap_distribution():
 def test_agrees_with_scipy_percentile_bootstrap(n, seed):
     data = np.random.default_rng(seed).gamma(2.0, 3.0, size=n)  # skewed: the percentile method matters
     ours = bootstrap_ci(data, confidence=0.95, n_boot=20000, seed=seed)
-    ref = scipy.stats.bootstrap((data,), np.mean, confidence_level=0.95, n_resamples=20000,
-                                method="percentile", random_state=np.random.default_rng(100 + seed))
+    ref = scipy.stats.bootstrap(
+        (data,),
+        np.mean,
+        confidence_level=0.95,
+        n_resamples=20000,
+        method="percentile",
+        random_state=np.random.default_rng(100 + seed),
+    )
     half_width = (ref.confidence_interval.high - ref.confidence_interval.low) / 2
     # two independent Monte-Carlo estimates of the same quantiles: a few % of the half-width apart
     assert ours[0] == pytest.approx(ref.confidence_interval.low, abs=0.05 * half_width)
@@ -89,8 +96,7 @@ def test_summarise_reports_non_finite_values_instead_of_hiding_them():
     assert (s["ci_low"], s["ci_high"]) == bootstrap_ci(x, seed=1)
 
 
-@pytest.mark.parametrize("bad, match", [([], "empty"), ([[1.0, 2.0], [3.0, 4.0]], "1-D"),
-                                        ([1.0, float("nan")], "NaN")])
+@pytest.mark.parametrize("bad, match", [([], "empty"), ([[1.0, 2.0], [3.0, 4.0]], "1-D"), ([1.0, float("nan")], "NaN")])
 def test_bad_input_raises_value_error(bad, match):
     with pytest.raises(ValueError, match=match):
         bootstrap_ci(bad)

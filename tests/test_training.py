@@ -1,4 +1,5 @@
 """Tests of the ensemble trainer (pets/training.py)."""
+
 from __future__ import annotations
 
 import math
@@ -40,8 +41,9 @@ class IdentityHead(DynamicsHead):
     def next_obs(self, obs: Tensor, target: Tensor) -> Tensor:
         return target
 
-    def loss(self, mean: Tensor, logvar: Tensor, target: Tensor, obs: Tensor, next_obs: Tensor,
-             scale: Tensor | None = None) -> Tensor:
+    def loss(
+        self, mean: Tensor, logvar: Tensor, target: Tensor, obs: Tensor, next_obs: Tensor, scale: Tensor | None = None
+    ) -> Tensor:
         if self.record:
             self.seen.append(obs[..., 0].detach().clone())  # (E, B)
         if self.target_shift:  # adversarial: pull the mean away from the true target
@@ -170,7 +172,7 @@ def test_elites_are_lowest_holdout_error_members() -> None:
     result = trainer.train(obs, torch.zeros(n, 0), torch.zeros(n, 1), torch.Generator().manual_seed(0))
     assert ens.elites.tolist() == [1, 3, 5]
     assert float(trainer.error_scale[0]) == pytest.approx(float(obs.std(correction=0)), rel=1e-5)
-    assert result.val_loss == pytest.approx((0.1 ** 2 + 0.0 + 0.2 ** 2) / 3 / float(obs.var(correction=0)), rel=1e-4)
+    assert result.val_loss == pytest.approx((0.1**2 + 0.0 + 0.2**2) / 3 / float(obs.var(correction=0)), rel=1e-4)
     # Without a holdout the elites come from the training error: the same ranking here.
     ens.set_elites(torch.arange(7))
     trainer2 = ModelTrainer(ens, IdentityHead(), lr=0.0, max_epochs=2, patience=1, num_elites=2, holdout_ratio=0.0)
@@ -192,7 +194,7 @@ def test_fits_heteroscedastic_sine_with_delta_head() -> None:
         mean, logvar = ens(grid, ens.elites)
     mean = mean.mean(0)[:, 0]
     std = logvar.mean(0)[:, 0].mul(0.5).exp()
-    true_std = (0.05 + 0.25 * (grid[:, 0] + 3) / 6)
+    true_std = 0.05 + 0.25 * (grid[:, 0] + 3) / 6
     assert (mean - torch.sin(grid[:, 0])).abs().max() < 0.15
     assert (mean - torch.sin(grid[:, 0])).abs().mean() < 0.05
     ratio = std / true_std

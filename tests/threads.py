@@ -1,5 +1,6 @@
 """One torch thread for tests of tiny models: faster, and immune to OpenMP oversubscription when the
 2-core machine is busy. The previous thread count is restored afterwards."""
+
 from contextlib import contextmanager
 
 import torch
