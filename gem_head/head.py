@@ -52,9 +52,10 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from dynamics.heads import DynamicsHead
+from dynamics.losses import gaussian_nll
 from envs.layout import ObsLayout
 from gem_head.lie import SO2, SO3
-from pets.heads import DynamicsHead, gaussian_nll
 
 __all__ = ["GemHead", "COMPOSE_MODES", "LOSSES", "wrap_angle"]
 

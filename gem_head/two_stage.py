@@ -18,10 +18,10 @@ Algorithm 1 steps both parameter sets along the gradient of the total loss L(phi
 
 The output is the full target vector in ``GemHead``'s target order (alpha_hat and dv_hat scattered into their
 slots), so ``GemHead.next_obs`` decodes it unchanged (exp of each coefficient composed with the current group
-element, current + delta elsewhere). Both networks are batched-member MLPs (``pets.ensemble.member_mlp``) with
+element, current + delta elsewhere). Both networks are batched-member MLPs (``dynamics.networks.member_mlp``) with
 ``model.num_layers`` hidden layers of ``model.hidden_size`` SiLU units each, so ``gem2`` has about twice the
 parameters of ``delta-det`` at the same config. The model is deterministic: it reports the constant
-log-variance ``pets.models.DETERMINISTIC_LOGVAR`` (sampling noise exactly zero).
+log-variance ``dynamics.networks.DETERMINISTIC_LOGVAR`` (sampling noise exactly zero).
 
 Loss (:class:`TwoStageGemHead.loss`) = ``GemHead.frobenius_loss``: per sample
   [ sum over SO(2)/SO(3) groups ||exp(alpha_hat) o G_t - G_{t+1}||_F^2            (L_alpha, eq. LieLoss)
@@ -38,10 +38,17 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from dynamics.networks import (
+    DETERMINISTIC_LOGVAR,
+    MemberEnsemble,
+    check_member_args,
+    decay_loss,
+    init_member_layers,
+    layer_decays,
+    member_mlp,
+)
 from envs.layout import ObsLayout
 from gem_head.head import GemHead
-from pets.ensemble import MemberEnsemble, _layer_decays, check_member_args, decay_loss, init_member_layers, member_mlp
-from pets.models import DETERMINISTIC_LOGVAR
 
 __all__ = ["TwoStageGemHead", "TwoStageGemEnsemble"]
 
@@ -117,7 +124,7 @@ class TwoStageGemEnsemble(MemberEnsemble):
         self.vel_weights, self.vel_biases = init_member_layers(
             [in_dim + self.num_coef, *hidden, len(velocity_slots)], ensemble_size
         )
-        self.decays: list[float] = _layer_decays(num_layers + 1)
+        self.decays: list[float] = layer_decays(num_layers + 1)
         # cat([alpha, dv])[..., order] is the target vector: order[slot] = position of that slot in the cat.
         order = torch.empty(out_dim, dtype=torch.long)
         order[torch.tensor(group_slots + velocity_slots)] = torch.arange(out_dim)

@@ -49,6 +49,7 @@ from torch import Tensor
 import envs
 from pets import builder
 from pets.config import ConfigError, make_config, parse_overrides, validate
+from pets.models import make_model
 
 #: (label, planner overrides) of the ``--compare`` rows; the first is the precise reference.
 COMPARE_ROWS: list[tuple[str, dict[str, Any]]] = [
@@ -95,7 +96,7 @@ def kernel_floor(
     """Seconds per MPC step that the model's own kernels need at the planner's shapes, nothing else.
 
     One model step of the evaluator is, per layer, one batched GEMM with bias (``torch.baddbmm``, as
-    ``pets.ensemble.member_mlp`` runs it) over the propagated members (``num_elites`` members,
+    ``dynamics.networks.member_mlp`` runs it) over the propagated members (``num_elites`` members,
     ``ceil(population * particles / members)`` rows each for the ts modes; every member sees all
     ``population`` rows for ``expectation``) plus a SiLU between layers. This times those chained
     layers alone (fp32 and bf16) and the bf16 layers with the SiLUs, on random data (median of
@@ -223,20 +224,19 @@ class _CountingEvaluator:
 
 
 def prepare(cfg: DictConfig) -> dict[str, Any]:
-    """Env spec, head, a briefly trained ensemble (400 random transitions, 2 epochs) and a start state."""
+    """Env spec, a briefly trained model (400 random transitions, 2 epochs) and a start state."""
     spec = envs.get(cfg.env)
     device = builder.resolve_device(cfg.device)
     if cfg.threads > 0:
         torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
-    head = builder.make_head(cfg, spec)
-    ensemble = builder.make_ensemble(cfg, head, device)
-    trainer = builder.make_trainer(cfg, ensemble, head)
+    model = make_model(cfg, spec, device)
+    trainer = builder.make_trainer(cfg, model)
     obs, act, nxt = (torch.as_tensor(x, device=device) for x in collect_random(spec, 400, cfg.seed))
     trainer.max_epochs = 2
     trainer.train(obs, act, nxt, torch.Generator(device=device).manual_seed(cfg.seed))
-    ensemble.eval()
-    return {"spec": spec, "device": device, "head": head, "ensemble": ensemble, "start": obs[-1].cpu().numpy()}
+    model.eval()
+    return {"spec": spec, "device": device, "model": model, "start": obs[-1].cpu().numpy()}
 
 
 def _row_config(cfg: DictConfig, planner: dict[str, Any]) -> DictConfig:
@@ -253,13 +253,14 @@ def time_rows(
     if not isinstance(repeats, int) or repeats < 1:
         raise ValueError(f"repeats must be a positive int, got {repeats!r}")
     parts = prepare(cfg) if parts is None else parts
-    spec, device, head, ensemble, start = (parts[k] for k in ("spec", "device", "head", "ensemble", "start"))
+    spec, device, model, start = (parts[k] for k in ("spec", "device", "model", "start"))
+    head = model.head
     flops_row = model_flops_per_row(head.input_dim, head.target_dim, cfg.model.hidden_size, cfg.model.num_layers)
     agents, counters, results = [], [], []
     for label, planner in rows:
         row_cfg = _row_config(cfg, planner)
         gen = torch.Generator(device=device).manual_seed(cfg.seed)
-        agent = builder.make_agent(row_cfg, spec, ensemble, head, device, gen)
+        agent = builder.make_agent(row_cfg, spec, model, device, gen)
         counter = _CountingEvaluator(agent.evaluator)
         agent.evaluator = counter
         agent.reset()
@@ -337,7 +338,7 @@ def compare(cfg: DictConfig, repeats: int = 5) -> dict[str, Any]:
     parts = prepare(cfg)
     rows = time_rows(cfg, COMPARE_ROWS, repeats, parts)
     peaks = {"fp32": matmul_peak_gflops(device), "bf16": matmul_peak_gflops(device, torch.bfloat16)}
-    head = parts["head"]
+    head = parts["model"].head
     floor = kernel_floor(cfg, head.input_dim, head.target_dim, device)
     base = rows[0]
     for r in rows:

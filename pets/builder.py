@@ -1,4 +1,4 @@
-"""Build the parts of a PETS run from a resolved config: head, ensemble, trainer, planner, agent."""
+"""Build the parts of a PETS run from a resolved config: model, trainer, planner, agent."""
 
 from __future__ import annotations
 
@@ -7,11 +7,11 @@ from pathlib import Path
 import torch
 from omegaconf import DictConfig
 
+from dynamics.model import DynamicsModel
 from envs import EnvSpec
 from pets.agent import MPCAgent
 from pets.config import ConfigError
-from pets.ensemble import GaussianEnsemble, MemberEnsemble
-from pets.heads import DeltaHead, DynamicsHead
+from pets.models import make_model
 from pets.planners import CEMPlanner, ICEMPlanner, MPPIPlanner, Planner
 from pets.propagation import TrajectoryEvaluator, retain_freed_memory
 from pets.training import ModelTrainer
@@ -26,79 +26,10 @@ def resolve_device(name: str) -> torch.device:
     return torch.device(name)
 
 
-def make_head(cfg: DictConfig, spec: EnvSpec) -> DynamicsHead:
-    """The dynamics head of ``cfg.head`` (the ``--model`` value; ``pets.models`` describes each)."""
-    if cfg.head == "delta":
-        return DeltaHead(spec.layout, spec.act_dim)
-    if cfg.head == "gem":
-        from gem_head.head import GemHead
-
-        return GemHead(
-            spec.layout,
-            spec.act_dim,
-            compose=cfg.gem.compose,
-            loss=cfg.gem.loss,
-            frobenius_weight=cfg.gem.frobenius_weight,
-        )
-    if cfg.head == "delta-det":
-        from pets.models import DeterministicDeltaHead
-
-        return DeterministicDeltaHead(spec.layout, spec.act_dim)
-    if cfg.head == "gem2":
-        from gem_head.two_stage import TwoStageGemHead
-
-        return TwoStageGemHead(spec.layout, spec.act_dim, compose=cfg.gem.compose)
-    if cfg.head == "delta-groupfeat":
-        from pets.models import GroupFeatureDeltaHead
-
-        return GroupFeatureDeltaHead(spec.layout, spec.act_dim)
-    raise ConfigError(f"unknown head {cfg.head!r}; accepted: delta, gem, delta-det, gem2, delta-groupfeat")
-
-
-def make_ensemble(cfg: DictConfig, head: DynamicsHead, device: torch.device) -> MemberEnsemble:
-    """The model of ``cfg.head``: a Gaussian ensemble (delta, gem, delta-groupfeat), deterministic MLPs
-    (delta-det) or two-stage GEMs (gem2); ``model.*`` sets the sizes of all of them."""
-    m = cfg.model
-    if cfg.head == "gem2":
-        from gem_head.two_stage import TwoStageGemEnsemble
-
-        return TwoStageGemEnsemble(
-            head.input_dim,
-            head.target_dim,
-            head.group_slots,
-            head.velocity_slots,
-            ensemble_size=m.ensemble_size,
-            hidden_size=m.hidden_size,
-            num_layers=m.num_layers,
-            num_elites=m.num_elites,
-        ).to(device)
-    if head.deterministic:
-        from pets.models import DeterministicEnsemble
-
-        return DeterministicEnsemble(
-            head.input_dim,
-            head.target_dim,
-            ensemble_size=m.ensemble_size,
-            hidden_size=m.hidden_size,
-            num_layers=m.num_layers,
-            num_elites=m.num_elites,
-        ).to(device)
-    return GaussianEnsemble(
-        head.input_dim,
-        head.target_dim,
-        ensemble_size=m.ensemble_size,
-        hidden_size=m.hidden_size,
-        num_layers=m.num_layers,
-        learn_logvar_bounds=m.learn_logvar_bounds,
-        num_elites=m.num_elites,
-    ).to(device)
-
-
-def make_trainer(cfg: DictConfig, ensemble: MemberEnsemble, head: DynamicsHead) -> ModelTrainer:
+def make_trainer(cfg: DictConfig, model: DynamicsModel) -> ModelTrainer:
     m = cfg.model
     return ModelTrainer(
-        ensemble,
-        head,
+        model,
         lr=m.lr,
         batch_size=m.batch_size,
         max_epochs=m.max_epochs,
@@ -112,8 +43,7 @@ def make_trainer(cfg: DictConfig, ensemble: MemberEnsemble, head: DynamicsHead) 
 def make_agent(
     cfg: DictConfig,
     spec: EnvSpec,
-    ensemble: GaussianEnsemble,
-    head: DynamicsHead,
+    model: DynamicsModel,
     device: torch.device,
     generator: torch.Generator,
 ) -> MPCAgent:
@@ -121,8 +51,7 @@ def make_agent(
     if device.type == "cpu":
         retain_freed_memory()
     evaluator = TrajectoryEvaluator(
-        ensemble,
-        head,
+        model,
         spec.reward,
         spec.terminated,
         particles=p.particles,
@@ -171,8 +100,8 @@ def make_planner(cfg: DictConfig, spec: EnvSpec, device: torch.device) -> Planne
     raise ConfigError(f"unknown planner {p.name!r}; accepted: cem, icem, mppi")
 
 
-def load_model(run_dir: str | Path, device: str | torch.device = "cpu"):
-    """The trained model of a run directory (online or offline): ``(cfg, spec, head, ensemble)``."""
+def load_model(run_dir: str | Path, device: str | torch.device = "cpu") -> tuple[DictConfig, EnvSpec, DynamicsModel]:
+    """The trained model of a run directory (online or offline): ``(cfg, spec, model)``, in eval mode."""
     from pets import rundir
     from pets.config import load_config
 
@@ -186,9 +115,7 @@ def load_model(run_dir: str | Path, device: str | torch.device = "cpu"):
     import envs
 
     spec = envs.get(cfg.env)
-    device = torch.device(device)
-    head = make_head(cfg, spec)
-    ensemble = make_ensemble(cfg, head, device)
-    ensemble.load_state_dict(state["ensemble"])
-    ensemble.eval()
-    return cfg, spec, head, ensemble
+    model = make_model(cfg, spec, torch.device(device))
+    model.load_state_dict(rundir.model_state(state))
+    model.eval()
+    return cfg, spec, model

@@ -108,9 +108,9 @@ class AgentPolicy:
 
         self.run_dir = Path(run_dir)
         dev = builder.resolve_device(device)
-        self.cfg, self.spec, self.head, self.ensemble = builder.load_model(self.run_dir, dev)
+        self.cfg, self.spec, self.model = builder.load_model(self.run_dir, dev)
         self.generator = torch.Generator(device=dev).manual_seed(int(seed))
-        self.agent = builder.make_agent(self.cfg, self.spec, self.ensemble, self.head, dev, self.generator)
+        self.agent = builder.make_agent(self.cfg, self.spec, self.model, dev, self.generator)
         self.name = f"run:{self.run_dir}"
 
     def reset(self, rng: np.random.Generator) -> None:

@@ -14,10 +14,12 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-#: ``--model`` values (config key ``head``); ``pets.models`` describes each.
-HEADS = ("delta", "gem", "delta-det", "gem2", "delta-groupfeat")
-#: Heads whose model has no predictive variance (MSE / Frobenius training, zero sampling noise).
-DETERMINISTIC_HEADS = ("delta-det", "gem2")
+from pets.models import MODELS
+
+#: ``--model`` values (config key ``head``): the names of ``pets.models.MODELS``.
+HEADS = tuple(MODELS)
+#: Models without a predictive variance (MSE / Frobenius training, zero sampling noise).
+DETERMINISTIC_HEADS = tuple(name for name, entry in MODELS.items() if entry.deterministic)
 PLANNERS = ("cem", "icem", "mppi")
 PRECISIONS = ("fp32", "bf16")
 PROPAGATIONS = ("ts1", "tsinf", "expectation")

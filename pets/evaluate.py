@@ -48,6 +48,7 @@ if TYPE_CHECKING:
     import torch
     from torch import Tensor
 
+    from dynamics.model import DynamicsModel
     from envs.layout import ObsLayout
 
 PROG = "pets.evaluate"
@@ -143,8 +144,7 @@ def sample_starts(lengths: np.ndarray, horizon: int, starts: int, rng: np.random
 
 
 def rollout(
-    ensemble: Any,
-    head: Any,
+    model: DynamicsModel,
     obs0: Tensor,
     actions: Tensor,
     mode: str = "mean",
@@ -159,7 +159,7 @@ def rollout(
 
     if mode not in MODES:
         raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
-    elites = ensemble.elites.to(device=obs0.device, dtype=torch.long)
+    elites = model.elites.to(device=obs0.device, dtype=torch.long)
     k, horizon = actions.shape[:2]
     rows = torch.arange(k, device=obs0.device)
     if mode == "sample":
@@ -167,14 +167,14 @@ def rollout(
     obs, preds = obs0, []
     with torch.no_grad():
         for step in range(horizon):
-            mean, logvar = ensemble(head.inputs(obs, actions[:, step]), elites)  # (M, K, D)
+            mean, logvar = model(model.inputs(obs, actions[:, step]), elites)  # (M, K, D)
             if mode == "mean":
                 target = mean.mean(dim=0)
             else:
                 mu, lv = mean[member, rows], logvar[member, rows]
                 eps = torch.randn(mu.shape, generator=generator, device=mu.device, dtype=mu.dtype)
                 target = mu + torch.exp(0.5 * lv) * eps
-            obs = head.next_obs(obs, target)
+            obs = model.next_obs(obs, target)
             preds.append(obs)
     return torch.stack(preds, dim=1)
 
@@ -210,7 +210,7 @@ def load_inputs(
     from pets import builder
 
     dev = builder.resolve_device(device)
-    cfg, spec, head, ensemble = builder.load_model(run_dir, dev)
+    cfg, spec, model = builder.load_model(run_dir, dev)
     return {
         "run_dir": run_dir,
         "data_label": str(data) if isinstance(data, (str, Path)) else None,
@@ -221,8 +221,7 @@ def load_inputs(
         "device": dev,
         "cfg": cfg,
         "spec": spec,
-        "head": head,
-        "ensemble": ensemble,
+        "model": model,
     }
 
 
@@ -267,7 +266,7 @@ def evaluate_loaded(inputs: Mapping[str, Any], seed: int = 0, log: Any = None) -
     true_obs = torch.as_tensor(np.asarray(arrays["obs"])[ep[:, None], steps], dtype=torch.float64, device=dev)
     acts = torch.as_tensor(np.asarray(arrays["act"])[ep[:, None], steps[:, :-1]], dtype=torch.float32, device=dev)
     generator = torch.Generator(device=dev).manual_seed(int(seed))
-    pred = rollout(inputs["ensemble"], inputs["head"], true_obs[:, 0].float(), acts, mode, generator)
+    pred = rollout(inputs["model"], true_obs[:, 0].float(), acts, mode, generator)
     pred = pred.double()  # (K, H, obs_dim)
     errs = step_errors(pred, true_obs[:, 1:], spec.layout)  # each (K, H)
     finite = torch.isfinite(pred).all(dim=-1)

@@ -22,6 +22,7 @@ import envs
 from pets import builder, rundir
 from pets.buffer import ReplayBuffer
 from pets.config import ConfigError
+from pets.models import make_model
 from pets.training import TrainResult
 
 
@@ -43,13 +44,12 @@ class PETSRun:
         seed_everything(cfg.seed)
         self.env = self.spec.make()
         self.episode_length = cfg.episode_length or self.spec.episode_length
-        self.head = builder.make_head(cfg, self.spec)
-        self.ensemble = builder.make_ensemble(cfg, self.head, self.device)
-        self.trainer = builder.make_trainer(cfg, self.ensemble, self.head)
+        self.model = make_model(cfg, self.spec, self.device)
+        self.trainer = builder.make_trainer(cfg, self.model)
         self.train_gen = torch.Generator(device=self.device).manual_seed(cfg.seed + 1)
         self.plan_gen = torch.Generator(device=self.device).manual_seed(cfg.seed + 2)
         self.np_rng = np.random.default_rng(cfg.seed + 3)
-        self.agent = builder.make_agent(cfg, self.spec, self.ensemble, self.head, self.device, self.plan_gen)
+        self.agent = builder.make_agent(cfg, self.spec, self.model, self.device, self.plan_gen)
         self.buffer = ReplayBuffer(self.spec.obs_dim, self.spec.act_dim)
         self.rows: list[dict[str, Any]] = []
         self.trials_done = 0
@@ -64,7 +64,7 @@ class PETSRun:
             "env_steps": self.env_steps,
             "wall_time_s": self.wall_time_s,
             "rows": self.rows,
-            "ensemble": self.ensemble.state_dict(),
+            "model": self.model.state_dict(),
             "trainer": self.trainer.state_dict(),
             "buffer": self.buffer.state_dict(),
             "train_gen": self.train_gen.get_state(),
@@ -77,7 +77,7 @@ class PETSRun:
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.trials_done, self.env_steps = state["trials_done"], state["env_steps"]
         self.wall_time_s, self.rows = state["wall_time_s"], state["rows"]
-        self.ensemble.load_state_dict(state["ensemble"])
+        self.model.load_state_dict(rundir.model_state(state))
         self.trainer.load_state_dict(state["trainer"])
         self.buffer.load_state_dict(state["buffer"])
         self.train_gen.set_state(state["train_gen"])

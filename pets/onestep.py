@@ -69,6 +69,7 @@ def one_step_check(
     from pets.collect import collect
     from pets.datasets import transitions
     from pets.evaluate import rollout
+    from pets.models import make_model
     from pets.train import offline_config
 
     spec = envs.get(env)
@@ -86,24 +87,23 @@ def one_step_check(
     obs, act, next_obs = held
     nochange = _errors(obs, obs, next_obs, scale, predicted, spec.layout)
     rows = []
-    for model in models:
+    for name in models:
         cfg = offline_config(
-            spec.name, model, {**dict(overrides or {}), "model.max_epochs": epochs}, seed=seed, device="cpu"
+            spec.name, name, {**dict(overrides or {}), "model.max_epochs": epochs}, seed=seed, device="cpu"
         )
         scores = {}
         for label, max_epochs in (("untrained", 0), ("trained", cfg.model.max_epochs)):
             torch.manual_seed(cfg.seed)
-            head = builder.make_head(cfg, spec)
-            ensemble = builder.make_ensemble(cfg, head, torch.device("cpu"))
-            trainer = builder.make_trainer(cfg, ensemble, head)
+            model = make_model(cfg, spec, torch.device("cpu"))
+            trainer = builder.make_trainer(cfg, model)
             trainer.max_epochs = max_epochs
             result = trainer.train(*train, torch.Generator().manual_seed(cfg.seed + 1))
-            pred = rollout(ensemble, head, obs, act[:, None])[:, 0]
+            pred = rollout(model, obs, act[:, None])[:, 0]
             scores[label] = _errors(pred, obs, next_obs, scale, predicted, spec.layout)
         rows.append(
             {
                 "env": spec.name,
-                "model": model,
+                "model": name,
                 "transitions": int(train[0].shape[0]),
                 "epochs": result.epochs,
                 "val_initial": getattr(result, "initial_val_loss", math.nan),

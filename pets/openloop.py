@@ -7,7 +7,7 @@ For each of K episodes: reset the real env, plan ``--steps`` actions ONCE from t
 observation with the run's model (planner horizon = steps), then execute all of them in the real
 env without any feedback (no replanning, no model update). The reward of every step is recorded.
 
-- Model: the run's trained ensemble (online ``run_pets.py`` or offline ``pets.train`` run directory).
+- Model: the run's trained model (online ``run_pets.py`` or offline ``pets.train`` run directory).
 - Planner: ``planner.name`` = ``--planner`` and ``planner.horizon`` = ``--steps``; every other planner
   setting (population, particles, propagation, iterations, ...) comes from the run's config, and can
   be overridden with ``planner.KEY=VALUE``. It is built by ``pets.builder.make_agent`` (the agent's
@@ -119,10 +119,10 @@ def open_loop(
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
         raise ValueError(f"seed must be an int >= 0, got {seed!r}")
     dev = builder.resolve_device(device)
-    run_cfg, spec, head, ensemble = builder.load_model(run_dir, dev)
+    run_cfg, spec, model = builder.load_model(run_dir, dev)
     cfg = planning_config(run_cfg, planner, steps, overrides)
     generator = torch.Generator(device=dev).manual_seed(int(seed))
-    agent = builder.make_agent(cfg, spec, ensemble, head, dev, generator)
+    agent = builder.make_agent(cfg, spec, model, dev, generator)
     plan_with, evaluator = agent.planner, agent.evaluator
 
     env = spec.make(max_episode_steps=steps)

@@ -64,7 +64,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-from pets.heads import DynamicsHead
+from dynamics.model import DynamicsModel
 
 PROPAGATIONS = ("ts1", "tsinf", "expectation")
 PRECISIONS = ("fp32", "bf16")
@@ -103,12 +103,10 @@ def retain_freed_memory() -> bool:
 
 
 class TrajectoryEvaluator:
-    """Scores action sequences by trajectory sampling through a Gaussian ensemble.
+    """Scores action sequences by trajectory sampling through a dynamics model.
 
-    ensemble: ``forward(x, members=None) -> (mean, logvar)``, each ``(M, B, target_dim)``, for
-      ``x`` of shape ``(M, B, input_dim)`` or ``(B, input_dim)`` (shared by the members);
-      ``ensemble.elites`` (long tensor) lists the elite members, ``ensemble.ensemble_size`` all.
-    head: maps ``(obs, act)`` to model inputs and ``(obs, target)`` to the next observation.
+    model: a :class:`dynamics.model.DynamicsModel` (``inputs``, ``forward(x, members) -> (mean, logvar)``,
+      ``next_obs``, ``elites``).
     reward_fn, terminated_fn: batched ``(obs, act, next_obs) -> (...,)``; ``terminated_fn``
       may be ``None`` (never terminates).
     particles: particles per candidate (P).
@@ -123,8 +121,7 @@ class TrajectoryEvaluator:
 
     def __init__(
         self,
-        ensemble: torch.nn.Module,
-        head: DynamicsHead,
+        model: DynamicsModel,
         reward_fn: TransitionFn,
         terminated_fn: TransitionFn | None,
         *,
@@ -144,8 +141,7 @@ class TrajectoryEvaluator:
             raise ValueError("reward_fn must be callable as reward_fn(obs, act, next_obs)")
         if terminated_fn is not None and not callable(terminated_fn):
             raise ValueError("terminated_fn must be None or callable as terminated_fn(obs, act, next_obs)")
-        self.ensemble = ensemble
-        self.head = head
+        self.model = model
         self.reward_fn = reward_fn
         self.terminated_fn = terminated_fn
         self.particles = particles
@@ -166,17 +162,14 @@ class TrajectoryEvaluator:
     def members(self, device: torch.device) -> Tensor | None:
         """Member indices propagated through (``None``: all members, in order).
 
-        The elites when ``use_elites`` and the ensemble has a non-empty ``elites`` buffer.
+        The model's elites when ``use_elites``.
         """
         if not self.use_elites:
             return None
-        elites = getattr(self.ensemble, "elites", None)
-        if elites is None or elites.numel() == 0:
-            return None
-        return elites.to(device=device, dtype=torch.long)
+        return self.model.elites.to(device=device, dtype=torch.long)
 
     def _num_members(self, members: Tensor | None) -> int:
-        return int(self.ensemble.ensemble_size) if members is None else members.numel()
+        return int(self.model.ensemble_size) if members is None else members.numel()
 
     def _check(self, obs0: Tensor, actions: Tensor, generator: torch.Generator | None) -> tuple[Tensor, Tensor]:
         if not isinstance(actions, Tensor) or actions.dim() != 3:
@@ -184,13 +177,13 @@ class TrajectoryEvaluator:
             raise ValueError(f"actions must be a tensor of shape (N, H, act_dim), got {shape}")
         if actions.shape[0] < 1 or actions.shape[1] < 1:
             raise ValueError(f"actions must have N >= 1 candidates and H >= 1 steps, got shape {tuple(actions.shape)}")
-        act_dim = getattr(self.head, "act_dim", actions.shape[2])
+        act_dim = self.model.act_dim
         if actions.shape[2] != act_dim:
-            raise ValueError(f"actions have act_dim {actions.shape[2]}, the head expects {act_dim}")
+            raise ValueError(f"actions have act_dim {actions.shape[2]}, the model expects {act_dim}")
         if not actions.is_floating_point():
             actions = actions.float()
         obs0 = torch.as_tensor(obs0, device=actions.device, dtype=actions.dtype)
-        obs_dim = getattr(self.head, "obs_dim", obs0.shape[-1] if obs0.dim() else 0)
+        obs_dim = self.model.obs_dim
         if obs0.shape != (obs_dim,):
             raise ValueError(f"obs0 must have shape ({obs_dim},), got {tuple(obs0.shape)}")
         if generator is not None and generator.device.type != actions.device.type:
@@ -201,8 +194,8 @@ class TrajectoryEvaluator:
         return obs0, actions
 
     def _model_dtype(self, fallback: torch.dtype) -> torch.dtype:
-        """Dtype of the ensemble's outputs in fp32 mode: its first floating parameter or buffer."""
-        for t in (*self.ensemble.parameters(), *self.ensemble.buffers()):
+        """Dtype of the model's outputs in fp32 mode: its first floating parameter or buffer."""
+        for t in (*self.model.parameters(), *self.model.buffers()):
             if t.is_floating_point():
                 return t.dtype
         return fallback
@@ -227,15 +220,15 @@ class TrajectoryEvaluator:
         """
         dtype = total.dtype
         mode = self.propagation
-        inp = self.head.inputs(obs, act)  # (b, in)
+        inp = self.model.inputs(obs, act)  # (b, in)
         if perm is not None:
             inp = inp.index_select(0, perm)
         with torch.autocast(device_type=obs.device.type, dtype=torch.bfloat16, enabled=self.precision == "bf16"):
             if mode == "expectation":
-                mean, logvar = self.ensemble(inp, members)  # (M, b, out), input shared by the members
+                mean, logvar = self.model(inp, members)  # (M, b, out), input shared by the members
             else:
                 m = noise.shape[0]
-                mean, logvar = self.ensemble(inp.reshape(m, inp.shape[0] // m, -1), members)
+                mean, logvar = self.model(inp.reshape(m, inp.shape[0] // m, -1), members)
         if self.precision == "bf16":  # back to float32 (the noise dtype) before any sampling
             out_dtype = zero.dtype if noise is None else noise.dtype
             mean, logvar = mean.to(out_dtype), logvar.to(out_dtype)
@@ -245,7 +238,7 @@ class TrajectoryEvaluator:
             target = (mean + torch.exp(0.5 * logvar) * noise).reshape(inp.shape[0], -1)
             if inv is not None:
                 target = target.index_select(0, inv)
-        nxt = self.head.next_obs(obs, target.to(dtype))
+        nxt = self.model.next_obs(obs, target.to(dtype))
         reward = self.reward_fn(obs, act, nxt).to(dtype)
         bad = ~(torch.isfinite(nxt).all(dim=-1) & torch.isfinite(reward))
         step_reward = torch.where(done, zero, torch.where(bad, penalty, reward))
@@ -326,7 +319,7 @@ class TrajectoryEvaluator:
         noise = None
         if mode != "expectation":  # one buffer, refilled in place every step (same stream as fresh draws)
             noise_dtype = dtype if self.precision == "bf16" else self._model_dtype(dtype)
-            noise = torch.empty((m, per_member, self.head.target_dim), device=device, dtype=noise_dtype)
+            noise = torch.empty((m, per_member, self.model.target_dim), device=device, dtype=noise_dtype)
         perm = inv = None
 
         for t in range(horizon):

@@ -69,6 +69,16 @@ def load_checkpoint(run_dir: Path) -> dict[str, Any] | None:
     return torch.load(path, map_location="cpu", weights_only=False)
 
 
+def model_state(state: dict[str, Any]) -> dict[str, Any]:
+    """The model's ``state_dict`` in a checkpoint; ValueError for checkpoints of an older format."""
+    if "model" not in state:
+        raise ValueError(
+            "this checkpoint was written by an older gem-pets (< 0.2, before models standardised their targets): "
+            "train the model again"
+        )
+    return state["model"]
+
+
 def plot_rewards(run_dir: Path, rows: list[dict[str, Any]], title: str) -> None:
     """Episode reward against environment steps, written atomically to rewards.png."""
     import matplotlib

@@ -1,4 +1,4 @@
-"""Offline training of the dynamics ensemble on a collected data set, into a run directory.
+"""Offline training of a dynamics model on a collected data set, into a run directory.
 
     python -m pets.train --data FILE.npz --model MODEL --out RUN_DIR [--seed S] [--device D]
                          [--epochs N] [--preset research|fast] [--quiet] [key=value ...]
@@ -12,7 +12,7 @@ The run directory has the format of ``run_pets.py`` (:mod:`pets.rundir`), so
 ``pets.builder.load_model``, ``pets.evaluate`` and ``pets.collect --policy run:DIR`` read it:
 
 - ``config.yaml``: the resolved config (env from the data set, ``head`` = MODEL, overrides applied);
-- ``checkpoint.pt``: ``ensemble`` and ``trainer`` (optimiser) state, ``trials_done`` = 0,
+- ``checkpoint.pt``: ``model`` and ``trainer`` (optimiser) state, ``trials_done`` = 0,
   ``env_steps`` = 0, ``wall_time_s``, ``rows``, ``last_train`` (the ``TrainResult``) and ``offline``
   (data file, episodes, transitions, the data set's policy and seed);
 - ``metrics.csv``: one row with ``model_train_loss``, ``model_val_loss``, ``model_val_loss_initial``, ``model_epochs``,
@@ -91,6 +91,7 @@ def train_offline(
     import envs
     from pets import builder, rundir
     from pets.config import ConfigError
+    from pets.models import make_model
 
     data_label = str(Path(data).resolve()) if isinstance(data, (str, Path)) else None
     arrays = load_dataset(data) if isinstance(data, (str, Path)) else data
@@ -113,9 +114,8 @@ def train_offline(
     if cfg.threads:  # as the online loop: config key threads (0 = torch's default)
         torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
-    head = builder.make_head(cfg, spec)
-    ensemble = builder.make_ensemble(cfg, head, dev)
-    trainer = builder.make_trainer(cfg, ensemble, head)
+    model = make_model(cfg, spec, dev)
+    trainer = builder.make_trainer(cfg, model)
     generator = torch.Generator(device=dev).manual_seed(cfg.seed + 1)
     tensors = [torch.as_tensor(a, dtype=torch.float32, device=dev) for a in (obs, act, next_obs)]
     start = time.perf_counter()
@@ -147,7 +147,7 @@ def train_offline(
         "env_steps": 0,
         "wall_time_s": round(wall, 3),
         "rows": [row],
-        "ensemble": ensemble.state_dict(),
+        "model": model.state_dict(),
         "trainer": trainer.state_dict(),
         "last_train": result,
         "offline": meta,

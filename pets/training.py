@@ -26,8 +26,8 @@ import torch
 from torch import Tensor
 from tqdm.auto import tqdm
 
-from pets.ensemble import GaussianEnsemble, column_mean_std
-from pets.heads import DynamicsHead
+from dynamics.model import DynamicsModel
+from dynamics.networks import column_mean_std
 
 
 @dataclass
@@ -60,19 +60,17 @@ def split_holdout(n: int, holdout_ratio: float, max_holdout: int, generator: tor
 
 
 class ModelTrainer:
-    """Adam training of a :class:`GaussianEnsemble` (or any ``pets.ensemble.MemberEnsemble``) through a
-    :class:`DynamicsHead`.
+    """Adam training of a :class:`dynamics.model.DynamicsModel`.
 
-    Loss per step: ``head.loss(...).sum()`` (members summed) + ``ensemble.weight_decay_loss()``
-    + ``logvar_bound_coef * (sum max_logvar - sum min_logvar)`` when the bounds are learnt.
+    Loss per step: ``model.member_loss(...).sum()`` (members summed) plus the model's regularisers (weight decay,
+    and ``logvar_bound_coef`` times the log-variance bound penalty where the bounds are learnt).
     Every ``train`` call refits the model's input and target normalisers on all its data.
     The optimiser persists across ``train`` calls (one call per PETS trial).
     """
 
     def __init__(
         self,
-        ensemble: GaussianEnsemble,
-        head: DynamicsHead,
+        model: DynamicsModel,
         *,
         lr: float = 1e-3,
         batch_size: int = 256,
@@ -86,11 +84,6 @@ class ModelTrainer:
         improvement_threshold: float = 0.01,
         eval_batch_size: int = 8192,
     ) -> None:
-        if head.input_dim != ensemble.in_dim or head.target_dim != ensemble.out_dim:
-            raise ValueError(
-                f"head {head.name!r} has input_dim {head.input_dim} / target_dim {head.target_dim} but the "
-                f"ensemble has in_dim {ensemble.in_dim} / out_dim {ensemble.out_dim}"
-            )
         if not (math.isfinite(lr) and lr >= 0):
             raise ValueError(f"lr must be a finite number >= 0, got {lr}")
         for name, value, low in (
@@ -105,16 +98,15 @@ class ModelTrainer:
         if not 0.0 <= holdout_ratio < 1.0:
             raise ValueError(f"holdout_ratio must be in [0, 1), got {holdout_ratio}")
         if num_elites is None:
-            num_elites = ensemble.num_elites
-        if not isinstance(num_elites, int) or not 1 <= num_elites <= ensemble.ensemble_size:
-            raise ValueError(f"num_elites must be an int in [1, {ensemble.ensemble_size}], got {num_elites!r}")
+            num_elites = model.network.num_elites
+        if not isinstance(num_elites, int) or not 1 <= num_elites <= model.ensemble_size:
+            raise ValueError(f"num_elites must be an int in [1, {model.ensemble_size}], got {num_elites!r}")
         if grad_clip is not None and not grad_clip > 0:
             raise ValueError(f"grad_clip must be None or > 0, got {grad_clip}")
         if not improvement_threshold >= 0:
             raise ValueError(f"improvement_threshold must be >= 0, got {improvement_threshold}")
 
-        self.ensemble = ensemble
-        self.head = head
+        self.model = model
         self.lr = lr
         self.batch_size = batch_size
         self.max_epochs = max_epochs
@@ -126,8 +118,8 @@ class ModelTrainer:
         self.grad_clip = grad_clip
         self.improvement_threshold = improvement_threshold
         self.eval_batch_size = eval_batch_size
-        self.optimizer = torch.optim.Adam(ensemble.parameters(), lr=lr)
-        self._predicted = torch.tensor(head.layout.predicted_indices, dtype=torch.long)
+        self.optimizer = torch.optim.Adam(model.parameters(), lr=lr)
+        self._predicted = torch.tensor(model.head.layout.predicted_indices, dtype=torch.long)
         #: Per-entry std of ``next_obs - obs`` (predicted entries) that :meth:`evaluate` divides by; set by ``train``.
         self.error_scale: Tensor | None = None
 
@@ -152,17 +144,17 @@ class ModelTrainer:
     @torch.no_grad()
     def evaluate(self, x: Tensor, obs: Tensor, next_obs: Tensor) -> Tensor:
         """Per-member holdout error (E,) of the mean prediction: ``mean_d (pred_d - next_obs_d)^2 / error_scale_d^2``
-        over the predicted observation entries, ``pred = head.next_obs(obs, mean)``. ``x = head.inputs(obs, act)``;
+        over the predicted observation entries, ``pred = model.next_obs(obs, mean)``. ``x = model.inputs(obs, act)``;
         all (N, .). :meth:`fit_error_scale` first (``train`` does)."""
         if self.error_scale is None:
             raise ValueError("evaluate needs error_scale: call fit_error_scale(obs, next_obs) (or train) first")
         idx = self._predicted.to(obs.device)
         scale = self.error_scale.to(obs)
-        total = x.new_zeros(self.ensemble.ensemble_size, dtype=torch.float64)
+        total = x.new_zeros(self.model.ensemble_size, dtype=torch.float64)
         for start in range(0, x.shape[0], self.eval_batch_size):
             chunk = slice(start, start + self.eval_batch_size)
-            mean, _ = self.ensemble(x[chunk])
-            pred = self.head.next_obs(obs[chunk], mean)  # (E, B, obs_dim)
+            mean, _ = self.model(x[chunk])
+            pred = self.model.next_obs(obs[chunk], mean)  # (E, B, obs_dim)
             err = ((pred - next_obs[chunk]).index_select(-1, idx) / scale).pow(2)
             total += err.sum(dim=(1, 2)).double()
         return total / (x.shape[0] * idx.numel())
@@ -183,24 +175,17 @@ class ModelTrainer:
     def train(
         self, obs: Tensor, act: Tensor, next_obs: Tensor, generator: torch.Generator, progress: bool = False
     ) -> TrainResult:
-        """Fit the ensemble on transitions (obs, act, next_obs), each (N, .); all randomness from ``generator``.
+        """Fit the model on transitions (obs, act, next_obs), each (N, .); all randomness from ``generator``.
 
-        Refits the input normaliser on all inputs, splits off a holdout, trains with per-member bootstraps
-        and early stopping, restores the best per-member weights and sets ``ensemble.elites``.
+        Refits the normalisers on all the data, splits off a holdout, trains with per-member bootstraps
+        and early stopping, restores the best per-member weights and sets the model's elites.
         """
         self._check_data(obs, act, next_obs)
-        ens = self.ensemble
-        ref = ens.member_parameters()[0]  # device and dtype of the model
+        model = self.model
+        ref = model.member_parameters()[0]  # device and dtype of the model
         obs, act, next_obs = (t.to(device=ref.device, dtype=ref.dtype) for t in (obs, act, next_obs))
-        x = self.head.inputs(obs, act)
-        y = self.head.targets(obs, next_obs)
-        if x.shape != (obs.shape[0], ens.in_dim) or y.shape != (obs.shape[0], ens.out_dim):
-            raise ValueError(
-                f"head {self.head.name!r} produced inputs {tuple(x.shape)} / targets {tuple(y.shape)}, "
-                f"expected (N, {ens.in_dim}) / (N, {ens.out_dim})"
-            )
-        ens.fit_normaliser(x)
-        ens.fit_target_normaliser(y)
+        x, y = model.inputs(obs, act), model.targets(obs, next_obs)
+        model.fit_normalisers(x, y)
         self.fit_error_scale(obs, next_obs)
 
         n = x.shape[0]
@@ -210,9 +195,9 @@ class ModelTrainer:
         x_tr, y_tr, o_tr, no_tr = (t.index_select(0, train_idx) for t in (x, y, obs, next_obs))
         x_ho, o_ho, no_ho = (t.index_select(0, hold_idx) for t in (x, obs, next_obs))
         n_tr = x_tr.shape[0]
-        boot = bootstrap_indices(n_tr, ens.ensemble_size, generator).to(ref.device)  # (E, n_tr)
+        boot = bootstrap_indices(n_tr, model.ensemble_size, generator).to(ref.device)  # (E, n_tr)
 
-        params = ens.member_parameters()
+        params = model.member_parameters()
         best = self.evaluate(x_ho, o_ho, no_ho) if has_holdout else None
         initial = best
         snapshot = [p.detach().clone() for p in params] if has_holdout else None
@@ -223,23 +208,18 @@ class ModelTrainer:
         for _ in bar:
             # Per-member shuffle of the member's bootstrap resample (one argsort for all members).
             order = torch.argsort(
-                torch.rand(ens.ensemble_size, n_tr, generator=generator, device=generator.device), dim=1
+                torch.rand(model.ensemble_size, n_tr, generator=generator, device=generator.device), dim=1
             ).to(ref.device)
             epoch_idx = torch.gather(boot, 1, order)
             loss_sum = x_tr.new_zeros(())
             for start in range(0, n_tr, self.batch_size):
                 idx = epoch_idx[:, start : start + self.batch_size]  # (E, B)
-                mean, logvar = ens(x_tr[idx])
-                member_loss = self.head.loss(
-                    mean, logvar, y_tr[idx], o_tr[idx], no_tr[idx], scale=ens.target_std
-                )  # (E,)
-                loss = member_loss.sum() + ens.weight_decay_loss()
-                if ens.learn_logvar_bounds and self.logvar_bound_coef:
-                    loss = loss + self.logvar_bound_coef * ens.logvar_bound_penalty()
+                member_loss = model.member_loss(x_tr[idx], y_tr[idx], o_tr[idx], no_tr[idx])  # (E,)
+                loss = model.add_regularisers(member_loss.sum(), self.logvar_bound_coef)
                 self.optimizer.zero_grad(set_to_none=True)
                 loss.backward()
                 if self.grad_clip is not None:
-                    torch.nn.utils.clip_grad_norm_(ens.parameters(), self.grad_clip)
+                    torch.nn.utils.clip_grad_norm_(model.parameters(), self.grad_clip)
                 self.optimizer.step()
                 loss_sum = loss_sum + member_loss.detach().mean() * idx.shape[1]
             epochs += 1
@@ -268,7 +248,7 @@ class ModelTrainer:
         else:  # no holdout: rank members on their training-split error
             scores = self.evaluate(x_tr, o_tr, no_tr)
         elites = torch.sort(torch.argsort(scores, stable=True)[: self.num_elites]).values
-        ens.set_elites(elites)
+        model.set_elites(elites)
         if not has_holdout:
             return TrainResult(train_loss=train_loss, val_loss=float("nan"), epochs=epochs)
         return TrainResult(

@@ -8,8 +8,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from pets.ensemble import GaussianEnsemble
-from pets.heads import gaussian_nll
+from dynamics.losses import gaussian_nll
+from dynamics.networks import GaussianEnsemble
 
 IN, OUT, E = 5, 3, 4
 
@@ -220,8 +220,8 @@ def test_inference_pads_an_odd_output_width_and_changes_no_value(monkeypatch, ki
     """Without autograd the output layer (2 x 107 = 214 wide: the GEM head on Ant) runs padded to 216 columns;
     the outputs equal the unpadded (autograd) forward: bit for bit with MKL on the machine tested, and within
     float32 rounding anywhere."""
-    from pets import ensemble as ensemble_module
-    from pets.models import DeterministicEnsemble
+    from dynamics import networks as ensemble_module
+    from dynamics.networks import DeterministicEnsemble
 
     torch.manual_seed(1)
     in_dim, out_dim, hidden = 30, 107, 64

@@ -17,9 +17,9 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 import envs
+from dynamics.heads import DeltaHead
 from envs.layout import Group, ObsLayout
 from gem_head.head import GemHead
-from pets.heads import DeltaHead
 
 ALL_ENVS = envs.names()
 COMPOSE = ("right", "left")
@@ -367,7 +367,7 @@ def test_rn_only_layout_gem_equals_delta() -> None:
     sample = y + 0.1 * torch.randn_like(y)
     torch.testing.assert_close(gem.next_obs(obs, sample), delta.next_obs(obs, sample), rtol=0, atol=0)
     # same inputs, targets and loss: a GaussianEnsemble trained from the same seed predicts the same
-    from pets.ensemble import GaussianEnsemble
+    from dynamics.networks import GaussianEnsemble
 
     preds = []
     for head in (gem, delta):
@@ -445,7 +445,7 @@ def test_losses_gradients_and_modes() -> None:
                 partial(head.frobenius_loss, target=y[:, :3], obs=o[:, :3], next_obs=n[:, :3]), (mm,)
             )
     frob_ref = head_of("ant").frobenius_loss(mean0, y, o, n)
-    from pets.heads import gaussian_nll
+    from dynamics.losses import gaussian_nll
 
     nll_ref = gaussian_nll(mean0, logvar0, y)
     for kind, w in (("nll", 1.0), ("frobenius", 1.0), ("nll+frobenius", 0.3)):

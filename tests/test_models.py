@@ -16,17 +16,19 @@ import torch
 from scipy.spatial.transform import Rotation
 
 import envs
+from dynamics.heads import DeltaHead, DeterministicDeltaHead
+from dynamics.model import DynamicsModel
+from dynamics.networks import DETERMINISTIC_LOGVAR, DeterministicEnsemble, GaussianEnsemble
 from envs.layout import Group, ObsLayout
+from gem_head.ablation import GroupFeatureDeltaHead
 from gem_head.head import GemHead
 from gem_head.two_stage import TwoStageGemEnsemble, TwoStageGemHead
 from pets import builder, rundir
 from pets.collect import collect
 from pets.config import DETERMINISTIC_HEADS, HEADS, make_config
 from pets.datasets import save_dataset, transitions
-from pets.ensemble import GaussianEnsemble
 from pets.evaluate import evaluate, rollout
-from pets.heads import DeltaHead
-from pets.models import DETERMINISTIC_LOGVAR, DeterministicDeltaHead, DeterministicEnsemble, GroupFeatureDeltaHead
+from pets.models import make_model
 from pets.propagation import TrajectoryEvaluator
 from pets.train import train_offline
 from pets.training import ModelTrainer
@@ -73,8 +75,8 @@ def build(env: str, head_name: str, seed: int = 0, **overrides):
     cfg = make_config(env, head_name, "fast", {**SMALL, **overrides})
     spec = envs.get(env)
     torch.manual_seed(seed)
-    head = builder.make_head(cfg, spec)
-    ens = builder.make_ensemble(cfg, head, CPU)
+    model = make_model(cfg, spec, CPU)
+    head, ens = model.head, model.network
     return cfg, spec, head, ens
 
 
@@ -94,7 +96,7 @@ def test_every_model_builds_trains_and_plans(env, head_name):
     assert head.deterministic == ens.deterministic == (head_name in DETERMINISTIC_HEADS)
     assert cfg.planner.propagation == ("expectation" if head_name in DETERMINISTIC_HEADS else "tsinf")
     obs, act, next_obs = tensors(env)
-    trainer = builder.make_trainer(cfg, ens, head)
+    trainer = builder.make_trainer(cfg, DynamicsModel(head, ens))
     x = head.inputs(obs, act)
     trainer.fit_error_scale(obs, next_obs)
     before = trainer.evaluate(x, obs, next_obs)  # (E,) holdout criterion of the untrained members
@@ -104,7 +106,9 @@ def test_every_model_builds_trains_and_plans(env, head_name):
     assert ens.elites.numel() == 2
     assert float(trainer.evaluate(x, obs, next_obs).mean()) < float(before.mean())  # training moved towards the data
     for propagation in ("tsinf", "ts1", "expectation"):
-        evaluator = TrajectoryEvaluator(ens, head, spec.reward, spec.terminated, particles=4, propagation=propagation)
+        evaluator = TrajectoryEvaluator(
+            DynamicsModel(head, ens), spec.reward, spec.terminated, particles=4, propagation=propagation
+        )
         actions = torch.rand(6, 5, spec.act_dim, generator=torch.Generator().manual_seed(2)) * 2 - 1
         returns = evaluator(obs[0], actions, torch.Generator().manual_seed(3))
         assert returns.shape == (6,) and torch.isfinite(returns).all()
@@ -124,8 +128,10 @@ def test_deterministic_logvar_gives_exactly_zero_noise_in_every_dtype():
 def test_deterministic_tsinf_rollouts_are_the_members_mean_paths(head_name):
     cfg, spec, head, ens = build("reacher", head_name, **{"model.max_epochs": 2})
     obs, act, next_obs = tensors("reacher")
-    builder.make_trainer(cfg, ens, head).train(obs, act, next_obs, torch.Generator().manual_seed(0))
-    evaluator = TrajectoryEvaluator(ens, head, spec.reward, spec.terminated, particles=4, propagation="tsinf")
+    builder.make_trainer(cfg, DynamicsModel(head, ens)).train(obs, act, next_obs, torch.Generator().manual_seed(0))
+    evaluator = TrajectoryEvaluator(
+        DynamicsModel(head, ens), spec.reward, spec.terminated, particles=4, propagation="tsinf"
+    )
     actions = torch.rand(3, 6, spec.act_dim, generator=torch.Generator().manual_seed(5)) * 2 - 1
     traj_a, rew_a = evaluator.rollout(obs[3], actions, torch.Generator().manual_seed(1))
     traj_b, rew_b = evaluator.rollout(obs[3], actions, torch.Generator().manual_seed(2))
@@ -151,9 +157,9 @@ def test_deterministic_tsinf_rollouts_are_the_members_mean_paths(head_name):
     cfg1, spec, head1, ens1 = build("reacher", head_name, **{"model.ensemble_size": 1, "model.num_elites": 1})
     ens1.fit_normaliser(head1.inputs(obs, act))
     traj = {
-        m: TrajectoryEvaluator(ens1, head1, spec.reward, spec.terminated, particles=3, propagation=m).rollout(
-            obs[3], actions, torch.Generator().manual_seed(0)
-        )[0]
+        m: TrajectoryEvaluator(
+            DynamicsModel(head1, ens1), spec.reward, spec.terminated, particles=3, propagation=m
+        ).rollout(obs[3], actions, torch.Generator().manual_seed(0))[0]
         for m in ("tsinf", "ts1", "expectation")
     }
     torch.testing.assert_close(traj["tsinf"], traj["expectation"], rtol=1e-6, atol=1e-6)
@@ -173,7 +179,9 @@ def test_delta_det_mse_training_learns_a_known_function():
     torch.testing.assert_close(head.loss(mean, torch.randn(3, 5, 2), target, None, None), want)
     torch.manual_seed(0)
     ens = DeterministicEnsemble(head.input_dim, head.target_dim, ensemble_size=2, hidden_size=32, num_layers=2)
-    trainer = ModelTrainer(ens, head, lr=3e-3, batch_size=64, max_epochs=30, patience=30, holdout_ratio=0.0)
+    trainer = ModelTrainer(
+        DynamicsModel(head, ens), lr=3e-3, batch_size=64, max_epochs=30, patience=30, holdout_ratio=0.0
+    )
     x = head.inputs(obs, act)
     ens.fit_normaliser(x)
     trainer.fit_error_scale(obs, next_obs)
@@ -301,7 +309,7 @@ def test_gem2_loss_equals_the_hand_computed_frobenius_plus_velocity_mse_so3(comp
 def test_gem2_state_dict_round_trip_keeps_the_target_normaliser():
     cfg, spec, head, ens = build("reacher", "gem2")
     obs, act, next_obs = tensors("reacher")
-    builder.make_trainer(cfg, ens, head).train(obs, act, next_obs, torch.Generator().manual_seed(0))
+    builder.make_trainer(cfg, DynamicsModel(head, ens)).train(obs, act, next_obs, torch.Generator().manual_seed(0))
     y = head.targets(obs, next_obs)
     torch.testing.assert_close(ens.target_mean, y.double().mean(0).float())  # set by ModelTrainer
     std = y.double().std(0, correction=0)
@@ -342,7 +350,9 @@ def test_groupfeat_equals_gem_on_a_planar_env():
     for name in ("gem", "delta-groupfeat"):
         cfg, spec, head, ens = build("halfcheetah", name, seed=4, **{"model.max_epochs": 3})
         assert torch.equal(head.inputs(obs, act), GemHead(spec.layout, spec.act_dim).inputs(obs, act))
-        result = builder.make_trainer(cfg, ens, head).train(obs, act, next_obs, torch.Generator().manual_seed(5))
+        result = builder.make_trainer(cfg, DynamicsModel(head, ens)).train(
+            obs, act, next_obs, torch.Generator().manual_seed(5)
+        )
         runs[name] = (head, ens, result)
     (gh, ge, gr), (fh, fe, fr) = runs["gem"], runs["delta-groupfeat"]
     assert torch.equal(gh.targets(obs, next_obs), fh.targets(obs, next_obs))
@@ -362,7 +372,8 @@ def test_offline_train_and_evaluate_every_model(head_name, tmp_path):
     out = train_offline(
         arrays, head_name, tmp_path / "run", {**dict(SMALL), **extra}, preset="fast", seed=0, device="cpu", epochs=3
     )
-    cfg, spec, head, ens = builder.load_model(out)
+    cfg, spec, model = builder.load_model(out)
+    head, ens = model.head, model.network
     assert cfg.head == head_name and head.name == head_name and ens.deterministic == (head_name in DETERMINISTIC_HEADS)
     results = {
         mode: evaluate(out, arrays, horizons=(1, 5, 10), starts=20, mode=mode, device="cpu", log=lambda m: 0)
@@ -377,7 +388,8 @@ def test_offline_train_and_evaluate_every_model(head_name, tmp_path):
         o = torch.as_tensor(arrays["obs"][:2, 0], dtype=torch.float32)
         a = torch.as_tensor(arrays["act"][:2, :6], dtype=torch.float32)
         assert torch.equal(
-            rollout(ens, head, o, a, "mean"), rollout(ens, head, o, a, "sample", torch.Generator().manual_seed(3))
+            rollout(DynamicsModel(head, ens), o, a, "mean"),
+            rollout(DynamicsModel(head, ens), o, a, "sample", torch.Generator().manual_seed(3)),
         )
 
 
@@ -472,13 +484,14 @@ def test_cli_end_to_end_delta_det_and_gem2(tmp_path, capsys):
         assert f"{m} model trained on" in out[m]
         res = evaluate(tmp_path / m, npz, horizons=(1, 3), starts=20, device="cpu", log=lambda message: None)
         assert res["model"] == m and all(math.isfinite(r["mean_step_error"]) for r in res["horizons"].values())
-        cfg, spec, head, ens = builder.load_model(tmp_path / m)
-        assert cfg.head == m and ens.deterministic and ens.ensemble_size == 2
+        cfg, spec, model = builder.load_model(tmp_path / m)
+        assert cfg.head == m and model.deterministic and model.ensemble_size == 2
     # the online run: one trial of PETS with the two-stage GEM, expectation propagation by default
     online = tmp_path / "online"
     rows = rundir.read_metrics(online / rundir.METRICS_FILE)
     assert len(rows) == 1 and math.isfinite(rows[0]["episode_reward"]) and rows[0]["episode_reward"] >= 1
-    cfg, spec, head, ens = builder.load_model(online)
+    cfg, spec, model = builder.load_model(online)
+    ens = model.network
     assert cfg.head == "gem2" and cfg.planner.propagation == "expectation" and isinstance(ens, TwoStageGemEnsemble)
     # a bad --model is one line naming the accepted ones, exit 2 (pets.train and run_pets.py)
     for main, args in (

@@ -19,11 +19,13 @@ import torch
 from scipy.spatial.transform import Rotation
 
 import envs
+from dynamics.model import DynamicsModel
 from envs.layout import Group, ObsLayout
 from pets import builder, rundir
 from pets.collect import collect, episode_seeds, make_policy
 from pets.datasets import load_dataset, save_dataset, transitions
 from pets.evaluate import evaluate, rollout, sample_starts, step_errors, wrap_angle
+from pets.models import make_model
 from pets.propagation import TrajectoryEvaluator
 from pets.train import OFFLINE_DEFAULTS, offline_config
 from tests.threads import one_thread
@@ -284,7 +286,8 @@ def test_collect_with_the_mpc_agent_of_a_run(work, online_run):
 
 # --------------------------------------------------------------------------- train
 def test_train_writes_a_run_directory_that_load_model_reads(delta_run, reacher_data):
-    cfg, spec, head, ensemble = builder.load_model(delta_run)
+    cfg, spec, model = builder.load_model(delta_run)
+    head, ensemble = model.head, model.network
     assert cfg.env == "reacher" and cfg.head == "delta" and head.name == "delta"
     assert cfg.model.max_epochs == 60 and cfg.model.hidden_size == 64 and cfg.model.patience == 20
     assert ensemble.ensemble_size == 2 and ensemble.elites.numel() == 2
@@ -301,7 +304,8 @@ def test_train_writes_a_run_directory_that_load_model_reads(delta_run, reacher_d
 
 def test_train_gem_head(work, reacher_data):
     out = work / "gem"
-    cfg, spec, head, ensemble = builder.load_model(out)
+    cfg, spec, model = builder.load_model(out)
+    head, ensemble = model.head, model.network
     assert cfg.head == "gem" and type(head).__name__ == "GemHead" and ensemble.out_dim == head.target_dim
     with one_thread():
         res = evaluate(out, reacher_data, [1, 5], starts=20, seed=0, mode="mean", device="cpu")
@@ -351,13 +355,13 @@ def test_evaluate_cli_json(work, delta_run, reacher_data):
 def test_trained_model_beats_untrained_one_step(work, delta_run, reacher_data):
     untrained = work / "untrained"
     shutil.copytree(delta_run, untrained)
-    cfg, spec, head, trained = builder.load_model(delta_run)
+    cfg, spec, trained = builder.load_model(delta_run)
     torch.manual_seed(7)
-    fresh = builder.make_ensemble(cfg, head, torch.device("cpu"))
-    fresh.input_mean.copy_(trained.input_mean)  # same normaliser: only the training differs
-    fresh.input_std.copy_(trained.input_std)
+    fresh = make_model(cfg, spec, torch.device("cpu"))
+    for name in ("input_mean", "input_std", "target_mean", "target_std"):  # same normalisers: only training differs
+        getattr(fresh.network, name).copy_(getattr(trained.network, name))
     state = rundir.load_checkpoint(untrained)
-    state["ensemble"] = fresh.state_dict()
+    state["model"] = fresh.state_dict()
     rundir.save_checkpoint(untrained, state)
     with one_thread():
         good = evaluate(delta_run, reacher_data, [1], starts=300, seed=0, device="cpu")["horizons"]["1"]
@@ -382,14 +386,17 @@ def test_evaluate_sample_mode_and_an_online_run_with_skipped_horizons(online_run
 
 
 def test_mean_rollout_matches_the_planners_expectation_propagation(delta_run, reacher_data):
-    cfg, spec, head, ensemble = builder.load_model(delta_run)
+    cfg, spec, model = builder.load_model(delta_run)
+    head, ensemble = model.head, model.network
     data = load_dataset(reacher_data)
     obs0 = torch.as_tensor(data["obs"][:3, 5], dtype=torch.float32)
     acts = torch.as_tensor(data["act"][:3, 5:25], dtype=torch.float32)
     with one_thread():
-        ours = rollout(ensemble, head, obs0, acts, "mean")
+        ours = rollout(DynamicsModel(head, ensemble), obs0, acts, "mean")
         for i in range(3):
-            evaluator = TrajectoryEvaluator(ensemble, head, spec.reward, None, particles=1, propagation="expectation")
+            evaluator = TrajectoryEvaluator(
+                DynamicsModel(head, ensemble), spec.reward, None, particles=1, propagation="expectation"
+            )
             theirs, _ = evaluator.rollout(obs0[i], acts[i : i + 1])
             torch.testing.assert_close(ours[i], theirs[0, 0, 1:], rtol=1e-5, atol=1e-5)
 

@@ -14,8 +14,9 @@ import pytest
 import torch
 from torch import Tensor
 
+from dynamics.heads import DeltaHead
+from dynamics.model import DynamicsModel
 from envs.layout import Group, ObsLayout
-from pets.heads import DeltaHead
 from pets.propagation import PROPAGATIONS, TrajectoryEvaluator
 
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
@@ -35,6 +36,7 @@ class FakeEnsemble(torch.nn.Module):
         elites: list[int] | None = None,
     ) -> None:
         super().__init__()
+        self.in_dim, self.out_dim, self.deterministic = OBS_DIM + ACT_DIM, OBS_DIM, False
         self.ensemble_size = offsets.shape[0]
         a_mat = torch.zeros(OBS_DIM, OBS_DIM) if a_mat is None else a_mat
         b_mat = torch.zeros(ACT_DIM, OBS_DIM) if b_mat is None else b_mat
@@ -98,7 +100,7 @@ def test_shapes_and_deterministic_linear_returns(device: str, prop: str, n: int,
     b_mat = 0.3 * torch.randn(ACT_DIM, OBS_DIM, generator=torch.Generator().manual_seed(2))
     c = torch.tensor([0.05, -0.02, 0.01])
     ens = FakeEnsemble(c.expand(m, OBS_DIM), a_mat=a_mat, b_mat=b_mat).to(device)
-    ev = TrajectoryEvaluator(ens, make_head(), reward_fn, None, particles=p, propagation=prop)
+    ev = TrajectoryEvaluator(DynamicsModel(make_head(), ens), reward_fn, None, particles=p, propagation=prop)
     obs0 = torch.tensor([0.3, -0.2, 0.1], device=device)
     h = 6
     actions = torch.rand(n, h, ACT_DIM, generator=g, device=device) * 2 - 1
@@ -136,7 +138,7 @@ def _member_per_step(obs: Tensor, m: int) -> Tensor:
 def test_tsinf_keeps_one_member_per_particle_and_spreads_particles(n: int, p: int) -> None:
     m = 5
     ens = FakeEnsemble(member_offsets(m))
-    ev = TrajectoryEvaluator(ens, make_head(), reward_fn, None, particles=p, propagation="tsinf")
+    ev = TrajectoryEvaluator(DynamicsModel(make_head(), ens), reward_fn, None, particles=p, propagation="tsinf")
     actions = torch.zeros(n, 8, ACT_DIM)
     obs, rew = ev.rollout(torch.zeros(OBS_DIM), actions, torch.Generator().manual_seed(0))
     member = _member_per_step(obs.double(), m)  # (n, p, H)
@@ -160,7 +162,7 @@ def test_tsinf_keeps_one_member_per_particle_and_spreads_particles(n: int, p: in
 def test_ts1_redraws_members_uniformly() -> None:
     m, n, p, h = 5, 40, 20, 10
     ens = FakeEnsemble(member_offsets(m))
-    ev = TrajectoryEvaluator(ens, make_head(), reward_fn, None, particles=p, propagation="ts1")
+    ev = TrajectoryEvaluator(DynamicsModel(make_head(), ens), reward_fn, None, particles=p, propagation="ts1")
     obs, _ = ev.rollout(torch.zeros(OBS_DIM), torch.zeros(n, h, ACT_DIM), torch.Generator().manual_seed(0))
     member = _member_per_step(obs.double(), m).reshape(n * p, h)
     # A particle keeping one member for 10 steps happens with probability 5^-9 under TS1.
@@ -178,7 +180,7 @@ def test_expectation_is_mean_over_member_means_and_ignores_noise() -> None:
     m = 4
     off = member_offsets(m)
     ens = FakeEnsemble(off, logvar=2.0)  # large variance: it must not matter
-    ev = TrajectoryEvaluator(ens, make_head(), reward_fn, None, particles=6, propagation="expectation")
+    ev = TrajectoryEvaluator(DynamicsModel(make_head(), ens), reward_fn, None, particles=6, propagation="expectation")
     actions = torch.rand(3, 5, ACT_DIM, generator=torch.Generator().manual_seed(3))
     obs, _ = ev.rollout(torch.zeros(OBS_DIM), actions, torch.Generator().manual_seed(0))
     inc = obs[..., 1:, :] - obs[..., :-1, :]
@@ -203,7 +205,7 @@ def test_elites_only(prop: str) -> None:
     elites = [1, 3]
     ens = FakeEnsemble(off, elites=elites)
     actions = torch.zeros(4, 6, ACT_DIM)
-    ev = TrajectoryEvaluator(ens, make_head(), reward_fn, None, particles=10, propagation=prop)
+    ev = TrajectoryEvaluator(DynamicsModel(make_head(), ens), reward_fn, None, particles=10, propagation=prop)
     obs, _ = ev.rollout(torch.zeros(OBS_DIM), actions, torch.Generator().manual_seed(0))
     assert all(mem is not None and mem.tolist() == elites for _, mem in ens.calls)
     if prop == "expectation":
@@ -214,7 +216,9 @@ def test_elites_only(prop: str) -> None:
         assert used == elites
     # use_elites=False: all members.
     ens.calls.clear()
-    ev_all = TrajectoryEvaluator(ens, make_head(), reward_fn, None, particles=10, propagation=prop, use_elites=False)
+    ev_all = TrajectoryEvaluator(
+        DynamicsModel(make_head(), ens), reward_fn, None, particles=10, propagation=prop, use_elites=False
+    )
     obs, _ = ev_all.rollout(torch.zeros(OBS_DIM), actions, torch.Generator().manual_seed(0))
     assert all(mem is None for _, mem in ens.calls)
     if prop != "expectation":
@@ -236,13 +240,13 @@ def test_termination_is_absorbing(prop: str) -> None:
     actions = torch.zeros(h + 1, h, ACT_DIM)
     for i in range(h):
         actions[i, i, 0] = 1.0  # candidate i terminates at step i; candidate h never
-    ev = TrajectoryEvaluator(ens, make_head(), unit_reward, term, particles=4, propagation=prop)
+    ev = TrajectoryEvaluator(DynamicsModel(make_head(), ens), unit_reward, term, particles=4, propagation=prop)
     ret = ev(torch.zeros(OBS_DIM), actions, torch.Generator().manual_seed(0))
     expected = torch.tensor([float(i + 1) for i in range(h)] + [float(h)])
     torch.testing.assert_close(ret, expected)
     # The state after termination is frozen.
     ens2 = FakeEnsemble(torch.ones(3, OBS_DIM))
-    ev2 = TrajectoryEvaluator(ens2, make_head(), unit_reward, term, particles=4, propagation=prop)
+    ev2 = TrajectoryEvaluator(DynamicsModel(make_head(), ens2), unit_reward, term, particles=4, propagation=prop)
     obs, rew = ev2.rollout(torch.zeros(OBS_DIM), actions, torch.Generator().manual_seed(0))
     i = 2
     assert torch.equal(obs[i, :, i + 1 :], obs[i, :, i + 1 : i + 2].expand_as(obs[i, :, i + 1 :]))
@@ -264,7 +268,7 @@ def test_termination_from_state_with_analytic_return() -> None:
         [analytic_return(torch.zeros(OBS_DIM), actions[i], z, b_mat, c, term) for i in range(6)], dtype=torch.double
     )
     for prop in PROPAGATIONS:
-        ev = TrajectoryEvaluator(ens, make_head(), reward_fn, term, particles=3, propagation=prop)
+        ev = TrajectoryEvaluator(DynamicsModel(make_head(), ens), reward_fn, term, particles=3, propagation=prop)
         torch.testing.assert_close(ev(torch.zeros(OBS_DIM), actions).double(), expected, rtol=1e-5, atol=1e-5)
 
 
@@ -275,8 +279,12 @@ def test_padding_gives_the_same_returns(prop: str) -> None:
     ens = FakeEnsemble(c.expand(5, OBS_DIM), b_mat=0.5 * torch.ones(ACT_DIM, OBS_DIM))
     actions = torch.rand(3, 5, ACT_DIM, generator=torch.Generator().manual_seed(0))
     obs0 = torch.zeros(OBS_DIM)
-    r7 = TrajectoryEvaluator(ens, make_head(), reward_fn, None, particles=7, propagation=prop)(obs0, actions)
-    r5 = TrajectoryEvaluator(ens, make_head(), reward_fn, None, particles=5, propagation=prop)(obs0, actions)
+    r7 = TrajectoryEvaluator(DynamicsModel(make_head(), ens), reward_fn, None, particles=7, propagation=prop)(
+        obs0, actions
+    )
+    r5 = TrajectoryEvaluator(DynamicsModel(make_head(), ens), reward_fn, None, particles=5, propagation=prop)(
+        obs0, actions
+    )
     torch.testing.assert_close(r7, r5)
     assert ens.calls[0][0] == (5, 5, OBS_DIM + ACT_DIM)  # 21 rows padded into 5 blocks of 5
 
@@ -285,7 +293,7 @@ def test_padding_gives_the_same_returns(prop: str) -> None:
 def test_noise_is_mean_plus_std_times_standard_normal(prop: str) -> None:
     """One step of pure noise: sample mean 0, sample std exp(0.5 * logvar) = 0.5 in every dimension."""
     ens = FakeEnsemble(torch.zeros(5, OBS_DIM), logvar=math.log(0.25))
-    ev = TrajectoryEvaluator(ens, make_head(), reward_fn, None, particles=400, propagation=prop)
+    ev = TrajectoryEvaluator(DynamicsModel(make_head(), ens), reward_fn, None, particles=400, propagation=prop)
     obs, _ = ev.rollout(torch.zeros(OBS_DIM), torch.zeros(50, 1, ACT_DIM), torch.Generator().manual_seed(0))
     step = obs[:, :, 1].reshape(-1, OBS_DIM).double()  # 20000 samples
     assert step.mean(0).abs().max() < 4 * 0.5 / math.sqrt(step.shape[0])
@@ -295,7 +303,7 @@ def test_noise_is_mean_plus_std_times_standard_normal(prop: str) -> None:
 @pytest.mark.parametrize("prop", PROPAGATIONS)
 def test_reproducible_with_the_same_generator(prop: str) -> None:
     ens = FakeEnsemble(member_offsets(3) * 0.01, logvar=math.log(0.01))
-    ev = TrajectoryEvaluator(ens, make_head(), reward_fn, None, particles=8, propagation=prop)
+    ev = TrajectoryEvaluator(DynamicsModel(make_head(), ens), reward_fn, None, particles=8, propagation=prop)
     actions = torch.rand(5, 7, ACT_DIM, generator=torch.Generator().manual_seed(0))
     r1 = ev(torch.zeros(OBS_DIM), actions, torch.Generator().manual_seed(42))
     r2 = ev(torch.zeros(OBS_DIM), actions, torch.Generator().manual_seed(42))
@@ -319,7 +327,7 @@ class ExplodingEnsemble(FakeEnsemble):
 @pytest.mark.parametrize("prop", PROPAGATIONS)
 def test_non_finite_predictions_give_finite_low_returns(prop: str) -> None:
     ens = ExplodingEnsemble(torch.ones(3, OBS_DIM))
-    ev = TrajectoryEvaluator(ens, make_head(), reward_fn, None, particles=6, propagation=prop)
+    ev = TrajectoryEvaluator(DynamicsModel(make_head(), ens), reward_fn, None, particles=6, propagation=prop)
     ret = ev(torch.zeros(OBS_DIM), torch.zeros(4, 5, ACT_DIM), torch.Generator().manual_seed(0))
     assert torch.isfinite(ret).all()
     assert (ret < -1e4).all()  # at least one particle of each candidate (or the mean) diverged
@@ -331,10 +339,10 @@ def test_non_finite_predictions_give_finite_low_returns(prop: str) -> None:
 def test_bad_arguments() -> None:
     ens = FakeEnsemble(torch.zeros(2, OBS_DIM))
     with pytest.raises(ValueError, match="propagation"):
-        TrajectoryEvaluator(ens, make_head(), reward_fn, None, propagation="ts2")
+        TrajectoryEvaluator(DynamicsModel(make_head(), ens), reward_fn, None, propagation="ts2")
     with pytest.raises(ValueError, match="particles"):
-        TrajectoryEvaluator(ens, make_head(), reward_fn, None, particles=0)
-    ev = TrajectoryEvaluator(ens, make_head(), reward_fn, None)
+        TrajectoryEvaluator(DynamicsModel(make_head(), ens), reward_fn, None, particles=0)
+    ev = TrajectoryEvaluator(DynamicsModel(make_head(), ens), reward_fn, None)
     with pytest.raises(ValueError, match=r"\(N, H, act_dim\)"):
         ev(torch.zeros(OBS_DIM), torch.zeros(5, ACT_DIM))
     with pytest.raises(ValueError, match="act_dim"):
@@ -345,13 +353,13 @@ def test_bad_arguments() -> None:
 
 @pytest.mark.parametrize("device", DEVICES)
 def test_with_the_real_gaussian_ensemble(device: str) -> None:
-    """Integration with pets.ensemble.GaussianEnsemble (tiny variance bounds so the member is identifiable).
+    """Integration with dynamics.networks.GaussianEnsemble (tiny variance bounds so the member is identifiable).
 
     Per-member predictions are recomputed one member at a time and compared with the rollout:
     TS-inf particle p of candidate n follows elite (n * P + p) % M at every step; expectation
     follows the mean of the elites' means.
     """
-    from pets.ensemble import GaussianEnsemble
+    from dynamics.networks import GaussianEnsemble
 
     torch.manual_seed(0)
     ens = GaussianEnsemble(
@@ -369,7 +377,7 @@ def test_with_the_real_gaussian_ensemble(device: str) -> None:
         return head.next_obs(obs, mean[0, 0])
 
     with torch.no_grad():
-        ev = TrajectoryEvaluator(ens, head, reward_fn, None, particles=p, propagation="tsinf")
+        ev = TrajectoryEvaluator(DynamicsModel(head, ens), reward_fn, None, particles=p, propagation="tsinf")
         obs, rew = ev.rollout(obs0, actions, torch.Generator(device=device).manual_seed(0))
         assigned = elites[(torch.arange(n * p, device=device) % 3)].view(n, p)
         for i in range(n):
@@ -382,7 +390,7 @@ def test_with_the_real_gaussian_ensemble(device: str) -> None:
             ev(obs0, actions, torch.Generator(device=device).manual_seed(0)), rew.sum(-1).mean(-1)
         )
 
-        ev = TrajectoryEvaluator(ens, head, reward_fn, None, particles=p, propagation="expectation")
+        ev = TrajectoryEvaluator(DynamicsModel(head, ens), reward_fn, None, particles=p, propagation="expectation")
         obs, _ = ev.rollout(obs0, actions)
         for i in range(n):
             o = obs0
@@ -394,7 +402,7 @@ def test_with_the_real_gaussian_ensemble(device: str) -> None:
 # ---------------------------------------------------------------------------------------------- speed paths
 def _pinned_model():
     """A small GaussianEnsemble with explicitly set weights (independent of the module's init code)."""
-    from pets.ensemble import GaussianEnsemble
+    from dynamics.networks import GaussianEnsemble
 
     obs_dim, act_dim = 4, 2
     ens = GaussianEnsemble(obs_dim + act_dim, obs_dim, ensemble_size=5, hidden_size=32, num_layers=2)
@@ -448,7 +456,7 @@ def test_precise_path_matches_values_pinned_before_the_speed_work(prop: str) -> 
     from pets.propagation import retain_freed_memory
 
     ens, head, reward, terminated, obs0, actions = _pinned_model()
-    ev = TrajectoryEvaluator(ens, head, reward, terminated, particles=5, propagation=prop)
+    ev = TrajectoryEvaluator(DynamicsModel(head, ens), reward, terminated, particles=5, propagation=prop)
     ret = ev(obs0, actions, torch.Generator().manual_seed(11))
     expected_ret, expected_plan = PINNED[prop]
     torch.testing.assert_close(ret, torch.tensor(expected_ret), rtol=1e-5, atol=1e-5)
@@ -465,8 +473,8 @@ def test_precise_path_matches_values_pinned_before_the_speed_work(prop: str) -> 
 def cheetah_model():
     """A Gaussian ensemble (PETS architecture: 5 x 4 x 200) trained briefly on real HalfCheetah random transitions."""
     import envs
+    from dynamics.networks import GaussianEnsemble
     from pets.bench import collect_random
-    from pets.ensemble import GaussianEnsemble
     from pets.training import ModelTrainer
 
     spec = envs.get("halfcheetah")
@@ -476,7 +484,9 @@ def cheetah_model():
     ens = GaussianEnsemble(
         head.input_dim, head.target_dim, ensemble_size=5, hidden_size=200, num_layers=4, num_elites=4
     )
-    ModelTrainer(ens, head, max_epochs=20, batch_size=64).train(obs, act, nxt, torch.Generator().manual_seed(0))
+    ModelTrainer(DynamicsModel(head, ens), max_epochs=20, batch_size=64).train(
+        obs, act, nxt, torch.Generator().manual_seed(0)
+    )
     ens.eval()
     return spec, head, ens, obs[-1]
 
@@ -492,7 +502,7 @@ def test_bf16_returns_stay_close_to_fp32_on_a_real_model(cheetah_model, prop: st
     ret = {}
     for precision in ("fp32", "bf16"):
         ev = TrajectoryEvaluator(
-            ens, head, spec.reward, spec.terminated, particles=8, propagation=prop, precision=precision
+            DynamicsModel(head, ens), spec.reward, spec.terminated, particles=8, propagation=prop, precision=precision
         )
         ret[precision] = ev(obs0, actions, torch.Generator().manual_seed(2))
         assert ret[precision].dtype == torch.float32 and torch.isfinite(ret[precision]).all()
@@ -513,9 +523,15 @@ def test_compiled_step_matches_eager() -> None:
     inductor's kernels are compared in pets.bench --compare and docs/performance.md) gives eager's returns."""
     ens, head, reward, terminated, obs0, actions = _pinned_model()
     for prop in PROPAGATIONS:
-        eager = TrajectoryEvaluator(ens, head, reward, terminated, particles=5, propagation=prop)
+        eager = TrajectoryEvaluator(DynamicsModel(head, ens), reward, terminated, particles=5, propagation=prop)
         comp = TrajectoryEvaluator(
-            ens, head, reward, terminated, particles=5, propagation=prop, compile=True, compile_backend="aot_eager"
+            DynamicsModel(head, ens),
+            reward,
+            terminated,
+            particles=5,
+            propagation=prop,
+            compile=True,
+            compile_backend="aot_eager",
         )
         with warnings.catch_warnings():
             warnings.simplefilter("error", RuntimeWarning)  # no fallback to eager
@@ -537,7 +553,7 @@ def test_compile_failure_warns_once_and_falls_back_to_eager(monkeypatch) -> None
 
     monkeypatch.setattr(propagation.torch, "compile", broken_compile)
     ens, head, reward, terminated, obs0, actions = _pinned_model()
-    ev = TrajectoryEvaluator(ens, head, reward, terminated, particles=5, propagation="ts1", compile=True)
+    ev = TrajectoryEvaluator(DynamicsModel(head, ens), reward, terminated, particles=5, propagation="ts1", compile=True)
     with pytest.warns(RuntimeWarning, match="no C\\+\\+ compiler found"):
         got = ev(obs0, actions, torch.Generator().manual_seed(11))
     torch.testing.assert_close(got, torch.tensor(PINNED["ts1"][0]), rtol=1e-5, atol=1e-5)
@@ -550,9 +566,9 @@ def test_compile_failure_warns_once_and_falls_back_to_eager(monkeypatch) -> None
 def test_speed_option_arguments() -> None:
     ens = FakeEnsemble(torch.zeros(2, OBS_DIM))
     with pytest.raises(ValueError, match="precision"):
-        TrajectoryEvaluator(ens, make_head(), reward_fn, None, precision="fp16")
+        TrajectoryEvaluator(DynamicsModel(make_head(), ens), reward_fn, None, precision="fp16")
     with pytest.raises(ValueError, match="compile"):
-        TrajectoryEvaluator(ens, make_head(), reward_fn, None, compile="yes")
+        TrajectoryEvaluator(DynamicsModel(make_head(), ens), reward_fn, None, compile="yes")
 
 
 def test_bench_rows_and_json_keys(tmp_path) -> None:

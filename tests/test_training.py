@@ -8,9 +8,10 @@ import pytest
 import torch
 from torch import Tensor
 
+from dynamics.heads import DeltaHead, DynamicsHead
+from dynamics.model import DynamicsModel
+from dynamics.networks import GaussianEnsemble
 from envs.layout import ObsLayout
-from pets.ensemble import GaussianEnsemble
-from pets.heads import DeltaHead, DynamicsHead
 from pets.training import ModelTrainer, TrainResult, bootstrap_indices, split_holdout
 
 LAYOUT_1D = ObsLayout(obs_dim=1, groups=(), velocities=(0,))
@@ -94,7 +95,7 @@ def test_trainer_feeds_each_member_its_own_bootstrap_of_the_train_split() -> Non
     obs = torch.arange(n, dtype=torch.float32)[:, None]
     head = IdentityHead(record=True)
     ens = small_ensemble(ensemble_size=4)
-    trainer = ModelTrainer(ens, head, batch_size=32, max_epochs=2, patience=5, holdout_ratio=0.1)
+    trainer = ModelTrainer(DynamicsModel(head, ens), batch_size=32, max_epochs=2, patience=5, holdout_ratio=0.1)
     trainer.train(obs, torch.zeros(n, 0), obs.clone(), torch.Generator().manual_seed(1))
     batches_per_epoch = math.ceil(180 / 32)
     assert len(head.seen) == 2 * batches_per_epoch
@@ -115,7 +116,7 @@ def test_trainer_feeds_each_member_its_own_bootstrap_of_the_train_split() -> Non
 def _train_once(seed: int, gen_seed: int) -> tuple[TrainResult, dict]:
     x, act, y, _ = sine_data(300, seed=0)
     ens = small_ensemble(seed=seed, num_elites=3)
-    trainer = ModelTrainer(ens, DeltaHead(LAYOUT_1D, 0), batch_size=32, max_epochs=4, patience=2)
+    trainer = ModelTrainer(DynamicsModel(DeltaHead(LAYOUT_1D, 0), ens), batch_size=32, max_epochs=4, patience=2)
     result = trainer.train(x, act, x + y, torch.Generator().manual_seed(gen_seed))
     return result, ens.state_dict()
 
@@ -135,7 +136,9 @@ def test_reproducible_with_same_generator_seed() -> None:
 def test_early_stopping_with_no_progress_stops_after_patience() -> None:
     x, act, y, _ = sine_data(200, seed=1)
     ens = small_ensemble()
-    trainer = ModelTrainer(ens, DeltaHead(LAYOUT_1D, 0), lr=0.0, batch_size=64, max_epochs=50, patience=3)
+    trainer = ModelTrainer(
+        DynamicsModel(DeltaHead(LAYOUT_1D, 0), ens), lr=0.0, batch_size=64, max_epochs=50, patience=3
+    )
     result = trainer.train(x, act, x + y, torch.Generator().manual_seed(0))
     assert result.epochs == 3
 
@@ -147,7 +150,9 @@ def test_early_stopping_restores_best_weights_when_validation_gets_worse() -> No
     obs = torch.rand(n, 1) * 2 - 1
     ens = small_ensemble()
     initial = [p.detach().clone() for p in ens.member_parameters()]
-    trainer = ModelTrainer(ens, IdentityHead(target_shift=5.0), lr=1e-2, batch_size=32, max_epochs=50, patience=4)
+    trainer = ModelTrainer(
+        DynamicsModel(IdentityHead(target_shift=5.0), ens), lr=1e-2, batch_size=32, max_epochs=50, patience=4
+    )
     result = trainer.train(obs, torch.zeros(n, 0), torch.zeros(n, 1), torch.Generator().manual_seed(0))
     assert result.epochs == 4
     for before, after in zip(initial, ens.member_parameters()):
@@ -168,14 +173,16 @@ def test_elites_are_lowest_holdout_error_members() -> None:
     with torch.no_grad():
         ens.weights[-1].zero_()
         ens.biases[-1][:, 0, 0] = offsets
-    trainer = ModelTrainer(ens, IdentityHead(), lr=0.0, max_epochs=2, patience=1, num_elites=3)
+    trainer = ModelTrainer(DynamicsModel(IdentityHead(), ens), lr=0.0, max_epochs=2, patience=1, num_elites=3)
     result = trainer.train(obs, torch.zeros(n, 0), torch.zeros(n, 1), torch.Generator().manual_seed(0))
     assert ens.elites.tolist() == [1, 3, 5]
     assert float(trainer.error_scale[0]) == pytest.approx(float(obs.std(correction=0)), rel=1e-5)
     assert result.val_loss == pytest.approx((0.1**2 + 0.0 + 0.2**2) / 3 / float(obs.var(correction=0)), rel=1e-4)
     # Without a holdout the elites come from the training error: the same ranking here.
     ens.set_elites(torch.arange(7))
-    trainer2 = ModelTrainer(ens, IdentityHead(), lr=0.0, max_epochs=2, patience=1, num_elites=2, holdout_ratio=0.0)
+    trainer2 = ModelTrainer(
+        DynamicsModel(IdentityHead(), ens), lr=0.0, max_epochs=2, patience=1, num_elites=2, holdout_ratio=0.0
+    )
     result2 = trainer2.train(obs, torch.zeros(n, 0), torch.zeros(n, 1), torch.Generator().manual_seed(0))
     assert ens.elites.tolist() == [1, 3]
     assert math.isnan(result2.val_loss) and result2.epochs == 2
@@ -185,7 +192,7 @@ def test_fits_heteroscedastic_sine_with_delta_head() -> None:
     x, act, y, _ = sine_data(1200, seed=2)
     obs, next_obs = x, x + y  # delta target = next_obs - obs = y
     ens = small_ensemble(seed=1, ensemble_size=4, hidden=64, layers=3, num_elites=3)
-    trainer = ModelTrainer(ens, DeltaHead(LAYOUT_1D, 0), batch_size=64, max_epochs=60, patience=8)
+    trainer = ModelTrainer(DynamicsModel(DeltaHead(LAYOUT_1D, 0), ens), batch_size=64, max_epochs=60, patience=8)
     result = trainer.train(obs, act, next_obs, torch.Generator().manual_seed(0), progress=True)
     assert result.epochs > trainer.patience  # it did learn for a while
     assert ens.elites.numel() == 3
@@ -211,10 +218,10 @@ def test_optimizer_checkpoint_roundtrip_continues_identically() -> None:
     x, act, y, _ = sine_data(300, seed=3)
     head = DeltaHead(LAYOUT_1D, 0)
     ens_a = small_ensemble(seed=4)
-    trainer_a = ModelTrainer(ens_a, head, batch_size=32, max_epochs=2, patience=5)
+    trainer_a = ModelTrainer(DynamicsModel(head, ens_a), batch_size=32, max_epochs=2, patience=5)
     trainer_a.train(x, act, x + y, torch.Generator().manual_seed(0))
     ens_b = small_ensemble(seed=99)
-    trainer_b = ModelTrainer(ens_b, head, batch_size=32, max_epochs=2, patience=5)
+    trainer_b = ModelTrainer(DynamicsModel(head, ens_b), batch_size=32, max_epochs=2, patience=5)
     ens_b.load_state_dict(ens_a.state_dict())
     trainer_b.load_state_dict(trainer_a.state_dict())
     ra = trainer_a.train(x, act, x + y, torch.Generator().manual_seed(1))
@@ -230,15 +237,15 @@ def test_bad_arguments_raise() -> None:
     ens = small_ensemble()
     head = DeltaHead(ObsLayout(obs_dim=2, groups=(), velocities=(0, 1)), 1)  # input_dim 3, target_dim 2
     with pytest.raises(ValueError, match="input_dim"):
-        ModelTrainer(ens, head)
+        DynamicsModel(head, ens)
     ok_head = DeltaHead(LAYOUT_1D, 0)
     with pytest.raises(ValueError, match="num_elites"):
-        ModelTrainer(ens, ok_head, num_elites=6)
+        ModelTrainer(DynamicsModel(ok_head, ens), num_elites=6)
     with pytest.raises(ValueError, match="holdout_ratio"):
-        ModelTrainer(ens, ok_head, holdout_ratio=1.0)
+        ModelTrainer(DynamicsModel(ok_head, ens), holdout_ratio=1.0)
     with pytest.raises(ValueError, match="patience"):
-        ModelTrainer(ens, ok_head, patience=0)
-    trainer = ModelTrainer(ens, ok_head)
+        ModelTrainer(DynamicsModel(ok_head, ens), patience=0)
+    trainer = ModelTrainer(DynamicsModel(ok_head, ens))
     g = torch.Generator().manual_seed(0)
     with pytest.raises(ValueError, match="obs"):
         trainer.train(torch.zeros(10, 1), torch.zeros(9, 0), torch.zeros(10, 1), g)

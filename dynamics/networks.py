@@ -25,7 +25,7 @@ from torch import Tensor, nn
 _DECAY_FIRST, _DECAY_SECOND, _DECAY_HIDDEN, _DECAY_OUT = 2.5e-5, 5e-5, 7.5e-5, 1e-4
 
 
-def _layer_decays(num_linear: int) -> list[float]:
+def layer_decays(num_linear: int) -> list[float]:
     """Weight-decay coefficient per linear layer: 2.5e-5, 5e-5, 7.5e-5, ..., 7.5e-5, 1e-4.
 
     With 4 hidden layers (5 linear layers) this is exactly the original PETS list
@@ -273,7 +273,7 @@ class GaussianEnsemble(MemberEnsemble):
 
         sizes = [in_dim] + [hidden_size] * num_layers + [2 * out_dim]
         self.weights, self.biases = init_member_layers(sizes, ensemble_size)
-        self.decays: list[float] = _layer_decays(len(sizes) - 1)
+        self.decays: list[float] = layer_decays(len(sizes) - 1)
 
         max_lv = torch.full((out_dim,), float(max_logvar))
         min_lv = torch.full((out_dim,), float(min_logvar))
@@ -321,4 +321,65 @@ class GaussianEnsemble(MemberEnsemble):
             f"in_dim={self.in_dim}, out_dim={self.out_dim}, ensemble_size={self.ensemble_size}, "
             f"hidden_size={self.hidden_size}, num_layers={self.num_layers}, num_elites={self.num_elites}, "
             f"learn_logvar_bounds={self.learn_logvar_bounds}"
+        )
+
+
+#: Log-variance a deterministic model reports: exp(0.5 * -2000) == 0 exactly in every float dtype.
+DETERMINISTIC_LOGVAR = -2000.0
+
+
+class DeterministicEnsemble(MemberEnsemble):
+    """``ensemble_size`` independent MLPs ``x -> mean`` evaluated in one batched pass, no variance.
+
+    Architecture per member: ``num_layers`` hidden layers of ``hidden_size`` SiLU units, then a linear output
+    of ``out_dim``; the same batched layers, initialisation, input normaliser and per-layer weight decay as
+    :class:`GaussianEnsemble`. ``forward`` returns ``(mean, logvar)`` with ``logvar`` filled with
+    :data:`DETERMINISTIC_LOGVAR`, so PETS' sampling ``mean + exp(logvar / 2) eps`` returns ``mean`` exactly.
+    """
+
+    deterministic = True
+
+    def __init__(
+        self,
+        in_dim: int,
+        out_dim: int,
+        ensemble_size: int = 5,
+        hidden_size: int = 200,
+        num_layers: int = 4,
+        num_elites: int | None = None,
+    ) -> None:
+        check_member_args(
+            in_dim=in_dim, out_dim=out_dim, ensemble_size=ensemble_size, hidden_size=hidden_size, num_layers=num_layers
+        )
+        super().__init__(in_dim, out_dim, ensemble_size, num_elites)
+        self.hidden_size = hidden_size
+        self.num_layers = num_layers
+        sizes = [in_dim] + [hidden_size] * num_layers + [out_dim]
+        self.weights, self.biases = init_member_layers(sizes, ensemble_size)
+        self.decays: list[float] = layer_decays(len(sizes) - 1)
+
+    def member_parameters(self) -> list[Tensor]:
+        """Parameters with a leading member dimension (weights and biases), in a fixed order."""
+        return [*self.weights, *self.biases]
+
+    def forward(self, x: Tensor, members: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """Mean (M, B, out_dim) of raw inputs ``x`` ((B, in_dim) shared, or (M, B, in_dim)) and the constant
+        log-variance :data:`DETERMINISTIC_LOGVAR` of the same shape."""
+        idx, _ = self._check_inputs(x, members)
+        mean = self.denormalise_target(member_mlp(self.normalise(x), self.weights, self.biases, idx))
+        return mean, torch.full_like(mean, DETERMINISTIC_LOGVAR)
+
+    def weight_decay_loss(self) -> Tensor:
+        """Per-layer L2 penalty of the original PETS: sum_l decay_l * 0.5 * ||W_l||^2 (all members, no biases)."""
+        return decay_loss(self.weights, self.decays)
+
+    def logvar_bound_penalty(self) -> Tensor:
+        """Zero: there is no log-variance to bound."""
+        return self.weights[0].new_zeros(())
+
+    def extra_repr(self) -> str:
+        return (
+            f"in_dim={self.in_dim}, out_dim={self.out_dim}, ensemble_size={self.ensemble_size}, "
+            f"hidden_size={self.hidden_size}, num_layers={self.num_layers}, num_elites={self.num_elites}, "
+            f"deterministic=True"
         )

@@ -1,4 +1,4 @@
-"""Dynamics heads: the swappable part between observations and the Gaussian ensemble.
+"""Dynamics heads: the swappable part between observations and the network (the delta heads live here).
 
 Data flow:  (obs, act) --inputs--> ensemble --target sample--> next_obs(obs, sample)
 
@@ -12,23 +12,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from dynamics.losses import gaussian_nll, mse_loss
 from envs.layout import ObsLayout
-
-
-def gaussian_nll(mean: Tensor, logvar: Tensor, target: Tensor) -> Tensor:
-    """Gaussian negative log-likelihood without the constant, averaged over all but the first dim.
-
-    nll = 0.5 * mean((target - mean)^2 * exp(-logvar) + logvar); shape (E,) for (E, B, D) inputs.
-    """
-    per = (target - mean).pow(2) * torch.exp(-logvar) + logvar
-    return 0.5 * per.flatten(1).mean(dim=1)
-
-
-def mse_loss(mean: Tensor, target: Tensor, scale: Tensor | None = None) -> Tensor:
-    """Mean squared error, averaged over all but the first dim: mean(((target - mean) / scale)^2); (E,) for
-    (E, B, D); ``scale`` (D,) per-dimension, None for 1."""
-    err = target - mean if scale is None else (target - mean) / scale
-    return err.pow(2).flatten(1).mean(dim=1)
 
 
 class DynamicsHead:
@@ -105,3 +90,17 @@ class DeltaHead(DynamicsHead):
         batch = torch.broadcast_shapes(obs.shape[:-1], target.shape[:-1])
         out = obs.expand(*batch, self.obs_dim).to(torch.promote_types(obs.dtype, target.dtype), copy=True)
         return out.index_add_(-1, idx, target.expand(*batch, self.target_dim).to(out.dtype))
+
+
+class DeterministicDeltaHead(DeltaHead):
+    """``delta-det``: DeltaHead's inputs, targets (``next_obs - obs``) and decoding; MSE loss, no variance."""
+
+    name = "delta-det"
+    deterministic = True
+
+    def loss(
+        self, mean: Tensor, logvar: Tensor, target: Tensor, obs: Tensor, next_obs: Tensor, scale: Tensor | None = None
+    ) -> Tensor:
+        """Per-member mean squared error (E,) of the predicted deltas, each divided by ``scale``; ``logvar`` is
+        ignored."""
+        return mse_loss(mean, target, scale)

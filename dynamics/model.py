@@ -1,0 +1,115 @@
+"""The dynamics model: observation and action in, next observation out (head + network + normalisers)."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from dynamics.heads import DynamicsHead
+from dynamics.networks import MemberEnsemble
+
+
+class DynamicsModel(nn.Module):
+    """One object from observations to predictions: the head encodes ``(obs, act)`` into network inputs and
+    ``(obs, next_obs)`` into targets, the member network predicts a Gaussian (or deterministic) target per
+    member, and the head decodes a target into the next observation.
+
+    Every consumer (trainer, trajectory sampling, evaluation, open-loop planning, the benchmark) goes through
+    these methods. ``state_dict`` holds the network with its normalisers and elites (the head is stateless,
+    rebuilt from the config).
+    """
+
+    def __init__(self, head: DynamicsHead, network: MemberEnsemble) -> None:
+        super().__init__()
+        if head.input_dim != network.in_dim or head.target_dim != network.out_dim:
+            raise ValueError(
+                f"head {head.name!r} has input_dim {head.input_dim} / target_dim {head.target_dim} but the "
+                f"network has in_dim {network.in_dim} / out_dim {network.out_dim}"
+            )
+        self.head = head
+        self.network = network
+
+    # ------------------------------------------------------------------ facts
+    @property
+    def name(self) -> str:
+        return self.head.name
+
+    @property
+    def obs_dim(self) -> int:
+        return self.head.obs_dim
+
+    @property
+    def act_dim(self) -> int:
+        return self.head.act_dim
+
+    @property
+    def target_dim(self) -> int:
+        return self.head.target_dim
+
+    @property
+    def deterministic(self) -> bool:
+        """True for models without a predictive variance (their sampling noise is exactly zero)."""
+        return self.network.deterministic
+
+    @property
+    def ensemble_size(self) -> int:
+        return self.network.ensemble_size
+
+    @property
+    def elites(self) -> Tensor:
+        """Long indices of the elite members (all members until a trainer sets them)."""
+        return self.network.elites
+
+    def set_elites(self, elites: Tensor) -> None:
+        self.network.set_elites(elites)
+
+    # ------------------------------------------------------------------ encoding / decoding
+    def inputs(self, obs: Tensor, act: Tensor) -> Tensor:
+        """Network inputs (..., in_dim) of observations and actions."""
+        return self.head.inputs(obs, act)
+
+    def targets(self, obs: Tensor, next_obs: Tensor) -> Tensor:
+        """Training targets (..., target_dim) of transitions."""
+        return self.head.targets(obs, next_obs)
+
+    def next_obs(self, obs: Tensor, target: Tensor) -> Tensor:
+        """Next observation (..., obs_dim) from a predicted or sampled target."""
+        return self.head.next_obs(obs, target)
+
+    # ------------------------------------------------------------------ prediction
+    def forward(self, x: Tensor, members: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """Mean and log-variance of the target, each (M, B, target_dim), of network inputs ``x`` ((B, in) shared by
+        the members or (M, B, in)); M is ``ensemble_size`` or ``len(members)``."""
+        return self.network(x, members)
+
+    @torch.no_grad()
+    def predict(self, obs: Tensor, act: Tensor, members: Tensor | None = None) -> Tensor:
+        """Next observations (M, B, obs_dim) from each member's mean target (no sampling)."""
+        mean, _ = self.network(self.inputs(obs, act), members)
+        return self.next_obs(obs, mean)
+
+    # ------------------------------------------------------------------ training
+    def fit_normalisers(self, x: Tensor, y: Tensor) -> None:
+        """Fit the network's input and target normalisers on inputs ``x`` (N, in) and targets ``y`` (N, target)."""
+        self.network.fit_normaliser(x)
+        self.network.fit_target_normaliser(y)
+
+    def member_loss(self, x: Tensor, y: Tensor, obs: Tensor, next_obs: Tensor) -> Tensor:
+        """Per-member training loss (E,) of (E, B, .) batches (the head's loss, in standardised units)."""
+        mean, logvar = self.network(x)
+        return self.head.loss(mean, logvar, y, obs, next_obs, scale=self.network.target_std)
+
+    def add_regularisers(self, loss: Tensor, logvar_bound_coef: float) -> Tensor:
+        """``loss`` + weight decay (+ ``logvar_bound_coef`` times the log-variance bound penalty where the bounds
+        are learnt)."""
+        loss = loss + self.network.weight_decay_loss()
+        if self.network.learn_logvar_bounds and logvar_bound_coef:
+            loss = loss + logvar_bound_coef * self.network.logvar_bound_penalty()
+        return loss
+
+    def member_parameters(self) -> list[Tensor]:
+        """Parameters with a leading member dimension (snapshotted per member by early stopping)."""
+        return self.network.member_parameters()
+
+    def extra_repr(self) -> str:
+        return f"name={self.name!r}"
