@@ -435,6 +435,56 @@ def test_rn(dtype, batch, device):
 
 
 # ----------------------------------------------------------------------------------------
+# the LieGroup protocol
+# ----------------------------------------------------------------------------------------
+
+PROTOCOL = ("exp", "log", "compose", "inverse", "hat", "vee", "identity")
+
+
+def test_protocol_is_abstract():
+    assert set(lie.LieGroup.__abstractmethods__) == set(PROTOCOL)
+    with pytest.raises(TypeError, match="abstract"):
+        lie.LieGroup()  # type: ignore[abstract]
+
+    class Partial(lie.MatrixLieGroup):  # compose and identity come from MatrixLieGroup, the rest is missing
+        dim, matrix_size = 1, 2
+
+    assert set(Partial.__abstractmethods__) == set(PROTOCOL) - {"compose", "identity"}
+
+
+@pytest.mark.parametrize("group", [*MATRIX_GROUPS, Rn], ids=gid)
+def test_every_group_implements_the_protocol(group):
+    assert issubclass(group, lie.LieGroup) and not group.__abstractmethods__
+    assert issubclass(group, lie.MatrixLieGroup) == (group is not Rn)
+    for name in PROTOCOL:
+        assert callable(getattr(group, name)), name
+        assert not getattr(getattr(group, name), "__isabstractmethod__", False), name
+    if group is Rn:
+        assert Rn.dim is None and Rn.matrix_size is None and Rn(4).matrix_size == 5
+    else:
+        assert isinstance(group.dim, int) and isinstance(group.matrix_size, int)
+
+
+def _round_trip(group: type[lie.LieGroup], v: torch.Tensor, **identity_kw) -> None:
+    """One pass through the base-class interface only: exp/log, compose/inverse/identity, hat/vee."""
+    x = group.exp(v)
+    close(group.exp(group.log(x)), x, 1e-12)
+    close(group.log(x), v, 1e-12)
+    close(group.compose(x, group.inverse(x)), group.identity(v.shape[:-1], dtype=v.dtype, **identity_kw), 1e-12)
+    close(group.compose(group.inverse(x), x), group.identity(v.shape[:-1], dtype=v.dtype, **identity_kw), 1e-12)
+    assert torch.equal(group.vee(group.hat(v)), v)
+
+
+@pytest.mark.parametrize("group", [*MATRIX_GROUPS, Rn], ids=gid)
+def test_protocol_round_trip(group):
+    g = torch.Generator().manual_seed(21)
+    if group is Rn:
+        _round_trip(Rn, torch.randn(5, 4, generator=g, dtype=torch.float64), n=4)
+    else:
+        _round_trip(group, _clip_rotation(group, torch.randn(5, group.dim, generator=g, dtype=torch.float64)))
+
+
+# ----------------------------------------------------------------------------------------
 # input validation
 # ----------------------------------------------------------------------------------------
 
