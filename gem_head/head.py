@@ -18,7 +18,7 @@ order of their first observation index, rotation groups contributing their tange
 
   - Rn, velocity, other:  next - current (invariant Rn coordinates included: rewards read them);
   - SO(2):                alpha = log(R_t^T R_{t+1}), the wrapped angle difference in (-pi, pi]: for a hinge angle
-                          d - 2 pi round(d / 2 pi) with d = theta' - theta (exact for any angle size), for a
+                          ``lie.wrap_angle(d)`` = d - 2 pi ceil(d / 2 pi - 1/2) with d = theta' - theta, for a
                           (cos, sin) pair atan2(c s' - s c', c c' + s s');
   - SO(3):                ``compose="right"``: alpha = log(R_t^T R_{t+1}) (body frame: G' = G exp(alpha), MuJoCo's
                           free-joint convention); ``compose="left"``: alpha = log(R_{t+1} R_t^T) (world frame:
@@ -53,19 +53,13 @@ import torch
 from torch import Tensor
 
 from envs.layout import ObsLayout
-from gem_head.lie import SO2, SO3
+from gem_head.lie import SO2, SO3, wrap_angle
 from pets.heads import DynamicsHead, gaussian_nll
 
 __all__ = ["GemHead", "COMPOSE_MODES", "LOSSES", "wrap_angle"]
 
 COMPOSE_MODES = ("right", "left")
 LOSSES = ("nll", "frobenius", "nll+frobenius")
-_TWO_PI = 2.0 * math.pi
-
-
-def wrap_angle(d: Tensor) -> Tensor:
-    """Angle difference wrapped to [-pi, pi]: d - 2 pi round(d / 2 pi) (= atan2(sin d, cos d), without its rounding)."""
-    return d - _TWO_PI * torch.round(d / _TWO_PI)
 
 
 def _quat_conj(q: Tensor) -> Tensor:

@@ -37,18 +37,21 @@ PyPose; the matrix groups share ``compose`` (matrix product) and ``identity`` th
 
 from __future__ import annotations
 
+import math
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
 
 import torch
 from torch import Tensor
 
-__all__ = ["LieGroup", "MatrixLieGroup", "SO2", "SO3", "SE2", "SE3", "Rn", "small_angle_threshold"]
+__all__ = ["LieGroup", "MatrixLieGroup", "SO2", "SO3", "SE2", "SE3", "Rn", "small_angle_threshold", "wrap_angle"]
 
 
 # ----------------------------------------------------------------------------------------
 # helpers
 # ----------------------------------------------------------------------------------------
+
+_TWO_PI = 2.0 * math.pi
 
 #: theta^2 below which Taylor polynomials replace the closed forms, per dtype.
 _SMALL_SQ: dict[torch.dtype, float] = {torch.float64: 1e-4, torch.float32: 1e-2}
@@ -293,6 +296,17 @@ class SO2(MatrixLieGroup):
         return torch.atan2(r[..., 1, 0] - r[..., 0, 1], r[..., 0, 0] + r[..., 1, 1])
 
     @staticmethod
+    def wrap(d: Tensor) -> Tensor:
+        """Angle (difference) wrapped to (-pi, pi]: d - 2 pi ceil(d / 2 pi - 1/2); (...) -> (...).
+
+        That is d - 2 pi k with k = d / 2 pi rounded to the nearest integer, halves down: d itself for |d| < pi,
+        +pi for d = -pi, pi, 3 pi, ...; for |d| > pi, math.remainder(d, 2 pi) up to the rounding of d / 2 pi and
+        2 pi k (~|d| eps; a d within that of an odd multiple of pi may give -pi or pi + |d| eps).
+        """
+        _check_float(d, "SO2.wrap")
+        return d - _TWO_PI * torch.ceil(d / _TWO_PI - 0.5)
+
+    @staticmethod
     def exp(v: Tensor) -> Tensor:
         """exp(hat(omega)) = [[cos omega, -sin omega], [sin omega, cos omega]]; (..., 1) -> (..., 2, 2)."""
         _check_vec(v, 1, "SO2.exp")
@@ -309,6 +323,10 @@ class SO2(MatrixLieGroup):
         """R^-1 = R^T."""
         _check_mat(r, 2, "SO2.inverse")
         return r.transpose(-1, -2)
+
+
+#: The one angle wrap of the project (GEM head targets, offline evaluation): ``SO2.wrap``.
+wrap_angle = SO2.wrap
 
 
 # ----------------------------------------------------------------------------------------

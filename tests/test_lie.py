@@ -401,6 +401,41 @@ def test_so2_conversions(dtype, batch):
     close(SO2.log(r).squeeze(-1), back, 0.0)
 
 
+WRAP_CASES = [0.0, 1e-9, -1e-9, 0.5, -0.5, 3.0, -3.0, math.pi, -math.pi, 3 * math.pi, -3 * math.pi, 5 * math.pi]
+WRAP_CASES += [2 * math.pi, -2 * math.pi, 4.0, -7.5, 100.0, -1000.5, 12345.678, 1e6, -1e6 - 0.25, 3e7 + 0.5]
+
+
+@pytest.mark.parametrize("dtype", DTYPES, ids=dname)
+def test_wrap_angle_against_remainder(dtype):
+    """lie.wrap_angle (= SO2.wrap) is math.remainder(d, 2 pi) with the tie -pi sent to +pi: values in (-pi, pi]."""
+    assert lie.wrap_angle is SO2.wrap
+    d = torch.tensor(WRAP_CASES, dtype=dtype)
+    got = lie.wrap_angle(d)
+    assert got.dtype == dtype and got.shape == d.shape
+    eps = torch.finfo(dtype).eps
+    for x, w in zip(d.double().tolist(), got.double().tolist()):  # x: the angle as the dtype holds it
+        tol = 8 * eps * max(1.0, abs(x))
+        want = math.remainder(x, 2 * math.pi)  # exact, in [-pi, pi], ties to even
+        if abs(abs(want) - math.pi) <= tol:  # an odd multiple of pi (up to the dtype's rounding): +pi
+            assert abs(w - math.pi) <= tol, (x, w)
+        else:
+            assert abs(w - want) <= tol, (x, w, want)
+    pi = torch.tensor([math.pi, -math.pi], dtype=dtype)  # the dtype's own +-pi map to +pi exactly
+    assert torch.equal(lie.wrap_angle(pi), pi.abs())
+
+
+@pytest.mark.parametrize("dtype", DTYPES, ids=dname)
+def test_wrap_angle_against_numpy(dtype):
+    """Dense angles against np.angle(exp(i d)) (away from odd multiples of pi); |d| < pi is returned unchanged."""
+    d = torch.linspace(-50, 50, 10001, dtype=torch.float64).to(dtype)
+    got = lie.wrap_angle(d)
+    want = torch.from_numpy(np.angle(np.exp(1j * d.double().numpy())))
+    close(got, want, 100 * torch.finfo(dtype).eps)
+    assert (got > -math.pi).all() and (got <= math.pi).all()
+    inside = d[d.abs() < math.pi]
+    assert torch.equal(lie.wrap_angle(inside), inside)  # bitwise: no rounding inside the interval
+
+
 @pytest.mark.parametrize("group", [SE2, SE3], ids=gid)
 def test_se_from_rt_to_rt(group):
     n = 2 if group is SE2 else 3
