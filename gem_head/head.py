@@ -18,7 +18,7 @@ order of their first observation index, rotation groups contributing their tange
 
   - Rn, velocity, other:  next - current (invariant Rn coordinates included: rewards read them);
   - SO(2):                alpha = log(R_t^T R_{t+1}), the wrapped angle difference in (-pi, pi]: for a hinge angle
-                          d - 2 pi round(d / 2 pi) with d = theta' - theta (exact for any angle size), for a
+                          ``lie.wrap_angle(d)`` = d - 2 pi ceil(d / 2 pi - 1/2) with d = theta' - theta, for a
                           (cos, sin) pair atan2(c s' - s c', c c' + s s');
   - SO(3):                ``compose="right"``: alpha = log(R_t^T R_{t+1}) (body frame: G' = G exp(alpha), MuJoCo's
                           free-joint convention); ``compose="left"``: alpha = log(R_{t+1} R_t^T) (world frame:
@@ -47,6 +47,7 @@ Invariant coordinates never enter. For an Rn-only layout this is exactly ``Delta
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -55,18 +56,29 @@ from torch import Tensor
 from dynamics.heads import DynamicsHead
 from dynamics.losses import gaussian_nll
 from envs.layout import ObsLayout
-from gem_head.lie import SO2, SO3
+from gem_head.lie import SO2, SO3, wrap_angle
 
 __all__ = ["GemHead", "COMPOSE_MODES", "LOSSES", "wrap_angle"]
 
 COMPOSE_MODES = ("right", "left")
 LOSSES = ("nll", "frobenius", "nll+frobenius")
-_TWO_PI = 2.0 * math.pi
 
 
-def wrap_angle(d: Tensor) -> Tensor:
-    """Angle difference wrapped to [-pi, pi]: d - 2 pi round(d / 2 pi) (= atan2(sin d, cos d), without its rounding)."""
-    return d - _TWO_PI * torch.round(d / _TWO_PI)
+def _apply_right(mul: Callable[[Tensor, Tensor], Tensor], g: Tensor, e: Tensor) -> Tensor:
+    """G' = G e (body frame) under the product ``mul``; e = G^-1 G' is _apply_right(mul, G^-1, G')."""
+    return mul(g, e)
+
+
+def _apply_left(mul: Callable[[Tensor, Tensor], Tensor], g: Tensor, e: Tensor) -> Tensor:
+    """G' = e G (world frame) under the product ``mul``; e = G' G^-1 is _apply_left(mul, G^-1, G')."""
+    return mul(e, g)
+
+
+#: compose mode -> how a step e moves a group element G (the relative motion of G -> G' is apply(mul, G^-1, G')).
+_APPLY = {"right": _apply_right, "left": _apply_left}
+
+#: Target slots per unit kind: one per additive coordinate ("add"), the tangent dimension for a rotation group.
+_TANGENT_DIM = {"add": 1, "SO2_angle": SO2.dim, "SO2_cossin": SO2.dim, "SO3_quat": SO3.dim}
 
 
 def _quat_conj(q: Tensor) -> Tensor:
@@ -162,56 +174,47 @@ class GemHead(DynamicsHead):
             raise ValueError(f"frobenius_weight must be a finite number >= 0, got {frobenius_weight!r}")
         super().__init__(layout, act_dim)
         self.compose = compose
+        self._apply = _APPLY[compose]  # bound once: the hot paths never compare strings
         self.loss_kind = loss
         self.frobenius_weight = float(frobenius_weight)
 
-        # Units: (first obs index, kind, obs indices, label); kinds: add (Rn/vel/other), angle, cossin, quat.
+        # Units: (first obs index, kind, obs indices, label); kind "add" (one Rn coordinate, velocity or other entry)
+        # or the layout kind of a rotation group; a unit takes _TANGENT_DIM[kind] target slots.
         units: list[tuple[int, str, tuple[int, ...], str]] = []
         for g in layout.groups:
             if g.kind == "Rn":
                 units += [(i, "add", (i,), f"{g.name}[{k}]") for k, i in enumerate(g.indices)]
-            elif g.kind == "SO2_angle":
-                units.append((g.indices[0], "angle", g.indices, g.name))
-            elif g.kind == "SO2_cossin":
-                units.append((min(g.indices), "cossin", g.indices, g.name))
-            else:  # SO3_quat
-                units.append((min(g.indices), "quat", g.indices, g.name))
+            else:
+                units.append((min(g.indices), g.kind, g.indices, g.name))
         units += [(i, "add", (i,), f"vel[{i}]") for i in layout.velocities]
         units += [(i, "add", (i,), f"other[{i}]") for i in layout.other]
         units.sort(key=lambda u: u[0])
 
-        invariant = set(layout.invariant)
-        add_pairs: list[tuple[int, int]] = []  # (obs index, target index) of the additive slots (incl. angles)
-        ang_obs, ang_tgt, cs_c, cs_s, cs_tgt, q_obs, q_tgt, sq_tgt = ([] for _ in range(8))
+        obs_of: dict[str, list[int]] = {kind: [] for kind in _TANGENT_DIM}  # obs indices per kind, in unit order
+        tgt_of: dict[str, list[int]] = {kind: [] for kind in _TANGENT_DIM}  # target slots per kind, in unit order
         target_names: list[str] = []
         dynamic_obs = set(layout.velocities) | set(layout.other)
         group_slots: list[int] = []
         t = 0
         for _, kind, idx, label in units:
+            slots = list(range(t, t + _TANGENT_DIM[kind]))
             if kind != "add" or idx[0] not in dynamic_obs:
-                group_slots += list(range(t, t + (3 if kind == "quat" else 1)))
+                group_slots += slots
+            obs_of[kind] += idx
+            tgt_of[kind] += slots
             if kind == "add":
-                add_pairs.append((idx[0], t))
-                sq_tgt.append(t)
                 target_names.append(f"d {label}")
-                t += 1
-            elif kind == "angle":
-                add_pairs.append((idx[0], t))
-                ang_obs.append(idx[0])
-                ang_tgt.append(t)
+            elif len(slots) == 1:
                 target_names.append(f"alpha {label}")
-                t += 1
-            elif kind == "cossin":
-                cs_c.append(idx[0])
-                cs_s.append(idx[1])
-                cs_tgt.append(t)
-                target_names.append(f"alpha {label}")
-                t += 1
             else:
-                q_obs += list(idx)
-                q_tgt += [t, t + 1, t + 2]
                 target_names += [f"alpha {label}[{a}]" for a in "xyz"]
-                t += 3
+            t += len(slots)
+        sq_tgt = tgt_of["add"]  # scored by squared error in the Frobenius loss
+        ang_obs, ang_tgt = obs_of["SO2_angle"], tgt_of["SO2_angle"]
+        cs_c, cs_s, cs_tgt = obs_of["SO2_cossin"][0::2], obs_of["SO2_cossin"][1::2], tgt_of["SO2_cossin"]
+        q_obs, q_tgt = obs_of["SO3_quat"], tgt_of["SO3_quat"]
+        # (obs index, target index) of the additive slots (hinge angles included), in target order.
+        add_pairs = sorted(zip(obs_of["add"] + ang_obs, sq_tgt + ang_tgt), key=lambda p: p[1])
         self.target_dim = t
         self.target_names: tuple[str, ...] = tuple(target_names)
         #: Target slots of the group ("static") part: Rn coordinates and rotation coefficients, ascending.
@@ -235,8 +238,7 @@ class GemHead(DynamicsHead):
         self.num_quat = len(q_obs) // 4
 
         # Inputs: pass-through (non-invariant Rn, velocities, other) in obs order, then the group features.
-        passthrough = {i for _, kind, idx, _ in units if kind == "add" for i in idx} - invariant
-        pass_obs = sorted(passthrough)
+        pass_obs = sorted(set(obs_of["add"]) - set(layout.invariant))
         names = [f"obs[{i}]" for i in pass_obs]
         names += [f"cos obs[{i}]" for i in ang_obs] + [f"sin obs[{i}]" for i in ang_obs]
         names += [f"obs[{i}] (cos)" for i in cs_c] + [f"obs[{i}] (sin)" for i in cs_s]
@@ -340,7 +342,7 @@ class GemHead(DynamicsHead):
             _put(out, ix.cs_tgt, torch.atan2(c * s2 - s * c2, c * c2 + s * s2))
         if self.num_quat:
             q0, q1 = self._unit_quat(obs, ix), self._unit_quat(next_obs, ix)
-            rel = SO3.quat_mul(_quat_conj(q0), q1) if self.compose == "right" else SO3.quat_mul(q1, _quat_conj(q0))
+            rel = self._apply(SO3.quat_mul, _quat_conj(q0), q1)  # q0^* q1 (right) or q1 q0^* (left)
             _put(out, ix.q_tgt, SO3.quat_log(rel).flatten(-2))
         return out
 
@@ -362,7 +364,7 @@ class GemHead(DynamicsHead):
         if self.num_quat:
             q = self._unit_quat(obs, ix)
             e = SO3.quat_exp(_take(target, ix.q_tgt).unflatten(-1, (self.num_quat, 3)))
-            qn = SO3.quat_mul(q, e) if self.compose == "right" else SO3.quat_mul(e, q)
+            qn = self._apply(SO3.quat_mul, q, e)
             qn = torch.where((qn * q).sum(-1, keepdim=True) < 0, -qn, qn)
             _put(out, ix.q_obs, qn.flatten(-2))
         if self._n_carry:
@@ -406,7 +408,7 @@ class GemHead(DynamicsHead):
         if self.num_quat:
             g0, g1 = SO3.from_quat(self._unit_quat(obs, ix)), SO3.from_quat(self._unit_quat(next_obs, ix))
             step = SO3.exp(_take(mean, ix.q_tgt).unflatten(-1, (self.num_quat, 3)))
-            pred = SO3.compose(g0, step) if self.compose == "right" else SO3.compose(step, g0)
+            pred = self._apply(SO3.compose, g0, step)
             sq = (pred - g1).square().sum((-1, -2))
             if inv_var is not None:
                 sq = sq * _take(inv_var, ix.q_tgt).unflatten(-1, (self.num_quat, 3)).mean(-1)

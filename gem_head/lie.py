@@ -29,21 +29,29 @@ argument >= 1) with w >= 0, then theta = 2 atan2(|xyz|, w). This is accurate at 
 angles and at pi alike; at exactly pi the axis sign is arbitrary (both are valid logs).
 
 Quaternions are (w, x, y, z), scalar first, as in MuJoCo observations.
+
+Every group is a subclass of :class:`LieGroup` (the protocol: ``exp``, ``log``, ``compose``, ``inverse``, ``hat``,
+``vee``, ``identity``, ``dim``, ``matrix_size``), used through the class itself (``SO3.exp(v)``), as in LieTorch /
+PyPose; the matrix groups share ``compose`` (matrix product) and ``identity`` through :class:`MatrixLieGroup`.
 """
 
 from __future__ import annotations
 
+import math
+from abc import ABC, abstractmethod
 from collections.abc import Sequence
 
 import torch
 from torch import Tensor
 
-__all__ = ["SO2", "SO3", "SE2", "SE3", "Rn", "small_angle_threshold"]
+__all__ = ["LieGroup", "MatrixLieGroup", "SO2", "SO3", "SE2", "SE3", "Rn", "small_angle_threshold", "wrap_angle"]
 
 
 # ----------------------------------------------------------------------------------------
 # helpers
 # ----------------------------------------------------------------------------------------
+
+_TWO_PI = 2.0 * math.pi
 
 #: theta^2 below which Taylor polynomials replace the closed forms, per dtype.
 _SMALL_SQ: dict[torch.dtype, float] = {torch.float64: 1e-4, torch.float32: 1e-2}
@@ -153,11 +161,93 @@ def _homogeneous(r: Tensor, t: Tensor) -> Tensor:
 
 
 # ----------------------------------------------------------------------------------------
+# the group protocol
+# ----------------------------------------------------------------------------------------
+
+
+class LieGroup(ABC):
+    """A Lie group as a namespace of batched closed forms; its subclasses are used as classes (``SO3.exp(v)``).
+
+    Elements are tensors with any leading batch dims (matrices, or vectors for R^n); tangent vectors are
+    (..., dim) coefficients in the group's basis. Every group implements the operations below, with
+    exp(log(x)) = x, compose(x, inverse(x)) = identity and vee(hat(v)) = v.
+    """
+
+    #: Tangent (algebra) dimension; None where it is any n (R^n).
+    dim: int | None
+    #: Side of the square matrices ``hat`` returns; None where it depends on n (R^n: n + 1).
+    matrix_size: int | None
+
+    @staticmethod
+    @abstractmethod
+    def exp(v: Tensor) -> Tensor:
+        """Exponential map: tangent (..., dim) -> group element."""
+
+    @staticmethod
+    @abstractmethod
+    def log(x: Tensor) -> Tensor:
+        """Logarithm, the inverse of ``exp`` on its principal branch: group element -> tangent (..., dim)."""
+
+    @staticmethod
+    @abstractmethod
+    def compose(a: Tensor, b: Tensor) -> Tensor:
+        """Group product a o b (batch dims broadcast)."""
+
+    @staticmethod
+    @abstractmethod
+    def inverse(x: Tensor) -> Tensor:
+        """Group inverse x^-1."""
+
+    @staticmethod
+    @abstractmethod
+    def hat(v: Tensor) -> Tensor:
+        """Tangent (..., dim) -> algebra matrix (..., matrix_size, matrix_size)."""
+
+    @staticmethod
+    @abstractmethod
+    def vee(m: Tensor) -> Tensor:
+        """Algebra matrix -> tangent (..., dim), the inverse of ``hat``."""
+
+    @staticmethod
+    @abstractmethod
+    def identity(
+        batch_shape: Sequence[int] = (), *, dtype: torch.dtype | None = None, device: torch.device | str | None = None
+    ) -> Tensor:
+        """Identity elements of batch shape ``batch_shape`` (R^n also needs ``n=``)."""
+
+
+class MatrixLieGroup(LieGroup):
+    """A group of (matrix_size x matrix_size) matrices: the product is the matrix product, the identity is I."""
+
+    dim: int
+    matrix_size: int
+
+    @classmethod
+    def compose(cls, a: Tensor, b: Tensor) -> Tensor:
+        """a o b = a @ b (batch dims broadcast)."""
+        where = f"{cls.__name__}.compose"
+        _check_mat(a, cls.matrix_size, where)
+        _check_mat(b, cls.matrix_size, where)
+        return a @ b
+
+    @classmethod
+    def identity(
+        cls,
+        batch_shape: Sequence[int] = (),
+        *,
+        dtype: torch.dtype | None = None,
+        device: torch.device | str | None = None,
+    ) -> Tensor:
+        """Identity matrices of shape (*batch_shape, matrix_size, matrix_size)."""
+        return _identity(cls.matrix_size, batch_shape, dtype, device)
+
+
+# ----------------------------------------------------------------------------------------
 # SO(2)
 # ----------------------------------------------------------------------------------------
 
 
-class SO2:
+class SO2(MatrixLieGroup):
     """Planar rotations as 2x2 matrices; tangent vectors (..., 1) hold the angle omega."""
 
     dim: int = 1
@@ -206,6 +296,17 @@ class SO2:
         return torch.atan2(r[..., 1, 0] - r[..., 0, 1], r[..., 0, 0] + r[..., 1, 1])
 
     @staticmethod
+    def wrap(d: Tensor) -> Tensor:
+        """Angle (difference) wrapped to (-pi, pi]: d - 2 pi ceil(d / 2 pi - 1/2); (...) -> (...).
+
+        That is d - 2 pi k with k = d / 2 pi rounded to the nearest integer, halves down: d itself for |d| < pi,
+        +pi for d = -pi, pi, 3 pi, ...; for |d| > pi, math.remainder(d, 2 pi) up to the rounding of d / 2 pi and
+        2 pi k (~|d| eps; a d within that of an odd multiple of pi may give -pi or pi + |d| eps).
+        """
+        _check_float(d, "SO2.wrap")
+        return d - _TWO_PI * torch.ceil(d / _TWO_PI - 0.5)
+
+    @staticmethod
     def exp(v: Tensor) -> Tensor:
         """exp(hat(omega)) = [[cos omega, -sin omega], [sin omega, cos omega]]; (..., 1) -> (..., 2, 2)."""
         _check_vec(v, 1, "SO2.exp")
@@ -218,24 +319,14 @@ class SO2:
         return SO2.to_angle(r).unsqueeze(-1)
 
     @staticmethod
-    def compose(a: Tensor, b: Tensor) -> Tensor:
-        """a o b = a @ b (batch dims broadcast)."""
-        _check_mat(a, 2, "SO2.compose")
-        _check_mat(b, 2, "SO2.compose")
-        return a @ b
-
-    @staticmethod
     def inverse(r: Tensor) -> Tensor:
         """R^-1 = R^T."""
         _check_mat(r, 2, "SO2.inverse")
         return r.transpose(-1, -2)
 
-    @staticmethod
-    def identity(
-        batch_shape: Sequence[int] = (), *, dtype: torch.dtype | None = None, device: torch.device | str | None = None
-    ) -> Tensor:
-        """Identity matrices of shape (*batch_shape, 2, 2)."""
-        return _identity(2, batch_shape, dtype, device)
+
+#: The one angle wrap of the project (GEM head targets, offline evaluation): ``SO2.wrap``.
+wrap_angle = SO2.wrap
 
 
 # ----------------------------------------------------------------------------------------
@@ -243,7 +334,7 @@ class SO2:
 # ----------------------------------------------------------------------------------------
 
 
-class SO3:
+class SO3(MatrixLieGroup):
     """3D rotations as 3x3 matrices; tangent vectors (..., 3) = rotation vector (axis * angle)."""
 
     dim: int = 3
@@ -290,24 +381,10 @@ class SO3:
         return SO3._quat_log_unit(SO3.to_quat(r))
 
     @staticmethod
-    def compose(a: Tensor, b: Tensor) -> Tensor:
-        """a o b = a @ b (batch dims broadcast)."""
-        _check_mat(a, 3, "SO3.compose")
-        _check_mat(b, 3, "SO3.compose")
-        return a @ b
-
-    @staticmethod
     def inverse(r: Tensor) -> Tensor:
         """R^-1 = R^T."""
         _check_mat(r, 3, "SO3.inverse")
         return r.transpose(-1, -2)
-
-    @staticmethod
-    def identity(
-        batch_shape: Sequence[int] = (), *, dtype: torch.dtype | None = None, device: torch.device | str | None = None
-    ) -> Tensor:
-        """Identity matrices of shape (*batch_shape, 3, 3)."""
-        return _identity(3, batch_shape, dtype, device)
 
     @staticmethod
     def angle(r: Tensor) -> Tensor:
@@ -447,7 +524,7 @@ class SO3:
 # ----------------------------------------------------------------------------------------
 
 
-class SE2:
+class SE2(MatrixLieGroup):
     """Planar rigid motions as 3x3 homogeneous matrices; tangent (..., 3) = (omega, vx, vy)."""
 
     dim: int = 3
@@ -494,25 +571,11 @@ class SE2:
         return torch.stack([w, a * tx + h * ty, -h * tx + a * ty], dim=-1)
 
     @staticmethod
-    def compose(a: Tensor, b: Tensor) -> Tensor:
-        """a o b = a @ b (batch dims broadcast)."""
-        _check_mat(a, 3, "SE2.compose")
-        _check_mat(b, 3, "SE2.compose")
-        return a @ b
-
-    @staticmethod
     def inverse(t: Tensor) -> Tensor:
         """[[R, t], [0, 1]]^-1 = [[R^T, -R^T t], [0, 1]]."""
         _check_mat(t, 3, "SE2.inverse")
         rt = t[..., :2, :2].transpose(-1, -2)
         return _homogeneous(rt, -(rt @ t[..., :2, 2:]).squeeze(-1))
-
-    @staticmethod
-    def identity(
-        batch_shape: Sequence[int] = (), *, dtype: torch.dtype | None = None, device: torch.device | str | None = None
-    ) -> Tensor:
-        """Identity matrices of shape (*batch_shape, 3, 3)."""
-        return _identity(3, batch_shape, dtype, device)
 
     @staticmethod
     def from_rt(r: Tensor, t: Tensor) -> Tensor:
@@ -533,7 +596,7 @@ class SE2:
 # ----------------------------------------------------------------------------------------
 
 
-class SE3:
+class SE3(MatrixLieGroup):
     """Rigid motions as 4x4 homogeneous matrices; tangent (..., 6) = (wx, wy, wz, vx, vy, vz), rotation first."""
 
     dim: int = 6
@@ -583,25 +646,11 @@ class SE3:
         return torch.cat([w, u], dim=-1)
 
     @staticmethod
-    def compose(a: Tensor, b: Tensor) -> Tensor:
-        """a o b = a @ b (batch dims broadcast)."""
-        _check_mat(a, 4, "SE3.compose")
-        _check_mat(b, 4, "SE3.compose")
-        return a @ b
-
-    @staticmethod
     def inverse(t: Tensor) -> Tensor:
         """[[R, t], [0, 1]]^-1 = [[R^T, -R^T t], [0, 1]]."""
         _check_mat(t, 4, "SE3.inverse")
         rt = t[..., :3, :3].transpose(-1, -2)
         return _homogeneous(rt, -(rt @ t[..., :3, 3:]).squeeze(-1))
-
-    @staticmethod
-    def identity(
-        batch_shape: Sequence[int] = (), *, dtype: torch.dtype | None = None, device: torch.device | str | None = None
-    ) -> Tensor:
-        """Identity matrices of shape (*batch_shape, 4, 4)."""
-        return _identity(4, batch_shape, dtype, device)
 
     @staticmethod
     def from_rt(r: Tensor, t: Tensor) -> Tensor:
@@ -622,7 +671,7 @@ class SE3:
 # ----------------------------------------------------------------------------------------
 
 
-class Rn:
+class Rn(LieGroup):
     """Translations in R^n; elements and tangent vectors are both plain vectors (..., n), any n >= 1.
 
     ``Rn.dim`` is None (the methods accept any trailing size); ``Rn(n)`` is an instance whose ``dim``
@@ -630,6 +679,7 @@ class Rn:
     """
 
     dim: int | None = None
+    matrix_size: int | None = None
 
     def __init__(self, n: int) -> None:
         if not isinstance(n, int) or isinstance(n, bool) or n < 1:

@@ -34,7 +34,6 @@ model: those make the averages inf/NaN, reported as such, never hidden).
 from __future__ import annotations
 
 import json
-import math
 import sys
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -60,10 +59,10 @@ METRICS = ("mean_step_error", "final_step_error", "position_error", "velocity_er
 
 # --------------------------------------------------------------------------- metric
 def wrap_angle(d: Tensor) -> Tensor:
-    """Angle difference wrapped to (-pi, pi]: ``pi - ((pi - d) mod 2 pi)``."""
-    import torch
+    """Angle difference wrapped to (-pi, pi]: :func:`gem_head.lie.wrap_angle`, the wrap of the GEM head's targets."""
+    from gem_head.lie import wrap_angle
 
-    return math.pi - torch.remainder(math.pi - d, 2.0 * math.pi)
+    return wrap_angle(d)
 
 
 def squared_errors(pred: Tensor, true: Tensor, layout: ObsLayout) -> dict[str, Tensor]:

@@ -148,6 +148,23 @@ def test_hinge_alpha_is_the_log_of_the_relative_rotation() -> None:
     torch.testing.assert_close(torch.sin(rec), torch.sin(n[:, 2:9]), rtol=0, atol=1e-10)
 
 
+def test_one_wrap_angle_for_targets_and_evaluation() -> None:
+    """The head's targets and the offline evaluation wrap with lie.wrap_angle; a hinge step of +-pi gives +pi."""
+    from gem_head import head as head_module
+    from gem_head import lie
+    from pets import evaluate
+
+    assert head_module.wrap_angle is lie.wrap_angle
+    d = torch.linspace(-40, 40, 8001, dtype=torch.float64)
+    assert torch.equal(evaluate.wrap_angle(d), lie.wrap_angle(d))
+    head = head_of("invertedpendulum")  # obs 1 is the hinge (SO2_angle)
+    o = torch.zeros(4, 4, dtype=torch.float64)
+    n = o.clone()
+    n[:, 1] = torch.tensor([math.pi, -math.pi, 3 * math.pi, 0.5], dtype=torch.float64)
+    y = head.targets(o, n)[:, 1]
+    torch.testing.assert_close(y, torch.tensor([math.pi, math.pi, math.pi, 0.5], dtype=torch.float64), rtol=0, atol=0)
+
+
 @pytest.mark.parametrize("name,joint,nq_hinges", [("reacher", 0, (0, 1)), ("inverteddoublependulum", 1, (1, 2))])
 def test_cossin_crossing_pi(name: str, joint: int, nq_hinges: tuple[int, int]) -> None:
     """(cos, sin) hinges whose angle crosses pi: alpha is the true (small) joint motion, the pair round-trips."""

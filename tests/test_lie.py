@@ -401,6 +401,41 @@ def test_so2_conversions(dtype, batch):
     close(SO2.log(r).squeeze(-1), back, 0.0)
 
 
+WRAP_CASES = [0.0, 1e-9, -1e-9, 0.5, -0.5, 3.0, -3.0, math.pi, -math.pi, 3 * math.pi, -3 * math.pi, 5 * math.pi]
+WRAP_CASES += [2 * math.pi, -2 * math.pi, 4.0, -7.5, 100.0, -1000.5, 12345.678, 1e6, -1e6 - 0.25, 3e7 + 0.5]
+
+
+@pytest.mark.parametrize("dtype", DTYPES, ids=dname)
+def test_wrap_angle_against_remainder(dtype):
+    """lie.wrap_angle (= SO2.wrap) is math.remainder(d, 2 pi) with the tie -pi sent to +pi: values in (-pi, pi]."""
+    assert lie.wrap_angle is SO2.wrap
+    d = torch.tensor(WRAP_CASES, dtype=dtype)
+    got = lie.wrap_angle(d)
+    assert got.dtype == dtype and got.shape == d.shape
+    eps = torch.finfo(dtype).eps
+    for x, w in zip(d.double().tolist(), got.double().tolist()):  # x: the angle as the dtype holds it
+        tol = 8 * eps * max(1.0, abs(x))
+        want = math.remainder(x, 2 * math.pi)  # exact, in [-pi, pi], ties to even
+        if abs(abs(want) - math.pi) <= tol:  # an odd multiple of pi (up to the dtype's rounding): +pi
+            assert abs(w - math.pi) <= tol, (x, w)
+        else:
+            assert abs(w - want) <= tol, (x, w, want)
+    pi = torch.tensor([math.pi, -math.pi], dtype=dtype)  # the dtype's own +-pi map to +pi exactly
+    assert torch.equal(lie.wrap_angle(pi), pi.abs())
+
+
+@pytest.mark.parametrize("dtype", DTYPES, ids=dname)
+def test_wrap_angle_against_numpy(dtype):
+    """Dense angles against np.angle(exp(i d)) (away from odd multiples of pi); |d| < pi is returned unchanged."""
+    d = torch.linspace(-50, 50, 10001, dtype=torch.float64).to(dtype)
+    got = lie.wrap_angle(d)
+    want = torch.from_numpy(np.angle(np.exp(1j * d.double().numpy())))
+    close(got, want, 100 * torch.finfo(dtype).eps)
+    assert (got > -math.pi).all() and (got <= math.pi).all()
+    inside = d[d.abs() < math.pi]
+    assert torch.equal(lie.wrap_angle(inside), inside)  # bitwise: no rounding inside the interval
+
+
 @pytest.mark.parametrize("group", [SE2, SE3], ids=gid)
 def test_se_from_rt_to_rt(group):
     n = 2 if group is SE2 else 3
@@ -432,6 +467,56 @@ def test_rn(dtype, batch, device):
     close(Rn.to_matrix(Rn.compose(a, b)), Rn.to_matrix(a) @ Rn.to_matrix(b), TOL[dtype])
     assert torch.equal(Rn.compose(a, Rn.inverse(a)), Rn.identity(batch, n=4, dtype=dtype, device=device))
     close(Rn.compose(Rn.compose(a, b), c), Rn.compose(a, Rn.compose(b, c)), TOL[dtype])
+
+
+# ----------------------------------------------------------------------------------------
+# the LieGroup protocol
+# ----------------------------------------------------------------------------------------
+
+PROTOCOL = ("exp", "log", "compose", "inverse", "hat", "vee", "identity")
+
+
+def test_protocol_is_abstract():
+    assert set(lie.LieGroup.__abstractmethods__) == set(PROTOCOL)
+    with pytest.raises(TypeError, match="abstract"):
+        lie.LieGroup()  # type: ignore[abstract]
+
+    class Partial(lie.MatrixLieGroup):  # compose and identity come from MatrixLieGroup, the rest is missing
+        dim, matrix_size = 1, 2
+
+    assert set(Partial.__abstractmethods__) == set(PROTOCOL) - {"compose", "identity"}
+
+
+@pytest.mark.parametrize("group", [*MATRIX_GROUPS, Rn], ids=gid)
+def test_every_group_implements_the_protocol(group):
+    assert issubclass(group, lie.LieGroup) and not group.__abstractmethods__
+    assert issubclass(group, lie.MatrixLieGroup) == (group is not Rn)
+    for name in PROTOCOL:
+        assert callable(getattr(group, name)), name
+        assert not getattr(getattr(group, name), "__isabstractmethod__", False), name
+    if group is Rn:
+        assert Rn.dim is None and Rn.matrix_size is None and Rn(4).matrix_size == 5
+    else:
+        assert isinstance(group.dim, int) and isinstance(group.matrix_size, int)
+
+
+def _round_trip(group: type[lie.LieGroup], v: torch.Tensor, **identity_kw) -> None:
+    """One pass through the base-class interface only: exp/log, compose/inverse/identity, hat/vee."""
+    x = group.exp(v)
+    close(group.exp(group.log(x)), x, 1e-12)
+    close(group.log(x), v, 1e-12)
+    close(group.compose(x, group.inverse(x)), group.identity(v.shape[:-1], dtype=v.dtype, **identity_kw), 1e-12)
+    close(group.compose(group.inverse(x), x), group.identity(v.shape[:-1], dtype=v.dtype, **identity_kw), 1e-12)
+    assert torch.equal(group.vee(group.hat(v)), v)
+
+
+@pytest.mark.parametrize("group", [*MATRIX_GROUPS, Rn], ids=gid)
+def test_protocol_round_trip(group):
+    g = torch.Generator().manual_seed(21)
+    if group is Rn:
+        _round_trip(Rn, torch.randn(5, 4, generator=g, dtype=torch.float64), n=4)
+    else:
+        _round_trip(group, _clip_rotation(group, torch.randn(5, group.dim, generator=g, dtype=torch.float64)))
 
 
 # ----------------------------------------------------------------------------------------
