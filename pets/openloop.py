@@ -37,7 +37,8 @@ from typing import Any
 
 import numpy as np
 
-from pets.datasets import OneLineParser, atomic_write_bytes, fail
+from pets.cli import OneLineParser, fail
+from pets.fileio import atomic_write_bytes
 
 PROG = "pets.openloop"
 DEFAULT_STEPS = 50
