@@ -4,7 +4,9 @@ setup(
     name="gem-pets",
     version="0.2.0",
     description="PETS model-based RL with a swappable dynamics head: delta-state or GEM (Group Enhanced Model)",
-    packages=find_packages(include=["pets", "pets.*", "gem_head", "gem_head.*", "envs", "envs.*"]),
+    packages=find_packages(
+        include=["pets", "pets.*", "experiments", "experiments.*", "gem_head", "gem_head.*", "envs", "envs.*"]
+    ),
     py_modules=["run_pets"],
     python_requires=">=3.10",
     install_requires=[
