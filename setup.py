@@ -4,7 +4,9 @@ setup(
     name="gem-pets",
     version="0.2.0",
     description="PETS model-based RL with a swappable dynamics head: delta-state or GEM (Group Enhanced Model)",
-    packages=find_packages(include=["pets", "pets.*", "gem_head", "gem_head.*", "envs", "envs.*"]),
+    packages=find_packages(
+        include=["pets", "pets.*", "experiments", "experiments.*", "gem_head", "gem_head.*", "envs", "envs.*"]
+    ),
     py_modules=["run_pets"],
     python_requires=">=3.10",
     install_requires=[
@@ -22,5 +24,17 @@ setup(
         # ruff pinned: .ci/run checks lint and format, and the format can change between releases.
         "dev": ["pytest>=7", "hypothesis>=6", "scipy>=1.10", "ruff==0.17.6"],
     },
-    entry_points={"console_scripts": ["run-pets=run_pets:main"]},
+    # Every command also runs as ``python -m MODULE`` (``python run_pets.py`` for run-pets).
+    entry_points={
+        "console_scripts": [
+            "run-pets=run_pets:main",
+            "pets-compare=experiments.cli:main",
+            "pets-collect=pets.collect:main",
+            "pets-train=pets.train:main",
+            "pets-evaluate=pets.evaluate:main",
+            "pets-openloop=pets.openloop:main",
+            "pets-onestep=pets.onestep:main",
+            "pets-bench=pets.bench:main",
+        ]
+    },
 )

@@ -34,7 +34,8 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
-from pets.datasets import OneLineParser, fail, save_dataset
+from pets.cli import OneLineParser, fail
+from pets.datasets import save_dataset
 
 if TYPE_CHECKING:
     from envs import EnvSpec

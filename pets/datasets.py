@@ -1,4 +1,4 @@
-"""Trajectory data sets (``.npz``) for the offline experiments, and the CLI helpers the offline commands share.
+"""Trajectory data sets (``.npz``) for the offline experiments: the file format, reading and writing.
 
 File format (written by ``python -m pets.collect``; every array is float64 unless said):
 
@@ -23,35 +23,20 @@ commands fail fast (without importing torch) on bad arguments.
 
 from __future__ import annotations
 
-import argparse
 import io
-import os
-import sys
 import zipfile
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, NoReturn
+from typing import Any
 
 import numpy as np
 
-REQUIRED_KEYS = ("obs", "act", "rew", "terminated", "lengths", "env")
+from pets.fileio import atomic_write_bytes
 
-#: Exit status of every offline command on bad input (as run_pets.py).
-EXIT_USAGE = 2
+REQUIRED_KEYS = ("obs", "act", "rew", "terminated", "lengths", "env")
 
 
 # --------------------------------------------------------------------------- files
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` through a temporary file in the same directory and ``os.replace``."""
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "wb") as f:
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-
-
 def npz_bytes(arrays: Mapping[str, np.ndarray]) -> bytes:
     """An uncompressed ``.npz`` archive of ``arrays`` (in the given key order) that ``np.load`` reads.
 
@@ -149,18 +134,3 @@ def transitions(data: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray,
 def env_name(data: Mapping[str, np.ndarray]) -> str:
     """The data set's canonical env name."""
     return str(np.asarray(data["env"])[()])
-
-
-# --------------------------------------------------------------------------- CLI helpers
-class OneLineParser(argparse.ArgumentParser):
-    """argparse with usage errors as one stderr line ``PROG: error: ...`` and exit code 2."""
-
-    def error(self, message: str) -> NoReturn:
-        fail(self.prog, message)
-
-
-def fail(prog: str, message: str) -> NoReturn:
-    """Print ``PROG: error: MESSAGE`` (first line of it only) to stderr and exit with status 2."""
-    line = " ".join(str(message).split()) or "unknown error"
-    print(f"{prog}: error: {line}", file=sys.stderr)
-    raise SystemExit(EXIT_USAGE)

@@ -41,7 +41,9 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from pets.datasets import OneLineParser, atomic_write_bytes, env_name, fail, load_dataset
+from pets.cli import OneLineParser, fail
+from pets.datasets import env_name, load_dataset
+from pets.fileio import atomic_write_bytes
 
 if TYPE_CHECKING:
     import torch

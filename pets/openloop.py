@@ -37,7 +37,8 @@ from typing import Any
 
 import numpy as np
 
-from pets.datasets import OneLineParser, atomic_write_bytes, fail
+from pets.cli import OneLineParser, fail
+from pets.fileio import atomic_write_bytes
 
 PROG = "pets.openloop"
 DEFAULT_STEPS = 50
@@ -110,9 +111,9 @@ def open_loop(
     from omegaconf import OmegaConf
     from tqdm.auto import tqdm
 
+    from experiments.statistics import bootstrap_band, summarise
     from pets import builder
     from pets.collect import episode_seeds
-    from pets.stats import bootstrap_band, summarise
 
     if isinstance(episodes, bool) or not isinstance(episodes, int) or episodes < 1:
         raise ValueError(f"episodes must be a positive int, got {episodes!r}")

@@ -14,7 +14,7 @@ from typing import Any
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from pets.datasets import atomic_write_bytes
+from pets.fileio import atomic_write_bytes
 
 CONFIG_FILE = "config.yaml"
 METRICS_FILE = "metrics.csv"

@@ -41,7 +41,8 @@ from typing import Any
 
 import numpy as np
 
-from pets.datasets import OneLineParser, check_dataset, env_name, fail, load_dataset, transitions
+from pets.cli import OneLineParser, fail
+from pets.datasets import check_dataset, env_name, load_dataset, transitions
 
 PROG = "pets.train"
 #: Offline defaults, applied before the user's overrides (see the module docstring).

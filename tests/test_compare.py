@@ -2,7 +2,7 @@
 
 The comparison commands run in-process through their CLI entry point ``main`` (argument parsing,
 exit codes, files); the online runs themselves are real ``run_pets.py`` subprocesses. Ground truth:
-the runs' own metrics.csv / eval.json, pets.stats recomputed here, and the MuJoCo simulator for the
+the runs' own metrics.csv / eval.json, experiments.statistics recomputed here, and the MuJoCo simulator for the
 open-loop rewards.
 """
 
@@ -14,9 +14,13 @@ import numpy as np
 import pytest
 
 import envs
-from pets import compare, openloop, rundir
+from experiments import arguments, runner
+from experiments.cli import EXIT_FAILED, main
+from experiments.offline import compare_offline
+from experiments.report import fmt
+from experiments.statistics import bootstrap_ci, iqm
+from pets import openloop, rundir
 from pets.config import load_config, make_config
-from pets.stats import bootstrap_ci, iqm
 from tests.threads import one_thread
 
 TINY = [
@@ -46,7 +50,7 @@ TINY_OFFLINE = [
 def cli(capsys, *args):
     """``python -m pets.compare ARGS`` in this process: (exit code, stdout, stderr)."""
     try:
-        code = compare.main([str(a) for a in args])
+        code = main([str(a) for a in args])
     except SystemExit as err:
         code = err.code
     out = capsys.readouterr()
@@ -90,7 +94,7 @@ def online(tmp_path_factory):
             if (d / "metrics.csv").exists()
         }
         try:
-            code = compare.main([str(a) for a in ["online", *args, *common]])
+            code = main([str(a) for a in ["online", *args, *common]])
         except SystemExit as err:
             code = err.code
         steps[key] = {
@@ -105,7 +109,7 @@ def online(tmp_path_factory):
 def test_online_failed_run_is_reported_and_the_others_go_on(online):
     out, steps = online
     first = steps["first"]
-    assert first["code"] == compare.EXIT_FAILED
+    assert first["code"] == EXIT_FAILED
     rows = list(csv.DictReader(first["summary"].splitlines()))
     assert len(rows) == 1 and rows[0]["model"] == "delta" and rows[0]["n_seeds"] == "1"
     assert "invertedpendulum-delta-s9 (0/1 trials; failed: RuntimeError: exit 1" in first["md"]
@@ -321,7 +325,7 @@ OFFLINE_ARGS = [
 @pytest.fixture(scope="module")
 def offline(tmp_path_factory):
     out = tmp_path_factory.mktemp("offline")
-    result = compare.compare_offline(
+    result = compare_offline(
         ["invertedpendulum"],
         ["delta", "gem"],
         [0, 1],
@@ -389,9 +393,9 @@ def test_offline_prediction_csv_equals_the_runs_evaluations(offline):
     top = max(averaged.values())
     lines = (out / "prediction.md").read_text().splitlines()
     line = next(row for row in lines if row.startswith("| invertedpendulum |"))
-    delta, gem = (compare.fmt(averaged[m] / top) for m in ("delta", "gem"))
+    delta, gem = (fmt(averaged[m] / top) for m in ("delta", "gem"))
     assert line == f"| invertedpendulum | {delta} | {gem} |"
-    assert "1" in {compare.fmt(v / top) for v in averaged.values()}
+    assert "1" in {fmt(v / top) for v in averaged.values()}
 
 
 def test_offline_open_loop_results_replay_in_the_simulator(offline):
@@ -444,7 +448,7 @@ def test_offline_refuses_other_data_or_config_in_the_same_directory(offline, cap
 
 def test_offline_existing_policy_takes_the_data_files_as_they_are(offline, tmp_path, capsys):
     out, _ = offline
-    result = compare.compare_offline(
+    result = compare_offline(
         ["invertedpendulum"],
         ["delta"],
         [0],
@@ -495,11 +499,11 @@ def test_online_refuses_an_offline_run_directory(offline, capsys):
 # --------------------------------------------------------------------------- pool and usage errors
 def test_process_pool_reports_a_failed_job_and_finishes_the_others():
     jobs = [
-        ("good", compare.split_list, ("a,b", "x")),
-        ("bad", compare.split_list, ("a,,b", "x")),
-        ("also good", compare.parse_seeds, ("3,1",)),
+        ("good", arguments.split_list, ("a,b", "x")),
+        ("bad", arguments.split_list, ("a,,b", "x")),
+        ("also good", arguments.parse_seeds, ("3,1",)),
     ]
-    results = compare.run_pool(jobs, 2, processes=True, progress=False, desc="test")
+    results = runner.run_pool(jobs, 2, processes=True, progress=False, desc="test")
     assert results["good"] == (True, ["a", "b"]) and results["also good"] == (True, [3, 1])
     assert results["bad"][0] is False and "UsageError" in results["bad"][1] and "empty items" in results["bad"][1]
 
@@ -555,7 +559,7 @@ def test_models_come_from_config_heads_at_run_time(monkeypatch):
     from pets import config
 
     monkeypatch.setattr(config, "HEADS", ("delta", "gem", "novel"))
-    assert compare.parse_models("novel,delta") == ["novel", "delta"]
+    assert arguments.parse_models("novel,delta") == ["novel", "delta"]
 
 
 @pytest.mark.parametrize(

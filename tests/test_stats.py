@@ -1,4 +1,4 @@
-"""pets.stats against exact small cases, scipy's bootstrap and trim_mean, and the normal-theory interval."""
+"""experiments.statistics against exact small cases, scipy's bootstrap and trim_mean, and the normal-theory interval."""
 
 import math
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import scipy.stats
 
-from pets.stats import bootstrap_band, bootstrap_ci, iqm, summarise
+from experiments.statistics import bootstrap_band, bootstrap_ci, iqm, summarise
 
 
 def test_two_point_sample_has_the_exact_bootstrap_distribution():

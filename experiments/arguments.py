@@ -1,0 +1,66 @@
+"""The comparison arguments: program name, UsageError and the parsers of the comma-separated lists."""
+
+from __future__ import annotations
+
+#: The program name in every message of the comparison.
+PROG = "pets.compare"
+
+
+class UsageError(ValueError):
+    """A bad argument or an inconsistent output directory: exit 2 with this one-line message."""
+
+
+def split_list(text: str, what: str) -> list[str]:
+    """``"a,b"`` -> ``["a", "b"]`` (order kept, duplicates dropped); UsageError if empty or with empty items."""
+    items = [t.strip() for t in str(text).split(",")]
+    if not text or not all(items):
+        raise UsageError(f"--{what} must be a comma-separated list without empty items, got {text!r}")
+    return list(dict.fromkeys(items))
+
+
+def parse_envs(text: str) -> list[str]:
+    """Canonical env names of a comma-separated list (catalogue names or gymnasium ids)."""
+    import envs
+
+    out = []
+    for name in split_list(text, "envs"):
+        try:
+            out.append(envs.canonical_name(name))
+        except ValueError as err:
+            raise UsageError(str(err)) from None
+    return list(dict.fromkeys(out))
+
+
+def _parse_choices(text: str, what: str, accepted: tuple[str, ...]) -> list[str]:
+    """Comma-separated names for ``--what``, each one of ``accepted``."""
+    names = split_list(text, what)
+    bad = [n for n in names if n not in accepted]
+    if bad:
+        raise UsageError(f"unknown {what[:-1]} {bad[0]!r} in --{what}; accepted: {', '.join(accepted)}")
+    return names
+
+
+def parse_models(text: str) -> list[str]:
+    """Model (head) names, each one of ``pets.config.HEADS`` (read now, so new heads are accepted)."""
+    from pets import config
+
+    return _parse_choices(text, "models", config.HEADS)
+
+
+def parse_seeds(text: str) -> list[int]:
+    """Seeds: comma-separated ints >= 0."""
+    items = split_list(text, "seeds")
+    try:
+        seeds = [int(s) for s in items]
+    except ValueError:
+        raise UsageError(f"--seeds must be comma-separated ints >= 0 such as 0,1,2, got {text!r}") from None
+    if min(seeds) < 0:
+        raise UsageError(f"--seeds must be ints >= 0, got {text!r}")
+    return list(dict.fromkeys(seeds))
+
+
+def parse_planners(text: str) -> list[str]:
+    """Planner names, each one of ``pets.config.PLANNERS``."""
+    from pets import config
+
+    return _parse_choices(text, "planners", config.PLANNERS)

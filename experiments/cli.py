@@ -1,0 +1,161 @@
+"""The ``compare`` command line (``python -m pets.compare``, ``pets-compare``): arguments, errors, exit status.
+
+    python -m pets.compare online  --envs E1,E2 --models M1,M2 --seeds 0,1,2 --trials N --out DIR
+                                   [--planners cem,icem] [--workers K] [--preset research|fast]
+                                   [--final-window W] [--device D] [--quiet] [key=value ...]
+    python -m pets.compare offline --envs E1,E2 --models M1,M2 --seeds 0,1,2 --out DIR
+                                   [--episodes E] [--test-episodes E2] [--max-steps T]
+                                   [--policy random|smooth-random[:BETA]|existing] [--horizons 1,5,10,25,50]
+                                   [--starts K]
+                                   [--openloop] [--planners cem,mppi] [--openloop-steps 50] [--openloop-episodes 5]
+                                   [--workers K] [--preset research|fast] [--device D] [--quiet] [key=value ...]
+
+Models are the names in ``pets.config.HEADS`` (read at run time); envs are catalogue names or
+gymnasium ids. Every (env, model, seed) has its run directory ``DIR/runs/ENV-MODEL-sSEED``.
+Everything is resumable: rerunning a command reuses finished work and runs only what is missing.
+A run directory that was made with a different config than the command asks for (other
+overrides, preset, ...; the trial count aside) is an error (exit 2): results of different configs
+are never mixed. Bad lists, envs, models or keys exit 2 with one line; a failed run is reported,
+the others go on, the summary covers the finished runs, and the exit status is 1.
+
+The modes: :mod:`experiments.online` and :mod:`experiments.offline`; the files they write:
+:mod:`experiments.online_summary` and :mod:`experiments.offline_summary`.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+from experiments.arguments import PROG, UsageError, parse_envs, parse_models, parse_planners, parse_seeds
+from experiments.offline import compare_offline
+from experiments.online import compare_online
+from pets.cli import OneLineParser, fail
+
+#: Exit status when a run failed (the summary covers the others).
+EXIT_FAILED = 1
+
+
+def build_parser() -> OneLineParser:
+    """The ``compare`` parser: the modes ``online`` and ``offline`` with their options."""
+    p = OneLineParser(
+        prog=PROG,
+        description="A/B comparison of dynamics heads over envs and seeds, with bootstrap "
+        "statistics and plots (resumable).",
+    )
+    sub = p.add_subparsers(dest="mode", required=True, parser_class=OneLineParser)
+
+    def common(q: OneLineParser) -> None:
+        q.add_argument("--envs", required=True, help="comma-separated envs (catalogue names or gymnasium ids)")
+        q.add_argument("--models", required=True, help="comma-separated models (pets.config.HEADS)")
+        q.add_argument("--seeds", default="0,1,2", help="comma-separated seeds (default 0,1,2)")
+        q.add_argument("--out", type=Path, required=True, help="output directory (runs, data, summaries)")
+        q.add_argument("--workers", type=int, default=1, help="parallel runs, one CPU thread each (default 1)")
+        q.add_argument("--preset", default="research", help="config preset: research (default) or fast")
+        q.add_argument("--device", choices=("cpu", "cuda", "auto"), default=None, help="device of every run")
+        q.add_argument("--quiet", action="store_true", help="no progress bar")
+        q.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides for every run")
+
+    on = sub.add_parser("online", prog=f"{PROG} online", help="online PETS runs (run_pets.py)")
+    common(on)
+    on.add_argument("--trials", type=int, required=True, help="trials per run")
+    on.add_argument("--final-window", type=int, default=3, help="trials averaged for the final reward (default 3)")
+    on.add_argument(
+        "--planners",
+        help="also compare these planners (comma-separated pets.config.PLANNERS); every model x planner pair is an arm",
+    )
+
+    off = sub.add_parser("offline", prog=f"{PROG} offline", help="offline training and prediction error")
+    common(off)
+    off.add_argument("--episodes", type=int, default=100, help="training episodes per env (default 100)")
+    off.add_argument("--test-episodes", type=int, default=20, help="test episodes per env (default 20)")
+    off.add_argument("--max-steps", type=int, help="steps per collected episode at most (default: env's length)")
+    off.add_argument(
+        "--policy",
+        default="random",
+        help="data policy: random (default), smooth-random[:BETA], or "
+        "existing (use DIR/data/ENV-{train,test}.npz as they are)",
+    )
+    off.add_argument("--horizons", default="1,5,10,25,50", help="prediction horizons (default 1,5,10,25,50)")
+    off.add_argument("--starts", type=int, default=1000, help="start points of the evaluation (default 1000)")
+    off.add_argument("--openloop", action="store_true", help="also plan open loop with every trained model")
+    off.add_argument("--planners", default="cem,mppi", help="open-loop planners (default cem,mppi)")
+    off.add_argument("--openloop-steps", type=int, default=50, help="open-loop plan length (default 50)")
+    off.add_argument("--openloop-episodes", type=int, default=5, help="open-loop episodes per run (default 5)")
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run ``compare`` with ``argv`` and print the report; 0, 1 (a run failed) or exit 2 (bad input)."""
+    args = build_parser().parse_args(argv)
+    from pets.config import PRESETS
+
+    try:
+        if args.preset not in PRESETS:
+            raise UsageError(f"unknown preset {args.preset!r}; accepted: {', '.join(PRESETS)}")
+        env_names = parse_envs(args.envs)
+        models = parse_models(args.models)
+        seeds = parse_seeds(args.seeds)
+        overrides = list(args.overrides)
+        if args.device is not None:
+            if any(o.startswith("device=") for o in overrides):
+                raise UsageError("give the device once: --device or device=, not both")
+        if args.mode == "online":
+            if args.device is not None:
+                overrides.append(f"device={args.device}")
+            planners = None if args.planners is None else parse_planners(args.planners)
+            result = compare_online(
+                env_names,
+                models,
+                seeds,
+                args.trials,
+                args.out,
+                workers=args.workers,
+                preset=args.preset,
+                overrides=overrides,
+                final_window=args.final_window,
+                progress=not args.quiet,
+                planners=planners,
+            )
+            report = args.out / "summary.md"
+        else:
+            from pets.evaluate import parse_horizons
+
+            try:
+                horizons = parse_horizons(args.horizons)
+            except ValueError as err:
+                raise UsageError(str(err)) from None
+            planners = parse_planners(args.planners)
+            result = compare_offline(
+                env_names,
+                models,
+                seeds,
+                args.out,
+                episodes=args.episodes,
+                test_episodes=args.test_episodes,
+                max_steps=args.max_steps,
+                policy=args.policy,
+                horizons=horizons,
+                starts=args.starts,
+                openloop=args.openloop,
+                planners=planners,
+                openloop_steps=args.openloop_steps,
+                openloop_episodes=args.openloop_episodes,
+                workers=args.workers,
+                preset=args.preset,
+                device=args.device or "auto",
+                overrides=overrides,
+                progress=not args.quiet,
+            )
+            report = args.out / "prediction.md"
+    except UsageError as err:
+        fail(PROG, str(err))
+    except KeyboardInterrupt:
+        print(f"\n{PROG}: interrupted; rerun the same command to continue", file=sys.stderr)
+        return 130
+    print(report.read_text())
+    if result["failed"]:
+        print(f"{PROG}: {len(result['failed'])} run(s) failed: {', '.join(sorted(result['failed']))}", file=sys.stderr)
+        return EXIT_FAILED
+    return 0

@@ -1,0 +1,284 @@
+"""The offline protocol: collect the data sets, then train, evaluate and open-loop plan every run that lacks it.
+
+Per env: a training and a separate test data set with ``pets.collect`` (``DIR/data/ENV-train.npz``
+with data seed 0 and E episodes, ``DIR/data/ENV-test.npz`` with data seed 1 and E2 episodes, same
+policy), reused if present (an error if they were collected with another policy, seed or episode
+count). ``--policy existing`` takes both files as they are (e.g. collected from a trained agent with
+``pets.collect --policy run:RUN_DIR --out DIR/data/ENV-train.npz``); then the data options are unused.
+
+Per run: train offline (``pets.train.train_offline``, model seed = the run's seed) unless the
+run directory holds a trained model; evaluate on the test data (``pets.evaluate``, mean mode, the
+same start points for every model and seed of an env: evaluation seed 0) into ``eval.json`` unless it
+holds this evaluation already; with ``--openloop``, open-loop planning (``pets.openloop``, seed 2)
+per planner into ``openloop_PLANNER.json``. Jobs run in a pool of K processes (one torch thread each)
+or, with K = 1, in this process.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from experiments.arguments import PROG, UsageError
+from experiments.offline_summary import summarise_offline, summarise_openloop
+from experiments.rundirs import check_same_config, json_matches, run_name
+from experiments.runner import run_pool
+from pets.fileio import atomic_write_bytes
+
+#: Data seeds of the offline mode: training data, test data, open-loop initial states.
+TRAIN_DATA_SEED, TEST_DATA_SEED, OPENLOOP_SEED = 0, 1, 2
+#: Seed of the start points of the prediction-error evaluation (the same for every model and seed).
+EVAL_SEED = 0
+#: ``--policy`` value that uses the data files already in DIR/data as they are.
+EXISTING = "existing"
+
+
+def expected_policy_name(policy: str) -> str:
+    """The ``policy`` name ``pets.collect`` stores for a ``--policy`` string (random or smooth-random only)."""
+    from pets.collect import DEFAULT_BETA, parse_policy
+
+    if policy == EXISTING:
+        return EXISTING
+
+    try:
+        kind, arg = parse_policy(policy)
+    except ValueError as err:
+        raise UsageError(str(err)) from None
+    if kind == "run":
+        raise UsageError(
+            "--policy must be random, smooth-random[:BETA] or existing (one policy for every env; "
+            "collect agent data with pets.collect --policy run:RUN_DIR into DIR/data and use existing)"
+        )
+    return "random" if kind == "random" else f"smooth-random:{(DEFAULT_BETA if arg is None else arg):g}"
+
+
+def prepare_data(
+    path: Path, env: str, policy: str, episodes: int, seed: int, max_steps: int | None, progress: bool = False
+) -> str:
+    """Collect the data set at ``path`` unless it exists; ``"collected"`` or ``"reused"``.
+
+    UsageError if an existing file was collected for another env, policy, seed or episode count.
+    """
+    import envs
+    from pets.collect import collect
+    from pets.datasets import load_dataset, save_dataset
+
+    want = {"env": env, "policy": expected_policy_name(policy), "seed": seed, "episodes": episodes}
+    if policy == EXISTING and not path.is_file():
+        raise UsageError(f"--policy existing needs the data file {path} (e.g. from pets.collect); it does not exist")
+    if path.is_file():
+        try:
+            data = load_dataset(path)
+        except ValueError as err:
+            raise UsageError(f"{err}; delete it to collect it again") from None
+        if policy == EXISTING:
+            if str(data["env"]) != env:
+                raise UsageError(f"{path} holds {data['env']} data, not {env}")
+            return "reused"
+        got = {
+            "env": str(data["env"]),
+            "policy": str(data["policy"]) if "policy" in data else None,
+            "seed": int(data["seed"]) if "seed" in data else None,
+            "episodes": int(len(data["lengths"])),
+        }
+        if max_steps is not None and int(data["lengths"].max()) > max_steps:
+            got["max_steps"], want["max_steps"] = int(data["lengths"].max()), max_steps
+        if got != want:
+            diff = "; ".join(f"{k}: {got.get(k)!r} != {want.get(k)!r}" for k in want if got.get(k) != want.get(k))
+            raise UsageError(
+                f"{path} was collected with other settings ({diff}); pass the same settings, "
+                "delete the file or pick another --out"
+            )
+        return "reused"
+    save_dataset(path, collect(envs.get(env), policy, episodes, seed, max_steps, progress=progress))
+    return "collected"
+
+
+def offline_job(job: Mapping[str, Any]) -> dict[str, Any]:
+    """One (env, model, seed): train if needed, evaluate if needed, open-loop plan if asked and needed.
+
+    Runs in a worker process (or in this one); returns what it did, ``{"name", "done": [...]}``.
+    """
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        return _offline_job(job)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _offline_job(job: Mapping[str, Any]) -> dict[str, Any]:
+    from pets.evaluate import evaluate
+    from pets.openloop import open_loop
+    from pets.train import train_offline
+
+    run_dir, done = Path(job["run_dir"]), []
+    if not (run_dir / "config.yaml").is_file():
+        train_offline(
+            job["train_data"],
+            job["model"],
+            run_dir,
+            job["overrides"],
+            preset=job["preset"],
+            seed=job["seed"],
+            device=job["device"],
+        )
+        done.append("train")
+    eval_path, request = run_dir / "eval.json", job["eval_request"]
+    if "train" in done or not json_matches(eval_path, request):
+        result = evaluate(
+            run_dir,
+            job["test_data"],
+            request["horizons"],
+            request["starts"],
+            seed=request["seed"],
+            mode=request["mode"],
+            device=job["device"],
+            log=lambda message: None,
+        )
+        result["request"] = request
+        atomic_write_bytes(eval_path, (json.dumps(result) + "\n").encode())
+        done.append("eval")
+    for planner in job["planners"]:
+        path = run_dir / f"openloop_{planner}.json"
+        request = {**job["openloop_request"], "planner": planner}
+        if "train" in done or not json_matches(path, request):
+            r = request
+            result = open_loop(run_dir, planner, r["steps"], r["episodes"], r["seed"], device=job["device"])
+            result["request"] = request
+            atomic_write_bytes(path, (json.dumps(result) + "\n").encode())
+            done.append(f"openloop_{planner}")
+    return {"name": run_dir.name, "done": done}
+
+
+def offline_todo(job: Mapping[str, Any]) -> list[str]:
+    """What :func:`offline_job` would do for ``job`` now: a subset of train, eval, openloop_PLANNER."""
+    run_dir = Path(job["run_dir"])
+    todo = [] if (run_dir / "config.yaml").is_file() else ["train"]
+    if todo or not json_matches(run_dir / "eval.json", job["eval_request"]):
+        todo.append("eval")
+    todo += [
+        f"openloop_{p}"
+        for p in job["planners"]
+        if todo[:1] == ["train"]
+        or not json_matches(run_dir / f"openloop_{p}.json", {**job["openloop_request"], "planner": p})
+    ]
+    return todo
+
+
+def compare_offline(
+    env_names: Sequence[str],
+    models: Sequence[str],
+    seeds: Sequence[int],
+    out: Path,
+    *,
+    episodes: int = 100,
+    test_episodes: int = 20,
+    max_steps: int | None = None,
+    policy: str = "random",
+    horizons: Sequence[int] = (1, 5, 10, 25, 50),
+    starts: int = 1000,
+    openloop: bool = False,
+    planners: Sequence[str] = ("cem", "mppi"),
+    openloop_steps: int = 50,
+    openloop_episodes: int = 5,
+    workers: int = 1,
+    preset: str = "research",
+    device: str = "auto",
+    overrides: Sequence[str] = (),
+    progress: bool = True,
+) -> dict[str, Any]:
+    """Collect, train, evaluate (and open-loop plan) everything missing, then write the summaries.
+
+    Returns ``{"data": {file: collected|reused}, "todo": {run: [what was missing]}, "done": {run: [what was
+    done]}, "failed": {run: message}, "summary"}``; runs absent from "todo" were reused as they were.
+    """
+    from pets.config import ConfigError, parse_overrides
+    from pets.train import offline_config
+
+    for name, value in (
+        ("episodes", episodes),
+        ("test-episodes", test_episodes),
+        ("starts", starts),
+        ("workers", workers),
+        ("openloop-steps", openloop_steps),
+        ("openloop-episodes", openloop_episodes),
+    ):
+        if value < 1:
+            raise UsageError(f"--{name} must be >= 1, got {value}")
+    if max_steps is not None and max_steps < 1:
+        raise UsageError(f"--max-steps must be >= 1, got {max_steps}")
+    expected_policy_name(policy)
+    try:
+        extra = parse_overrides(list(overrides))
+    except ConfigError as err:
+        raise UsageError(str(err)) from None
+    for key in ("seed", "head", "env", "device"):
+        if key in extra:
+            raise UsageError(f"{key}= is set by the command itself; do not pass it as an override")
+    extra["threads"] = "1"
+    out = Path(out).resolve()
+    jobs, data_actions, pending = [], {}, {}
+    for env in env_names:
+        for model in models:
+            for seed in seeds:
+                run_dir = out / "runs" / run_name(env, model, seed)
+                try:
+                    expected = offline_config(env, model, extra, preset=preset, seed=seed, device=device)
+                except ConfigError as err:
+                    raise UsageError(str(err)) from None
+                if (run_dir / "config.yaml").is_file():
+                    check_same_config(run_dir, expected, ignore=())
+    data_dir = out / "data"
+    for env in env_names:  # cheap with random policies: done here, before the pool
+        for part, seed, n in (("train", TRAIN_DATA_SEED, episodes), ("test", TEST_DATA_SEED, test_episodes)):
+            path = data_dir / f"{env}-{part}.npz"
+            data_actions[path.name] = prepare_data(path, env, policy, n, seed, max_steps, progress)
+    eval_request = {
+        "horizons": sorted(set(int(h) for h in horizons)),
+        "starts": starts,
+        "seed": EVAL_SEED,
+        "mode": "mean",
+    }
+    openloop_request = {"steps": openloop_steps, "episodes": openloop_episodes, "seed": OPENLOOP_SEED}
+    for env in env_names:
+        for model in models:
+            for seed in seeds:
+                name = run_name(env, model, seed)
+                job = {
+                    "env": env,
+                    "model": model,
+                    "seed": seed,
+                    "run_dir": str(out / "runs" / name),
+                    "train_data": str(data_dir / f"{env}-train.npz"),
+                    "test_data": str(data_dir / f"{env}-test.npz"),
+                    "overrides": extra,
+                    "preset": preset,
+                    "device": device,
+                    "eval_request": {**eval_request, "data": f"data/{env}-test.npz"},
+                    "planners": list(planners) if openloop else [],
+                    "openloop_request": openloop_request,
+                }
+                todo = offline_todo(job)
+                if todo:
+                    jobs.append((name, offline_job, (job,)))
+                    pending[name] = todo
+    total = len(env_names) * len(models) * len(seeds)
+    print(
+        f"{PROG}: {total} runs: {total - len(jobs)} reused, {len(jobs)} with work to do "
+        f"({workers} worker{'s' if workers > 1 else ''}); data: "
+        + ", ".join(f"{k} {v}" for k, v in data_actions.items()),
+        file=sys.stderr,
+    )
+    results = run_pool(jobs, min(workers, max(len(jobs), 1)), processes=True, progress=progress, desc="offline runs")
+    failed = {name: msg for name, (ok, msg) in results.items() if not ok}
+    done = {name: res["done"] for name, (ok, res) in results.items() if ok}
+    summary = summarise_offline(out, env_names, models, seeds, eval_request, failed)
+    if openloop:
+        summarise_openloop(out, env_names, models, seeds, planners, openloop_request)
+    return {"data": data_actions, "todo": pending, "done": done, "failed": failed, "summary": summary}

@@ -1,0 +1,138 @@
+"""The online protocol: start, resume or reuse every (env, arm, seed) run of run_pets.py, then summarise.
+
+Per run: reuse it if ``metrics.csv`` has at least N rows, resume it (``run_pets.py --resume DIR
+--trials N``) if it has fewer, start it (``run_pets.py --env --model --seed --trials N --out DIR
+--preset P threads=1 key=value ...``) if it does not exist. Runs go to a pool of K local
+subprocesses, one torch thread each (``threads=1``, ``OMP_NUM_THREADS=1``); their output goes to
+``DIR/logs/ENV-MODEL-sSEED.log``. Only the first N trials of a run enter the summary. A user
+``threads=`` override is ignored (every run gets one thread).
+
+``--planners P1,P2`` makes the planner a second axis: every (model, planner) pair is an arm with
+its runs in ``DIR/runs/ENV-MODEL-PLANNER-sSEED`` (``planner.name=P`` for the run), and the tables
+and plots show ``MODEL+PLANNER``. Wall-clock figures compare fairly only between runs that shared
+the machine alike (one worker per core, no other load).
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from experiments.arguments import PROG, UsageError
+from experiments.online_summary import online_rows, summarise_online
+from experiments.rundirs import check_same_config, online_arms, run_name
+from experiments.runner import ROOT, run_logged, run_pool
+
+
+def online_plan(run_dir: Path, trials: int) -> str:
+    """``reuse`` (>= trials rows), ``resume`` (a run with fewer rows) or ``start`` (no run yet)."""
+    if not (run_dir / "config.yaml").is_file():
+        return "start"
+    return "reuse" if len(online_rows(run_dir)) >= trials else "resume"
+
+
+def online_command(
+    action: str, run_dir: Path, env: str, model: str, seed: int, trials: int, preset: str, overrides: Sequence[str]
+) -> list[str]:
+    """The ``run_pets.py`` command line that starts or resumes one run."""
+    script = [sys.executable, str(ROOT / "run_pets.py")]
+    if action == "resume":
+        return [*script, "--resume", str(run_dir), "--trials", str(trials), "--quiet"]
+    return [
+        *script,
+        "--env",
+        env,
+        "--model",
+        model,
+        "--seed",
+        str(seed),
+        "--trials",
+        str(trials),
+        "--out",
+        str(run_dir),
+        "--preset",
+        preset,
+        "--quiet",
+        *overrides,
+        "threads=1",
+    ]
+
+
+def compare_online(
+    env_names: Sequence[str],
+    models: Sequence[str],
+    seeds: Sequence[int],
+    trials: int,
+    out: Path,
+    *,
+    workers: int = 1,
+    preset: str = "research",
+    overrides: Sequence[str] = (),
+    final_window: int = 3,
+    progress: bool = True,
+    planners: Sequence[str] | None = None,
+) -> dict[str, Any]:
+    """Run (or reuse/resume) every online run, then write the summary. Returns ``{"actions", "failed",
+    "summary"}``. UsageError for bad settings or a run directory with another config.
+
+    ``planners``: also compare these planners (``planner.name``); every (model, planner) pair is an arm.
+    """
+    from pets.config import ConfigError, make_config, parse_overrides
+
+    if trials < 1 or workers < 1 or final_window < 1:
+        raise UsageError(
+            f"--trials, --workers and --final-window must be >= 1, got {trials}, {workers}, {final_window}"
+        )
+    try:
+        extra = parse_overrides(list(overrides))
+    except ConfigError as err:
+        raise UsageError(str(err)) from None
+    extra.pop("threads", None)  # every run uses one thread
+    for key in ("trials", "seed", "head", "env"):
+        if key in extra:
+            raise UsageError(
+                f"{key}= is set by the command itself (--{'models' if key == 'head' else key + 's'}); "
+                "do not pass it as an override"
+            )
+    if planners is not None and "planner.name" in extra:
+        raise UsageError("give the planner once: --planners or planner.name=, not both")
+    out = Path(out).resolve()
+    jobs, actions = [], {}
+    for env in env_names:
+        for model, planner in online_arms(models, planners):
+            arm_extra = extra if planner is None else {**extra, "planner.name": planner}
+            arm_list = [f"{k}={v}" for k, v in arm_extra.items()]
+            for seed in seeds:
+                name = run_name(env, model, seed, planner)
+                run_dir = out / "runs" / name
+                try:
+                    expected = make_config(
+                        env, model, preset, {**arm_extra, "seed": seed, "trials": trials, "threads": 1}
+                    )
+                except ConfigError as err:
+                    raise UsageError(str(err)) from None
+                action = online_plan(run_dir, trials)
+                if action != "start":
+                    check_same_config(run_dir, expected)
+                    if any(math.isnan(r["trial"]) for r in online_rows(run_dir)):
+                        raise UsageError(
+                            f"{run_dir} is an offline training run (pets.train), not an online run; "
+                            "use separate --out directories for online and offline comparisons"
+                        )
+                actions[name] = action
+                if action != "reuse":
+                    cmd = online_command(action, run_dir, env, model, seed, trials, preset, arm_list)
+                    jobs.append((name, run_logged, (cmd, out / "logs" / f"{name}.log")))
+    counts = {a: sum(1 for v in actions.values() if v == a) for a in ("reuse", "resume", "start")}
+    print(
+        f"{PROG}: {len(actions)} runs: {counts['reuse']} reused, {counts['resume']} to resume, "
+        f"{counts['start']} to start ({workers} worker{'s' if workers > 1 else ''})",
+        file=sys.stderr,
+    )
+    results = run_pool(jobs, min(workers, max(len(jobs), 1)), processes=False, progress=progress, desc="online runs")
+    failed = {name: msg for name, (ok, msg) in results.items() if not ok}
+    summary = summarise_online(out, env_names, models, seeds, trials, final_window, failed, planners)
+    return {"actions": actions, "failed": failed, "summary": summary}

@@ -1,0 +1,43 @@
+"""Report files: CSV tables written atomically and the number formats of the markdown tables."""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+from collections.abc import Iterable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from pets.fileio import atomic_write_bytes
+
+#: Seed of every bootstrap in the summaries and plots (the same numbers on every rerun).
+BOOT_SEED = 0
+
+
+def write_csv(path: Path, rows: Sequence[Mapping[str, Any]], columns: Sequence[str]) -> None:
+    """Write ``rows`` (floats at full precision) atomically."""
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=list(columns), extrasaction="ignore", lineterminator="\n")
+    writer.writeheader()
+    writer.writerows(rows)
+    atomic_write_bytes(path, buf.getvalue().encode())
+
+
+def fmt(x: float, digits: int = 4) -> str:
+    """A number for a markdown table (``nan``/``inf`` spelt out)."""
+    if x is None or not math.isfinite(x):
+        return str(x)
+    return f"{x:.{digits}g}"
+
+
+def fmt_ci(s: Mapping[str, float]) -> str:
+    """``mean [ci_low, ci_high]`` of a :func:`experiments.statistics.summarise` result."""
+    return f"{fmt(s['mean'])} [{fmt(s['ci_low'])}, {fmt(s['ci_high'])}]"
+
+
+def md_table(header: Sequence[str], rows: Iterable[Sequence[str]]) -> str:
+    """A markdown table of ``rows`` (cells already formatted) under ``header``."""
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(r) + " |" for r in rows]
+    return "\n".join(lines)

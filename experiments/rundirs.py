@@ -1,0 +1,79 @@
+"""Run directories of a comparison: their names, the compared arms, and checks of what a directory holds."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from experiments.arguments import UsageError
+
+
+def run_name(env: str, model: str, seed: int, planner: str | None = None) -> str:
+    """The run directory's name: ``ENV-MODEL-sSEED``, or ``ENV-MODEL-PLANNER-sSEED`` when planners are compared."""
+    return f"{env}-{model}-s{seed}" if planner is None else f"{env}-{model}-{planner}-s{seed}"
+
+
+def arm_label(model: str, planner: str | None) -> str:
+    """What the summaries call one compared arm: the model, or ``MODEL+PLANNER`` when planners are compared."""
+    return model if planner is None else f"{model}+{planner}"
+
+
+def online_arms(models: Sequence[str], planners: Sequence[str] | None) -> list[tuple[str, str | None]]:
+    """The compared (model, planner) pairs; the planner is None when planners are not compared."""
+    return [(m, p) for m in models for p in (planners if planners is not None else [None])]
+
+
+def _flatten(d: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        if isinstance(v, Mapping):
+            out.update(_flatten(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def config_differences(run_dir: Path, expected: Any, ignore: Iterable[str] = ("trials",)) -> list[str]:
+    """``key: found != expected`` for every config key where ``run_dir/config.yaml`` differs from ``expected``."""
+    from omegaconf import OmegaConf
+
+    from pets.config import load_config
+
+    found = _flatten(OmegaConf.to_container(load_config(str(run_dir / "config.yaml"))))
+    want = _flatten(OmegaConf.to_container(expected))
+    skip = set(ignore)
+    return [
+        f"{k}: {found.get(k)!r} != {want.get(k)!r}"
+        for k in sorted(set(found) | set(want))
+        if k not in skip and found.get(k) != want.get(k)
+    ]
+
+
+def check_same_config(run_dir: Path, expected: Any, ignore: Iterable[str] = ("trials",)) -> None:
+    """UsageError if the run in ``run_dir`` was made with another config than ``expected``."""
+    from omegaconf.errors import OmegaConfBaseException
+
+    try:
+        diff = config_differences(run_dir, expected, ignore)
+    except (ValueError, OmegaConfBaseException) as err:
+        raise UsageError(
+            f"{run_dir}/config.yaml cannot be read ({str(err).splitlines()[0]}); "
+            "move that run directory away or pick another --out"
+        ) from None
+    if diff:
+        raise UsageError(
+            f"{run_dir} was made with another config ({'; '.join(diff[:4])}"
+            f"{'; ...' if len(diff) > 4 else ''}); pass the same settings or pick another --out"
+        )
+
+
+def json_matches(path: Path, request: Mapping[str, Any]) -> bool:
+    """Whether ``path`` holds a result made for exactly ``request`` (its ``"request"`` entry)."""
+    if not path.is_file():
+        return False
+    try:
+        return json.loads(path.read_text()).get("request") == json.loads(json.dumps(request))
+    except (ValueError, AttributeError):
+        return False

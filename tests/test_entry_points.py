@@ -1,0 +1,53 @@
+"""The console scripts named in setup.py: each resolves to a callable ``main(argv)`` whose ``--help`` exits 0."""
+
+import ast
+import importlib
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def console_scripts() -> dict[str, str]:
+    """``{name: "module:function"}`` of the ``console_scripts`` in setup.py (read, not run)."""
+    tree = ast.parse((ROOT / "setup.py").read_text())
+    call = next(n for n in ast.walk(tree) if isinstance(n, ast.Call) and getattr(n.func, "id", None) == "setup")
+    entry_points = ast.literal_eval(next(k.value for k in call.keywords if k.arg == "entry_points"))
+    return dict(item.replace(" ", "").split("=", 1) for item in entry_points["console_scripts"])
+
+
+SCRIPTS = console_scripts()
+
+
+def test_every_command_has_a_console_script():
+    assert set(SCRIPTS) >= {
+        "run-pets",
+        "pets-compare",
+        "pets-collect",
+        "pets-train",
+        "pets-evaluate",
+        "pets-openloop",
+        "pets-onestep",
+        "pets-bench",
+    }
+
+
+@pytest.mark.parametrize("name", sorted(SCRIPTS))
+def test_console_script_resolves_and_its_help_exits_0(name, capsys):
+    module, function = SCRIPTS[name].split(":")
+    main = getattr(importlib.import_module(module), function)
+    assert callable(main)
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--help"])
+    assert exit_info.value.code == 0
+    assert "usage:" in capsys.readouterr().out
+
+
+def test_python_m_pets_compare_still_runs_the_comparison_cli():
+    proc = subprocess.run(
+        [sys.executable, "-m", "pets.compare", "online", "--help"], cwd=ROOT, capture_output=True, text=True
+    )
+    assert proc.returncode == 0 and proc.stdout.startswith("usage: pets.compare online")
