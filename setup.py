@@ -5,7 +5,16 @@ setup(
     version="0.2.0",
     description="PETS model-based RL with a swappable dynamics head: delta-state or GEM (Group Enhanced Model)",
     packages=find_packages(
-        include=["pets", "pets.*", "experiments", "experiments.*", "gem_head", "gem_head.*", "envs", "envs.*"]
+        include=[
+            "dynamics",
+            "dynamics.*",
+            "pets",
+            "pets.*",
+            "gem_head",
+            "gem_head.*",
+            "envs",
+            "envs.*",
+        ]
     ),
     py_modules=["run_pets"],
     python_requires=">=3.10",
@@ -28,7 +37,7 @@ setup(
     entry_points={
         "console_scripts": [
             "run-pets=run_pets:main",
-            "pets-compare=experiments.cli:main",
+            "pets-compare=pets.experiments.cli:main",
             "pets-collect=pets.collect:main",
             "pets-train=pets.train:main",
             "pets-evaluate=pets.evaluate:main",

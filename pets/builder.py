@@ -5,14 +5,14 @@ from __future__ import annotations
 from pathlib import Path
 
 import torch
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from dynamics.model import DynamicsModel
 from envs import EnvSpec
 from pets.agent import MPCAgent
 from pets.config import ConfigError
 from pets.models import make_model
-from pets.planners import CEMPlanner, ICEMPlanner, MPPIPlanner, Planner
+from pets.planners import PLANNER_CLASSES, Planner
 from pets.propagation import TrajectoryEvaluator, retain_freed_memory
 from pets.training import ModelTrainer
 
@@ -74,30 +74,13 @@ def make_agent(
 def make_planner(cfg: DictConfig, spec: EnvSpec, device: torch.device) -> Planner:
     """The planner named by ``planner.name`` (cem, icem, mppi) with the config's settings."""
     p = cfg.planner
-    common = dict(horizon=p.horizon, population=p.population, iterations=p.iterations, alpha=p.alpha, device=device)
-    elites = p.elites if p.elites < 1 else int(p.elites)
-    if p.name == "cem":
-        return CEMPlanner(spec.action_low, spec.action_high, elites=elites, **common)
-    if p.name == "icem":
-        return ICEMPlanner(
-            spec.action_low,
-            spec.action_high,
-            elites=elites,
-            noise_beta=p.noise_beta,
-            population_decay=p.icem_population_decay,
-            keep_elites=p.icem_keep_elites,
-            **common,
-        )
-    if p.name == "mppi":
-        return MPPIPlanner(
-            spec.action_low,
-            spec.action_high,
-            sigma=p.mppi_sigma,
-            temperature=p.mppi_temperature,
-            smoothing=p.mppi_smoothing,
-            **common,
-        )
-    raise ConfigError(f"unknown planner {p.name!r}; accepted: cem, icem, mppi")
+    planner_class = PLANNER_CLASSES[p.name]  # the name is validated by the config
+    kwargs = dict(horizon=p.horizon, population=p.population, iterations=p.iterations, alpha=p.alpha, device=device)
+    if planner_class.uses_elites:
+        kwargs["elites"] = p.elites if p.elites < 1 else int(p.elites)
+    if p.name in p:  # the planner's own section, planner.<name>.*: its constructor's arguments
+        kwargs.update(OmegaConf.to_container(p[p.name]))
+    return planner_class(spec.action_low, spec.action_high, **kwargs)
 
 
 def load_model(run_dir: str | Path, device: str | torch.device = "cpu") -> tuple[DictConfig, EnvSpec, DynamicsModel]:

@@ -1,10 +1,10 @@
-"""``python -m pets.compare``: the A/B comparison command, kept under this name; the code is :mod:`experiments`."""
+"""``python -m pets.compare``: the A/B comparison command, kept under this name; the code is :mod:`pets.experiments`."""
 
 from __future__ import annotations
 
 import sys
 
-from experiments.cli import main
+from pets.experiments.cli import main
 
 __all__ = ["main"]
 

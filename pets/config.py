@@ -9,6 +9,7 @@ range-checked.
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -45,6 +46,24 @@ class ModelConfig:
 
 
 @dataclass
+class ICEMConfig:
+    """``planner.icem.*``: the iCEM planner's own arguments (``pets.planners.ICEMPlanner``)."""
+
+    noise_beta: float = 2.0  # colored-noise exponent: 0 white, 2 red (the iCEM paper's locomotion choice)
+    population_decay: float = 1.25  # population_i = max(population * decay^-i, 2 * elites)
+    keep_elites: float = 0.3  # fraction of the elites carried into the next iteration / MPC step
+
+
+@dataclass
+class MPPIConfig:
+    """``planner.mppi.*``: the MPPI planner's own arguments (``pets.planners.MPPIPlanner``)."""
+
+    sigma: float = 0.5  # perturbation std in units of the action half-range (ub - lb) / 2
+    temperature: float = 0.3  # softmax temperature on returns normalised by (max - median)
+    smoothing: float = 1.0  # low-pass coefficient in (0, 1] along the horizon; 1 = independent steps
+
+
+@dataclass
 class PlannerConfig:
     name: str = "cem"
     population: int = 400
@@ -55,14 +74,9 @@ class PlannerConfig:
     particles: int = 20
     propagation: str = "tsinf"
     replan_every: int = 1
-    # iCEM (name=icem; population, elites, iterations, alpha as above)
-    noise_beta: float = 2.0  # colored-noise exponent: 0 white, 2 red (the iCEM paper's locomotion choice)
-    icem_population_decay: float = 1.25  # population_i = max(population * decay^-i, 2 * elites)
-    icem_keep_elites: float = 0.3  # fraction of the elites carried into the next iteration / MPC step
-    # MPPI (name=mppi; population, iterations, alpha as above)
-    mppi_sigma: float = 0.5  # perturbation std in units of the action half-range (ub - lb) / 2
-    mppi_temperature: float = 0.3  # softmax temperature on returns normalised by (max - median)
-    mppi_smoothing: float = 1.0  # low-pass coefficient in (0, 1] along the horizon; 1 = independent steps
+    # The settings of one planner only (used when planner.name is that planner)
+    icem: ICEMConfig = field(default_factory=ICEMConfig)
+    mppi: MPPIConfig = field(default_factory=MPPIConfig)
     # Speed of the rollouts (docs/performance.md)
     precision: str = "fp32"  # fp32 | bf16 (ensemble matmuls under bfloat16 autocast; state and returns fp32)
     compile: bool = False  # torch.compile the rollout step (eager fallback with a warning if it fails)
@@ -177,7 +191,27 @@ def parse_overrides(items: list[str]) -> dict[str, str]:
     return out
 
 
+#: Flat planner keys of gem-pets 0.1 -> their nested names (still accepted, with a warning).
+DEPRECATED_KEYS = {
+    "planner.noise_beta": "planner.icem.noise_beta",
+    "planner.icem_population_decay": "planner.icem.population_decay",
+    "planner.icem_keep_elites": "planner.icem.keep_elites",
+    "planner.mppi_sigma": "planner.mppi.sigma",
+    "planner.mppi_temperature": "planner.mppi.temperature",
+    "planner.mppi_smoothing": "planner.mppi.smoothing",
+}
+
+
+def _renamed(key: str) -> str:
+    """``key``, or its nested name with a FutureWarning if it is a deprecated flat key."""
+    if key in DEPRECATED_KEYS:
+        warnings.warn(f"config key {key} is now {DEPRECATED_KEYS[key]}; the old name will go", FutureWarning, 3)
+        return DEPRECATED_KEYS[key]
+    return key
+
+
 def _set(cfg: DictConfig, key: str, value: Any) -> None:
+    key = _renamed(key)
     if key not in set(all_keys()):
         raise ConfigError(f"unknown config key {key!r}; accepted keys: {', '.join(all_keys())}")
     if isinstance(value, str) and value.lower() in ("null", "none") and OmegaConf.select(cfg, key) is None:
@@ -221,12 +255,12 @@ def validate(cfg: DictConfig) -> None:
     if cfg.seed < 0 or cfg.seed_steps < 0 or cfg.train_every < 0:
         raise ConfigError("seed, seed_steps and train_every must be >= 0")
     for key, low, high, low_open in (
-        ("planner.noise_beta", 0.0, math.inf, False),
-        ("planner.icem_population_decay", 1.0, math.inf, False),
-        ("planner.icem_keep_elites", 0.0, 1.0, False),
-        ("planner.mppi_sigma", 0.0, math.inf, True),
-        ("planner.mppi_temperature", 0.0, math.inf, True),
-        ("planner.mppi_smoothing", 0.0, 1.0, True),
+        ("planner.icem.noise_beta", 0.0, math.inf, False),
+        ("planner.icem.population_decay", 1.0, math.inf, False),
+        ("planner.icem.keep_elites", 0.0, 1.0, False),
+        ("planner.mppi.sigma", 0.0, math.inf, True),
+        ("planner.mppi.temperature", 0.0, math.inf, True),
+        ("planner.mppi.smoothing", 0.0, 1.0, True),
     ):
         v = OmegaConf.select(cfg, key)
         if not (math.isfinite(v) and (v > low if low_open else v >= low) and v <= high):
@@ -263,7 +297,12 @@ def make_config(
 def load_config(path: str) -> DictConfig:
     """Load a run's resolved ``config.yaml`` back into the typed schema."""
     try:
-        cfg = OmegaConf.merge(OmegaConf.structured(Config), OmegaConf.load(path))
+        stored = OmegaConf.load(path)
+        for old, new in DEPRECATED_KEYS.items():  # a config.yaml of gem-pets 0.1 has the flat planner keys
+            if OmegaConf.select(stored, old) is not None:
+                OmegaConf.update(stored, new, OmegaConf.select(stored, old), merge=True)
+                del stored.planner[old.split(".")[1]]
+        cfg = OmegaConf.merge(OmegaConf.structured(Config), stored)
     except Exception as err:  # a file from another version of the schema, or not a config at all
         raise ConfigError(f"{path} does not match this version's config schema: {str(err).splitlines()[0]}") from None
     validate(cfg)

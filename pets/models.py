@@ -60,49 +60,32 @@ def _groupfeat_head(cfg: DictConfig, spec: EnvSpec) -> DynamicsHead:
     return GroupFeatureDeltaHead(spec.layout, spec.act_dim)
 
 
+def _sizes(cfg: DictConfig) -> dict[str, int]:
+    """The ``model.*`` sizes every network takes."""
+    m = cfg.model
+    return dict(
+        ensemble_size=m.ensemble_size, hidden_size=m.hidden_size, num_layers=m.num_layers, num_elites=m.num_elites
+    )
+
+
 def _gaussian(cfg: DictConfig, head: DynamicsHead) -> MemberEnsemble:
     from dynamics.networks import GaussianEnsemble
 
-    m = cfg.model
-    return GaussianEnsemble(
-        head.input_dim,
-        head.target_dim,
-        ensemble_size=m.ensemble_size,
-        hidden_size=m.hidden_size,
-        num_layers=m.num_layers,
-        learn_logvar_bounds=m.learn_logvar_bounds,
-        num_elites=m.num_elites,
-    )
+    learn = cfg.model.learn_logvar_bounds
+    return GaussianEnsemble(head.input_dim, head.target_dim, learn_logvar_bounds=learn, **_sizes(cfg))
 
 
 def _deterministic(cfg: DictConfig, head: DynamicsHead) -> MemberEnsemble:
     from dynamics.networks import DeterministicEnsemble
 
-    m = cfg.model
-    return DeterministicEnsemble(
-        head.input_dim,
-        head.target_dim,
-        ensemble_size=m.ensemble_size,
-        hidden_size=m.hidden_size,
-        num_layers=m.num_layers,
-        num_elites=m.num_elites,
-    )
+    return DeterministicEnsemble(head.input_dim, head.target_dim, **_sizes(cfg))
 
 
 def _two_stage(cfg: DictConfig, head: DynamicsHead) -> MemberEnsemble:
     from gem_head.two_stage import TwoStageGemEnsemble
 
-    m = cfg.model
-    return TwoStageGemEnsemble(
-        head.input_dim,
-        head.target_dim,
-        head.group_slots,
-        head.velocity_slots,
-        ensemble_size=m.ensemble_size,
-        hidden_size=m.hidden_size,
-        num_layers=m.num_layers,
-        num_elites=m.num_elites,
-    )
+    slots = (head.group_slots, head.velocity_slots)
+    return TwoStageGemEnsemble(head.input_dim, head.target_dim, *slots, **_sizes(cfg))
 
 
 MODELS: dict[str, ModelEntry] = {

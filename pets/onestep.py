@@ -20,7 +20,6 @@ and ``val_final`` are the trainer's holdout criterion before and after training.
 from __future__ import annotations
 
 import csv
-import math
 import sys
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -65,6 +64,7 @@ def one_step_check(
     import torch
 
     import envs
+    from dynamics.networks import column_mean_std
     from pets import builder
     from pets.collect import collect
     from pets.datasets import transitions
@@ -81,9 +81,8 @@ def one_step_check(
         torch.as_tensor(a, dtype=torch.float32)
         for a in transitions(collect(spec, HELDOUT_POLICY, episodes, seed=seed + 1, max_steps=max_steps))
     ]
-    predicted = [i for i in range(spec.obs_dim) if i not in set(getattr(spec.layout, "derived", ()))]
-    scale = (train[2] - train[0])[:, predicted].double().std(0, correction=0)
-    scale = torch.where(scale < 1e-5, torch.ones_like(scale), scale).float()
+    predicted = list(spec.layout.predicted_indices)
+    scale = column_mean_std(train[2][:, predicted] - train[0][:, predicted])[1].float()
     obs, act, next_obs = held
     nochange = _errors(obs, obs, next_obs, scale, predicted, spec.layout)
     rows = []
@@ -106,7 +105,7 @@ def one_step_check(
                 "model": name,
                 "transitions": int(train[0].shape[0]),
                 "epochs": result.epochs,
-                "val_initial": getattr(result, "initial_val_loss", math.nan),
+                "val_initial": result.initial_val_loss,
                 "val_final": result.val_loss,
                 "std_trained": scores["trained"][0],
                 "std_untrained": scores["untrained"][0],

@@ -111,9 +111,9 @@ def open_loop(
     from omegaconf import OmegaConf
     from tqdm.auto import tqdm
 
-    from experiments.statistics import bootstrap_band, summarise
     from pets import builder
     from pets.collect import episode_seeds
+    from pets.experiments.statistics import bootstrap_band, summarise
 
     if isinstance(episodes, bool) or not isinstance(episodes, int) or episodes < 1:
         raise ValueError(f"episodes must be a positive int, got {episodes!r}")
@@ -136,8 +136,7 @@ def open_loop(
         for i in tqdm(range(episodes), desc=f"open loop {spec.name}", unit="episode", disable=not progress):
             reset_seed = episode_seeds(seed, i)[0]
             obs, _ = env.reset(seed=reset_seed)
-            if hasattr(plan_with, "reset"):
-                plan_with.reset()  # iCEM: no elites carried over from another episode
+            plan_with.reset()  # iCEM: no elites carried over from another episode
             obs0 = torch.as_tensor(obs, dtype=torch.float32, device=dev)
             with torch.no_grad():
                 plan = plan_with.plan(partial(evaluator, obs0, generator=generator), None, generator)  # (steps, act)

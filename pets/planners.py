@@ -113,6 +113,10 @@ class Planner(Protocol):
         generator: torch.Generator | None = None,
     ) -> Tensor: ...
 
+    def reset(self) -> None:
+        """Forget what the planner carries from one call to the next (before an unrelated plan)."""
+        ...
+
 
 class CEMPlanner:
     """Cross-entropy method over (horizon, act_dim) action sequences within box bounds.
@@ -126,6 +130,9 @@ class CEMPlanner:
     return_mean_elites: return the final CEM mean (PETS), else the best sample seen.
     device, dtype: where the samples live (the objective gets tensors there).
     """
+
+    #: Whether the constructor takes ``elites`` (the config's ``planner.elites``).
+    uses_elites = True
 
     def __init__(
         self,
@@ -170,6 +177,9 @@ class CEMPlanner:
         self.return_mean_elites = return_mean_elites
         self.device = self.low.device
         self.dtype = dtype
+
+    def reset(self) -> None:
+        """Nothing to forget: every call starts from ``init_mean`` (or the box centre)."""
 
     def plan(
         self,
@@ -356,6 +366,9 @@ class ICEMPlanner:
     keep_between_steps: also carry the previous call's elites into the first iteration.
     """
 
+    #: Whether the constructor takes ``elites`` (the config's ``planner.elites``).
+    uses_elites = True
+
     def __init__(
         self,
         action_low: object,
@@ -508,6 +521,9 @@ class MPPIPlanner:
     planner keeps no state between calls.
     """
 
+    #: Whether the constructor takes ``elites`` (the config's ``planner.elites``).
+    uses_elites = False
+
     def __init__(
         self,
         action_low: object,
@@ -552,6 +568,9 @@ class MPPIPlanner:
         spread = (top - v.median()).clamp(min=1e-12)
         return torch.softmax((v - top) / (spread * self.temperature), dim=0)
 
+    def reset(self) -> None:
+        """Nothing to forget: every call starts from ``init_mean`` (or the box centre)."""
+
     def plan(
         self,
         objective: Callable[[Tensor], Tensor],
@@ -577,3 +596,8 @@ class MPPIPlanner:
             w = self.weights(values)
             mu = self.alpha * mu + (1.0 - self.alpha) * torch.einsum("n,nha->ha", w, samples)
         return torch.minimum(torch.maximum(mu, lb), ub)
+
+
+#: The table of planners (``planner.name``): each name's class. ``planner.<name>.*`` holds the class's own
+#: constructor arguments where it has any (``pets.config.ICEMConfig``, ``MPPIConfig``).
+PLANNER_CLASSES: dict[str, type[Planner]] = {"cem": CEMPlanner, "icem": ICEMPlanner, "mppi": MPPIPlanner}

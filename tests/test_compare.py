@@ -2,7 +2,7 @@
 
 The comparison commands run in-process through their CLI entry point ``main`` (argument parsing,
 exit codes, files); the online runs themselves are real ``run_pets.py`` subprocesses. Ground truth:
-the runs' own metrics.csv / eval.json, experiments.statistics recomputed here, and the MuJoCo simulator for the
+the runs' own metrics.csv / eval.json, pets.experiments.statistics recomputed here, and the MuJoCo simulator for the
 open-loop rewards.
 """
 
@@ -14,13 +14,13 @@ import numpy as np
 import pytest
 
 import envs
-from experiments import arguments, runner
-from experiments.cli import EXIT_FAILED, main
-from experiments.offline import compare_offline
-from experiments.report import fmt
-from experiments.statistics import bootstrap_ci, iqm
 from pets import openloop, rundir
 from pets.config import load_config, make_config
+from pets.experiments import arguments, runner
+from pets.experiments.cli import EXIT_FAILED, main
+from pets.experiments.offline import compare_offline
+from pets.experiments.report import fmt
+from pets.experiments.statistics import bootstrap_ci, iqm
 from tests.threads import one_thread
 
 TINY = [

@@ -503,7 +503,7 @@ def test_config_builds_the_named_planner(name: str, cls) -> None:
     cfg = make_config(
         "hopper",
         preset="fast",
-        overrides={"planner.name": name, "planner.noise_beta": "2.5", "planner.mppi_temperature": "0.2"},
+        overrides={"planner.name": name, "planner.icem.noise_beta": "2.5", "planner.mppi.temperature": "0.2"},
     )
     planner = make_planner(cfg, envs.get("hopper"), torch.device("cpu"))
     assert isinstance(planner, cls) and planner.horizon == cfg.planner.horizon
@@ -513,15 +513,45 @@ def test_config_builds_the_named_planner(name: str, cls) -> None:
         assert planner.temperature == 0.2
     for item in (
         "planner.name=random",
-        "planner.mppi_sigma=0",
-        "planner.icem_population_decay=0.9",
-        "planner.icem_keep_elites=2",
+        "planner.mppi.sigma=0",
+        "planner.icem.population_decay=0.9",
+        "planner.icem.keep_elites=2",
         "planner.precision=fp16",
-        "planner.mppi_smoothing=0",
+        "planner.mppi.smoothing=0",
     ):
         key, value = item.split("=")
         with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
             make_config("hopper", overrides={key: value})
+
+
+def test_the_planner_table_is_the_config_choice_list() -> None:
+    from pets.config import PLANNERS
+    from pets.planners import PLANNER_CLASSES
+
+    assert tuple(PLANNER_CLASSES) == PLANNERS
+    assert [cls.uses_elites for cls in PLANNER_CLASSES.values()] == [True, True, False]
+
+
+def test_flat_planner_keys_of_version_0_1_still_work_with_a_warning(tmp_path) -> None:
+    from omegaconf import OmegaConf
+
+    from pets.config import DEPRECATED_KEYS, load_config, make_config
+
+    for old, new in DEPRECATED_KEYS.items():
+        value = 1.5 if new.endswith("population_decay") else 0.7  # a value in the key's range
+        with pytest.warns(FutureWarning, match=new.replace(".", r"\.")):
+            cfg = make_config("hopper", overrides={old: str(value)})
+        assert OmegaConf.select(cfg, new) == value
+    # a run directory's config.yaml written with the flat keys loads into the nested ones
+    stored = OmegaConf.to_container(make_config("hopper"))
+    stored["planner"].pop("icem")
+    stored["planner"]["icem_keep_elites"] = 0.25
+    stored["planner"]["noise_beta"] = 1.5
+    path = tmp_path / "config.yaml"
+    path.write_text(OmegaConf.to_yaml(stored))
+    cfg = load_config(str(path))
+    assert cfg.planner.icem.keep_elites == 0.25 and cfg.planner.icem.noise_beta == 1.5
+    assert cfg.planner.icem.population_decay == 1.25  # the default where the old file had nothing
 
 
 @pytest.mark.parametrize("replan_every", [1, 3])

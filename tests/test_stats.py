@@ -1,4 +1,4 @@
-"""experiments.statistics against exact small cases, scipy's bootstrap and trim_mean, and the normal-theory interval."""
+"""pets.experiments.statistics against exact small cases, scipy's bootstrap and trim_mean, and a normal-theory CI."""
 
 import math
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import scipy.stats
 
-from experiments.statistics import bootstrap_band, bootstrap_ci, iqm, summarise
+from pets.experiments.statistics import bootstrap_band, bootstrap_ci, iqm, summarise
 
 
 def test_two_point_sample_has_the_exact_bootstrap_distribution():

@@ -7,7 +7,7 @@ from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from experiments.arguments import UsageError
+from pets.experiments.arguments import UsageError
 
 
 def run_name(env: str, model: str, seed: int, planner: str | None = None) -> str:

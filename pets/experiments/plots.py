@@ -10,8 +10,8 @@ from typing import Any
 
 import numpy as np
 
-from experiments.report import BOOT_SEED
-from experiments.statistics import bootstrap_band
+from pets.experiments.report import BOOT_SEED
+from pets.experiments.statistics import bootstrap_band
 from pets.fileio import atomic_write_bytes
 
 
@@ -64,7 +64,7 @@ def plot_online(
     x_key: str = "env_steps",
 ) -> None:
     """Episode reward vs env steps (or wall-clock time) per arm: mean over seeds on a common grid, bootstrap
-    band (the grid: :mod:`experiments.online_summary`)."""
+    band (the grid: :mod:`pets.experiments.online_summary`)."""
     x_label, x_scale = ONLINE_X[x_key]
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(7, 4.5))

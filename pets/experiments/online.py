@@ -21,10 +21,10 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from experiments.arguments import PROG, UsageError
-from experiments.online_summary import online_rows, summarise_online
-from experiments.rundirs import check_same_config, online_arms, run_name
-from experiments.runner import ROOT, run_logged, run_pool
+from pets.experiments.arguments import PROG, UsageError
+from pets.experiments.online_summary import online_rows, summarise_online
+from pets.experiments.rundirs import check_same_config, online_arms, run_name
+from pets.experiments.runner import ROOT, run_logged, run_pool
 
 
 def online_plan(run_dir: Path, trials: int) -> str:

@@ -18,8 +18,8 @@ overrides, preset, ...; the trial count aside) is an error (exit 2): results of 
 are never mixed. Bad lists, envs, models or keys exit 2 with one line; a failed run is reported,
 the others go on, the summary covers the finished runs, and the exit status is 1.
 
-The modes: :mod:`experiments.online` and :mod:`experiments.offline`; the files they write:
-:mod:`experiments.online_summary` and :mod:`experiments.offline_summary`.
+The modes: :mod:`pets.experiments.online` and :mod:`pets.experiments.offline`; the files they write:
+:mod:`pets.experiments.online_summary` and :mod:`pets.experiments.offline_summary`.
 """
 
 from __future__ import annotations
@@ -28,10 +28,10 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from experiments.arguments import PROG, UsageError, parse_envs, parse_models, parse_planners, parse_seeds
-from experiments.offline import compare_offline
-from experiments.online import compare_online
 from pets.cli import OneLineParser, fail
+from pets.experiments.arguments import PROG, UsageError, parse_envs, parse_models, parse_planners, parse_seeds
+from pets.experiments.offline import compare_offline
+from pets.experiments.online import compare_online
 
 #: Exit status when a run failed (the summary covers the others).
 EXIT_FAILED = 1

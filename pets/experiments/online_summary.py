@@ -3,7 +3,7 @@
 Per run: ``final`` = mean episode reward of the last W trials (W = ``--final-window``, default 3,
 at most N); ``auc`` = mean episode reward over all N trials (the area under the reward-per-trial
 curve divided by N); the run's wall-clock time and median seconds per planning step. Per (env, model)
-over seeds: mean, 95 % percentile-bootstrap CI and IQM (:mod:`experiments.statistics`) of final and
+over seeds: mean, 95 % percentile-bootstrap CI and IQM (:mod:`pets.experiments.statistics`) of final and
 auc, means of the rest. Files: ``summary.md``, ``summary.csv`` (per env and model), ``summary_runs.csv`` (per
 run), ``rewards_ENV.png`` (episode reward vs env steps per model: every seed's curve interpolated
 linearly onto a common grid of 200 env-step values spanning the range that all seeds of the model
@@ -20,10 +20,10 @@ from typing import Any
 
 import numpy as np
 
-from experiments.plots import arm_colors, model_colors, plot_online
-from experiments.report import BOOT_SEED, fmt, fmt_ci, md_table, write_csv
-from experiments.rundirs import arm_label, online_arms, run_name
-from experiments.statistics import summarise
+from pets.experiments.plots import arm_colors, model_colors, plot_online
+from pets.experiments.report import BOOT_SEED, fmt, fmt_ci, md_table, write_csv
+from pets.experiments.rundirs import arm_label, online_arms, run_name
+from pets.experiments.statistics import summarise
 from pets.fileio import atomic_write_bytes
 
 

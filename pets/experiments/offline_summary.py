@@ -20,10 +20,10 @@ from typing import Any
 
 import numpy as np
 
-from experiments.plots import model_colors, plot_absolute, plot_openloop, plot_relative
-from experiments.report import BOOT_SEED, fmt, fmt_ci, md_table, write_csv
-from experiments.rundirs import json_matches, run_name
-from experiments.statistics import summarise
+from pets.experiments.plots import model_colors, plot_absolute, plot_openloop, plot_relative
+from pets.experiments.report import BOOT_SEED, fmt, fmt_ci, md_table, write_csv
+from pets.experiments.rundirs import json_matches, run_name
+from pets.experiments.statistics import summarise
 from pets.fileio import atomic_write_bytes
 
 

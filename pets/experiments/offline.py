@@ -22,10 +22,10 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from experiments.arguments import PROG, UsageError
-from experiments.offline_summary import summarise_offline, summarise_openloop
-from experiments.rundirs import check_same_config, json_matches, run_name
-from experiments.runner import run_pool
+from pets.experiments.arguments import PROG, UsageError
+from pets.experiments.offline_summary import summarise_offline, summarise_openloop
+from pets.experiments.rundirs import check_same_config, json_matches, run_name
+from pets.experiments.runner import run_pool
 from pets.fileio import atomic_write_bytes
 
 #: Data seeds of the offline mode: training data, test data, open-loop initial states.
