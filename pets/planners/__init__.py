@@ -1,0 +1,59 @@
+"""Planners over action sequences: CEM (as PETS uses it), iCEM and MPPI, and the MPC warm start.
+
+All three share the API ``plan(objective, init_mean=None, generator=None) -> (H, act_dim)``: the
+objective maps (N, H, act_dim) candidates to (N,) values (higher is better, NaN counts as the
+worst), every sample and the result lie within the action bounds, and all randomness comes from
+``generator`` (same generator state -> same plan).
+
+CEM (``CEMPlanner``, below).
+
+CEM keeps a diagonal Gaussian over the (H, act_dim) action sequence. Each iteration it
+
+1. constrains the variance so that 2 standard deviations stay inside the bounds:
+   ``var_c = min(var, (min(mu - lb, ub - mu) / 2)^2)``;
+2. samples ``population`` sequences ``mu + sqrt(var_c) * z`` with ``z`` a standard normal
+   truncated to [-2, 2] (inverse-CDF sampling, see :func:`truncated_normal`), clipped to the
+   bounds against rounding;
+3. scores them with the objective (higher is better; NaN counts as -inf) and takes the
+   ``elites`` best;
+4. smooths: ``mu = alpha * mu + (1 - alpha) * mean(elites)``, ``var = alpha * var + (1 - alpha) * var(elites)``
+   (population variance, as ``np.var``).
+
+The initial mean is the middle of the bounds (or the warm start), the initial variance
+``(ub - lb)^2 / 16``. The result is the final CEM mean ``mu`` (the smoothed elite mean of the
+last iteration, what PETS returns), or with ``return_mean_elites=False`` the best sample seen.
+The planner keeps no state between calls other than its configuration.
+
+iCEM (``ICEMPlanner``, Pinneri et al. 2020, "Sample-efficient cross-entropy method for real-time
+planning"): CEM with colored-noise samples (:func:`colored_noise`), a population that shrinks by
+``population_decay`` per iteration (never below twice the elites), a fraction of the previous
+iteration's elites carried into the next population (and, between MPC steps, of the previous
+plan's elites, shifted), the mean added to the last population, and the best sample executed.
+
+MPPI (``MPPIPlanner``, model-predictive path integral control as in the lifelong_rl code the GEM
+paper planned with): Gaussian perturbations of the current mean, optionally smoothed in time,
+weighted by a softmax of the normalised returns.
+"""
+
+from __future__ import annotations
+
+from pets.planners.base import Planner, shift_plan, truncated_normal
+from pets.planners.cem import CEMPlanner
+from pets.planners.icem import ICEMPlanner, colored_noise
+from pets.planners.mppi import MPPIPlanner, smoothing_matrix
+
+__all__ = [
+    "PLANNER_CLASSES",
+    "CEMPlanner",
+    "ICEMPlanner",
+    "MPPIPlanner",
+    "Planner",
+    "colored_noise",
+    "shift_plan",
+    "smoothing_matrix",
+    "truncated_normal",
+]
+
+#: The table of planners (``planner.name``): each name's class. ``planner.<name>.*`` holds the class's own
+#: constructor arguments where it has any (``pets.config.ICEMConfig``, ``MPPIConfig``).
+PLANNER_CLASSES: dict[str, type[Planner]] = {"cem": CEMPlanner, "icem": ICEMPlanner, "mppi": MPPIPlanner}

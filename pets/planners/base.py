@@ -1,0 +1,137 @@
+"""What every planner shares: the protocol, truncated-normal sampling, the MPC warm start, argument checks."""
+
+from __future__ import annotations
+
+import math
+import numbers
+from collections.abc import Callable
+from typing import Protocol
+
+import torch
+from torch import Tensor
+
+
+def truncated_normal(
+    shape: tuple[int, ...], mean: Tensor, std: Tensor, *, bound: float = 2.0, generator: torch.Generator | None = None
+) -> Tensor:
+    """Samples of N(mean, std^2) truncated to ``mean +- bound * std``, shape ``shape + mean.shape``.
+
+    Inverse-CDF method: ``u ~ U(Phi(-bound), Phi(bound))``, ``z = sqrt(2) erfinv(2 u - 1)``
+    (so ``z = Phi^-1(u)`` is a standard normal truncated to [-bound, bound]), clamped to
+    [-bound, bound] against rounding; result ``mean + std * z``. ``mean`` and ``std`` broadcast.
+    Rejection-free, so the cost is fixed and all randomness comes from ``generator``.
+    """
+    if not bound > 0:
+        raise ValueError(f"bound must be > 0 standard deviations, got {bound}")
+    mean, std = torch.broadcast_tensors(mean, std)
+    lo = 0.5 * math.erfc(bound / math.sqrt(2.0))
+    u = torch.rand(tuple(shape) + tuple(mean.shape), generator=generator, device=mean.device, dtype=mean.dtype)
+    u = lo + (1.0 - 2.0 * lo) * u
+    z = math.sqrt(2.0) * torch.erfinv(2.0 * u - 1.0)
+    z = z.clamp(-bound, bound)
+    return mean + std * z
+
+
+def as_bounds(
+    low: object, high: object, device: torch.device | str | None, dtype: torch.dtype
+) -> tuple[Tensor, Tensor]:
+    """Validated (act_dim,) bound tensors on ``device`` (checked on the host, before the move)."""
+    lb = torch.as_tensor(low).detach().to("cpu", torch.float64).reshape(-1)
+    ub = torch.as_tensor(high).detach().to("cpu", torch.float64).reshape(-1)
+    if lb.shape != ub.shape or lb.numel() == 0:
+        raise ValueError(
+            f"action_low and action_high must be non-empty and of the same length, "
+            f"got {tuple(lb.shape)} and {tuple(ub.shape)}"
+        )
+    if not (torch.isfinite(lb).all() and torch.isfinite(ub).all()):
+        raise ValueError("action bounds must be finite")
+    if not (lb < ub).all():
+        raise ValueError(f"every action_low must be < action_high, got low={lb.tolist()} high={ub.tolist()}")
+    return lb.to(device=device, dtype=dtype), ub.to(device=device, dtype=dtype)
+
+
+def shift_plan(plan: Tensor, action_low: object, action_high: object) -> Tensor:
+    """Warm start for the next MPC step: drop the first action, append the middle of the bounds.
+
+    plan (H, act_dim) -> (H, act_dim): ``[plan[1], ..., plan[H-1], (low + high) / 2]``.
+    """
+    if plan.dim() != 2:
+        raise ValueError(f"plan must have shape (H, act_dim), got {tuple(plan.shape)}")
+    # No value checks here (they would synchronise with the device every MPC step): the planner validates bounds.
+    lb = torch.as_tensor(action_low, device=plan.device, dtype=plan.dtype).reshape(-1)
+    ub = torch.as_tensor(action_high, device=plan.device, dtype=plan.dtype).reshape(-1)
+    if lb.numel() != plan.shape[1] or ub.numel() != plan.shape[1]:
+        raise ValueError(f"plan has act_dim {plan.shape[1]} but the bounds have {lb.numel()} and {ub.numel()} entries")
+    mid = 0.5 * (lb + ub)
+    return torch.cat([plan[1:], mid.unsqueeze(0)], dim=0)
+
+
+class Planner(Protocol):
+    """What the MPC agent needs of a planner: one optimisation of a return objective."""
+
+    horizon: int
+
+    def plan(
+        self,
+        objective: Callable[[Tensor], Tensor],
+        init_mean: Tensor | None = None,
+        generator: torch.Generator | None = None,
+    ) -> Tensor: ...
+
+    def reset(self) -> None:
+        """Forget what the planner carries from one call to the next (before an unrelated plan)."""
+        ...
+
+
+def check_positive_ints(**values: object) -> None:
+    for name, val in values.items():
+        if isinstance(val, bool) or not isinstance(val, int) or val < 1:
+            raise ValueError(f"{name} must be a positive int, got {val!r}")
+
+
+def elite_count(elites: object, population: int) -> int:
+    """Elites as a count (int in [1, population]) or a ratio of the population (float in (0, 1], ceil)."""
+    if isinstance(elites, bool) or not isinstance(elites, numbers.Real):
+        raise ValueError(f"elites must be an int count or a float ratio, got {elites!r}")
+    if isinstance(elites, numbers.Integral):
+        if not 1 <= elites <= population:
+            raise ValueError(f"elites as a count must be in [1, population={population}], got {elites}")
+        return int(elites)
+    if not 0.0 < elites <= 1.0:
+        raise ValueError(f"elites as a ratio must be in (0, 1], got {elites}")
+    return min(population, max(1, math.ceil(round(float(elites) * population, 4))))
+
+
+def check_real(
+    name: str, value: object, low: float, high: float, *, low_open: bool = False, high_open: bool = False
+) -> float:
+    """``value`` as a float in the interval [low, high] (open ends as asked), else a ValueError."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
+        raise ValueError(f"{name} must be a finite number, got {value!r}")
+    v = float(value)
+    if (v < low or (low_open and v == low)) or (v > high or (high_open and v == high)):
+        lo, hi = ("(" if low_open else "[") + f"{low}", f"{high}" + (")" if high_open else "]")
+        raise ValueError(f"{name} must be in {lo}, {hi}, got {value}")
+    return v
+
+
+def check_generator(generator: torch.Generator | None, device: torch.device) -> None:
+    if generator is not None and generator.device.type != device.type:
+        raise ValueError(f"generator is on {generator.device}, the planner on {device}")
+
+
+def initial_mean(init_mean: Tensor | None, lb: Tensor, ub: Tensor, h: int, a: int) -> Tensor:
+    """The warm start clipped to the bounds, or the middle of the bounds; shape (h, a)."""
+    if init_mean is None:
+        return (0.5 * (lb + ub)).expand(h, a).clone()
+    mu = torch.as_tensor(init_mean, device=lb.device, dtype=lb.dtype)
+    if mu.shape != (h, a):
+        raise ValueError(f"init_mean must have shape ({h}, {a}), got {tuple(mu.shape)}")
+    return torch.minimum(torch.maximum(mu, lb), ub)
+
+
+def check_values(values: Tensor, n: int, dtype: torch.dtype) -> Tensor:
+    if not isinstance(values, Tensor) or values.shape != (n,):
+        shape = tuple(values.shape) if isinstance(values, Tensor) else type(values).__name__
+        raise ValueError(f"objective must return shape ({n},), got {shape}")
+    return values.to(dtype)

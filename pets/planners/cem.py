@@ -1,0 +1,118 @@
+"""CEM over action sequences, as PETS uses it (the algorithm: the ``pets.planners`` docstring)."""
+
+from __future__ import annotations
+
+import math
+import numbers
+from collections.abc import Callable
+
+import torch
+from torch import Tensor
+
+from pets.planners.base import as_bounds, check_generator, initial_mean, truncated_normal
+
+
+class CEMPlanner:
+    """Cross-entropy method over (horizon, act_dim) action sequences within box bounds.
+
+    action_low, action_high: (act_dim,) finite bounds, low < high.
+    horizon, population, iterations: positive ints.
+    elites: a count (int, 1..population) or a ratio (float in (0, 1]; count = ceil(ratio * population)).
+    alpha: smoothing in [0, 1]: ``mu = alpha * mu + (1 - alpha) * elite_mean`` (same for var).
+    epsilon: PETS's early stop: stop iterating once every variance is below it (0 disables it;
+      when enabled it costs one host synchronisation per iteration).
+    return_mean_elites: return the final CEM mean (PETS), else the best sample seen.
+    device, dtype: where the samples live (the objective gets tensors there).
+    """
+
+    #: Whether the constructor takes ``elites`` (the config's ``planner.elites``).
+    uses_elites = True
+
+    def __init__(
+        self,
+        action_low: object,
+        action_high: object,
+        *,
+        horizon: int,
+        population: int,
+        elites: int | float = 0.1,
+        iterations: int = 5,
+        alpha: float = 0.1,
+        epsilon: float = 0.0,
+        return_mean_elites: bool = True,
+        device: torch.device | str | None = None,
+        dtype: torch.dtype = torch.float32,
+    ) -> None:
+        for name, val in (("horizon", horizon), ("population", population), ("iterations", iterations)):
+            if isinstance(val, bool) or not isinstance(val, int) or val < 1:
+                raise ValueError(f"{name} must be a positive int, got {val!r}")
+        if isinstance(elites, bool) or not isinstance(elites, numbers.Real):
+            raise ValueError(f"elites must be an int count or a float ratio, got {elites!r}")
+        if isinstance(elites, numbers.Integral):
+            if not 1 <= elites <= population:
+                raise ValueError(f"elites as a count must be in [1, population={population}], got {elites}")
+            num_elites = int(elites)
+        else:
+            if not 0.0 < elites <= 1.0:
+                raise ValueError(f"elites as a ratio must be in (0, 1], got {elites}")
+            num_elites = min(population, max(1, math.ceil(round(float(elites) * population, 4))))
+        if not 0.0 <= alpha <= 1.0:
+            raise ValueError(f"alpha must be in [0, 1], got {alpha}")
+        if not epsilon >= 0.0:
+            raise ValueError(f"epsilon must be >= 0, got {epsilon}")
+        self.low, self.high = as_bounds(action_low, action_high, device, dtype)
+        self.act_dim = self.low.numel()
+        self.horizon = horizon
+        self.population = population
+        self.num_elites = num_elites
+        self.iterations = iterations
+        self.alpha = float(alpha)
+        self.epsilon = float(epsilon)
+        self.return_mean_elites = return_mean_elites
+        self.device = self.low.device
+        self.dtype = dtype
+
+    def reset(self) -> None:
+        """Nothing to forget: every call starts from ``init_mean`` (or the box centre)."""
+
+    def plan(
+        self,
+        objective: Callable[[Tensor], Tensor],
+        init_mean: Tensor | None = None,
+        generator: torch.Generator | None = None,
+    ) -> Tensor:
+        """Optimise ``objective`` ((N, H, act_dim) -> (N,), higher is better); returns (H, act_dim) in bounds.
+
+        init_mean: warm start (H, act_dim), clipped to the bounds; default the middle of the bounds.
+        generator: source of all the randomness (on the planner's device).
+        """
+        h, a = self.horizon, self.act_dim
+        lb, ub = self.low, self.high
+        check_generator(generator, self.device)
+        mu = initial_mean(init_mean, lb, ub, h, a)
+        var = ((ub - lb) ** 2 / 16.0).expand(h, a).clone()
+        best_value = torch.full((), -math.inf, device=self.device, dtype=self.dtype)
+        best = mu.clone()
+
+        for _ in range(self.iterations):
+            dist = torch.minimum(mu - lb, ub - mu)
+            var_c = torch.minimum(var, (0.5 * dist) ** 2)
+            samples = truncated_normal((self.population,), mu, var_c.sqrt(), generator=generator)
+            samples = torch.minimum(torch.maximum(samples, lb), ub)
+            values = objective(samples)
+            if values.shape != (self.population,):
+                raise ValueError(f"objective must return shape ({self.population},), got {tuple(values.shape)}")
+            values = torch.nan_to_num(values.to(self.dtype), nan=-math.inf)
+            top, idx = torch.topk(values, self.num_elites)
+            elite = samples.index_select(0, idx)
+            if not self.return_mean_elites:
+                better = top[0] > best_value
+                best = torch.where(better, elite[0], best)
+                best_value = torch.where(better, top[0], best_value)
+            mu = self.alpha * mu + (1.0 - self.alpha) * elite.mean(dim=0)
+            var = self.alpha * var + (1.0 - self.alpha) * elite.var(dim=0, unbiased=False)
+            if self.epsilon > 0.0 and bool(var.max() < self.epsilon):
+                break
+
+        out = mu if self.return_mean_elites else best
+        return torch.minimum(torch.maximum(out, lb), ub)

@@ -1,0 +1,138 @@
+"""MPPI: Gaussian perturbations of the mean, smoothed in time, weighted by a softmax of the returns."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import torch
+from torch import Tensor
+
+from pets.planners.base import (
+    as_bounds,
+    check_generator,
+    check_positive_ints,
+    check_real,
+    check_values,
+    initial_mean,
+)
+
+
+def smoothing_matrix(
+    horizon: int, smoothing: float, *, device: torch.device | str | None = None, dtype: torch.dtype = torch.float32
+) -> Tensor:
+    """(H, H) lower-triangular filter ``L`` so that ``u = L @ n`` smooths i.i.d. N(0, 1) noise ``n`` in time.
+
+    ``u_0 = n_0``, ``u_t = smoothing * n_t + (1 - smoothing) * u_{t-1}`` (a first-order low-pass), then
+    each row is divided by its norm so that every ``u_t`` is again exactly N(0, 1): the smoothing sets
+    the correlation between steps (``corr(u_t, u_{t+1}) -> 1 - smoothing`` for large t), not the spread.
+    ``smoothing = 1`` gives the identity (independent steps).
+    """
+    check_positive_ints(horizon=horizon)
+    beta = check_real("smoothing", smoothing, 0.0, 1.0, low_open=True)
+    t = torch.arange(horizon, dtype=torch.float64)
+    lag = t[:, None] - t[None, :]
+    decay = torch.where(lag >= 0, (1.0 - beta) ** lag.clamp(min=0), torch.zeros(()))
+    first = torch.where(t[None, :] == 0, torch.ones(()), torch.full((), beta))  # n_0 enters with weight 1
+    filt = torch.tril(decay * first)
+    filt = filt / filt.norm(dim=1, keepdim=True)
+    return filt.to(device=device, dtype=dtype)
+
+
+class MPPIPlanner:
+    """MPPI over (horizon, act_dim) action sequences within box bounds.
+
+    Iteration (``iterations`` refinement passes from the warm start or the middle of the bounds):
+
+    1. ``population`` perturbations ``eps = sigma * (ub - lb) / 2 * (L @ n)``, ``n ~ N(0, I)`` i.i.d.
+       over (horizon, act_dim), ``L`` the :func:`smoothing_matrix` (identity for ``smoothing = 1``);
+       samples ``clip(mu + eps)``. ``sigma`` is in units of the half-range of the actions: 1.0 is
+       lifelong_rl's ``noise_std = 1`` for actions in [-1, 1] (heavily clipped); every step's
+       perturbation has exactly that std whatever the smoothing.
+    2. Returns ``R`` (higher is better) are normalised per iteration as
+       ``z = (R - max R) / (max R - median R)`` (``z <= 0``, the best is 0 and the median -1; 1e-12
+       guards a flat spread); NaN and infinite returns count as the worst finite return. Weights
+       ``w = softmax(z / temperature)``. (lifelong_rl normalises by ``max - min`` instead; the median
+       makes the scale robust to a few diverged rollouts, which the evaluator scores -1e6.)
+    3. ``mu = alpha * mu + (1 - alpha) * sum_i w_i samples_i`` (lifelong_rl's polyak; PETS's alpha 0.1).
+
+    The result is the final ``mu`` (in bounds: a convex combination of clipped samples). temperature
+    -> 0 gives the best sample (random shooting), temperature -> inf the plain sample mean. The
+    planner keeps no state between calls.
+    """
+
+    #: Whether the constructor takes ``elites`` (the config's ``planner.elites``).
+    uses_elites = False
+
+    def __init__(
+        self,
+        action_low: object,
+        action_high: object,
+        *,
+        horizon: int,
+        population: int,
+        iterations: int = 5,
+        alpha: float = 0.1,
+        sigma: float = 0.5,
+        temperature: float = 0.3,
+        smoothing: float = 1.0,
+        device: torch.device | str | None = None,
+        dtype: torch.dtype = torch.float32,
+    ) -> None:
+        check_positive_ints(horizon=horizon, population=population, iterations=iterations)
+        self.alpha = check_real("alpha", alpha, 0.0, 1.0)
+        self.sigma = check_real("sigma", sigma, 0.0, math.inf, low_open=True)
+        self.temperature = check_real("temperature", temperature, 0.0, math.inf, low_open=True)
+        self.smoothing = check_real("smoothing", smoothing, 0.0, 1.0, low_open=True)
+        self.low, self.high = as_bounds(action_low, action_high, device, dtype)
+        self.act_dim = self.low.numel()
+        self.horizon = horizon
+        self.population = population
+        self.iterations = iterations
+        self.device = self.low.device
+        self.dtype = dtype
+        self._filter = (
+            None
+            if self.smoothing == 1.0
+            else smoothing_matrix(horizon, self.smoothing, device=self.device, dtype=dtype)
+        )
+
+    def weights(self, values: Tensor) -> Tensor:
+        """Softmax weights (N,) of returns (N,) after the normalisation above (see the class docstring)."""
+        values = values.to(self.dtype)
+        finite = torch.isfinite(values)
+        any_finite = finite.any()
+        worst = torch.where(finite, values, math.inf).amin()
+        v = torch.where(finite, values, torch.where(any_finite, worst, torch.zeros_like(worst)))
+        top = v.amax()
+        spread = (top - v.median()).clamp(min=1e-12)
+        return torch.softmax((v - top) / (spread * self.temperature), dim=0)
+
+    def reset(self) -> None:
+        """Nothing to forget: every call starts from ``init_mean`` (or the box centre)."""
+
+    def plan(
+        self,
+        objective: Callable[[Tensor], Tensor],
+        init_mean: Tensor | None = None,
+        generator: torch.Generator | None = None,
+    ) -> Tensor:
+        """Optimise ``objective`` ((N, H, act_dim) -> (N,), higher is better); returns (H, act_dim) in bounds.
+
+        init_mean: warm start (H, act_dim), clipped to the bounds; default the middle of the bounds.
+        generator: source of all the randomness (on the planner's device).
+        """
+        h, a = self.horizon, self.act_dim
+        lb, ub = self.low, self.high
+        check_generator(generator, self.device)
+        mu = initial_mean(init_mean, lb, ub, h, a)
+        scale = self.sigma * 0.5 * (ub - lb)
+        for _ in range(self.iterations):
+            n = torch.randn((self.population, h, a), generator=generator, device=self.device, dtype=self.dtype)
+            if self._filter is not None:
+                n = torch.matmul(self._filter, n)  # (H, H) @ (N, H, A): smoothed along the horizon
+            samples = torch.minimum(torch.maximum(mu + scale * n, lb), ub)
+            values = check_values(objective(samples), self.population, self.dtype)
+            w = self.weights(values)
+            mu = self.alpha * mu + (1.0 - self.alpha) * torch.einsum("n,nha->ha", w, samples)
+        return torch.minimum(torch.maximum(mu, lb), ub)
