@@ -3,11 +3,13 @@
 Data flow:  (obs, act) --inputs--> ensemble --target sample--> next_obs(obs, sample)
 
 A head turns (obs, act) into network inputs, (obs, next_obs) into training targets,
-and (obs, predicted target) back into a next observation. The ensemble, the
-propagation, the planner and the loop only ever talk to this interface.
+and (obs, predicted target) back into a next observation. A ``dynamics.model.DynamicsModel`` joins
+a head and a network; everything else talks to the model.
 """
 
 from __future__ import annotations
+
+from abc import ABC, abstractmethod
 
 import torch
 from torch import Tensor
@@ -16,10 +18,10 @@ from dynamics.losses import gaussian_nll, mse_loss
 from envs.layout import ObsLayout
 
 
-class DynamicsHead:
+class DynamicsHead(ABC):
     """Base class. Subclasses set ``name``, ``input_dim``, ``target_dim`` and implement the three maps.
 
-    ``deterministic`` heads (``pets.models``, ``gem_head.two_stage``) go with a model that has no
+    ``deterministic`` heads (``DeterministicDeltaHead``, ``gem_head.two_stage``) go with a model that has no
     predictive variance: their ``loss`` ignores ``logvar`` (it is a constant that makes sampling noise zero).
     """
 
@@ -33,17 +35,17 @@ class DynamicsHead:
         self.obs_dim = layout.obs_dim
         self.act_dim = act_dim
 
+    @abstractmethod
     def inputs(self, obs: Tensor, act: Tensor) -> Tensor:
         """Network inputs, shape (..., input_dim)."""
-        raise NotImplementedError
 
+    @abstractmethod
     def targets(self, obs: Tensor, next_obs: Tensor) -> Tensor:
         """Training targets, shape (..., target_dim)."""
-        raise NotImplementedError
 
+    @abstractmethod
     def next_obs(self, obs: Tensor, target: Tensor) -> Tensor:
         """Next observation from a (predicted or sampled) target, shape (..., obs_dim)."""
-        raise NotImplementedError
 
     def loss(
         self, mean: Tensor, logvar: Tensor, target: Tensor, obs: Tensor, next_obs: Tensor, scale: Tensor | None = None

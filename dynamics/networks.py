@@ -15,6 +15,7 @@ elites, member selection) and the batched-member MLP helpers :func:`init_member_
 from __future__ import annotations
 
 import math
+from abc import ABC, abstractmethod
 from typing import Any
 
 import torch
@@ -99,20 +100,20 @@ def check_member_args(**values: int) -> None:
             raise ValueError(f"{name}{' (hidden layers)' if low == 0 else ''} must be {what}, got {value!r}")
 
 
-class MemberEnsemble(nn.Module):
-    """What every PETS dynamics model shares: input normaliser, elites and member selection.
+class MemberEnsemble(nn.Module, ABC):
+    """What every member network shares: input and target normalisers, elites and member selection.
 
     Subclasses build their batched-member layers (:func:`init_member_layers`, :func:`member_mlp`),
     implement ``forward(x, members=None) -> (mean, logvar)`` (each (M, B, out_dim)), ``member_parameters``,
     ``weight_decay_loss`` and ``logvar_bound_penalty``, and set ``deterministic`` (True: the
-    log-variance is a constant that makes the sampling noise exactly zero, see ``pets.models``).
+    log-variance is a constant that makes the sampling noise exactly zero, see docs/models.md).
 
     Buffers: ``input_mean``, ``input_std`` (input normaliser), ``target_mean``, ``target_std`` (target
     normaliser: the networks predict standardised targets, ``forward`` returns them in target units) and
     ``elites`` (long indices of the elite members, all members until a trainer sets them).
     """
 
-    #: True for models without a predictive variance (``pets.models``); the Gaussian ensemble has one.
+    #: True for networks without a predictive variance; the Gaussian ensemble has one.
     deterministic: bool = False
     #: Whether ``logvar_bound_penalty`` has trainable terms (the trainer adds it to the loss only then).
     learn_logvar_bounds: bool = False
@@ -196,9 +197,21 @@ class MemberEnsemble(nn.Module):
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     # ------------------------------------------------------------------ forward helpers
+    @abstractmethod
     def member_parameters(self) -> list[Tensor]:
         """Parameters with a leading member dimension (weights and biases), in a fixed order."""
-        raise NotImplementedError
+
+    @abstractmethod
+    def forward(self, x: Tensor, members: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """Mean and log-variance (M, B, out_dim) of raw inputs (B, in_dim) or (M, B, in_dim), in target units."""
+
+    @abstractmethod
+    def weight_decay_loss(self) -> Tensor:
+        """The L2 penalty of the member weights."""
+
+    @abstractmethod
+    def logvar_bound_penalty(self) -> Tensor:
+        """The penalty of the learnt log-variance bounds (zero where there are none)."""
 
     def _member_index(self, members: Tensor | None) -> Tensor | None:
         if members is None:
