@@ -88,6 +88,40 @@ class DynamicsModel(nn.Module):
         mean, _ = self.network(self.inputs(obs, act), members)
         return self.next_obs(obs, mean)
 
+    #: Open-loop rollout modes of :meth:`rollout`.
+    ROLLOUT_MODES = ("mean", "sample")
+
+    @torch.no_grad()
+    def rollout(
+        self, obs0: Tensor, actions: Tensor, mode: str = "mean", generator: torch.Generator | None = None
+    ) -> Tensor:
+        """Open-loop predicted observations (K, H, obs_dim) from start observations (K, obs_dim) under actions
+        (K, H, act_dim), through the elite members.
+
+        ``mean``: the target is the mean over the elites of their predicted means. ``sample``: each row draws one
+        elite once (TS-inf) and samples from its Gaussian every step. (Planning rolls out particles with rewards in
+        ``pets.propagation``.)
+        """
+        if mode not in self.ROLLOUT_MODES:
+            raise ValueError(f"mode must be one of {self.ROLLOUT_MODES}, got {mode!r}")
+        elites = self.elites.to(device=obs0.device, dtype=torch.long)
+        k, horizon = actions.shape[:2]
+        rows = torch.arange(k, device=obs0.device)
+        if mode == "sample":
+            member = torch.randint(elites.numel(), (k,), generator=generator, device=obs0.device)
+        obs, preds = obs0, []
+        for step in range(horizon):
+            mean, logvar = self(self.inputs(obs, actions[:, step]), elites)  # (M, K, D)
+            if mode == "mean":
+                target = mean.mean(dim=0)
+            else:
+                mu, lv = mean[member, rows], logvar[member, rows]
+                eps = torch.randn(mu.shape, generator=generator, device=mu.device, dtype=mu.dtype)
+                target = mu + torch.exp(0.5 * lv) * eps
+            obs = self.next_obs(obs, target)
+            preds.append(obs)
+        return torch.stack(preds, dim=1)
+
     # ------------------------------------------------------------------ training
     def fit_normalisers(self, x: Tensor, y: Tensor) -> None:
         """Fit the network's input and target normalisers on inputs ``x`` (N, in) and targets ``y`` (N, target)."""

@@ -14,7 +14,7 @@ from pets.config import ConfigError
 from pets.models import make_model
 from pets.planners import PLANNER_CLASSES, Planner
 from pets.propagation import TrajectoryEvaluator, retain_freed_memory
-from pets.training import ModelTrainer
+from pets.trainer import ModelTrainer
 
 
 def resolve_device(name: str) -> torch.device:

@@ -46,10 +46,8 @@ from pets.datasets import env_name, load_dataset
 from pets.fileio import atomic_write_bytes
 
 if TYPE_CHECKING:
-    import torch
     from torch import Tensor
 
-    from dynamics.model import DynamicsModel
     from envs.layout import ObsLayout
 
 PROG = "pets.evaluate"
@@ -144,42 +142,6 @@ def sample_starts(lengths: np.ndarray, horizon: int, starts: int, rng: np.random
     return pairs
 
 
-def rollout(
-    model: DynamicsModel,
-    obs0: Tensor,
-    actions: Tensor,
-    mode: str = "mean",
-    generator: torch.Generator | None = None,
-) -> Tensor:
-    """Predicted observations (K, H, obs_dim) for start observations (K, obs_dim) and actions (K, H, act_dim).
-
-    Only the elite members are used. ``mean``: target = mean over elites of the predicted means;
-    ``sample``: each row draws one elite member once (TS-inf) and samples from its Gaussian every step.
-    """
-    import torch
-
-    if mode not in MODES:
-        raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
-    elites = model.elites.to(device=obs0.device, dtype=torch.long)
-    k, horizon = actions.shape[:2]
-    rows = torch.arange(k, device=obs0.device)
-    if mode == "sample":
-        member = torch.randint(elites.numel(), (k,), generator=generator, device=obs0.device)
-    obs, preds = obs0, []
-    with torch.no_grad():
-        for step in range(horizon):
-            mean, logvar = model(model.inputs(obs, actions[:, step]), elites)  # (M, K, D)
-            if mode == "mean":
-                target = mean.mean(dim=0)
-            else:
-                mu, lv = mean[member, rows], logvar[member, rows]
-                eps = torch.randn(mu.shape, generator=generator, device=mu.device, dtype=mu.dtype)
-                target = mu + torch.exp(0.5 * lv) * eps
-            obs = model.next_obs(obs, target)
-            preds.append(obs)
-    return torch.stack(preds, dim=1)
-
-
 def load_inputs(
     run_dir: str | Path,
     data: str | Path | Mapping[str, np.ndarray],
@@ -267,7 +229,7 @@ def evaluate_loaded(inputs: Mapping[str, Any], seed: int = 0, log: Any = None) -
     true_obs = torch.as_tensor(np.asarray(arrays["obs"])[ep[:, None], steps], dtype=torch.float64, device=dev)
     acts = torch.as_tensor(np.asarray(arrays["act"])[ep[:, None], steps[:, :-1]], dtype=torch.float32, device=dev)
     generator = torch.Generator(device=dev).manual_seed(int(seed))
-    pred = rollout(inputs["model"], true_obs[:, 0].float(), acts, mode, generator)
+    pred = inputs["model"].rollout(true_obs[:, 0].float(), acts, mode, generator)
     pred = pred.double()  # (K, H, obs_dim)
     errs = step_errors(pred, true_obs[:, 1:], spec.layout)  # each (K, H)
     finite = torch.isfinite(pred).all(dim=-1)

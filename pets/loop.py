@@ -23,7 +23,7 @@ from pets import builder, rundir
 from pets.buffer import ReplayBuffer
 from pets.config import ConfigError
 from pets.models import make_model
-from pets.training import TrainResult
+from pets.trainer import TrainResult
 
 
 def seed_everything(seed: int) -> None:

@@ -68,7 +68,6 @@ def one_step_check(
     from pets import builder
     from pets.collect import collect
     from pets.datasets import transitions
-    from pets.evaluate import rollout
     from pets.models import make_model
     from pets.train import offline_config
 
@@ -97,7 +96,7 @@ def one_step_check(
             trainer = builder.make_trainer(cfg, model)
             trainer.max_epochs = max_epochs
             result = trainer.train(*train, torch.Generator().manual_seed(cfg.seed + 1))
-            pred = rollout(model, obs, act[:, None])[:, 0]
+            pred = model.rollout(obs, act[:, None])[:, 0]
             scores[label] = _errors(pred, obs, next_obs, scale, predicted, spec.layout)
         rows.append(
             {

@@ -27,11 +27,11 @@ from pets import builder, rundir
 from pets.collect import collect
 from pets.config import DETERMINISTIC_HEADS, HEADS, make_config
 from pets.datasets import save_dataset, transitions
-from pets.evaluate import evaluate, rollout
+from pets.evaluate import evaluate
 from pets.models import make_model
 from pets.propagation import TrajectoryEvaluator
 from pets.train import train_offline
-from pets.training import ModelTrainer
+from pets.trainer import ModelTrainer
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
@@ -388,8 +388,8 @@ def test_offline_train_and_evaluate_every_model(head_name, tmp_path):
         o = torch.as_tensor(arrays["obs"][:2, 0], dtype=torch.float32)
         a = torch.as_tensor(arrays["act"][:2, :6], dtype=torch.float32)
         assert torch.equal(
-            rollout(DynamicsModel(head, ens), o, a, "mean"),
-            rollout(DynamicsModel(head, ens), o, a, "sample", torch.Generator().manual_seed(3)),
+            DynamicsModel(head, ens).rollout(o, a, "mean"),
+            DynamicsModel(head, ens).rollout(o, a, "sample", torch.Generator().manual_seed(3)),
         )
 
 

@@ -24,7 +24,7 @@ from envs.layout import Group, ObsLayout
 from pets import builder, rundir
 from pets.collect import collect, episode_seeds, make_policy
 from pets.datasets import load_dataset, save_dataset, transitions
-from pets.evaluate import evaluate, rollout, sample_starts, step_errors, wrap_angle
+from pets.evaluate import evaluate, sample_starts, step_errors, wrap_angle
 from pets.models import make_model
 from pets.propagation import TrajectoryEvaluator
 from pets.train import OFFLINE_DEFAULTS, offline_config
@@ -392,7 +392,7 @@ def test_mean_rollout_matches_the_planners_expectation_propagation(delta_run, re
     obs0 = torch.as_tensor(data["obs"][:3, 5], dtype=torch.float32)
     acts = torch.as_tensor(data["act"][:3, 5:25], dtype=torch.float32)
     with one_thread():
-        ours = rollout(DynamicsModel(head, ensemble), obs0, acts, "mean")
+        ours = DynamicsModel(head, ensemble).rollout(obs0, acts, "mean")
         for i in range(3):
             evaluator = TrajectoryEvaluator(
                 DynamicsModel(head, ensemble), spec.reward, None, particles=1, propagation="expectation"

@@ -475,7 +475,7 @@ def cheetah_model():
     import envs
     from dynamics.networks import GaussianEnsemble
     from pets.bench import collect_random
-    from pets.training import ModelTrainer
+    from pets.trainer import ModelTrainer
 
     spec = envs.get("halfcheetah")
     obs, act, nxt = (torch.as_tensor(x) for x in collect_random(spec, 500, 0))

@@ -1,4 +1,4 @@
-"""Tests of the ensemble trainer (pets/training.py)."""
+"""Tests of the ensemble trainer (pets/trainer.py)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from dynamics.heads import DeltaHead, DynamicsHead
 from dynamics.model import DynamicsModel
 from dynamics.networks import GaussianEnsemble
 from envs.layout import ObsLayout
-from pets.training import ModelTrainer, TrainResult, bootstrap_indices, split_holdout
+from pets.trainer import ModelTrainer, TrainResult, bootstrap_indices, split_holdout
 
 LAYOUT_1D = ObsLayout(obs_dim=1, groups=(), velocities=(0,))
 
