@@ -6,7 +6,7 @@
 
 MODEL (``pets.config.HEADS``): delta, gem (probabilistic ensembles, PETS), delta-det, gem2 (the GEM paper's
 deterministic baseline and two-stage GEM, member predictions averaged) or delta-groupfeat (delta with GEM's
-input features); ``pets/models.py`` describes each.
+input features); docs/models.md describes each.
 """
 
 from __future__ import annotations
@@ -17,29 +17,24 @@ import time
 from pathlib import Path
 from typing import NoReturn
 
-EXIT_USAGE = 2
+from pets.cli import OneLineParser, fail
+
+PROG = "run_pets.py"
 
 
 def _fail(message: str) -> NoReturn:
-    print(f"run_pets.py: error: {message}", file=sys.stderr)
-    raise SystemExit(EXIT_USAGE)
-
-
-class _OneLineParser(argparse.ArgumentParser):
-    """Usage errors as one line ("what was wrong, what is accepted") and exit code 2."""
-
-    def error(self, message: str) -> NoReturn:
-        _fail(message)
+    fail(PROG, message)
 
 
 def build_parser() -> argparse.ArgumentParser:
     from pets.config import HEADS, PRESETS
 
-    p = _OneLineParser(
+    p = OneLineParser(
+        prog=PROG,
         description="PETS model-based RL with a swappable dynamics model (delta, GEM and variants).",
         epilog="Any config key can be overridden as key=value, e.g. planner.population=200.",
     )
-    p.add_argument("--model", choices=HEADS, help="dynamics model (default: delta); see pets/models.py")
+    p.add_argument("--model", choices=HEADS, help="dynamics model (default: delta); see docs/models.md")
     p.add_argument("--env", help="environment: one of the catalogue names or a gymnasium id")
     p.add_argument("--trials", type=int, help="number of trials (episodes)")
     p.add_argument("--seed", type=int, help="seed for every random source")

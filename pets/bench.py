@@ -30,7 +30,6 @@ larger peak happened).
 
 from __future__ import annotations
 
-import argparse
 import ctypes
 import json
 import resource
@@ -48,6 +47,7 @@ from torch import Tensor
 
 import envs
 from pets import builder
+from pets.cli import OneLineParser, fail
 from pets.config import ConfigError, make_config, parse_overrides, validate
 from pets.models import make_model
 
@@ -372,7 +372,7 @@ def _print_rows(rows: list[dict[str, Any]], repeats: int) -> None:
 def main(argv: list[str] | None = None) -> int:
     from pets.config import HEADS, PRESETS
 
-    ap = argparse.ArgumentParser(prog="python -m pets.bench", description=__doc__.splitlines()[0])
+    ap = OneLineParser(prog="pets.bench", description=__doc__.splitlines()[0])
     ap.add_argument("--env", default="halfcheetah")
     ap.add_argument("--model", choices=HEADS, default="delta")
     ap.add_argument("--preset", choices=tuple(PRESETS), default="research")
@@ -393,8 +393,7 @@ def main(argv: list[str] | None = None) -> int:
         overrides["device"] = args.device
         cfg = make_config(envs.get(args.env).name, args.model, args.preset, overrides)
     except (ConfigError, ValueError) as err:
-        print(f"pets.bench: error: {err}", file=sys.stderr)
-        return 2
+        fail("pets.bench", str(err))
     if cfg.threads > 0:
         torch.set_num_threads(cfg.threads)
     p = cfg.planner

@@ -20,11 +20,16 @@ and ``val_final`` are the trainer's holdout criterion before and after training.
 from __future__ import annotations
 
 import csv
+import io
 import sys
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from pets.cli import OneLineParser, fail
+from pets.fileio import atomic_write_bytes
+
+PROG = "pets.onestep"
 TRAIN_POLICY = "smooth-random:0.9"
 HELDOUT_POLICY = "smooth-random:0.5"
 COLUMNS = (
@@ -117,17 +122,22 @@ def one_step_check(
     return rows
 
 
+def _write_csv(path: Path, rows: list[dict[str, Any]]) -> None:
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=COLUMNS)
+    writer.writeheader()
+    writer.writerows(rows)
+    atomic_write_bytes(path, buf.getvalue().encode())
+
+
 def main(argv: list[str] | None = None) -> int:
-    import argparse
-
     import envs
-    from pets.config import parse_overrides
+    from pets.config import HEADS, ConfigError, parse_overrides
+    from pets.train import offline_config
 
-    parser = argparse.ArgumentParser(prog="pets.onestep", description=__doc__.split("\n\n")[0])
+    parser = OneLineParser(prog=PROG, description=__doc__.split("\n\n")[0])
     parser.add_argument("--envs", default="all", help="all, or a comma list of env names")
-    parser.add_argument(
-        "--models", default="delta,gem,delta-det,gem2,delta-groupfeat", help="comma list of --model values"
-    )
+    parser.add_argument("--models", default=",".join(HEADS), help="comma list of --model values")
     parser.add_argument("--episodes", type=int, default=60, help="episodes of train and of held-out data")
     parser.add_argument("--max-steps", type=int, default=200, help="episode length cap")
     parser.add_argument("--epochs", type=int, default=40, help="model.max_epochs")
@@ -135,8 +145,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--csv", type=Path, default=None, help="also write the rows to this CSV file")
     parser.add_argument("overrides", nargs="*", help="config key=value overrides (e.g. threads=1)")
     args = parser.parse_args(argv)
-    names = envs.names() if args.envs == "all" else args.envs.split(",")
-    overrides = parse_overrides(args.overrides)
+    models = args.models.split(",")
+    try:
+        names = envs.names() if args.envs == "all" else [envs.get(e).name for e in args.envs.split(",")]
+        if min(args.episodes, args.max_steps, args.epochs) < 1 or args.seed < 0:
+            raise ValueError("--episodes, --max-steps and --epochs must be >= 1, --seed >= 0")
+        overrides = parse_overrides(args.overrides)
+        for name in names:  # every (env, model) config is valid before anything runs
+            for model in models:
+                offline_config(name, model, {**overrides, "model.max_epochs": args.epochs}, seed=args.seed)
+    except (ConfigError, ValueError) as err:
+        fail(PROG, str(err))
     rows = []
     print(
         "| env | model | n | epochs | val initial -> final | std: trained / untrained / no change "
@@ -145,7 +164,7 @@ def main(argv: list[str] | None = None) -> int:
     for name in names:
         for row in one_step_check(
             name,
-            args.models.split(","),
+            models,
             episodes=args.episodes,
             max_steps=args.max_steps,
             epochs=args.epochs,
@@ -160,11 +179,8 @@ def main(argv: list[str] | None = None) -> int:
                 f"{row['l2_untrained']:.4g} / {row['l2_nochange']:.4g} |",
                 flush=True,
             )
-            if args.csv:
-                with open(args.csv, "w", newline="") as f:
-                    writer = csv.DictWriter(f, fieldnames=COLUMNS)
-                    writer.writeheader()
-                    writer.writerows(rows)
+            if args.csv:  # rewritten after every row, atomically: a long run keeps what it measured
+                _write_csv(args.csv, rows)
     return 0
 
 

@@ -14,6 +14,7 @@ from typing import Any
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from pets.config import ConfigError
 from pets.fileio import atomic_write_bytes
 
 CONFIG_FILE = "config.yaml"
@@ -72,7 +73,7 @@ def load_checkpoint(run_dir: Path) -> dict[str, Any] | None:
 def model_state(state: dict[str, Any]) -> dict[str, Any]:
     """The model's ``state_dict`` in a checkpoint; ValueError for checkpoints of an older format."""
     if "model" not in state:
-        raise ValueError(
+        raise ConfigError(
             "this checkpoint was written by an older gem-pets (< 0.2, before models standardised their targets): "
             "train the model again"
         )

@@ -31,3 +31,21 @@ def test_every_model_learns_one_step_dynamics(env: str) -> None:
         what = f"{env}/{r['model']}: {r}"
         assert r["val_final"] < RATIO * r["val_initial"], what  # the selected snapshot is a trained one
         assert r["std_trained"] < RATIO * min(r["std_untrained"], r["std_nochange"]), what
+
+
+@pytest.mark.parametrize(
+    "argv, fragment",
+    [
+        (["--envs", "nope"], "unknown env 'nope'"),
+        (["--envs", "reacher", "--models", "foo"], "must be one of delta"),
+        (["--epochs", "0"], "must be >= 1"),
+        (["--envs", "reacher", "model.nope=1"], "unknown config key 'model.nope'"),
+    ],
+)
+def test_bad_arguments_are_one_line_and_exit_2(argv: list[str], fragment: str, capsys) -> None:
+    from pets.onestep import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert exc.value.code == 2 and len(err) == 1 and err[0].startswith("pets.onestep: error:") and fragment in err[0]
