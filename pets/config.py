@@ -254,18 +254,13 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError(f"threads must be >= 0 (0: torch default), got {cfg.threads}")
     if cfg.seed < 0 or cfg.seed_steps < 0 or cfg.train_every < 0:
         raise ConfigError("seed, seed_steps and train_every must be >= 0")
-    for key, low, high, low_open in (
-        ("planner.icem.noise_beta", 0.0, math.inf, False),
-        ("planner.icem.population_decay", 1.0, math.inf, False),
-        ("planner.icem.keep_elites", 0.0, 1.0, False),
-        ("planner.mppi.sigma", 0.0, math.inf, True),
-        ("planner.mppi.temperature", 0.0, math.inf, True),
-        ("planner.mppi.smoothing", 0.0, 1.0, True),
-    ):
-        v = OmegaConf.select(cfg, key)
-        if not (math.isfinite(v) and (v > low if low_open else v >= low) and v <= high):
-            interval = ("(" if low_open else "[") + f"{low}, {high}" + ("]" if math.isfinite(high) else ")")
-            raise ConfigError(f"{key} must be a finite number in {interval}, got {v}")
+    from pets.planners import PLANNER_CLASSES  # each planner checks its own section: one range per argument
+
+    for name in ("icem", "mppi"):
+        try:
+            PLANNER_CLASSES[name].check_args(**cfg.planner[name])
+        except ValueError as err:
+            raise ConfigError(f"planner.{name}.{err}") from None
     if cfg.planner.replan_every > cfg.planner.horizon:
         raise ConfigError(
             f"planner.replan_every ({cfg.planner.replan_every}) must be <= planner.horizon ({cfg.planner.horizon})"

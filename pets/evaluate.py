@@ -167,7 +167,7 @@ def load_inputs(
     config_file = Path(run_dir) / "config.yaml"  # pets.rundir.CONFIG_FILE (rundir imports torch)
     if not config_file.is_file():
         raise ConfigError(f"{run_dir} is not a run directory (no config.yaml)")
-    run_env = str(load_config(str(config_file)).env)  # cheap env check before torch is imported
+    run_env = str(load_config(str(config_file)).env)  # env check before the model is built
     if env_name(arrays) != run_env:
         raise ValueError(f"the data set is from {env_name(arrays)} but run {run_dir} models {run_env}")
     from pets import builder

@@ -130,9 +130,9 @@ class ICEMPlanner:
         check_positive_ints(horizon=horizon, population=population, iterations=iterations)
         self.num_elites = elite_count(elites, population)
         self.alpha = check_real("alpha", alpha, 0.0, 1.0)
-        self.noise_beta = check_real("noise_beta", noise_beta, 0.0, math.inf)
-        self.population_decay = check_real("population_decay", population_decay, 1.0, math.inf)
-        self.keep_elites = check_real("keep_elites", keep_elites, 0.0, 1.0)
+        self.noise_beta, self.population_decay, self.keep_elites = self.check_args(
+            noise_beta=noise_beta, population_decay=population_decay, keep_elites=keep_elites
+        )
         self.low, self.high = as_bounds(action_low, action_high, device, dtype)
         self.act_dim = self.low.numel()
         self.horizon = horizon
@@ -149,6 +149,16 @@ class ICEMPlanner:
         ]
         self._last_plan: Tensor | None = None
         self._last_elites: Tensor | None = None
+
+    @staticmethod
+    def check_args(*, noise_beta: float, population_decay: float, keep_elites: float) -> tuple[float, float, float]:
+        """The iCEM-only arguments as floats, or a ValueError naming the first out of range (also the config's
+        check of ``planner.icem.*``)."""
+        return (
+            check_real("noise_beta", noise_beta, 0.0, math.inf),
+            check_real("population_decay", population_decay, 1.0, math.inf),
+            check_real("keep_elites", keep_elites, 0.0, 1.0),
+        )
 
     def reset(self) -> None:
         """Forget the elites kept from the previous call."""

@@ -81,9 +81,9 @@ class MPPIPlanner:
     ) -> None:
         check_positive_ints(horizon=horizon, population=population, iterations=iterations)
         self.alpha = check_real("alpha", alpha, 0.0, 1.0)
-        self.sigma = check_real("sigma", sigma, 0.0, math.inf, low_open=True)
-        self.temperature = check_real("temperature", temperature, 0.0, math.inf, low_open=True)
-        self.smoothing = check_real("smoothing", smoothing, 0.0, 1.0, low_open=True)
+        self.sigma, self.temperature, self.smoothing = self.check_args(
+            sigma=sigma, temperature=temperature, smoothing=smoothing
+        )
         self.low, self.high = as_bounds(action_low, action_high, device, dtype)
         self.act_dim = self.low.numel()
         self.horizon = horizon
@@ -107,6 +107,16 @@ class MPPIPlanner:
         top = v.amax()
         spread = (top - v.median()).clamp(min=1e-12)
         return torch.softmax((v - top) / (spread * self.temperature), dim=0)
+
+    @staticmethod
+    def check_args(*, sigma: float, temperature: float, smoothing: float) -> tuple[float, float, float]:
+        """The MPPI-only arguments as floats, or a ValueError naming the first out of range (also the config's
+        check of ``planner.mppi.*``)."""
+        return (
+            check_real("sigma", sigma, 0.0, math.inf, low_open=True),
+            check_real("temperature", temperature, 0.0, math.inf, low_open=True),
+            check_real("smoothing", smoothing, 0.0, 1.0, low_open=True),
+        )
 
     def reset(self) -> None:
         """Nothing to forget: every call starts from ``init_mean`` (or the box centre)."""
