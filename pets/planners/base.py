@@ -135,3 +135,36 @@ def check_values(values: Tensor, n: int, dtype: torch.dtype) -> Tensor:
         shape = tuple(values.shape) if isinstance(values, Tensor) else type(values).__name__
         raise ValueError(f"objective must return shape ({n},), got {shape}")
     return values.to(dtype)
+
+
+class BoxPlanner:
+    """What the planners here share: box bounds, horizon, population, iterations, smoothing ``alpha``, where the
+    samples live; ``reset`` has nothing to forget unless a planner carries state between calls (iCEM)."""
+
+    #: Whether the constructor takes ``elites`` (the config's ``planner.elites``).
+    uses_elites = False
+
+    def __init__(
+        self,
+        action_low: object,
+        action_high: object,
+        *,
+        horizon: int,
+        population: int,
+        iterations: int,
+        alpha: float,
+        device: torch.device | str | None,
+        dtype: torch.dtype,
+    ) -> None:
+        check_positive_ints(horizon=horizon, population=population, iterations=iterations)
+        self.alpha = check_real("alpha", alpha, 0.0, 1.0)
+        self.low, self.high = as_bounds(action_low, action_high, device, dtype)
+        self.act_dim = self.low.numel()
+        self.horizon = horizon
+        self.population = population
+        self.iterations = iterations
+        self.device = self.low.device
+        self.dtype = dtype
+
+    def reset(self) -> None:
+        """Nothing to forget: every call starts from ``init_mean`` (or the box centre)."""

@@ -3,16 +3,15 @@
 from __future__ import annotations
 
 import math
-import numbers
 from collections.abc import Callable
 
 import torch
 from torch import Tensor
 
-from pets.planners.base import as_bounds, check_generator, initial_mean, truncated_normal
+from pets.planners.base import BoxPlanner, check_generator, elite_count, initial_mean, truncated_normal
 
 
-class CEMPlanner:
+class CEMPlanner(BoxPlanner):
     """Cross-entropy method over (horizon, act_dim) action sequences within box bounds.
 
     action_low, action_high: (act_dim,) finite bounds, low < high.
@@ -25,7 +24,6 @@ class CEMPlanner:
     device, dtype: where the samples live (the objective gets tensors there).
     """
 
-    #: Whether the constructor takes ``elites`` (the config's ``planner.elites``).
     uses_elites = True
 
     def __init__(
@@ -43,37 +41,13 @@ class CEMPlanner:
         device: torch.device | str | None = None,
         dtype: torch.dtype = torch.float32,
     ) -> None:
-        for name, val in (("horizon", horizon), ("population", population), ("iterations", iterations)):
-            if isinstance(val, bool) or not isinstance(val, int) or val < 1:
-                raise ValueError(f"{name} must be a positive int, got {val!r}")
-        if isinstance(elites, bool) or not isinstance(elites, numbers.Real):
-            raise ValueError(f"elites must be an int count or a float ratio, got {elites!r}")
-        if isinstance(elites, numbers.Integral):
-            if not 1 <= elites <= population:
-                raise ValueError(f"elites as a count must be in [1, population={population}], got {elites}")
-            num_elites = int(elites)
-        else:
-            if not 0.0 < elites <= 1.0:
-                raise ValueError(f"elites as a ratio must be in (0, 1], got {elites}")
-            num_elites = min(population, max(1, math.ceil(round(float(elites) * population, 4))))
-        if not 0.0 <= alpha <= 1.0:
-            raise ValueError(f"alpha must be in [0, 1], got {alpha}")
+        common = dict(horizon=horizon, population=population, iterations=iterations, alpha=alpha)
+        super().__init__(action_low, action_high, **common, device=device, dtype=dtype)
+        self.num_elites = elite_count(elites, population)
         if not epsilon >= 0.0:
             raise ValueError(f"epsilon must be >= 0, got {epsilon}")
-        self.low, self.high = as_bounds(action_low, action_high, device, dtype)
-        self.act_dim = self.low.numel()
-        self.horizon = horizon
-        self.population = population
-        self.num_elites = num_elites
-        self.iterations = iterations
-        self.alpha = float(alpha)
         self.epsilon = float(epsilon)
         self.return_mean_elites = return_mean_elites
-        self.device = self.low.device
-        self.dtype = dtype
-
-    def reset(self) -> None:
-        """Nothing to forget: every call starts from ``init_mean`` (or the box centre)."""
 
     def plan(
         self,

@@ -10,9 +10,8 @@ import torch
 from torch import Tensor
 
 from pets.planners.base import (
-    as_bounds,
+    BoxPlanner,
     check_generator,
-    check_positive_ints,
     check_real,
     check_values,
     elite_count,
@@ -76,7 +75,7 @@ def _shift_rows(x: Tensor, k: int, fill: Tensor) -> Tensor:
     return torch.cat([x[..., k:, :], tail], dim=-2)
 
 
-class ICEMPlanner:
+class ICEMPlanner(BoxPlanner):
     """iCEM (Pinneri et al. 2020) over (horizon, act_dim) action sequences within box bounds.
 
     Iteration ``i`` (0-based) of a ``plan`` call:
@@ -106,7 +105,6 @@ class ICEMPlanner:
     keep_between_steps: also carry the previous call's elites into the first iteration.
     """
 
-    #: Whether the constructor takes ``elites`` (the config's ``planner.elites``).
     uses_elites = True
 
     def __init__(
@@ -127,21 +125,14 @@ class ICEMPlanner:
         device: torch.device | str | None = None,
         dtype: torch.dtype = torch.float32,
     ) -> None:
-        check_positive_ints(horizon=horizon, population=population, iterations=iterations)
+        common = dict(horizon=horizon, population=population, iterations=iterations, alpha=alpha)
+        super().__init__(action_low, action_high, **common, device=device, dtype=dtype)
         self.num_elites = elite_count(elites, population)
-        self.alpha = check_real("alpha", alpha, 0.0, 1.0)
         self.noise_beta, self.population_decay, self.keep_elites = self.check_args(
             noise_beta=noise_beta, population_decay=population_decay, keep_elites=keep_elites
         )
-        self.low, self.high = as_bounds(action_low, action_high, device, dtype)
-        self.act_dim = self.low.numel()
-        self.horizon = horizon
-        self.population = population
-        self.iterations = iterations
         self.return_mean_elites = bool(return_mean_elites)
         self.keep_between_steps = bool(keep_between_steps)
-        self.device = self.low.device
-        self.dtype = dtype
         self.num_keep = min(self.num_elites, math.ceil(round(self.keep_elites * self.num_elites, 4)))
         #: fresh samples per iteration (N_i)
         self.populations = [

@@ -9,7 +9,7 @@ import torch
 from torch import Tensor
 
 from pets.planners.base import (
-    as_bounds,
+    BoxPlanner,
     check_generator,
     check_positive_ints,
     check_real,
@@ -39,7 +39,7 @@ def smoothing_matrix(
     return filt.to(device=device, dtype=dtype)
 
 
-class MPPIPlanner:
+class MPPIPlanner(BoxPlanner):
     """MPPI over (horizon, act_dim) action sequences within box bounds.
 
     Iteration (``iterations`` refinement passes from the warm start or the middle of the bounds):
@@ -61,9 +61,6 @@ class MPPIPlanner:
     planner keeps no state between calls.
     """
 
-    #: Whether the constructor takes ``elites`` (the config's ``planner.elites``).
-    uses_elites = False
-
     def __init__(
         self,
         action_low: object,
@@ -79,18 +76,11 @@ class MPPIPlanner:
         device: torch.device | str | None = None,
         dtype: torch.dtype = torch.float32,
     ) -> None:
-        check_positive_ints(horizon=horizon, population=population, iterations=iterations)
-        self.alpha = check_real("alpha", alpha, 0.0, 1.0)
+        common = dict(horizon=horizon, population=population, iterations=iterations, alpha=alpha)
+        super().__init__(action_low, action_high, **common, device=device, dtype=dtype)
         self.sigma, self.temperature, self.smoothing = self.check_args(
             sigma=sigma, temperature=temperature, smoothing=smoothing
         )
-        self.low, self.high = as_bounds(action_low, action_high, device, dtype)
-        self.act_dim = self.low.numel()
-        self.horizon = horizon
-        self.population = population
-        self.iterations = iterations
-        self.device = self.low.device
-        self.dtype = dtype
         self._filter = (
             None
             if self.smoothing == 1.0
@@ -117,9 +107,6 @@ class MPPIPlanner:
             check_real("temperature", temperature, 0.0, math.inf, low_open=True),
             check_real("smoothing", smoothing, 0.0, 1.0, low_open=True),
         )
-
-    def reset(self) -> None:
-        """Nothing to forget: every call starts from ``init_mean`` (or the box centre)."""
 
     def plan(
         self,
