@@ -31,6 +31,7 @@ larger peak happened).
 from __future__ import annotations
 
 import ctypes
+import itertools
 import json
 import resource
 import statistics
@@ -50,6 +51,7 @@ from pets import builder
 from pets.cli import OneLineParser, fail
 from pets.config import ConfigError, make_config, parse_overrides, validate
 from pets.models import make_model
+from pets.rollout import RandomPolicy, run_steps
 
 #: (label, planner overrides) of the ``--compare`` rows; the first is the precise reference.
 COMPARE_ROWS: list[tuple[str, dict[str, Any]]] = [
@@ -139,19 +141,15 @@ def _sync(device: torch.device) -> None:
 
 
 def collect_random(spec: envs.EnvSpec, steps: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    env = spec.make()
-    rng = np.random.default_rng(seed)
-    obs, _ = env.reset(seed=seed)
-    obs_l, act_l, next_l = [], [], []
-    for _ in range(steps):
-        act = rng.uniform(spec.action_low, spec.action_high)
-        nxt, _, term, trunc, _ = env.step(act)
-        obs_l.append(obs)
-        act_l.append(act)
-        next_l.append(nxt)
-        obs = nxt if not (term or trunc) else env.reset()[0]
+    """``steps`` uniformly random transitions (float32 obs, act, next obs) over as many episodes as needed;
+    the first reset is seeded with ``seed``, the actions come from ``default_rng(seed)``."""
+    env, policy = spec.make(), RandomPolicy(spec.action_low, spec.action_high)
+    seeds = itertools.chain([seed], itertools.repeat(None))
+    episodes = run_steps(env, policy, steps, max_steps=steps, reset_seeds=seeds, rng=np.random.default_rng(seed))
     env.close()
-    return np.array(obs_l, np.float32), np.array(act_l, np.float32), np.array(next_l, np.float32)
+    return tuple(
+        np.concatenate([getattr(ep, k) for ep in episodes]).astype(np.float32) for k in ("obs", "act", "next_obs")
+    )
 
 
 # ---------------------------------------------------------------------------------------------- memory

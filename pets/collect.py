@@ -30,12 +30,13 @@ from __future__ import annotations
 import math
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from pets.cli import OneLineParser, fail
 from pets.datasets import save_dataset
+from pets.rollout import MPCPolicy, Policy, RandomPolicy, run_episode
 
 if TYPE_CHECKING:
     from envs import EnvSpec
@@ -43,31 +44,6 @@ if TYPE_CHECKING:
 PROG = "pets.collect"
 POLICIES = ("random", "smooth-random[:BETA]", "run:RUN_DIR")
 DEFAULT_BETA = 0.9
-
-
-class Policy(Protocol):
-    """What ``collect`` drives: ``reset`` at the start of every episode, then ``act`` once per step."""
-
-    name: str
-
-    def reset(self, rng: np.random.Generator) -> None: ...
-
-    def act(self, obs: np.ndarray) -> np.ndarray: ...
-
-
-class RandomPolicy:
-    """Uniform i.i.d. actions in ``[low, high]``."""
-
-    def __init__(self, low: Any, high: Any) -> None:
-        self.low, self.high = np.asarray(low, np.float64), np.asarray(high, np.float64)
-        self.name = "random"
-        self._rng = np.random.default_rng(0)
-
-    def reset(self, rng: np.random.Generator) -> None:
-        self._rng = rng
-
-    def act(self, obs: np.ndarray) -> np.ndarray:
-        return self._rng.uniform(self.low, self.high)
 
 
 class SmoothRandomPolicy:
@@ -99,7 +75,7 @@ class SmoothRandomPolicy:
         return np.clip(action, self.low, self.high)
 
 
-class AgentPolicy:
+class AgentPolicy(MPCPolicy):
     """The MPC agent of a trained run directory (its model and its config's planner)."""
 
     def __init__(self, run_dir: str | Path, seed: int = 0, device: str = "auto") -> None:
@@ -111,14 +87,9 @@ class AgentPolicy:
         dev = builder.resolve_device(device)
         self.cfg, self.spec, self.model = builder.load_model(self.run_dir, dev)
         self.generator = torch.Generator(device=dev).manual_seed(int(seed))
-        self.agent = builder.make_agent(self.cfg, self.spec, self.model, dev, self.generator)
-        self.name = f"run:{self.run_dir}"
-
-    def reset(self, rng: np.random.Generator) -> None:
-        self.agent.reset()
-
-    def act(self, obs: np.ndarray) -> np.ndarray:
-        return self.agent.act(obs)
+        super().__init__(
+            builder.make_agent(self.cfg, self.spec, self.model, dev, self.generator), f"run:{self.run_dir}"
+        )
 
 
 def parse_policy(text: str) -> tuple[str, Any]:
@@ -205,41 +176,28 @@ def collect(
         policy = make_policy(policy, spec, seed=seed, device=device)
     limit = max_steps or spec.episode_length
     env = spec.make(max_episode_steps=limit)
-    obs_eps, act_eps, rew_eps, term_eps, reset_seeds = [], [], [], [], []
+    episodes_run, reset_seeds = [], []
     try:
         for i in tqdm(range(episodes), desc=f"collect {spec.name}", unit="episode", disable=not progress):
             reset_seed, ss = episode_seeds(seed, i)
-            obs, _ = env.reset(seed=reset_seed)
-            policy.reset(np.random.default_rng(ss))
-            ep_obs, ep_act, ep_rew, ep_term = [np.asarray(obs, np.float64)], [], [], []
-            for _ in range(limit):
-                action = np.asarray(policy.act(obs), np.float64).reshape(spec.act_dim)
-                obs, reward, terminated, truncated, _ = env.step(action)
-                ep_obs.append(np.asarray(obs, np.float64))
-                ep_act.append(action)
-                ep_rew.append(float(reward))
-                ep_term.append(bool(terminated))
-                if terminated or truncated:
-                    break
-            obs_eps.append(ep_obs)
-            act_eps.append(ep_act)
-            rew_eps.append(ep_rew)
-            term_eps.append(ep_term)
+            episodes_run.append(
+                run_episode(env, policy, max_steps=limit, reset_seed=reset_seed, rng=np.random.default_rng(ss))
+            )
             reset_seeds.append(reset_seed)
     finally:
         env.close()
 
-    lengths = np.array([len(a) for a in act_eps], np.int64)
+    lengths = np.array([len(ep) for ep in episodes_run], np.int64)
     n, t = episodes, int(lengths.max())
     obs_arr = np.full((n, t + 1, spec.obs_dim), np.nan)
     act_arr = np.full((n, t, spec.act_dim), np.nan)
     rew_arr = np.full((n, t), np.nan)
     term_arr = np.zeros((n, t), bool)
-    for i, k in enumerate(lengths):
-        obs_arr[i, : k + 1] = obs_eps[i]
-        act_arr[i, :k] = act_eps[i]
-        rew_arr[i, :k] = rew_eps[i]
-        term_arr[i, :k] = term_eps[i]
+    for i, (ep, k) in enumerate(zip(episodes_run, lengths)):
+        obs_arr[i, : k + 1] = ep.states
+        act_arr[i, :k] = ep.act
+        rew_arr[i, :k] = ep.rewards
+        term_arr[i, :k] = ep.terminated
     return {
         "obs": obs_arr,
         "act": act_arr,

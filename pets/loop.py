@@ -8,6 +8,7 @@ from its start with the RNG states it began with, so a resumed run matches an un
 
 from __future__ import annotations
 
+import itertools
 import random
 import time
 from pathlib import Path
@@ -23,6 +24,7 @@ from pets import builder, rundir
 from pets.buffer import ReplayBuffer
 from pets.config import ConfigError
 from pets.models import make_model
+from pets.rollout import Episode, MPCPolicy, RandomPolicy, run_episode, run_steps
 from pets.trainer import TrainResult
 
 
@@ -50,6 +52,8 @@ class PETSRun:
         self.plan_gen = torch.Generator(device=self.device).manual_seed(cfg.seed + 2)
         self.np_rng = np.random.default_rng(cfg.seed + 3)
         self.agent = builder.make_agent(cfg, self.spec, self.model, self.device, self.plan_gen)
+        self.mpc_policy = MPCPolicy(self.agent)
+        self.random_policy = RandomPolicy(self.spec.action_low, self.spec.action_high)
         self.buffer = ReplayBuffer(self.spec.obs_dim, self.spec.act_dim)
         self.rows: list[dict[str, Any]] = []
         self.trials_done = 0
@@ -94,25 +98,25 @@ class PETSRun:
     def _episode_seed(self, index: int) -> int:
         return self.cfg.seed * 100_003 + index
 
+    def _add(self, episode: Episode, start: int = 0) -> None:
+        """Put the transitions ``start:`` of ``episode`` into the replay buffer."""
+        self.buffer.add_episode(episode.obs[start:], episode.act[start:], episode.next_obs[start:])
+
     def collect_seed_data(self) -> None:
         """``seed_steps`` uniformly random steps over as many episodes as needed, then the first training."""
-        obs_l, act_l, next_l = [], [], []
-        episode = 0
-        while len(obs_l) < self.cfg.seed_steps:
-            obs, _ = self.env.reset(seed=self._episode_seed(50_000 + episode))
-            for _ in range(self.episode_length):
-                action = self.np_rng.uniform(self.spec.action_low, self.spec.action_high)
-                next_obs, _, terminated, truncated, _ = self.env.step(action)
-                obs_l.append(obs)
-                act_l.append(action)
-                next_l.append(next_obs)
-                obs = next_obs
-                if terminated or truncated or len(obs_l) >= self.cfg.seed_steps:
-                    break
-            episode += 1
-        if obs_l:
-            self.buffer.add_episode(np.array(obs_l), np.array(act_l), np.array(next_l))
-            self.env_steps += len(obs_l)
+        seeds = (self._episode_seed(50_000 + i) for i in itertools.count())
+        episodes = run_steps(
+            self.env,
+            self.random_policy,
+            self.cfg.seed_steps,
+            max_steps=self.episode_length,
+            reset_seeds=seeds,
+            rng=self.np_rng,
+        )
+        for episode in episodes:
+            self._add(episode)
+            self.env_steps += len(episode)
+        if episodes:
             self._train()
 
     def run_trial(self, progress: bool = True) -> dict[str, Any]:
@@ -121,41 +125,32 @@ class PETSRun:
         if trial == 0 and len(self.buffer) == 0:
             self.collect_seed_data()
         random_policy = len(self.buffer) == 0  # seed_steps=0: the first trial explores at random
-        obs, _ = self.env.reset(seed=self._episode_seed(trial))
-        self.agent.reset()
-        ep_obs, ep_act, ep_next = [], [], []
-        total_reward, plan_time = 0.0, 0.0
-        steps = tqdm(range(self.episode_length), desc=f"trial {trial}", leave=False, disable=not progress)
-        for t in steps:
-            if (
-                self.cfg.train_every
-                and not random_policy
-                and len(self.buffer) > 0
-                and (self.env_steps + t) % self.cfg.train_every == 0
-                and ep_obs
-            ):
-                self.buffer.add_episode(np.array(ep_obs), np.array(ep_act), np.array(ep_next))
-                ep_obs, ep_act, ep_next = [], [], []
+        policy = self.random_policy if random_policy else self.mpc_policy
+        bar = tqdm(total=self.episode_length, desc=f"trial {trial}", leave=False, disable=not progress)
+        added = 0  # steps of this episode already in the buffer
+
+        def after_step(so_far: Episode) -> None:
+            """Progress bar; with ``train_every``, mid-episode training on the data so far."""
+            nonlocal added
+            bar.update(1)
+            bar.set_postfix(reward=f"{so_far.total_reward:.1f}")
+            every = self.cfg.train_every
+            if every and not random_policy and not so_far.done and (self.env_steps + len(so_far)) % every == 0:
+                self._add(so_far, added)
+                added = len(so_far)
                 self._train()
-            if random_policy:
-                action = self.np_rng.uniform(self.spec.action_low, self.spec.action_high)
-            else:
-                t0 = time.perf_counter()
-                action = self.agent.act(obs)
-                plan_time += time.perf_counter() - t0
-            next_obs, reward, terminated, truncated, _ = self.env.step(action)
-            ep_obs.append(obs)
-            ep_act.append(action)
-            ep_next.append(next_obs)
-            total_reward += float(reward)
-            obs = next_obs
-            steps.set_postfix(reward=f"{total_reward:.1f}")
-            if terminated or truncated:
-                break
-        length = t + 1
-        steps.close()
-        if ep_obs:
-            self.buffer.add_episode(np.array(ep_obs), np.array(ep_act), np.array(ep_next))
+
+        episode = run_episode(
+            self.env,
+            policy,
+            max_steps=self.episode_length,
+            reset_seed=self._episode_seed(trial),
+            rng=self.np_rng,
+            on_step=after_step,
+        )
+        bar.close()
+        self._add(episode, added)
+        length = len(episode)
         self._train()
         self.env_steps += length
         self.trials_done += 1
@@ -164,13 +159,13 @@ class PETSRun:
         row = {
             "trial": trial,
             "env_steps": self.env_steps,
-            "episode_reward": total_reward,
+            "episode_reward": episode.total_reward,
             "episode_length": length,
             "model_train_loss": lt.train_loss,
             "model_val_loss": lt.val_loss,
             "model_val_loss_initial": lt.initial_val_loss,
             "model_epochs": lt.epochs,
-            "plan_seconds_per_step": 0.0 if random_policy else plan_time / length,
+            "plan_seconds_per_step": 0.0 if random_policy else self.mpc_policy.seconds / length,
             "wall_time_s": round(self.wall_time_s, 3),
         }
         self.rows.append(row)

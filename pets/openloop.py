@@ -93,6 +93,37 @@ def planning_config(cfg: Any, planner: str, steps: int, overrides: Mapping[str, 
     return cfg
 
 
+class OpenLoopPolicy:
+    """Plans once, from the first observation of an episode, with an MPC agent's planner and evaluator, then
+    replays that plan; ``plan`` (float64) and ``predicted_return`` (the evaluator's) are the last episode's."""
+
+    name = "open-loop"
+
+    def __init__(self, agent: Any) -> None:
+        self.planner, self.evaluator, self.generator = agent.planner, agent.evaluator, agent.generator
+        self.device = agent.device
+        self.plan: np.ndarray | None = None
+        self.predicted_return = float("nan")
+        self._t = 0
+
+    def reset(self, rng: np.random.Generator) -> None:
+        self.planner.reset()  # iCEM: no elites carried over from another episode
+        self.plan, self._t = None, 0
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        import torch
+
+        if self.plan is None:
+            obs0 = torch.as_tensor(obs, dtype=torch.float32, device=self.device)
+            gen, evaluator = self.generator, self.evaluator
+            with torch.no_grad():
+                plan = self.planner.plan(partial(evaluator, obs0, generator=gen), None, gen)  # (steps, act)
+                self.predicted_return = float(evaluator(obs0, plan[None], gen)[0])
+            self.plan = plan.detach().cpu().numpy().astype(np.float64)
+        self._t += 1
+        return self.plan[self._t - 1]
+
+
 def open_loop(
     run_dir: str | Path,
     planner: str = "cem",
@@ -114,6 +145,7 @@ def open_loop(
     from pets import builder
     from pets.collect import episode_seeds
     from pets.experiments.statistics import bootstrap_band, summarise
+    from pets.rollout import run_episode
 
     if isinstance(episodes, bool) or not isinstance(episodes, int) or episodes < 1:
         raise ValueError(f"episodes must be a positive int, got {episodes!r}")
@@ -124,7 +156,7 @@ def open_loop(
     cfg = planning_config(run_cfg, planner, steps, overrides)
     generator = torch.Generator(device=dev).manual_seed(int(seed))
     agent = builder.make_agent(cfg, spec, model, dev, generator)
-    plan_with, evaluator = agent.planner, agent.evaluator
+    policy = OpenLoopPolicy(agent)
 
     env = spec.make(max_episode_steps=steps)
     rewards = np.zeros((episodes, steps))
@@ -135,21 +167,12 @@ def open_loop(
     try:
         for i in tqdm(range(episodes), desc=f"open loop {spec.name}", unit="episode", disable=not progress):
             reset_seed = episode_seeds(seed, i)[0]
-            obs, _ = env.reset(seed=reset_seed)
-            plan_with.reset()  # iCEM: no elites carried over from another episode
-            obs0 = torch.as_tensor(obs, dtype=torch.float32, device=dev)
-            with torch.no_grad():
-                plan = plan_with.plan(partial(evaluator, obs0, generator=generator), None, generator)  # (steps, act)
-                predicted.append(float(evaluator(obs0, plan[None], generator)[0]))
-            plan_np = plan.detach().cpu().numpy().astype(np.float64)
-            actions[i] = plan_np
-            for t in range(steps):
-                _, reward, term, trunc, _ = env.step(plan_np[t])
-                rewards[i, t] = float(reward)
-                lengths[i] = t + 1
-                if term or trunc:
-                    terminated[i] = bool(term)
-                    break
+            episode = run_episode(env, policy, max_steps=steps, reset_seed=reset_seed)
+            actions[i] = policy.plan
+            predicted.append(policy.predicted_return)
+            rewards[i, : len(episode)] = episode.rewards
+            lengths[i] = len(episode)
+            terminated[i] = bool(episode.terminated[-1])
             reset_seeds.append(int(reset_seed))
     finally:
         env.close()

@@ -1,0 +1,154 @@
+"""One episode in a real env: the policy protocol, the random and MPC policies, and :func:`run_episode`.
+
+Every loop that steps an env (the PETS loop's seed steps and trials, ``pets.collect``, open-loop
+replay, the benchmark's random data) is "make a policy, run episodes" with these.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import numpy as np
+
+
+class Policy(Protocol):
+    """What :func:`run_episode` drives: ``reset`` at the start of every episode, then ``act`` once per step."""
+
+    name: str
+
+    def reset(self, rng: np.random.Generator) -> None: ...
+
+    def act(self, obs: np.ndarray) -> np.ndarray: ...
+
+
+class RandomPolicy:
+    """Uniform i.i.d. actions in ``[low, high]``, drawn from the generator of the last ``reset``."""
+
+    def __init__(self, low: Any, high: Any) -> None:
+        self.low, self.high = np.asarray(low, np.float64), np.asarray(high, np.float64)
+        self.name = "random"
+        self._rng = np.random.default_rng(0)
+
+    def reset(self, rng: np.random.Generator) -> None:
+        self._rng = rng
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        return self._rng.uniform(self.low, self.high)
+
+
+class MPCPolicy:
+    """An MPC agent (``reset()``, ``act(obs)``) as a policy; ``seconds``: its planning time in this episode."""
+
+    def __init__(self, agent: Any, name: str = "mpc") -> None:
+        self.agent = agent
+        self.name = name
+        self.seconds = 0.0
+
+    def reset(self, rng: np.random.Generator) -> None:
+        self.agent.reset()
+        self.seconds = 0.0
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        t0 = time.perf_counter()
+        action = self.agent.act(obs)
+        self.seconds += time.perf_counter() - t0
+        return action
+
+
+@dataclass
+class Episode:
+    """The steps of one episode (float64 arrays, one row per step, at least one) and its summed reward.
+
+    ``truncated`` is the env's truncation, and also true on the last step when ``max_steps`` ended the episode.
+    """
+
+    obs: np.ndarray
+    act: np.ndarray
+    next_obs: np.ndarray
+    rewards: np.ndarray
+    terminated: np.ndarray
+    truncated: np.ndarray
+    total_reward: float
+
+    def __len__(self) -> int:
+        return len(self.rewards)
+
+    @property
+    def done(self) -> bool:
+        """Whether the last step ended the episode (termination, truncation or ``max_steps``)."""
+        return bool(self.terminated[-1] or self.truncated[-1])
+
+    @property
+    def states(self) -> np.ndarray:
+        """The ``len + 1`` observations: the reset's, then one after every step."""
+        return np.concatenate([self.obs[:1], self.next_obs])
+
+
+def run_episode(
+    env: Any,
+    policy: Policy,
+    *,
+    max_steps: int,
+    reset_seed: int | None = None,
+    rng: np.random.Generator | None = None,
+    on_step: Callable[[Episode], None] | None = None,
+) -> Episode:
+    """Reset ``env`` (``seed=reset_seed``), reset ``policy`` (with ``rng``; None: a fresh unseeded generator) and
+    step it until termination, truncation or ``max_steps`` steps.
+
+    Actions are ``policy.act(obs)`` as float64 arrays of the action space's shape. ``on_step(so_far)`` runs after
+    every step with the episode so far (views, valid during the call). The reward sum is taken step by step.
+    """
+    if isinstance(max_steps, bool) or not isinstance(max_steps, int) or max_steps < 1:
+        raise ValueError(f"max_steps must be a positive int, got {max_steps!r}")
+    obs, _ = env.reset(seed=reset_seed)
+    policy.reset(np.random.default_rng() if rng is None else rng)
+    act_shape, obs_shape = env.action_space.shape, np.shape(obs)
+    obs_arr = np.empty((max_steps, *obs_shape))
+    next_arr = np.empty((max_steps, *obs_shape))
+    act_arr = np.empty((max_steps, *act_shape))
+    rewards = np.empty(max_steps)
+    terminated = np.zeros(max_steps, bool)
+    truncated = np.zeros(max_steps, bool)
+    total = 0.0
+
+    def upto(n: int, copy: bool = False) -> Episode:
+        arrays = (a[:n].copy() if copy else a[:n] for a in (obs_arr, act_arr, next_arr, rewards, terminated, truncated))
+        return Episode(*arrays, total_reward=total)
+
+    for t in range(max_steps):
+        action = np.asarray(policy.act(obs), np.float64).reshape(act_shape)
+        next_obs, reward, term, trunc, _ = env.step(action)
+        obs_arr[t], act_arr[t], next_arr[t] = obs, action, next_obs
+        rewards[t] = float(reward)
+        total += float(reward)
+        terminated[t], truncated[t] = bool(term), bool(trunc) or t + 1 == max_steps
+        obs = next_obs
+        if on_step is not None:
+            on_step(upto(t + 1))
+        if term or trunc:
+            break
+    return upto(t + 1, copy=True)  # not views of the max_steps-long buffers
+
+
+def run_steps(
+    env: Any,
+    policy: Policy,
+    steps: int,
+    *,
+    max_steps: int,
+    reset_seeds: Iterable[int | None],
+    rng: np.random.Generator | None = None,
+) -> list[Episode]:
+    """Episodes of at most ``max_steps`` steps, reset with the successive ``reset_seeds``, until ``steps`` steps
+    in all (the last episode is cut short there); ``rng`` is passed to every ``policy.reset``."""
+    episodes: list[Episode] = []
+    done, seeds = 0, iter(reset_seeds)
+    while done < steps:
+        episode = run_episode(env, policy, max_steps=min(max_steps, steps - done), reset_seed=next(seeds), rng=rng)
+        episodes.append(episode)
+        done += len(episode)
+    return episodes
