@@ -1,4 +1,4 @@
-"""Probabilistic ensemble of Gaussian MLPs (the PETS dynamics model).
+"""Member networks: ensembles of Gaussian or deterministic MLPs, all members in one batched pass, with normalisers.
 
 All members are evaluated at once: every layer stores its weights stacked as an
 ``(E, in, out)`` parameter and its bias as ``(E, 1, out)``, and a layer is one

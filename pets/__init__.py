@@ -1,0 +1,1 @@
+"""PETS: the model table, training, trajectory sampling, planners, the MBRL loop, the offline tools and experiments."""

@@ -1,4 +1,4 @@
-"""Training of the Gaussian ensemble: bootstrap, holdout early stopping, per-member snapshots, elites.
+"""Training of a dynamics model: bootstrap, holdout early stopping, per-member snapshots, elites.
 
 The dynamics head decides what the network sees and predicts (``head.inputs``, ``head.targets``) and
 how a batch is scored (``head.loss``, per member); the trainer itself is head-agnostic.

@@ -10,18 +10,14 @@ from pathlib import Path
 
 import pytest
 
+from tests.tiny import TINY_MODEL, TINY_PLANNER
+
 ROOT = Path(__file__).resolve().parents[1]
 TINY = [
     "--preset",
     "fast",
-    "planner.population=16",
-    "planner.particles=2",
-    "planner.horizon=4",
-    "planner.iterations=2",
-    "model.max_epochs=2",
-    "model.hidden_size=32",
-    "model.ensemble_size=2",
-    "model.num_elites=2",
+    *TINY_PLANNER,
+    *TINY_MODEL,
     "episode_length=30",
     "seed_steps=100",
     "threads=1",

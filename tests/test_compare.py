@@ -22,16 +22,11 @@ from pets.experiments.offline import compare_offline
 from pets.experiments.report import fmt
 from pets.experiments.statistics import bootstrap_ci, iqm
 from tests.threads import one_thread
+from tests.tiny import TINY_MODEL, TINY_PLANNER
 
 TINY = [
-    "planner.population=16",
-    "planner.particles=2",
-    "planner.horizon=4",
-    "planner.iterations=2",
-    "model.max_epochs=2",
-    "model.hidden_size=32",
-    "model.ensemble_size=2",
-    "model.num_elites=2",
+    *TINY_PLANNER,
+    *TINY_MODEL,
     "episode_length=30",
     "seed_steps=100",
 ]

@@ -32,6 +32,7 @@ from pets.models import make_model
 from pets.propagation import TrajectoryEvaluator
 from pets.train import train_offline
 from pets.trainer import ModelTrainer
+from tests.tiny import TINY_PLANNER
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
@@ -428,10 +429,7 @@ def test_cli_end_to_end_delta_det_and_gem2(tmp_path, capsys):
     tiny_run = [
         "--preset",
         "fast",
-        "planner.population=16",
-        "planner.particles=2",
-        "planner.horizon=4",
-        "planner.iterations=2",
+        *TINY_PLANNER,
         "model.max_epochs=2",
         "episode_length=15",
         "seed_steps=60",

@@ -29,6 +29,8 @@ from pets.models import make_model
 from pets.propagation import TrajectoryEvaluator
 from pets.train import OFFLINE_DEFAULTS, offline_config
 from tests.threads import one_thread
+from tests.tiny import TINY_MODEL as RUN_MODEL
+from tests.tiny import TINY_PLANNER
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
@@ -36,14 +38,8 @@ TINY_MODEL = ["model.hidden_size=32", "model.ensemble_size=2", "model.num_elites
 TINY_RUN = [
     "--preset",
     "fast",
-    "planner.population=16",
-    "planner.particles=2",
-    "planner.horizon=4",
-    "planner.iterations=2",
-    "model.max_epochs=2",
-    "model.hidden_size=32",
-    "model.ensemble_size=2",
-    "model.num_elites=2",
+    *TINY_PLANNER,
+    *RUN_MODEL,
     "episode_length=15",
     "seed_steps=60",
     "--quiet",
