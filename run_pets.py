@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 from typing import NoReturn
 
-from pets.cli import OneLineParser, fail
+from pets.cli import EXIT_FAILED, OneLineParser, fail
 
 PROG = "run_pets.py"
 
@@ -48,10 +48,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    args = build_parser().parse_intermixed_args(argv)
     import envs
     from pets import loop, rundir
     from pets.config import ConfigError, load_config, make_config, parse_overrides
+    from pets.trainer import TrainingDiverged
 
     try:
         overrides = parse_overrides(args.overrides)
@@ -88,6 +89,8 @@ def main(argv: list[str] | None = None) -> int:
         rows = loop.run(cfg, Path(run_dir), resume=args.resume is not None, progress=not args.quiet)
     except ConfigError as err:
         _fail(str(err))
+    except TrainingDiverged as err:  # the trials completed before it stay in the run directory
+        fail(PROG, f"{err}; the run directory keeps the trials completed before this one", EXIT_FAILED)
     except KeyboardInterrupt:
         print(f"\ninterrupted; continue with: python run_pets.py --resume {run_dir}", file=sys.stderr)
         return 130

@@ -8,6 +8,8 @@ from typing import NoReturn
 
 #: Exit status of every command on bad input (as run_pets.py).
 EXIT_USAGE = 2
+#: Exit status of a run that failed on good input (model training diverged).
+EXIT_FAILED = 3
 
 
 class OneLineParser(argparse.ArgumentParser):
@@ -17,8 +19,8 @@ class OneLineParser(argparse.ArgumentParser):
         fail(self.prog, message)
 
 
-def fail(prog: str, message: str) -> NoReturn:
-    """Print ``PROG: error: MESSAGE`` (first line of it only) to stderr and exit with status 2."""
+def fail(prog: str, message: str, code: int = EXIT_USAGE) -> NoReturn:
+    """Print ``PROG: error: MESSAGE`` (on one line) to stderr and exit with status ``code`` (2: bad input)."""
     line = " ".join(str(message).split()) or "unknown error"
     print(f"{prog}: error: {line}", file=sys.stderr)
-    raise SystemExit(EXIT_USAGE)
+    raise SystemExit(code)

@@ -144,7 +144,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--csv", type=Path, default=None, help="also write the rows to this CSV file")
     parser.add_argument("overrides", nargs="*", help="config key=value overrides (e.g. threads=1)")
-    args = parser.parse_args(argv)
+    args = parser.parse_intermixed_args(argv)
     models = args.models.split(",")
     try:
         names = envs.names() if args.envs == "all" else [envs.get(e).name for e in args.envs.split(",")]

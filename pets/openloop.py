@@ -245,7 +245,7 @@ def build_parser() -> OneLineParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    args = build_parser().parse_intermixed_args(argv)
     if args.steps < 1:
         fail(PROG, f"--steps must be >= 1, got {args.steps}")
     if args.episodes < 1:

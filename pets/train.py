@@ -184,7 +184,7 @@ def build_parser() -> OneLineParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    args = build_parser().parse_intermixed_args(argv)
     from pets.config import HEADS
 
     if args.model not in HEADS:
@@ -218,17 +218,23 @@ def main(argv: list[str] | None = None) -> int:
         resolve_device(cfg.device)
     except (ValueError, ConfigError) as err:  # ConfigError is a ValueError; named for the reader
         fail(PROG, str(err))
-    out = train_offline(
-        args.data,
-        args.model,
-        args.out,
-        overrides,
-        preset=args.preset,
-        seed=args.seed,
-        device=args.device,
-        epochs=args.epochs,
-        progress=not args.quiet,
-    )
+    from pets.cli import EXIT_FAILED
+    from pets.trainer import TrainingDiverged
+
+    try:
+        out = train_offline(
+            args.data,
+            args.model,
+            args.out,
+            overrides,
+            preset=args.preset,
+            seed=args.seed,
+            device=args.device,
+            epochs=args.epochs,
+            progress=not args.quiet,
+        )
+    except TrainingDiverged as err:  # nothing was written: train_offline writes the run only after training
+        fail(PROG, f"{err}; no run directory was written", EXIT_FAILED)
     from pets import rundir
 
     row = rundir.read_metrics(out / rundir.METRICS_FILE)[0]

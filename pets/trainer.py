@@ -30,6 +30,10 @@ from dynamics.model import DynamicsModel
 from dynamics.networks import column_mean_std
 
 
+class TrainingDiverged(RuntimeError):
+    """Training made the model non-finite (a NaN/inf loss or parameter): it must not be used for planning."""
+
+
 @dataclass
 class TrainResult:
     """Outcome of one ``ModelTrainer.train`` call."""
@@ -172,6 +176,17 @@ class ModelTrainer:
             if not torch.isfinite(t).all():
                 raise ValueError(f"train got non-finite values (nan/inf) in {name}")
 
+    def _check_finite(self, train_loss: float, epoch: int) -> None:
+        """TrainingDiverged unless the epoch's loss and every parameter (log-variance bounds included) are finite."""
+        bad = [name for name, p in self.model.named_parameters() if not bool(torch.isfinite(p).all())]
+        if math.isfinite(train_loss) and not bad:
+            return
+        what = f"parameters {', '.join(bad[:3])}{' ...' if len(bad) > 3 else ''}" if bad else "the loss"
+        raise TrainingDiverged(
+            f"model training diverged in epoch {epoch}: {what} became non-finite (train loss {train_loss:.4g}); "
+            f"lower model.lr (now {self.lr:g}) or check the data for extreme values"
+        )
+
     def train(
         self, obs: Tensor, act: Tensor, next_obs: Tensor, generator: torch.Generator, progress: bool = False
     ) -> TrainResult:
@@ -224,6 +239,7 @@ class ModelTrainer:
                 loss_sum = loss_sum + member_loss.detach().mean() * idx.shape[1]
             epochs += 1
             train_loss = float(loss_sum) / n_tr
+            self._check_finite(train_loss, epochs)
 
             if not has_holdout:
                 bar.set_postfix(loss=f"{train_loss:.4g}")

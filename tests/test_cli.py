@@ -148,3 +148,34 @@ def test_online_training_selects_a_trained_model(tmp_path, env):
         # training starts from the previous model (the seed data's, for trial 0) and improves on it; the
         # untrained network scores about 1 on this criterion (pets.onestep), "no change" too
         assert float(row["model_val_loss"]) < min(0.8, float(row["model_val_loss_initial"])), row
+
+
+@pytest.mark.parametrize("holdout", ["0.1", "0"])
+def test_diverging_training_stops_the_run_with_one_line(tmp_path, holdout):
+    """Issue 17 item 1: a NaN model is never planned with; the run stops with exit 3 and says why."""
+    out = tmp_path / "run"
+    proc = cli(
+        "--env",
+        "reacher",
+        "--model",
+        "gem",
+        "--out",
+        out,
+        *TINY,
+        "model.lr=1000",
+        f"model.holdout_ratio={holdout}",
+        check=False,
+    )
+    lines = [line for line in proc.stderr.splitlines() if line.strip() and not line.startswith("run directory:")]
+    assert proc.returncode == 3, proc.stderr
+    assert (
+        len(lines) == 1 and "model training diverged in epoch" in lines[0] and "lower model.lr (now 1000)" in lines[0]
+    )
+    assert not (out / "checkpoint.pt").exists()  # nothing trained on a NaN model was saved
+
+
+def test_overrides_are_accepted_anywhere_on_the_command_line():
+    """Issue 17 item 5: key=value after an option used to be 'unrecognized arguments'."""
+    proc = cli("--env", "reacher", "threads=1", "--preset", "fast", "planner.population=50", "--trials", 0, check=False)
+    assert proc.returncode == 2 and "trials must be >= 1, got 0" in proc.stderr  # parsed through to the config check
+    assert "unrecognized arguments" not in proc.stderr

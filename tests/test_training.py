@@ -251,3 +251,17 @@ def test_bad_arguments_raise() -> None:
         trainer.train(torch.zeros(10, 1), torch.zeros(9, 0), torch.zeros(10, 1), g)
     with pytest.raises(ValueError, match="non-finite"):
         trainer.train(torch.full((10, 1), float("nan")), torch.zeros(10, 0), torch.zeros(10, 1), g)
+
+
+def test_a_diverging_optimiser_raises_instead_of_returning_a_nan_model() -> None:
+    from pets.trainer import TrainingDiverged
+
+    x, act, y, _ = sine_data(200, seed=1)
+    for holdout_ratio in (0.1, 0.0):
+        trainer = ModelTrainer(
+            DynamicsModel(DeltaHead(LAYOUT_1D, 0), small_ensemble()), lr=1e6, max_epochs=20, holdout_ratio=holdout_ratio
+        )
+        with pytest.raises(
+            TrainingDiverged, match=r"diverged in epoch \d+: .*non-finite.*lower model.lr \(now 1e\+06\)"
+        ):
+            trainer.train(x, act, x + y, torch.Generator().manual_seed(0))
