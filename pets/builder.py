@@ -99,6 +99,6 @@ def load_model(run_dir: str | Path, device: str | torch.device = "cpu") -> tuple
 
     spec = envs.get(cfg.env)
     model = make_model(cfg, spec, torch.device(device))
-    model.load_state_dict(rundir.model_state(state))
+    rundir.load_model_state(model, state)
     model.eval()
     return cfg, spec, model

@@ -81,7 +81,7 @@ class PETSRun:
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.trials_done, self.env_steps = state["trials_done"], state["env_steps"]
         self.wall_time_s, self.rows = state["wall_time_s"], state["rows"]
-        self.model.load_state_dict(rundir.model_state(state))
+        rundir.load_model_state(self.model, state)
         self.trainer.load_state_dict(state["trainer"])
         self.buffer.load_state_dict(state["buffer"])
         self.train_gen.set_state(state["train_gen"])
@@ -181,7 +181,13 @@ def run(cfg: DictConfig, run_dir: Path, resume: bool = False, progress: bool = T
         if state is not None and "offline" in state:
             raise ConfigError(f"{run_dir} is an offline training run (pets.train); it cannot be resumed online")
         if state is not None:
-            pets_run.load_state_dict(state)
+            try:
+                pets_run.load_state_dict(state)
+            except (KeyError, TypeError) as err:  # a readable file that is not a whole run's state
+                raise ConfigError(
+                    f"{run_dir / rundir.CHECKPOINT_FILE} is not a complete run checkpoint (missing {err}); "
+                    "restore it from a copy, or delete it to start the run over"
+                ) from None
         rundir.write_metrics(run_dir, pets_run.rows)  # the checkpoint is the source of truth for the rows
     else:
         rundir.write_config(run_dir, cfg)

@@ -64,20 +64,36 @@ def save_checkpoint(run_dir: Path, state: dict[str, Any]) -> None:
 
 
 def load_checkpoint(run_dir: Path) -> dict[str, Any] | None:
+    """The checkpoint's state (None when there is none yet); ConfigError for a file torch cannot read."""
     path = run_dir / CHECKPOINT_FILE
     if not path.exists():
         return None
-    return torch.load(path, map_location="cpu", weights_only=False)
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as err:  # truncated (full disk), empty or foreign file: pickle, zip and torch errors alike
+        reason = " ".join(str(err).split())[:200]
+        raise ConfigError(
+            f"{path} is not a readable checkpoint ({type(err).__name__}: {reason}); "
+            "restore it from a copy, or delete it to start the run over"
+        ) from None
+    if not isinstance(state, dict):
+        raise ConfigError(f"{path} is not a checkpoint of this program (it holds a {type(state).__name__})")
+    return state
 
 
-def model_state(state: dict[str, Any]) -> dict[str, Any]:
-    """The model's ``state_dict`` in a checkpoint; ValueError for checkpoints of an older format."""
+def load_model_state(model: torch.nn.Module, state: dict[str, Any]) -> None:
+    """Load a checkpoint's model weights into ``model``; ConfigError for an older format or a model that does not
+    match (a config.yaml edited after the run started)."""
     if "model" not in state:
         raise ConfigError(
             "this checkpoint was written by an older gem-pets (< 0.2, before models standardised their targets): "
             "train the model again"
         )
-    return state["model"]
+    try:
+        model.load_state_dict(state["model"])
+    except (RuntimeError, ValueError) as err:
+        first = " ".join(str(err).split())[:300]
+        raise ConfigError(f"the checkpoint's model does not match config.yaml (was it edited?): {first}") from None
 
 
 def plot_rewards(run_dir: Path, rows: list[dict[str, Any]], title: str) -> None:

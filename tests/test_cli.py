@@ -179,3 +179,35 @@ def test_overrides_are_accepted_anywhere_on_the_command_line():
     proc = cli("--env", "reacher", "threads=1", "--preset", "fast", "planner.population=50", "--trials", 0, check=False)
     assert proc.returncode == 2 and "trials must be >= 1, got 0" in proc.stderr  # parsed through to the config check
     assert "unrecognized arguments" not in proc.stderr
+
+
+def test_corrupt_or_mismatched_checkpoint_is_one_line_on_resume(tmp_path):
+    """Issue 17 item 3: a truncated, random, empty or foreign checkpoint, or a config.yaml edited after the run
+    started, is one line with exit 2 on --resume (was a 21-line traceback)."""
+    import shutil
+
+    import torch
+
+    ref = tmp_path / "ref"
+    cli("--env", "invertedpendulum", "--trials", 1, "--seed", 2, "--out", ref, *TINY)
+    good = (ref / "checkpoint.pt").read_bytes()
+    cases = {
+        "truncated": (good[: len(good) // 2], "is not a readable checkpoint"),
+        "random": (bytes(range(256)) * 40, "is not a readable checkpoint"),
+        "empty": (b"", "is not a readable checkpoint"),
+        "foreign": (None, "is not a complete run checkpoint"),
+        "edited-config": (good, "does not match config.yaml"),
+    }
+    for name, (content, fragment) in cases.items():
+        run = tmp_path / name
+        shutil.copytree(ref, run)
+        if name == "foreign":
+            torch.save({"weights": torch.zeros(3)}, run / "checkpoint.pt")
+        else:
+            (run / "checkpoint.pt").write_bytes(content)
+        if name == "edited-config":
+            text = (run / "config.yaml").read_text()
+            (run / "config.yaml").write_text(text.replace("hidden_size: 32", "hidden_size: 48"))
+        proc = cli("--resume", run, "--trials", 2, check=False)
+        lines = [line for line in proc.stderr.splitlines() if line.strip() and not line.startswith("run directory:")]
+        assert proc.returncode == 2 and len(lines) == 1 and fragment in lines[0], (name, proc.stderr)
