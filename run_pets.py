@@ -52,6 +52,7 @@ def main(argv: list[str] | None = None) -> int:
     import envs
     from pets import loop, rundir
     from pets.config import ConfigError, load_config, make_config, parse_overrides
+    from pets.fileio import DirectoryInUse
     from pets.trainer import TrainingDiverged
 
     try:
@@ -89,6 +90,8 @@ def main(argv: list[str] | None = None) -> int:
         rows = loop.run(cfg, Path(run_dir), resume=args.resume is not None, progress=not args.quiet)
     except ConfigError as err:
         _fail(str(err))
+    except DirectoryInUse as err:
+        _fail(f"{err}; wait for it to finish, or pick another --out")
     except TrainingDiverged as err:  # the trials completed before it stay in the run directory
         fail(PROG, f"{err}; the run directory keeps the trials completed before this one", EXIT_FAILED)
     except KeyboardInterrupt:

@@ -23,6 +23,7 @@ import envs
 from pets import builder, rundir
 from pets.buffer import ReplayBuffer
 from pets.config import ConfigError
+from pets.fileio import locked
 from pets.models import make_model
 from pets.rollout import Episode, MPCPolicy, RandomPolicy, run_episode, run_steps
 from pets.trainer import TrainResult
@@ -174,7 +175,15 @@ class PETSRun:
 
 def run(cfg: DictConfig, run_dir: Path, resume: bool = False, progress: bool = True) -> list[dict[str, Any]]:
     """Run (or continue) the PETS loop in ``run_dir`` until ``cfg.trials`` trials are done."""
-    run_dir.mkdir(parents=True, exist_ok=True)
+    with locked(run_dir):  # one process per run directory; DirectoryInUse for a second one
+        if not resume and (run_dir / rundir.CONFIG_FILE).exists():
+            raise ConfigError(
+                f"{run_dir} already holds a run; continue it with --resume {run_dir} or pick another --out"
+            )
+        return _run_locked(cfg, run_dir, resume, progress)
+
+
+def _run_locked(cfg: DictConfig, run_dir: Path, resume: bool, progress: bool) -> list[dict[str, Any]]:
     pets_run = PETSRun(cfg)
     if resume:
         state = rundir.load_checkpoint(run_dir)

@@ -211,3 +211,25 @@ def test_corrupt_or_mismatched_checkpoint_is_one_line_on_resume(tmp_path):
         proc = cli("--resume", run, "--trials", 2, check=False)
         lines = [line for line in proc.stderr.splitlines() if line.strip() and not line.startswith("run directory:")]
         assert proc.returncode == 2 and len(lines) == 1 and fragment in lines[0], (name, proc.stderr)
+
+
+def test_a_second_run_on_the_same_directory_is_refused_and_the_first_is_intact(tmp_path):
+    """Issue 17 item 2: two runs with one --out used to both exit 0, one run's results silently lost."""
+    out = tmp_path / "run"
+    args = [sys.executable, str(ROOT / "run_pets.py"), "--env", "invertedpendulum", "--trials", 40, "--seed", 4]
+    first = subprocess.Popen([*map(str, args), "--out", str(out), *TINY], cwd=ROOT, stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 120
+    while not (out / "config.yaml").exists() and time.time() < deadline and first.poll() is None:
+        time.sleep(0.05)
+    for second_args in (["--out", out], ["--resume", out]):
+        proc = (
+            cli(*args[2:], *second_args, *TINY, check=False)
+            if second_args[0] == "--out"
+            else cli("--resume", out, check=False)
+        )
+        lines = [line for line in proc.stderr.splitlines() if line.strip() and not line.startswith("run directory:")]
+        assert proc.returncode == 2 and len(lines) == 1, proc.stderr
+        assert "in use by another run" in lines[0] or "already holds a run" in lines[0], lines[0]
+    assert first.wait(timeout=300) == 0, first.stderr.read()
+    assert [int(r["trial"]) for r in rows(out)] == list(range(40))
+    assert not list(out.glob(".*.tmp"))  # no temporary file left behind

@@ -107,8 +107,9 @@ def test_online_failed_run_is_reported_and_the_others_go_on(online):
     assert first["code"] == EXIT_FAILED
     rows = list(csv.DictReader(first["summary"].splitlines()))
     assert len(rows) == 1 and rows[0]["model"] == "delta" and rows[0]["n_seeds"] == "1"
-    assert "invertedpendulum-delta-s9 (0/1 trials; failed: RuntimeError: exit 1" in first["md"]
-    assert "Traceback" in (out / "logs" / "invertedpendulum-delta-s9.log").read_text()
+    assert "invertedpendulum-delta-s9 (0/1 trials; failed: RuntimeError: exit 2" in first["md"]
+    log = (out / "logs" / "invertedpendulum-delta-s9.log").read_text()
+    assert "checkpoint.pt is not a readable checkpoint" in log and "Traceback" not in log  # one line (issue 17)
 
 
 def test_online_incomplete_run_is_resumed_not_restarted(online):
