@@ -52,7 +52,7 @@ def main(argv: list[str] | None = None) -> int:
     import envs
     from pets import loop, rundir
     from pets.config import ConfigError, load_config, make_config, parse_overrides
-    from pets.fileio import DirectoryInUse
+    from pets.fileio import DirectoryInUse, writable_dir_error
     from pets.trainer import TrainingDiverged
 
     try:
@@ -85,11 +85,21 @@ def main(argv: list[str] | None = None) -> int:
                 _fail(f"{run_dir} already holds a run; continue it with --resume {run_dir} or pick another --out")
     except ConfigError as err:
         _fail(str(err))
+    problem = writable_dir_error(Path(run_dir))
+    if problem:
+        _fail(f"{problem}; pick another --out")
     print(f"run directory: {run_dir}", file=sys.stderr)
     try:
         rows = loop.run(cfg, Path(run_dir), resume=args.resume is not None, progress=not args.quiet)
     except ConfigError as err:
         _fail(str(err))
+    except OSError as err:  # a write failed during the run (a full disk): the completed trials are kept
+        fail(
+            PROG,
+            f"writing {err.filename or run_dir} failed ({err.strerror or err}); the trials completed before it are "
+            f"kept: free space, then continue with --resume {run_dir}",
+            EXIT_FAILED,
+        )
     except DirectoryInUse as err:
         _fail(f"{err}; wait for it to finish, or pick another --out")
     except TrainingDiverged as err:  # the trials completed before it stay in the run directory

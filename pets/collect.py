@@ -36,6 +36,7 @@ import numpy as np
 
 from pets.cli import OneLineParser, fail
 from pets.datasets import save_dataset
+from pets.fileio import writable_dir_error
 from pets.rollout import MPCPolicy, Policy, RandomPolicy, run_episode
 
 if TYPE_CHECKING:
@@ -247,6 +248,9 @@ def main(argv: list[str] | None = None) -> int:
         fail(PROG, "--env is required (except with --policy run:RUN_DIR, which uses the run's env)")
     if args.out.is_dir():
         fail(PROG, f"--out {args.out} is a directory; give a file name such as data.npz")
+    problem = writable_dir_error(args.out.parent)  # before collecting, not after
+    if problem:
+        fail(PROG, f"cannot write --out {args.out}: {problem}")
 
     from omegaconf.errors import OmegaConfBaseException
 

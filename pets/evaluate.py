@@ -43,7 +43,7 @@ import numpy as np
 
 from pets.cli import OneLineParser, fail
 from pets.datasets import env_name, load_dataset
-from pets.fileio import atomic_write_bytes
+from pets.fileio import atomic_write_bytes, writable_dir_error
 
 if TYPE_CHECKING:
     from torch import Tensor
@@ -297,6 +297,9 @@ def main(argv: list[str] | None = None) -> int:
         fail(PROG, f"{args.run} is not a run directory (no config.yaml)")
     if not args.data.is_file():
         fail(PROG, f"data file {args.data} does not exist")
+    problem = None if args.json is None else writable_dir_error(args.json.parent)
+    if problem:
+        fail(PROG, f"cannot write --json {args.json}: {problem}")
 
     from omegaconf.errors import OmegaConfBaseException
 

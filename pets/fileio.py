@@ -29,6 +29,19 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
         raise
 
 
+def writable_dir_error(directory: Path) -> str | None:
+    """Why files cannot be written in ``directory`` (created if needed), or None if they can: checked by creating
+    and removing a temporary file, before any long work starts."""
+    try:
+        Path(directory).mkdir(parents=True, exist_ok=True)
+        fd, probe = tempfile.mkstemp(dir=directory, prefix=".probe.")
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as err:
+        return f"{directory} is not a writable directory ({err.strerror or err})"
+    return None
+
+
 class DirectoryInUse(RuntimeError):
     """Another process holds the lock of a run directory."""
 

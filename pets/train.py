@@ -43,6 +43,7 @@ import numpy as np
 
 from pets.cli import OneLineParser, fail
 from pets.datasets import check_dataset, env_name, load_dataset, transitions
+from pets.fileio import writable_dir_error
 
 PROG = "pets.train"
 #: Offline defaults, applied before the user's overrides (see the module docstring).
@@ -220,6 +221,10 @@ def main(argv: list[str] | None = None) -> int:
         fail(PROG, str(err))
     from pets.cli import EXIT_FAILED
     from pets.trainer import TrainingDiverged
+
+    problem = writable_dir_error(args.out)  # before training, not after
+    if problem:
+        fail(PROG, f"{problem}; pick another --out")
 
     try:
         out = train_offline(

@@ -233,3 +233,48 @@ def test_a_second_run_on_the_same_directory_is_refused_and_the_first_is_intact(t
     assert first.wait(timeout=300) == 0, first.stderr.read()
     assert [int(r["trial"]) for r in rows(out)] == list(range(40))
     assert not list(out.glob(".*.tmp"))  # no temporary file left behind
+
+
+def test_unwritable_output_locations_are_one_line_before_any_work(tmp_path):
+    """Issue 17 item 4: an existing file in place of a directory, or a path under /proc, is refused up front."""
+    a_file = tmp_path / "a_file"
+    a_file.write_text("x")
+    commands = [
+        [str(ROOT / "run_pets.py"), "--env", "reacher", "--out", a_file / "run"],
+        [str(ROOT / "run_pets.py"), "--env", "reacher", "--out", "/proc/gem-pets-test"],
+        ["-m", "pets.collect", "--env", "reacher", "--policy", "random", "--episodes", 1, "--out", a_file / "d.npz"],
+    ]
+    for args in commands:
+        proc = subprocess.run([sys.executable, *map(str, args)], cwd=ROOT, capture_output=True, text=True, timeout=120)
+        lines = [line for line in proc.stderr.splitlines() if line.strip()]
+        assert proc.returncode == 2 and len(lines) == 1 and "not a writable directory" in lines[0], proc.stderr
+
+
+def test_a_full_disk_during_a_run_is_one_line_and_keeps_the_completed_trials(tmp_path, monkeypatch, capsys):
+    """Issue 17 item 4: ENOSPC while writing trial 1's checkpoint -> exit 3, one line; trial 0 survives and
+    --resume finishes the run."""
+    import errno
+
+    import run_pets
+    from pets import rundir
+
+    out = tmp_path / "run"
+    real_write = rundir.atomic_write_bytes
+    calls = {"checkpoints": 0}
+
+    def full_disk(path, data):
+        if path.name == "checkpoint.pt":
+            calls["checkpoints"] += 1
+            if calls["checkpoints"] == 2:
+                raise OSError(errno.ENOSPC, "No space left on device", str(path))
+        real_write(path, data)
+
+    monkeypatch.setattr(rundir, "atomic_write_bytes", full_disk)
+    with pytest.raises(SystemExit) as exc:
+        run_pets.main(["--env", "invertedpendulum", "--trials", "2", "--out", str(out), *TINY])
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip() and "run directory:" not in line]
+    assert exc.value.code == 3 and len(err) == 1 and "No space left on device" in err[0] and "--resume" in err[0]
+    assert [int(r["trial"]) for r in rows(out)] == [0]
+    monkeypatch.setattr(rundir, "atomic_write_bytes", real_write)
+    cli("--resume", out)
+    assert [int(r["trial"]) for r in rows(out)] == [0, 1]
