@@ -38,6 +38,11 @@ def cli(*args, check=True, timeout=300):
     return proc
 
 
+def error_lines(stderr: str) -> list[str]:
+    """The non-empty stderr lines besides the 'run directory:' notice (an error must be exactly one)."""
+    return [line for line in stderr.splitlines() if line.strip() and not line.startswith("run directory:")]
+
+
 def rows(run_dir):
     with open(run_dir / "metrics.csv", newline="") as f:
         return list(csv.DictReader(f))
@@ -122,7 +127,7 @@ def test_resume_can_extend_a_finished_run(tmp_path):
 def test_bad_input_exits_2_with_one_line(args, fragment):
     proc = cli(*args, check=False, timeout=60)
     assert proc.returncode == 2
-    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    lines = error_lines(proc.stderr)
     assert len(lines) == 1, proc.stderr
     assert fragment in lines[0]
 
@@ -166,7 +171,7 @@ def test_diverging_training_stops_the_run_with_one_line(tmp_path, holdout):
         f"model.holdout_ratio={holdout}",
         check=False,
     )
-    lines = [line for line in proc.stderr.splitlines() if line.strip() and not line.startswith("run directory:")]
+    lines = error_lines(proc.stderr)
     assert proc.returncode == 3, proc.stderr
     assert (
         len(lines) == 1 and "model training diverged in epoch" in lines[0] and "lower model.lr (now 1000)" in lines[0]
@@ -209,7 +214,7 @@ def test_corrupt_or_mismatched_checkpoint_is_one_line_on_resume(tmp_path):
             text = (run / "config.yaml").read_text()
             (run / "config.yaml").write_text(text.replace("hidden_size: 32", "hidden_size: 48"))
         proc = cli("--resume", run, "--trials", 2, check=False)
-        lines = [line for line in proc.stderr.splitlines() if line.strip() and not line.startswith("run directory:")]
+        lines = error_lines(proc.stderr)
         assert proc.returncode == 2 and len(lines) == 1 and fragment in lines[0], (name, proc.stderr)
 
 
@@ -227,7 +232,7 @@ def test_a_second_run_on_the_same_directory_is_refused_and_the_first_is_intact(t
             if second_args[0] == "--out"
             else cli("--resume", out, check=False)
         )
-        lines = [line for line in proc.stderr.splitlines() if line.strip() and not line.startswith("run directory:")]
+        lines = error_lines(proc.stderr)
         assert proc.returncode == 2 and len(lines) == 1, proc.stderr
         assert "in use by another run" in lines[0] or "already holds a run" in lines[0], lines[0]
     assert first.wait(timeout=300) == 0, first.stderr.read()
@@ -246,7 +251,7 @@ def test_unwritable_output_locations_are_one_line_before_any_work(tmp_path):
     ]
     for args in commands:
         proc = subprocess.run([sys.executable, *map(str, args)], cwd=ROOT, capture_output=True, text=True, timeout=120)
-        lines = [line for line in proc.stderr.splitlines() if line.strip()]
+        lines = error_lines(proc.stderr)
         assert proc.returncode == 2 and len(lines) == 1 and "not a writable directory" in lines[0], proc.stderr
 
 
@@ -272,7 +277,7 @@ def test_a_full_disk_during_a_run_is_one_line_and_keeps_the_completed_trials(tmp
     monkeypatch.setattr(rundir, "atomic_write_bytes", full_disk)
     with pytest.raises(SystemExit) as exc:
         run_pets.main(["--env", "invertedpendulum", "--trials", "2", "--out", str(out), *TINY])
-    err = [line for line in capsys.readouterr().err.splitlines() if line.strip() and "run directory:" not in line]
+    err = error_lines(capsys.readouterr().err)
     assert exc.value.code == 3 and len(err) == 1 and "No space left on device" in err[0] and "--resume" in err[0]
     assert [int(r["trial"]) for r in rows(out)] == [0]
     monkeypatch.setattr(rundir, "atomic_write_bytes", real_write)
