@@ -71,6 +71,8 @@ def load_dataset(path: str | Path) -> dict[str, np.ndarray]:
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"data file {path} does not exist")
+    if not zipfile.is_zipfile(path):  # numpy would call any other file "pickled (object) data"
+        raise ValueError(f"{path} is not an .npz archive; data sets are written by pets.collect")
     try:
         with np.load(path, allow_pickle=False) as z:
             data = {k: z[k] for k in z.files}

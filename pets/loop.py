@@ -185,6 +185,7 @@ def run(cfg: DictConfig, run_dir: Path, resume: bool = False, progress: bool = T
 
 def _run_locked(cfg: DictConfig, run_dir: Path, resume: bool, progress: bool) -> list[dict[str, Any]]:
     pets_run = PETSRun(cfg)
+    title = f"{cfg.env} / {cfg.head} / seed {cfg.seed}"
     if resume:
         state = rundir.load_checkpoint(run_dir)
         if state is not None and "offline" in state:
@@ -198,9 +199,10 @@ def _run_locked(cfg: DictConfig, run_dir: Path, resume: bool, progress: bool) ->
                     "restore it from a copy, or delete it to start the run over"
                 ) from None
         rundir.write_metrics(run_dir, pets_run.rows)  # the checkpoint is the source of truth for the rows
+        if pets_run.rows:  # a run killed right after its checkpoint, or resumed when finished, gets its plot
+            rundir.plot_rewards(run_dir, pets_run.rows, title)
     else:
         rundir.write_config(run_dir, cfg)
-    title = f"{cfg.env} / {cfg.head} / seed {cfg.seed}"
     bar = tqdm(
         total=cfg.trials, initial=pets_run.trials_done, desc=f"{cfg.env}-{cfg.head}", unit="trial", disable=not progress
     )

@@ -283,3 +283,26 @@ def test_a_full_disk_during_a_run_is_one_line_and_keeps_the_completed_trials(tmp
     monkeypatch.setattr(rundir, "atomic_write_bytes", real_write)
     cli("--resume", out)
     assert [int(r["trial"]) for r in rows(out)] == [0, 1]
+
+
+def test_resume_of_a_finished_run_regenerates_its_missing_artefacts(tmp_path):
+    """Issue 17 item 6: a run killed right after its last checkpoint never got rewards.png, and --resume of a
+    finished run printed done without regenerating it."""
+    out = tmp_path / "run"
+    cli("--env", "invertedpendulum", "--trials", 1, "--seed", 6, "--out", out, *TINY)
+    (out / "rewards.png").unlink()
+    (out / "metrics.csv").unlink()
+    proc = cli("--resume", out)
+    assert "done: 1 trials" in proc.stdout
+    assert (out / "rewards.png").stat().st_size > 0 and [int(r["trial"]) for r in rows(out)] == [0]
+
+
+def test_a_file_that_is_not_an_npz_archive_is_named_as_such(tmp_path):
+    """Issue 17 item 6: numpy calls any non-zip file 'pickled (object) data'."""
+    from pets.datasets import load_dataset
+
+    for content in (b"hello\n", bytes(range(256))):
+        path = tmp_path / "data.npz"
+        path.write_bytes(content)
+        with pytest.raises(ValueError, match=r"is not an \.npz archive; data sets are written by pets\.collect"):
+            load_dataset(path)

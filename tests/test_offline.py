@@ -503,7 +503,7 @@ def test_bad_data_and_mismatched_env_exit_2(work, delta_run, ip_data):
     broken = work / "broken.npz"
     broken.write_bytes(b"not a zip file")
     cases = [
-        ("pets.train", ["--data", broken, "--model", "delta", "--out", work / "never"], "not a readable"),
+        ("pets.train", ["--data", broken, "--model", "delta", "--out", work / "never"], "is not an .npz archive"),
         (
             "pets.train",
             ["--data", ip_data, "--model", "delta", "--out", work / "never", "model.sizes=3"],
