@@ -13,12 +13,23 @@ from pathlib import Path
 LOCK_FILE = ".lock"
 
 
+def _file_mode() -> int:
+    """The mode ``open()`` gives a new file: 0o666 less the process umask."""
+    umask = os.umask(0)
+    os.umask(umask)
+    return 0o666 & ~umask
+
+
+_FILE_MODE = _file_mode()
+
+
 def atomic_write_bytes(path: Path, data: bytes) -> None:
     """Write ``data`` to ``path`` through a uniquely named temporary file in the same directory and ``os.replace``;
     the temporary file is removed if the write fails (a full disk leaves nothing behind)."""
     path = Path(path)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
+        os.fchmod(fd, _FILE_MODE)  # mkstemp makes 0600 files; results are as readable as any file written here
         with os.fdopen(fd, "wb") as f:
             f.write(data)
             f.flush()

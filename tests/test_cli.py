@@ -306,3 +306,12 @@ def test_a_file_that_is_not_an_npz_archive_is_named_as_such(tmp_path):
         path.write_bytes(content)
         with pytest.raises(ValueError, match=r"is not an \.npz archive; data sets are written by pets\.collect"):
             load_dataset(path)
+
+
+def test_atomic_writes_keep_the_usual_file_mode(tmp_path):
+    """Atomic writes go through mkstemp (0600); the result must be as readable as a file written with open()."""
+    from pets.fileio import atomic_write_bytes
+
+    atomic_write_bytes(tmp_path / "a.txt", b"x")
+    (tmp_path / "b.txt").write_bytes(b"x")
+    assert (tmp_path / "a.txt").stat().st_mode == (tmp_path / "b.txt").stat().st_mode
