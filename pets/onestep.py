@@ -12,9 +12,9 @@ transition the one-step prediction (mean over the elites, as ``pets.evaluate --m
   (next observation = current one),
 
 is scored by two errors: ``std``: mean over the predicted observation entries of the squared error divided by
-the variance of ``next_obs - obs`` on the train data (the trainer's holdout criterion, computed here from public
-APIs only); ``l2``: the Euclidean step error of ``pets.evaluate`` (groups compared on the group). ``val_initial``
-and ``val_final`` are the trainer's holdout criterion before and after training.
+the variance of ``next_obs - obs`` on the train data (the trainer's holdout criterion, ``obs_change_scale``,
+on the mean prediction of the elites); ``l2``: the Euclidean step error of ``pets.evaluate`` (groups compared on
+the group). ``val_initial`` and ``val_final`` are the trainer's holdout criterion before and after training.
 """
 
 from __future__ import annotations
@@ -69,12 +69,12 @@ def one_step_check(
     import torch
 
     import envs
-    from dynamics.networks import column_mean_std
     from pets import builder
     from pets.collect import collect
     from pets.datasets import transitions
     from pets.models import make_model
     from pets.train import offline_config
+    from pets.trainer import obs_change_scale
 
     spec = envs.get(env)
     train = [
@@ -86,7 +86,7 @@ def one_step_check(
         for a in transitions(collect(spec, HELDOUT_POLICY, episodes, seed=seed + 1, max_steps=max_steps))
     ]
     predicted = list(spec.layout.predicted_indices)
-    scale = column_mean_std(train[2][:, predicted] - train[0][:, predicted])[1].float()
+    scale = obs_change_scale(train[0], train[2], torch.tensor(predicted))  # the trainer's holdout units
     obs, act, next_obs = held
     nochange = _errors(obs, obs, next_obs, scale, predicted, spec.layout)
     rows = []

@@ -30,6 +30,13 @@ from dynamics.model import DynamicsModel
 from dynamics.networks import column_mean_std
 
 
+def obs_change_scale(obs: Tensor, next_obs: Tensor, indices: Tensor) -> Tensor:
+    """The units of the holdout error: the std of ``next_obs - obs`` per observation entry in ``indices``
+    (a std < 1e-5 counts as 1)."""
+    idx = indices.to(obs.device)
+    return column_mean_std(next_obs.index_select(-1, idx) - obs.index_select(-1, idx))[1].to(obs)
+
+
 class TrainingDiverged(RuntimeError):
     """Training made the model non-finite (a NaN/inf loss or parameter): it must not be used for planning."""
 
@@ -142,8 +149,7 @@ class ModelTrainer:
     # ------------------------------------------------------------------ evaluation
     def fit_error_scale(self, obs: Tensor, next_obs: Tensor) -> None:
         """Set :attr:`error_scale` from transitions: the std of ``next_obs - obs`` per predicted entry (< 1e-5 -> 1)."""
-        idx = self._predicted.to(obs.device)
-        self.error_scale = column_mean_std(next_obs.index_select(-1, idx) - obs.index_select(-1, idx))[1].to(obs)
+        self.error_scale = obs_change_scale(obs, next_obs, self._predicted)
 
     @torch.no_grad()
     def evaluate(self, x: Tensor, obs: Tensor, next_obs: Tensor) -> Tensor:
