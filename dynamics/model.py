@@ -82,12 +82,6 @@ class DynamicsModel(nn.Module):
         the members or (M, B, in)); M is ``ensemble_size`` or ``len(members)``."""
         return self.network(x, members)
 
-    @torch.no_grad()
-    def predict(self, obs: Tensor, act: Tensor, members: Tensor | None = None) -> Tensor:
-        """Next observations (M, B, obs_dim) from each member's mean target (no sampling)."""
-        mean, _ = self.network(self.inputs(obs, act), members)
-        return self.next_obs(obs, mean)
-
     #: Open-loop rollout modes of :meth:`rollout`.
     ROLLOUT_MODES = ("mean", "sample")
 
