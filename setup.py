@@ -27,11 +27,15 @@ setup(
         "tqdm>=4.60",
         # Reward curves and the experiment plots.
         "matplotlib>=3.7",
+        # A/B statistics (IQM, stratified-bootstrap CIs, probability of improvement): Agarwal et al.'s own library.
+        "rliable>=1.2",
     ],
     extras_require={
         # Tests: property-based tests (hypothesis) and scipy as an independent rotation reference.
         # ruff pinned: .ci/run checks lint and format, and the format can change between releases.
-        "dev": ["pytest>=7", "hypothesis>=6", "scipy>=1.10", "ruff==0.17.6"],
+        # SAC data like the GEM paper's (pets.collect --policy sac:STEPS / sb3:AGENT.zip): stable-baselines3.
+        "sac": ["stable-baselines3>=2.3"],
+        "dev": ["pytest>=7", "hypothesis>=6", "scipy>=1.10", "ruff==0.17.6", "stable-baselines3>=2.3"],
     },
     # Every command also runs as ``python -m MODULE`` (``python run_pets.py`` for run-pets).
     entry_points={

@@ -1,7 +1,10 @@
 """Collect trajectories from a catalogue env into an ``.npz`` data set (format: :mod:`pets.datasets`).
 
-    python -m pets.collect --env ENV --policy random|smooth-random[:BETA]|run:RUN_DIR
-                           [--episodes N] [--seed S] [--max-steps T] [--device D] [--quiet] --out FILE.npz
+    python -m pets.collect --env ENV --policy random|smooth-random[:BETA]|run:RUN_DIR|sb3:AGENT.zip
+                           [--episodes N] [--seed S] [--max-steps T] [--device D] [--deterministic] [--quiet]
+                           --out FILE.npz
+    python -m pets.collect --env ENV --policy sac:STEPS [--seed S] [--max-steps T] [--save-agent SAC.zip]
+                           --out FILE.npz
 
 Policies:
 
@@ -15,6 +18,12 @@ Policies:
   strongly correlated. BETA = 0 is ``random`` again.
 - ``run:RUN_DIR``: the MPC agent of a trained run (online ``run_pets.py`` or offline
   ``pets.train``), with the run's own planner config; its randomness comes from ``--seed``.
+- ``sb3:AGENT.zip``: a saved Stable-Baselines3 agent of any algorithm (``pets.sb3``), its stochastic
+  policy seeded per episode, or its mean action with ``--deterministic``.
+- ``sac:STEPS``: trains SB3's SAC (default hyperparameters) for STEPS env steps and writes every transition it
+  experienced, episode by episode as it happened (the GEM paper's data); ``--save-agent`` keeps the agent for
+  ``sb3:`` test data. The env's first reset is seeded with ``--seed``, later ones continue its generator, so
+  ``reset_seeds`` is not stored.
 
 Seeding: episode ``i`` uses ``np.random.SeedSequence([seed, i])``: its first 32-bit word is the
 ``env.reset`` seed (stored as ``reset_seeds``), the sequence itself seeds the policy's numpy
@@ -29,6 +38,7 @@ from __future__ import annotations
 
 import math
 import sys
+import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -36,14 +46,14 @@ import numpy as np
 
 from pets.cli import OneLineParser, fail
 from pets.datasets import save_dataset
-from pets.fileio import writable_dir_error
-from pets.rollout import MPCPolicy, Policy, RandomPolicy, run_episode
+from pets.fileio import atomic_write_bytes, writable_dir_error
+from pets.rollout import Episode, MPCPolicy, Policy, RandomPolicy, run_episode
 
 if TYPE_CHECKING:
     from envs import EnvSpec
 
 PROG = "pets.collect"
-POLICIES = ("random", "smooth-random[:BETA]", "run:RUN_DIR")
+POLICIES = ("random", "smooth-random[:BETA]", "run:RUN_DIR", "sb3:AGENT.zip", "sac:STEPS")
 DEFAULT_BETA = 0.9
 
 
@@ -95,7 +105,8 @@ class AgentPolicy(MPCPolicy):
 
 def parse_policy(text: str) -> tuple[str, Any]:
     """Split a ``--policy`` string into (kind, argument): ``("random", None)``, ``("smooth-random", beta)``,
-    ``("run", Path)``. ValueError for anything else (no file access, no heavy imports)."""
+    ``("run", Path)``, ``("sb3", Path)``, ``("sac", steps)``. ValueError for anything else (no file access, no
+    heavy imports)."""
     if text == "random":
         return "random", None
     if text == "smooth-random" or text.startswith("smooth-random:"):
@@ -112,19 +123,38 @@ def parse_policy(text: str) -> tuple[str, Any]:
         if not text[4:]:
             raise ValueError("run:RUN_DIR needs a run directory after 'run:'")
         return "run", path
+    if text.startswith("sb3:"):
+        if not text[4:]:
+            raise ValueError("sb3:AGENT.zip needs the path of a saved Stable-Baselines3 agent after 'sb3:'")
+        return "sb3", Path(text[4:])
+    if text.startswith("sac:"):
+        try:
+            steps = int(text[4:])
+        except ValueError:
+            steps = 0
+        if steps < 1:
+            raise ValueError(f"sac:STEPS needs a positive number of env steps such as sac:100000, got {text!r}")
+        return "sac", steps
     raise ValueError(f"unknown policy {text!r}; accepted: {', '.join(POLICIES)}")
 
 
-def make_policy(text: str, spec: EnvSpec, seed: int = 0, device: str = "auto") -> Policy:
+def make_policy(text: str, spec: EnvSpec, seed: int = 0, device: str = "auto", deterministic: bool = False) -> Policy:
     """Build the policy named by ``text`` (see :func:`parse_policy`) for env ``spec``.
 
-    A ``run:`` policy must come from a run on the same env (ValueError otherwise).
+    A ``run:`` or ``sb3:`` policy must come from the same env (ValueError otherwise); ``sac:`` is trained, not
+    rolled (:func:`collect_sac`). ``deterministic``: an ``sb3:`` agent's mean action.
     """
     kind, arg = parse_policy(text)
     if kind == "random":
         return RandomPolicy(spec.action_low, spec.action_high)
     if kind == "smooth-random":
         return SmoothRandomPolicy(spec.action_low, spec.action_high, arg)
+    if kind == "sb3":
+        from pets.sb3 import SB3Policy
+
+        return SB3Policy(arg, spec, deterministic=deterministic, device=device)
+    if kind == "sac":
+        raise ValueError("sac:STEPS trains an agent instead of rolling one; use collect_sac")
     run_env = run_env_name(arg)
     if run_env != spec.name:
         raise ValueError(
@@ -188,40 +218,75 @@ def collect(
     finally:
         env.close()
 
-    lengths = np.array([len(ep) for ep in episodes_run], np.int64)
-    n, t = episodes, int(lengths.max())
+    return pack_episodes(spec, episodes_run, policy.name, seed, reset_seeds)
+
+
+def pack_episodes(
+    spec: EnvSpec, episodes: list[Episode], policy_name: str, seed: int, reset_seeds: list[int] | None = None
+) -> dict[str, np.ndarray]:
+    """The data set arrays of :mod:`pets.datasets` for ``episodes`` (NaN-padded to the longest), with metadata."""
+    if not episodes:
+        raise ValueError("no episodes to write: a data set needs at least one step")
+    lengths = np.array([len(ep) for ep in episodes], np.int64)
+    n, t = len(episodes), int(lengths.max())
     obs_arr = np.full((n, t + 1, spec.obs_dim), np.nan)
     act_arr = np.full((n, t, spec.act_dim), np.nan)
     rew_arr = np.full((n, t), np.nan)
     term_arr = np.zeros((n, t), bool)
-    for i, (ep, k) in enumerate(zip(episodes_run, lengths)):
+    for i, (ep, k) in enumerate(zip(episodes, lengths)):
         obs_arr[i, : k + 1] = ep.states
         act_arr[i, :k] = ep.act
         rew_arr[i, :k] = ep.rewards
         term_arr[i, :k] = ep.terminated
-    return {
+    data = {
         "obs": obs_arr,
         "act": act_arr,
         "rew": rew_arr,
         "terminated": term_arr,
         "lengths": lengths,
         "env": np.array(spec.name),
-        "policy": np.array(policy.name),
+        "policy": np.array(policy_name),
         "seed": np.array(int(seed), np.int64),
-        "reset_seeds": np.array(reset_seeds, np.int64),
     }
+    if reset_seeds is not None:
+        data["reset_seeds"] = np.array(reset_seeds, np.int64)
+    return data
+
+
+def collect_sac(
+    spec: EnvSpec,
+    steps: int,
+    seed: int = 0,
+    max_steps: int | None = None,
+    *,
+    device: str = "auto",
+    progress: bool = False,
+    sac_kwargs: dict[str, Any] | None = None,
+) -> tuple[dict[str, np.ndarray], Any]:
+    """Train SAC for ``steps`` env steps (:func:`pets.sb3.train_sac`); ``(data set arrays, agent)``."""
+    from pets.sb3 import train_sac
+
+    episodes, agent = train_sac(
+        spec, steps, seed=seed, max_steps=max_steps, device=device, progress=progress, sac_kwargs=sac_kwargs
+    )
+    return pack_episodes(spec, episodes, f"sac:{steps}", seed), agent
 
 
 def build_parser() -> OneLineParser:
     p = OneLineParser(prog=PROG, description="Collect trajectories from a catalogue env into an .npz data set.")
     p.add_argument("--env", help="environment (catalogue name or gymnasium id); optional with --policy run:DIR")
     p.add_argument(
-        "--policy", required=True, help="random | smooth-random[:BETA] (BETA in [0,1), default 0.9) | run:RUN_DIR"
+        "--policy",
+        required=True,
+        help="random | smooth-random[:BETA] (BETA in [0,1), default 0.9) | run:RUN_DIR | sb3:AGENT.zip | "
+        "sac:STEPS (train SAC for STEPS env steps and write every transition it experienced)",
     )
-    p.add_argument("--episodes", type=int, default=10, help="number of episodes (default 10)")
+    p.add_argument("--episodes", type=int, help="number of episodes (default 10; not with sac:STEPS)")
     p.add_argument("--seed", type=int, default=0, help="seed of resets and policy (default 0)")
     p.add_argument("--max-steps", type=int, help="steps per episode at most (default: the env's episode length)")
-    p.add_argument("--device", choices=("cpu", "cuda", "auto"), default="auto", help="device of a run: policy")
+    p.add_argument("--device", choices=("cpu", "cuda", "auto"), default="auto", help="device of a run/sb3/sac policy")
+    p.add_argument("--deterministic", action="store_true", help="sb3: policies take their mean action")
+    p.add_argument("--save-agent", type=Path, help="sac:STEPS only: save the trained agent here (SB3 .zip)")
     p.add_argument("--threads", type=int, default=0, help="torch CPU threads (default 0: torch's default)")
     p.add_argument("--out", type=Path, required=True, help="output .npz file (written atomically)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -230,27 +295,47 @@ def build_parser() -> OneLineParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    if args.episodes < 1:
-        fail(PROG, f"--episodes must be >= 1, got {args.episodes}")
+    try:
+        kind, arg = parse_policy(args.policy)
+    except ValueError as err:
+        fail(PROG, str(err))
+    if kind == "sac" and args.episodes is not None:
+        fail(PROG, "--episodes does not apply to sac:STEPS (it collects every step SAC trains on); drop it")
+    if kind != "sac" and args.save_agent is not None:
+        fail(PROG, "--save-agent applies only to --policy sac:STEPS")
+    if args.deterministic and kind != "sb3":
+        fail(PROG, "--deterministic applies only to --policy sb3:AGENT.zip")
+    episodes = 10 if args.episodes is None else args.episodes
+    if episodes < 1:
+        fail(PROG, f"--episodes must be >= 1, got {episodes}")
     if args.max_steps is not None and args.max_steps < 1:
         fail(PROG, f"--max-steps must be >= 1, got {args.max_steps}")
     if args.seed < 0:
         fail(PROG, f"--seed must be >= 0, got {args.seed}")
     if args.threads < 0:
         fail(PROG, f"--threads must be >= 0 (0: torch's default), got {args.threads}")
-    try:
-        kind, arg = parse_policy(args.policy)
-    except ValueError as err:
-        fail(PROG, str(err))
     if kind == "run" and not arg.is_dir():
         fail(PROG, f"run directory {arg} does not exist")
+    if kind == "sb3" and not arg.is_file():
+        fail(PROG, f"SB3 agent {arg} does not exist")
     if kind != "run" and not args.env:
         fail(PROG, "--env is required (except with --policy run:RUN_DIR, which uses the run's env)")
-    if args.out.is_dir():
-        fail(PROG, f"--out {args.out} is a directory; give a file name such as data.npz")
-    problem = writable_dir_error(args.out.parent)  # before collecting, not after
-    if problem:
-        fail(PROG, f"cannot write --out {args.out}: {problem}")
+    for option, path in (("--out", args.out), ("--save-agent", args.save_agent)):
+        if path is None:
+            continue
+        if path.is_dir():
+            fail(PROG, f"{option} {path} is a directory; give a file name")
+        problem = writable_dir_error(path.parent)  # before collecting, not after
+        if problem:
+            fail(PROG, f"cannot write {option} {path}: {problem}")
+    if kind in ("sac", "sb3"):
+        from pets.sb3 import INSTALL_HINT
+        from pets.sb3 import require_sb3 as check
+
+        try:
+            check()
+        except ImportError:
+            fail(PROG, INSTALL_HINT)
 
     from omegaconf.errors import OmegaConfBaseException
 
@@ -264,17 +349,34 @@ def main(argv: list[str] | None = None) -> int:
     try:
         name = args.env if args.env else run_env_name(arg)
         spec = envs.get(name)
-        policy = make_policy(args.policy, spec, seed=args.seed, device=args.device)
+        policy = None if kind == "sac" else make_policy(args.policy, spec, args.seed, args.device, args.deterministic)
     except (ValueError, ConfigError, OmegaConfBaseException) as err:  # the last: a config.yaml off the schema
         fail(PROG, str(err))
-    data = collect(spec, policy, args.episodes, args.seed, args.max_steps, progress=not args.quiet)
+    if kind == "sac":
+        start = time.perf_counter()
+        data, agent = collect_sac(spec, arg, args.seed, args.max_steps, device=args.device, progress=not args.quiet)
+        seconds = time.perf_counter() - start
+        if args.save_agent is not None:
+            from pets.sb3 import agent_bytes
+
+            atomic_write_bytes(args.save_agent, agent_bytes(agent))
+    else:
+        data = collect(spec, policy, episodes, args.seed, args.max_steps, progress=not args.quiet)
     save_dataset(args.out, data)
     lengths = data["lengths"]
+    rewards = np.nansum(data["rew"], axis=1)
     print(
         f"{args.out}: {spec.name}, {len(lengths)} episodes, {int(lengths.sum())} transitions "
-        f"(lengths {int(lengths.min())}..{int(lengths.max())}), policy {policy.name}, "
-        f"mean episode reward {float(np.nansum(data['rew'], axis=1).mean()):.3f}"
+        f"(lengths {int(lengths.min())}..{int(lengths.max())}), policy {data['policy']}, "
+        f"mean episode reward {float(rewards.mean()):.3f}"
     )
+    if kind == "sac":
+        last = rewards[-min(10, len(rewards)) :]
+        print(
+            f"SAC: {arg} steps in {seconds:.1f} s ({arg / seconds:.0f} steps/s); mean reward of the last "
+            f"{len(last)} episodes {float(last.mean()):.3f}"
+            + (f"; agent saved to {args.save_agent}" if args.save_agent is not None else "")
+        )
     return 0
 
 

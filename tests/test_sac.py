@@ -1,0 +1,138 @@
+"""Data like the GEM paper's: SAC (stable-baselines3) training data and rollouts of a saved SB3 agent.
+
+Ground truth: SB3's own replay buffer (what SAC trained on) and the real MuJoCo envs. Tiny budgets: SAC learns
+after ``learning_starts`` = 100 steps, so a few hundred steps exercise learning and recording.
+"""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import envs
+from pets.collect import collect, collect_sac, make_policy
+from pets.datasets import load_dataset, transitions
+from tests.threads import one_thread
+
+pytest.importorskip("stable_baselines3", reason='the sac extra is part of .[dev]: pip install -e ".[dev]"')
+
+ROOT = Path(__file__).resolve().parents[1]
+ENV = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+STEPS = 300
+
+
+def collect_cli(*args, check=True):
+    proc = subprocess.run(
+        [sys.executable, "-m", "pets.collect", *map(str, args), "--threads", "1", "--quiet"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=ENV,
+    )
+    if check and proc.returncode != 0:
+        raise AssertionError(f"pets.collect exit {proc.returncode}\n{proc.stdout}\n{proc.stderr}")
+    return proc
+
+
+@pytest.fixture(scope="module", params=["invertedpendulum", "ant"])
+def sac_run(request, tmp_path_factory):
+    """``pets.collect --policy sac:300 --save-agent`` then ``--policy sb3:`` test episodes, by the command line."""
+    name = request.param
+    work = tmp_path_factory.mktemp(f"sac-{name}")
+    train = collect_cli("--env", name, "--policy", f"sac:{STEPS}", "--out", work / "train.npz", "--save-agent",
+                        work / "sac.zip", "--max-steps", 60)  # fmt: skip
+    test = collect_cli("--env", name, "--policy", f"sb3:{work / 'sac.zip'}", "--episodes", 3, "--out",
+                       work / "test.npz", "--max-steps", 40)  # fmt: skip
+    return name, work, train, test
+
+
+def test_sac_and_sb3_commands_write_data_sets_the_loader_reads(sac_run):
+    name, work, train, test = sac_run
+    spec = envs.get(name)
+    data = load_dataset(work / "train.npz")  # validates format, padding and finiteness
+    assert str(data["env"]) == name and str(data["policy"]) == f"sac:{STEPS}"
+    assert int(data["lengths"].sum()) == STEPS  # every step SAC took, nothing more
+    assert data["obs"].shape[-1] == spec.obs_dim and data["act"].shape[-1] == spec.act_dim
+    assert int(data["lengths"].max()) <= 60
+    # episodes end where the env said so: terminated only at an episode's last step
+    term_steps = np.argwhere(data["terminated"])
+    np.testing.assert_array_equal(term_steps[:, 1], data["lengths"][term_steps[:, 0]] - 1)
+    assert "SAC: 300 steps" in train.stdout and "agent saved" in train.stdout
+    assert (work / "sac.zip").is_file()
+    test_data = load_dataset(work / "test.npz")
+    assert len(test_data["lengths"]) == 3 and str(test_data["policy"]) == "sb3:sac.zip"
+    obs, act, _ = transitions(test_data)
+    assert np.all(act >= np.array(spec.action_low) - 1e-9) and np.all(act <= np.array(spec.action_high) + 1e-9)
+
+
+@pytest.fixture
+def threads1():
+    with one_thread():
+        yield
+
+
+def test_recorded_transitions_are_exactly_what_sac_trained_on(threads1):
+    """The recorder (a wrapper under SB3) and SB3's replay buffer must hold the same transitions, in order."""
+    spec = envs.get("invertedpendulum")
+    data, agent = collect_sac(spec, 250, seed=3, max_steps=40)
+    obs, act, next_obs = transitions(data)
+    buf = agent.replay_buffer
+    n = buf.pos
+    assert n == 250 == len(obs)
+    np.testing.assert_array_equal(buf.observations[:n, 0], obs.astype(buf.observations.dtype))
+    np.testing.assert_array_equal(buf.next_observations[:n, 0], next_obs.astype(buf.next_observations.dtype))
+    rew = data["rew"][~np.isnan(data["rew"])]
+    np.testing.assert_allclose(buf.rewards[:n, 0], rew, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(agent.policy.unscale_action(buf.actions[:n, 0]), act, rtol=0, atol=1e-5)
+    # SB3 marks true terminations as done (timeouts are not): the same steps as our terminated flags
+    term = data["terminated"][np.arange(data["act"].shape[1])[None, :] < data["lengths"][:, None]]
+    done = buf.dones[:n, 0].astype(bool) & ~buf.timeouts[:n, 0].astype(bool)
+    np.testing.assert_array_equal(done, term)
+
+
+def test_sac_data_is_reproducible_and_sb3_rollouts_replay_in_the_simulator(tmp_path, threads1):
+    spec = envs.get("invertedpendulum")
+    a, agent = collect_sac(spec, 150, seed=1, max_steps=30)
+    b, _ = collect_sac(spec, 150, seed=1, max_steps=30)
+    for key in ("obs", "act", "rew", "lengths"):
+        np.testing.assert_array_equal(a[key], b[key])
+    agent.save(tmp_path / "agent.zip")
+    stochastic = collect(spec, make_policy(f"sb3:{tmp_path / 'agent.zip'}", spec), 2, seed=4, max_steps=20)
+    again = collect(spec, make_policy(f"sb3:{tmp_path / 'agent.zip'}", spec), 2, seed=4, max_steps=20)
+    np.testing.assert_array_equal(stochastic["act"], again["act"])
+    mean = collect(spec, make_policy(f"sb3:{tmp_path / 'agent.zip'}", spec, deterministic=True), 2, 4, 20)
+    expected, _ = agent.predict(mean["obs"][0, :1], deterministic=True)
+    np.testing.assert_allclose(mean["act"][0, 0], expected[0], atol=1e-6)
+    # replaying the recorded actions from the recorded reset seed reproduces the observations
+    env = spec.make()
+    o, _ = env.reset(seed=int(mean["reset_seeds"][0]))
+    np.testing.assert_allclose(o, mean["obs"][0, 0])
+    for t in range(int(mean["lengths"][0])):
+        o, *_ = env.step(mean["act"][0, t])
+        np.testing.assert_allclose(o, mean["obs"][0, t + 1], atol=1e-9)
+
+
+def test_collect_rejects_bad_sb3_arguments_in_one_line(tmp_path, sac_run):
+    name, work, _, _ = sac_run
+    other = "ant" if name == "invertedpendulum" else "invertedpendulum"
+    cases = [
+        (["--env", name, "--policy", "sac:0", "--out", tmp_path / "x.npz"], "positive number of env steps"),
+        (["--env", name, "--policy", "sac:100", "--episodes", 3, "--out", tmp_path / "x.npz"], "--episodes"),
+        (
+            ["--env", name, "--policy", "random", "--save-agent", tmp_path / "a.zip", "--out", tmp_path / "x.npz"],
+            "--save-agent applies only",
+        ),  # fmt: skip
+        (["--env", name, "--policy", f"sb3:{tmp_path / 'none.zip'}", "--out", tmp_path / "x.npz"], "does not exist"),
+        (["--env", other, "--policy", f"sb3:{work / 'sac.zip'}", "--out", tmp_path / "x.npz"], "trained on"),
+        (["--env", name, "--policy", f"sb3:{work / 'train.npz'}", "--out", tmp_path / "x.npz"], "SB3 agent"),
+    ]
+    for args, message in cases:
+        proc = collect_cli(*args, check=False)
+        lines = [line for line in proc.stderr.splitlines() if line.strip()]
+        assert proc.returncode == 2, (args, proc.stderr)
+        assert len(lines) == 1 and message in lines[0], (args, proc.stderr)
+    assert not (tmp_path / "x.npz").exists()
