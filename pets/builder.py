@@ -37,6 +37,8 @@ def make_trainer(cfg: DictConfig, model: DynamicsModel) -> ModelTrainer:
         holdout_ratio=m.holdout_ratio,
         max_holdout=m.max_holdout,
         num_elites=m.num_elites,
+        iterations=m.iterations,
+        bootstrap=m.bootstrap,
     )
 
 

@@ -43,6 +43,8 @@ class ModelConfig:
     patience: int = 5
     holdout_ratio: float = 0.1
     max_holdout: int = 5000
+    iterations: int = 0  # 0: epochs with holdout early stopping (PETS); N > 0: exactly N steps (the GEM paper)
+    bootstrap: bool = True  # per-member bootstrap resamples (PETS); false: all members on the same batches
 
 
 @dataclass
@@ -250,6 +252,8 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError(
             f"model.num_elites ({cfg.model.num_elites}) must be <= model.ensemble_size ({cfg.model.ensemble_size})"
         )
+    if cfg.model.iterations < 0:
+        raise ConfigError(f"model.iterations must be >= 0 (0: epochs with early stopping), got {cfg.model.iterations}")
     if cfg.threads < 0:
         raise ConfigError(f"threads must be >= 0 (0: torch default), got {cfg.threads}")
     if cfg.seed < 0 or cfg.seed_steps < 0 or cfg.train_every < 0:

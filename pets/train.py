@@ -1,7 +1,7 @@
 """Offline training of a dynamics model on a collected data set, into a run directory.
 
     python -m pets.train --data FILE.npz --model MODEL --out RUN_DIR [--seed S] [--device D]
-                         [--epochs N] [--preset research|fast] [--quiet] [key=value ...]
+                         [--epochs N] [--preset research|fast] [--protocol pets|paper] [--quiet] [key=value ...]
 
 MODEL is any ``--model`` of ``run_pets.py`` (``pets.config.HEADS``: delta, gem, delta-det, gem2,
 delta-groupfeat; :mod:`pets.models` describes each). The deterministic ones (delta-det, gem2) train by MSE /
@@ -25,6 +25,11 @@ pays to train to convergence; the online loop retrains a little every trial):
 ``model.max_epochs = 300`` and ``model.patience = 20`` (epochs without a member improving its holdout
 error by more than 1 %). ``--epochs N`` (or ``model.max_epochs=N``) overrides the first; ``--epochs``
 wins over ``model.max_epochs=``.
+
+``--protocol paper`` trains as the GEM paper did (:mod:`pets.protocols`): its config keys, a 100k/10k
+train/validation split of the file, and a search over the hidden layers picked on the validation error (an
+explicit ``model.hidden_size=`` or ``model.num_layers=`` fixes the architecture instead). The checkpoint's
+``offline`` entry records the protocol, the split sizes and every candidate's validation error.
 
 Randomness: ``torch.manual_seed(seed)`` before the ensemble is built (initial weights), and a
 generator seeded with ``seed + 1`` on the training device (holdout split, bootstraps, shuffles),
@@ -59,12 +64,19 @@ def offline_config(
     seed: int | None = None,
     device: str | None = None,
     epochs: int | None = None,
+    protocol: str = "pets",
 ):
     """The resolved config of an offline run: config defaults, env defaults, preset, :data:`OFFLINE_DEFAULTS`,
-    ``overrides``, then the explicit ``seed``/``device``/``epochs`` arguments (later wins). ConfigError if bad."""
-    from pets.config import make_config
+    the protocol's keys, ``overrides``, then the explicit ``seed``/``device``/``epochs`` arguments (later wins).
+    ConfigError if bad."""
+    from pets.config import ConfigError, make_config
+    from pets.protocols import get_protocol
 
-    merged: dict[str, Any] = {**OFFLINE_DEFAULTS, **dict(overrides or {})}
+    try:
+        keys = get_protocol(protocol).config
+    except ValueError as err:
+        raise ConfigError(str(err)) from None
+    merged: dict[str, Any] = {**OFFLINE_DEFAULTS, **keys, **dict(overrides or {})}
     for key, value in (("seed", seed), ("device", device), ("model.max_epochs", epochs)):
         if value is not None:
             merged[key] = value
@@ -81,9 +93,11 @@ def train_offline(
     seed: int | None = None,
     device: str | None = None,
     epochs: int | None = None,
+    protocol: str = "pets",
     progress: bool = False,
 ) -> Path:
-    """Train a fresh ensemble with head ``head_name`` on all real transitions of ``data`` and write run dir ``out``.
+    """Train a fresh ensemble with head ``head_name`` on the real transitions of ``data`` under ``protocol``
+    (:mod:`pets.protocols`) and write run dir ``out``.
 
     ``data``: a data set file or its arrays (:mod:`pets.datasets`). ``out`` must not hold a run yet.
     Returns ``out`` as a Path. ValueError / ConfigError (one-line messages) for bad input.
@@ -103,7 +117,12 @@ def train_offline(
     out = Path(out)
     if (out / rundir.CONFIG_FILE).exists():
         raise ConfigError(f"{out} already holds a run; pick another --out")
-    cfg = offline_config(env, head_name, overrides, preset=preset, seed=seed, device=device, epochs=epochs)
+    from pets.protocols import get_protocol, split_samples
+
+    cfg = offline_config(
+        env, head_name, overrides, preset=preset, seed=seed, device=device, epochs=epochs, protocol=protocol
+    )
+    proto = get_protocol(protocol)
     spec = envs.get(cfg.env)
     obs, act, next_obs = transitions(arrays)
     if obs.shape[-1] != spec.obs_dim or act.shape[-1] != spec.act_dim:
@@ -111,23 +130,39 @@ def train_offline(
             f"data set has obs_dim {obs.shape[-1]} / act_dim {act.shape[-1]}, but {env} has "
             f"{spec.obs_dim} / {spec.act_dim}"
         )
+    train_idx, val_idx = split_samples(len(obs), proto)
+    fixed = {"model.hidden_size", "model.num_layers"} & set(overrides or {})
+    candidates = [] if fixed else list(proto.architectures(cfg.env))
 
     dev = builder.resolve_device(cfg.device)
     if cfg.threads:  # as the online loop: config key threads (0 = torch's default)
         torch.set_num_threads(cfg.threads)
-    torch.manual_seed(cfg.seed)
-    model = make_model(cfg, spec, dev)
-    trainer = builder.make_trainer(cfg, model)
-    generator = torch.Generator(device=dev).manual_seed(cfg.seed + 1)
-    tensors = [torch.as_tensor(a, dtype=torch.float32, device=dev) for a in (obs, act, next_obs)]
+
+    def tensors(idx: np.ndarray) -> list[torch.Tensor]:
+        return [torch.as_tensor(a[idx], dtype=torch.float32, device=dev) for a in (obs, act, next_obs)]
+
+    train_set = tensors(train_idx)
+    validation = tensors(val_idx) if len(val_idx) else None
     start = time.perf_counter()
-    result = trainer.train(*tensors, generator, progress=progress)
+    search, best = [], None
+    for hidden, layers in candidates or [(cfg.model.hidden_size, cfg.model.num_layers)]:
+        cfg.model.hidden_size, cfg.model.num_layers = hidden, layers
+        torch.manual_seed(cfg.seed)
+        model = make_model(cfg, spec, dev)
+        trainer = builder.make_trainer(cfg, model)
+        generator = torch.Generator(device=dev).manual_seed(cfg.seed + 1)
+        result = trainer.train(*train_set, generator, progress=progress, validation=validation)
+        search.append({"hidden_size": hidden, "num_layers": layers, "val_error": result.val_loss})
+        if best is None or result.val_loss < best[0].val_loss:  # NaN (no holdout) keeps the first
+            best = (result, model, trainer, hidden, layers)
+    result, model, trainer, hidden, layers = best
+    cfg.model.hidden_size, cfg.model.num_layers = hidden, layers
     wall = time.perf_counter() - start
 
     nan = float("nan")
     row = {
         "trial": nan,
-        "env_steps": int(obs.shape[0]),
+        "env_steps": int(len(train_idx)),
         "episode_reward": nan,
         "episode_length": nan,
         "model_train_loss": result.train_loss,
@@ -143,6 +178,10 @@ def train_offline(
         "transitions": int(obs.shape[0]),
         "data_policy": str(np.asarray(arrays["policy"])[()]) if "policy" in arrays else None,
         "data_seed": int(np.asarray(arrays["seed"])[()]) if "seed" in arrays else None,
+        "protocol": proto.name,
+        "train_transitions": int(len(train_idx)),
+        "validation_transitions": int(len(val_idx)),
+        "search": search if candidates else [],
     }
     state = {
         "trials_done": 0,
@@ -179,6 +218,12 @@ def build_parser() -> OneLineParser:
         f"patience {OFFLINE_DEFAULTS['model.patience']})",
     )
     p.add_argument("--preset", choices=("research", "fast"), default="research", help="config preset (model sizes)")
+    p.add_argument(
+        "--protocol",
+        choices=("pets", "paper"),
+        default="pets",
+        help="pets: bootstrap ensemble, early stopping (default); paper: the GEM paper's (pets.protocols)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides")
     return p
@@ -210,6 +255,7 @@ def main(argv: list[str] | None = None) -> int:
             seed=args.seed,
             device=args.device,
             epochs=args.epochs,
+            protocol=args.protocol,
         )
         import envs
         from pets.builder import resolve_device
@@ -236,6 +282,7 @@ def main(argv: list[str] | None = None) -> int:
             seed=args.seed,
             device=args.device,
             epochs=args.epochs,
+            protocol=args.protocol,
             progress=not args.quiet,
         )
     except TrainingDiverged as err:  # nothing was written: train_offline writes the run only after training
@@ -243,6 +290,8 @@ def main(argv: list[str] | None = None) -> int:
     from pets import rundir
 
     row = rundir.read_metrics(out / rundir.METRICS_FILE)[0]
+    for c in rundir.load_checkpoint(out)["offline"]["search"]:
+        print(f"  hidden layers {c['num_layers']} x {c['hidden_size']}: validation error {c['val_error']:.4g}")
     print(
         f"{out}: {args.model} model trained on {int(row['env_steps'])} transitions, {int(row['model_epochs'])} "
         f"epochs, train loss {row['model_train_loss']:.4g}, "

@@ -10,6 +10,10 @@ a member whose holdout error improved by more than ``improvement_threshold`` (re
 weights snapshotted. Training stops after ``patience`` epochs without any member improving; the
 snapshot is restored and the ``num_elites`` members with the lowest holdout error become elites.
 
+With ``iterations`` > 0 the schedule is the GEM paper's instead: exactly that many gradient steps, no early
+stopping, the final weights kept (the holdout then only ranks the elites and reports the error). With
+``bootstrap=False`` every member sees the same batches (the paper's ensembles, "trained in unison via total loss").
+
 The holdout error is the same for every head: the standardised one-step error of the predicted next
 observation, ``mean_d (pred_d - next_obs_d)^2 / var_d(next_obs - obs)`` over the observation entries the
 model predicts (all but the layout's ``derived`` ones), ``var_d`` taken over the training data. It is
@@ -94,6 +98,8 @@ class ModelTrainer:
         grad_clip: float | None = None,
         improvement_threshold: float = 0.01,
         eval_batch_size: int = 8192,
+        iterations: int = 0,
+        bootstrap: bool = True,
     ) -> None:
         if not (math.isfinite(lr) and lr >= 0):
             raise ValueError(f"lr must be a finite number >= 0, got {lr}")
@@ -103,6 +109,7 @@ class ModelTrainer:
             ("patience", patience, 1),
             ("max_holdout", max_holdout, 0),
             ("eval_batch_size", eval_batch_size, 1),
+            ("iterations", iterations, 0),
         ):
             if not isinstance(value, int) or isinstance(value, bool) or value < low:
                 raise ValueError(f"{name} must be an int >= {low}, got {value!r}")
@@ -129,6 +136,8 @@ class ModelTrainer:
         self.grad_clip = grad_clip
         self.improvement_threshold = improvement_threshold
         self.eval_batch_size = eval_batch_size
+        self.iterations = iterations
+        self.bootstrap = bool(bootstrap)
         self.optimizer = torch.optim.Adam(model.parameters(), lr=lr)
         self._predicted = torch.tensor(model.head.layout.predicted_indices, dtype=torch.long)
         #: Per-entry std of ``next_obs - obs`` (predicted entries) that :meth:`evaluate` divides by; set by ``train``.
@@ -194,14 +203,23 @@ class ModelTrainer:
         )
 
     def train(
-        self, obs: Tensor, act: Tensor, next_obs: Tensor, generator: torch.Generator, progress: bool = False
+        self,
+        obs: Tensor,
+        act: Tensor,
+        next_obs: Tensor,
+        generator: torch.Generator,
+        progress: bool = False,
+        validation: tuple[Tensor, Tensor, Tensor] | None = None,
     ) -> TrainResult:
         """Fit the model on transitions (obs, act, next_obs), each (N, .); all randomness from ``generator``.
 
-        Refits the normalisers on all the data, splits off a holdout, trains with per-member bootstraps
-        and early stopping, restores the best per-member weights and sets the model's elites.
+        Refits the normalisers on all the data, splits off a holdout (or uses ``validation``, a separate
+        ``(obs, act, next_obs)`` set, as it), trains with per-member bootstraps and early stopping (or the fixed
+        ``iterations``), restores the best per-member weights and sets the model's elites.
         """
         self._check_data(obs, act, next_obs)
+        if validation is not None:
+            self._check_data(*validation)
         model = self.model
         ref = model.member_parameters()[0]  # device and dtype of the model
         obs, act, next_obs = (t.to(device=ref.device, dtype=ref.dtype) for t in (obs, act, next_obs))
@@ -209,31 +227,41 @@ class ModelTrainer:
         model.fit_normalisers(x, y)
         self.fit_error_scale(obs, next_obs)
 
-        n = x.shape[0]
-        train_idx, hold_idx = split_holdout(n, self.holdout_ratio, self.max_holdout, generator)
-        train_idx, hold_idx = train_idx.to(ref.device), hold_idx.to(ref.device)
-        has_holdout = hold_idx.numel() > 0
-        x_tr, y_tr, o_tr, no_tr = (t.index_select(0, train_idx) for t in (x, y, obs, next_obs))
-        x_ho, o_ho, no_ho = (t.index_select(0, hold_idx) for t in (x, obs, next_obs))
+        if validation is None:
+            train_idx, hold_idx = split_holdout(x.shape[0], self.holdout_ratio, self.max_holdout, generator)
+            train_idx, hold_idx = train_idx.to(ref.device), hold_idx.to(ref.device)
+            x_tr, y_tr, o_tr, no_tr = (t.index_select(0, train_idx) for t in (x, y, obs, next_obs))
+            x_ho, o_ho, no_ho = (t.index_select(0, hold_idx) for t in (x, obs, next_obs))
+        else:
+            x_tr, y_tr, o_tr, no_tr = x, y, obs, next_obs
+            o_ho, a_ho, no_ho = (t.to(device=ref.device, dtype=ref.dtype) for t in validation)
+            x_ho = model.inputs(o_ho, a_ho)
+        has_holdout = x_ho.shape[0] > 0
         n_tr = x_tr.shape[0]
-        boot = bootstrap_indices(n_tr, model.ensemble_size, generator).to(ref.device)  # (E, n_tr)
+        if self.bootstrap:
+            boot = bootstrap_indices(n_tr, model.ensemble_size, generator).to(ref.device)  # (E, n_tr)
+        else:  # every member on the same data, in the same order
+            boot = torch.arange(n_tr, device=ref.device).expand(model.ensemble_size, n_tr)
+        fixed = self.iterations > 0
+        max_epochs = math.ceil(self.iterations / math.ceil(n_tr / self.batch_size)) if fixed else self.max_epochs
 
         params = model.member_parameters()
         best = self.evaluate(x_ho, o_ho, no_ho) if has_holdout else None
         initial = best
         snapshot = [p.detach().clone() for p in params] if has_holdout else None
         since_improved = 0
-        epochs = 0
+        epochs = steps = 0
         train_loss = float("nan")
-        bar = tqdm(range(self.max_epochs), disable=not progress, desc="model", leave=False)
+        bar = tqdm(range(max_epochs), disable=not progress, desc="model", leave=False)
         for _ in bar:
             # Per-member shuffle of the member's bootstrap resample (one argsort for all members).
-            order = torch.argsort(
-                torch.rand(model.ensemble_size, n_tr, generator=generator, device=generator.device), dim=1
-            ).to(ref.device)
-            epoch_idx = torch.gather(boot, 1, order)
-            loss_sum = x_tr.new_zeros(())
+            rows = model.ensemble_size if self.bootstrap else 1
+            order = torch.argsort(torch.rand(rows, n_tr, generator=generator, device=generator.device), dim=1)
+            epoch_idx = torch.gather(boot, 1, order.to(ref.device).expand(model.ensemble_size, n_tr))
+            loss_sum, seen = x_tr.new_zeros(()), 0
             for start in range(0, n_tr, self.batch_size):
+                if fixed and steps == self.iterations:
+                    break
                 idx = epoch_idx[:, start : start + self.batch_size]  # (E, B)
                 member_loss = model.member_loss(x_tr[idx], y_tr[idx], o_tr[idx], no_tr[idx])  # (E,)
                 loss = model.add_regularisers(member_loss.sum(), self.logvar_bound_coef)
@@ -243,11 +271,13 @@ class ModelTrainer:
                     torch.nn.utils.clip_grad_norm_(model.parameters(), self.grad_clip)
                 self.optimizer.step()
                 loss_sum = loss_sum + member_loss.detach().mean() * idx.shape[1]
+                seen += idx.shape[1]
+                steps += 1
             epochs += 1
-            train_loss = float(loss_sum) / n_tr
+            train_loss = float(loss_sum) / seen
             self._check_finite(train_loss, epochs)
 
-            if not has_holdout:
+            if not has_holdout or fixed:
                 bar.set_postfix(loss=f"{train_loss:.4g}")
                 continue
             score = self.evaluate(x_ho, o_ho, no_ho)
@@ -262,7 +292,9 @@ class ModelTrainer:
                 break
         bar.close()
 
-        if has_holdout:
+        if has_holdout and fixed:  # the final weights are the model
+            scores = self.evaluate(x_ho, o_ho, no_ho)
+        elif has_holdout:
             with torch.no_grad():
                 for snap, p in zip(snapshot, params):
                     p.copy_(snap)

@@ -265,3 +265,43 @@ def test_a_diverging_optimiser_raises_instead_of_returning_a_nan_model() -> None
             TrainingDiverged, match=r"diverged in epoch \d+: .*non-finite.*lower model.lr \(now 1e\+06\)"
         ):
             trainer.train(x, act, x + y, torch.Generator().manual_seed(0))
+
+
+def test_fixed_iterations_in_unison_take_exactly_n_steps_on_the_same_batches() -> None:
+    """The GEM paper's schedule: N gradient steps, no early stopping, every member on the same batches."""
+    n = 100
+    obs = torch.arange(n, dtype=torch.float32)[:, None]
+    head = IdentityHead(record=True)
+    ens = small_ensemble(ensemble_size=3)
+    val = (obs[:10] + 0.5, torch.zeros(10, 0), obs[:10] + 0.5)
+    trainer = ModelTrainer(
+        DynamicsModel(head, ens), batch_size=10, max_epochs=1, patience=1, iterations=23, bootstrap=False
+    )
+    result = trainer.train(obs, torch.zeros(n, 0), obs.clone(), torch.Generator().manual_seed(0), validation=val)
+    assert len(head.seen) == 23  # max_epochs and patience do not apply
+    assert trainer.optimizer.state_dict()["state"][0]["step"] == 23
+    for batch in head.seen:
+        assert all(torch.equal(batch[0], batch[m]) for m in range(1, 3))  # members in unison
+    first_epoch = torch.cat(head.seen[:10], dim=1)[0].long()
+    assert torch.equal(torch.sort(first_epoch).values, torch.arange(n))  # all the training data, each once
+    assert result.epochs == 3 and math.isfinite(result.val_loss)
+    # the separate validation set is what scores the members (and the result)
+    assert result.val_loss == pytest.approx(float(trainer.evaluate(val[0], val[0], val[2]).mean()), rel=1e-6)
+
+
+def test_members_with_equal_weights_stay_equal_when_trained_in_unison() -> None:
+    """Unison: equal members stay equal (up to float rounding of the batched matmuls); bootstraps split them."""
+    x, act, y, _ = sine_data(200, seed=1)
+
+    def spread(bootstrap: bool) -> float:
+        ens = small_ensemble(ensemble_size=3)
+        with torch.no_grad():
+            for p in ens.member_parameters():
+                p.copy_(p[:1].expand_as(p))
+        model = DynamicsModel(DeltaHead(LAYOUT_1D, 0), ens)
+        trainer = ModelTrainer(model, batch_size=16, iterations=30, bootstrap=bootstrap)
+        trainer.train(x, act, x + y, torch.Generator().manual_seed(0))
+        return max(float((p - p[:1]).detach().abs().max()) for p in ens.member_parameters())
+
+    assert spread(False) < 1e-5
+    assert spread(True) > 1e-3

@@ -1,0 +1,70 @@
+"""The offline protocols: the paper's split, config and hidden-size search, through pets.train."""
+
+import numpy as np
+import pytest
+import torch
+
+import envs
+from pets import rundir
+from pets.collect import collect
+from pets.config import load_config
+from pets.protocols import PROTOCOLS, get_protocol, split_samples
+from pets.train import offline_config, train_offline
+from tests.threads import one_thread
+
+
+def test_paper_split_sizes_ratio_and_disjointness():
+    paper = get_protocol("paper")
+    train, val = split_samples(150_000, paper)
+    assert (len(train), len(val)) == (100_000, 10_000)
+    assert not set(train) & set(val)
+    train, val = split_samples(1_100, paper)  # a smaller file keeps the 10:1 ratio
+    assert (len(train), len(val)) == (1_000, 100)
+    assert np.array_equal(np.sort(np.concatenate([train, val])), np.arange(1_100))
+    again = split_samples(1_100, paper)
+    assert all(np.array_equal(a, b) for a, b in zip((train, val), again))  # one split per file
+    train, val = split_samples(500, get_protocol("pets"))
+    assert len(train) == 500 and len(val) == 0
+    with pytest.raises(ValueError, match="accepted: pets, paper"):
+        get_protocol("nope")
+
+
+def test_paper_config_is_the_papers_hyperparameters():
+    cfg = offline_config("reacher", "delta-det", protocol="paper")
+    assert (cfg.model.lr, cfg.model.batch_size, cfg.model.iterations) == (5e-4, 10, 10_000)
+    assert cfg.model.bootstrap is False and cfg.model.ensemble_size == cfg.model.num_elites == 5
+    single = offline_config("reacher", "delta-det", {"model.ensemble_size": 1, "model.num_elites": 1}, protocol="paper")
+    assert single.model.ensemble_size == 1
+    assert PROTOCOLS["paper"].architectures("ant") == ((512, 1), (512, 2), (512, 3))
+    assert PROTOCOLS["paper"].architectures("hopper") == ((100, 1), (100, 2), (100, 3))
+
+
+@pytest.fixture(scope="module")
+def reacher_arrays():
+    return collect(envs.get("reacher"), "random", 12, seed=0, max_steps=25)  # 300 transitions
+
+
+def test_paper_protocol_searches_the_hidden_layers_and_keeps_the_best(tmp_path, reacher_arrays):
+    with one_thread():
+        out = train_offline(reacher_arrays, "gem", tmp_path / "run", {"model.iterations": "40"}, protocol="paper")
+    meta = rundir.load_checkpoint(out)["offline"]
+    assert meta["protocol"] == "paper"
+    assert (meta["train_transitions"], meta["validation_transitions"]) == (273, 27)
+    search = meta["search"]
+    assert [(c["hidden_size"], c["num_layers"]) for c in search] == [(100, 1), (100, 2), (100, 3)]
+    best = min(search, key=lambda c: c["val_error"])
+    cfg = load_config(str(out / "config.yaml"))
+    assert (cfg.model.hidden_size, cfg.model.num_layers) == (best["hidden_size"], best["num_layers"])
+    row = rundir.read_metrics(out / "metrics.csv")[0]
+    assert row["model_val_loss"] == pytest.approx(best["val_error"])
+    assert row["env_steps"] == 273
+
+
+def test_an_explicit_architecture_turns_the_search_off(tmp_path, reacher_arrays):
+    overrides = {"model.iterations": "20", "model.hidden_size": "16", "model.num_layers": "1"}
+    with one_thread():
+        out = train_offline(reacher_arrays, "delta-det", tmp_path / "run", overrides, protocol="paper")
+    assert rundir.load_checkpoint(out)["offline"]["search"] == []
+    cfg = load_config(str(out / "config.yaml"))
+    assert (cfg.model.hidden_size, cfg.model.num_layers) == (16, 1)
+    assert torch.isfinite(torch.tensor(rundir.read_metrics(out / "metrics.csv")[0]["model_val_loss"]))
