@@ -537,7 +537,7 @@ def test_process_pool_reports_a_failed_job_and_finishes_the_others():
         (["offline", "--envs", "reacher", "--models", "delta", "--planners", "cem,ddp"], "accepted: cem"),
         (
             ["offline", "--envs", "reacher", "--models", "delta", "--policy", "run:x"],
-            "smooth-random[:BETA] or existing",
+            "smooth-random[:BETA], sac[:STEPS] or existing",
         ),
         (["online", "--envs", "reacher", "--models", "delta"], "--trials"),
         (["sweep", "--envs", "reacher"], "invalid choice"),

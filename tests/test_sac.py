@@ -136,3 +136,32 @@ def test_collect_rejects_bad_sb3_arguments_in_one_line(tmp_path, sac_run):
         assert proc.returncode == 2, (args, proc.stderr)
         assert len(lines) == 1 and message in lines[0], (args, proc.stderr)
     assert not (tmp_path / "x.npz").exists()
+
+
+def test_compare_offline_with_sac_data_and_the_paper_protocol(tmp_path):
+    """`pets.compare offline --policy sac:STEPS --protocol paper`: SAC training data, SB3 test episodes, the paper's
+    training with its hidden-layer search, evaluation; a rerun reuses everything."""
+    out = tmp_path / "cmp"
+    args = [sys.executable, "-m", "pets.compare", "offline", "--envs", "invertedpendulum", "--models", "delta,gem",
+            "--seeds", "0,1", "--out", str(out), "--policy", "sac:200", "--protocol", "paper", "--test-episodes", "2",
+            "--max-steps", "30", "--starts", "10", "--horizons", "1,5", "--quiet", "model.iterations=30"]  # fmt: skip
+    proc = subprocess.run(args, cwd=ROOT, capture_output=True, text=True, timeout=600, env=ENV)
+    assert proc.returncode == 0, proc.stderr
+    train, test = (
+        load_dataset(out / "data/invertedpendulum-train.npz"),
+        load_dataset(out / "data/invertedpendulum-test.npz"),
+    )
+    assert str(train["policy"]) == "sac:200" and int(train["lengths"].sum()) == 200
+    assert str(test["policy"]) == "sb3:invertedpendulum-sac.zip" and len(test["lengths"]) == 2
+    from pets import rundir
+    from pets.config import load_config
+
+    for model in ("delta", "gem"):
+        run = out / "runs" / f"invertedpendulum-{model}-s1"
+        cfg = load_config(str(run / "config.yaml"))
+        assert (cfg.model.lr, cfg.model.batch_size, cfg.model.iterations, cfg.model.bootstrap) == (5e-4, 10, 30, False)
+        offline = rundir.load_checkpoint(run)["offline"]
+        assert offline["protocol"] == "paper" and len(offline["search"]) == 3
+        assert (run / "eval.json").is_file()
+    again = subprocess.run(args, cwd=ROOT, capture_output=True, text=True, timeout=600, env=ENV)
+    assert again.returncode == 0 and "4 reused, 0 with work to do" in again.stderr, again.stderr

@@ -69,13 +69,25 @@ def build_parser() -> OneLineParser:
     off = sub.add_parser("offline", prog=f"{PROG} offline", help="offline training and prediction error")
     common(off)
     off.add_argument("--episodes", type=int, default=100, help="training episodes per env (default 100)")
-    off.add_argument("--test-episodes", type=int, default=20, help="test episodes per env (default 20)")
+    off.add_argument(
+        "--test-episodes",
+        type=int,
+        help="test episodes per env (default 20; --protocol paper: 20k samples' worth, ceil(20000 / episode length))",
+    )
     off.add_argument("--max-steps", type=int, help="steps per collected episode at most (default: env's length)")
     off.add_argument(
         "--policy",
         default="random",
-        help="data policy: random (default), smooth-random[:BETA], or "
+        help="data policy: random (default), smooth-random[:BETA], sac[:STEPS] (SAC's training transitions; "
+        "its agent rolls the test episodes; default STEPS: the protocol's train + validation samples), or "
         "existing (use DIR/data/ENV-{train,test}.npz as they are)",
+    )
+    off.add_argument(
+        "--protocol",
+        choices=("pets", "paper"),
+        default="pets",
+        help="training protocol: pets (bootstrap ensemble, early stopping; default) or paper (the GEM paper's: "
+        "100k/10k split, Adam 5e-4, batch 10, 10k iterations, hidden-layer search; pets.protocols)",
     )
     off.add_argument("--horizons", default="1,5,10,25,50", help="prediction horizons (default 1,5,10,25,50)")
     off.add_argument("--starts", type=int, default=1000, help="start points of the evaluation (default 1000)")
@@ -146,6 +158,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 preset=args.preset,
                 device=args.device or "auto",
                 overrides=overrides,
+                protocol=args.protocol,
                 progress=not args.quiet,
             )
             report = args.out / "prediction.md"

@@ -5,6 +5,12 @@ with data seed 0 and E episodes, ``DIR/data/ENV-test.npz`` with data seed 1 and 
 policy), reused if present (an error if they were collected with another policy, seed or episode
 count). ``--policy existing`` takes both files as they are (e.g. collected from a trained agent with
 ``pets.collect --policy run:RUN_DIR --out DIR/data/ENV-train.npz``); then the data options are unused.
+``--policy sac[:STEPS]`` trains SAC for STEPS env steps (default: the protocol's training plus validation
+samples, 110k for ``paper``) and keeps every transition as the training data, saves the agent as
+``DIR/data/ENV-sac.zip`` and rolls it (stochastic policy) for the test episodes: the GEM paper's data.
+
+``--protocol`` (:mod:`pets.protocols`): ``pets`` (default) or ``paper`` (the GEM paper's training; its test
+set of 20k samples gives the default ``--test-episodes``, ceil(20000 / episode length)).
 
 Per run: train offline (``pets.train.train_offline``, model seed = the run's seed) unless the
 run directory holds a trained model; evaluate on the test data (``pets.evaluate``, mean mode, the
@@ -36,20 +42,41 @@ EVAL_SEED = 0
 EXISTING = "existing"
 
 
+def sac_steps(policy: str, protocol: str) -> int | None:
+    """The SAC budget of a ``sac[:STEPS]`` ``--policy`` (None for other policies); UsageError if it has none."""
+    from pets.protocols import get_protocol
+
+    if policy != "sac" and not policy.startswith("sac:"):
+        return None
+    if policy == "sac":
+        proto = get_protocol(protocol)
+        if proto.train_samples is None:
+            raise UsageError(f"--policy sac needs a step budget with --protocol {protocol}: give sac:STEPS")
+        return proto.train_samples + (proto.val_samples or 0)
+    from pets.collect import parse_policy
+
+    try:
+        return parse_policy(policy)[1]
+    except ValueError as err:
+        raise UsageError(str(err)) from None
+
+
 def expected_policy_name(policy: str) -> str:
-    """The ``policy`` name ``pets.collect`` stores for a ``--policy`` string (random or smooth-random only)."""
+    """The ``policy`` name ``pets.collect`` stores for a ``--policy`` string (random, smooth-random or sac:STEPS)."""
     from pets.collect import DEFAULT_BETA, parse_policy
 
-    if policy == EXISTING:
-        return EXISTING
+    if policy == EXISTING or policy.startswith("sac:"):
+        return policy
 
     try:
         kind, arg = parse_policy(policy)
     except ValueError as err:
         raise UsageError(str(err)) from None
+    if kind == "sb3":
+        return f"sb3:{arg.name}"
     if kind == "run":
         raise UsageError(
-            "--policy must be random, smooth-random[:BETA] or existing (one policy for every env; "
+            "--policy must be random, smooth-random[:BETA], sac[:STEPS] or existing (one policy for every env; "
             "collect agent data with pets.collect --policy run:RUN_DIR into DIR/data and use existing)"
         )
     return "random" if kind == "random" else f"smooth-random:{(DEFAULT_BETA if arg is None else arg):g}"
@@ -67,6 +94,8 @@ def prepare_data(
     from pets.datasets import load_dataset, save_dataset
 
     want = {"env": env, "policy": expected_policy_name(policy), "seed": seed, "episodes": episodes}
+    if policy.startswith("sac:"):  # SAC's episodes are as many as its steps made
+        del want["episodes"]
     if policy == EXISTING and not path.is_file():
         raise UsageError(f"--policy existing needs the data file {path} (e.g. from pets.collect); it does not exist")
     if path.is_file():
@@ -80,10 +109,11 @@ def prepare_data(
             return "reused"
         got = {
             "env": str(data["env"]),
+            "episodes": int(len(data["lengths"])),
             "policy": str(data["policy"]) if "policy" in data else None,
             "seed": int(data["seed"]) if "seed" in data else None,
-            "episodes": int(len(data["lengths"])),
         }
+        got = {k: v for k, v in got.items() if k in want}
         if max_steps is not None and int(data["lengths"].max()) > max_steps:
             got["max_steps"], want["max_steps"] = int(data["lengths"].max()), max_steps
         if got != want:
@@ -93,7 +123,18 @@ def prepare_data(
                 "delete the file or pick another --out"
             )
         return "reused"
-    save_dataset(path, collect(envs.get(env), policy, episodes, seed, max_steps, progress=progress))
+    spec = envs.get(env)
+    if policy.startswith("sac:"):
+        from pets.collect import collect_sac
+        from pets.fileio import atomic_write_bytes
+        from pets.sb3 import agent_bytes
+
+        data, agent = collect_sac(spec, sac_steps(policy, "pets"), seed, max_steps, device="cpu", progress=progress)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_bytes(path.with_name(f"{env}-sac.zip"), agent_bytes(agent))  # before the data: it needs it
+        save_dataset(path, data)
+        return "collected"
+    save_dataset(path, collect(spec, policy, episodes, seed, max_steps, progress=progress))
     return "collected"
 
 
@@ -125,6 +166,7 @@ def _offline_job(job: Mapping[str, Any]) -> dict[str, Any]:
             run_dir,
             job["overrides"],
             preset=job["preset"],
+            protocol=job["protocol"],
             seed=job["seed"],
             device=job["device"],
         )
@@ -178,7 +220,7 @@ def compare_offline(
     out: Path,
     *,
     episodes: int = 100,
-    test_episodes: int = 20,
+    test_episodes: int | None = None,
     max_steps: int | None = None,
     policy: str = "random",
     horizons: Sequence[int] = (1, 5, 10, 25, 50),
@@ -191,19 +233,39 @@ def compare_offline(
     preset: str = "research",
     device: str = "auto",
     overrides: Sequence[str] = (),
+    protocol: str = "pets",
     progress: bool = True,
 ) -> dict[str, Any]:
     """Collect, train, evaluate (and open-loop plan) everything missing, then write the summaries.
 
+    ``test_episodes`` None: 20, or under a protocol with a test-set size, enough episodes of the env's length.
+
     Returns ``{"data": {file: collected|reused}, "todo": {run: [what was missing]}, "done": {run: [what was
     done]}, "failed": {run: message}, "summary"}``; runs absent from "todo" were reused as they were.
     """
+    import envs
     from pets.config import ConfigError, parse_overrides
+    from pets.protocols import get_protocol
     from pets.train import offline_config
+
+    try:
+        proto = get_protocol(protocol)
+    except ValueError as err:
+        raise UsageError(str(err)) from None
+    steps = sac_steps(policy, protocol)
+    if steps is not None:
+        policy = f"sac:{steps}"
+
+    def n_test(env: str) -> int:
+        if test_episodes is not None:
+            return test_episodes
+        if proto.test_samples is None:
+            return 20
+        return -(-proto.test_samples // (max_steps or envs.get(env).episode_length))
 
     for name, value in (
         ("episodes", episodes),
-        ("test-episodes", test_episodes),
+        ("test-episodes", 1 if test_episodes is None else test_episodes),
         ("starts", starts),
         ("workers", workers),
         ("openloop-steps", openloop_steps),
@@ -229,16 +291,23 @@ def compare_offline(
             for seed in seeds:
                 run_dir = out / "runs" / run_name(env, model, seed)
                 try:
-                    expected = offline_config(env, model, extra, preset=preset, seed=seed, device=device)
+                    expected = offline_config(
+                        env, model, extra, preset=preset, seed=seed, device=device, protocol=protocol
+                    )
                 except ConfigError as err:
                     raise UsageError(str(err)) from None
-                if (run_dir / "config.yaml").is_file():
-                    check_same_config(run_dir, expected, ignore=())
+                if (run_dir / "config.yaml").is_file():  # the searched architecture is the run's own choice
+                    searched = ("model.hidden_size", "model.num_layers") if proto.architectures(env) else ()
+                    check_same_config(run_dir, expected, ignore=searched)
     data_dir = out / "data"
-    for env in env_names:  # cheap with random policies: done here, before the pool
-        for part, seed, n in (("train", TRAIN_DATA_SEED, episodes), ("test", TEST_DATA_SEED, test_episodes)):
+    for env in env_names:  # done here, before the pool: cheap with random policies, once per env with SAC
+        for part, seed, n in (("train", TRAIN_DATA_SEED, episodes), ("test", TEST_DATA_SEED, n_test(env))):
             path = data_dir / f"{env}-{part}.npz"
-            data_actions[path.name] = prepare_data(path, env, policy, n, seed, max_steps, progress)
+            part_policy = f"sb3:{data_dir / f'{env}-sac.zip'}" if steps is not None and part == "test" else policy
+            try:
+                data_actions[path.name] = prepare_data(path, env, part_policy, n, seed, max_steps, progress)
+            except ValueError as err:  # e.g. the SAC agent file went missing
+                raise UsageError(f"{path.name}: {err}") from None
     eval_request = {
         "horizons": sorted(set(int(h) for h in horizons)),
         "starts": starts,
@@ -259,6 +328,7 @@ def compare_offline(
                     "test_data": str(data_dir / f"{env}-test.npz"),
                     "overrides": extra,
                     "preset": preset,
+                    "protocol": protocol,
                     "device": device,
                     "eval_request": {**eval_request, "data": f"data/{env}-test.npz"},
                     "planners": list(planners) if openloop else [],
