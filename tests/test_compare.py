@@ -376,6 +376,7 @@ def test_offline_prediction_csv_equals_the_runs_evaluations(offline):
         ]
         assert all(e["model"] == r["model"] and e["env"] == "invertedpendulum" for e in evals)
         assert evals[0]["start_points"] == evals[1]["start_points"]  # paired: the same starts for every run
+        assert all(e["standardized_by"] == str(out / "data" / "invertedpendulum-train.npz") for e in evals)
         values = [e["horizons"][r["horizon"]]["mean_step_error"] for e in evals]
         assert float(r["mean_step_error"]) == pytest.approx(np.mean(values), rel=1e-12)
         assert (float(r["ci_low"]), float(r["ci_high"])) == pytest.approx(bootstrap_ci(values))

@@ -1,7 +1,7 @@
 """The offline commands end to end: pets.collect -> pets.train -> pets.evaluate, on tiny real MuJoCo data.
 
-Ground truth comes from the simulator (reset observations, rewards) and from scipy (rotation angles
-for the quaternion metric). Subprocesses run with one torch thread: tiny models on a shared 2-core
+Ground truth comes from the simulator (reset observations, rewards); the error metrics themselves are
+tested in tests/test_metrics.py. Subprocesses run with one torch thread: tiny models on a shared 2-core
 machine are many times slower with two.
 """
 
@@ -16,15 +16,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from scipy.spatial.transform import Rotation
 
 import envs
 from dynamics.model import DynamicsModel
-from envs.layout import Group, ObsLayout
 from pets import builder, rundir
 from pets.collect import collect, episode_seeds, make_policy
 from pets.datasets import load_dataset, save_dataset, transitions
-from pets.evaluate import evaluate, sample_starts, step_errors, wrap_angle
+from pets.evaluate import HORIZON_KEYS, evaluate, sample_starts
 from pets.models import make_model
 from pets.propagation import TrajectoryEvaluator
 from pets.train import OFFLINE_DEFAULTS, offline_config
@@ -333,19 +331,42 @@ def test_evaluate_cli_json(work, delta_run, reacher_data):
         "cpu",
         "--json",
         out,
+        "--train-data",
+        reacher_data,
     )
     res = json.loads(out.read_text())
     assert {"run", "data", "env", "model", "horizons"} <= set(res)
     assert res["env"] == "reacher" and res["model"] == "delta" and res["mode"] == "mean"
+    assert res["standardized_by"] == str(reacher_data)
     assert list(res["horizons"]) == ["1", "5", "10", "25", "50"]
     assert res["starts"] == 12  # horizon 50 in 50-step episodes: only t = 0 of each of the 12 episodes
     for row in res["horizons"].values():
-        assert set(row) >= {"mean_step_error", "final_step_error", "position_error", "velocity_error", "other_error"}
+        assert tuple(row) == HORIZON_KEYS
         assert all(math.isfinite(v) and v >= 0 for v in row.values())
-        assert row["mean_step_error"] >= max(row["position_error"], row["velocity_error"], row["other_error"]) - 1e-12
+        parts = ("translation_error", "velocity_error", "other_error", "derived_error")
+        assert row["mean_step_error"] >= max(row[p] for p in parts) - 1e-12
+        assert row["derived_error"] == 0 and row["nonfinite_fraction"] == 0  # reacher: no derived entries
+        assert 0 < row["rotation_error"] <= math.pi * math.sqrt(2) and 0 < row["standardized_error"]
     one = res["horizons"]["1"]
     assert one["mean_step_error"] == pytest.approx(one["final_step_error"])
-    assert "mean_step_error" in proc.stdout and "\n     50 " in proc.stdout
+    assert "mean_step_error" in proc.stdout and "standardized_error" in proc.stdout and "\n     50 " in proc.stdout
+
+
+def test_evaluate_standardizes_by_the_training_data(delta_run, reacher_data, ip_data):
+    data = load_dataset(reacher_data)
+    train = {k: v[:6] if k not in ("env", "policy", "seed") else v for k, v in data.items()}
+    with one_thread():
+        own = evaluate(delta_run, reacher_data, [1, 5], starts=30, seed=0, device="cpu")
+        by_train = evaluate(delta_run, reacher_data, [1, 5], starts=30, seed=0, device="cpu", train_data=train)
+        with pytest.raises(ValueError, match="training data set is from invertedpendulum"):
+            evaluate(delta_run, reacher_data, [1], starts=30, device="cpu", train_data=ip_data)
+    assert own["standardized_by"] == "test data" and by_train["standardized_by"] == "arrays"
+    for h in ("1", "5"):
+        a, b = own["horizons"][h], by_train["horizons"][h]
+        assert {k: v for k, v in a.items() if k != "standardized_error"} == {
+            k: v for k, v in b.items() if k != "standardized_error"
+        }
+        assert a["standardized_error"] != b["standardized_error"]
 
 
 def test_trained_model_beats_untrained_one_step(work, delta_run, reacher_data):
@@ -405,70 +426,6 @@ def test_sample_starts_leave_room_and_are_distinct():
     assert len(few) == 5 and len({tuple(p) for p in few}) == 5 and (few[:, 1] + 4 <= lengths[few[:, 0]]).all()
 
 
-# --------------------------------------------------------------------------- metric (pure functions)
-def test_wrap_angle_range_and_values():
-    d = torch.tensor(
-        [0.0, 0.5, math.pi, -math.pi, 3 * math.pi, 2 * math.pi, -0.5 - 4 * math.pi, 1e-9], dtype=torch.float64
-    )
-    w = wrap_angle(d)
-    expected = torch.tensor([0.0, 0.5, math.pi, math.pi, math.pi, 0.0, -0.5, 1e-9], dtype=torch.float64)
-    torch.testing.assert_close(w, expected, atol=1e-12, rtol=0)
-    x = torch.linspace(-20, 20, 4001, dtype=torch.float64)
-    w = wrap_angle(x)
-    assert (w > -math.pi).all() and (w <= math.pi).all()
-    torch.testing.assert_close(torch.cos(w), torch.cos(x)), torch.testing.assert_close(torch.sin(w), torch.sin(x))
-
-
-def test_step_error_compares_angles_modulo_two_pi():
-    layout = envs.get("invertedpendulum").layout  # 0 cart (Rn), 1 hinge (SO2_angle), 2-3 velocities
-    true = torch.tensor([[0.1, math.pi - 0.05, 1.0, -1.0]], dtype=torch.float64)
-    pred = torch.tensor([[0.1, -math.pi + 0.05, 4.0, 3.0]], dtype=torch.float64)
-    e = step_errors(pred, true, layout)
-    torch.testing.assert_close(e["position"], torch.tensor([0.1], dtype=torch.float64))  # not 2 pi - 0.1
-    torch.testing.assert_close(e["velocity"], torch.tensor([5.0], dtype=torch.float64))
-    torch.testing.assert_close(e["other"], torch.tensor([0.0], dtype=torch.float64))
-    torch.testing.assert_close(e["total"], torch.tensor([math.sqrt(25.01)], dtype=torch.float64))
-
-
-def test_step_error_compares_quaternions_up_to_sign_against_scipy_angles():
-    layout = ObsLayout(
-        obs_dim=8,
-        groups=(Group("pos", "Rn", (0,)), Group("q", "SO3_quat", (1, 2, 3, 4))),
-        velocities=(5, 6),
-        other=(7,),
-    )
-    r1 = Rotation.random(64, random_state=0)
-    r2 = Rotation.random(64, random_state=1)
-    sign = np.where(np.arange(64) % 2 == 0, 1.0, -1.0)[:, None]
-
-    def obs(r, flip=1.0):
-        q = r.as_quat(scalar_first=True) * flip  # (w, x, y, z) as in MuJoCo
-        return torch.as_tensor(np.concatenate([np.zeros((64, 1)), q, np.zeros((64, 3))], axis=1))
-
-    same = step_errors(obs(r1, sign), obs(r1), layout)
-    torch.testing.assert_close(same["total"], torch.zeros(64, dtype=torch.float64), atol=1e-7, rtol=0)
-    e = step_errors(obs(r2, sign), obs(r1), layout)
-    theta = (r1.inv() * r2).magnitude()  # relative rotation angle in [0, pi]
-    expected = torch.as_tensor(2 * np.sin(theta / 4))  # min |q -+ q'| = sqrt(2 - 2 cos(theta/2))
-    torch.testing.assert_close(e["position"], expected, atol=1e-10, rtol=0)
-    torch.testing.assert_close(e["total"], expected, atol=1e-10, rtol=0)
-
-
-def test_step_error_parts_follow_the_layout():
-    layout = envs.get("reacher").layout  # groups 0-5 (cos/sin, target), velocities 6-7, other 8-9
-    true = torch.zeros(3, 10, dtype=torch.float64)
-    pred = true.clone()
-    pred[0, 1] = 0.3  # a cos entry: plain difference
-    pred[1, 7] = -2.0
-    pred[2, 9] = 0.5
-    e = step_errors(pred, true, layout)
-    torch.testing.assert_close(e["position"], torch.tensor([0.3, 0, 0], dtype=torch.float64))
-    torch.testing.assert_close(e["velocity"], torch.tensor([0, 2.0, 0], dtype=torch.float64))
-    torch.testing.assert_close(e["other"], torch.tensor([0, 0, 0.5], dtype=torch.float64))
-    with pytest.raises(ValueError, match="obs_dim=10"):
-        step_errors(pred[:, :9], true[:, :9], layout)
-
-
 # --------------------------------------------------------------------------- bad input
 @pytest.mark.parametrize(
     "module, args, fragment",
@@ -499,7 +456,7 @@ def test_bad_input_exits_2_with_one_line(module, args, fragment, tmp_path):
     assert lines[0].startswith(f"{module}: error: ") and fragment in lines[0]
 
 
-def test_bad_data_and_mismatched_env_exit_2(work, delta_run, ip_data):
+def test_bad_data_and_mismatched_env_exit_2(work, delta_run, ip_data, reacher_data):
     broken = work / "broken.npz"
     broken.write_bytes(b"not a zip file")
     cases = [
@@ -510,6 +467,16 @@ def test_bad_data_and_mismatched_env_exit_2(work, delta_run, ip_data):
             "unknown config key",
         ),
         ("pets.evaluate", ["--run", delta_run, "--data", ip_data], "invertedpendulum"),
+        (
+            "pets.evaluate",
+            ["--run", delta_run, "--data", reacher_data, "--train-data", work / "missing.npz"],
+            "train data file",
+        ),
+        (
+            "pets.evaluate",
+            ["--run", delta_run, "--data", reacher_data, "--train-data", ip_data],
+            "training data set is from invertedpendulum",
+        ),
     ]
     for module, args, fragment in cases:
         proc = run(module, *args, check=False, timeout=120)

@@ -14,10 +14,10 @@ set of 20k samples gives the default ``--test-episodes``, ceil(20000 / episode l
 
 Per run: train offline (``pets.train.train_offline``, model seed = the run's seed) unless the
 run directory holds a trained model; evaluate on the test data (``pets.evaluate``, mean mode, the
-same start points for every model and seed of an env: evaluation seed 0) into ``eval.json`` unless it
-holds this evaluation already; with ``--openloop``, open-loop planning (``pets.openloop``, seed 2)
-per planner into ``openloop_PLANNER.json``. Jobs run in a pool of K processes (one torch thread each)
-or, with K = 1, in this process.
+same start points for every model and seed of an env: evaluation seed 0; ``standardized_error`` scaled
+by the training data) into ``eval.json`` unless it holds this evaluation already; with ``--openloop``,
+open-loop planning (``pets.openloop``, seed 2) per planner into ``openloop_PLANNER.json``. Jobs run in a
+pool of K processes (one torch thread each) or, with K = 1, in this process.
 """
 
 from __future__ import annotations
@@ -182,6 +182,7 @@ def _offline_job(job: Mapping[str, Any]) -> dict[str, Any]:
             mode=request["mode"],
             device=job["device"],
             log=lambda message: None,
+            train_data=job["train_data"],
         )
         result["request"] = request
         atomic_write_bytes(eval_path, (json.dumps(result) + "\n").encode())
@@ -313,6 +314,9 @@ def compare_offline(
         "starts": starts,
         "seed": EVAL_SEED,
         "mode": "mean",
+        # standardized_error is scaled by the training data's observation std (eval.json files from before
+        # this key was added standardized by the test data, without the per-part errors: they are redone)
+        "standardized_by": "train data",
     }
     openloop_request = {"steps": openloop_steps, "episodes": openloop_episodes, "seed": OPENLOOP_SEED}
     for env in env_names:
