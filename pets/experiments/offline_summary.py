@@ -255,7 +255,6 @@ def summarise_offline(
     summary, relative_rows, per_run, diverged_runs, text = [], [], [], [], []
     run_columns: list[str] = []
     fig2: dict[str, dict[str, dict[str, Any]]] = {}
-    small = False
     for env in env_names:
         evals = load_evals(out, env, models, seeds, request)
         if not evals:
@@ -309,7 +308,6 @@ def summarise_offline(
         skipped = sorted(asked - set(common))
         note = f"; skipped: {', '.join(map(str, skipped))} (longer than the test episodes)" if skipped else ""
         env_small = any(stats[m][(metrics[0], common[0])]["n_seeds"] < MIN_SEEDS for m in env_models)
-        small |= env_small
         text += [f"## {env} (horizons {', '.join(map(str, common))}{note})", ""]
         text += [SMALL_SAMPLE_NOTE, ""] if env_small else []
         for metric in TABLE_METRICS:
