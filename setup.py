@@ -29,6 +29,10 @@ setup(
         "matplotlib>=3.7",
         # A/B statistics (IQM, stratified-bootstrap CIs, probability of improvement): Agarwal et al.'s own library.
         "rliable>=1.2",
+        # rliable 1.2 needs arch 7 (arch 8 dropped the random_state argument rliable passes), and arch 7 does not
+        # import under pandas 3.
+        "arch>=7,<8",
+        "pandas<3",
     ],
     extras_require={
         # Tests: property-based tests (hypothesis) and scipy as an independent rotation reference.

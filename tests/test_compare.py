@@ -9,17 +9,20 @@ open-loop rewards.
 import csv
 import json
 import math
+import re
 
 import numpy as np
 import pytest
+from rliable import metrics
 
 import envs
 from pets import openloop, rundir
 from pets.config import load_config, make_config
 from pets.experiments import arguments, runner
+from pets.experiments import cli as cli_module
 from pets.experiments.cli import EXIT_FAILED, main
 from pets.experiments.offline import compare_offline
-from pets.experiments.report import fmt
+from pets.experiments.offline_summary import SUMMARY_COLUMNS, summarise_offline
 from pets.experiments.statistics import bootstrap_ci, iqm
 from tests.threads import one_thread
 from tests.tiny import TINY_MODEL, TINY_PLANNER
@@ -172,7 +175,7 @@ def test_online_summary_equals_statistics_recomputed_from_metrics(online):
 
 
 def test_online_planners_axis_runs_every_model_planner_pair(tmp_path, capsys):
-    code, printed, _ = cli(
+    code, printed, stderr = cli(
         capsys,
         "online",
         "--envs",
@@ -194,7 +197,7 @@ def test_online_planners_axis_runs_every_model_planner_pair(tmp_path, capsys):
         "--quiet",
         *TINY,
     )
-    assert code == 0
+    assert code == 0 and stderr.count("pets.compare: warning: 1 seed: fewer than 5 seeds") == 1
     for planner in ("cem", "icem"):
         run = tmp_path / "runs" / f"invertedpendulum-delta-{planner}-s3"
         assert load_config(str(run / "config.yaml")).planner.name == planner
@@ -351,9 +354,11 @@ def test_offline_writes_data_runs_and_summaries(offline):
     assert all(done == ["train", "eval", "openloop_cem", "openloop_mppi"] for done in result["done"].values())
     for name in (
         "prediction.md",
-        "prediction.csv",
+        "summary.csv",
+        "relative_error.csv",
         "prediction_runs.csv",
         "relative_error.png",
+        "ratio_to_delta.png",
         "absolute_error_invertedpendulum.png",
         "openloop.md",
         "openloop.csv",
@@ -365,34 +370,42 @@ def test_offline_writes_data_runs_and_summaries(offline):
     assert not np.array_equal(train["obs"][:4, 0], test["obs"][:, 0])  # separate data sets
 
 
-def test_offline_prediction_csv_equals_the_runs_evaluations(offline):
+def test_offline_summary_csv_equals_the_runs_evaluations(offline):
     out, _ = offline
-    rows = csv_rows(out / "prediction.csv")
+    rows = [r for r in csv_rows(out / "summary.csv") if r["metric"] == "mean_step_error"]
     assert {(r["model"], r["horizon"]) for r in rows} == {(m, h) for m in ("delta", "gem") for h in ("1", "3", "5")}
-    averaged = {}
+    evals = {
+        (m, s): json.loads((out / "runs" / f"invertedpendulum-{m}-s{s}" / "eval.json").read_text())
+        for m in ("delta", "gem")
+        for s in (0, 1)
+    }
+    assert all(e["model"] == m and e["env"] == "invertedpendulum" for (m, _), e in evals.items())
+    assert evals["delta", 0]["start_points"] == evals["gem", 1]["start_points"]  # paired: the same starts everywhere
+    assert all(e["standardized_by"] == str(out / "data" / "invertedpendulum-train.npz") for e in evals.values())
     for r in rows:
-        evals = [
-            json.loads((out / "runs" / f"invertedpendulum-{r['model']}-s{s}" / "eval.json").read_text()) for s in (0, 1)
-        ]
-        assert all(e["model"] == r["model"] and e["env"] == "invertedpendulum" for e in evals)
-        assert evals[0]["start_points"] == evals[1]["start_points"]  # paired: the same starts for every run
-        assert all(e["standardized_by"] == str(out / "data" / "invertedpendulum-train.npz") for e in evals)
-        values = [e["horizons"][r["horizon"]]["mean_step_error"] for e in evals]
-        assert float(r["mean_step_error"]) == pytest.approx(np.mean(values), rel=1e-12)
-        assert (float(r["ci_low"]), float(r["ci_high"])) == pytest.approx(bootstrap_ci(values))
-        assert int(r["n_seeds"]) == 2
-    for model in ("delta", "gem"):  # Fig. 2: per seed the mean over horizons, then the mean over seeds
-        per_seed = []
-        for s in (0, 1):
-            e = json.loads((out / "runs" / f"invertedpendulum-{model}-s{s}" / "eval.json").read_text())
-            per_seed.append(np.mean([e["horizons"][h]["mean_step_error"] for h in ("1", "3", "5")]))
-        averaged[model] = np.mean(per_seed)
+        values = [evals[r["model"], s]["horizons"][r["horizon"]]["mean_step_error"] for s in (0, 1)]
+        assert int(r["n_seeds"]) == 2 and int(r["n_diverged"]) == 0  # the tiny models do not diverge in 5 steps
+        # two seeds: the IQM is the mean, and the bootstrap CI is [min, max]
+        assert float(r["iqm"]) == pytest.approx(np.mean(values), rel=1e-12)
+        assert (float(r["ci_low"]), float(r["ci_high"])) == (min(values), max(values))
+        if r["model"] == "delta":
+            assert r["p_improvement"] == r["ratio_to_delta"] == ""
+        else:
+            deltas = [evals["delta", s]["horizons"][r["horizon"]]["mean_step_error"] for s in (0, 1)]
+            p = metrics.probability_of_improvement(-np.array(values)[:, None], -np.array(deltas)[:, None])
+            assert float(r["p_improvement"]) == p
+            assert float(r["ratio_to_delta"]) == pytest.approx(np.mean(np.divide(values, deltas)), rel=1e-12)
+    averaged = {  # Fig. 2: per seed the mean over horizons, then the IQM over seeds (n = 2: the mean)
+        m: np.mean([np.mean([evals[m, s]["horizons"][h]["mean_step_error"] for h in ("1", "3", "5")]) for s in (0, 1)])
+        for m in ("delta", "gem")
+    }
     top = max(averaged.values())
-    lines = (out / "prediction.md").read_text().splitlines()
-    line = next(row for row in lines if row.startswith("| invertedpendulum |"))
-    delta, gem = (fmt(averaged[m] / top) for m in ("delta", "gem"))
-    assert line == f"| invertedpendulum | {delta} | {gem} |"
-    assert "1" in {fmt(v / top) for v in averaged.values()}
+    relative = {r["model"]: r for r in csv_rows(out / "relative_error.csv") if r["metric"] == "mean_step_error"}
+    for m in ("delta", "gem"):
+        assert float(relative[m]["relative"]) == pytest.approx(averaged[m] / top, rel=1e-12)
+    md = (out / "prediction.md").read_text()
+    assert re.search(r"^\| invertedpendulum \| gem \| 2 \| 0 \| ", md, re.M)
+    assert "Fewer than 5 seeds cannot carry a claim" in md
 
 
 def test_offline_open_loop_results_replay_in_the_simulator(offline):
@@ -423,6 +436,7 @@ def test_offline_rerun_reuses_and_new_horizons_only_re_evaluate(offline, capsys)
     before = {d.name: {f.name: f.stat().st_mtime_ns for f in d.iterdir()} for d in runs}
     code, stdout, stderr = cli(capsys, *OFFLINE_ARGS, "--out", out)
     assert code == 0 and "4 runs: 4 reused, 0 with work to do" in stderr and "## invertedpendulum" in stdout
+    assert stderr.count("fewer than 5 seeds cannot carry a claim") == 1  # --seeds 0,1
     assert {d.name: {f.name: f.stat().st_mtime_ns for f in d.iterdir()} for d in runs} == before
     args = [a if a != "1,3,5" else "1,2" for a in OFFLINE_ARGS]
     code, _, stderr = cli(capsys, *args, "--out", out)
@@ -431,7 +445,7 @@ def test_offline_rerun_reuses_and_new_horizons_only_re_evaluate(offline, capsys)
         assert d.joinpath("checkpoint.pt").stat().st_mtime_ns == before[d.name]["checkpoint.pt"]
         assert d.joinpath("openloop_cem.json").stat().st_mtime_ns == before[d.name]["openloop_cem.json"]
         assert list(json.loads(d.joinpath("eval.json").read_text())["horizons"]) == ["1", "2"]
-    assert {r["horizon"] for r in csv_rows(out / "prediction.csv")} == {"1", "2"}
+    assert {r["horizon"] for r in csv_rows(out / "summary.csv")} == {"1", "2"}
 
 
 def test_offline_refuses_other_data_or_config_in_the_same_directory(offline, capsys):
@@ -491,6 +505,193 @@ def test_online_refuses_an_offline_run_directory(offline, capsys):
         "model.patience=20",
     )
     assert code == 2 and "is an offline training run" in err
+
+
+# --------------------------------------------------------------------------- offline summary on fake evaluations
+FAKE_REQUEST = {"horizons": [1, 5], "starts": 10, "seed": 0, "mode": "mean"}
+NEW_KEYS = [  # pets.evaluate's keys after issue 11 (the summary takes whatever *_error keys the files have)
+    "mean_step_error",
+    "final_step_error",
+    "translation_error",
+    "rotation_error",
+    "velocity_error",
+    "other_error",
+    "derived_error",
+    "standardized_error",
+]
+SCALE = {"delta": 1.0, "gem": 0.7, "gem2": 1.3}
+
+
+def fake_eval(out, env, model, seed, horizons):
+    """A run directory with only an eval.json for FAKE_REQUEST: ``horizons`` = {h: {key: value}}."""
+    run = out / "runs" / f"{env}-{model}-s{seed}"
+    run.mkdir(parents=True)
+    result = {"request": {**FAKE_REQUEST, "data": f"data/{env}-test.npz"}, "starts": 10, "horizons": horizons}
+    (run / "eval.json").write_text(json.dumps({**result, "env": env, "model": model}))
+
+
+def fake_values(model, seed, h, keys=NEW_KEYS, rotations=True):
+    """Distinct error values per model, seed, horizon and key (no ties between models)."""
+    values = {k: SCALE[model] * (1 + seed + 0.01 * seed**2) * h * (i + 1) / 10 for i, k in enumerate(keys)}
+    if "rotation_error" in values and not rotations:
+        values["rotation_error"] = 0.0
+    return {**values, "nonfinite_fraction": 0.0}
+
+
+@pytest.fixture(scope="module")
+def fake_offline(tmp_path_factory):
+    """reacher: delta, gem, gem2 with 5 seeds; gem seed 4 goes NaN at h=5, gem2 seed 3 has standardized_error 7e4.
+    invertedpendulum (no rotations): delta and gem, 3 seeds. hopper: gem diverged in both of its 2 seeds."""
+    out = tmp_path_factory.mktemp("fake-offline")
+    for model in ("delta", "gem", "gem2"):
+        for seed in range(5):
+            hs = {str(h): fake_values(model, seed, h) for h in (1, 5)}
+            if (model, seed) == ("gem", 4):
+                hs["5"]["mean_step_error"], hs["5"]["nonfinite_fraction"] = math.nan, 0.2
+            if (model, seed) == ("gem2", 3):
+                hs["5"]["standardized_error"], hs["5"]["mean_step_error"] = 7e4, 7e4
+            fake_eval(out, "reacher", model, seed, hs)
+    for model in ("delta", "gem"):
+        for seed in range(3):
+            fake_eval(
+                out,
+                "invertedpendulum",
+                model,
+                seed,
+                {str(h): fake_values(model, seed, h, rotations=False) for h in (1, 5)},
+            )
+    for seed in range(2):
+        fake_eval(out, "hopper", "delta", seed, {str(h): fake_values("delta", seed, h) for h in (1, 5)})
+        hs = {str(h): {**fake_values("gem", seed, h), "standardized_error": math.inf} for h in (1, 5)}
+        fake_eval(out, "hopper", "gem", seed, hs)
+    rows = summarise_offline(
+        out, ["reacher", "invertedpendulum", "hopper"], ["delta", "gem", "gem2"], range(5), FAKE_REQUEST, reps=200
+    )
+    return out, rows
+
+
+def summary_row(out, env, model, horizon, metric):
+    (row,) = [
+        r
+        for r in csv_rows(out / "summary.csv")
+        if (r["env"], r["model"], r["horizon"], r["metric"]) == (env, model, str(horizon), metric)
+    ]
+    return row
+
+
+def test_summary_csv_has_every_env_model_horizon_and_metric(fake_offline):
+    out, rows = fake_offline
+    with open(out / "summary.csv") as f:
+        header = f.readline().strip().split(",")
+    assert header == SUMMARY_COLUMNS
+    assert header[:10] == "env model horizon metric iqm ci_low ci_high n_seeds n_diverged p_improvement".split()
+    table = csv_rows(out / "summary.csv")
+    assert len(table) == len(rows) == (3 + 2 + 2) * 2 * len(NEW_KEYS)  # (env, model) pairs x horizons x metrics
+    assert [r["metric"] for r in table[: len(NEW_KEYS) * 2 : 2]] == NEW_KEYS  # the preferred order
+    for r in table:
+        if r["model"] == "delta":  # nothing to compare with
+            assert all(r[c] == "" for c in SUMMARY_COLUMNS[9:]), r
+        elif r["n_seeds"] != "0":
+            assert float(r["ci_low"]) <= float(r["iqm"]) <= float(r["ci_high"])
+            assert 0 <= float(r["p_improvement_ci_low"]) <= float(r["p_improvement"]) <= 1
+
+
+def test_diverged_runs_are_counted_never_averaged_in(fake_offline):
+    out, _ = fake_offline
+    for model, bad in (("gem", 4), ("gem2", 3)):  # diverged at h=5 only: the whole run is out, at every horizon
+        for h in (1, 5):
+            r = summary_row(out, "reacher", model, h, "mean_step_error")
+            assert (r["n_seeds"], r["n_diverged"]) == ("4", "1")
+            good = [fake_values(model, s, h)["mean_step_error"] for s in range(5) if s != bad]
+            assert float(r["iqm"]) == metrics.aggregate_iqm(np.array(good))
+            assert min(good) <= float(r["ci_low"]) <= float(r["ci_high"]) <= max(good)
+            # P: the diverged run is an infinite error; the ratio pairs the seeds both have and neither diverged
+            errors = [fake_values(model, s, h)["mean_step_error"] if s != bad else math.inf for s in range(5)]
+            deltas = [fake_values("delta", s, h)["mean_step_error"] for s in range(5)]
+            p = metrics.probability_of_improvement(-np.array(errors)[:, None], -np.array(deltas)[:, None])
+            assert float(r["p_improvement"]) == pytest.approx(p, abs=1e-15)
+            ratios = [good[i] / d for i, d in enumerate(d for s, d in enumerate(deltas) if s != bad)]
+            assert float(r["ratio_to_delta"]) == pytest.approx(metrics.aggregate_iqm(np.array(ratios)), rel=1e-12)
+            assert r["n_pairs"] == "4"
+    r = summary_row(out, "hopper", "gem", 1, "mean_step_error")  # every run diverged: no IQM, P = 0
+    assert (r["n_seeds"], r["n_diverged"], r["iqm"], r["ci_low"], r["ratio_to_delta"]) == ("0", "2", "", "", "")
+    assert float(r["p_improvement"]) == 0.0
+    runs = {(r["env"], r["model"], r["seed"], r["horizon"]): r for r in csv_rows(out / "prediction_runs.csv")}
+    assert runs["reacher", "gem2", "3", "1"]["diverged"] == "standardized_error 7e+04 > 100 at h=5"
+    assert runs["reacher", "gem", "4", "1"]["diverged"].startswith("mean_step_error nan at h=5")
+    assert runs["reacher", "gem", "3", "1"]["diverged"] == ""
+    assert set(NEW_KEYS) <= set(runs["reacher", "gem", "3", "1"]) and len(runs) == (15 + 6 + 4) * 2
+
+
+def test_prediction_md_shows_diverged_runs_as_such_and_no_nan_or_inf(fake_offline):
+    out, _ = fake_offline
+    md = (out / "prediction.md").read_text()
+    tables = "\n".join(line for line in md.splitlines() if line.startswith("|"))
+    assert not re.search(r"\b(nan|inf|None)\b", tables, re.I), "a non-finite or missing number reached a table"
+    assert "| gem2 | 4 | 1 |" in md and "all diverged" in md
+    assert "- reacher-gem2-s3: standardized_error 7e+04 > 100 at h=5" in md
+    sections = dict(re.findall(r"^## (\w+) [^\n]*\n(.*?)(?=^## )", md, re.S | re.M))
+    assert "### rotation_error" in sections["reacher"] and "### rotation_error" not in sections["invertedpendulum"]
+    assert "### standardized_error" in sections["reacher"] and "P(mean_step_error < delta's)" in sections["reacher"]
+    assert "Fewer than 5 seeds cannot carry a claim" in sections["invertedpendulum"]
+    assert "Fewer than 5 seeds cannot carry a claim" in sections["reacher"]  # gem and gem2 have 4 seeds left
+    for name in ("relative_error.png", "ratio_to_delta.png", "absolute_error_reacher.png"):
+        assert (out / name).stat().st_size > 10_000
+
+
+def test_relative_error_csv_normalises_by_the_largest_model(fake_offline):
+    out, _ = fake_offline
+    rows = [r for r in csv_rows(out / "relative_error.csv") if r["metric"] == "mean_step_error"]
+    reacher = {r["model"]: r for r in rows if r["env"] == "reacher"}
+    top = max(float(r["iqm"]) for r in reacher.values())
+    assert top == float(reacher["gem2"]["iqm"])  # gem2's errors are the largest
+    for r in reacher.values():
+        assert float(r["relative"]) == pytest.approx(float(r["iqm"]) / top, rel=1e-12)
+        assert float(r["relative_ci_high"]) == pytest.approx(float(r["ci_high"]) / top, rel=1e-12)
+    assert float(reacher["gem2"]["relative"]) == 1.0
+    averaged = [np.mean([fake_values("gem", s, h)["mean_step_error"] for h in (1, 5)]) for s in range(4)]
+    assert float(reacher["gem"]["iqm"]) == pytest.approx(metrics.aggregate_iqm(np.array(averaged)), rel=1e-12)
+    hopper = {r["model"]: r for r in rows if r["env"] == "hopper"}
+    assert hopper["gem"]["relative"] == "" and float(hopper["delta"]["relative"]) == 1.0
+
+
+def test_old_evaluations_without_the_new_keys_are_summarised_too(tmp_path):
+    old = ["mean_step_error", "final_step_error", "position_error", "velocity_error", "other_error"]
+    for model in ("delta", "gem"):
+        for seed in range(5):
+            fake_eval(tmp_path, "reacher", model, seed, {str(h): fake_values(model, seed, h, old) for h in (1, 5)})
+    rows = summarise_offline(tmp_path, ["reacher"], ["delta", "gem"], range(5), FAKE_REQUEST, reps=50)
+    metrics_seen = list(dict.fromkeys(r["metric"] for r in rows))
+    assert metrics_seen == ["mean_step_error", "final_step_error", "velocity_error", "other_error", "position_error"]
+    assert all(r["n_seeds"] == 5 for r in rows)
+    md = (tmp_path / "prediction.md").read_text()
+    assert "### mean_step_error" in md and "### standardized_error" not in md and "Fewer than 5" not in md
+
+
+@pytest.mark.parametrize("mode, extra", [("offline", []), ("online", ["--trials", 1])])
+def test_five_seeds_by_default(mode, extra, monkeypatch, capsys, tmp_path):
+    seen = []
+
+    def fake_compare(env_names, models, seeds, *args, **kwargs):
+        seen.append(seeds)
+        tmp_path.joinpath("summary.md" if mode == "online" else "prediction.md").write_text("report")
+        return {"failed": {}}
+
+    monkeypatch.setattr(cli_module, f"compare_{mode}", fake_compare)
+    args = [mode, "--envs", "reacher", "--models", "delta", *extra, "--out", tmp_path]
+    code, printed, err = cli(capsys, *args)
+    assert code == 0 and seen[-1] == [0, 1, 2, 3, 4] and err == "" and "report" in printed
+    code, _, err = cli(capsys, *args, "--seeds", "0,1,2")
+    assert code == 0 and seen[-1] == [0, 1, 2]
+
+
+def test_fewer_than_five_seeds_give_one_warning_line():
+    assert arguments.few_seeds_warning(5) is None and arguments.few_seeds_warning(12) is None
+    assert arguments.few_seeds_warning(3) == (
+        "pets.compare: warning: 3 seeds: fewer than 5 seeds cannot carry a claim "
+        "(with n <= 3 the 95 % CI is the min-max of the seeds)"
+    )
+    assert arguments.few_seeds_warning(1).startswith("pets.compare: warning: 1 seed: fewer than 5")
 
 
 # --------------------------------------------------------------------------- pool and usage errors

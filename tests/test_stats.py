@@ -1,12 +1,143 @@
-"""pets.experiments.statistics against exact small cases, scipy's bootstrap and trim_mean, and a normal-theory CI."""
+"""pets.experiments.statistics: the A/B statistics against rliable's own functions on fixed inputs and hand-computed
+cases; the mean bootstrap against exact small cases, scipy's bootstrap and trim_mean, and a normal-theory CI."""
 
 import math
 
 import numpy as np
 import pytest
 import scipy.stats
+from rliable import library, metrics
 
-from pets.experiments.statistics import bootstrap_band, bootstrap_ci, iqm, summarise
+from pets.experiments.statistics import (
+    DIVERGED_STANDARDIZED_ERROR,
+    bootstrap_band,
+    bootstrap_ci,
+    divergence,
+    iqm,
+    iqm_ci,
+    iqm_columns,
+    p_improvement,
+    p_improvement_ci,
+    paired_ratios,
+    summarise,
+)
+
+INF, NAN = math.inf, math.nan
+
+
+# --------------------------------------------------------------------------- A/B statistics (rliable)
+def rliable_iqm_per_column(scores):
+    return np.array([metrics.aggregate_iqm(scores[:, j]) for j in range(scores.shape[1])])
+
+
+def rliable_p_per_column(neg_x, neg_y):
+    return np.array([metrics.probability_of_improvement(neg_x[:, [j]], neg_y[:, [j]]) for j in range(neg_x.shape[1])])
+
+
+@pytest.mark.parametrize("n", range(1, 12))
+def test_iqm_columns_is_rliable_aggregate_iqm_of_each_column(n):
+    x = np.random.default_rng(n).standard_cauchy(size=(n, 6))
+    np.testing.assert_array_equal(iqm_columns(x), rliable_iqm_per_column(x))
+
+
+@pytest.mark.parametrize("shape, seed", [((5, 4), 3), ((3, 2), 0), ((8, 7), 11), ((1, 3), 5)])
+def test_iqm_ci_is_rliables_interval_estimate(shape, seed):
+    x = np.random.default_rng(seed).gamma(2.0, 3.0, size=shape)
+    np.random.seed(12345)
+    before = np.random.get_state()[1].copy()
+    point, low, high = iqm_ci(x, reps=300, seed=seed)
+    np.testing.assert_array_equal(np.random.get_state()[1], before)  # the global generator is left as it was
+    np.random.seed(seed)
+    ref_point, ref_interval = library.get_interval_estimates({"x": x}, rliable_iqm_per_column, reps=300)
+    np.testing.assert_array_equal(point, ref_point["x"])
+    np.testing.assert_array_equal(low, ref_interval["x"][0])
+    np.testing.assert_array_equal(high, ref_interval["x"][1])
+    assert (low <= point).all() and (point <= high).all()
+    assert iqm_ci(x, reps=300, seed=seed)[1].tolist() == low.tolist()  # reproducible
+
+
+@pytest.mark.parametrize("values", [[1.0, 4.0, 10.0], [2.0, 7.0], [5.0]])
+def test_with_three_seeds_or_fewer_the_ci_is_min_to_max(values):
+    # the all-min and all-max resamples have probability n**-n >= 1/27 > 2.5 %
+    point, low, high = iqm_ci(np.array(values)[:, None], reps=2000)
+    assert point[0] == pytest.approx(np.mean(values))
+    assert (low[0], high[0]) == (min(values), max(values))
+
+
+def test_iqm_ci_refuses_non_finite_scores_and_bad_settings():
+    for bad in (INF, NAN):
+        with pytest.raises(ValueError, match="diverged"):
+            iqm_ci([[1.0, 2.0], [bad, 3.0]])
+    with pytest.raises(ValueError, match="shape"):
+        iqm_ci(np.empty((0, 3)))
+    with pytest.raises(ValueError, match="reps"):
+        iqm_ci([[1.0]], reps=0)
+
+
+def test_p_improvement_hand_computed_with_ties_counting_half():
+    # pairs x < y: (1,2) (1,3) (1,4) (2,3) (2,4) (3,4) = 6; ties (2,2) (3,3) = 2 -> (6 + 1) / 9
+    assert p_improvement([1, 2, 3], [2, 3, 4]) == pytest.approx(7 / 9)
+    assert p_improvement([2, 3, 4], [1, 2, 3]) == pytest.approx(2 / 9)
+    assert p_improvement([5.0, 5.0], [5.0, 5.0, 5.0]) == 0.5
+    # diverged runs (NaN / inf) are +inf: they lose to every finite run and tie with each other
+    # x = [1, inf, 3], y = [2, 3, inf]: wins 1<2, 1<3, 1<inf, 3<inf = 4; ties 3=3, inf=inf = 2 -> 5 / 9
+    assert p_improvement([1, NAN, 3], [2, 3, INF]) == pytest.approx(5 / 9)
+    assert p_improvement([NAN, INF], [1e9]) == 0.0
+    assert p_improvement([1e9], [INF]) == 1.0
+    assert p_improvement([INF, INF], [NAN]) == 0.5
+
+
+def test_p_improvement_is_rliables_probability_of_improvement_on_negated_errors():
+    rng = np.random.default_rng(4)
+    x, y = rng.gamma(2.0, 1.0, size=7), rng.gamma(2.0, 1.2, size=5)
+    x[2] = INF
+    expected = metrics.probability_of_improvement(-x[:, None], -y[:, None])
+    assert p_improvement(x, y) == expected
+
+
+def test_p_improvement_ci_is_rliables_interval_estimate():
+    rng = np.random.default_rng(5)
+    x, y = rng.gamma(2.0, 1.0, size=(5, 3)), rng.gamma(2.0, 1.3, size=(4, 3))
+    x[1] = NAN  # a diverged run of the model: +inf in every column
+    point, low, high = p_improvement_ci(x, y, reps=200, seed=7)
+    neg_x, neg_y = -np.where(np.isfinite(x), x, INF), -y
+    np.random.seed(7)
+    ref_point, ref_interval = library.get_interval_estimates({"p": [neg_x, neg_y]}, rliable_p_per_column, reps=200)
+    np.testing.assert_array_equal(point, ref_point["p"])
+    np.testing.assert_array_equal(low, ref_interval["p"][0])
+    np.testing.assert_array_equal(high, ref_interval["p"][1])
+    for j in range(3):
+        assert point[j] == p_improvement(x[:, j], y[:, j])
+    assert ((0 <= low) & (low <= point) & (point <= high) & (high <= 1)).all()
+
+
+def test_paired_ratios_use_the_seeds_both_have_and_drop_undefined_columns():
+    model = {0: [2.0, 1.0, 3.0], 1: [3.0, 0.0, 1.0], 3: [9.0, 9.0, 9.0]}
+    delta = {1: [2.0, 0.0, 4.0], 0: [1.0, 1.0, 2.0], 2: [5.0, 5.0, 5.0]}
+    seeds, ratios = paired_ratios(model, delta)
+    assert seeds == [0, 1]
+    np.testing.assert_array_equal(ratios[:, 0], [2.0, 1.5])
+    np.testing.assert_array_equal(ratios[:, 2], [1.5, 0.25])
+    assert np.isnan(ratios[:, 1]).all()  # 0 / 0 for seed 1: undefined for every seed
+    assert paired_ratios({0: [1.0]}, {1: [1.0]})[0] == []
+    point, low, high = iqm_ci(ratios[:, [0, 2]], reps=200)
+    np.testing.assert_array_equal(point, [1.75, 0.875])  # n = 2: the IQM is the mean
+
+
+def test_divergence_non_finite_values_and_the_standardized_threshold():
+    ok = {"1": {"mean_step_error": 0.1, "standardized_error": 2.0, "nonfinite_fraction": 0.0}}
+    assert divergence(ok) is None
+    assert divergence({**ok, "5": {"mean_step_error": NAN, "nonfinite_fraction": 0.0}}) == "mean_step_error nan at h=5"
+    assert "inf" in divergence({"1": {"rotation_error": INF}})
+    assert "non-finite predictions" in divergence({"3": {"mean_step_error": 1.0, "nonfinite_fraction": 0.01}})
+    at = {"1": {"standardized_error": DIVERGED_STANDARDIZED_ERROR}}
+    assert divergence(at) is None  # the threshold itself is not diverged
+    over = {"1": {"standardized_error": 2.0}, "50": {"standardized_error": 7e4, "mean_step_error": 3.0}}
+    assert divergence(over) == "standardized_error 7e+04 > 100 at h=50"
+    assert divergence({"1": {"mean_step_error": 7e4, "position_error": 1e5}}) is None  # old keys: non-finite only
+
+
+# --------------------------------------------------------------------------- mean bootstrap
 
 
 def test_two_point_sample_has_the_exact_bootstrap_distribution():

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pets.experiments.statistics import MIN_SEEDS
+
 #: The program name in every message of the comparison.
 PROG = "pets.compare"
 
@@ -57,6 +59,17 @@ def parse_seeds(text: str) -> list[int]:
     if min(seeds) < 0:
         raise UsageError(f"--seeds must be ints >= 0, got {text!r}")
     return list(dict.fromkeys(seeds))
+
+
+def few_seeds_warning(n_seeds: int) -> str | None:
+    """The one-line warning for fewer than :data:`MIN_SEEDS` seeds (None from there on). The modes print it
+    to stderr once the arguments and run directories have been checked (a usage error stays one line)."""
+    if n_seeds >= MIN_SEEDS:
+        return None
+    return (
+        f"{PROG}: warning: {n_seeds} seed{'s' if n_seeds > 1 else ''}: fewer than {MIN_SEEDS} seeds cannot carry "
+        "a claim (with n <= 3 the 95 % CI is the min-max of the seeds)"
+    )
 
 
 def parse_planners(text: str) -> list[str]:

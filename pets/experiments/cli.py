@@ -1,9 +1,9 @@
 """The ``compare`` command line (``python -m pets.compare``, ``pets-compare``): arguments, errors, exit status.
 
-    python -m pets.compare online  --envs E1,E2 --models M1,M2 --seeds 0,1,2 --trials N --out DIR
+    python -m pets.compare online  --envs E1,E2 --models M1,M2 [--seeds 0,1,2,3,4] --trials N --out DIR
                                    [--planners cem,icem] [--workers K] [--preset research|fast]
                                    [--final-window W] [--device D] [--quiet] [key=value ...]
-    python -m pets.compare offline --envs E1,E2 --models M1,M2 --seeds 0,1,2 --out DIR
+    python -m pets.compare offline --envs E1,E2 --models M1,M2 [--seeds 0,1,2,3,4] --out DIR
                                    [--episodes E] [--test-episodes E2] [--max-steps T]
                                    [--policy random|smooth-random[:BETA]|existing] [--horizons 1,5,10,25,50]
                                    [--starts K]
@@ -11,7 +11,10 @@
                                    [--workers K] [--preset research|fast] [--device D] [--quiet] [key=value ...]
 
 Models are the names in ``pets.config.HEADS`` (read at run time); envs are catalogue names or
-gymnasium ids. Every (env, model, seed) has its run directory ``DIR/runs/ENV-MODEL-sSEED``.
+gymnasium ids. Seeds default to 0..4; with fewer than 5 a one-line warning goes to stderr once the
+arguments are checked (fewer than 5 seeds cannot carry a claim; with 3 or fewer the bootstrap CI
+is the min-max of the seeds).
+Every (env, model, seed) has its run directory ``DIR/runs/ENV-MODEL-sSEED``.
 Everything is resumable: rerunning a command reuses finished work and runs only what is missing.
 A run directory that was made with a different config than the command asks for (other
 overrides, preset, ...; the trial count aside) is an error (exit 2): results of different configs
@@ -32,24 +35,31 @@ from pets.cli import OneLineParser, fail
 from pets.experiments.arguments import PROG, UsageError, parse_envs, parse_models, parse_planners, parse_seeds
 from pets.experiments.offline import compare_offline
 from pets.experiments.online import compare_online
+from pets.experiments.statistics import MIN_SEEDS
 
 #: Exit status when a run failed (the summary covers the others).
 EXIT_FAILED = 1
+#: Seeds of a comparison unless ``--seeds`` says otherwise (the paper's 5).
+DEFAULT_SEEDS = ",".join(str(s) for s in range(MIN_SEEDS))
 
 
 def build_parser() -> OneLineParser:
     """The ``compare`` parser: the modes ``online`` and ``offline`` with their options."""
     p = OneLineParser(
         prog=PROG,
-        description="A/B comparison of dynamics heads over envs and seeds, with bootstrap "
-        "statistics and plots (resumable).",
+        description="A/B comparison of dynamics heads over envs and seeds, with statistics over seeds "
+        "(rliable: IQM, stratified-bootstrap CIs, probability of improvement) and plots (resumable).",
     )
     sub = p.add_subparsers(dest="mode", required=True, parser_class=OneLineParser)
 
     def common(q: OneLineParser) -> None:
         q.add_argument("--envs", required=True, help="comma-separated envs (catalogue names or gymnasium ids)")
         q.add_argument("--models", required=True, help="comma-separated models (pets.config.HEADS)")
-        q.add_argument("--seeds", default="0,1,2", help="comma-separated seeds (default 0,1,2)")
+        q.add_argument(
+            "--seeds",
+            default=DEFAULT_SEEDS,
+            help=f"comma-separated seeds (default {DEFAULT_SEEDS}; fewer than {MIN_SEEDS} cannot carry a claim)",
+        )
         q.add_argument("--out", type=Path, required=True, help="output directory (runs, data, summaries)")
         q.add_argument("--workers", type=int, default=1, help="parallel runs, one CPU thread each (default 1)")
         q.add_argument("--preset", default="research", help="config preset: research (default) or fast")

@@ -28,7 +28,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from pets.experiments.arguments import PROG, UsageError
+from pets.experiments.arguments import PROG, UsageError, few_seeds_warning
 from pets.experiments.offline_summary import summarise_offline, summarise_openloop
 from pets.experiments.rundirs import check_same_config, json_matches, run_name
 from pets.experiments.runner import run_pool
@@ -349,6 +349,9 @@ def compare_offline(
         + ", ".join(f"{k} {v}" for k, v in data_actions.items()),
         file=sys.stderr,
     )
+    warning = few_seeds_warning(len(seeds))
+    if warning:
+        print(warning, file=sys.stderr)
     results = run_pool(jobs, min(workers, max(len(jobs), 1)), processes=True, progress=progress, desc="offline runs")
     failed = {name: msg for name, (ok, msg) in results.items() if not ok}
     done = {name: res["done"] for name, (ok, res) in results.items() if ok}

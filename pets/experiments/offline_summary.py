@@ -1,30 +1,118 @@
 """Offline summary: prediction error and open-loop reward per env, model and seed, with statistics, tables and plots.
 
-Files: ``prediction.md``, ``prediction.csv`` (per env, model and horizon: the mean step-wise error
-``mean_step_error`` over seeds with its 95 % bootstrap CI and IQM), ``prediction_runs.csv`` (per
-run and horizon), ``relative_error.png`` (the paper's Fig. 2: per env one bar per model, the
-step-wise error averaged over the horizons, divided by the largest model's value in that env, so
-the worst model is 1; error bars: the CI divided by the same number), ``absolute_error_ENV.png``
-(Fig. 3: error vs horizon per model with CI bands; log y axis when the values span a factor 10 or
-more). With ``--openloop``: ``openloop.md``, ``openloop.csv`` (per env, planner and model: the mean
-reward per step and the total reward of the open-loop plans, mean and CI over seeds) and
-``openloop_ENV.png`` (reward vs step per model, one panel per planner).
+The prediction-error statistics (:mod:`pets.experiments.statistics`, rliable): per env, model, horizon
+and error metric the IQM over seeds with its 95 % stratified-bootstrap CI; the probability that the
+model's error is lower than delta's (P, with CI); the paired per-seed ratio model / delta (IQM and
+CI over the seeds both have). Diverged runs (:func:`pets.experiments.statistics.divergence`) are
+left out of IQMs, CIs and ratios, counted in ``n_diverged``, and enter P as error ``+inf``. The
+metrics are the eval.json keys ending in ``_error`` that every run of the env has
+(:data:`PREFERRED_METRICS` first, in that order, then the others alphabetically).
+
+Files:
+
+- ``summary.csv``: one row per env, model, horizon and metric (:data:`SUMMARY_COLUMNS`): ``iqm``,
+  ``ci_low``, ``ci_high`` over the ``n_seeds`` runs that did not diverge, ``n_diverged``;
+  ``p_improvement`` (P(model error < delta's), ties half) with ``p_improvement_ci_low/high``;
+  ``ratio_to_delta`` (IQM of the per-seed ratios over ``n_pairs`` seeds) with ``ratio_ci_low/high``.
+  The delta columns are empty for delta itself, where delta is not compared, and where a value
+  does not exist (no run left, delta's error 0).
+- ``relative_error.csv``: the same per env, model and metric for the error averaged over the env's
+  horizons (per seed, then the statistics over seeds), plus ``relative`` (the IQM divided by the
+  largest model's IQM in the env, as the paper normalises Fig. 2) with its CI divided by the same number.
+- ``prediction_runs.csv``: every run and horizon with all its metrics and a ``diverged`` column
+  (empty, or why the run counts as diverged).
+- ``prediction.md``: per env a table per metric (mean_step_error, standardized_error, and
+  rotation_error where the env has rotations): IQM [CI] per horizon and the diverged runs, and P
+  against delta; the Fig. 2 table; the diverged and missing runs.
+- ``relative_error.png`` (Fig. 2 as the paper normalises it), ``ratio_to_delta.png`` (Fig. 2 as the
+  paired ratio to delta with its CI) and ``absolute_error_ENV.png`` (Fig. 3: IQM of the error vs
+  horizon per model with CI bands; log y axis when the values span a factor 10 or more).
+
+With ``--openloop``: ``openloop.md``, ``openloop.csv`` (per env, planner and model: the mean reward
+per step and the total reward of the open-loop plans, mean and CI over seeds) and ``openloop_ENV.png``
+(reward vs step per model, one panel per planner).
 """
 
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from pets.experiments.plots import model_colors, plot_absolute, plot_openloop, plot_relative
-from pets.experiments.report import BOOT_SEED, fmt, fmt_ci, md_table, write_csv
+from pets.experiments.plots import model_colors, plot_absolute, plot_openloop, plot_ratio, plot_relative
+from pets.experiments.report import BOOT_SEED, fmt_ci, fmt_interval, md_table, write_csv
 from pets.experiments.rundirs import json_matches, run_name
-from pets.experiments.statistics import summarise
+from pets.experiments.statistics import (
+    DIVERGED_STANDARDIZED_ERROR,
+    MIN_SEEDS,
+    REPS,
+    SMALL_SAMPLE_NOTE,
+    divergence,
+    iqm_ci,
+    p_improvement_ci,
+    paired_ratios,
+    summarise,
+)
 from pets.fileio import atomic_write_bytes
+
+#: The model every other model is compared with (P of improvement, ratios).
+BASELINE = "delta"
+#: Error metrics in this order first (pets.evaluate's keys), then any other ``*_error`` key alphabetically.
+PREFERRED_METRICS = (
+    "mean_step_error",
+    "final_step_error",
+    "translation_error",
+    "rotation_error",
+    "velocity_error",
+    "other_error",
+    "derived_error",
+    "standardized_error",
+)
+#: Metrics that get a table in prediction.md (rotation_error only where the env has rotations).
+TABLE_METRICS = ("mean_step_error", "standardized_error", "rotation_error")
+#: The metric of Fig. 2 and Fig. 3.
+FIGURE_METRIC = "mean_step_error"
+_DELTA_COLUMNS = [
+    "p_improvement",
+    "p_improvement_ci_low",
+    "p_improvement_ci_high",
+    "ratio_to_delta",
+    "ratio_ci_low",
+    "ratio_ci_high",
+    "n_pairs",
+]
+SUMMARY_COLUMNS = [
+    "env",
+    "model",
+    "horizon",
+    "metric",
+    "iqm",
+    "ci_low",
+    "ci_high",
+    "n_seeds",
+    "n_diverged",
+    *_DELTA_COLUMNS,
+]
+RELATIVE_COLUMNS = [
+    "env",
+    "model",
+    "metric",
+    "iqm",
+    "ci_low",
+    "ci_high",
+    "relative",
+    "relative_ci_low",
+    "relative_ci_high",
+    "n_seeds",
+    "n_diverged",
+    *_DELTA_COLUMNS,
+]
+#: The horizon label of the columns averaged over the horizons (relative_error.csv, Fig. 2).
+AVERAGE = "average"
 
 
 def load_evals(
@@ -41,6 +129,116 @@ def load_evals(
     return found
 
 
+def order_metrics(keys: Sequence[str]) -> list[str]:
+    """The ``*_error`` keys among ``keys``: :data:`PREFERRED_METRICS` first in their order, then the rest sorted."""
+    errors = {k for k in keys if k.endswith("_error")}
+    return [m for m in PREFERRED_METRICS if m in errors] + sorted(errors - set(PREFERRED_METRICS))
+
+
+def _finite(x: float | None) -> float | None:
+    """``x`` as a float, None if absent or not finite (an empty CSV cell, "n/a" in a table)."""
+    return None if x is None or not math.isfinite(x) else float(x)
+
+
+def env_statistics(
+    evals: Mapping[str, Sequence[Mapping[str, Any]]],
+    metrics: Sequence[str],
+    horizons: Sequence[int],
+    *,
+    reps: int = REPS,
+    seed: int = BOOT_SEED,
+) -> dict[str, dict[tuple[str, int | str], dict[str, Any]]]:
+    """{model: {(metric, horizon): statistics}} of one env; horizon :data:`AVERAGE` is the error averaged
+    over ``horizons`` per run. Each entry has the :data:`SUMMARY_COLUMNS` statistics (None where absent).
+
+    One rliable call per model for all its columns (IQM), one for the P of improvement and one for the
+    ratios; every run's ``"diverged"`` (None or a reason) must be set.
+    """
+    columns = [(m, h) for m in metrics for h in horizons] + [(m, AVERAGE) for m in metrics]
+
+    def vector(e: Mapping[str, Any]) -> np.ndarray:
+        per_h = np.array([[float(e["horizons"][str(h)][m]) for h in horizons] for m in metrics])
+        return np.concatenate([per_h.ravel(), per_h.mean(axis=1)])
+
+    good = {model: {e["seed"]: vector(e) for e in runs if not e["diverged"]} for model, runs in evals.items()}
+    out: dict[str, dict[tuple[str, int | str], dict[str, Any]]] = {}
+    for model, runs in evals.items():
+        n_good, n_div = len(good[model]), len(runs) - len(good[model])
+        nan = np.full(len(columns), np.nan)
+        iqm, low, high = iqm_ci(np.array(list(good[model].values())), reps=reps, seed=seed) if n_good else (nan,) * 3
+        p = p_low = p_high = ratio = r_low = r_high = nan
+        n_pairs = None
+        if model != BASELINE and BASELINE in evals:
+            x = np.array([np.full(len(columns), np.inf) if e["diverged"] else vector(e) for e in runs])
+            y = np.array([np.full(len(columns), np.inf) if e["diverged"] else vector(e) for e in evals[BASELINE]])
+            p, p_low, p_high = p_improvement_ci(x, y, reps=reps, seed=seed)
+            pairs, ratios = paired_ratios(good[model], good[BASELINE])
+            n_pairs = len(pairs)
+            ok = np.isfinite(ratios).all(axis=0) if pairs else np.zeros(len(columns), bool)
+            ratio, r_low, r_high = nan.copy(), nan.copy(), nan.copy()
+            if ok.any():
+                ratio[ok], r_low[ok], r_high[ok] = iqm_ci(ratios[:, ok], reps=reps, seed=seed)
+        out[model] = {
+            col: {
+                "iqm": _finite(iqm[j]),
+                "ci_low": _finite(low[j]),
+                "ci_high": _finite(high[j]),
+                "n_seeds": n_good,
+                "n_diverged": n_div,
+                "p_improvement": _finite(p[j]),
+                "p_improvement_ci_low": _finite(p_low[j]),
+                "p_improvement_ci_high": _finite(p_high[j]),
+                "ratio_to_delta": _finite(ratio[j]),
+                "ratio_ci_low": _finite(r_low[j]),
+                "ratio_ci_high": _finite(r_high[j]),
+                "n_pairs": n_pairs,
+            }
+            for j, col in enumerate(columns)
+        }
+    return out
+
+
+def _has_rotations(runs: Sequence[Mapping[str, Any]]) -> bool:
+    """Whether an env's runs report a rotation error (a finite value > 0: the env has rotation groups)."""
+    values = [v.get("rotation_error", 0.0) for e in runs for v in e["horizons"].values()]
+    return any(math.isfinite(float(v)) and float(v) > 0 for v in values)
+
+
+def _metric_tables(
+    metric: str, models: Sequence[str], stats: Mapping[str, Mapping[tuple[str, Any], Mapping[str, Any]]], hs: Sequence
+) -> list[str]:
+    """Markdown: the IQM [CI] table of one metric per model and horizon, then P of improvement over delta."""
+    rows = []
+    for model in models:
+        first = stats[model][(metric, hs[0])]
+        missing = "all diverged" if first["n_seeds"] == 0 else "n/a"
+        rows.append(
+            [model, str(first["n_seeds"]), str(first["n_diverged"])]
+            + [fmt_interval(stats[model][(metric, h)]["iqm"], *_ci(stats[model][(metric, h)]), missing) for h in hs]
+        )
+    text = [f"### {metric}", "", md_table(["model", "seeds", "diverged"] + [f"h={h}" for h in hs], rows), ""]
+    others = [m for m in models if m != BASELINE]
+    if BASELINE in models and others:
+        text += [
+            f"P({metric} < {BASELINE}'s) [95 % CI]:",
+            "",
+            md_table(
+                ["model"] + [f"h={h}" for h in hs],
+                [[m] + [_fmt_p(stats[m][(metric, h)]) for h in hs] for m in others],
+            ),
+            "",
+        ]
+    return text
+
+
+def _ci(s: Mapping[str, Any], key: str = "ci") -> tuple[Any, Any]:
+    return s[f"{key}_low"], s[f"{key}_high"]
+
+
+def _fmt_p(s: Mapping[str, Any]) -> str:
+    return fmt_interval(s["p_improvement"], *_ci(s, "p_improvement_ci"), "n/a")
+
+
 def summarise_offline(
     out: Path,
     env_names: Sequence[str],
@@ -48,125 +246,162 @@ def summarise_offline(
     seeds: Sequence[int],
     request: Mapping[str, Any],
     failed: Mapping[str, str] | None = None,
+    *,
+    reps: int = REPS,
 ) -> list[dict[str, Any]]:
-    """Write prediction.md, prediction.csv, prediction_runs.csv, relative_error.png, absolute_error_ENV.png."""
+    """Write summary.csv, relative_error.csv, prediction_runs.csv, prediction.md and the figures (module
+    docstring) from the runs' eval.json files; returns the summary.csv rows."""
     out = Path(out)
-    rows, per_run, relative, text = [], [], {}, []
-    text += [
-        "# Offline comparison: long-horizon prediction error",
-        "",
-        "Mean step-wise error (pets.evaluate, ensemble-mean rollouts on the test data, the same start "
-        "points for every model and seed of an env) per horizon; mean over seeds with the 95 % "
-        "percentile-bootstrap CI in brackets.",
-        "",
-    ]
+    summary, relative_rows, per_run, diverged_runs, text = [], [], [], [], []
+    run_columns: list[str] = []
+    fig2: dict[str, dict[str, dict[str, Any]]] = {}
     for env in env_names:
         evals = load_evals(out, env, models, seeds, request)
         if not evals:
             continue
-        common = sorted(set.intersection(*[set(map(int, e["horizons"])) for runs in evals.values() for e in runs]))
-        table, curves = [], {}
-        for model, runs in evals.items():
-            by_h = {h: [float(e["horizons"][str(h)]["mean_step_error"]) for e in runs] for h in common}
-            for e in runs:
+        env_models = [m for m in models if m in evals]
+        runs = [e for m in env_models for e in evals[m]]
+        common = sorted(set.intersection(*[set(map(int, e["horizons"])) for e in runs]))
+        metrics = order_metrics(sorted(set.intersection(*[set(v) for e in runs for v in e["horizons"].values()])))
+        if not common or not metrics:
+            text += [f"## {env}", "", "No horizon or error metric that every run has: no statistics.", ""]
+            continue
+        for model in env_models:
+            for e in evals[model]:
+                e["diverged"] = divergence(e["horizons"])
+                if e["diverged"]:
+                    diverged_runs.append(f"{run_name(env, model, e['seed'])}: {e['diverged']}")
                 for h, m in e["horizons"].items():
                     per_run.append(
-                        {"env": env, "model": model, "seed": e["seed"], "horizon": int(h), "starts": e["starts"], **m}
+                        {
+                            "env": env,
+                            "model": model,
+                            "seed": e["seed"],
+                            "horizon": int(h),
+                            "starts": e["starts"],
+                            "diverged": e["diverged"] or "",
+                            **m,
+                        }
                     )
-            stats_h = {}
-            for h in common:
-                s = summarise(by_h[h], seed=BOOT_SEED)
-                finals = [float(e["horizons"][str(h)]["final_step_error"]) for e in runs]
-                nonfinite = [float(e["horizons"][str(h)]["nonfinite_fraction"]) for e in runs]
-                rows.append(
-                    {
-                        "env": env,
-                        "model": model,
-                        "horizon": h,
-                        "n_seeds": s["n"],
-                        "mean_step_error": s["mean"],
-                        "ci_low": s["ci_low"],
-                        "ci_high": s["ci_high"],
-                        "iqm": s["iqm"],
-                        "final_step_error": float(np.mean(finals)),
-                        "nonfinite_fraction": float(np.mean(nonfinite)),
-                    }
-                )
-                stats_h[h] = s
-            curves[model] = (common, stats_h)
-            table.append([model, str(len(runs))] + [fmt_ci(stats_h[h]) for h in common])
-            # Fig. 2: per seed the error averaged over the horizons, then the statistics over seeds
-            relative.setdefault(env, {})[model] = summarise(
-                [float(np.mean([e["horizons"][str(h)]["mean_step_error"] for h in common])) for e in runs],
-                seed=BOOT_SEED,
-            )
+                    run_columns += [k for k in m if k not in run_columns]
+        stats = env_statistics(evals, metrics, common, reps=reps)
+        for model in env_models:
+            for (metric, h), s in stats[model].items():
+                row = {"env": env, "model": model, "metric": metric, **s}
+                if h == AVERAGE:
+                    relative_rows.append(row)
+                else:
+                    summary.append({**row, "horizon": h})
+        for metric in metrics:  # Fig. 2 as the paper normalises: by the largest model's IQM in the env
+            rows = [r for r in relative_rows if r["env"] == env and r["metric"] == metric]
+            top = max([r["iqm"] for r in rows if r["iqm"] is not None], default=None)
+            for r in rows:
+                for key, value in (
+                    ("relative", r["iqm"]),
+                    ("relative_ci_low", r["ci_low"]),
+                    ("relative_ci_high", r["ci_high"]),
+                ):
+                    r[key] = value / top if value is not None and top else None
+                if metric == FIGURE_METRIC:
+                    fig2.setdefault(env, {})[r["model"]] = r
         asked = set(request["horizons"])
         skipped = sorted(asked - set(common))
         note = f"; skipped: {', '.join(map(str, skipped))} (longer than the test episodes)" if skipped else ""
-        text += [
-            f"## {env} (horizons {', '.join(map(str, common))}{note})",
-            "",
-            md_table(["model", "seeds"] + [f"h={h}" for h in common], table),
-            "",
-            f"![absolute error](absolute_error_{env}.png)",
-            "",
-        ]
-        plot_absolute(out / f"absolute_error_{env}.png", env, curves)
-    write_csv(
-        out / "prediction.csv",
-        rows,
-        [
-            "env",
-            "model",
-            "horizon",
-            "n_seeds",
-            "mean_step_error",
-            "ci_low",
-            "ci_high",
-            "iqm",
-            "final_step_error",
-            "nonfinite_fraction",
-        ],
-    )
+        env_small = any(stats[m][(metrics[0], common[0])]["n_seeds"] < MIN_SEEDS for m in env_models)
+        text += [f"## {env} (horizons {', '.join(map(str, common))}{note})", ""]
+        text += [SMALL_SAMPLE_NOTE, ""] if env_small else []
+        for metric in TABLE_METRICS:
+            if metric in metrics and (metric != "rotation_error" or _has_rotations(runs)):
+                text += _metric_tables(metric, env_models, stats, common)
+        text += [f"![absolute error](absolute_error_{env}.png)", ""]
+        plot_absolute(
+            out / f"absolute_error_{env}.png",
+            env,
+            {
+                m: {
+                    "horizons": common,
+                    "iqm": [stats[m][(FIGURE_METRIC, h)]["iqm"] for h in common],
+                    "ci_low": [stats[m][(FIGURE_METRIC, h)]["ci_low"] for h in common],
+                    "ci_high": [stats[m][(FIGURE_METRIC, h)]["ci_high"] for h in common],
+                    "n_seeds": stats[m][(FIGURE_METRIC, common[0])]["n_seeds"],
+                    "n_diverged": stats[m][(FIGURE_METRIC, common[0])]["n_diverged"],
+                }
+                for m in env_models
+            },
+        )
+    write_csv(out / "summary.csv", summary, SUMMARY_COLUMNS)
+    write_csv(out / "relative_error.csv", relative_rows, RELATIVE_COLUMNS)
+    errors = order_metrics(run_columns)
     write_csv(
         out / "prediction_runs.csv",
         per_run,
-        [
-            "env",
-            "model",
-            "seed",
-            "horizon",
-            "starts",
-            "mean_step_error",
-            "final_step_error",
-            "position_error",
-            "velocity_error",
-            "other_error",
-            "nonfinite_fraction",
-        ],
+        ["env", "model", "seed", "horizon", "starts", "diverged", *errors]
+        + [k for k in run_columns if k not in errors],
     )
-    if relative:
-        plot_relative(out / "relative_error.png", relative)
+    header = [
+        "# Offline comparison: long-horizon prediction error",
+        "",
+        "Step-wise errors of pets.evaluate (ensemble-mean rollouts on the test data, the same start points for "
+        "every model and seed of an env) per horizon. Per model: the interquartile mean (IQM) over seeds with "
+        "its 95 % stratified-bootstrap CI in brackets (rliable). P: the probability that the model's error "
+        f"is lower than {BASELINE}'s (a random seed of each; ties count half) with its CI. A run is diverged when "
+        "a value of its evaluation is not finite, some predictions went non-finite, or its standardized_error "
+        f"exceeds {DIVERGED_STANDARDIZED_ERROR:g} (training-data standard deviations) at some horizon; diverged "
+        "runs are counted, left out of the IQM, CI and ratios, and count as an infinite error in P.",
+        "",
+    ]
+    text = header + text
+    if fig2:
+        plot_relative(out / "relative_error.png", fig2)
+        has_ratio = any(r["ratio_to_delta"] is not None for vals in fig2.values() for r in vals.values())
+        if has_ratio:
+            plot_ratio(out / "ratio_to_delta.png", fig2)
+        fig2_small = any(r["n_seeds"] < MIN_SEEDS for vals in fig2.values() for r in vals.values())
         text += [
-            "## Relative error (Fig. 2)",
+            "## Fig. 2: error averaged over the horizons",
             "",
-            "Step-wise error averaged over the horizons, divided by the largest model's mean in the env.",
+            f"Per seed the {FIGURE_METRIC} averaged over the env's horizons, then the IQM over seeds [95 % CI]. "
+            "relative: divided by the largest model's IQM in the env, as the paper normalises (the CI divided "
+            f"by the same number). ratio to {BASELINE}: IQM [CI] of the per-seed ratios over the seeds both "
+            "models have (paired: same seed, data and start points).",
             "",
+        ]
+        text += [SMALL_SAMPLE_NOTE, ""] if fig2_small else []
+        text += [
             md_table(
-                ["env"] + list(models),
                 [
-                    [env]
-                    + [
-                        fmt(vals[m]["mean"] / max(v["mean"] for v in vals.values())) if m in vals else "-"
-                        for m in models
+                    "env",
+                    "model",
+                    "seeds",
+                    "diverged",
+                    "relative",
+                    f"ratio to {BASELINE}",
+                    "pairs",
+                    f"P(error < {BASELINE}'s)",
+                ],
+                [
+                    [
+                        env,
+                        m,
+                        str(r["n_seeds"]),
+                        str(r["n_diverged"]),
+                        fmt_interval(
+                            r["relative"], *_ci(r, "relative_ci"), "all diverged" if not r["n_seeds"] else "n/a"
+                        ),
+                        "-" if m == BASELINE else fmt_interval(r["ratio_to_delta"], *_ci(r, "ratio_ci")),
+                        "-" if r["n_pairs"] is None else str(r["n_pairs"]),
+                        "-" if m == BASELINE else _fmt_p(r),
                     ]
-                    for env, vals in relative.items()
+                    for env, vals in fig2.items()
+                    for m, r in vals.items()
                 ],
             ),
             "",
-            "![relative error](relative_error.png)",
+            "![relative error](relative_error.png)" + (" ![ratio to delta](ratio_to_delta.png)" if has_ratio else ""),
             "",
         ]
+    if diverged_runs:
+        text += ["## Diverged runs (counted, not in the IQMs)", ""] + [f"- {d}" for d in diverged_runs] + [""]
     missing = [
         run_name(e, m, s)
         for e in env_names
@@ -178,7 +413,7 @@ def summarise_offline(
         text += ["## Missing runs (not in the statistics)", ""]
         text += [f"- {m}{': ' + failed[m] if failed and m in failed else ''}" for m in missing] + [""]
     atomic_write_bytes(out / "prediction.md", "\n".join(text).encode())
-    return rows
+    return summary
 
 
 def summarise_openloop(

@@ -21,7 +21,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from pets.experiments.arguments import PROG, UsageError
+from pets.experiments.arguments import PROG, UsageError, few_seeds_warning
 from pets.experiments.online_summary import online_rows, summarise_online
 from pets.experiments.rundirs import check_same_config, online_arms, run_name
 from pets.experiments.runner import ROOT, run_logged, run_pool
@@ -132,6 +132,9 @@ def compare_online(
         f"{counts['start']} to start ({workers} worker{'s' if workers > 1 else ''})",
         file=sys.stderr,
     )
+    warning = few_seeds_warning(len(seeds))
+    if warning:
+        print(warning, file=sys.stderr)
     results = run_pool(jobs, min(workers, max(len(jobs), 1)), processes=False, progress=progress, desc="online runs")
     failed = {name: msg for name, (ok, msg) in results.items() if not ok}
     summary = summarise_online(out, env_names, models, seeds, trials, final_window, failed, planners)

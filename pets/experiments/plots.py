@@ -102,59 +102,139 @@ def plot_online(
     atomic_write_bytes(path, _figure_bytes(fig))
 
 
-def plot_absolute(path: Path, env: str, curves: Mapping[str, tuple[Sequence[int], Mapping[int, Mapping]]]) -> None:
-    """Fig. 3: mean step-wise error vs horizon per model with CI bands (log y if it spans a factor >= 10)."""
+def _n_label(model: str, n_seeds: int, n_diverged: int) -> str:
+    """Legend label: the model with its seeds, and the diverged ones when there are any."""
+    return f"{model} (n={n_seeds}{f', {n_diverged} diverged' if n_diverged else ''})"
+
+
+def _nan(values: Sequence[float | None]) -> np.ndarray:
+    return np.array([math.nan if v is None else v for v in values], dtype=np.float64)
+
+
+def plot_absolute(path: Path, env: str, curves: Mapping[str, Mapping[str, Any]]) -> None:
+    """Fig. 3: per model the IQM of the mean step-wise error vs horizon with its CI band (log y if the values
+    span a factor >= 10). ``curves``: {model: {"horizons", "iqm", "ci_low", "ci_high", "n_seeds", "n_diverged"}}."""
     plt = _pyplot()
     colors = model_colors(list(curves))
     fig, ax = plt.subplots(figsize=(6.5, 4.5))
     values = []
-    for model, (hs, st) in curves.items():
-        mean = np.array([st[h]["mean"] for h in hs])
-        low, high = np.array([st[h]["ci_low"] for h in hs]), np.array([st[h]["ci_high"] for h in hs])
-        n = st[hs[0]]["n"] if hs else 0
-        ax.plot(hs, mean, marker="o", color=colors[model], label=f"{model} (n={n})")
+    for model, c in curves.items():
+        hs, mid, low, high = c["horizons"], _nan(c["iqm"]), _nan(c["ci_low"]), _nan(c["ci_high"])
+        label = _n_label(model, c["n_seeds"], c["n_diverged"])
+        if not np.isfinite(mid).any():
+            ax.plot([], [], color=colors[model], label=f"{label}: no value")
+            continue
+        ax.plot(hs, mid, marker="o", color=colors[model], label=label)
         ax.fill_between(hs, low, high, color=colors[model], alpha=0.25, lw=0)
-        values += [v for v in np.concatenate([mean, low, high]) if math.isfinite(v) and v > 0]
+        values += [v for v in np.concatenate([mid, low, high]) if math.isfinite(v) and v > 0]
     if values and max(values) / min(values) >= 10:
         ax.set_yscale("log")
     ax.set_xlabel("prediction horizon (steps)")
     ax.set_ylabel("mean step-wise error")
-    ax.set_title(f"{env}: prediction error (mean over seeds, 95 % bootstrap CI)", fontsize=10)
+    ax.set_title(f"{env}: prediction error (IQM over seeds, 95 % stratified-bootstrap CI)", fontsize=10)
     ax.grid(alpha=0.3, which="both")
-    ax.legend()
+    ax.legend(fontsize=8)
     fig.tight_layout()
     atomic_write_bytes(path, _figure_bytes(fig))
 
 
-def plot_relative(path: Path, relative: Mapping[str, Mapping[str, Mapping[str, float]]]) -> None:
-    """Fig. 2: per env a group of bars (one per model), normalised by the env's largest mean error."""
-    plt = _pyplot()
-    env_list = list(relative)
-    models = list(dict.fromkeys(m for vals in relative.values() for m in vals))
+def _grouped_points(
+    ax: Any,
+    rows: Mapping[str, Mapping[str, Mapping[str, Any]]],
+    models: Sequence[str],
+    keys: tuple[str, str, str],
+    bars: bool,
+) -> list[float]:
+    """Per env a group with one bar (or point) per model at ``rows[env][model][keys[0]]`` with the CI
+    ``keys[1:]`` as error bar; a model without a value gets a note instead. Returns the plotted values."""
     colors = model_colors(models)
     width = 0.8 / max(len(models), 1)
-    fig, ax = plt.subplots(figsize=(max(5.0, 1.6 * len(env_list) + 2), 4.5))
+    plotted = []
     for j, model in enumerate(models):
-        xs, heights, errs = [], [], [[], []]
-        for i, env in enumerate(env_list):
-            vals = relative[env]
-            if model not in vals:
+        xs, mids, errs = [], [], [[], []]
+        for i, env in enumerate(rows):
+            r = rows[env].get(model)
+            if r is None:
                 continue
-            finite = [v["mean"] for v in vals.values() if math.isfinite(v["mean"])]
-            top = max(finite) if finite else math.nan
-            s = vals[model]
-            h = s["mean"] / top if math.isfinite(s["mean"]) else math.nan
-            xs.append(i - 0.4 + width * (j + 0.5))
-            heights.append(h)
-            lo, hi = s["ci_low"] / top, s["ci_high"] / top
-            errs[0].append(max(h - lo, 0.0) if math.isfinite(lo) else 0.0)
-            errs[1].append(max(hi - h, 0.0) if math.isfinite(hi) else 0.0)
-        ax.bar(xs, heights, width, yerr=errs, capsize=3, color=colors[model], label=model)
-    ax.set_xticks(range(len(env_list)), env_list)
+            x = i - 0.4 + width * (j + 0.5)
+            mid, low, high = (r[k] for k in keys)
+            if mid is None:
+                why = "all diverged" if r["n_seeds"] == 0 else "n/a"
+                ax.annotate(why, (x, 0.02), xycoords=("data", "axes fraction"), rotation=90, ha="center", fontsize=7)
+                continue
+            xs.append(x)
+            mids.append(mid)
+            errs[0].append(max(mid - low, 0.0) if low is not None else 0.0)
+            errs[1].append(max(high - mid, 0.0) if high is not None else 0.0)
+            plotted += [v for v in (mid, low, high) if v is not None]
+            if r["n_diverged"]:
+                top = high if high is not None else mid
+                ax.annotate(
+                    f"{r['n_diverged']} div.",
+                    (x, top),
+                    textcoords="offset points",
+                    xytext=(0, 3),
+                    ha="center",
+                    fontsize=7,
+                )
+        label = model
+        if bars:
+            ax.bar(xs, mids, width, yerr=errs, capsize=3, color=colors[model], label=label)
+        else:
+            ax.errorbar(xs, mids, yerr=errs, fmt="o", capsize=4, color=colors[model], label=label)
+    ax.set_xticks(range(len(rows)), list(rows))
+    return plotted
+
+
+def _group_figsize(n_envs: int, n_models: int) -> tuple[float, float]:
+    """Figure size of a grouped plot: about 0.3 inch per bar plus room for the legend, 16 inches at most."""
+    return min(16.0, 3.5 + 0.3 * n_envs * max(n_models, 2)), 4.8
+
+
+def _legend_outside(ax: Any) -> None:
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
+
+
+def plot_relative(path: Path, rows: Mapping[str, Mapping[str, Mapping[str, Any]]]) -> None:
+    """Fig. 2 as the paper normalises it: per env one bar per model, the IQM over seeds of the error averaged
+    over the horizons divided by the env's largest model IQM (``rows[env][model]``: relative_error.csv rows),
+    with the CI divided alike; diverged seeds are left out and counted above the bar."""
+    plt = _pyplot()
+    models = list(dict.fromkeys(m for vals in rows.values() for m in vals))
+    fig, ax = plt.subplots(figsize=_group_figsize(len(rows), len(models)))
+    _grouped_points(ax, rows, models, ("relative", "relative_ci_low", "relative_ci_high"), bars=True)
     ax.axhline(1.0, color="grey", lw=0.8, ls="--")
-    ax.set_ylabel("relative step-wise error (worst model = 1)")
-    ax.set_title("Prediction error averaged over horizons, relative to the worst model", fontsize=10)
-    ax.legend()
+    ax.set_ylabel("error / largest model's error")
+    ax.set_title(
+        "Prediction error averaged over horizons, relative to the worst model\n"
+        "(IQM over seeds, 95 % CI; diverged seeds left out and counted)",
+        fontsize=10,
+    )
+    _legend_outside(ax)
+    fig.tight_layout()
+    atomic_write_bytes(path, _figure_bytes(fig))
+
+
+def plot_ratio(path: Path, rows: Mapping[str, Mapping[str, Mapping[str, Any]]], baseline: str = "delta") -> None:
+    """Fig. 2 as a paired ratio: per env and model (``baseline`` aside) the IQM over seeds of the per-seed ratio
+    of the error averaged over the horizons to ``baseline``'s, with its CI; a line at 1 (log y if the values
+    span a factor >= 4)."""
+    plt = _pyplot()
+    models = [m for m in dict.fromkeys(m for vals in rows.values() for m in vals) if m != baseline]
+    fig, ax = plt.subplots(figsize=_group_figsize(len(rows), len(models)))
+    values = _grouped_points(ax, rows, models, ("ratio_to_delta", "ratio_ci_low", "ratio_ci_high"), bars=False)
+    ax.axhline(1.0, color="grey", lw=1.0, ls="--")
+    positive = [v for v in values if v > 0]
+    if positive and max(positive) / min(positive) >= 4:
+        ax.set_yscale("log")
+    ax.set_ylabel(f"error / {baseline}'s error (paired by seed)")
+    ax.set_title(
+        f"Prediction error averaged over horizons, ratio to {baseline}\n"
+        "(IQM over seeds of the per-seed ratio, 95 % CI; below 1: lower error)",
+        fontsize=10,
+    )
+    ax.grid(alpha=0.3, axis="y", which="both")
+    _legend_outside(ax)
     fig.tight_layout()
     atomic_write_bytes(path, _figure_bytes(fig))
 
