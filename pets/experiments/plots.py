@@ -187,8 +187,8 @@ def _grouped_points(
 
 
 def _group_figsize(n_envs: int, n_models: int) -> tuple[float, float]:
-    """Figure size of a grouped plot: about 0.3 inch per bar plus room for the legend, 16 inches at most."""
-    return min(16.0, 3.5 + 0.3 * n_envs * max(n_models, 2)), 4.8
+    """Figure size of a grouped plot: about 0.3 inch per bar plus room for the legend; 6.5 to 16 inches wide."""
+    return min(16.0, max(6.5, 3.5 + 0.3 * n_envs * max(n_models, 2))), 4.8
 
 
 def _legend_outside(ax: Any) -> None:
