@@ -165,3 +165,32 @@ def test_compare_offline_with_sac_data_and_the_paper_protocol(tmp_path):
         assert (run / "eval.json").is_file()
     again = subprocess.run(args, cwd=ROOT, capture_output=True, text=True, timeout=600, env=ENV)
     assert again.returncode == 0 and "4 reused, 0 with work to do" in again.stderr, again.stderr
+
+
+def test_paper_protocol_trains_and_evaluates_on_the_sac_data(sac_run):
+    """`pets.train --protocol paper` then `pets.evaluate --train-data` on the SAC files, by the command line."""
+    import json
+
+    name, work, _, _ = sac_run
+    run_dir = work / "paper-gem"
+    train = subprocess.run(
+        [sys.executable, "-m", "pets.train", "--data", str(work / "train.npz"), "--model", "gem", "--protocol",
+         "paper", "--out", str(run_dir), "--quiet", "model.iterations=5", "threads=1"],
+        cwd=ROOT, capture_output=True, text=True, timeout=300, env=ENV,
+    )  # fmt: skip
+    assert train.returncode == 0, train.stderr
+    width = 512 if name == "ant" else 100  # the paper searched [512] x 1..3 for Ant and Humanoid
+    assert [f"hidden layers {n} x {width}" in train.stdout for n in (1, 2, 3)] == [True] * 3
+    evaluate = subprocess.run(
+        [sys.executable, "-m", "pets.evaluate", "--run", str(run_dir), "--data", str(work / "test.npz"),
+         "--train-data", str(work / "train.npz"), "--horizons", "1,5", "--starts", "20", "--json",
+         str(work / "eval.json"), "--threads", "1"],
+        cwd=ROOT, capture_output=True, text=True, timeout=300, env=ENV,
+    )  # fmt: skip
+    assert evaluate.returncode == 0, evaluate.stderr
+    result = json.loads((work / "eval.json").read_text())
+    row = result["horizons"]["1"]
+    assert result["model"] == "gem" and result["standardized_by"] == str(work / "train.npz")
+    assert all(np.isfinite(row[k]) for k in ("mean_step_error", "rotation_error", "standardized_error"))
+    if name == "ant":  # the torso quaternion is a rotation group: a geodesic angle, never NaN
+        assert row["rotation_error"] > 0
