@@ -18,6 +18,7 @@ from pets.experiments.statistics import (
     iqm_columns,
     p_improvement,
     p_improvement_ci,
+    paired_differences,
     paired_ratios,
     summarise,
 )
@@ -30,8 +31,9 @@ def rliable_iqm_per_column(scores):
     return np.array([metrics.aggregate_iqm(scores[:, j]) for j in range(scores.shape[1])])
 
 
-def rliable_p_per_column(neg_x, neg_y):
-    return np.array([metrics.probability_of_improvement(neg_x[:, [j]], neg_y[:, [j]]) for j in range(neg_x.shape[1])])
+def rliable_p_per_column(x, y):
+    """rliable's P(X > Y) of each column (higher is better: pass negated errors)."""
+    return np.array([metrics.probability_of_improvement(x[:, [j]], y[:, [j]]) for j in range(x.shape[1])])
 
 
 @pytest.mark.parametrize("n", range(1, 12))
@@ -109,6 +111,51 @@ def test_p_improvement_ci_is_rliables_interval_estimate():
     for j in range(3):
         assert point[j] == p_improvement(x[:, j], y[:, j])
     assert ((0 <= low) & (low <= point) & (point <= high) & (high <= 1)).all()
+
+
+def test_p_improvement_of_rewards_is_rliables_probability_of_improvement_on_the_rewards():
+    # higher is better: P(X > Y) + P(X = Y) / 2, rliable's function on the rewards themselves (not negated)
+    assert p_improvement([1, 2, 3], [2, 3, 4], higher_is_better=True) == pytest.approx(2 / 9)
+    assert p_improvement([2, 3, 4], [1, 2, 3], higher_is_better=True) == pytest.approx(7 / 9)
+    rng = np.random.default_rng(6)
+    x, y = rng.normal(0.0, 50.0, size=6), rng.normal(-20.0, 50.0, size=5)  # rewards can be negative
+    assert p_improvement(x, y, higher_is_better=True) == metrics.probability_of_improvement(x[:, None], y[:, None])
+    assert p_improvement(x, y, higher_is_better=True) == p_improvement(-x, -y)
+    # diverged runs (NaN / +-inf) are the worst reward, -inf: they lose to every finite run, tie with each other
+    assert p_improvement([NAN, INF], [-1e9], higher_is_better=True) == 0.0
+    assert p_improvement([-1e9], [NAN], higher_is_better=True) == 1.0
+    assert p_improvement([NAN, -INF], [INF], higher_is_better=True) == 0.5
+    x[1] = NAN
+    expected = metrics.probability_of_improvement(np.where(np.isnan(x), -INF, x)[:, None], y[:, None])
+    assert p_improvement(x, y, higher_is_better=True) == expected
+
+
+def test_p_improvement_ci_of_rewards_is_rliables_interval_estimate():
+    rng = np.random.default_rng(8)
+    x, y = rng.normal(1.0, 2.0, size=(5, 2)), rng.normal(0.0, 2.0, size=(6, 2))
+    x[3] = NAN  # a diverged run: reward -inf
+    point, low, high = p_improvement_ci(x, y, higher_is_better=True, reps=200, seed=3)
+    np.random.seed(3)
+    ref_point, ref_interval = library.get_interval_estimates(
+        {"p": [np.where(np.isfinite(x), x, -INF), y]}, rliable_p_per_column, reps=200
+    )
+    np.testing.assert_array_equal(point, ref_point["p"])
+    np.testing.assert_array_equal(low, ref_interval["p"][0])
+    np.testing.assert_array_equal(high, ref_interval["p"][1])
+    p1, low1, high1 = p_improvement_ci(x[:, 0], y[:, 0], higher_is_better=True, reps=200, seed=3)  # 1-D: one column
+    assert p1[0] == point[0] == p_improvement(x[:, 0], y[:, 0], higher_is_better=True)
+    assert ((0 <= low) & (low <= point) & (point <= high) & (high <= 1)).all()
+
+
+def test_paired_differences_use_the_seeds_both_have():
+    model = {0: 5.0, 1: -3.0, 4: 7.0}
+    baseline = {1: -4.5, 0: 6.0, 2: 0.0}
+    seeds, diffs = paired_differences(model, baseline)
+    assert seeds == [0, 1] and diffs.shape == (2, 1)
+    np.testing.assert_array_equal(diffs[:, 0], [-1.0, 1.5])
+    seeds, diffs = paired_differences({3: [1.0, 2.0]}, {3: [0.5, 4.0]})
+    np.testing.assert_array_equal(diffs, [[0.5, -2.0]])
+    assert paired_differences({0: 1.0}, {1: 1.0})[0] == []
 
 
 def test_paired_ratios_use_the_seeds_both_have_and_drop_undefined_columns():

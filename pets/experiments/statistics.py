@@ -1,7 +1,7 @@
-"""Statistics over seeds: the A/B statistics of the offline comparison (rliable) and the mean bootstrap.
+"""Statistics over seeds: the A/B statistics of both comparisons (rliable) and the mean bootstrap.
 
-**A/B statistics** (offline comparison, :mod:`pets.experiments.offline_summary`), a thin layer over
-rliable (Agarwal et al. 2021, "Deep RL at the edge of the statistical precipice"):
+**A/B statistics** (:mod:`pets.experiments.offline_summary` and :mod:`pets.experiments.online_summary`),
+a thin layer over rliable (Agarwal et al. 2021, "Deep RL at the edge of the statistical precipice"):
 
 - :func:`iqm_ci`: per column of a (runs, columns) score matrix the interquartile mean (IQM, rliable's
   ``metrics.aggregate_iqm`` = ``scipy.stats.trim_mean(x, 0.25)``: sort, drop ``floor(n / 4)`` values
@@ -9,15 +9,17 @@ rliable (Agarwal et al. 2021, "Deep RL at the edge of the statistical precipice"
   percentile CI, one ``rliable.library.get_interval_estimates`` call for all columns. The stratified
   bootstrap resamples the runs of every column independently, so a column's interval is the
   percentile bootstrap of that column alone, whatever else is in the call.
-- :func:`p_improvement` / :func:`p_improvement_ci`: the probability that a model's error is lower
-  than delta's, ``P(X < Y) + P(X = Y) / 2`` for a random run X of the model and Y of delta (rliable's
-  ``metrics.probability_of_improvement`` on the negated errors: lower error is better), with the
-  CI of rliable's independent stratified bootstrap (each model's runs resampled on their own).
-  Diverged runs enter as error ``+inf``: rank-based, a diverged run loses to every finite run and
-  ties (counts half) with another diverged one.
-- :func:`paired_ratios`: per seed that both have (both not diverged) the ratio model / delta of
-  the same quantity (same data, same start points); :func:`iqm_ci` of those ratios is the "ratio to
-  delta with its CI".
+- :func:`p_improvement` / :func:`p_improvement_ci`: the probability that a model is better than the
+  baseline, ``P(X better than Y) + P(X = Y) / 2`` for a random run X of the model and Y of the
+  baseline (rliable's ``metrics.probability_of_improvement``: on the negated values for errors,
+  where lower is better; on the values themselves with ``higher_is_better=True``, e.g. rewards), with
+  the CI of rliable's independent stratified bootstrap (each model's runs resampled on their own).
+  Diverged runs (non-finite values) enter as the worst value (error ``+inf``, reward ``-inf``):
+  rank-based, a diverged run loses to every finite run and ties (counts half) with another diverged one.
+- :func:`paired_ratios` / :func:`paired_differences`: per seed that both have (both not diverged) the
+  ratio model / baseline (errors: same data, same start points) or the difference model - baseline
+  (rewards, which can be negative: same seed, same env seeds); :func:`iqm_ci` of those is the paired
+  effect with its CI.
 - :func:`divergence`: a run whose evaluation holds a non-finite value, or predictions that went
   non-finite, or a ``standardized_error`` above :data:`DIVERGED_STANDARDIZED_ERROR`. Diverged runs
   are counted and shown as such, never averaged into an IQM.
@@ -38,8 +40,8 @@ the tests pin it), because scipy's wrapper costs about 0.2 ms per call, ten time
 per replication. Likewise :func:`p_lower_columns` for the probability of improvement (identical to
 ``probability_of_improvement`` per column). :data:`REPS` replications: see its comment.
 
-**Mean bootstrap** (the online summary, the open-loop reward curves and :mod:`pets.openloop`'s
-per-episode statistics): :func:`bootstrap_ci` is the percentile bootstrap of the mean (Efron 1979):
+**Mean bootstrap** (the open-loop tables and curves and :mod:`pets.openloop`'s per-episode
+statistics): :func:`bootstrap_ci` is the percentile bootstrap of the mean (Efron 1979):
 ``n_boot`` resamples of the ``n`` values with replacement, the ``(1 - c) / 2`` and ``(1 + c) / 2``
 quantiles of their means (numpy's linear quantile interpolation), all resamples drawn at once in
 blocks; :func:`bootstrap_band` the same pointwise for curves; :func:`summarise` mean, CI, IQM and
@@ -138,12 +140,15 @@ def iqm_ci(
     )
 
 
-def _as_errors(errors: Any, name: str) -> np.ndarray:
-    """Errors as a float matrix (runs, columns) with every non-finite value (a diverged run) set to +inf."""
-    x = np.asarray(errors, dtype=np.float64)
+def _as_errors(values: Any, name: str, higher_is_better: bool = False) -> np.ndarray:
+    """Values as a float error matrix (runs, columns), lower is better: negated if ``higher_is_better``;
+    every non-finite value (a diverged run) set to +inf, the worst."""
+    x = np.asarray(values, dtype=np.float64)
     if x.ndim == 1:
         x = x[:, None]
     x = _score_matrix(x, name)
+    if higher_is_better:
+        x = -x
     return np.where(np.isfinite(x), x, np.inf)
 
 
@@ -155,35 +160,45 @@ def p_lower_columns(err_x: np.ndarray, err_y: np.ndarray) -> np.ndarray:
     return wins / (err_x.shape[0] * err_y.shape[0])
 
 
-def p_improvement(err_model: Any, err_delta: Any) -> float:
-    """Probability that the model's error is lower than delta's: ``P(X < Y) + P(X = Y) / 2`` for a random
-    run X of the model and Y of delta (1-D per-run errors of one quantity).
+def p_improvement(model: Any, baseline: Any, *, higher_is_better: bool = False) -> float:
+    """Probability that the model is better than the baseline: ``P(X < Y) + P(X = Y) / 2`` for a random run
+    X of the model and Y of the baseline (1-D per-run values of one quantity), errors by default, or
+    ``P(X > Y) + P(X = Y) / 2`` with ``higher_is_better`` (rewards).
 
-    rliable's ``metrics.probability_of_improvement`` on the negated errors (lower error is better; the
-    Mann-Whitney U statistic over ``n_x n_y``). NaN and inf (diverged runs) count as error ``+inf``:
-    a diverged run loses every comparison with a finite one and ties (half) with another diverged one;
-    rank-based, so no size of a finite error changes the result more than its rank does.
+    rliable's ``metrics.probability_of_improvement`` (the Mann-Whitney U statistic over ``n_x n_y``) on
+    the negated errors, or on the values themselves with ``higher_is_better``. NaN and inf (diverged
+    runs) count as the worst value (error ``+inf``, reward ``-inf``): a diverged run loses every
+    comparison with a finite one and ties (half) with another diverged one; rank-based, so no size of a
+    finite value changes the result more than its rank does.
     """
     from rliable import metrics
 
-    x, y = _as_errors(err_model, "err_model"), _as_errors(err_delta, "err_delta")
+    x = _as_errors(model, "model", higher_is_better)
+    y = _as_errors(baseline, "baseline", higher_is_better)
     if x.shape[1] != 1 or y.shape[1] != 1:
-        raise ValueError("p_improvement compares 1-D per-run errors; use p_improvement_ci for columns")
+        raise ValueError("p_improvement compares 1-D per-run values; use p_improvement_ci for columns")
     return float(metrics.probability_of_improvement(-x, -y))
 
 
 def p_improvement_ci(
-    err_model: Any, err_delta: Any, *, reps: int = REPS, seed: int = 0, confidence: float = CONFIDENCE
+    model: Any,
+    baseline: Any,
+    *,
+    higher_is_better: bool = False,
+    reps: int = REPS,
+    seed: int = 0,
+    confidence: float = CONFIDENCE,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(p, ci_low, ci_high)``, each (columns,): :func:`p_improvement` of every column of ``err_model``
-    (runs_model, columns) against ``err_delta`` (runs_delta, columns) with rliable's stratified independent
-    bootstrap CI (each model's runs resampled on their own; ``reps`` replications, seed as :func:`iqm_ci`).
-    Non-finite errors count as ``+inf`` (diverged)."""
+    """``(p, ci_low, ci_high)``, each (columns,): :func:`p_improvement` of every column of ``model``
+    (runs_model, columns) against ``baseline`` (runs_baseline, columns) with rliable's stratified
+    independent bootstrap CI (each model's runs resampled on their own; ``reps`` replications, seed as
+    :func:`iqm_ci`). 1-D inputs are one column. Non-finite values count as the worst (diverged)."""
     from rliable import library
 
-    x, y = _as_errors(err_model, "err_model"), _as_errors(err_delta, "err_delta")
+    x = _as_errors(model, "model", higher_is_better)
+    y = _as_errors(baseline, "baseline", higher_is_better)
     if x.shape[1] != y.shape[1]:
-        raise ValueError(f"err_model and err_delta need the same columns, got {x.shape} and {y.shape}")
+        raise ValueError(f"model and baseline need the same columns, got {x.shape} and {y.shape}")
     _check_reps(reps)
     _check_confidence(confidence, reps)
     with _global_numpy_seed(seed):
@@ -213,6 +228,19 @@ def paired_ratios(model: Mapping[Any, Any], delta: Mapping[Any, Any]) -> tuple[l
     with np.errstate(divide="ignore", invalid="ignore"):
         ratios = num / den
     return seeds, np.where(np.isfinite(ratios).all(axis=0), ratios, np.nan)
+
+
+def paired_differences(model: Mapping[Any, Any], baseline: Mapping[Any, Any]) -> tuple[list[Any], np.ndarray]:
+    """``(seeds, differences)``: per seed in both ``model`` and ``baseline`` ({seed: value or per-column
+    values} of the runs that did not diverge) the difference model - baseline, shape (seeds, columns);
+    seeds in sorted order. For rewards (which can be negative, so no ratio): the same seed of two online
+    arms collects the same random seed data and resets its trials with the same env seeds."""
+    seeds = sorted(set(model) & set(baseline))
+    if not seeds:
+        return [], np.empty((0, 0))
+    a = np.array([np.atleast_1d(np.asarray(model[s], dtype=np.float64)) for s in seeds])
+    b = np.array([np.atleast_1d(np.asarray(baseline[s], dtype=np.float64)) for s in seeds])
+    return seeds, a - b
 
 
 def divergence(horizons: Mapping[str, Mapping[str, Any]]) -> str | None:
