@@ -13,7 +13,7 @@ import re
 
 import numpy as np
 import pytest
-from rliable import metrics
+from rliable import library, metrics
 
 import envs
 from pets import openloop, rundir
@@ -23,7 +23,10 @@ from pets.experiments import cli as cli_module
 from pets.experiments.cli import EXIT_FAILED, main
 from pets.experiments.offline import compare_offline
 from pets.experiments.offline_summary import SUMMARY_COLUMNS, summarise_offline
-from pets.experiments.statistics import bootstrap_ci, iqm
+from pets.experiments.online_summary import SUMMARY_COLUMNS as ONLINE_COLUMNS
+from pets.experiments.online_summary import summarise_online
+from pets.experiments.report import fmt_interval
+from pets.experiments.statistics import REPS
 from tests.threads import one_thread
 from tests.tiny import TINY_MODEL, TINY_PLANNER
 
@@ -43,6 +46,13 @@ TINY_OFFLINE = [
     "planner.particles=2",
     "planner.iterations=2",
 ]
+
+
+ONLINE_BASELINE_COLUMNS = ONLINE_COLUMNS[ONLINE_COLUMNS.index("p_improvement") :]
+
+
+def rliable_iqm_columns(scores):
+    return np.array([metrics.aggregate_iqm(scores[:, j]) for j in range(scores.shape[1])])
 
 
 def cli(capsys, *args):
@@ -145,30 +155,43 @@ def test_online_summary_equals_statistics_recomputed_from_metrics(online):
     out, _ = online
     summary = {(r["env"], r["model"]): r for r in csv_rows(out / "summary.csv")}
     assert set(summary) == {("invertedpendulum", "delta"), ("invertedpendulum", "gem")}
+    finals = {}
     for model in ("delta", "gem"):
-        finals, aucs = [], []
+        scores = []
         for seed in (0, 1):
             rows = csv_rows(out / "runs" / f"invertedpendulum-{model}-s{seed}" / "metrics.csv")
             rewards = [float(r["episode_reward"]) for r in rows]
             assert len(rewards) == 2
-            finals.append(np.mean(rewards[-2:]))  # --final-window 3, capped at the 2 trials
-            aucs.append(np.mean(rewards))
+            scores.append([np.mean(rewards[-2:]), np.mean(rewards)])  # --final-window 3, capped at the 2 trials
+        scores = np.array(scores)
+        finals[model] = scores[:, 0]
         row = summary[("invertedpendulum", model)]
-        assert int(row["n_seeds"]) == 2 and int(row["trials"]) == 2 and int(row["final_window"]) == 2
-        assert float(row["final_mean"]) == pytest.approx(np.mean(finals), rel=1e-12)
-        assert (float(row["final_ci_low"]), float(row["final_ci_high"])) == pytest.approx(bootstrap_ci(finals))
-        assert float(row["final_iqm"]) == pytest.approx(iqm(finals))
-        assert float(row["auc_mean"]) == pytest.approx(np.mean(aucs), rel=1e-12)
-        assert (float(row["auc_ci_low"]), float(row["auc_ci_high"])) == pytest.approx(bootstrap_ci(aucs))
-        assert min(finals) <= float(row["final_ci_low"]) <= float(row["final_ci_high"]) <= max(finals)
+        assert int(row["n_seeds"]) == 2 and int(row["n_diverged"]) == 0
+        assert int(row["trials"]) == 2 and int(row["final_window"]) == 2
+        # rliable on the same (seeds, [final, auc]) matrix, numpy's global generator seeded with 0
+        np.random.seed(0)
+        point, interval = library.get_interval_estimates({"x": scores}, rliable_iqm_columns, reps=REPS)
+        for j, key in enumerate(("final", "auc")):
+            assert float(row[f"{key}_iqm"]) == point["x"][j] == pytest.approx(scores[:, j].mean(), rel=1e-12)
+            assert (float(row[f"{key}_ci_low"]), float(row[f"{key}_ci_high"])) == tuple(interval["x"][:, j])
+            assert (float(row[f"{key}_ci_low"]), float(row[f"{key}_ci_high"])) == (min(scores[:, j]), max(scores[:, j]))
         walls = [
             float(csv_rows(out / "runs" / f"invertedpendulum-{model}-s{seed}" / "metrics.csv")[1]["wall_time_s"])
             for seed in (0, 1)
         ]
         assert float(row["wall_time_s_mean"]) == pytest.approx(np.mean(walls), rel=1e-12) and min(walls) > 0
         assert float(row["plan_seconds_per_step_mean"]) > 0 and row["planner"] == ""
+    assert all(summary[("invertedpendulum", "delta")][c] == "" for c in ONLINE_BASELINE_COLUMNS)
+    gem = summary[("invertedpendulum", "gem")]
+    p = metrics.probability_of_improvement(finals["gem"][:, None], finals["delta"][:, None])
+    assert float(gem["p_improvement"]) == pytest.approx(p, abs=1e-15)
+    diffs = finals["gem"] - finals["delta"]
+    assert float(gem["diff_to_delta"]) == pytest.approx(diffs.mean(), rel=1e-12, abs=1e-12)
+    assert (float(gem["diff_ci_low"]), float(gem["diff_ci_high"])) == pytest.approx((min(diffs), max(diffs)))
+    assert gem["n_pairs"] == "2"
     md = (out / "summary.md").read_text()
-    assert "| delta | 2 |" in md and "| gem | 2 |" in md and "rewards_invertedpendulum.png" in md
+    assert "| delta | 2 | 0 |" in md and "| gem | 2 | 0 |" in md and "rewards_invertedpendulum.png" in md
+    assert "Fewer than 5 seeds cannot carry a claim" in md
     assert (out / "rewards_invertedpendulum.png").stat().st_size > 10_000
     assert (out / "walltime_invertedpendulum.png").stat().st_size > 10_000
     assert len(csv_rows(out / "summary_runs.csv")) == 4
@@ -209,6 +232,191 @@ def test_online_planners_axis_runs_every_model_planner_pair(tmp_path, capsys):
     ]
     assert "| model | planner | seeds |" in printed and "| delta | icem | 1 |" in printed
     assert (tmp_path / "walltime_invertedpendulum.png").stat().st_size > 10_000
+
+
+# --------------------------------------------------------------------------- online summary on fake runs
+FAKE_TRIALS, FAKE_WINDOW = 4, 2
+REWARD_BONUS = {"delta": 0.0, "gem": 3.0, "gem2": -2.0}
+
+
+def fake_rewards(model, seed, planner=None):
+    """Episode rewards per trial: rising, gem above delta, gem2 below; the seeds differ by different amounts."""
+    bonus = REWARD_BONUS[model] + (5.0 if planner == "icem" else 0.0)
+    return [10.0 * t + (1.0 + 0.5 * (model == "gem")) * seed + bonus for t in range(FAKE_TRIALS)]
+
+
+def fake_run(out, env, model, seed, rewards, planner=None):
+    """A run directory with only a metrics.csv of ``len(rewards)`` trials."""
+    run = out / "runs" / (f"{env}-{model}-s{seed}" if planner is None else f"{env}-{model}-{planner}-s{seed}")
+    run.mkdir(parents=True)
+    lines = ["trial,env_steps,episode_reward,wall_time_s,plan_seconds_per_step"]
+    lines += [f"{t},{100 * (t + 1)},{r!r},{10.0 * (t + 1) + seed},{0.1 if t else 0.0}" for t, r in enumerate(rewards)]
+    (run / "metrics.csv").write_text("\n".join(lines) + "\n")
+
+
+def fake_finals(model, seed, planner=None):
+    return float(np.mean(fake_rewards(model, seed, planner)[-FAKE_WINDOW:]))
+
+
+@pytest.fixture(scope="module")
+def fake_online(tmp_path_factory):
+    """reacher: delta, gem, gem2 with 5 seeds; gem seed 2 has a NaN reward in trial 1, gem2 seed 0 an inf in the
+    last trial; gem seed 4 of delta is incomplete. hopper: delta 2 seeds, gem both seeds NaN."""
+    out = tmp_path_factory.mktemp("fake-online")
+    for model in ("delta", "gem", "gem2"):
+        for seed in range(5):
+            rewards = fake_rewards(model, seed)
+            if (model, seed) == ("gem", 2):
+                rewards[1] = math.nan
+            if (model, seed) == ("gem2", 0):
+                rewards[-1] = -math.inf
+            if (model, seed) == ("delta", 4):
+                rewards = rewards[:2]
+            fake_run(out, "reacher", model, seed, rewards)
+    for seed in range(2):
+        fake_run(out, "hopper", "delta", seed, fake_rewards("delta", seed))
+        fake_run(out, "hopper", "gem", seed, [math.nan] * FAKE_TRIALS)
+    rows = summarise_online(
+        out, ["reacher", "hopper"], ["delta", "gem", "gem2"], range(5), FAKE_TRIALS, FAKE_WINDOW, reps=300
+    )
+    return out, rows
+
+
+def online_row(out, env, model, planner=""):
+    (row,) = [r for r in csv_rows(out / "summary.csv") if (r["env"], r["model"], r["planner"]) == (env, model, planner)]
+    return row
+
+
+def test_online_summary_csv_columns(fake_online):
+    out, rows = fake_online
+    with open(out / "summary.csv") as f:
+        header = f.readline().strip().split(",")
+    assert header == ONLINE_COLUMNS
+    assert header[:13] == (
+        "env model planner n_seeds n_diverged trials final_window final_iqm final_ci_low final_ci_high "
+        "auc_iqm auc_ci_low auc_ci_high".split()
+    )
+    assert ONLINE_BASELINE_COLUMNS == [
+        "p_improvement",
+        "p_improvement_ci_low",
+        "p_improvement_ci_high",
+        "diff_to_delta",
+        "diff_ci_low",
+        "diff_ci_high",
+        "n_pairs",
+    ]
+    assert not any(c.endswith("_mean") and c.startswith(("final", "auc")) for c in header)  # no mean of rewards
+    assert [(r["env"], r["model"]) for r in rows] == [
+        ("reacher", "delta"),
+        ("reacher", "gem"),
+        ("reacher", "gem2"),
+        ("hopper", "delta"),
+        ("hopper", "gem"),
+    ]
+    for r in csv_rows(out / "summary.csv"):
+        if r["model"] == "delta":
+            assert all(r[c] == "" for c in ONLINE_BASELINE_COLUMNS), r
+
+
+def test_online_diverged_run_is_counted_not_averaged_in(fake_online):
+    out, _ = fake_online
+    r = online_row(out, "reacher", "gem")
+    assert (r["n_seeds"], r["n_diverged"]) == ("4", "1")
+    scores = np.array([[fake_finals("gem", s), np.mean(fake_rewards("gem", s))] for s in (0, 1, 3, 4)])
+    np.random.seed(0)
+    point, interval = library.get_interval_estimates({"x": scores}, rliable_iqm_columns, reps=300)
+    assert [float(r[k]) for k in ("final_iqm", "auc_iqm")] == list(point["x"])
+    assert [float(r[k]) for k in ("final_ci_low", "auc_ci_low")] == list(interval["x"][0])
+    assert [float(r[k]) for k in ("final_ci_high", "auc_ci_high")] == list(interval["x"][1])
+    # the cost of the diverged run was spent: the cost means cover every complete run
+    assert float(r["wall_time_s_mean"]) == pytest.approx(np.mean([40.0 + s for s in range(5)]), rel=1e-12)
+    r = online_row(out, "reacher", "gem2")  # -inf in the last trial: diverged, not a -inf IQM
+    assert (r["n_seeds"], r["n_diverged"]) == ("4", "1") and math.isfinite(float(r["final_iqm"]))
+    r = online_row(out, "reacher", "delta")  # seed 4 incomplete: missing, not diverged
+    assert (r["n_seeds"], r["n_diverged"]) == ("4", "0")
+    r = online_row(out, "hopper", "gem")  # every run diverged: no IQM, every final worse than delta's
+    assert (r["n_seeds"], r["n_diverged"], r["final_iqm"], r["auc_ci_low"], r["diff_to_delta"]) == (
+        "0",
+        "2",
+        "",
+        "",
+        "",
+    )
+    assert float(r["p_improvement"]) == 0.0 and r["n_pairs"] == "0"
+    runs = {(r["env"], r["model"], r["seed"]): r for r in csv_rows(out / "summary_runs.csv")}
+    assert runs["reacher", "gem", "2"]["diverged"] == "episode_reward nan at trial 1"
+    assert runs["reacher", "gem2", "0"]["diverged"] == "episode_reward -inf at trial 3"
+    assert runs["reacher", "gem", "3"]["diverged"] == "" and len(runs) == 14 + 4
+
+
+def test_online_p_improvement_higher_reward_wins_and_paired_differences(fake_online):
+    out, _ = fake_online
+    delta = {s: fake_finals("delta", s) for s in range(4)}
+    for model, bad in (("gem", 2), ("gem2", 0)):
+        r = online_row(out, "reacher", model)
+        x = np.array([-math.inf if s == bad else fake_finals(model, s) for s in range(5)])
+        p = metrics.probability_of_improvement(x[:, None], np.array(list(delta.values()))[:, None])
+        assert float(r["p_improvement"]) == pytest.approx(p, abs=1e-15)
+        low, high = float(r["p_improvement_ci_low"]), float(r["p_improvement_ci_high"])
+        assert 0 <= low <= float(r["p_improvement"]) <= high <= 1
+        diffs = np.array([fake_finals(model, s) - delta[s] for s in range(4) if s != bad])
+        assert r["n_pairs"] == str(len(diffs)) == "3"
+        np.random.seed(0)
+        point, interval = library.get_interval_estimates({"x": diffs[:, None]}, rliable_iqm_columns, reps=300)
+        assert float(r["diff_to_delta"]) == point["x"][0]
+        assert (float(r["diff_ci_low"]), float(r["diff_ci_high"])) == tuple(interval["x"][:, 0])
+    gem, gem2 = online_row(out, "reacher", "gem"), online_row(out, "reacher", "gem2")
+    # gem's rewards are higher than delta's, gem2's lower: higher reward is better
+    assert float(gem["p_improvement"]) > 0.5 > float(gem2["p_improvement"])
+    assert float(gem["diff_to_delta"]) > 0 > float(gem2["diff_to_delta"])
+
+
+def test_online_summary_md_has_iqm_p_and_no_nan_or_inf(fake_online):
+    out, _ = fake_online
+    md = (out / "summary.md").read_text()
+    tables = "\n".join(line for line in md.splitlines() if line.startswith("|"))
+    assert not re.search(r"\b(nan|inf|None)\b", tables, re.I), "a non-finite or missing number reached a table"
+    assert "| model | seeds | diverged | final reward | AUC | P(final > delta's) | final - delta | pairs |" in md
+    assert "stratified-bootstrap CI" in md and "all diverged" in md
+    gem = online_row(out, "reacher", "gem")
+    assert (
+        f"| gem | 4 | 1 | {fmt_interval(*(float(gem[k]) for k in ('final_iqm', 'final_ci_low', 'final_ci_high')))} |"
+        in md
+    )
+    assert "| delta | 4 | 0 |" in md and "| - | - | - |" in md
+    assert "- reacher-gem-s2: episode_reward nan at trial 1" in md and "- reacher-delta-s4 (2/4 trials)" in md
+    sections = dict(re.findall(r"^## (\w+)\n(.*?)(?=^## )", md, re.S | re.M))
+    assert "Fewer than 5 seeds cannot carry a claim" in sections["reacher"]  # 4 seeds left
+    assert "Fewer than 5 seeds cannot carry a claim" in sections["hopper"]
+    for name in ("rewards_reacher.png", "walltime_reacher.png", "rewards_hopper.png"):
+        assert (out / name).stat().st_size > 10_000
+
+
+def test_online_baseline_is_delta_with_the_same_planner_and_absent_without_delta(tmp_path):
+    for model in ("delta", "gem"):
+        for planner in ("cem", "icem"):
+            for seed in range(5):
+                fake_run(tmp_path, "reacher", model, seed, fake_rewards(model, seed, planner), planner)
+    summarise_online(
+        tmp_path, ["reacher"], ["delta", "gem"], range(5), FAKE_TRIALS, FAKE_WINDOW, planners=["cem", "icem"], reps=50
+    )
+    for planner in ("cem", "icem"):
+        r = online_row(tmp_path, "reacher", "gem", planner)
+        # against delta with the same planner: gem+icem against delta+cem would be 1 (icem adds 5 to every reward)
+        gem, delta = ([fake_finals(m, s, planner) for s in range(5)] for m in ("gem", "delta"))
+        p = metrics.probability_of_improvement(np.array(gem)[:, None], np.array(delta)[:, None])
+        assert float(r["p_improvement"]) == pytest.approx(p, abs=1e-15) and p == pytest.approx(0.94)
+        diffs = [g - d for g, d in zip(gem, delta)]  # 3 + 0.5 seed: the IQM of 5 is the mean of the middle 3
+        assert float(r["diff_to_delta"]) == pytest.approx(np.mean(diffs[1:4]), rel=1e-12)
+        assert all(online_row(tmp_path, "reacher", "delta", planner)[c] == "" for c in ONLINE_BASELINE_COLUMNS)
+    md = (tmp_path / "summary.md").read_text()
+    assert "| model | planner | seeds |" in md and "Fewer than 5" not in md
+    rows = summarise_online(
+        tmp_path, ["reacher"], ["gem"], range(5), FAKE_TRIALS, FAKE_WINDOW, planners=["cem"], reps=50
+    )
+    assert [r["p_improvement"] for r in rows] == [None]
+    assert all(online_row(tmp_path, "reacher", "gem", "cem")[c] == "" for c in ONLINE_BASELINE_COLUMNS)
+    assert "P(final" not in (tmp_path / "summary.md").read_text()
 
 
 def test_openloop_on_an_online_run_replays_in_the_simulator(online, tmp_path, capsys):

@@ -1,19 +1,25 @@
-"""Online summary: per-run numbers from metrics.csv, statistics over seeds, summary tables and reward plots.
+"""Online summary: per-run numbers from metrics.csv, rliable statistics over seeds, summary tables and reward plots.
 
-Per run: ``final`` = mean episode reward of the last W trials (W = ``--final-window``, default 3,
-at most N); ``auc`` = mean episode reward over all N trials (the area under the reward-per-trial
-curve divided by N); the run's wall-clock time and median seconds per planning step. Per (env, model)
-over seeds: mean, 95 % percentile-bootstrap CI and IQM (:mod:`pets.experiments.statistics`) of final and
-auc, means of the rest. Files: ``summary.md``, ``summary.csv`` (per env and model), ``summary_runs.csv`` (per
-run), ``rewards_ENV.png`` (episode reward vs env steps per model: every seed's curve interpolated
-linearly onto a common grid of 200 env-step values spanning the range that all seeds of the model
-cover, then the mean over seeds with the pointwise bootstrap band; each seed's raw curve faintly
-behind it) and ``walltime_ENV.png`` (the same against the run's wall-clock hours: reward per unit
-of compute, e.g. for planners or heads of different cost).
+Per run: ``final`` = mean episode reward of the last W trials (W = ``--final-window``, default 3, at
+most N); ``auc`` = mean episode reward over all N trials; the run's wall-clock time and median
+seconds per planning step. A run with a non-finite episode reward is diverged (:func:`reward_divergence`).
+Per (env, arm) over the runs that did not diverge (:mod:`pets.experiments.statistics`, the same
+statistics as the offline summary): IQM of final and auc with its 95 % stratified-bootstrap CI; against
+the baseline arm (:data:`BASELINE` with the same planner) P(final > baseline's) with its CI (diverged
+runs: the worst final) and the IQM [CI] of the per-seed difference of final rewards. Diverged runs are
+counted (``n_diverged``), never averaged in; the cost columns are means over all complete runs.
+
+Files: ``summary.md``, ``summary.csv`` (per env and arm, :data:`SUMMARY_COLUMNS`; the baseline columns
+empty for the baseline itself and where it has no run), ``summary_runs.csv`` (per run, with
+``diverged``), ``rewards_ENV.png`` (episode reward vs env steps per arm: every seed's curve interpolated
+linearly onto a common grid of 200 env-step values over the range all its seeds cover, then the IQM
+over seeds with its CI band at each grid point; the raw curves faintly behind) and ``walltime_ENV.png``
+(the same against the run's wall-clock hours: reward per unit of compute).
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -21,10 +27,59 @@ from typing import Any
 import numpy as np
 
 from pets.experiments.plots import arm_colors, model_colors, plot_online
-from pets.experiments.report import BOOT_SEED, fmt, fmt_ci, md_table, write_csv
+from pets.experiments.report import BOOT_SEED, fmt, fmt_interval, md_table, write_csv
 from pets.experiments.rundirs import arm_label, online_arms, run_name
-from pets.experiments.statistics import summarise
+from pets.experiments.statistics import (
+    MIN_SEEDS,
+    REPS,
+    SMALL_SAMPLE_NOTE,
+    iqm_ci,
+    p_improvement_ci,
+    paired_differences,
+)
 from pets.fileio import atomic_write_bytes
+
+#: The model every other arm is compared with (with the same planner when planners are compared).
+BASELINE = "delta"
+#: Cost columns of a run: their mean over the complete runs of an arm (``KEY_mean``).
+COST_KEYS = ("env_steps", "wall_time_s", "plan_seconds_per_step")
+_BASELINE_COLUMNS = [
+    "p_improvement",
+    "p_improvement_ci_low",
+    "p_improvement_ci_high",
+    "diff_to_delta",
+    "diff_ci_low",
+    "diff_ci_high",
+    "n_pairs",
+]
+SUMMARY_COLUMNS = [
+    "env",
+    "model",
+    "planner",
+    "n_seeds",
+    "n_diverged",
+    "trials",
+    "final_window",
+    "final_iqm",
+    "final_ci_low",
+    "final_ci_high",
+    "auc_iqm",
+    "auc_ci_low",
+    "auc_ci_high",
+    *[f"{k}_mean" for k in COST_KEYS],
+    *_BASELINE_COLUMNS,
+]
+RUN_COLUMNS = [
+    "env",
+    "model",
+    "planner",
+    "seed",
+    "trials",
+    "diverged",
+    "final_reward",
+    "auc",
+    *COST_KEYS,
+]
 
 
 def online_rows(run_dir: Path) -> list[dict[str, float]]:
@@ -35,22 +90,79 @@ def online_rows(run_dir: Path) -> list[dict[str, float]]:
     return rundir.read_metrics(path) if path.is_file() else []
 
 
-def online_run_stats(rows: Sequence[Mapping[str, float]], trials: int, final_window: int) -> dict[str, float]:
-    """Per-run numbers from the first ``trials`` metrics rows: final (mean of the last ``final_window``
-    episode rewards), auc (mean episode reward over all trials), env_steps, wall_time_s (the run's
-    wall-clock seconds: planning, simulation and model training) and plan_seconds_per_step (median over
-    the planned trials; 0 if every trial was random)."""
+def reward_divergence(rows: Sequence[Mapping[str, float]]) -> str | None:
+    """Why a run counts as diverged (its first non-finite episode reward), or None."""
+    for i, r in enumerate(rows):
+        v = float(r["episode_reward"])
+        if not math.isfinite(v):
+            return f"episode_reward {v} at trial {int(r.get('trial', i))}"
+    return None
+
+
+def online_run_stats(rows: Sequence[Mapping[str, float]], trials: int, final_window: int) -> dict[str, Any]:
+    """Per-run numbers from the first ``trials`` metrics rows: diverged (:func:`reward_divergence`: None or
+    why), final (mean of the last ``final_window`` episode rewards), auc (mean episode reward over all
+    trials), env_steps, wall_time_s (the run's wall-clock seconds: planning, simulation and model training)
+    and plan_seconds_per_step (median over the planned trials; 0 if every trial was random)."""
     use = list(rows)[:trials]
     rewards = np.array([r["episode_reward"] for r in use], dtype=np.float64)
     w = min(final_window, len(use))
     planned = [r["plan_seconds_per_step"] for r in use if r.get("plan_seconds_per_step", 0.0) > 0]
+    with np.errstate(invalid="ignore"):  # inf - inf in a diverged run: NaN, reported as such
+        final, auc = float(rewards[-w:].mean()), float(rewards.mean())
     return {
-        "final_reward": float(rewards[-w:].mean()),
-        "auc": float(rewards.mean()),
+        "diverged": reward_divergence(use),
+        "final_reward": final,
+        "auc": auc,
         "env_steps": float(use[-1]["env_steps"]),
         "wall_time_s": float(use[-1]["wall_time_s"]),
         "plan_seconds_per_step": float(np.median(planned)) if planned else 0.0,
     }
+
+
+def _finite(x: float | None) -> float | None:
+    """``x`` as a float, None if absent or not finite (an empty CSV cell, "n/a" in a table)."""
+    return None if x is None or not math.isfinite(x) else float(x)
+
+
+def arm_statistics(
+    runs: Mapping[str, Sequence[Mapping[str, Any]]],
+    baselines: Mapping[str, str | None],
+    *,
+    reps: int = REPS,
+    seed: int = BOOT_SEED,
+) -> dict[str, dict[str, Any]]:
+    """{arm: statistics} of one env (the :data:`SUMMARY_COLUMNS` from ``n_seeds`` on; None where absent).
+
+    ``runs``: {arm: the :func:`online_run_stats` of its complete runs, each with its ``"seed"``};
+    ``baselines``: {arm: the arm it is compared with, None for the baseline itself or when there is none}.
+    """
+    good = {arm: {r["seed"]: r for r in rs if not r["diverged"]} for arm, rs in runs.items()}
+    out: dict[str, dict[str, Any]] = {}
+    for arm, rs in runs.items():
+        s: dict[str, Any] = dict.fromkeys(SUMMARY_COLUMNS[SUMMARY_COLUMNS.index("final_iqm") :])
+        s.update(n_seeds=len(good[arm]), n_diverged=len(rs) - len(good[arm]))
+        if good[arm]:
+            scores = np.array([[r["final_reward"], r["auc"]] for r in good[arm].values()])
+            iqm, low, high = iqm_ci(scores, reps=reps, seed=seed)
+            for j, key in enumerate(("final", "auc")):
+                s.update({f"{key}_iqm": iqm[j], f"{key}_ci_low": low[j], f"{key}_ci_high": high[j]})
+        s.update({f"{k}_mean": float(np.mean([r[k] for r in rs])) for k in COST_KEYS})
+        base = baselines.get(arm)
+        if base is not None and base in runs:
+            # diverged runs enter P as NaN, i.e. the worst final reward
+            x = [math.nan if r["diverged"] else r["final_reward"] for r in rs]
+            y = [math.nan if r["diverged"] else r["final_reward"] for r in runs[base]]
+            (p,), (p_low,), (p_high,) = p_improvement_ci(x, y, higher_is_better=True, reps=reps, seed=seed)
+            s.update(p_improvement=p, p_improvement_ci_low=p_low, p_improvement_ci_high=p_high)
+            final = {k: r["final_reward"] for k, r in good[arm].items()}
+            pairs, diffs = paired_differences(final, {k: r["final_reward"] for k, r in good[base].items()})
+            s["n_pairs"] = len(pairs)
+            if pairs:
+                (d,), (d_low,), (d_high,) = iqm_ci(diffs, reps=reps, seed=seed)
+                s.update(diff_to_delta=d, diff_ci_low=d_low, diff_ci_high=d_high)
+        out[arm] = {k: _finite(v) if isinstance(v, float) else v for k, v in s.items()}
+    return out
 
 
 def summarise_online(
@@ -62,16 +174,25 @@ def summarise_online(
     final_window: int,
     failed: Mapping[str, str] | None = None,
     planners: Sequence[str] | None = None,
+    *,
+    reps: int = REPS,
 ) -> list[dict[str, Any]]:
-    """Write summary.md, summary.csv, summary_runs.csv, rewards_ENV.png and walltime_ENV.png from the complete runs."""
+    """Write summary.md, summary.csv, summary_runs.csv, rewards_ENV.png and walltime_ENV.png (module
+    docstring) from the complete runs; returns the summary.csv rows."""
     out = Path(out)
-    per_run, summary, missing = [], [], []
-    curves: dict[tuple[str, str], list[list[dict[str, float]]]] = {}
+    per_run, summary, missing, diverged_runs, text = [], [], [], [], []
     arms = online_arms(models, planners)
+    labels = {arm: arm_label(*arm) for arm in arms}
+    baselines = {
+        labels[(m, p)]: labels[(BASELINE, p)] if m != BASELINE and (BASELINE, p) in labels else None for m, p in arms
+    }
+    compared = any(b is not None for b in baselines.values())
+    w = min(final_window, trials)
     for env in env_names:
+        runs: dict[str, list[dict[str, Any]]] = {}
+        curves: dict[str, list[list[dict[str, float]]]] = {}
         for model, planner in arms:
-            label = arm_label(model, planner)
-            finals, aucs, stats = [], [], []
+            label = labels[(model, planner)]
             for seed in seeds:
                 name = run_name(env, model, seed, planner)
                 rows = online_rows(out / "runs" / name)
@@ -81,133 +202,101 @@ def summarise_online(
                         f"{'; failed: ' + failed[name] if failed and name in failed else ''})"
                     )
                     continue
-                s = online_run_stats(rows, trials, final_window)
-                per_run.append(
-                    {"env": env, "model": model, "planner": planner or "", "seed": seed, "trials": trials, **s}
-                )
-                finals.append(s["final_reward"])
-                aucs.append(s["auc"])
-                stats.append(s)
-                curves.setdefault((env, label), []).append(rows[:trials])
-            if not finals:
-                continue
-            f, a = summarise(finals, seed=BOOT_SEED), summarise(aucs, seed=BOOT_SEED)
-            summary.append(
-                {
-                    "env": env,
-                    "model": model,
-                    "planner": planner or "",
-                    "n_seeds": f["n"],
-                    "trials": trials,
-                    "final_window": min(final_window, trials),
-                    "final_mean": f["mean"],
-                    "final_ci_low": f["ci_low"],
-                    "final_ci_high": f["ci_high"],
-                    "final_iqm": f["iqm"],
-                    "auc_mean": a["mean"],
-                    "auc_ci_low": a["ci_low"],
-                    "auc_ci_high": a["ci_high"],
-                    "auc_iqm": a["iqm"],
-                    **{
-                        f"{k}_mean": float(np.mean([s[k] for s in stats]))
-                        for k in ("env_steps", "wall_time_s", "plan_seconds_per_step")
-                    },
-                }
-            )
+                s = {"seed": seed, **online_run_stats(rows, trials, final_window)}
+                per_run.append({"env": env, "model": model, "planner": planner or "", "trials": trials, **s})
+                per_run[-1]["diverged"] = s["diverged"] or ""
+                runs.setdefault(label, []).append(s)
+                curves.setdefault(label, [])
+                if s["diverged"]:
+                    diverged_runs.append(f"{name}: {s['diverged']}")
+                else:
+                    curves[label].append(rows[:trials])
+        if not runs:
+            continue
+        stats = arm_statistics(runs, baselines, reps=reps)
+        rows_env = []
+        for model, planner in arms:
+            label = labels[(model, planner)]
+            if label in stats:
+                row = {"env": env, "model": model, "planner": planner or "", "trials": trials, "final_window": w}
+                rows_env.append({**row, **stats[label]})
+        summary += rows_env
+        text += _env_section(env, rows_env, planners is not None, compared, baselines)
+        colors = model_colors(list(curves)) if planners is None else arm_colors(list(curves))
+        n_div = {label: stats[label]["n_diverged"] for label in curves}
+        plot_online(out / f"rewards_{env}.png", env, curves, colors, diverged=n_div, reps=reps)
+        plot_online(out / f"walltime_{env}.png", env, curves, colors, x_key="wall_time_s", diverged=n_div, reps=reps)
     write_csv(out / "summary.csv", summary, SUMMARY_COLUMNS)
-    write_csv(
-        out / "summary_runs.csv",
-        per_run,
-        [
-            "env",
-            "model",
-            "planner",
-            "seed",
-            "trials",
-            "final_reward",
-            "auc",
-            "env_steps",
-            "wall_time_s",
-            "plan_seconds_per_step",
-        ],
-    )
-    w = min(final_window, trials)
-    text = [
+    write_csv(out / "summary_runs.csv", per_run, RUN_COLUMNS)
+    base_name = BASELINE if planners is None else f"{BASELINE} with the same planner"
+    header = [
         f"# Online comparison ({trials} trials per run)",
         "",
         f"final = mean episode reward of the last {w} trial{'s' if w > 1 else ''} of each run; "
-        f"AUC = mean episode reward over all {trials} trials. Mean over seeds with the 95 % "
-        "percentile-bootstrap CI in brackets; IQM = interquartile mean over seeds. Plan s/step: median "
-        "seconds per planning step of a run (mean over seeds); wall h: the run's wall-clock hours "
-        "(planning, simulation, model training; mean over seeds).",
+        f"AUC = mean episode reward over all {trials} trials. Per arm: the interquartile mean (IQM) over seeds "
+        "with its 95 % stratified-bootstrap CI in brackets (rliable)."
+        + (
+            f" P(final > {BASELINE}'s): the probability that a random seed of the arm ends with a higher final "
+            f"reward than a random seed of {base_name} (ties count half), with its CI. final - {BASELINE}: IQM "
+            "[CI] of the per-seed difference of the final rewards over the seeds both arms have (same seed: "
+            "the same random seed data and env reset seeds)."
+            if compared
+            else ""
+        )
+        + " A run with a non-finite episode reward is diverged: counted, left out of the IQMs, CIs and "
+        "differences, and the worst final reward in P. Plan s/step: median seconds per planning step of "
+        "a run; wall h: the run's wall-clock hours (planning, simulation, model training); both the mean "
+        "over the complete runs, diverged ones included.",
         "",
     ]
-    arm_header = ["model"] if planners is None else ["model", "planner"]
-    for env in env_names:
-        rows = [r for r in summary if r["env"] == env]
-        if not rows:
-            continue
-        text += [
-            f"## {env}",
-            "",
-            md_table(
-                [
-                    *arm_header,
-                    "seeds",
-                    "final reward",
-                    "final IQM",
-                    "AUC",
-                    "AUC IQM",
-                    "env steps",
-                    "plan s/step",
-                    "wall h",
-                ],
-                [
-                    [
-                        *([r["model"]] if planners is None else [r["model"], r["planner"]]),
-                        str(r["n_seeds"]),
-                        fmt_ci({"mean": r["final_mean"], "ci_low": r["final_ci_low"], "ci_high": r["final_ci_high"]}),
-                        fmt(r["final_iqm"]),
-                        fmt_ci({"mean": r["auc_mean"], "ci_low": r["auc_ci_low"], "ci_high": r["auc_ci_high"]}),
-                        fmt(r["auc_iqm"]),
-                        f"{r['env_steps_mean']:.0f}",
-                        fmt(r["plan_seconds_per_step_mean"], 3),
-                        fmt(r["wall_time_s_mean"] / 3600, 3),
-                    ]
-                    for r in rows
-                ],
-            ),
-            "",
-            f"![rewards](rewards_{env}.png) ![wall-clock](walltime_{env}.png)",
-            "",
-        ]
-        labels = [arm_label(m, p) for m, p in arms]
-        runs = {label: curves[(env, label)] for label in labels if (env, label) in curves}
-        colors = model_colors(list(runs)) if planners is None else arm_colors(list(runs))
-        plot_online(out / f"rewards_{env}.png", env, runs, colors)
-        plot_online(out / f"walltime_{env}.png", env, runs, colors, x_key="wall_time_s")
+    text = header + text
+    if diverged_runs:
+        text += ["## Diverged runs (counted, not in the IQMs)", ""] + [f"- {d}" for d in diverged_runs] + [""]
     if missing:
         text += ["## Missing or incomplete runs (not in the statistics)", ""] + [f"- {m}" for m in missing] + [""]
     atomic_write_bytes(out / "summary.md", "\n".join(text).encode())
     return summary
 
 
-SUMMARY_COLUMNS = [
-    "env",
-    "model",
-    "planner",
-    "n_seeds",
-    "trials",
-    "final_window",
-    "final_mean",
-    "final_ci_low",
-    "final_ci_high",
-    "final_iqm",
-    "auc_mean",
-    "auc_ci_low",
-    "auc_ci_high",
-    "auc_iqm",
-    "env_steps_mean",
-    "wall_time_s_mean",
-    "plan_seconds_per_step_mean",
-]
+def _env_section(
+    env: str,
+    rows: Sequence[Mapping[str, Any]],
+    with_planner: bool,
+    compared: bool,
+    baselines: Mapping[str, str | None],
+) -> list[str]:
+    """Markdown of one env: the small-sample note where needed, the table of its arms, its two figures."""
+    header = ["model", *(["planner"] if with_planner else []), "seeds", "diverged", "final reward", "AUC"]
+    if compared:
+        header += [f"P(final > {BASELINE}'s)", f"final - {BASELINE}", "pairs"]
+    header += ["env steps", "plan s/step", "wall h"]
+    table = []
+    for r in rows:
+        none = "all diverged" if r["n_seeds"] == 0 else "n/a"
+        cells = [r["model"], *([r["planner"]] if with_planner else []), str(r["n_seeds"]), str(r["n_diverged"])]
+        cells += [fmt_interval(r[f"{k}_iqm"], r[f"{k}_ci_low"], r[f"{k}_ci_high"], none) for k in ("final", "auc")]
+        if compared:
+            if baselines[arm_label(r["model"], r["planner"] or None)] is None:
+                cells += ["-", "-", "-"]
+            else:
+                cells += [
+                    fmt_interval(r["p_improvement"], r["p_improvement_ci_low"], r["p_improvement_ci_high"]),
+                    fmt_interval(r["diff_to_delta"], r["diff_ci_low"], r["diff_ci_high"]),
+                    "-" if r["n_pairs"] is None else str(r["n_pairs"]),
+                ]
+        cells += [
+            f"{r['env_steps_mean']:.0f}",
+            fmt(r["plan_seconds_per_step_mean"], 3),
+            fmt(r["wall_time_s_mean"] / 3600, 3),
+        ]
+        table.append(cells)
+    small = any(r["n_seeds"] < MIN_SEEDS for r in rows)
+    return [
+        f"## {env}",
+        "",
+        *([SMALL_SAMPLE_NOTE, ""] if small else []),
+        md_table(header, table),
+        "",
+        f"![rewards](rewards_{env}.png) ![wall-clock](walltime_{env}.png)",
+        "",
+    ]
