@@ -132,7 +132,8 @@ def arm_statistics(
     reps: int = REPS,
     seed: int = BOOT_SEED,
 ) -> dict[str, dict[str, Any]]:
-    """{arm: statistics} of one env (the :data:`SUMMARY_COLUMNS` from ``n_seeds`` on; None where absent).
+    """{arm: statistics} of one env: ``n_seeds``, ``n_diverged`` and the :data:`SUMMARY_COLUMNS` from
+    ``final_iqm`` on (None where absent or not finite).
 
     ``runs``: {arm: the :func:`online_run_stats` of its complete runs, each with its ``"seed"``};
     ``baselines``: {arm: the arm it is compared with, None for the baseline itself or when there is none}.
