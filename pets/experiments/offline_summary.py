@@ -6,7 +6,7 @@ model's error is lower than delta's (P, with CI); the paired per-seed ratio mode
 CI over the seeds both have). Diverged runs (:func:`pets.experiments.statistics.divergence`) are
 left out of IQMs, CIs and ratios, counted in ``n_diverged``, and enter P as error ``+inf``. The
 metrics are the eval.json keys ending in ``_error`` that every run of the env has
-(:data:`PREFERRED_METRICS` first, in that order, then the others alphabetically).
+(``pets.evaluate.METRICS`` first, in that order, then the others alphabetically).
 
 Files:
 
@@ -43,6 +43,7 @@ from typing import Any
 
 import numpy as np
 
+from pets.evaluate import METRICS as EVALUATE_METRICS
 from pets.experiments.plots import model_colors, plot_absolute, plot_openloop, plot_ratio, plot_relative
 from pets.experiments.report import BOOT_SEED, fmt_ci, fmt_interval, md_table, write_csv
 from pets.experiments.rundirs import json_matches, run_name
@@ -61,17 +62,6 @@ from pets.fileio import atomic_write_bytes
 
 #: The model every other model is compared with (P of improvement, ratios).
 BASELINE = "delta"
-#: Error metrics in this order first (pets.evaluate's keys), then any other ``*_error`` key alphabetically.
-PREFERRED_METRICS = (
-    "mean_step_error",
-    "final_step_error",
-    "translation_error",
-    "rotation_error",
-    "velocity_error",
-    "other_error",
-    "derived_error",
-    "standardized_error",
-)
 #: Metrics that get a table in prediction.md (rotation_error only where the env has rotations).
 TABLE_METRICS = ("mean_step_error", "standardized_error", "rotation_error")
 #: The metric of Fig. 2 and Fig. 3.
@@ -130,9 +120,9 @@ def load_evals(
 
 
 def order_metrics(keys: Sequence[str]) -> list[str]:
-    """The ``*_error`` keys among ``keys``: :data:`PREFERRED_METRICS` first in their order, then the rest sorted."""
+    """The ``*_error`` keys among ``keys``: :data:`EVALUATE_METRICS` first in their order, then the rest sorted."""
     errors = {k for k in keys if k.endswith("_error")}
-    return [m for m in PREFERRED_METRICS if m in errors] + sorted(errors - set(PREFERRED_METRICS))
+    return [m for m in EVALUATE_METRICS if m in errors] + sorted(errors - set(EVALUATE_METRICS))
 
 
 def _finite(x: float | None) -> float | None:
