@@ -208,6 +208,33 @@ def test_planning_with_no_finite_return_stops_the_run_with_one_line(tmp_path, mo
     assert [int(r["trial"]) for r in rows(out)] == [0]
 
 
+def test_the_bar_over_trials_knows_its_total_and_shows_rate_and_eta(tmp_path, monkeypatch, capsys):
+    """Issue 17 item 6: the trial-level bar is created with total=trials (initial=trials done on resume), so
+    tqdm shows n/total, the rate and the remaining time."""
+    import re
+
+    import run_pets
+    from pets import loop
+
+    created = []
+
+    class Recording(loop.tqdm):
+        def __init__(self, *args, **kwargs):
+            created.append(kwargs)
+            super().__init__(*args, **kwargs)
+
+    monkeypatch.setattr(loop, "tqdm", Recording)
+    out = tmp_path / "run"
+    visible = [a for a in TINY if a != "--quiet"]
+    assert run_pets.main(["--env", "invertedpendulum", "--trials", "1", "--out", str(out), *visible]) == 0
+    assert run_pets.main(["--resume", str(out), "--trials", "2"]) == 0
+    bars = [(kw["total"], kw["initial"]) for kw in created if kw.get("unit") == "trial"]
+    assert bars == [(1, 0), (2, 1)]
+    err = capsys.readouterr().err.replace("\r", "\n")
+    # e.g. "invertedpendulum-delta: 100%|##########| 2/2 [00:00<00:00,  1.63trial/s, reward=8.0, steps=41]"
+    assert re.search(r"invertedpendulum-delta: +100%.* 2/2 \[\d\d:\d\d<\d\d:\d\d, +[\d.]+(trial/s|s/trial)", err), err
+
+
 def test_overrides_are_accepted_anywhere_on_the_command_line():
     """Issue 17 item 5: key=value after an option used to be 'unrecognized arguments'."""
     proc = cli("--env", "reacher", "threads=1", "--preset", "fast", "planner.population=50", "--trials", 0, check=False)
