@@ -53,6 +53,7 @@ def main(argv: list[str] | None = None) -> int:
     from pets import loop, rundir
     from pets.config import ConfigError, load_config, make_config, parse_overrides
     from pets.fileio import DirectoryInUse, writable_dir_error
+    from pets.planners import PlanningFailed
     from pets.trainer import TrainingDiverged
 
     try:
@@ -102,7 +103,7 @@ def main(argv: list[str] | None = None) -> int:
         )
     except DirectoryInUse as err:
         _fail(f"{err}; wait for it to finish, or pick another --out")
-    except TrainingDiverged as err:  # the trials completed before it stay in the run directory
+    except (TrainingDiverged, PlanningFailed) as err:  # the trials completed before it stay in the run directory
         fail(PROG, f"{err}; the run directory keeps the trials completed before this one", EXIT_FAILED)
     except KeyboardInterrupt:
         print(f"\ninterrupted; continue with: python run_pets.py --resume {run_dir}", file=sys.stderr)

@@ -39,7 +39,7 @@ import torch
 from torch import Tensor
 
 from envs.layout import Group, ObsLayout
-from envs.spec import AppendObservation, EnvSpec, ReadOnlyDict, env_constructor_params
+from envs.spec import AppendObservation, EnvSpec, ReadOnlyDict, env_constructor_params, gymnasium_make
 
 # --------------------------------------------------------------------------- layouts
 
@@ -336,7 +336,7 @@ def build(name: str, overrides: dict[str, Any]) -> EnvSpec:
     if "exclude_current_positions_from_observation" in ctor:
         env_kwargs["exclude_current_positions_from_observation"] = False
 
-    env = gymnasium.make(gym_id, **env_kwargs)
+    env = gymnasium_make(gym_id, **env_kwargs)
     u = env.unwrapped
     p: Any = {"family": name, "dt": float(u.dt)}
     wrap = None

@@ -8,9 +8,11 @@ so they cannot drift from the simulator.
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import inspect
-from collections.abc import Callable, Mapping
+import warnings
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -112,7 +114,7 @@ class EnvSpec:
                 f"{self.name}: make() does not accept {fixed}: they change the reward, termination or "
                 f"observation; use envs.get({self.name!r}, {fixed[0]}=...) so the spec matches the env"
             )
-        env = gymnasium.make(self.gym_id, **{**self.env_kwargs, **kwargs})
+        env = gymnasium_make(self.gym_id, **{**self.env_kwargs, **kwargs})
         return self.wrap(env) if self.wrap is not None else env
 
     def reward(self, obs: Tensor, act: Tensor, next_obs: Tensor) -> Tensor:
@@ -133,6 +135,45 @@ class EnvSpec:
             )
         if act.shape[-1:] != (self.act_dim,):
             raise ValueError(f"{self.name}: act must end in act_dim={self.act_dim}, got {tuple(act.shape)}")
+
+
+#: MuJoCo's compiler warning for gymnasium's own half_cheetah.xml (``<compiler settotalmass="14">``). It is harmless
+#: and not ours to fix: MuJoCo still applies the attribute (HalfCheetah's total mass stays 14, as tested), and
+#: editing the asset could change the physics. MuJoCo's C library prints it (to stderr and MUJOCO_LOG.TXT, twice per
+#: model load), so ``warnings.filterwarnings`` cannot reach it: :func:`gymnasium_make` drops this message only.
+SETTOTALMASS_WARNING = "compiler attribute 'settotalmass' is deprecated"
+
+
+@contextlib.contextmanager
+def _without_settotalmass_warning() -> Iterator[None]:
+    """While the block runs, MuJoCo warnings go through a handler that drops :data:`SETTOTALMASS_WARNING` and
+    passes any other message to the previous handler (or, with MuJoCo's default one, to ``warnings.warn``)."""
+    try:
+        import mujoco
+    except ImportError:  # not a MuJoCo env
+        yield
+        return
+    previous = mujoco.get_mju_user_warning()
+
+    def handler(message: str) -> None:
+        if SETTOTALMASS_WARNING in message:
+            return
+        if previous is not None:
+            previous(message)
+        else:
+            warnings.warn(f"MuJoCo: {message.strip()}", RuntimeWarning, stacklevel=2)
+
+    mujoco.set_mju_user_warning(handler)
+    try:
+        yield
+    finally:
+        mujoco.set_mju_user_warning(previous)
+
+
+def gymnasium_make(gym_id: str, **kwargs: Any) -> gymnasium.Env:
+    """``gymnasium.make`` without MuJoCo's harmless settotalmass deprecation (see :data:`SETTOTALMASS_WARNING`)."""
+    with _without_settotalmass_warning():
+        return gymnasium.make(gym_id, **kwargs)
 
 
 def env_constructor_params(gym_id: str) -> dict[str, Any]:

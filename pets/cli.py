@@ -8,7 +8,7 @@ from typing import NoReturn
 
 #: Exit status of every command on bad input (as run_pets.py).
 EXIT_USAGE = 2
-#: Exit status of a run that failed on good input (model training diverged).
+#: Exit status of a run that failed on good input (model training diverged, or planning got no finite return).
 EXIT_FAILED = 3
 
 

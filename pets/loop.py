@@ -25,6 +25,7 @@ from pets.buffer import ReplayBuffer
 from pets.config import ConfigError
 from pets.fileio import locked
 from pets.models import make_model
+from pets.planners import PlanningFailed
 from pets.rollout import Episode, MPCPolicy, RandomPolicy, run_episode, run_steps
 from pets.trainer import TrainResult
 
@@ -129,10 +130,12 @@ class PETSRun:
         policy = self.random_policy if random_policy else self.mpc_policy
         bar = tqdm(total=self.episode_length, desc=f"trial {trial}", leave=False, disable=not progress)
         added = 0  # steps of this episode already in the buffer
+        steps = 0  # steps of this episode taken
 
         def after_step(so_far: Episode) -> None:
             """Progress bar; with ``train_every``, mid-episode training on the data so far."""
-            nonlocal added
+            nonlocal added, steps
+            steps = len(so_far)
             bar.update(1)
             bar.set_postfix(reward=f"{so_far.total_reward:.1f}")
             every = self.cfg.train_every
@@ -141,15 +144,19 @@ class PETSRun:
                 added = len(so_far)
                 self._train()
 
-        episode = run_episode(
-            self.env,
-            policy,
-            max_steps=self.episode_length,
-            reset_seed=self._episode_seed(trial),
-            rng=self.np_rng,
-            on_step=after_step,
-        )
-        bar.close()
+        try:
+            episode = run_episode(
+                self.env,
+                policy,
+                max_steps=self.episode_length,
+                reset_seed=self._episode_seed(trial),
+                rng=self.np_rng,
+                on_step=after_step,
+            )
+        except PlanningFailed as err:  # name where it happened; the trials before it are checkpointed
+            raise PlanningFailed(f"trial {trial}, step {steps}: {err}") from None
+        finally:
+            bar.close()
         self._add(episode, added)
         length = len(episode)
         self._train()

@@ -33,7 +33,12 @@ done; the reward of the terminating transition counts, later rewards are zero an
 is frozen (a terminated state is absorbing). A transition whose predicted next state or
 reward is not finite (NaN/inf, e.g. a diverging model) is treated as a termination whose
 reward is ``nonfinite_reward`` (default -1e6) instead of the (non-finite) reward, so the
-planner always gets finite returns that rank such candidates at the bottom.
+planner gets finite returns that rank such candidates at the bottom (a row that diverges later
+is still ranked by the finite rewards before it). The one exception: when the *first* transition
+of every row (every particle of every candidate) is non-finite, the model predicts nothing finite
+from the current state (e.g. NaN weights), no return means anything, so every return is NaN
+(decided on the device, no synchronisation) and the planner raises
+``pets.planners.PlanningFailed`` rather than act at random.
 
 Speed options (both off by default; see docs/performance.md for measured figures):
 
@@ -212,8 +217,9 @@ class TrajectoryEvaluator:
         inv: Tensor | None,
         penalty: Tensor,
         zero: Tensor,
-    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """One model step for all rows: ``(obs, done, total) -> (next obs, done, total, step reward)``.
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+        """One model step for all rows: ``(obs, done, total) -> (next obs, done, total, step reward, went bad)``
+        (``went bad``: the rows not done before whose transition was non-finite).
 
         ``noise`` ((M, B / M, target_dim), ts modes) and ``perm`` / ``inv`` (ts1) are drawn by the
         caller, so this function is pure (no randomness, no host synchronisation) and can be compiled.
@@ -246,9 +252,9 @@ class TrajectoryEvaluator:
         if self.terminated_fn is not None:
             stop = stop | self.terminated_fn(obs, act, nxt).to(torch.bool)
         nxt = torch.where((done | bad).unsqueeze(-1), obs, nxt)
-        return nxt, stop, total + step_reward, step_reward
+        return nxt, stop, total + step_reward, step_reward, bad & ~done
 
-    def _get_step(self) -> Callable[..., tuple[Tensor, Tensor, Tensor, Tensor]]:
+    def _get_step(self) -> Callable[..., tuple[Tensor, Tensor, Tensor, Tensor, Tensor]]:
         """The step function: compiled (lazily, once per evaluator) when ``compile`` and it works, else eager."""
         if not self.compile or self._compile_failed:
             return self._step
@@ -256,7 +262,7 @@ class TrajectoryEvaluator:
             self._compiled_step = torch.compile(self._step, backend=self.compile_backend)
         return self._compiled_step
 
-    def _call_step(self, *args: Tensor | None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    def _call_step(self, *args: Tensor | None) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
         step = self._get_step()
         if step is self._step:
             return step(*args)
@@ -277,8 +283,9 @@ class TrajectoryEvaluator:
     # ------------------------------------------------------------------ core
     def _run(
         self, obs0: Tensor, actions: Tensor, generator: torch.Generator | None, record: bool
-    ) -> tuple[Tensor, Tensor | None, Tensor | None, int]:
-        """Roll out all rows. Returns (per-row return in natural order (R,), obs trace, reward trace, P_eff).
+    ) -> tuple[Tensor, Tensor | None, Tensor | None, int, Tensor]:
+        """Roll out all rows. Returns (per-row return in natural order (R,), obs trace, reward trace, P_eff,
+        whether the first transition of every row was non-finite (bool scalar on the device)).
 
         Natural order: row ``n * P_eff + p`` is particle ``p`` of candidate ``n``.
         Traces (when ``record``) are ``(R, H + 1, obs_dim)`` and ``(R, H)`` in natural order.
@@ -320,7 +327,7 @@ class TrajectoryEvaluator:
         if mode != "expectation":  # one buffer, refilled in place every step (same stream as fresh draws)
             noise_dtype = dtype if self.precision == "bf16" else self._model_dtype(dtype)
             noise = torch.empty((m, per_member, self.model.target_dim), device=device, dtype=noise_dtype)
-        perm = inv = None
+        perm = inv = diverged = None  # diverged: set at t = 0 (H >= 1, checked)
 
         for t in range(horizon):
             if mode == "ts1":
@@ -328,9 +335,11 @@ class TrajectoryEvaluator:
                 inv = torch.empty_like(perm).scatter_(0, perm, arange_b)
             if noise is not None:
                 torch.randn(noise.shape, generator=generator, device=device, dtype=noise.dtype, out=noise)
-            obs, done, total, step_reward = self._call_step(
+            obs, done, total, step_reward, went_bad = self._call_step(
                 obs, act_rows[t], noise, done, total, members, perm, inv, penalty, zero
             )
+            if t == 0:
+                diverged = went_bad  # rows with nothing finite at all
             if record:
                 obs_trace.append(obs)
                 rew_trace.append(step_reward)
@@ -339,24 +348,28 @@ class TrajectoryEvaluator:
         rew_all = torch.stack(rew_trace, dim=1) if record else None
         if nat_to_flat is not None:
             total = total.index_select(0, nat_to_flat)
+            diverged = diverged.index_select(0, nat_to_flat)  # the real rows only, not the padding
             if record:
                 obs_all = obs_all.index_select(0, nat_to_flat)
                 rew_all = rew_all.index_select(0, nat_to_flat)
         else:
-            total = total[:rows]
+            total, diverged = total[:rows], diverged[:rows]
             if record:
                 obs_all, rew_all = obs_all[:rows], rew_all[:rows]
-        return total, obs_all, rew_all, p_eff
+        return total, obs_all, rew_all, p_eff, diverged.all()
 
     @torch.no_grad()
     def __call__(self, obs0: Tensor, actions: Tensor, generator: torch.Generator | None = None) -> Tensor:
         """Mean over particles of the summed horizon rewards, shape (N,), for actions (N, H, act_dim).
 
-        Always finite for finite rewards of finite states (see the module docstring).
+        Finite for finite rewards of finite states (see the module docstring), except that every return is NaN
+        when the first transition of every row is non-finite (a broken model: the planner then raises
+        ``PlanningFailed``).
         """
         obs0, actions = self._check(obs0, actions, generator)
-        total, _, _, p_eff = self._run(obs0, actions, generator, record=False)
-        return total.view(actions.shape[0], p_eff).mean(dim=1)
+        total, _, _, p_eff, all_diverged = self._run(obs0, actions, generator, record=False)
+        returns = total.view(actions.shape[0], p_eff).mean(dim=1)
+        return torch.where(all_diverged, torch.full_like(returns, float("nan")), returns)
 
     @torch.no_grad()
     def rollout(self, obs0: Tensor, actions: Tensor, generator: torch.Generator | None = None) -> tuple[Tensor, Tensor]:
@@ -365,12 +378,13 @@ class TrajectoryEvaluator:
         Returns observations (N, P, H + 1, obs_dim) (index 0 is ``obs0``; frozen after a termination)
         and the rewards that count towards the return, (N, P, H) (zero after a termination,
         ``nonfinite_reward`` on a transition into a non-finite state), so that
-        ``rewards.sum(-1).mean(-1)`` equals ``self(obs0, actions)`` for the same generator state.
+        ``rewards.sum(-1).mean(-1)`` equals ``self(obs0, actions)`` for the same generator state (unless every
+        row's first transition is non-finite: then the rewards keep the penalty and ``self`` returns NaN).
         For ``expectation`` the single rollout per candidate is repeated over the P particles.
         """
         obs0, actions = self._check(obs0, actions, generator)
         n, h = actions.shape[:2]
-        _, obs_all, rew_all, p_eff = self._run(obs0, actions, generator, record=True)
+        _, obs_all, rew_all, p_eff, _ = self._run(obs0, actions, generator, record=True)
         obs_all = obs_all.view(n, p_eff, h + 1, -1).expand(n, self.particles, h + 1, obs_all.shape[-1])
         rew_all = rew_all.view(n, p_eff, h).expand(n, self.particles, h)
         return obs_all.contiguous(), rew_all.contiguous()

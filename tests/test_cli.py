@@ -179,6 +179,62 @@ def test_diverging_training_stops_the_run_with_one_line(tmp_path, holdout):
     assert not (out / "checkpoint.pt").exists()  # nothing trained on a NaN model was saved
 
 
+def test_planning_with_no_finite_return_stops_the_run_with_one_line(tmp_path, monkeypatch, capsys):
+    """Issue 17 item 1: a model that predicts nothing finite (here: NaN weights after the second training, i.e.
+    after trial 0) makes planning fail with exit 3 and one line naming trial and step; trial 0 is kept."""
+    import torch
+
+    import run_pets
+    from pets import loop
+
+    real_train, trainings = loop.PETSRun._train, {"n": 0}
+
+    def train_then_break(self):
+        real_train(self)
+        trainings["n"] += 1
+        if trainings["n"] == 2:  # seed data, trial 0, then break the model
+            with torch.no_grad():
+                for p in self.model.parameters():
+                    p.fill_(float("nan"))
+
+    monkeypatch.setattr(loop.PETSRun, "_train", train_then_break)
+    out = tmp_path / "run"
+    with pytest.raises(SystemExit) as exc:
+        run_pets.main(["--env", "invertedpendulum", "--trials", "2", "--out", str(out), *TINY])
+    err = error_lines(capsys.readouterr().err)
+    assert exc.value.code == 3 and len(err) == 1, err
+    assert "trial 1, step 0: planning failed: every candidate action sequence got a non-finite return" in err[0]
+    assert "the run directory keeps the trials completed before this one" in err[0]
+    assert [int(r["trial"]) for r in rows(out)] == [0]
+
+
+def test_the_bar_over_trials_knows_its_total_and_shows_rate_and_eta(tmp_path, monkeypatch, capsys):
+    """Issue 17 item 6: the trial-level bar is created with total=trials (initial=trials done on resume), so
+    tqdm shows n/total, the rate and the remaining time."""
+    import re
+
+    import run_pets
+    from pets import loop
+
+    created = []
+
+    class Recording(loop.tqdm):
+        def __init__(self, *args, **kwargs):
+            created.append(kwargs)
+            super().__init__(*args, **kwargs)
+
+    monkeypatch.setattr(loop, "tqdm", Recording)
+    out = tmp_path / "run"
+    visible = [a for a in TINY if a != "--quiet"]
+    assert run_pets.main(["--env", "invertedpendulum", "--trials", "1", "--out", str(out), *visible]) == 0
+    assert run_pets.main(["--resume", str(out), "--trials", "2"]) == 0
+    bars = [(kw["total"], kw["initial"]) for kw in created if kw.get("unit") == "trial"]
+    assert bars == [(1, 0), (2, 1)]
+    err = capsys.readouterr().err.replace("\r", "\n")
+    # e.g. "invertedpendulum-delta: 100%|##########| 2/2 [00:00<00:00,  1.63trial/s, reward=8.0, steps=41]"
+    assert re.search(r"invertedpendulum-delta: +100%.* 2/2 \[\d\d:\d\d<\d\d:\d\d, +[\d.]+(trial/s|s/trial)", err), err
+
+
 def test_overrides_are_accepted_anywhere_on_the_command_line():
     """Issue 17 item 5: key=value after an option used to be 'unrecognized arguments'."""
     proc = cli("--env", "reacher", "threads=1", "--preset", "fast", "planner.population=50", "--trials", 0, check=False)

@@ -411,3 +411,42 @@ def test_spec_is_read_only_and_pickles():
     env = clone.make()
     assert env.reset(seed=0)[0].shape == (spec.obs_dim,)
     env.close()
+
+
+def test_building_envs_prints_no_settotalmass_deprecation(tmp_path) -> None:
+    """Issue 17 item 6: MuJoCo printed "compiler attribute 'settotalmass' is deprecated" (from gymnasium's
+    half_cheetah.xml) twice per env built, to stderr and to MUJOCO_LOG.TXT; it is dropped, the attribute still
+    applies (total mass 14) and other MuJoCo warnings still get through."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    code = (
+        "import warnings, mujoco, envs\n"
+        "for _ in range(2):\n"
+        "    env = envs.get('halfcheetah').make()\n"
+        "    mass = float(env.unwrapped.model.body_mass.sum())\n"
+        "    env.close()\n"
+        "assert abs(mass - 14.0) < 1e-9, mass\n"
+        "assert mujoco.get_mju_user_warning() is None  # MuJoCo's own handler is back\n"
+        "from envs.spec import _without_settotalmass_warning\n"
+        "with warnings.catch_warnings(record=True) as seen, _without_settotalmass_warning():\n"
+        "    warnings.simplefilter('always')\n"
+        '    m = mujoco.MjModel.from_xml_string(\'<mujoco><compiler settotalmass="2"/>'
+        '<worldbody><body><geom size="1"/><joint/></body></worldbody></mujoco>\')\n'
+        "    d = mujoco.MjData(m)\n"
+        "    d.qvel[:] = float('nan')\n"
+        "    mujoco.mj_step(m, d)  # another MuJoCo warning: passed on as a Python warning\n"
+        "seen = [str(w.message) for w in seen]\n"
+        "assert len(seen) == 1 and seen[0].startswith('MuJoCo: Nan, Inf or huge value'), seen\n"
+        "print('done')\n"
+    )
+    root = Path(__file__).resolve().parents[1]
+    env = {**os.environ, "PYTHONPATH": f"{root}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
+    proc = subprocess.run(
+        [sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120
+    )
+    assert proc.returncode == 0 and "done" in proc.stdout, proc.stderr
+    assert "settotalmass" not in proc.stdout + proc.stderr
+    assert not (tmp_path / "MUJOCO_LOG.TXT").exists()

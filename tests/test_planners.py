@@ -582,3 +582,34 @@ def test_icem_carries_elites_through_the_mpc_agent(replan_every: int) -> None:
     agent.reset()  # a new episode: nothing carried
     agent.act(np.zeros(3))
     assert sizes[4] == 40
+
+
+# ------------------------------------------------------------------------------------- non-finite returns
+from pets.planners import PlanningFailed  # noqa: E402
+
+
+@pytest.mark.parametrize("cls", [CEMPlanner, ICEMPlanner, MPPIPlanner])
+@pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
+def test_a_plan_whose_returns_are_all_non_finite_raises(cls, bad: float) -> None:
+    """Issue 17: every candidate non-finite (a broken model) is an error, not a random action."""
+    planner = cls(LOW, HIGH, horizon=3, population=20, iterations=2)
+    with pytest.raises(PlanningFailed, match="every candidate action sequence got a non-finite return"):
+        planner.plan(lambda a: torch.full((a.shape[0],), bad), generator=torch.Generator().manual_seed(0))
+    assert issubclass(PlanningFailed, RuntimeError)
+
+
+@pytest.mark.parametrize("cls", [CEMPlanner, ICEMPlanner, MPPIPlanner])
+def test_a_plan_with_some_finite_returns_in_every_iteration_still_plans(cls) -> None:
+    """Only the all-non-finite case fails: candidates with some non-finite returns are ranked at the bottom."""
+    target = torch.tensor([[0.25, -0.75], [0.1, 0.3], [0.0, 0.0]])
+
+    def mostly_nan(a: Tensor) -> Tensor:
+        v = -((a - target) ** 2).sum(dim=(1, 2))
+        keep = torch.zeros_like(v, dtype=torch.bool)
+        keep[:3] = True  # three finite candidates per iteration
+        return torch.where(keep, v, torch.nan)
+
+    plan = cls(LOW, HIGH, horizon=3, population=40, iterations=3).plan(
+        mostly_nan, generator=torch.Generator().manual_seed(0)
+    )
+    assert plan.shape == (3, 2) and torch.isfinite(plan).all()

@@ -329,8 +329,11 @@ def test_non_finite_predictions_give_finite_low_returns(prop: str) -> None:
     ens = ExplodingEnsemble(torch.ones(3, OBS_DIM))
     ev = TrajectoryEvaluator(DynamicsModel(make_head(), ens), reward_fn, None, particles=6, propagation=prop)
     ret = ev(torch.zeros(OBS_DIM), torch.zeros(4, 5, ACT_DIM), torch.Generator().manual_seed(0))
-    assert torch.isfinite(ret).all()
-    assert (ret < -1e4).all()  # at least one particle of each candidate (or the mean) diverged
+    if prop == "expectation":  # member 0 is NaN for shared (2-D) inputs: the mean is NaN from the first step on
+        assert torch.isnan(ret).all()  # nothing finite at all: NaN, so that the planner raises PlanningFailed
+    else:
+        assert torch.isfinite(ret).all()
+        assert (ret < -1e4).all()  # at least one particle of each candidate diverged
     obs, rew = ev.rollout(torch.zeros(OBS_DIM), torch.zeros(4, 5, ACT_DIM), torch.Generator().manual_seed(0))
     assert torch.isfinite(obs).all() and torch.isfinite(rew).all()
     assert ((rew == -1e6).sum(-1) <= 1).all()  # penalised once, then terminated
@@ -641,3 +644,30 @@ def test_bench_kernel_floor_times_the_models_gemms_at_the_planners_shapes(monkey
     assert {s[2] for s in shapes} == {torch.float32, torch.bfloat16} and len(shapes) == 3 * 3 * layers
     assert set(floor) == {"fp32_gemm_seconds_per_step", "bf16_gemm_seconds_per_step", "bf16_gemm_silu_seconds_per_step"}
     assert all(math.isfinite(v) and v > 0 for v in floor.values())
+
+
+class NaNEnsemble(FakeEnsemble):
+    """Every member predicts NaN: a broken (diverged) model."""
+
+    def forward(self, x: Tensor, members: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        mean, logvar = super().forward(x, members)
+        return torch.full_like(mean, torch.nan), logvar
+
+
+@pytest.mark.parametrize("prop", PROPAGATIONS)
+def test_a_model_broken_for_every_row_gives_nan_returns_and_the_planner_raises(prop: str) -> None:
+    """Issue 17: nothing finite from the current state (every row's first transition non-finite): the -1e6 guard
+    would rank equal candidates, i.e. act at random; all-NaN returns make the planner raise PlanningFailed instead.
+    (A row that diverges later keeps the guard: test_non_finite_predictions_give_finite_low_returns.)"""
+    from pets.planners import CEMPlanner, PlanningFailed
+
+    ev = TrajectoryEvaluator(
+        DynamicsModel(make_head(), NaNEnsemble(torch.ones(3, OBS_DIM))), reward_fn, None, particles=5, propagation=prop
+    )
+    obs0, gen = torch.zeros(OBS_DIM), torch.Generator().manual_seed(0)
+    assert torch.isnan(ev(obs0, torch.zeros(4, 5, ACT_DIM), gen)).all()
+    _, rew = ev.rollout(obs0, torch.zeros(4, 5, ACT_DIM), gen)
+    assert (rew[..., 0] == -1e6).all()  # the rollout still shows the penalty
+    planner = CEMPlanner([-1.0] * ACT_DIM, [1.0] * ACT_DIM, horizon=5, population=8, iterations=2)
+    with pytest.raises(PlanningFailed):
+        planner.plan(lambda a: ev(obs0, a, gen), generator=gen)

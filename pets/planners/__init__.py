@@ -5,6 +5,14 @@ objective maps (N, H, act_dim) candidates to (N,) values (higher is better, NaN 
 worst), every sample and the result lie within the action bounds, and all randomness comes from
 ``generator`` (same generator state -> same plan).
 
+Non-finite returns: candidates with a non-finite value (NaN/inf) are ranked at the bottom (CEM and
+iCEM: NaN as -inf; MPPI: as the worst finite return) as long as one candidate of the iteration has
+a finite value. An iteration in which *no* candidate has a finite value has nothing to rank: the
+``plan`` call raises :class:`PlanningFailed` (after its iterations; the check costs one host
+synchronisation per call) instead of returning what would be a random action. The trajectory
+evaluator returns all-NaN exactly when every particle of every candidate went non-finite, i.e. the
+model itself is broken (``pets.propagation``).
+
 CEM (``CEMPlanner``, below).
 
 CEM keeps a diagonal Gaussian over the (H, act_dim) action sequence. Each iteration it
@@ -37,7 +45,7 @@ weighted by a softmax of the normalised returns.
 
 from __future__ import annotations
 
-from pets.planners.base import Planner, shift_plan, truncated_normal
+from pets.planners.base import Planner, PlanningFailed, shift_plan, truncated_normal
 from pets.planners.cem import CEMPlanner
 from pets.planners.icem import ICEMPlanner, colored_noise
 from pets.planners.mppi import MPPIPlanner, smoothing_matrix
@@ -48,6 +56,7 @@ __all__ = [
     "ICEMPlanner",
     "MPPIPlanner",
     "Planner",
+    "PlanningFailed",
     "colored_noise",
     "shift_plan",
     "smoothing_matrix",

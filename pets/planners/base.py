@@ -11,6 +11,26 @@ import torch
 from torch import Tensor
 
 
+class PlanningFailed(RuntimeError):
+    """A plan call in which every candidate of some iteration got a non-finite return (NaN/inf): there is nothing
+    to rank, so any action would be a random one. Raised instead of returning such a plan."""
+
+
+def check_planned(failed: Tensor) -> None:
+    """PlanningFailed if ``failed`` (a bool scalar on the planner's device, OR-ed over the iterations of one
+    plan call) is true; the call's only host synchronisation for this check."""
+    if bool(failed):
+        raise PlanningFailed(
+            "planning failed: every candidate action sequence got a non-finite return (nan/inf), so there is no "
+            "action to choose; the dynamics model predicts non-finite states (diverged training or extreme inputs)"
+        )
+
+
+def no_finite(values: Tensor) -> Tensor:
+    """True (bool scalar, on the device, no synchronisation) when no entry of ``values`` is finite."""
+    return ~torch.isfinite(values).any()
+
+
 def truncated_normal(
     shape: tuple[int, ...], mean: Tensor, std: Tensor, *, bound: float = 2.0, generator: torch.Generator | None = None
 ) -> Tensor:

@@ -8,7 +8,15 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-from pets.planners.base import BoxPlanner, check_generator, elite_count, initial_mean, truncated_normal
+from pets.planners.base import (
+    BoxPlanner,
+    check_generator,
+    check_planned,
+    elite_count,
+    initial_mean,
+    no_finite,
+    truncated_normal,
+)
 
 
 class CEMPlanner(BoxPlanner):
@@ -67,6 +75,7 @@ class CEMPlanner(BoxPlanner):
         var = ((ub - lb) ** 2 / 16.0).expand(h, a).clone()
         best_value = torch.full((), -math.inf, device=self.device, dtype=self.dtype)
         best = mu.clone()
+        failed = torch.zeros((), dtype=torch.bool, device=self.device)
 
         for _ in range(self.iterations):
             dist = torch.minimum(mu - lb, ub - mu)
@@ -76,7 +85,9 @@ class CEMPlanner(BoxPlanner):
             values = objective(samples)
             if values.shape != (self.population,):
                 raise ValueError(f"objective must return shape ({self.population},), got {tuple(values.shape)}")
-            values = torch.nan_to_num(values.to(self.dtype), nan=-math.inf)
+            values = values.to(self.dtype)
+            failed = failed | no_finite(values)
+            values = torch.nan_to_num(values, nan=-math.inf)
             top, idx = torch.topk(values, self.num_elites)
             elite = samples.index_select(0, idx)
             if not self.return_mean_elites:
@@ -88,5 +99,6 @@ class CEMPlanner(BoxPlanner):
             if self.epsilon > 0.0 and bool(var.max() < self.epsilon):
                 break
 
+        check_planned(failed)
         out = mu if self.return_mean_elites else best
         return torch.minimum(torch.maximum(out, lb), ub)

@@ -12,10 +12,12 @@ from torch import Tensor
 from pets.planners.base import (
     BoxPlanner,
     check_generator,
+    check_planned,
     check_real,
     check_values,
     elite_count,
     initial_mean,
+    no_finite,
 )
 
 
@@ -193,6 +195,7 @@ class ICEMPlanner(BoxPlanner):
         mu = initial_mean(init_mean, lb, ub, h, a)
         std = (0.25 * (ub - lb)).expand(h, a).clone()
         elite = best = None
+        failed = torch.zeros((), dtype=torch.bool, device=self.device)
         for i in range(self.iterations):
             n = self.populations[i]
             noise = colored_noise(
@@ -205,6 +208,7 @@ class ICEMPlanner(BoxPlanner):
                 parts.append(mu.unsqueeze(0))
             samples = torch.cat(parts) if len(parts) > 1 else parts[0]
             values = check_values(objective(samples), samples.shape[0], self.dtype)
+            failed = failed | no_finite(values)
             values = torch.nan_to_num(values, nan=-math.inf)
             _, idx = torch.topk(values, self.num_elites)  # sorted, best first
             elite = samples.index_select(0, idx)
@@ -212,6 +216,7 @@ class ICEMPlanner(BoxPlanner):
             mu = self.alpha * mu + (1.0 - self.alpha) * elite.mean(dim=0)
             std = self.alpha * std + (1.0 - self.alpha) * elite.std(dim=0, unbiased=False)
             carry = elite[: self.num_keep] if self.num_keep > 0 else None
+        check_planned(failed)  # before keeping this call's elites for the next one
         out = mu if self.return_mean_elites else best
         out = torch.minimum(torch.maximum(out, lb), ub)
         self._last_plan, self._last_elites = out, elite

@@ -11,10 +11,12 @@ from torch import Tensor
 from pets.planners.base import (
     BoxPlanner,
     check_generator,
+    check_planned,
     check_positive_ints,
     check_real,
     check_values,
     initial_mean,
+    no_finite,
 )
 
 
@@ -124,12 +126,15 @@ class MPPIPlanner(BoxPlanner):
         check_generator(generator, self.device)
         mu = initial_mean(init_mean, lb, ub, h, a)
         scale = self.sigma * 0.5 * (ub - lb)
+        failed = torch.zeros((), dtype=torch.bool, device=self.device)
         for _ in range(self.iterations):
             n = torch.randn((self.population, h, a), generator=generator, device=self.device, dtype=self.dtype)
             if self._filter is not None:
                 n = torch.matmul(self._filter, n)  # (H, H) @ (N, H, A): smoothed along the horizon
             samples = torch.minimum(torch.maximum(mu + scale * n, lb), ub)
             values = check_values(objective(samples), self.population, self.dtype)
+            failed = failed | no_finite(values)
             w = self.weights(values)
             mu = self.alpha * mu + (1.0 - self.alpha) * torch.einsum("n,nha->ha", w, samples)
+        check_planned(failed)
         return torch.minimum(torch.maximum(mu, lb), ub)
