@@ -73,10 +73,9 @@ CONFIDENCE = 0.95
 #: quantile within about 0.5 percentage points of probability; the statistics of a full offline
 #: summary (8 envs x 6 models x 5 horizons x 8 metrics) take about 15 s on 2 CPU cores with it.
 REPS = 5_000
-#: A run whose ``standardized_error`` (prediction error in units of the training data's standard
-#: deviations) exceeds this at any horizon is diverged: a constant prediction at the data mean is off
-#: by about sqrt(2 d) standard deviations for d standardised coordinates (tens at most for the
-#: catalogue's envs), so 100 is far beyond any model that still tracks the state.
+#: A run whose ``standardized_error`` (the RMS prediction error in units of the training data's standard
+#: deviations) exceeds this at any horizon is diverged: predicting the data mean scores about 1 and an
+#: independent draw from the data about 1.4, so 100 is far beyond any model that still tracks the state.
 DIVERGED_STANDARDIZED_ERROR = 100.0
 
 
