@@ -361,7 +361,13 @@ def main(argv: list[str] | None = None) -> int:
 
             atomic_write_bytes(args.save_agent, agent_bytes(agent))
     else:
-        data = collect(spec, policy, episodes, args.seed, args.max_steps, progress=not args.quiet)
+        from pets.cli import EXIT_FAILED
+        from pets.planners import PlanningFailed
+
+        try:
+            data = collect(spec, policy, episodes, args.seed, args.max_steps, progress=not args.quiet)
+        except PlanningFailed as err:  # a run: policy whose model predicts non-finite states
+            fail(PROG, f"{policy.name}: {err}; nothing was written", EXIT_FAILED)
     save_dataset(args.out, data)
     lengths = data["lengths"]
     rewards = np.nansum(data["rew"], axis=1)

@@ -271,6 +271,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         import torch
 
         torch.set_num_threads(args.threads)
+    from pets.cli import EXIT_FAILED
+    from pets.planners import PlanningFailed
+
     try:
         result = open_loop(
             args.run,
@@ -284,6 +287,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         )
     except ConfigError as err:  # e.g. device=cuda without CUDA
         fail(PROG, str(err))
+    except PlanningFailed as err:  # the run's model predicts non-finite states
+        fail(PROG, f"{args.run}: {err}", EXIT_FAILED)
     print(format_table(result))
     if args.json is not None:
         atomic_write_bytes(args.json, (json.dumps(result, indent=1) + "\n").encode())

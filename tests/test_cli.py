@@ -208,6 +208,33 @@ def test_planning_with_no_finite_return_stops_the_run_with_one_line(tmp_path, mo
     assert [int(r["trial"]) for r in rows(out)] == [0]
 
 
+def test_planning_with_a_broken_model_is_one_line_in_collect_and_openloop(tmp_path, capsys):
+    """Issue 17 item 1: pets.collect --policy run:DIR and pets.openloop plan with a run's model; a model whose
+    weights are NaN makes them exit 3 with one line (not a traceback), and collect writes nothing."""
+    import torch
+
+    import run_pets
+    from pets import collect, openloop, rundir
+
+    run = tmp_path / "run"
+    run_pets.main(["--env", "invertedpendulum", "--trials", "1", "--out", str(run), *TINY])
+    state = rundir.load_checkpoint(run)
+    state["model"] = {k: v.fill_(float("nan")) if "weight" in k else v for k, v in state["model"].items()}
+    rundir.save_checkpoint(run, state)
+    capsys.readouterr()
+    for main, args in (
+        (collect.main, ["--policy", f"run:{run}", "--episodes", "1", "--out", str(tmp_path / "x.npz"), "--quiet"]),
+        (openloop.main, ["--run", str(run), "--planner", "cem", "--steps", "5", "--episodes", "1", "--quiet"]),
+    ):
+        with pytest.raises(SystemExit) as exc:
+            main(args)
+        err = error_lines(capsys.readouterr().err)
+        assert exc.value.code == 3 and len(err) == 1, err
+        assert "planning failed: every candidate action sequence got a non-finite return" in err[0]
+    assert not (tmp_path / "x.npz").exists()
+    assert torch.isnan(rundir.load_checkpoint(run)["model"]["network.weights.0"]).all()
+
+
 def test_the_bar_over_trials_knows_its_total_and_shows_rate_and_eta(tmp_path, monkeypatch, capsys):
     """Issue 17 item 6: the trial-level bar is created with total=trials (initial=trials done on resume), so
     tqdm shows n/total, the rate and the remaining time."""
