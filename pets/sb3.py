@@ -59,20 +59,20 @@ class TransitionRecorder(gymnasium.Wrapper):
             self._close_episode()
         return obs, reward, terminated, truncated, info
 
-    def _close_episode(self) -> None:
+    def _running(self) -> list[Episode]:
+        """The episode in progress as a one-element list (empty before its first step)."""
         if not self._steps:
-            return
+            return []
         obs, act, next_obs, rew, term, trunc = (np.array(col) for col in zip(*self._steps))
-        self._finished.append(Episode(obs, act, next_obs, rew, term, trunc, total_reward=float(rew.sum())))
+        return [Episode(obs, act, next_obs, rew, term, trunc, total_reward=float(rew.sum()))]
+
+    def _close_episode(self) -> None:
+        self._finished += self._running()
         self._steps = []
 
     def episodes(self) -> list[Episode]:
         """The recorded episodes in the order they happened (the running one last, cut where it stands)."""
-        running = []
-        if self._steps:
-            obs, act, next_obs, rew, term, trunc = (np.array(col) for col in zip(*self._steps))
-            running = [Episode(obs, act, next_obs, rew, term, trunc, total_reward=float(rew.sum()))]
-        return self._finished + running
+        return self._finished + self._running()
 
 
 def train_sac(
