@@ -48,6 +48,7 @@ from pets.experiments.plots import model_colors, plot_absolute, plot_openloop, p
 from pets.experiments.report import BOOT_SEED, fmt_ci, fmt_interval, md_table, write_csv
 from pets.experiments.rundirs import json_matches, run_name
 from pets.experiments.statistics import (
+    BASELINE,
     DIVERGED_STANDARDIZED_ERROR,
     MIN_SEEDS,
     REPS,
@@ -60,8 +61,6 @@ from pets.experiments.statistics import (
 )
 from pets.fileio import atomic_write_bytes
 
-#: The model every other model is compared with (P of improvement, ratios).
-BASELINE = "delta"
 #: Metrics that get a table in prediction.md (rotation_error only where the env has rotations).
 TABLE_METRICS = ("mean_step_error", "standardized_error", "rotation_error")
 #: The metric of Fig. 2 and Fig. 3.

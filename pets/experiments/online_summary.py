@@ -30,6 +30,7 @@ from pets.experiments.plots import arm_colors, model_colors, plot_online
 from pets.experiments.report import BOOT_SEED, fmt, fmt_interval, md_table, write_csv
 from pets.experiments.rundirs import arm_label, online_arms, run_name
 from pets.experiments.statistics import (
+    BASELINE,
     MIN_SEEDS,
     REPS,
     SMALL_SAMPLE_NOTE,
@@ -39,8 +40,6 @@ from pets.experiments.statistics import (
 )
 from pets.fileio import atomic_write_bytes
 
-#: The model every other arm is compared with (with the same planner when planners are compared).
-BASELINE = "delta"
 #: Cost columns of a run: their mean over the complete runs of an arm (``KEY_mean``).
 COST_KEYS = ("env_steps", "wall_time_s", "plan_seconds_per_step")
 _BASELINE_COLUMNS = [

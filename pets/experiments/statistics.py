@@ -59,6 +59,8 @@ from typing import Any
 
 import numpy as np
 
+#: The model every other model (arm) of a comparison is compared with: P of improvement, ratios, differences.
+BASELINE = "delta"
 #: Seeds a comparison needs before it can carry a claim (``pets.compare`` warns below it).
 MIN_SEEDS = 5
 #: What a report says under a statistic of fewer than :data:`MIN_SEEDS` seeds.
