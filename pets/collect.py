@@ -329,11 +329,10 @@ def main(argv: list[str] | None = None) -> int:
         if problem:
             fail(PROG, f"cannot write {option} {path}: {problem}")
     if kind in ("sac", "sb3"):
-        from pets.sb3 import INSTALL_HINT
-        from pets.sb3 import require_sb3 as check
+        from pets.sb3 import INSTALL_HINT, require_sb3
 
         try:
-            check()
+            require_sb3()
         except ImportError:
             fail(PROG, INSTALL_HINT)
 

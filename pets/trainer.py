@@ -248,7 +248,7 @@ class ModelTrainer:
         params = model.member_parameters()
         best = self.evaluate(x_ho, o_ho, no_ho) if has_holdout else None
         initial = best
-        snapshot = [p.detach().clone() for p in params] if has_holdout else None
+        snapshot = [p.detach().clone() for p in params] if has_holdout and not fixed else None  # fixed: final weights
         since_improved = 0
         epochs = steps = 0
         train_loss = float("nan")
