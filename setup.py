@@ -39,7 +39,9 @@ setup(
         # ruff pinned: .ci/run checks lint and format, and the format can change between releases.
         # SAC data like the GEM paper's (pets.collect --policy sac:STEPS / sb3:AGENT.zip): stable-baselines3.
         "sac": ["stable-baselines3>=2.3"],
-        "dev": ["pytest>=7", "hypothesis>=6", "scipy>=1.10", "ruff==0.17.6", "stable-baselines3>=2.3"],
+        # pets.compare --backend ray: sweeps on a Ray cluster (or a local Ray instance), docs/cluster.md.
+        "ray": ["ray>=2.40"],
+        "dev": ["pytest>=7", "hypothesis>=6", "scipy>=1.10", "ruff==0.17.6", "stable-baselines3>=2.3", "ray>=2.40"],
     },
     # Every command also runs as ``python -m MODULE`` (``python run_pets.py`` for run-pets).
     entry_points={

@@ -4,6 +4,7 @@ After every completed trial the run directory gets an atomic checkpoint (model, 
 normaliser, replay buffer, all RNG states, metrics so far), then metrics.csv and rewards.png.
 ``run(..., resume=True)`` continues from the last checkpoint; an interrupted trial is replayed
 from its start with the RNG states it began with, so a resumed run matches an uninterrupted one.
+``history.csv`` gets a row per session (start or resume, with the trials done when it began).
 """
 
 from __future__ import annotations
@@ -210,6 +211,7 @@ def _run_locked(cfg: DictConfig, run_dir: Path, resume: bool, progress: bool) ->
             rundir.plot_rewards(run_dir, pets_run.rows, title)
     else:
         rundir.write_config(run_dir, cfg)
+    rundir.append_history(run_dir, "resume" if resume else "start", pets_run.trials_done)
     bar = tqdm(
         total=cfg.trials, initial=pets_run.trials_done, desc=f"{cfg.env}-{cfg.head}", unit="trial", disable=not progress
     )

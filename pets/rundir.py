@@ -8,6 +8,9 @@ from __future__ import annotations
 
 import csv
 import io
+import os
+import socket
+import time
 from pathlib import Path
 from typing import Any
 
@@ -21,6 +24,9 @@ CONFIG_FILE = "config.yaml"
 METRICS_FILE = "metrics.csv"
 CHECKPOINT_FILE = "checkpoint.pt"
 PLOT_FILE = "rewards.png"
+#: One row per session of a run (start or resume): when, where, and how many trials were done when it began.
+HISTORY_FILE = "history.csv"
+HISTORY_COLUMNS = ["time", "action", "trials_done", "host", "pid"]
 
 #: model_val_loss: the trainer's holdout error of the selected model after the trial's training;
 #: model_val_loss_initial: the same for the weights that training started from (a trained model has less).
@@ -49,6 +55,24 @@ def write_metrics(run_dir: Path, rows: list[dict[str, Any]]) -> None:
     writer.writeheader()
     writer.writerows(rows)
     atomic_write_bytes(run_dir / METRICS_FILE, buf.getvalue().encode())
+
+
+def append_history(run_dir: Path, action: str, trials_done: int) -> None:
+    """Add this session (``start`` or ``resume`` at ``trials_done`` trials) to history.csv: a resumed run shows
+    that it went on from its checkpoint, not from trial 0."""
+    path = run_dir / HISTORY_FILE
+    old = path.read_text() if path.is_file() else ",".join(HISTORY_COLUMNS) + "\n"
+    row = [time.strftime("%Y-%m-%dT%H:%M:%S"), action, str(trials_done), socket.gethostname(), str(os.getpid())]
+    atomic_write_bytes(path, (old + ",".join(row) + "\n").encode())
+
+
+def read_history(run_dir: Path) -> list[dict[str, str]]:
+    """The rows of a run's history.csv (empty if it has none)."""
+    path = run_dir / HISTORY_FILE
+    if not path.is_file():
+        return []
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
 
 
 def read_metrics(path: Path) -> list[dict[str, float]]:

@@ -690,6 +690,39 @@ def test_offline_existing_policy_takes_the_data_files_as_they_are(offline, tmp_p
     assert code == 2 and "--policy existing needs the data file" in err
 
 
+def test_offline_data_collected_as_backend_jobs_and_a_failed_env_fails_only_its_runs(tmp_path, monkeypatch):
+    """Missing data sets are jobs of the backend (one per env); an env whose collection fails fails its runs with the
+    reason ("no data: ..."), the other env's runs go on."""
+    import pets.collect
+
+    real = pets.collect.collect
+
+    def collect(spec, *args, **kwargs):
+        if spec.name == "reacher":
+            raise RuntimeError("simulated collection failure")
+        return real(spec, *args, **kwargs)
+
+    monkeypatch.setattr(pets.collect, "collect", collect)
+    result = compare_offline(
+        ["invertedpendulum", "reacher"],
+        ["delta"],
+        [0],
+        tmp_path,
+        episodes=2,
+        test_episodes=1,
+        horizons=[1, 2],
+        starts=10,
+        preset="fast",
+        device="cpu",
+        overrides=TINY_OFFLINE,
+        progress=False,
+    )
+    assert result["data"] == {"invertedpendulum-train.npz": "collected", "invertedpendulum-test.npz": "collected"}
+    assert result["failed"] == {"reacher-delta-s0": "no data: RuntimeError: simulated collection failure"}
+    assert result["done"] == {"invertedpendulum-delta-s0": ["train", "eval"]}
+    assert not (tmp_path / "data" / "reacher-train.npz").exists()
+
+
 def test_online_refuses_an_offline_run_directory(offline, capsys):
     out, _ = offline  # same config as the offline runs (trials aside): only the run kind differs
     code, _, err = cli(

@@ -1,20 +1,23 @@
 """The ``compare`` command line (``python -m pets.compare``, ``pets-compare``): arguments, errors, exit status.
 
     python -m pets.compare online  --envs E1,E2 --models M1,M2 [--seeds 0,1,2,3,4] --trials N --out DIR
-                                   [--planners cem,icem] [--workers K] [--preset research|fast]
-                                   [--final-window W] [--device D] [--quiet] [key=value ...]
+                                   [--planners cem,icem] [--preset research|fast]
+                                   [--final-window W] [--device D] [--quiet] [BACKEND] [key=value ...]
     python -m pets.compare offline --envs E1,E2 --models M1,M2 [--seeds 0,1,2,3,4] --out DIR
                                    [--episodes E] [--test-episodes E2] [--max-steps T]
                                    [--policy random|smooth-random[:BETA]|existing] [--horizons 1,5,10,25,50]
                                    [--starts K]
                                    [--openloop] [--planners cem,mppi] [--openloop-steps 50] [--openloop-episodes 5]
-                                   [--workers K] [--preset research|fast] [--device D] [--quiet] [key=value ...]
+                                   [--preset research|fast] [--device D] [--quiet] [BACKEND] [key=value ...]
+    BACKEND: [--backend local] [--workers K] [--threads T]
+             --backend ray [--address auto|ray://HOST:10001] [--threads T] [--max-retries R]
 
 Models are the names in ``pets.config.HEADS`` (read at run time); envs are catalogue names or
 gymnasium ids. Seeds default to 0..4; with fewer than 5 a one-line warning goes to stderr once the
 arguments are checked (fewer than 5 seeds cannot carry a claim; with 3 or fewer the bootstrap CI
 is the min-max of the seeds).
-Every (env, model, seed) has its run directory ``DIR/runs/ENV-MODEL-sSEED``.
+Every (env, model, seed) has its run directory ``DIR/runs/ENV-MODEL-sSEED``. ``--backend ray`` runs each run as a
+Ray task (:mod:`pets.experiments.ray_backend`, docs/cluster.md); the files are the same.
 Everything is resumable: rerunning a command reuses finished work and runs only what is missing.
 A run directory that was made with a different config than the command asks for (other
 overrides, preset, ...; the trial count aside) is an error (exit 2): results of different configs
@@ -27,6 +30,7 @@ The modes: :mod:`pets.experiments.online` and :mod:`pets.experiments.offline`; t
 
 from __future__ import annotations
 
+import argparse
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -35,6 +39,7 @@ from pets.cli import OneLineParser, fail
 from pets.experiments.arguments import PROG, UsageError, parse_envs, parse_models, parse_planners, parse_seeds
 from pets.experiments.offline import compare_offline
 from pets.experiments.online import compare_online
+from pets.experiments.runner import BACKENDS, Backend
 from pets.experiments.statistics import MIN_SEEDS
 
 #: Exit status when a run failed (the summary covers the others).
@@ -61,7 +66,24 @@ def build_parser() -> OneLineParser:
             help=f"comma-separated seeds (default {DEFAULT_SEEDS}; fewer than {MIN_SEEDS} cannot carry a claim)",
         )
         q.add_argument("--out", type=Path, required=True, help="output directory (runs, data, summaries)")
-        q.add_argument("--workers", type=int, default=1, help="parallel runs, one CPU thread each (default 1)")
+        q.add_argument(
+            "--backend",
+            choices=BACKENDS,
+            default="local",
+            help="local: a pool of --workers on this machine (default); ray: one Ray task per run (docs/cluster.md)",
+        )
+        q.add_argument("--workers", type=int, help="local backend: parallel runs (default 1)")
+        q.add_argument("--threads", type=int, default=1, help="CPU threads per run (Ray: CPUs per task; default 1)")
+        q.add_argument(
+            "--address",
+            help="ray backend: the cluster (auto, or ray://HOST:10001); default: a new Ray instance on this machine",
+        )
+        q.add_argument(
+            "--max-retries",
+            type=int,
+            default=3,
+            help="ray backend: retries of a run whose worker or node died (default 3; it resumes its checkpoint)",
+        )
         q.add_argument("--preset", default="research", help="config preset: research (default) or fast")
         q.add_argument("--device", choices=("cpu", "cuda", "auto"), default=None, help="device of every run")
         q.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -108,6 +130,25 @@ def build_parser() -> OneLineParser:
     return p
 
 
+def make_backend(args: argparse.Namespace) -> Backend:
+    """The :class:`Backend` of the parsed arguments; UsageError for options of the other backend."""
+    if args.backend == "ray" and args.workers is not None:
+        raise UsageError(
+            "--workers is for --backend local; Ray runs as many runs at once as the cluster has CPUs for "
+            "(--threads each)"
+        )
+    if args.backend == "local" and args.max_retries != 3:
+        raise UsageError("--max-retries is for --backend ray")
+    return Backend(
+        kind=args.backend,
+        workers=1 if args.workers is None else args.workers,
+        threads=args.threads,
+        address=args.address,
+        gpus=1.0 if args.backend == "ray" and args.device == "cuda" else 0.0,
+        max_retries=args.max_retries,
+    )
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run ``compare`` with ``argv`` and print the report; 0, 1 (a run failed) or exit 2 (bad input)."""
     args = build_parser().parse_args(argv)
@@ -123,6 +164,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.device is not None:
             if any(o.startswith("device=") for o in overrides):
                 raise UsageError("give the device once: --device or device=, not both")
+        backend = make_backend(args)
         if args.mode == "online":
             if args.device is not None:
                 overrides.append(f"device={args.device}")
@@ -133,7 +175,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 seeds,
                 args.trials,
                 args.out,
-                workers=args.workers,
+                backend=backend,
                 preset=args.preset,
                 overrides=overrides,
                 final_window=args.final_window,
@@ -164,7 +206,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 planners=planners,
                 openloop_steps=args.openloop_steps,
                 openloop_episodes=args.openloop_episodes,
-                workers=args.workers,
+                backend=backend,
                 preset=args.preset,
                 device=args.device or "auto",
                 overrides=overrides,

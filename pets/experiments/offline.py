@@ -16,8 +16,9 @@ Per run: train offline (``pets.train.train_offline``, model seed = the run's see
 run directory holds a trained model; evaluate on the test data (``pets.evaluate``, mean mode, the
 same start points for every model and seed of an env: evaluation seed 0; ``standardized_error`` scaled
 by the training data) into ``eval.json`` unless it holds this evaluation already; with ``--openloop``,
-open-loop planning (``pets.openloop``, seed 2) per planner into ``openloop_PLANNER.json``. Jobs run in a
-pool of K processes (one torch thread each) or, with K = 1, in this process.
+open-loop planning (``pets.openloop``, seed 2) per planner into ``openloop_PLANNER.json``. Jobs run on the backend
+(:class:`pets.experiments.runner.Backend`): a pool of K processes or, with K = 1, this process; or one Ray task
+each. A job killed part way is redone whole when it runs again (``config.yaml`` is written last).
 """
 
 from __future__ import annotations
@@ -30,8 +31,8 @@ from typing import Any
 
 from pets.experiments.arguments import PROG, UsageError, few_seeds_warning
 from pets.experiments.offline_summary import summarise_offline, summarise_openloop
-from pets.experiments.rundirs import check_same_config, json_matches, run_name
-from pets.experiments.runner import run_pool
+from pets.experiments.rundirs import NOT_COMPARED, check_same_config, checked_out, json_matches, run_name
+from pets.experiments.runner import Backend, open_backend
 from pets.fileio import atomic_write_bytes
 
 #: Data seeds of the offline mode: training data, test data, open-loop initial states.
@@ -138,6 +139,14 @@ def prepare_data(
     return "collected"
 
 
+def collect_data(env: str, parts: Sequence[tuple[str, str, int, int]], max_steps: int | None, progress: bool) -> list:
+    """Collect an env's missing data files ``(path, policy, episodes, seed)`` in order (SAC's test data needs the
+    agent its training data saved); the files' names. A job of the backend."""
+    for path, policy, episodes, seed in parts:
+        prepare_data(Path(path), env, policy, episodes, seed, max_steps, progress)
+    return [Path(path).name for path, *_ in parts]
+
+
 def offline_job(job: Mapping[str, Any]) -> dict[str, Any]:
     """One (env, model, seed): train if needed, evaluate if needed, open-loop plan if asked and needed.
 
@@ -146,7 +155,7 @@ def offline_job(job: Mapping[str, Any]) -> dict[str, Any]:
     import torch
 
     threads = torch.get_num_threads()
-    torch.set_num_threads(1)
+    torch.set_num_threads(int(job["overrides"].get("threads", 1)))
     try:
         return _offline_job(job)
     finally:
@@ -230,7 +239,7 @@ def compare_offline(
     planners: Sequence[str] = ("cem", "mppi"),
     openloop_steps: int = 50,
     openloop_episodes: int = 5,
-    workers: int = 1,
+    backend: Backend | None = None,
     preset: str = "research",
     device: str = "auto",
     overrides: Sequence[str] = (),
@@ -240,6 +249,7 @@ def compare_offline(
     """Collect, train, evaluate (and open-loop plan) everything missing, then write the summaries.
 
     ``test_episodes`` None: 20, or under a protocol with a test-set size, enough episodes of the env's length.
+    ``backend``: where the runs run (default: one local worker, one thread per run).
 
     Returns ``{"data": {file: collected|reused}, "todo": {run: [what was missing]}, "done": {run: [what was
     done]}, "failed": {run: message}, "summary"}``; runs absent from "todo" were reused as they were.
@@ -248,6 +258,8 @@ def compare_offline(
     from pets.config import ConfigError, parse_overrides
     from pets.protocols import get_protocol
     from pets.train import offline_config
+
+    backend = backend or Backend()
 
     try:
         proto = get_protocol(protocol)
@@ -268,7 +280,6 @@ def compare_offline(
         ("episodes", episodes),
         ("test-episodes", 1 if test_episodes is None else test_episodes),
         ("starts", starts),
-        ("workers", workers),
         ("openloop-steps", openloop_steps),
         ("openloop-episodes", openloop_episodes),
     ):
@@ -284,7 +295,7 @@ def compare_offline(
     for key in ("seed", "head", "env", "device"):
         if key in extra:
             raise UsageError(f"{key}= is set by the command itself; do not pass it as an override")
-    extra["threads"] = "1"
+    extra["threads"] = str(backend.threads)
     out = Path(out).resolve()
     jobs, data_actions, pending = [], {}, {}
     for env in env_names:
@@ -299,16 +310,9 @@ def compare_offline(
                     raise UsageError(str(err)) from None
                 if (run_dir / "config.yaml").is_file():  # the searched architecture is the run's own choice
                     searched = ("model.hidden_size", "model.num_layers") if proto.architectures(env) else ()
-                    check_same_config(run_dir, expected, ignore=searched)
+                    check_same_config(run_dir, expected, ignore=(*NOT_COMPARED, *searched))
+    checked_out(out)  # after every argument is checked: bad input leaves no directory behind
     data_dir = out / "data"
-    for env in env_names:  # done here, before the pool: cheap with random policies, once per env with SAC
-        for part, seed, n in (("train", TRAIN_DATA_SEED, episodes), ("test", TEST_DATA_SEED, n_test(env))):
-            path = data_dir / f"{env}-{part}.npz"
-            part_policy = f"sb3:{data_dir / f'{env}-sac.zip'}" if steps is not None and part == "test" else policy
-            try:
-                data_actions[path.name] = prepare_data(path, env, part_policy, n, seed, max_steps, progress)
-            except ValueError as err:  # e.g. the SAC agent file went missing
-                raise UsageError(f"{path.name}: {err}") from None
     eval_request = {
         "horizons": sorted(set(int(h) for h in horizons)),
         "starts": starts,
@@ -343,16 +347,44 @@ def compare_offline(
                     jobs.append((name, offline_job, (job,)))
                     pending[name] = todo
     total = len(env_names) * len(models) * len(seeds)
-    print(
-        f"{PROG}: {total} runs: {total - len(jobs)} reused, {len(jobs)} with work to do "
-        f"({workers} worker{'s' if workers > 1 else ''}); data: "
-        + ", ".join(f"{k} {v}" for k, v in data_actions.items()),
-        file=sys.stderr,
-    )
-    warning = few_seeds_warning(len(seeds))
-    if warning:
-        print(warning, file=sys.stderr)
-    results = run_pool(jobs, min(workers, max(len(jobs), 1)), processes=True, progress=progress, desc="offline runs")
+    alone = backend.kind == "local" and backend.workers == 1  # a job's own progress bar only when it runs here
+    with open_backend(backend, out, needed=bool(jobs)) as run:  # Ray: connected and checked before any work
+        data_jobs = []
+        for env in env_names:  # existing files checked here; missing ones collected on the backend, a job per env
+            missing = []
+            for part, seed, n in (("train", TRAIN_DATA_SEED, episodes), ("test", TEST_DATA_SEED, n_test(env))):
+                path = data_dir / f"{env}-{part}.npz"
+                part_policy = f"sb3:{data_dir / f'{env}-sac.zip'}" if steps is not None and part == "test" else policy
+                if path.is_file() or policy == EXISTING:
+                    try:
+                        data_actions[path.name] = prepare_data(path, env, part_policy, n, seed, max_steps)
+                    except ValueError as err:  # e.g. the SAC agent file went missing
+                        raise UsageError(f"{path.name}: {err}") from None
+                else:
+                    missing.append((str(path), part_policy, n, seed))
+            if missing:
+                data_jobs.append((f"{env} data", collect_data, (env, missing, max_steps, progress and alone)))
+        data_failed = {}
+        for name, (ok, value) in run(data_jobs, processes=True, progress=progress, desc="data sets").items():
+            if ok:
+                data_actions.update({file: "collected" for file in value})
+            else:
+                data_failed[name.split()[0]] = value
+        if data_failed:  # the runs of an env without data fail with the reason; the others go on
+            jobs = [job for job in jobs if job[2][0]["env"] not in data_failed]
+        print(
+            f"{PROG}: {total} runs: {total - len(jobs)} reused, {len(jobs)} with work to do "
+            f"({backend.describe()}); data: " + ", ".join(f"{k} {v}" for k, v in data_actions.items()),
+            file=sys.stderr,
+        )
+        warning = few_seeds_warning(len(seeds))
+        if warning:
+            print(warning, file=sys.stderr)
+        results = run(jobs, processes=True, progress=progress, desc="offline runs")
+    for env, message in data_failed.items():
+        for model in models:
+            for seed in seeds:
+                results[run_name(env, model, seed)] = (False, f"no data: {message}")
     failed = {name: msg for name, (ok, msg) in results.items() if not ok}
     done = {name: res["done"] for name, (ok, res) in results.items() if ok}
     summary = summarise_offline(out, env_names, models, seeds, eval_request, failed)

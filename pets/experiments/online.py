@@ -2,10 +2,12 @@
 
 Per run: reuse it if ``metrics.csv`` has at least N rows, resume it (``run_pets.py --resume DIR
 --trials N``) if it has fewer, start it (``run_pets.py --env --model --seed --trials N --out DIR
---preset P threads=1 key=value ...``) if it does not exist. Runs go to a pool of K local
-subprocesses, one torch thread each (``threads=1``, ``OMP_NUM_THREADS=1``); their output goes to
+--preset P threads=T key=value ...``) if it does not exist; a job decides between starting and resuming when it
+runs, so a retried job (Ray) resumes what its lost attempt began. Runs go to the backend
+(:class:`pets.experiments.runner.Backend`: a pool of K local subprocesses, or one Ray task each), T torch
+threads each (``--threads``, default 1; ``OMP_NUM_THREADS=T``); their output goes to
 ``DIR/logs/ENV-MODEL-sSEED.log``. Only the first N trials of a run enter the summary. A user
-``threads=`` override is ignored (every run gets one thread).
+``threads=`` override is ignored (``--threads`` sets it).
 
 ``--planners P1,P2`` makes the planner a second axis: every (model, planner) pair is an arm with
 its runs in ``DIR/runs/ENV-MODEL-PLANNER-sSEED`` (``planner.name=P`` for the run), and the tables
@@ -23,8 +25,8 @@ from typing import Any
 
 from pets.experiments.arguments import PROG, UsageError, few_seeds_warning
 from pets.experiments.online_summary import online_rows, summarise_online
-from pets.experiments.rundirs import check_same_config, online_arms, run_name
-from pets.experiments.runner import ROOT, run_logged, run_pool
+from pets.experiments.rundirs import check_same_config, checked_out, online_arms, run_name
+from pets.experiments.runner import Backend, online_job, open_backend
 
 
 def online_plan(run_dir: Path, trials: int) -> str:
@@ -34,15 +36,11 @@ def online_plan(run_dir: Path, trials: int) -> str:
     return "reuse" if len(online_rows(run_dir)) >= trials else "resume"
 
 
-def online_command(
-    action: str, run_dir: Path, env: str, model: str, seed: int, trials: int, preset: str, overrides: Sequence[str]
+def start_arguments(
+    run_dir: Path, env: str, model: str, seed: int, trials: int, preset: str, overrides: Sequence[str], threads: int
 ) -> list[str]:
-    """The ``run_pets.py`` command line that starts or resumes one run."""
-    script = [sys.executable, str(ROOT / "run_pets.py")]
-    if action == "resume":
-        return [*script, "--resume", str(run_dir), "--trials", str(trials), "--quiet"]
+    """``run_pets.py``'s arguments that start one run (:func:`pets.experiments.runner.online_job` resumes it)."""
     return [
-        *script,
         "--env",
         env,
         "--model",
@@ -57,7 +55,7 @@ def online_command(
         preset,
         "--quiet",
         *overrides,
-        "threads=1",
+        f"threads={threads}",
     ]
 
 
@@ -68,7 +66,7 @@ def compare_online(
     trials: int,
     out: Path,
     *,
-    workers: int = 1,
+    backend: Backend | None = None,
     preset: str = "research",
     overrides: Sequence[str] = (),
     final_window: int = 3,
@@ -79,18 +77,18 @@ def compare_online(
     "summary"}``. UsageError for bad settings or a run directory with another config.
 
     ``planners``: also compare these planners (``planner.name``); every (model, planner) pair is an arm.
+    ``backend``: where the runs run (default: one local worker, one thread per run).
     """
     from pets.config import ConfigError, make_config, parse_overrides
 
-    if trials < 1 or workers < 1 or final_window < 1:
-        raise UsageError(
-            f"--trials, --workers and --final-window must be >= 1, got {trials}, {workers}, {final_window}"
-        )
+    backend = backend or Backend()
+    if trials < 1 or final_window < 1:
+        raise UsageError(f"--trials and --final-window must be >= 1, got {trials}, {final_window}")
     try:
         extra = parse_overrides(list(overrides))
     except ConfigError as err:
         raise UsageError(str(err)) from None
-    extra.pop("threads", None)  # every run uses one thread
+    extra.pop("threads", None)  # every run uses the backend's threads
     for key in ("trials", "seed", "head", "env"):
         if key in extra:
             raise UsageError(
@@ -110,7 +108,7 @@ def compare_online(
                 run_dir = out / "runs" / name
                 try:
                     expected = make_config(
-                        env, model, preset, {**arm_extra, "seed": seed, "trials": trials, "threads": 1}
+                        env, model, preset, {**arm_extra, "seed": seed, "trials": trials, "threads": backend.threads}
                     )
                 except ConfigError as err:
                     raise UsageError(str(err)) from None
@@ -124,18 +122,21 @@ def compare_online(
                         )
                 actions[name] = action
                 if action != "reuse":
-                    cmd = online_command(action, run_dir, env, model, seed, trials, preset, arm_list)
-                    jobs.append((name, run_logged, (cmd, out / "logs" / f"{name}.log")))
+                    args = start_arguments(run_dir, env, model, seed, trials, preset, arm_list, backend.threads)
+                    log = str(out / "logs" / f"{name}.log")
+                    jobs.append((name, online_job, (str(run_dir), args, trials, log, backend.threads)))
+    checked_out(out)  # after every argument is checked: bad input leaves no directory behind
     counts = {a: sum(1 for v in actions.values() if v == a) for a in ("reuse", "resume", "start")}
-    print(
-        f"{PROG}: {len(actions)} runs: {counts['reuse']} reused, {counts['resume']} to resume, "
-        f"{counts['start']} to start ({workers} worker{'s' if workers > 1 else ''})",
-        file=sys.stderr,
-    )
-    warning = few_seeds_warning(len(seeds))
-    if warning:
-        print(warning, file=sys.stderr)
-    results = run_pool(jobs, min(workers, max(len(jobs), 1)), processes=False, progress=progress, desc="online runs")
+    with open_backend(backend, out, needed=bool(jobs)) as run:
+        print(
+            f"{PROG}: {len(actions)} runs: {counts['reuse']} reused, {counts['resume']} to resume, "
+            f"{counts['start']} to start ({backend.describe()})",
+            file=sys.stderr,
+        )
+        warning = few_seeds_warning(len(seeds))
+        if warning:
+            print(warning, file=sys.stderr)
+        results = run(jobs, processes=False, progress=progress, desc="online runs")
     failed = {name: msg for name, (ok, msg) in results.items() if not ok}
     summary = summarise_online(out, env_names, models, seeds, trials, final_window, failed, planners)
     return {"actions": actions, "failed": failed, "summary": summary}

@@ -10,6 +10,19 @@ from typing import Any
 from pets.experiments.arguments import UsageError
 
 
+def checked_out(out: Path) -> Path:
+    """``out`` resolved, created if needed; UsageError unless files can be written in it (before any work)."""
+    from pets.fileio import writable_dir_error
+
+    out = Path(out).resolve()
+    if out.exists() and not out.is_dir():
+        raise UsageError(f"--out {out} is a file, not a directory; pick another --out")
+    problem = writable_dir_error(out)
+    if problem:
+        raise UsageError(f"--out: {problem}; pick another --out")
+    return out
+
+
 def run_name(env: str, model: str, seed: int, planner: str | None = None) -> str:
     """The run directory's name: ``ENV-MODEL-sSEED``, or ``ENV-MODEL-PLANNER-sSEED`` when planners are compared."""
     return f"{env}-{model}-s{seed}" if planner is None else f"{env}-{model}-{planner}-s{seed}"
@@ -35,7 +48,12 @@ def _flatten(d: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
     return out
 
 
-def config_differences(run_dir: Path, expected: Any, ignore: Iterable[str] = ("trials",)) -> list[str]:
+#: Config keys a run directory may differ in from the command: the trial count (a run can be extended) and the
+#: threads (speed; float rounding at most, not the experiment).
+NOT_COMPARED = ("trials", "threads")
+
+
+def config_differences(run_dir: Path, expected: Any, ignore: Iterable[str] = NOT_COMPARED) -> list[str]:
     """``key: found != expected`` for every config key where ``run_dir/config.yaml`` differs from ``expected``."""
     from omegaconf import OmegaConf
 
@@ -51,7 +69,7 @@ def config_differences(run_dir: Path, expected: Any, ignore: Iterable[str] = ("t
     ]
 
 
-def check_same_config(run_dir: Path, expected: Any, ignore: Iterable[str] = ("trials",)) -> None:
+def check_same_config(run_dir: Path, expected: Any, ignore: Iterable[str] = NOT_COMPARED) -> None:
     """UsageError if the run in ``run_dir`` was made with another config than ``expected``."""
     from omegaconf.errors import OmegaConfBaseException
 

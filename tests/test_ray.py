@@ -1,0 +1,167 @@
+"""pets.compare --backend ray (issue 12), on a local Ray instance with this machine's CPUs.
+
+Ground truth: the same comparison on the local backend (same seeds -> the same metrics and errors), the runs' own
+metrics.csv and history.csv, and the operating system (a Ray worker killed with SIGKILL, its run's process gone).
+Ray is in the dev extra: these tests run, never skip.
+"""
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import ray
+
+from pets import rundir
+from pets.experiments.arguments import UsageError
+from pets.experiments.cli import main
+from pets.experiments.ray_backend import check_shared_storage
+from pets.experiments.runner import ROOT
+from tests.test_compare import OFFLINE_ARGS, TINY
+
+#: Wall-clock columns: the only ones that may differ between two runs with the same seed.
+CLOCK = {"plan_seconds_per_step", "wall_time_s"}
+ONLINE = ["online", "--envs", "invertedpendulum", "--models", "delta,gem", "--seeds", "0,1", "--trials", 2]
+ONLINE += ["--preset", "fast", "--quiet", *TINY]
+OFFLINE = [a for a in OFFLINE_ARGS if a not in ("--openloop",)]
+
+
+def argv(args, out, *extra):
+    return [str(a) for a in [*args, "--out", out, *extra]]
+
+
+def metrics(run_dir: Path) -> list[dict[str, str]]:
+    with open(run_dir / rundir.METRICS_FILE, newline="") as f:
+        return [{k: v for k, v in row.items() if k not in CLOCK} for row in csv.DictReader(f)]
+
+
+def mtimes(out: Path) -> dict[str, int]:
+    return {str(p.relative_to(out)): p.stat().st_mtime_ns for p in out.rglob("*") if p.is_file()}
+
+
+@pytest.fixture(scope="module")
+def online(tmp_path_factory):
+    """The same online comparison on the local backend (2 workers) and on Ray; then the Ray one again."""
+    base = tmp_path_factory.mktemp("ray-online")
+    assert main(argv(ONLINE, base / "local", "--workers", 2)) == 0
+    assert main(argv(ONLINE, base / "ray", "--backend", "ray")) == 0
+    assert not ray.is_initialized()  # the sweep's own local instance is shut down
+    return base
+
+
+def test_online_ray_gives_the_local_backends_metrics(online):
+    runs = sorted(p.name for p in (online / "local" / "runs").iterdir())
+    assert runs == sorted(p.name for p in (online / "ray" / "runs").iterdir()) and len(runs) == 4
+    for name in runs:
+        local, remote = metrics(online / "local" / "runs" / name), metrics(online / "ray" / "runs" / name)
+        assert len(local) == 2 and local == remote, name
+    with open(online / "ray" / "summary.csv", newline="") as f:
+        assert {r["model"] for r in csv.DictReader(f)} == {"delta", "gem"}
+
+
+def test_rerun_of_a_finished_ray_sweep_does_no_new_work(online, capsys):
+    out = online / "ray"
+    before = mtimes(out / "runs")
+    assert main(argv(ONLINE, out, "--backend", "ray")) == 0
+    assert "4 runs: 4 reused, 0 to resume, 0 to start" in capsys.readouterr().err
+    assert mtimes(out / "runs") == before and not ray.is_initialized()  # no run touched, Ray not even started
+
+
+def test_offline_ray_gives_the_local_backends_errors(tmp_path):
+    for backend in (["--backend", "local", "--workers", 2], ["--backend", "ray"]):
+        assert main(argv(OFFLINE, tmp_path / backend[1], *backend)) == 0
+    for name in ("invertedpendulum-delta-s0", "invertedpendulum-gem-s1"):
+        local, remote = (json.loads((tmp_path / b / "runs" / name / "eval.json").read_text()) for b in ("local", "ray"))
+        assert local["horizons"] == remote["horizons"] and local["start_points"] == remote["start_points"]
+        assert local["horizons"]["5"]["mean_step_error"] > 0
+        assert metrics(tmp_path / "local" / "runs" / name) == metrics(tmp_path / "ray" / "runs" / name)
+
+
+def children(pid: int) -> list[int]:
+    """Processes whose parent is ``pid`` (from /proc)."""
+    found = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid:
+            found.append(int(stat.parent.name))
+    return found
+
+
+def alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+def test_killed_ray_worker_run_resumes_from_its_checkpoint_with_the_same_metrics(tmp_path):
+    """SIGKILL to the Ray worker running a run after its first trial: Ray retries the task, the run resumes from
+    its checkpoint (history.csv: start at 0, resume at >= 1 trials) and ends with the uninterrupted run's metrics."""
+    args = ["online", "--envs", "invertedpendulum", "--models", "gem", "--seeds", "3", "--trials", 5]
+    args += ["--preset", "fast", "--quiet", *TINY]
+    assert main(argv(args, tmp_path / "local")) == 0
+    out = tmp_path / "ray"
+    driver = subprocess.Popen(
+        [sys.executable, "-m", "pets.compare", *argv(args, out, "--backend", "ray")],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    run_dir, log = out / "runs" / "invertedpendulum-gem-s3", out / "logs" / "invertedpendulum-gem-s3.log"
+    deadline, killed = time.monotonic() + 120, None
+    while time.monotonic() < deadline and driver.poll() is None:
+        if (run_dir / rundir.METRICS_FILE).is_file() and len(metrics(run_dir)) >= 1:
+            worker = int(log.read_text().split(" pid ")[1].split(")")[0])
+            run = children(worker)
+            os.kill(worker, signal.SIGKILL)
+            killed = (worker, run)
+            break
+        time.sleep(0.02)
+    stdout, stderr = driver.communicate(timeout=300)
+    assert killed is not None, f"the run ended before it could be killed: {stderr[-2000:]}"
+    assert driver.returncode == 0, stderr[-2000:]
+    assert "invertedpendulum-gem-s3 retried (attempt 2" in stderr
+    worker, run = killed
+    assert run and not any(alive(pid) for pid in run)  # the run's own process died with its worker
+    history = rundir.read_history(run_dir)
+    assert [h["action"] for h in history] == ["start", "resume"]
+    assert history[0]["trials_done"] == "0" and 1 <= int(history[1]["trials_done"]) < 5  # resumed, not restarted
+    assert metrics(run_dir) == metrics(tmp_path / "local" / "runs" / "invertedpendulum-gem-s3")
+    assert len(metrics(run_dir)) == 5 and "# Online comparison" in stdout
+
+
+@pytest.mark.parametrize(
+    "extra, fragment",
+    [
+        (["--backend", "ray", "--workers", "2"], "--workers is for --backend local"),
+        (["--address", "auto"], "--address is for --backend ray"),
+        (["--max-retries", "5"], "--max-retries is for --backend ray"),
+        (["--backend", "ray", "--threads", "64"], "every run asks for 64 CPU(s) and 0 GPU(s), but the largest"),
+        (["--backend", "ray", "--threads", "0"], "--threads must be >= 1"),
+    ],
+)
+def test_ray_usage_errors_are_one_line_exit_2(extra, fragment, tmp_path, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(argv(ONLINE, tmp_path, *extra))
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2 and fragment in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "runs").exists()
+
+
+def test_storage_check_names_the_node_that_cannot_write_out():
+    ray.init(address="local", num_cpus=1, include_dashboard=False, log_to_driver=False)
+    try:
+        with pytest.raises(UsageError, match=r"--out /proc/gem-pets is not writable from node .* shared file system"):
+            check_shared_storage(ray, Path("/proc/gem-pets"))
+    finally:
+        ray.shutdown()
