@@ -165,3 +165,23 @@ def test_storage_check_names_the_node_that_cannot_write_out():
             check_shared_storage(ray, Path("/proc/gem-pets"))
     finally:
         ray.shutdown()
+
+
+def test_a_run_that_fails_by_itself_is_reported_with_its_reason_not_retried(tmp_path, capsys):
+    """A run directory with a corrupt checkpoint: its resume exits 2; the task fails once (no retry: only lost
+    workers are retried), the driver prints the reason, the summary lists the run, the exit status is 1."""
+    from pets.config import make_config
+
+    broken = tmp_path / "runs" / "invertedpendulum-delta-s9"
+    broken.mkdir(parents=True)
+    overrides = dict(item.split("=") for item in TINY)
+    cfg = make_config("invertedpendulum", "delta", "fast", {**overrides, "seed": 9, "trials": 1, "threads": 1})
+    rundir.write_config(broken, cfg)
+    (broken / "checkpoint.pt").write_bytes(b"not a checkpoint")
+    args = ["online", "--envs", "invertedpendulum", "--models", "delta", "--seeds", "9", "--trials", 1]
+    assert main(argv([*args, "--preset", "fast", *TINY], tmp_path, "--backend", "ray")) == 1
+    err = capsys.readouterr().err
+    assert "invertedpendulum-delta-s9 failed: RuntimeError: exit 2; log" in err and "is not a readable checkpoint" in err
+    assert "retried" not in err
+    assert len(Path(tmp_path / "logs" / "invertedpendulum-delta-s9.log").read_text().split("--resume")) == 2  # once
+    assert "failed: RuntimeError: exit 2" in (tmp_path / "summary.md").read_text()
