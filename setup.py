@@ -39,7 +39,20 @@ setup(
         # ruff pinned: .ci/run checks lint and format, and the format can change between releases.
         # SAC data like the GEM paper's (pets.collect --policy sac:STEPS / sb3:AGENT.zip): stable-baselines3.
         "sac": ["stable-baselines3>=2.3"],
-        "dev": ["pytest>=7", "hypothesis>=6", "scipy>=1.10", "ruff==0.17.6", "stable-baselines3>=2.3"],
+        # Looking at runs: episode videos (imageio + its ffmpeg plugin, which ships an ffmpeg binary) and TensorBoard
+        # event files (tensorboard, for torch.utils.tensorboard). pets.visualize needs neither (MuJoCo + matplotlib).
+        "viz": ["imageio>=2.28", "imageio-ffmpeg>=0.4.9", "tensorboard>=2.14"],
+        # The video and event-file tests read MP4s back with imageio and events with TensorBoard's reader.
+        "dev": [
+            "pytest>=7",
+            "hypothesis>=6",
+            "scipy>=1.10",
+            "ruff==0.17.6",
+            "stable-baselines3>=2.3",
+            "imageio>=2.28",
+            "imageio-ffmpeg>=0.4.9",
+            "tensorboard>=2.14",
+        ],
     },
     # Every command also runs as ``python -m MODULE`` (``python run_pets.py`` for run-pets).
     entry_points={

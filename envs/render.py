@@ -96,7 +96,7 @@ CAMERAS: dict[str, Camera] = {
     "hopper": Camera(3.2, -10.0, lookat=(0.0, 0.0, 0.9), track=1),
     "walker2d": Camera(3.6, -10.0, lookat=(0.0, 0.0, 0.9), track=1),
     "halfcheetah": Camera(3.0, -10.0, lookat=(0.0, 0.0, 0.4), track=1),
-    "ant": Camera(4.5, -30.0, lookat=(0.0, 0.0, 0.4), track=2),
+    "ant": Camera(3.5, -25.0, lookat=(0.0, 0.0, 0.4), track=2),
     "humanoid": Camera(4.0, -10.0, lookat=(0.0, 0.0, 1.0), track=2),
 }
 
