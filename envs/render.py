@@ -78,14 +78,14 @@ class RenderingUnavailable(RuntimeError):
 
 @dataclass(frozen=True)
 class Camera:
-    """A free camera: distance, elevation and azimuth (degrees), a fixed look-at point, and ``track``: how many
-    of the look-at coordinates (0, 1 = x, 2 = x and y) follow the root body (MuJoCo body 1)."""
+    """A free camera: distance, elevation and azimuth (degrees), a look-at point, and ``track``: the world axes
+    (0 x, 1 y, 2 z) along which the look-at point follows the root body (MuJoCo body 1): ``lookat + root``."""
 
     distance: float
     elevation: float
     azimuth: float = 90.0
     lookat: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    track: int = 0
+    track: tuple[int, ...] = ()
 
 
 #: The camera of each env (azimuth 90: looking along +y, the planar envs' x to the right).
@@ -93,11 +93,11 @@ CAMERAS: dict[str, Camera] = {
     "invertedpendulum": Camera(2.2, -10.0, lookat=(0.0, 0.0, 0.3)),
     "inverteddoublependulum": Camera(3.2, -10.0, lookat=(0.0, 0.0, 0.6)),
     "reacher": Camera(0.75, -90.0, lookat=(0.0, 0.0, 0.0)),
-    "hopper": Camera(3.2, -10.0, lookat=(0.0, 0.0, 0.9), track=1),
-    "walker2d": Camera(3.6, -10.0, lookat=(0.0, 0.0, 0.9), track=1),
-    "halfcheetah": Camera(3.0, -10.0, lookat=(0.0, 0.0, 0.4), track=1),
-    "ant": Camera(3.5, -25.0, lookat=(0.0, 0.0, 0.4), track=2),
-    "humanoid": Camera(4.0, -10.0, lookat=(0.0, 0.0, 1.0), track=2),
+    "hopper": Camera(3.2, -10.0, lookat=(0.0, 0.0, 0.9), track=(0,)),
+    "walker2d": Camera(3.6, -10.0, lookat=(0.0, 0.0, 0.9), track=(0,)),
+    "halfcheetah": Camera(3.6, -10.0, track=(0, 2)),  # follows the torso's height too: the cheetah flips
+    "ant": Camera(3.5, -25.0, lookat=(0.0, 0.0, 0.4), track=(0, 1)),
+    "humanoid": Camera(4.0, -10.0, lookat=(0.0, 0.0, 1.0), track=(0, 1)),
 }
 
 
@@ -105,8 +105,8 @@ class Renderer:
     """Offscreen RGB frames ``(height, width, 3)`` uint8 of one catalogue env with its :data:`CAMERAS` camera.
 
     ``frame(qpos, root)`` renders a state given by ``qpos`` (velocities are irrelevant to a picture);
-    ``frame_of(data)`` renders a live ``MjData`` (an env's ``unwrapped.data``). ``root`` (x, y): where the
-    camera's tracked look-at coordinates point (default: the rendered state's own root body).
+    ``frame_of(data)`` renders a live ``MjData`` (an env's ``unwrapped.data``). ``root`` (x, y, z): the root
+    position the camera follows (default: the rendered state's own root body, see :meth:`root`).
     """
 
     def __init__(self, spec: EnvSpec, width: int = 320, height: int = 240, model: Any = None) -> None:
@@ -137,13 +137,13 @@ class Renderer:
         self.camera.distance, self.camera.elevation = self.config.distance, self.config.elevation
         self.camera.azimuth = self.config.azimuth
 
-    def root_xy(self, qpos: np.ndarray) -> np.ndarray:
-        """The world (x, y) of the root body (MuJoCo body 1) at ``qpos``."""
+    def root(self, qpos: np.ndarray) -> np.ndarray:
+        """The world position (x, y, z) of the root body (MuJoCo body 1) at ``qpos``."""
         import mujoco
 
         self.data.qpos[:] = qpos
         mujoco.mj_kinematics(self.model, self.data)
-        return self.data.xpos[1, :2].copy()
+        return self.data.xpos[1].copy()
 
     def frame(self, qpos: np.ndarray, root: np.ndarray | None = None) -> np.ndarray:
         """The frame of the state ``qpos`` (nq,), the camera tracking ``root`` (default: this state's root)."""
@@ -157,9 +157,8 @@ class Renderer:
     def frame_of(self, data: Any, root: np.ndarray | None = None) -> np.ndarray:
         """The frame of a live ``MjData`` of this env's model."""
         lookat = np.array(self.config.lookat, dtype=np.float64)
-        k = self.config.track
-        if k:
-            lookat[:k] += (data.xpos[1, :2] if root is None else np.asarray(root))[:k]
+        axes = list(self.config.track)
+        lookat[axes] += (data.xpos[1] if root is None else np.asarray(root))[axes]
         self.camera.lookat[:] = lookat
         self._renderer.update_scene(data, self.camera)
         return self._renderer.render().copy()

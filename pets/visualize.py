@@ -121,7 +121,7 @@ def render_rows(
     with Renderer(spec, width, height) as renderer:
         nq = renderer.model.nq
         for c, k in enumerate(steps):
-            anchor = renderer.root_xy(qpos_from_obs(spec, truth[k], nq))
+            anchor = renderer.root(qpos_from_obs(spec, truth[k], nq))
             for r, states in enumerate(rows):
                 obs = np.array(states[k], np.float64)
                 if r and root == "truth":
