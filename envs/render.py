@@ -18,6 +18,7 @@ from __future__ import annotations
 import ctypes.util
 import os
 import sys
+import warnings
 from collections.abc import MutableMapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -125,12 +126,15 @@ class Renderer:
         self.spec, self.width, self.height = spec, width, height
         self.config = CAMERAS[spec.name]
         try:
-            self._renderer = mujoco.Renderer(self.model, height, width)
+            with warnings.catch_warnings():  # glfw warns before it fails without a display: the error says it all
+                warnings.simplefilter("ignore")
+                self._renderer = mujoco.Renderer(self.model, height, width)
         except Exception as err:  # ImportError, RuntimeError, mujoco.FatalError: no usable GL context
             reason = " ".join(str(err).split())[:200]
             raise RenderingUnavailable(
                 f"MuJoCo cannot render offscreen (MUJOCO_GL={os.environ.get('MUJOCO_GL', 'unset')}: "
-                f"{type(err).__name__}: {reason}); on Debian/Ubuntu install the headless GL libraries: {APT_INSTALL}"
+                f"{type(err).__name__}: {reason}); without a display use MUJOCO_GL=egl (or leave it unset) with the "
+                f"headless GL libraries installed (Debian/Ubuntu: {APT_INSTALL})"
             ) from None
         self.camera = mujoco.MjvCamera()
         mujoco.mjv_defaultFreeCamera(self.model, self.camera)

@@ -292,7 +292,6 @@ def main(argv: list[str] | None = None) -> int:
     from omegaconf.errors import OmegaConfBaseException
 
     from envs.render import RenderingUnavailable
-    from pets.cli import EXIT_FAILED
 
     try:
         result = visualize(
@@ -312,8 +311,8 @@ def main(argv: list[str] | None = None) -> int:
         )
     except (ValueError, OmegaConfBaseException) as err:  # ConfigError is a ValueError
         fail(PROG, str(err))
-    except RenderingUnavailable as err:  # good input, a machine without the GL libraries
-        fail(PROG, str(err), EXIT_FAILED)
+    except RenderingUnavailable as err:  # no usable headless GL here (as device=cuda without CUDA: exit 2)
+        fail(PROG, str(err))
     width, height = result["size"]
     print(f"{args.out}: {len(result['labels'])} rows x {len(steps)} steps, {width}x{height} pixels")
     return 0

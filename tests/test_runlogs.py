@@ -6,6 +6,8 @@ from __future__ import annotations
 import csv
 import json
 import math
+import subprocess
+import sys
 from pathlib import Path
 
 import imageio.v3 as iio
@@ -13,7 +15,7 @@ import pytest
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from pets.tblog import TRIAL_TAGS
-from tests.test_cli import TINY, cli, error_lines
+from tests.test_cli import ROOT, TINY, cli, error_lines
 
 
 def rows(run_dir: Path) -> list[dict[str, str]]:
@@ -29,7 +31,7 @@ def scalars(run_dir: Path) -> dict[str, list[tuple[int, float]]]:
 
 
 def test_one_trial_with_video_1_writes_an_mp4_of_the_episode(tmp_path):
-    out = tmp_path / "run"
+    out, plain = tmp_path / "run", tmp_path / "plain"
     cli("--env", "halfcheetah", "--trials", 1, "--video", 1, "--out", out, *TINY)
     video = out / "videos" / "trial-0000.mp4"
     frames = iio.imread(video)  # every frame, decoded by imageio (its ffmpeg plugin)
@@ -37,6 +39,12 @@ def test_one_trial_with_video_1_writes_an_mp4_of_the_episode(tmp_path):
     assert length == 30 and frames.shape == (length, 240, 320, 3)
     assert frames.std() > 5 and abs(frames[0].astype(int) - frames[-1]).mean() > 1  # not blank; it moves
     assert "video_every: 1" in (out / "config.yaml").read_text()
+    cli("--env", "halfcheetah", "--trials", 1, "--out", plain, *TINY)  # filming changes nothing in the run
+    timing = ("plan_seconds_per_step", "wall_time_s")
+    assert [{k: v for k, v in r.items() if k not in timing} for r in rows(out)] == [
+        {k: v for k, v in r.items() if k not in timing} for r in rows(plain)
+    ]
+    assert not (plain / "videos").exists()
 
 
 def test_video_every_2_films_trials_0_and_2_only(tmp_path):
@@ -65,6 +73,18 @@ def test_event_files_hold_every_trials_scalars_and_a_resume_repeats_none(tmp_pat
         assert [step for step, _ in logged[tag]] == [step for step, _ in expected], tag
         assert all(math.isclose(v, e, rel_tol=1e-6, abs_tol=1e-6) for (_, v), (_, e) in zip(logged[tag], expected))
     assert 999.0 not in [v for _, v in logged["episode/reward"]]
+
+
+def test_without_the_tensorboard_package_a_run_says_so_once_and_keeps_the_csv(tmp_path):
+    out = tmp_path / "run"
+    argv = [str(a) for a in ("--env", "invertedpendulum", "--trials", 2, "--out", out, *TINY)]
+    code = (  # the package made unimportable, as on a machine without it
+        f"import sys; sys.modules['tensorboard'] = None; import run_pets; sys.exit(run_pets.main({argv!r}))"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stderr.count("tensorboard is not installed") == 1
+    assert len(rows(out)) == 2 and not list(out.glob("events.out.tfevents.*"))
 
 
 def test_tensorboard_false_writes_no_events(tmp_path):

@@ -140,3 +140,19 @@ def test_bad_input_is_one_line_exit_2(runs, tmp_path, capsys, extra, message):
     err = capsys.readouterr().err.strip().splitlines()
     assert exit_info.value.code == 2 and len(err) == 1 and message in err[0], err
     assert not (tmp_path / "f.png").exists()
+
+
+@pytest.mark.skipif(bool(os.environ.get("DISPLAY")), reason="with a display, glfw can render")
+def test_no_usable_gl_is_one_line_exit_2(runs, tmp_path):
+    """MUJOCO_GL=glfw without a display: no offscreen context, one line that names the install, exit 2."""
+    data, run = runs["halfcheetah"]
+    environ = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
+    environ.update(MUJOCO_GL="glfw", PYTHONPATH=str(ROOT), OMP_NUM_THREADS="1")
+    args = ["--runs", str(run), "--data", str(data), "--steps", "0,3", "--out", str(tmp_path / "f.png")]
+    proc = subprocess.run(
+        [sys.executable, "-m", "pets.visualize", *args], env=environ, capture_output=True, text=True, timeout=120
+    )
+    lines = [line for line in proc.stderr.splitlines() if line.strip() and "settotalmass" not in line]
+    assert proc.returncode == 2 and len(lines) == 1, proc.stderr
+    assert "MuJoCo cannot render offscreen (MUJOCO_GL=glfw" in lines[0] and "apt-get install -y libegl1" in lines[0]
+    assert not (tmp_path / "f.png").exists()
