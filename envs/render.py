@@ -108,9 +108,13 @@ class Renderer:
     ``frame(qpos, root)`` renders a state given by ``qpos`` (velocities are irrelevant to a picture);
     ``frame_of(data)`` renders a live ``MjData`` (an env's ``unwrapped.data``). ``root`` (x, y, z): the root
     position the camera follows (default: the rendered state's own root body, see :meth:`root`).
+    ``model``: render this ``MjModel`` (an env's live one) instead of a fresh one; ``effects=False`` drops
+    shadows and reflections (videos: a frame every step).
     """
 
-    def __init__(self, spec: EnvSpec, width: int = 320, height: int = 240, model: Any = None) -> None:
+    def __init__(
+        self, spec: EnvSpec, width: int = 320, height: int = 240, model: Any = None, effects: bool = True
+    ) -> None:
         import mujoco
 
         if width < 16 or height < 16:
@@ -136,6 +140,9 @@ class Renderer:
                 f"{type(err).__name__}: {reason}); without a display use MUJOCO_GL=egl (or leave it unset) with the "
                 f"headless GL libraries installed (Debian/Ubuntu: {APT_INSTALL})"
             ) from None
+        if not effects:  # shadows and reflections: most of a frame's time on a software renderer (~7x here)
+            self._renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
+            self._renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
         self.camera = mujoco.MjvCamera()
         mujoco.mjv_defaultFreeCamera(self.model, self.camera)
         self.camera.distance, self.camera.elevation = self.config.distance, self.config.elevation
