@@ -77,6 +77,19 @@ def figure_size(rows: int, cols: int, width: int, height: int, caption_lines: in
     return LABEL_W + cols * width, TITLE_H + rows * height + CAPTION_PAD + caption_lines * CAPTION_LINE_H
 
 
+def root_note(spec: Any, root: str) -> str:
+    """The caption's sentence on the root position: where it comes from and what the camera follows ("" for the
+    envs whose root is fixed or fully modelled: the pendulums, Reacher)."""
+    from envs.render import CAMERAS
+
+    if not spec.layout.invariant:
+        return ""
+    coords = "x, y" if len(spec.layout.invariant) > 1 else "x"
+    where = "the true trajectory" if root == "truth" else "each model's own prediction"
+    camera = "; the camera follows the true root" if CAMERAS[spec.name].track else ""
+    return f" Root {coords} from {where}{camera}."
+
+
 def predicted_observations(
     run_dirs: Sequence[str | Path],
     obs0: np.ndarray,
@@ -231,11 +244,9 @@ def visualize(
     rows = [truth, *(states for _, states in predictions)]
     frames = render_rows(spec, rows, steps, root, size)
     diverged = [label for label, (_, s) in zip(labels, predictions) if not np.isfinite(s[: horizon + 1]).all()]
-    where = "the truth's" if root == "truth" else "each model's own prediction"
     caption = (
         f"{spec.gym_id}, {Path(data).name} episode {episode} from step {start}: open-loop predictions ({mode}) with "
-        f"the recorded actions. Root {'x, y' if len(spec.layout.invariant) > 1 else 'x'} from {where}; "
-        "the camera follows the true root."
+        f"the recorded actions.{root_note(spec, root)}"
         + (f" Non-finite predictions (black): {', '.join(s.splitlines()[0] for s in diverged)}." if diverged else "")
     )
     row_labels = ["truth", *labels]

@@ -156,3 +156,22 @@ def test_no_usable_gl_is_one_line_exit_2(runs, tmp_path):
     assert proc.returncode == 2 and len(lines) == 1, proc.stderr
     assert "MuJoCo cannot render offscreen (MUJOCO_GL=glfw" in lines[0] and "apt-get install -y libegl1" in lines[0]
     assert not (tmp_path / "f.png").exists()
+
+
+@pytest.mark.parametrize("name", envs.names())
+def test_grid_rows_render_for_every_env(name):
+    """The truth of a recorded episode and a 'model' that is the truth plus noise on every predicted entry: the
+    same picture at step 0, different ones later, for all 8 envs (cos/sin pairs and quaternions included)."""
+    spec = envs.get(name)
+    data = collect(spec, "smooth-random", 1, seed=0, max_steps=12)
+    truth = data["obs"][0, : data["lengths"][0] + 1]
+    wrong = truth.copy()
+    predicted = list(spec.layout.predicted_indices)
+    wrong[1:, predicted] += np.random.default_rng(0).normal(0.0, 0.3, (len(truth) - 1, len(predicted)))
+    steps = [0, len(truth) - 1]
+    frames = visualize.render_rows(spec, [truth, wrong], steps, size=SIZE)
+    assert frames.shape == (2, 2, SIZE[1], SIZE[0], 3) and min(f.std() for f in frames.reshape(4, -1)) > 5
+    assert np.array_equal(frames[0, 0], frames[1, 0])
+    assert np.abs(frames[0, 1].astype(int) - frames[1, 1]).mean() > 0.5
+    caption = visualize.root_note(spec, "model")
+    assert ("Root x" in caption) == bool(spec.layout.invariant)
