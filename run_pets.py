@@ -2,7 +2,7 @@
 """PETS with a swappable dynamics head.
 
     python run_pets.py --model MODEL --env halfcheetah [--trials N] [--seed S] [--device cpu|cuda|auto]
-                       [--preset research|fast] [--out DIR] [--resume DIR] [key=value ...]
+                       [--preset research|fast] [--out DIR] [--resume DIR] [--video EVERY] [key=value ...]
 
 MODEL (``pets.config.HEADS``): delta, gem (probabilistic ensembles, PETS), delta-det, gem2 (the GEM paper's
 deterministic baseline and two-stage GEM, member predictions averaged) or delta-groupfeat (delta with GEM's
@@ -42,6 +42,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--preset", choices=tuple(PRESETS), default="research", help="research (default) or fast (CPU)")
     p.add_argument("--out", type=Path, help="run directory (default: runs/ENV-MODEL-sSEED-TIME)")
     p.add_argument("--resume", type=Path, metavar="DIR", help="continue the run in DIR from its last trial")
+    p.add_argument(
+        "--video",
+        type=int,
+        metavar="EVERY",
+        help="an MP4 of the real episode of every EVERY-th trial in RUN/videos (config key video_every)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides")
     return p
@@ -50,6 +56,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_intermixed_args(argv)
     import envs
+    from envs.render import RenderingUnavailable
     from pets import loop, rundir
     from pets.config import ConfigError, load_config, make_config, parse_overrides
     from pets.fileio import DirectoryInUse, writable_dir_error
@@ -58,9 +65,9 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         overrides = parse_overrides(args.overrides)
-        for flag in ("trials", "seed", "device"):
+        for flag, key in (("trials", "trials"), ("seed", "seed"), ("device", "device"), ("video", "video_every")):
             if getattr(args, flag) is not None:
-                overrides[flag] = str(getattr(args, flag))
+                overrides[key] = str(getattr(args, flag))
         if args.resume is not None:
             if args.env or args.model or args.out:
                 _fail("--resume DIR takes the run's own config; do not pass --env, --model or --out with it")
@@ -92,7 +99,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"run directory: {run_dir}", file=sys.stderr)
     try:
         rows = loop.run(cfg, Path(run_dir), resume=args.resume is not None, progress=not args.quiet)
-    except ConfigError as err:
+    except (ConfigError, RenderingUnavailable) as err:  # the second: --video on a machine without headless GL
         _fail(str(err))
     except OSError as err:  # a write failed during the run (a full disk): the completed trials are kept
         fail(

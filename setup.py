@@ -41,7 +41,21 @@ setup(
         "sac": ["stable-baselines3>=2.3"],
         # pets.compare --backend ray: sweeps on a Ray cluster (or a local Ray instance), docs/cluster.md.
         "ray": ["ray>=2.40"],
-        "dev": ["pytest>=7", "hypothesis>=6", "scipy>=1.10", "ruff==0.17.6", "stable-baselines3>=2.3", "ray>=2.40"],
+        # Looking at runs: episode videos (imageio + its ffmpeg plugin, which ships an ffmpeg binary) and TensorBoard
+        # event files (tensorboard, for torch.utils.tensorboard). pets.visualize needs neither (MuJoCo + matplotlib).
+        "viz": ["imageio>=2.28", "imageio-ffmpeg>=0.4.9", "tensorboard>=2.14"],
+        # The video and event-file tests read MP4s back with imageio and events with TensorBoard's reader.
+        "dev": [
+            "pytest>=7",
+            "hypothesis>=6",
+            "scipy>=1.10",
+            "ruff==0.17.6",
+            "stable-baselines3>=2.3",
+            "imageio>=2.28",
+            "imageio-ffmpeg>=0.4.9",
+            "tensorboard>=2.14",
+            "ray>=2.40",
+        ],
     },
     # Every command also runs as ``python -m MODULE`` (``python run_pets.py`` for run-pets).
     entry_points={
@@ -52,6 +66,7 @@ setup(
             "pets-train=pets.train:main",
             "pets-evaluate=pets.evaluate:main",
             "pets-openloop=pets.openloop:main",
+            "pets-visualize=pets.visualize:main",
             "pets-onestep=pets.onestep:main",
             "pets-bench=pets.bench:main",
         ]

@@ -16,7 +16,10 @@ from typing import Any
 
 from envs.catalogue import GYM_IDS, build
 from envs.layout import Group, ObsLayout
+from envs.render import select_gl_backend
 from envs.spec import AppendObservation, EnvSpec
+
+select_gl_backend()  # headless MUJOCO_GL before anything imports mujoco (none of the imports above does)
 
 __all__ = ["names", "get", "canonical_name", "EnvSpec", "ObsLayout", "Group", "AppendObservation"]
 

@@ -102,6 +102,8 @@ class Config:
     seed_steps: int = 1000  # uniformly random steps (over as many episodes as needed) before trial 0
     episode_length: int | None = None  # None: the env's own episode length
     train_every: int = 0  # 0: train after every trial; N > 0: also every N env steps
+    video_every: int = 0  # N > 0: an MP4 of the real episode of every N-th trial (RUN/videos/trial-NNNN.mp4); 0: none
+    tensorboard: bool = True  # TensorBoard event files in the run directory (when the tensorboard package is there)
     model: ModelConfig = field(default_factory=ModelConfig)
     planner: PlannerConfig = field(default_factory=PlannerConfig)
     gem: GemConfig = field(default_factory=GemConfig)
@@ -258,6 +260,8 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError(f"threads must be >= 0 (0: torch default), got {cfg.threads}")
     if cfg.seed < 0 or cfg.seed_steps < 0 or cfg.train_every < 0:
         raise ConfigError("seed, seed_steps and train_every must be >= 0")
+    if cfg.video_every < 0:
+        raise ConfigError(f"video_every must be >= 0 (0: no videos; N: every N-th trial), got {cfg.video_every}")
     from pets.planners import PLANNER_CLASSES  # each planner checks its own section: one range per argument
 
     for name in ("icem", "mppi"):

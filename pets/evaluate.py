@@ -2,6 +2,7 @@
 
     python -m pets.evaluate --run RUN_DIR --data FILE.npz [--train-data TRAIN.npz] [--horizons 1,5,10,25,50]
                             [--starts K] [--seed S] [--mode mean|sample] [--device D] [--json OUT.json]
+                            [--tensorboard]
 
 Protocol (GEM paper, section "Long horizon prediction"): pick K random start points (episode i, step t)
 that leave room for the largest horizon H (``t + H <= lengths[i]``; horizons longer than every episode
@@ -435,7 +436,25 @@ def build_parser() -> OneLineParser:
     p.add_argument("--device", choices=("cpu", "cuda", "auto"), default="auto", help="where the model runs")
     p.add_argument("--threads", type=int, default=0, help="torch CPU threads (default 0: torch's default)")
     p.add_argument("--json", type=Path, help="write the results as JSON here (atomically)")
+    p.add_argument(
+        "--tensorboard",
+        action="store_true",
+        help="also write the per-horizon errors as TensorBoard scalars eval/METRIC (step = horizon) in "
+        "RUN/eval/DATA (the latest evaluation on DATA replaces an earlier one)",
+    )
     return p
+
+
+def write_events(run_dir: str | Path, data: str | Path, result: Mapping[str, Any]) -> Path:
+    """The per-horizon errors of ``result`` as TensorBoard scalars ``eval/METRIC`` at step = horizon, in
+    ``RUN/eval/DATA_STEM`` (``purge_step=0``: an earlier evaluation there is hidden, not repeated)."""
+    from pets.tblog import ScalarLog
+
+    log_dir = Path(run_dir) / "eval" / Path(data).stem
+    with ScalarLog(log_dir, purge_step=0) as events:
+        for h, row in result["horizons"].items():
+            events.scalars({f"eval/{key}": value for key, value in row.items()}, int(h))
+    return log_dir
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -474,6 +493,8 @@ def main(argv: list[str] | None = None) -> int:
     print(format_table(result))
     if args.json is not None:
         atomic_write_bytes(args.json, (json.dumps(result, indent=1) + "\n").encode())
+    if args.tensorboard:
+        write_events(args.run, args.data, result)
     return 0
 
 

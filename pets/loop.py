@@ -1,7 +1,8 @@
 """The model-based RL loop: random seed steps, then alternate model training and MPC trials.
 
-After every completed trial the run directory gets an atomic checkpoint (model, optimiser,
-normaliser, replay buffer, all RNG states, metrics so far), then metrics.csv and rewards.png.
+After every completed trial the run directory gets its video (``video_every``) and TensorBoard scalars
+(:mod:`pets.tblog`), an atomic checkpoint (model, optimiser, normaliser, replay buffer, all RNG states,
+metrics so far), then metrics.csv and rewards.png.
 ``run(..., resume=True)`` continues from the last checkpoint; an interrupted trial is replayed
 from its start with the RNG states it began with, so a resumed run matches an uninterrupted one.
 ``history.csv`` gets a row per session (start or resume, with the trials done when it began).
@@ -28,7 +29,9 @@ from pets.fileio import locked
 from pets.models import make_model
 from pets.planners import PlanningFailed
 from pets.rollout import Episode, MPCPolicy, RandomPolicy, run_episode, run_steps
+from pets.tblog import ScalarLog
 from pets.trainer import TrainResult
+from pets.video import EpisodeRecorder, trial_video_path
 
 
 def seed_everything(seed: int) -> None:
@@ -63,6 +66,7 @@ class PETSRun:
         self.env_steps = 0
         self.wall_time_s = 0.0
         self.last_train: TrainResult | None = None
+        self.recorder = EpisodeRecorder(self.spec, self.env) if cfg.video_every else None
 
     # --- state -----------------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:
@@ -128,6 +132,8 @@ class PETSRun:
         if trial == 0 and len(self.buffer) == 0:
             self.collect_seed_data()
         random_policy = len(self.buffer) == 0  # seed_steps=0: the first trial explores at random
+        if self.recorder is not None and trial % self.cfg.video_every == 0:
+            self.recorder.start()  # frames after every step; the caller saves them (before the checkpoint)
         policy = self.random_policy if random_policy else self.mpc_policy
         bar = tqdm(total=self.episode_length, desc=f"trial {trial}", leave=False, disable=not progress)
         added = 0  # steps of this episode already in the buffer
@@ -137,6 +143,8 @@ class PETSRun:
             """Progress bar; with ``train_every``, mid-episode training on the data so far."""
             nonlocal added, steps
             steps = len(so_far)
+            if self.recorder is not None:
+                self.recorder.capture()
             bar.update(1)
             bar.set_postfix(reward=f"{so_far.total_reward:.1f}")
             every = self.cfg.train_every
@@ -212,16 +220,27 @@ def _run_locked(cfg: DictConfig, run_dir: Path, resume: bool, progress: bool) ->
     else:
         rundir.write_config(run_dir, cfg)
     rundir.append_history(run_dir, "resume" if resume else "start", pets_run.trials_done)
+    # Events past the last checkpoint (an interrupted trial's) are purged; each trial is written before its
+    # checkpoint, so a resumed run neither loses nor repeats a scalar (pets.tblog).
+    events = ScalarLog(run_dir, cfg.tensorboard, purge_step=pets_run.env_steps + 1 if resume else None)
     bar = tqdm(
         total=cfg.trials, initial=pets_run.trials_done, desc=f"{cfg.env}-{cfg.head}", unit="trial", disable=not progress
     )
-    while pets_run.trials_done < cfg.trials:
-        row = pets_run.run_trial(progress=progress)
-        rundir.save_checkpoint(run_dir, pets_run.state_dict())
-        rundir.write_metrics(run_dir, pets_run.rows)
-        rundir.plot_rewards(run_dir, pets_run.rows, title)
-        bar.update(1)
-        bar.set_postfix(reward=f"{row['episode_reward']:.1f}", steps=row["env_steps"])
+    try:
+        while pets_run.trials_done < cfg.trials:
+            row = pets_run.run_trial(progress=progress)
+            if pets_run.recorder is not None and pets_run.recorder.recording:
+                pets_run.recorder.save(trial_video_path(run_dir, int(row["trial"])))
+            events.trial(row)
+            rundir.save_checkpoint(run_dir, pets_run.state_dict())
+            rundir.write_metrics(run_dir, pets_run.rows)
+            rundir.plot_rewards(run_dir, pets_run.rows, title)
+            bar.update(1)
+            bar.set_postfix(reward=f"{row['episode_reward']:.1f}", steps=row["env_steps"])
+    finally:
+        events.close()
+        if pets_run.recorder is not None:
+            pets_run.recorder.close()
     bar.close()
     pets_run.env.close()
     return pets_run.rows

@@ -1,7 +1,7 @@
 """Open-loop planning with a trained model (the GEM paper's section 5.2, "Planning").
 
     python -m pets.openloop --run RUN_DIR [--planner cem|mppi|icem] [--steps 50] [--episodes K] [--seed S]
-                            [--device D] [--threads T] [--json OUT] [planner.KEY=VALUE ...]
+                            [--device D] [--threads T] [--json OUT] [--video DIR] [planner.KEY=VALUE ...]
 
 For each of K episodes: reset the real env, plan ``--steps`` actions ONCE from the initial
 observation with the run's model (planner horizon = steps), then execute all of them in the real
@@ -23,7 +23,8 @@ env without any feedback (no replanning, no model update). The reward of every s
 Output (printed table and ``--json``): ``reward_per_step`` (mean over episodes and its 95 %
 percentile-bootstrap CI at every step), ``total`` (summed reward per episode: mean, CI, values),
 ``mean_reward_per_step`` (total / steps), the planned ``actions`` and raw ``rewards`` of every episode,
-and ``predicted_return`` (the planner's own estimate of each plan's return under the model).
+and ``predicted_return`` (the planner's own estimate of each plan's return under the model); ``videos``: the
+MP4 files of ``--video DIR`` (``DIR/episode-N.mp4``, one frame per executed step).
 """
 
 from __future__ import annotations
@@ -38,7 +39,7 @@ from typing import Any
 import numpy as np
 
 from pets.cli import OneLineParser, fail
-from pets.fileio import atomic_write_bytes
+from pets.fileio import atomic_write_bytes, writable_dir_error
 
 PROG = "pets.openloop"
 DEFAULT_STEPS = 50
@@ -133,9 +134,11 @@ def open_loop(
     overrides: Mapping[str, Any] | None = None,
     device: str = "auto",
     progress: bool = False,
+    video: str | Path | None = None,
 ) -> dict[str, Any]:
     """Open-loop planning with the model of ``run_dir`` (module docstring); returns the JSON-ready result.
 
+    ``video``: a directory that gets ``episode-N.mp4`` of every executed episode (:mod:`pets.video`).
     ValueError / ConfigError (one-line messages) for bad input.
     """
     import torch
@@ -159,6 +162,12 @@ def open_loop(
     policy = OpenLoopPolicy(agent)
 
     env = spec.make(max_episode_steps=steps)
+    recorder = None
+    if video is not None:
+        from pets.video import EpisodeRecorder
+
+        recorder = EpisodeRecorder(spec, env)
+    videos: list[str] = []
     rewards = np.zeros((episodes, steps))
     actions = np.zeros((episodes, steps, spec.act_dim))
     lengths = np.zeros(episodes, np.int64)
@@ -167,7 +176,13 @@ def open_loop(
     try:
         for i in tqdm(range(episodes), desc=f"open loop {spec.name}", unit="episode", disable=not progress):
             reset_seed = episode_seeds(seed, i)[0]
-            episode = run_episode(env, policy, max_steps=steps, reset_seed=reset_seed)
+            if recorder is not None:
+                recorder.start()
+            capture = None if recorder is None else (lambda _: recorder.capture())
+            episode = run_episode(env, policy, max_steps=steps, reset_seed=reset_seed, on_step=capture)
+            if recorder is not None:
+                videos.append(str(Path(video) / f"episode-{i}.mp4"))
+                recorder.save(videos[-1])
             actions[i] = policy.plan
             predicted.append(policy.predicted_return)
             rewards[i, : len(episode)] = episode.rewards
@@ -175,6 +190,8 @@ def open_loop(
             terminated[i] = bool(episode.terminated[-1])
             reset_seeds.append(int(reset_seed))
     finally:
+        if recorder is not None:
+            recorder.close()
         env.close()
 
     totals = rewards.sum(axis=1)
@@ -200,6 +217,7 @@ def open_loop(
         "terminated": terminated.tolist(),
         "reset_seeds": reset_seeds,
         "predicted_return": predicted,
+        "videos": videos,
     }
 
 
@@ -239,6 +257,7 @@ def build_parser() -> OneLineParser:
     p.add_argument("--device", choices=("cpu", "cuda", "auto"), default="auto", help="where the model runs")
     p.add_argument("--threads", type=int, default=0, help="torch CPU threads (default 0: torch's default)")
     p.add_argument("--json", type=Path, help="write the result as JSON here (atomically)")
+    p.add_argument("--video", type=Path, metavar="DIR", help="write an MP4 of every episode here (episode-N.mp4)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("overrides", nargs="*", metavar="planner.KEY=VALUE", help="planner setting overrides")
     return p
@@ -260,7 +279,15 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     from pets.config import ConfigError, load_config, parse_overrides
 
+    if args.video is not None:
+        problem = writable_dir_error(args.video)
+        if problem:
+            fail(PROG, f"cannot write --video {args.video}: {problem}")
     try:
+        if args.video is not None:
+            from pets.video import require_video
+
+            require_video()
         overrides = parse_overrides(args.overrides)
         planning_config(load_config(str(args.run / "config.yaml")), args.planner, args.steps, overrides)
         if not (args.run / "checkpoint.pt").is_file():
@@ -271,6 +298,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         import torch
 
         torch.set_num_threads(args.threads)
+    from envs.render import RenderingUnavailable
     from pets.cli import EXIT_FAILED
     from pets.planners import PlanningFailed
 
@@ -284,8 +312,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             overrides,
             args.device,
             progress=not args.quiet,
+            video=args.video,
         )
-    except ConfigError as err:  # e.g. device=cuda without CUDA
+    except (ConfigError, RenderingUnavailable) as err:  # e.g. device=cuda without CUDA; no headless GL for --video
         fail(PROG, str(err))
     except PlanningFailed as err:  # the run's model predicts non-finite states
         fail(PROG, f"{args.run}: {err}", EXIT_FAILED)

@@ -16,7 +16,9 @@ The run directory has the format of ``run_pets.py`` (:mod:`pets.rundir`), so
   ``env_steps`` = 0, ``wall_time_s``, ``rows``, ``last_train`` (the ``TrainResult``) and ``offline``
   (data file, episodes, transitions, the data set's policy and seed);
 - ``metrics.csv``: one row with ``model_train_loss``, ``model_val_loss``, ``model_val_loss_initial``, ``model_epochs``,
-  ``wall_time_s`` and ``env_steps`` (= transitions trained on); NaN in the other columns.
+  ``wall_time_s`` and ``env_steps`` (= transitions trained on); NaN in the other columns;
+- TensorBoard events (config key ``tensorboard``, :mod:`pets.tblog`): the same ``model/*`` and ``time/wall_time_s``
+  scalars at step 0.
 
 Training data: every real transition of the file (``lengths`` respected, padding never used). The
 trainer's holdout (``model.holdout_ratio``, at most ``model.max_holdout`` transitions, drawn at random)
@@ -108,6 +110,7 @@ def train_offline(
     from pets import builder, rundir
     from pets.config import ConfigError
     from pets.models import make_model
+    from pets.tblog import TRIAL_TAGS, ScalarLog
 
     data_label = str(Path(data).resolve()) if isinstance(data, (str, Path)) else None
     arrays = load_dataset(data) if isinstance(data, (str, Path)) else data
@@ -196,6 +199,8 @@ def train_offline(
     out.mkdir(parents=True, exist_ok=True)
     rundir.save_checkpoint(out, state)
     rundir.write_metrics(out, [row])
+    with ScalarLog(out, cfg.tensorboard, purge_step=0) as events:  # the training result, at step 0 (pets.tblog)
+        events.scalars(row, 0, {k: v for k, v in TRIAL_TAGS.items() if k.startswith("model_") or k == "wall_time_s"})
     rundir.write_config(out, cfg)  # last: a directory with config.yaml is a complete run
     return out
 
