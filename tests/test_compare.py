@@ -578,6 +578,19 @@ def test_offline_writes_data_runs_and_summaries(offline):
     assert not np.array_equal(train["obs"][:4, 0], test["obs"][:, 0])  # separate data sets
 
 
+def test_offline_runs_hold_their_per_horizon_errors_as_tensorboard_events(offline):
+    """Issue 15: eval/METRIC at step = horizon, read back with TensorBoard's reader, equal to eval.json."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    out, _ = offline
+    run_dir = out / "runs" / "invertedpendulum-gem-s1"
+    result = json.loads((run_dir / "eval.json").read_text())
+    events = EventAccumulator(str(run_dir / "eval" / "invertedpendulum-test")).Reload()
+    scalars = {e.step: e.value for e in events.Scalars("eval/mean_step_error")}
+    want = {int(h): row["mean_step_error"] for h, row in result["horizons"].items()}
+    assert len(scalars) == 3 and scalars == pytest.approx(want, rel=1e-6)
+
+
 def test_offline_summary_csv_equals_the_runs_evaluations(offline):
     out, _ = offline
     rows = [r for r in csv_rows(out / "summary.csv") if r["metric"] == "mean_step_error"]

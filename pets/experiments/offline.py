@@ -163,7 +163,8 @@ def offline_job(job: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def _offline_job(job: Mapping[str, Any]) -> dict[str, Any]:
-    from pets.evaluate import evaluate
+    from pets.config import load_config
+    from pets.evaluate import evaluate, write_events
     from pets.openloop import open_loop
     from pets.train import train_offline
 
@@ -195,6 +196,8 @@ def _offline_job(job: Mapping[str, Any]) -> dict[str, Any]:
         )
         result["request"] = request
         atomic_write_bytes(eval_path, (json.dumps(result) + "\n").encode())
+        if load_config(str(run_dir / "config.yaml")).tensorboard:  # per-horizon errors for TensorBoard (pets.tblog)
+            write_events(run_dir, job["test_data"], result)
         done.append("eval")
     for planner in job["planners"]:
         path = run_dir / f"openloop_{planner}.json"
