@@ -37,9 +37,9 @@ from pathlib import Path
 
 from pets.cli import OneLineParser, fail
 from pets.experiments.arguments import PROG, UsageError, parse_envs, parse_models, parse_planners, parse_seeds
+from pets.experiments.backend import BACKENDS, Backend
 from pets.experiments.offline import compare_offline
 from pets.experiments.online import compare_online
-from pets.experiments.runner import BACKENDS, Backend
 from pets.experiments.statistics import MIN_SEEDS
 
 #: Exit status when a run failed (the summary covers the others).

@@ -30,9 +30,10 @@ from pathlib import Path
 from typing import Any
 
 from pets.experiments.arguments import PROG, UsageError, few_seeds_warning
+from pets.experiments.backend import Backend
 from pets.experiments.offline_summary import summarise_offline, summarise_openloop
 from pets.experiments.rundirs import NOT_COMPARED, check_same_config, checked_out, json_matches, run_name
-from pets.experiments.runner import Backend, open_backend
+from pets.experiments.runner import open_backend
 from pets.fileio import atomic_write_bytes
 
 #: Data seeds of the offline mode: training data, test data, open-loop initial states.

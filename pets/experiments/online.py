@@ -24,9 +24,10 @@ from pathlib import Path
 from typing import Any
 
 from pets.experiments.arguments import PROG, UsageError, few_seeds_warning
+from pets.experiments.backend import Backend
 from pets.experiments.online_summary import online_rows, summarise_online
 from pets.experiments.rundirs import check_same_config, checked_out, online_arms, run_name
-from pets.experiments.runner import Backend, online_job, open_backend
+from pets.experiments.runner import online_job, open_backend
 
 
 def online_plan(run_dir: Path, trials: int) -> str:
