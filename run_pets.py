@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 from typing import NoReturn
 
-from pets.cli import EXIT_FAILED, OneLineParser, fail
+from pets.cli import EXIT_FAILED, OneLineParser, fail, write_failed
 
 PROG = "run_pets.py"
 
@@ -32,7 +32,10 @@ def build_parser() -> argparse.ArgumentParser:
     p = OneLineParser(
         prog=PROG,
         description="PETS model-based RL with a swappable dynamics model (delta, GEM and variants).",
-        epilog="Any config key can be overridden as key=value, e.g. planner.population=200.",
+        epilog="Any config key can be overridden as key=value, e.g. planner.population=200. Exit status: 0 done; "
+        "2 bad input (one line, before any work: bad option or value, corrupt or mismatched checkpoint, unwritable "
+        "--out, run directory in use); 3 the run failed (training diverged, no finite plan, a write failed, e.g. "
+        "a full disk; completed trials are kept, --resume continues); 130 interrupted.",
     )
     p.add_argument("--model", choices=HEADS, help="dynamics model (default: delta); see docs/models.md")
     p.add_argument("--env", help="environment: one of the catalogue names or a gymnasium id")
@@ -95,12 +98,7 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as err:
         _fail(str(err))
     except OSError as err:  # a write failed during the run (a full disk): the completed trials are kept
-        fail(
-            PROG,
-            f"writing {err.filename or run_dir} failed ({err.strerror or err}); the trials completed before it are "
-            f"kept: free space, then continue with --resume {run_dir}",
-            EXIT_FAILED,
-        )
+        write_failed(PROG, err, f"the trials completed before it are kept: free space, then --resume {run_dir}")
     except DirectoryInUse as err:
         _fail(f"{err}; wait for it to finish, or pick another --out")
     except (TrainingDiverged, PlanningFailed) as err:  # the trials completed before it stay in the run directory

@@ -473,7 +473,12 @@ def main(argv: list[str] | None = None) -> int:
     result = evaluate_loaded(inputs, args.seed)
     print(format_table(result))
     if args.json is not None:
-        atomic_write_bytes(args.json, (json.dumps(result, indent=1) + "\n").encode())
+        from pets.cli import write_failed
+
+        try:
+            atomic_write_bytes(args.json, (json.dumps(result, indent=1) + "\n").encode())
+        except OSError as err:  # a full disk: the temporary file is removed
+            write_failed(PROG, err, "the results are printed above; free space or pick another --json")
     return 0
 
 

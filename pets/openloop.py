@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 
 from pets.cli import OneLineParser, fail
-from pets.fileio import atomic_write_bytes
+from pets.fileio import atomic_write_bytes, writable_dir_error
 
 PROG = "pets.openloop"
 DEFAULT_STEPS = 50
@@ -256,6 +256,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         fail(PROG, f"--threads must be >= 0 (0: torch's default), got {args.threads}")
     if not (args.run / "config.yaml").is_file():
         fail(PROG, f"{args.run} is not a run directory (no config.yaml)")
+    problem = None if args.json is None else writable_dir_error(args.json.parent)
+    if problem:
+        fail(PROG, f"cannot write --json {args.json}: {problem}")
     from omegaconf.errors import OmegaConfBaseException
 
     from pets.config import ConfigError, load_config, parse_overrides
@@ -291,7 +294,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         fail(PROG, f"{args.run}: {err}", EXIT_FAILED)
     print(format_table(result))
     if args.json is not None:
-        atomic_write_bytes(args.json, (json.dumps(result, indent=1) + "\n").encode())
+        from pets.cli import write_failed
+
+        try:
+            atomic_write_bytes(args.json, (json.dumps(result, indent=1) + "\n").encode())
+        except OSError as err:  # a full disk: the temporary file is removed
+            write_failed(PROG, err, "the results are printed above; free space or pick another --json")
     return 0
 
 
