@@ -91,14 +91,17 @@ def main(argv: list[str] | None = None) -> int:
         _fail(str(err))
     problem = writable_dir_error(Path(run_dir))
     if problem:
-        _fail(f"{problem}; pick another --out")
+        advice = "copy the run somewhere writable and resume the copy" if args.resume else "pick another --out"
+        _fail(f"{problem}; {advice}")
     print(f"run directory: {run_dir}", file=sys.stderr)
     try:
         rows = loop.run(cfg, Path(run_dir), resume=args.resume is not None, progress=not args.quiet)
     except ConfigError as err:
         _fail(str(err))
     except OSError as err:  # a write failed during the run (a full disk): the completed trials are kept
-        write_failed(PROG, err, f"the trials completed before it are kept: free space, then --resume {run_dir}")
+        if (Path(run_dir) / rundir.CONFIG_FILE).exists():
+            write_failed(PROG, err, f"the trials completed before it are kept: free space, then --resume {run_dir}")
+        write_failed(PROG, err, "no trial was completed; free space, then start the run again")
     except DirectoryInUse as err:
         _fail(f"{err}; wait for it to finish, or pick another --out")
     except (TrainingDiverged, PlanningFailed) as err:  # the trials completed before it stay in the run directory

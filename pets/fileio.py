@@ -90,8 +90,11 @@ def locked(directory: Path) -> Iterator[None]:
         except BlockingIOError:
             holder = os.read(fd, 64).decode(errors="replace").strip() or "unknown"
             raise DirectoryInUse(f"{directory} is in use by another run (process {holder})") from None
-        os.ftruncate(fd, 0)
-        os.write(fd, f"{os.getpid()}\n".encode())
+        try:  # who holds it, for the message of a second run; the lock holds without it (a full disk)
+            os.ftruncate(fd, 0)
+            os.write(fd, f"{os.getpid()}\n".encode())
+        except OSError:
+            pass
         remove_temporaries(directory)
         yield
     finally:
