@@ -454,6 +454,8 @@ def main(argv: list[str] | None = None) -> int:
         fail(PROG, f"data file {args.data} does not exist")
     if args.train_data is not None and not args.train_data.is_file():
         fail(PROG, f"train data file {args.train_data} does not exist")
+    if args.json is not None and args.json.is_dir():
+        fail(PROG, f"--json {args.json} is a directory; give a file name")
     problem = None if args.json is None else writable_dir_error(args.json.parent)
     if problem:
         fail(PROG, f"cannot write --json {args.json}: {problem}")

@@ -256,6 +256,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         fail(PROG, f"--threads must be >= 0 (0: torch's default), got {args.threads}")
     if not (args.run / "config.yaml").is_file():
         fail(PROG, f"{args.run} is not a run directory (no config.yaml)")
+    if args.json is not None and args.json.is_dir():
+        fail(PROG, f"--json {args.json} is a directory; give a file name")
     problem = None if args.json is None else writable_dir_error(args.json.parent)
     if problem:
         fail(PROG, f"cannot write --json {args.json}: {problem}")

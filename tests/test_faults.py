@@ -202,19 +202,27 @@ def test_a_second_run_on_the_same_directory_is_refused_and_the_first_is_intact(t
     assert not list(out.glob(".*.tmp"))  # no temporary file left behind
 
 
-def test_unwritable_output_locations_are_one_line_before_any_work(tmp_path):
-    """Issue 17 item 4: an existing file in place of a directory, or a path under /proc, is refused up front."""
+def test_unwritable_output_locations_are_one_line_before_any_work(tmp_path, reference, invertedpendulum_data):
+    """Issue 17 item 4: an existing file in place of a directory, a path under /proc, or a directory in place of
+    a --json file is refused up front (exit 2, one line)."""
     a_file = tmp_path / "a_file"
     a_file.write_text("x")
+    unwritable = "not a writable directory"
     commands = [
-        [str(ROOT / "run_pets.py"), "--env", "reacher", "--out", a_file / "run"],
-        [str(ROOT / "run_pets.py"), "--env", "reacher", "--out", "/proc/gem-pets-test"],
-        ["-m", "pets.collect", "--env", "reacher", "--policy", "random", "--episodes", 1, "--out", a_file / "d.npz"],
+        ([str(ROOT / "run_pets.py"), "--env", "reacher", "--out", a_file / "run"], unwritable),
+        ([str(ROOT / "run_pets.py"), "--env", "reacher", "--out", a_file], f"{a_file} is {unwritable} (File exists)"),
+        ([str(ROOT / "run_pets.py"), "--env", "reacher", "--out", "/proc/gem-pets-test"], unwritable),
+        (["-m", "pets.collect", "--env", "reacher", "--policy", "random", "--out", a_file / "d.npz"], unwritable),
+        (["-m", "pets.train", "--data", invertedpendulum_data, "--model", "delta", "--out", a_file], unwritable),
+        (
+            ["-m", "pets.evaluate", "--run", reference, "--data", invertedpendulum_data, "--json", tmp_path],
+            f"--json {tmp_path} is a directory; give a file name",
+        ),
     ]
-    for args in commands:
+    for args, fragment in commands:
         proc = subprocess.run([sys.executable, *map(str, args)], cwd=ROOT, capture_output=True, text=True, timeout=120)
         lines = error_lines(proc.stderr)
-        assert proc.returncode == 2 and len(lines) == 1 and "not a writable directory" in lines[0], proc.stderr
+        assert proc.returncode == 2 and len(lines) == 1 and fragment in lines[0], (args, proc.stderr)
 
 
 def test_a_full_disk_during_a_run_is_one_line_and_keeps_the_completed_trials(tmp_path, monkeypatch, capsys):
@@ -323,10 +331,23 @@ def test_kill_9_inside_a_checkpoint_write_loses_nothing(tmp_path, reference):
 
     run, marker = tmp_path / "run", tmp_path / "stalled"
     proc = subprocess.Popen(
-        [sys.executable, "-m", "tests.stall_write", "checkpoint.pt", "2", str(marker), str(ROOT / "run_pets.py"),
-         *RUN_ARGS, "--out", str(run)],
-        cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-    )  # fmt: skip
+        [
+            sys.executable,
+            "-m",
+            "tests.stall_write",
+            "checkpoint.pt",
+            "2",
+            str(marker),
+            str(ROOT / "run_pets.py"),
+            *RUN_ARGS,
+            "--out",
+            str(run),
+        ],
+        cwd=ROOT,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     deadline = time.time() + 240
     while not marker.exists() and proc.poll() is None and time.time() < deadline:
         time.sleep(0.05)
@@ -471,10 +492,25 @@ def test_a_second_offline_training_on_the_same_directory_is_refused(tmp_path, in
     out = tmp_path / "run"
     with locked(out):
         proc = subprocess.run(
-            [sys.executable, "-m", "pets.train", "--data", str(invertedpendulum_data), "--model", "delta", "--out",
-             str(out), "--quiet", "threads=1", "model.max_epochs=2"],
-            cwd=ROOT, capture_output=True, text=True, timeout=120,
-        )  # fmt: skip
+            [
+                sys.executable,
+                "-m",
+                "pets.train",
+                "--data",
+                str(invertedpendulum_data),
+                "--model",
+                "delta",
+                "--out",
+                str(out),
+                "--quiet",
+                "threads=1",
+                "model.max_epochs=2",
+            ],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
     lines = error_lines(proc.stderr)
     assert proc.returncode == 2 and len(lines) == 1, proc.stderr
     assert f"pets.train: error: {out} is in use by another run (process {os.getpid()}); wait for it" in lines[0]
@@ -498,3 +534,39 @@ def test_an_empty_truncated_or_unparsable_config_is_one_line_on_resume(tmp_path,
         lines = error_lines(proc.stderr)
         assert proc.returncode == 2 and len(lines) == 1 and fragment in lines[0], (name, proc.stderr)
         assert [int(r["trial"]) for r in rows(run)] == list(range(6))  # the completed trials are untouched
+
+
+def test_a_run_killed_while_writing_its_last_plot_gets_it_on_resume(tmp_path):
+    """Issue 17 item 6: a run killed right after its last checkpoint (here: inside the write of rewards.png after
+    the only trial) never got rewards.png; --resume of the finished run writes it and says done."""
+    from pets import rundir
+
+    run, marker = tmp_path / "run", tmp_path / "stalled"
+    args = [*RUN_ARGS]
+    args[args.index("--trials") + 1] = "1"
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "tests.stall_write",
+            "rewards.png",
+            "1",
+            str(marker),
+            str(ROOT / "run_pets.py"),
+            *args,
+            "--out",
+            str(run),
+        ],
+        cwd=ROOT,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    deadline = time.time() + 240
+    while not marker.exists() and proc.poll() is None and time.time() < deadline:
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert marker.exists() and not (run / "rewards.png").exists()
+    assert rundir.load_checkpoint(run)["trials_done"] == 1
+    assert "done: 1 trials" in cli("--resume", run).stdout
+    assert (run / "rewards.png").stat().st_size > 0 and not list(run.glob(".*.tmp"))
