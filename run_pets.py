@@ -103,7 +103,7 @@ def main(argv: list[str] | None = None) -> int:
             write_failed(PROG, err, f"the trials completed before it are kept: free space, then --resume {run_dir}")
         write_failed(PROG, err, "no trial was completed; free space, then start the run again")
     except DirectoryInUse as err:
-        _fail(f"{err}; wait for it to finish, or pick another --out")
+        _fail(f"{err}; wait for it to finish" + ("" if args.resume else ", or pick another --out"))
     except (TrainingDiverged, PlanningFailed) as err:  # the trials completed before it stay in the run directory
         fail(PROG, f"{err}; the run directory keeps the trials completed before this one", EXIT_FAILED)
     except KeyboardInterrupt:
