@@ -293,12 +293,13 @@ def test_kill_9_at_random_moments_then_resume_gives_the_uninterrupted_metrics(tm
     """Issue 17: kill -9 at five random moments (imports, training, planning, file writes), each time continued with
     --resume (or started again when it died before writing config.yaml), then finished: metrics.csv (timing aside)
     is identical to the uninterrupted run's. After every kill the completed trials are a prefix of the reference's
-    and never fewer than before (no completed trial is lost)."""
+    and never fewer than before (no completed trial is lost); at least one kill falls between the first and the
+    last trial."""
     run = tmp_path / "run"
     whole = float((reference.parent / "seconds").read_text())  # how long one whole run takes here and now
     chooser = random.Random(17)
     delays = [chooser.uniform(0.2 * whole, 0.9 * whole) for _ in range(5)]
-    want, done, killed = computed(reference), 0, 0
+    want, done, killed, after_kill = computed(reference), 0, 0, []
     for delay in delays:
         how = ["--resume", run] if (run / "config.yaml").exists() else [*RUN_ARGS, "--out", run]
         proc = subprocess.Popen(
@@ -316,7 +317,9 @@ def test_kill_9_at_random_moments_then_resume_gives_the_uninterrupted_metrics(tm
         got = computed(run) if (run / "metrics.csv").exists() else []
         assert got == want[: len(got)] and len(got) >= done, (delays, got)
         done = len(got)
+        after_kill.append(done)
     assert killed >= 3, f"only {killed} of the kills {delays} hit a running process"
+    assert any(0 < n < 6 for n in after_kill), f"no kill of {delays} fell between two trials: {after_kill}"
     proc = cli("--resume", run)
     assert "done: 6 trials" in proc.stdout
     assert computed(run) == want
