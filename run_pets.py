@@ -85,8 +85,7 @@ def main(argv: list[str] | None = None) -> int:
                 _fail(str(err))
             cfg = make_config(env_name, args.model or "delta", args.preset, overrides)
             run_dir = args.out or Path("runs") / f"{env_name}-{cfg.head}-s{cfg.seed}-{time.strftime('%Y%m%d-%H%M%S')}"
-            if (run_dir / rundir.CONFIG_FILE).exists():
-                _fail(f"{run_dir} already holds a run; continue it with --resume {run_dir} or pick another --out")
+            # a run directory that holds a run is refused by loop.run under the lock: "in use" while it runs
     except ConfigError as err:
         _fail(str(err))
     problem = writable_dir_error(Path(run_dir))

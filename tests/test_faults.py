@@ -196,7 +196,7 @@ def test_a_second_run_on_the_same_directory_is_refused_and_the_first_is_intact(t
         )
         lines = error_lines(proc.stderr)
         assert proc.returncode == 2 and len(lines) == 1, proc.stderr
-        assert "in use by another run" in lines[0] or "already holds a run" in lines[0], lines[0]
+        assert f"{out} is in use by another run (process {first.pid}); wait for it to finish" in lines[0], lines[0]
     assert first.wait(timeout=300) == 0, first.stderr.read()
     assert [int(r["trial"]) for r in rows(out)] == list(range(40))
     assert not list(out.glob(".*.tmp"))  # no temporary file left behind
