@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 from typing import NoReturn
 
-from pets.cli import EXIT_FAILED, OneLineParser, fail
+from pets.cli import EXIT_FAILED, OneLineParser, fail, write_failed
 
 PROG = "run_pets.py"
 
@@ -32,7 +32,10 @@ def build_parser() -> argparse.ArgumentParser:
     p = OneLineParser(
         prog=PROG,
         description="PETS model-based RL with a swappable dynamics model (delta, GEM and variants).",
-        epilog="Any config key can be overridden as key=value, e.g. planner.population=200.",
+        epilog="Any config key can be overridden as key=value, e.g. planner.population=200. Exit status: 0 done; "
+        "2 bad input (one line, before any work: bad option or value, corrupt or mismatched checkpoint, unwritable "
+        "--out, run directory in use); 3 the run failed (training diverged, no finite plan, a write failed, e.g. "
+        "a full disk; completed trials are kept, --resume continues); 130 interrupted.",
     )
     p.add_argument("--model", choices=HEADS, help="dynamics model (default: delta); see docs/models.md")
     p.add_argument("--env", help="environment: one of the catalogue names or a gymnasium id")
@@ -89,27 +92,24 @@ def main(argv: list[str] | None = None) -> int:
                 _fail(str(err))
             cfg = make_config(env_name, args.model or "delta", args.preset, overrides)
             run_dir = args.out or Path("runs") / f"{env_name}-{cfg.head}-s{cfg.seed}-{time.strftime('%Y%m%d-%H%M%S')}"
-            if (run_dir / rundir.CONFIG_FILE).exists():
-                _fail(f"{run_dir} already holds a run; continue it with --resume {run_dir} or pick another --out")
+            # a run directory that holds a run is refused by loop.run under the lock: "in use" while it runs
     except ConfigError as err:
         _fail(str(err))
     problem = writable_dir_error(Path(run_dir))
     if problem:
-        _fail(f"{problem}; pick another --out")
+        advice = "copy the run somewhere writable and resume the copy" if args.resume else "pick another --out"
+        _fail(f"{problem}; {advice}")
     print(f"run directory: {run_dir}", file=sys.stderr)
     try:
         rows = loop.run(cfg, Path(run_dir), resume=args.resume is not None, progress=not args.quiet)
     except (ConfigError, RenderingUnavailable) as err:  # the second: --video on a machine without headless GL
         _fail(str(err))
     except OSError as err:  # a write failed during the run (a full disk): the completed trials are kept
-        fail(
-            PROG,
-            f"writing {err.filename or run_dir} failed ({err.strerror or err}); the trials completed before it are "
-            f"kept: free space, then continue with --resume {run_dir}",
-            EXIT_FAILED,
-        )
+        if (Path(run_dir) / rundir.CONFIG_FILE).exists():
+            write_failed(PROG, err, f"the trials completed before it are kept: free space, then --resume {run_dir}")
+        write_failed(PROG, err, "no trial was completed; free space, then start the run again")
     except DirectoryInUse as err:
-        _fail(f"{err}; wait for it to finish, or pick another --out")
+        _fail(f"{err}; wait for it to finish" + ("" if args.resume else ", or pick another --out"))
     except (TrainingDiverged, PlanningFailed) as err:  # the trials completed before it stay in the run directory
         fail(PROG, f"{err}; the run directory keeps the trials completed before this one", EXIT_FAILED)
     except KeyboardInterrupt:

@@ -1,4 +1,17 @@
-"""What every command-line entry point shares: one-line usage errors and their exit status."""
+"""What every command-line entry point shares: one-line errors and their exit status.
+
+Exit status of run_pets.py, pets.train, pets.collect, pets.evaluate and pets.openloop (README, "Exit codes"):
+
+- 0: done;
+- 2 (:data:`EXIT_USAGE`): bad input, checked before any long work: a bad option, key or value; a missing,
+  corrupt or mismatched file (checkpoint, config.yaml, data set); an output location that cannot be written
+  (read-only, under /proc, a file in place of a directory); a run directory in use by another run;
+- 3 (:data:`EXIT_FAILED`): the work failed on good input: model training diverged, planning got no finite
+  return, or a write failed while it ran (a full disk); the run keeps what it completed before;
+- 130: interrupted (Ctrl-C).
+
+Each error is one stderr line ``PROG: error: MESSAGE`` that says what to do.
+"""
 
 from __future__ import annotations
 
@@ -8,7 +21,8 @@ from typing import NoReturn
 
 #: Exit status of every command on bad input (as run_pets.py).
 EXIT_USAGE = 2
-#: Exit status of a run that failed on good input (model training diverged, or planning got no finite return).
+#: Exit status of work that failed on good input (model training diverged, planning got no finite return, or a
+#: write failed while it ran, e.g. a full disk).
 EXIT_FAILED = 3
 
 
@@ -24,3 +38,8 @@ def fail(prog: str, message: str, code: int = EXIT_USAGE) -> NoReturn:
     line = " ".join(str(message).split()) or "unknown error"
     print(f"{prog}: error: {line}", file=sys.stderr)
     raise SystemExit(code)
+
+
+def write_failed(prog: str, err: OSError, advice: str) -> NoReturn:
+    """Exit :data:`EXIT_FAILED` with one line naming the file whose write failed, why, and ``advice``."""
+    fail(prog, f"writing {err.filename or 'a file'} failed ({err.strerror or err}); {advice}", EXIT_FAILED)

@@ -356,9 +356,13 @@ def main(argv: list[str] | None = None) -> int:
         data, agent = collect_sac(spec, arg, args.seed, args.max_steps, device=args.device, progress=not args.quiet)
         seconds = time.perf_counter() - start
         if args.save_agent is not None:
+            from pets.cli import write_failed
             from pets.sb3 import agent_bytes
 
-            atomic_write_bytes(args.save_agent, agent_bytes(agent))
+            try:
+                atomic_write_bytes(args.save_agent, agent_bytes(agent))
+            except OSError as err:
+                write_failed(PROG, err, "no data set was written either; free space, then collect again")
     else:
         from pets.cli import EXIT_FAILED
         from pets.planners import PlanningFailed
@@ -367,7 +371,12 @@ def main(argv: list[str] | None = None) -> int:
             data = collect(spec, policy, episodes, args.seed, args.max_steps, progress=not args.quiet)
         except PlanningFailed as err:  # a run: policy whose model predicts non-finite states
             fail(PROG, f"{policy.name}: {err}; nothing was written", EXIT_FAILED)
-    save_dataset(args.out, data)
+    from pets.cli import write_failed
+
+    try:
+        save_dataset(args.out, data)
+    except OSError as err:  # a full disk: the temporary file is removed, an older --out file stays as it was
+        write_failed(PROG, err, "nothing was written; free space or pick another --out, then collect again")
     lengths = data["lengths"]
     rewards = np.nansum(data["rew"], axis=1)
     print(

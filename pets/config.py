@@ -298,15 +298,28 @@ def make_config(
 
 
 def load_config(path: str) -> DictConfig:
-    """Load a run's resolved ``config.yaml`` back into the typed schema."""
+    """Load a run's resolved ``config.yaml`` back into the typed schema; ConfigError (one line, with what to do) for
+    a file that is not YAML, is empty or truncated (no ``env``, ``head``, ``model`` or ``planner``), or is off the
+    schema."""
+    restore = "restore the config.yaml the run was started with (from a copy), or start a new run"
     try:
         stored = OmegaConf.load(path)
+    except Exception as err:  # yaml's scanner and parser errors, a directory, an unreadable file
+        raise ConfigError(f"{path} is not a readable YAML file ({str(err).splitlines()[0]}); {restore}") from None
+    if not isinstance(stored, DictConfig) or len(stored) == 0:
+        raise ConfigError(f"{path} is empty or not a YAML mapping; {restore}")
+    missing = [key for key in ("env", "head", "model", "planner") if key not in stored]
+    if missing:
+        raise ConfigError(f"{path} has no {', '.join(missing)} (truncated?); {restore}")
+    try:
         for old, new in DEPRECATED_KEYS.items():  # a config.yaml of gem-pets 0.1 has the flat planner keys
             if OmegaConf.select(stored, old) is not None:
                 OmegaConf.update(stored, new, OmegaConf.select(stored, old), merge=True)
                 del stored.planner[old.split(".")[1]]
         cfg = OmegaConf.merge(OmegaConf.structured(Config), stored)
     except Exception as err:  # a file from another version of the schema, or not a config at all
-        raise ConfigError(f"{path} does not match this version's config schema: {str(err).splitlines()[0]}") from None
+        raise ConfigError(
+            f"{path} does not match this version's config schema: {str(err).splitlines()[0]}; {restore}"
+        ) from None
     validate(cfg)
     return cfg

@@ -473,6 +473,8 @@ def main(argv: list[str] | None = None) -> int:
         fail(PROG, f"data file {args.data} does not exist")
     if args.train_data is not None and not args.train_data.is_file():
         fail(PROG, f"train data file {args.train_data} does not exist")
+    if args.json is not None and args.json.is_dir():
+        fail(PROG, f"--json {args.json} is a directory; give a file name")
     problem = None if args.json is None else writable_dir_error(args.json.parent)
     if problem:
         fail(PROG, f"cannot write --json {args.json}: {problem}")
@@ -492,7 +494,12 @@ def main(argv: list[str] | None = None) -> int:
     result = evaluate_loaded(inputs, args.seed)
     print(format_table(result))
     if args.json is not None:
-        atomic_write_bytes(args.json, (json.dumps(result, indent=1) + "\n").encode())
+        from pets.cli import write_failed
+
+        try:
+            atomic_write_bytes(args.json, (json.dumps(result, indent=1) + "\n").encode())
+        except OSError as err:  # a full disk: the temporary file is removed
+            write_failed(PROG, err, "the results are printed above; free space or pick another --json")
     if args.tensorboard:
         write_events(args.run, args.data, result)
     return 0

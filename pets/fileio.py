@@ -1,4 +1,8 @@
-"""Atomic file writes and the run-directory lock: a file is replaced whole or not at all, one run per directory."""
+"""Atomic file writes and the run-directory lock: a file is replaced whole or not at all, one run per directory.
+
+Temporary files are named ``.NAME.XXXXXXXX.tmp`` (:data:`TEMP_SUFFIX`): a failed write removes its own, and
+:func:`locked` removes those a killed process (kill -9 mid-write) left in the directory it takes over.
+"""
 
 from __future__ import annotations
 
@@ -11,6 +15,8 @@ from pathlib import Path
 
 #: The lock file a running command holds in its run directory.
 LOCK_FILE = ".lock"
+#: The suffix of every temporary file this module writes (hidden names: ``.NAME.XXXXXXXX.tmp``).
+TEMP_SUFFIX = ".tmp"
 
 
 def _file_mode() -> int:
@@ -25,9 +31,19 @@ _FILE_MODE = _file_mode()
 
 def atomic_write_bytes(path: Path, data: bytes) -> None:
     """Write ``data`` to ``path`` through a uniquely named temporary file in the same directory and ``os.replace``;
-    the temporary file is removed if the write fails (a full disk leaves nothing behind)."""
+    the temporary file is removed if the write fails (a full disk leaves nothing behind). An OSError names
+    ``path`` when the OS did not name a file (ENOSPC from ``write``)."""
     path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        _write_replace(path, data)
+    except OSError as err:
+        if err.filename is None:
+            err.filename = str(path)
+        raise
+
+
+def _write_replace(path: Path, data: bytes) -> None:
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=TEMP_SUFFIX)
     try:
         os.fchmod(fd, _FILE_MODE)  # mkstemp makes 0600 files; results are as readable as any file written here
         with os.fdopen(fd, "wb") as f:
@@ -45,7 +61,7 @@ def writable_dir_error(directory: Path) -> str | None:
     and removing a temporary file, before any long work starts."""
     try:
         Path(directory).mkdir(parents=True, exist_ok=True)
-        fd, probe = tempfile.mkstemp(dir=directory, prefix=".probe.")
+        fd, probe = tempfile.mkstemp(dir=directory, prefix=".probe.", suffix=TEMP_SUFFIX)
         os.close(fd)
         os.unlink(probe)
     except OSError as err:
@@ -62,7 +78,8 @@ def locked(directory: Path) -> Iterator[None]:
     """Hold an exclusive lock on ``directory`` (created if needed) while the block runs.
 
     The lock is the OS's (``flock`` on ``directory/.lock``): released on any exit, kill -9 included, so a lock left
-    by a killed run is never stale. DirectoryInUse if another process holds it.
+    by a killed run is never stale. DirectoryInUse if another process holds it. Once held, the temporary files a
+    killed holder left behind are removed (no one else writes there).
     """
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
@@ -73,8 +90,23 @@ def locked(directory: Path) -> Iterator[None]:
         except BlockingIOError:
             holder = os.read(fd, 64).decode(errors="replace").strip() or "unknown"
             raise DirectoryInUse(f"{directory} is in use by another run (process {holder})") from None
-        os.ftruncate(fd, 0)
-        os.write(fd, f"{os.getpid()}\n".encode())
+        try:  # who holds it, for the message of a second run; the lock holds without it (a full disk)
+            os.ftruncate(fd, 0)
+            os.write(fd, f"{os.getpid()}\n".encode())
+        except OSError:
+            pass
+        remove_temporaries(directory)
         yield
     finally:
         os.close(fd)  # closing the descriptor releases the lock
+
+
+def remove_temporaries(directory: Path) -> list[Path]:
+    """Remove the temporary files of this module (``.*.tmp``) in ``directory``; the removed paths. Only for a
+    directory whose lock is held: another writer's file in progress would go too."""
+    removed = []
+    for path in Path(directory).glob(f".*{TEMP_SUFFIX}"):
+        if path.is_file():
+            path.unlink(missing_ok=True)
+            removed.append(path)
+    return removed

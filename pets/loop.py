@@ -30,7 +30,7 @@ from pets.models import make_model
 from pets.planners import PlanningFailed
 from pets.rollout import Episode, MPCPolicy, RandomPolicy, run_episode, run_steps
 from pets.tblog import ScalarLog
-from pets.trainer import TrainResult
+from pets.trainer import TrainingDiverged, TrainResult
 from pets.video import EpisodeRecorder, trial_video_path
 
 
@@ -98,9 +98,13 @@ class PETSRun:
         self.last_train = state["last_train"]
 
     # --- one trial ---------------------------------------------------------------------------
-    def _train(self) -> None:
+    def _train(self, when: str | None = None) -> None:
+        """Train on all data so far; TrainingDiverged names where (``when``, default: the current trial)."""
         obs, act, next_obs = self.buffer.tensors(self.device)
-        self.last_train = self.trainer.train(obs, act, next_obs, self.train_gen)
+        try:
+            self.last_train = self.trainer.train(obs, act, next_obs, self.train_gen)
+        except TrainingDiverged as err:
+            raise TrainingDiverged(f"{when or f'trial {self.trials_done}'}: {err}") from None
 
     def _episode_seed(self, index: int) -> int:
         return self.cfg.seed * 100_003 + index
@@ -124,7 +128,7 @@ class PETSRun:
             self._add(episode)
             self.env_steps += len(episode)
         if episodes:
-            self._train()
+            self._train(when="training on the seed data before trial 0")
 
     def run_trial(self, progress: bool = True) -> dict[str, Any]:
         """Collect one episode with the MPC agent, then train the model on all data so far."""

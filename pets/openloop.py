@@ -275,6 +275,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         fail(PROG, f"--threads must be >= 0 (0: torch's default), got {args.threads}")
     if not (args.run / "config.yaml").is_file():
         fail(PROG, f"{args.run} is not a run directory (no config.yaml)")
+    if args.json is not None and args.json.is_dir():
+        fail(PROG, f"--json {args.json} is a directory; give a file name")
+    problem = None if args.json is None else writable_dir_error(args.json.parent)
+    if problem:
+        fail(PROG, f"cannot write --json {args.json}: {problem}")
     from omegaconf.errors import OmegaConfBaseException
 
     from pets.config import ConfigError, load_config, parse_overrides
@@ -320,7 +325,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         fail(PROG, f"{args.run}: {err}", EXIT_FAILED)
     print(format_table(result))
     if args.json is not None:
-        atomic_write_bytes(args.json, (json.dumps(result, indent=1) + "\n").encode())
+        from pets.cli import write_failed
+
+        try:
+            atomic_write_bytes(args.json, (json.dumps(result, indent=1) + "\n").encode())
+        except OSError as err:  # a full disk: the temporary file is removed
+            write_failed(PROG, err, "the results are printed above; free space or pick another --json")
     return 0
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 import csv
 import io
 import os
+import re
 import socket
 import time
 from pathlib import Path
@@ -95,7 +96,7 @@ def load_checkpoint(run_dir: Path) -> dict[str, Any] | None:
     try:
         state = torch.load(path, map_location="cpu", weights_only=False)
     except Exception as err:  # truncated (full disk), empty or foreign file: pickle, zip and torch errors alike
-        reason = " ".join(str(err).split())[:200]
+        reason = _first_sentence(str(err))
         raise ConfigError(
             f"{path} is not a readable checkpoint ({type(err).__name__}: {reason}); "
             "restore it from a copy, or delete it to start the run over"
@@ -116,8 +117,28 @@ def load_model_state(model: torch.nn.Module, state: dict[str, Any]) -> None:
     try:
         model.load_state_dict(state["model"])
     except (RuntimeError, ValueError) as err:
-        first = " ".join(str(err).split())[:300]
-        raise ConfigError(f"the checkpoint's model does not match config.yaml (was it edited?): {first}") from None
+        mismatches = re.findall(
+            r"size mismatch for ([\w.]+): copying a param with shape torch.Size\((\[[^]]*\])\) "
+            r"from checkpoint, the shape in current model is torch.Size\((\[[^]]*\])\)",
+            str(err),
+        )
+        if mismatches:
+            name, saved, now = mismatches[0]
+            more = f" (and {len(mismatches) - 1} more)" if len(mismatches) > 1 else ""
+            detail = f"{name} is {saved} in the checkpoint but {now} under config.yaml{more}"
+        else:
+            detail = _first_sentence(re.sub(r"^Error\(s\) in loading state_dict for \w+:", "", str(err)))
+        raise ConfigError(
+            f"the checkpoint's model does not match config.yaml (was config.yaml edited?): {detail}; put back the "
+            "config.yaml the run was started with, or start a new run"
+        ) from None
+
+
+def _first_sentence(text: str, limit: int = 160) -> str:
+    """The first sentence of an error message, on one line and at most ``limit`` characters."""
+    line = " ".join(text.split())
+    first = re.split(r"(?<=\.) ", line, maxsplit=1)[0].rstrip(".")
+    return first if len(first) <= limit else first[: limit - 3] + "..."
 
 
 def plot_rewards(run_dir: Path, rows: list[dict[str, Any]], title: str) -> None:

@@ -50,7 +50,7 @@ import numpy as np
 
 from pets.cli import OneLineParser, fail
 from pets.datasets import check_dataset, env_name, load_dataset, transitions
-from pets.fileio import writable_dir_error
+from pets.fileio import locked, writable_dir_error
 
 PROG = "pets.train"
 #: Offline defaults, applied before the user's overrides (see the module docstring).
@@ -110,7 +110,6 @@ def train_offline(
     from pets import builder, rundir
     from pets.config import ConfigError
     from pets.models import make_model
-    from pets.tblog import TRIAL_TAGS, ScalarLog
 
     data_label = str(Path(data).resolve()) if isinstance(data, (str, Path)) else None
     arrays = load_dataset(data) if isinstance(data, (str, Path)) else data
@@ -120,89 +119,114 @@ def train_offline(
     out = Path(out)
     if (out / rundir.CONFIG_FILE).exists():
         raise ConfigError(f"{out} already holds a run; pick another --out")
-    from pets.protocols import get_protocol, split_samples
+    with locked(out):  # one process per run directory (DirectoryInUse for a second one), for the whole training
+        if (out / rundir.CONFIG_FILE).exists():  # again: another process may have finished a run there meanwhile
+            raise ConfigError(f"{out} already holds a run; pick another --out")
+        from pets.protocols import get_protocol, split_samples
 
-    cfg = offline_config(
-        env, head_name, overrides, preset=preset, seed=seed, device=device, epochs=epochs, protocol=protocol
-    )
-    proto = get_protocol(protocol)
-    spec = envs.get(cfg.env)
-    obs, act, next_obs = transitions(arrays)
-    if obs.shape[-1] != spec.obs_dim or act.shape[-1] != spec.act_dim:
-        raise ValueError(
-            f"data set has obs_dim {obs.shape[-1]} / act_dim {act.shape[-1]}, but {env} has "
-            f"{spec.obs_dim} / {spec.act_dim}"
+        cfg = offline_config(
+            env, head_name, overrides, preset=preset, seed=seed, device=device, epochs=epochs, protocol=protocol
         )
-    train_idx, val_idx = split_samples(len(obs), proto)
-    fixed = {"model.hidden_size", "model.num_layers"} & set(overrides or {})
-    candidates = [] if fixed else list(proto.architectures(cfg.env))
+        proto = get_protocol(protocol)
+        spec = envs.get(cfg.env)
+        obs, act, next_obs = transitions(arrays)
+        if obs.shape[-1] != spec.obs_dim or act.shape[-1] != spec.act_dim:
+            raise ValueError(
+                f"data set has obs_dim {obs.shape[-1]} / act_dim {act.shape[-1]}, but {env} has "
+                f"{spec.obs_dim} / {spec.act_dim}"
+            )
+        train_idx, val_idx = split_samples(len(obs), proto)
+        fixed = {"model.hidden_size", "model.num_layers"} & set(overrides or {})
+        candidates = [] if fixed else list(proto.architectures(cfg.env))
 
-    dev = builder.resolve_device(cfg.device)
-    if cfg.threads:  # as the online loop: config key threads (0 = torch's default)
-        torch.set_num_threads(cfg.threads)
+        dev = builder.resolve_device(cfg.device)
+        if cfg.threads:  # as the online loop: config key threads (0 = torch's default)
+            torch.set_num_threads(cfg.threads)
 
-    def tensors(idx: np.ndarray) -> list[torch.Tensor]:
-        return [torch.as_tensor(a[idx], dtype=torch.float32, device=dev) for a in (obs, act, next_obs)]
+        def tensors(idx: np.ndarray) -> list[torch.Tensor]:
+            return [torch.as_tensor(a[idx], dtype=torch.float32, device=dev) for a in (obs, act, next_obs)]
 
-    train_set = tensors(train_idx)
-    validation = tensors(val_idx) if len(val_idx) else None
-    start = time.perf_counter()
-    search, best = [], None
-    for hidden, layers in candidates or [(cfg.model.hidden_size, cfg.model.num_layers)]:
+        train_set = tensors(train_idx)
+        validation = tensors(val_idx) if len(val_idx) else None
+        start = time.perf_counter()
+        search, best = [], None
+        for hidden, layers in candidates or [(cfg.model.hidden_size, cfg.model.num_layers)]:
+            cfg.model.hidden_size, cfg.model.num_layers = hidden, layers
+            torch.manual_seed(cfg.seed)
+            model = make_model(cfg, spec, dev)
+            trainer = builder.make_trainer(cfg, model)
+            generator = torch.Generator(device=dev).manual_seed(cfg.seed + 1)
+            result = trainer.train(*train_set, generator, progress=progress, validation=validation)
+            search.append({"hidden_size": hidden, "num_layers": layers, "val_error": result.val_loss})
+            if best is None or result.val_loss < best[0].val_loss:  # NaN (no holdout) keeps the first
+                best = (result, model, trainer, hidden, layers)
+        result, model, trainer, hidden, layers = best
         cfg.model.hidden_size, cfg.model.num_layers = hidden, layers
-        torch.manual_seed(cfg.seed)
-        model = make_model(cfg, spec, dev)
-        trainer = builder.make_trainer(cfg, model)
-        generator = torch.Generator(device=dev).manual_seed(cfg.seed + 1)
-        result = trainer.train(*train_set, generator, progress=progress, validation=validation)
-        search.append({"hidden_size": hidden, "num_layers": layers, "val_error": result.val_loss})
-        if best is None or result.val_loss < best[0].val_loss:  # NaN (no holdout) keeps the first
-            best = (result, model, trainer, hidden, layers)
-    result, model, trainer, hidden, layers = best
-    cfg.model.hidden_size, cfg.model.num_layers = hidden, layers
-    wall = time.perf_counter() - start
+        wall = time.perf_counter() - start
 
-    nan = float("nan")
-    row = {
-        "trial": nan,
-        "env_steps": int(len(train_idx)),
-        "episode_reward": nan,
-        "episode_length": nan,
-        "model_train_loss": result.train_loss,
-        "model_val_loss": result.val_loss,
-        "model_val_loss_initial": result.initial_val_loss,
-        "model_epochs": result.epochs,
-        "plan_seconds_per_step": nan,
-        "wall_time_s": round(wall, 3),
-    }
-    meta = {
-        "data": data_label,
-        "episodes": int(len(arrays["lengths"])),
-        "transitions": int(obs.shape[0]),
-        "data_policy": str(np.asarray(arrays["policy"])[()]) if "policy" in arrays else None,
-        "data_seed": int(np.asarray(arrays["seed"])[()]) if "seed" in arrays else None,
-        "protocol": proto.name,
-        "train_transitions": int(len(train_idx)),
-        "validation_transitions": int(len(val_idx)),
-        "search": search if candidates else [],
-    }
-    state = {
-        "trials_done": 0,
-        "env_steps": 0,
-        "wall_time_s": round(wall, 3),
-        "rows": [row],
-        "model": model.state_dict(),
-        "trainer": trainer.state_dict(),
-        "last_train": result,
-        "offline": meta,
-    }
-    out.mkdir(parents=True, exist_ok=True)
-    rundir.save_checkpoint(out, state)
-    rundir.write_metrics(out, [row])
-    with ScalarLog(out, cfg.tensorboard, purge_step=0) as events:  # the training result, at step 0 (pets.tblog)
-        events.scalars(row, 0, {k: v for k, v in TRIAL_TAGS.items() if k.startswith("model_") or k == "wall_time_s"})
-    rundir.write_config(out, cfg)  # last: a directory with config.yaml is a complete run
+        nan = float("nan")
+        row = {
+            "trial": nan,
+            "env_steps": int(len(train_idx)),
+            "episode_reward": nan,
+            "episode_length": nan,
+            "model_train_loss": result.train_loss,
+            "model_val_loss": result.val_loss,
+            "model_val_loss_initial": result.initial_val_loss,
+            "model_epochs": result.epochs,
+            "plan_seconds_per_step": nan,
+            "wall_time_s": round(wall, 3),
+        }
+        meta = {
+            "data": data_label,
+            "episodes": int(len(arrays["lengths"])),
+            "transitions": int(obs.shape[0]),
+            "data_policy": str(np.asarray(arrays["policy"])[()]) if "policy" in arrays else None,
+            "data_seed": int(np.asarray(arrays["seed"])[()]) if "seed" in arrays else None,
+            "protocol": proto.name,
+            "train_transitions": int(len(train_idx)),
+            "validation_transitions": int(len(val_idx)),
+            "search": search if candidates else [],
+        }
+        state = {
+            "trials_done": 0,
+            "env_steps": 0,
+            "wall_time_s": round(wall, 3),
+            "rows": [row],
+            "model": model.state_dict(),
+            "trainer": trainer.state_dict(),
+            "last_train": result,
+            "offline": meta,
+        }
+        _write_run(out, state, row, cfg)
     return out
+
+
+def _write_run(out: Path, state: dict[str, Any], row: dict[str, Any], cfg: Any) -> None:
+    """Write the run's files, config.yaml last (a directory with config.yaml is a complete run); if a write fails
+    (a full disk) the files written before it are removed and the OSError propagates."""
+    from pets import rundir
+    from pets.tblog import TRIAL_TAGS, ScalarLog
+
+    def events() -> None:  # the training result as TensorBoard scalars at step 0 (pets.tblog)
+        with ScalarLog(out, cfg.tensorboard, purge_step=0) as log:
+            log.scalars(row, 0, {k: v for k, v in TRIAL_TAGS.items() if k.startswith("model_") or k == "wall_time_s"})
+
+    writes = (
+        (rundir.CHECKPOINT_FILE, lambda: rundir.save_checkpoint(out, state)),
+        (rundir.METRICS_FILE, lambda: rundir.write_metrics(out, [row])),
+        ("events", events),
+        (rundir.CONFIG_FILE, lambda: rundir.write_config(out, cfg)),
+    )
+    written: list[Path] = []
+    try:
+        for name, write in writes:
+            write()
+            written.append(out / name)
+    except OSError:
+        for path in written:
+            path.unlink(missing_ok=True)
+        raise
 
 
 def build_parser() -> OneLineParser:
@@ -270,7 +294,8 @@ def main(argv: list[str] | None = None) -> int:
         resolve_device(cfg.device)
     except (ValueError, ConfigError) as err:  # ConfigError is a ValueError; named for the reader
         fail(PROG, str(err))
-    from pets.cli import EXIT_FAILED
+    from pets.cli import EXIT_FAILED, write_failed
+    from pets.fileio import DirectoryInUse
     from pets.trainer import TrainingDiverged
 
     problem = writable_dir_error(args.out)  # before training, not after
@@ -292,6 +317,12 @@ def main(argv: list[str] | None = None) -> int:
         )
     except TrainingDiverged as err:  # nothing was written: train_offline writes the run only after training
         fail(PROG, f"{err}; no run directory was written", EXIT_FAILED)
+    except DirectoryInUse as err:
+        fail(PROG, f"{err}; wait for it to finish, or pick another --out")
+    except ConfigError as err:  # another process completed a run in --out while this one started
+        fail(PROG, str(err))
+    except OSError as err:  # a full disk: the files written before it are removed, no run is left half-written
+        write_failed(PROG, err, "no run was written; free space or pick another --out, then train again")
     from pets import rundir
 
     row = rundir.read_metrics(out / rundir.METRICS_FILE)[0]
