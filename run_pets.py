@@ -111,7 +111,10 @@ def main(argv: list[str] | None = None) -> int:
     except DirectoryInUse as err:
         _fail(f"{err}; wait for it to finish" + ("" if args.resume else ", or pick another --out"))
     except (TrainingDiverged, PlanningFailed) as err:  # the trials completed before it stay in the run directory
-        fail(PROG, f"{err}; the run directory keeps the trials completed before this one", EXIT_FAILED)
+        kept = f"the trials completed before it are kept in {run_dir}"
+        if not (Path(run_dir) / rundir.CHECKPOINT_FILE).exists():
+            kept = "no trial was completed"
+        fail(PROG, f"{err}; {kept}", EXIT_FAILED)
     except KeyboardInterrupt:
         print(f"\ninterrupted; continue with: python run_pets.py --resume {run_dir}", file=sys.stderr)
         return 130

@@ -89,6 +89,7 @@ def test_diverging_training_stops_the_run_with_one_line(tmp_path, holdout):
     assert proc.returncode == 3, proc.stderr
     assert len(lines) == 1 and "lower model.lr (now 1000)" in lines[0]
     assert "training on the seed data before trial 0: model training diverged in epoch" in lines[0]
+    assert lines[0].endswith("; no trial was completed")
     assert not (out / "checkpoint.pt").exists()  # nothing trained on a NaN model was saved
 
 
@@ -117,7 +118,7 @@ def test_planning_with_no_finite_return_stops_the_run_with_one_line(tmp_path, mo
     err = error_lines(capsys.readouterr().err)
     assert exc.value.code == 3 and len(err) == 1, err
     assert "trial 1, step 0: planning failed: every candidate action sequence got a non-finite return" in err[0]
-    assert "the run directory keeps the trials completed before this one" in err[0]
+    assert "the trials completed before it are kept in" in err[0]
     assert [int(r["trial"]) for r in rows(out)] == [0]
 
 
@@ -281,7 +282,7 @@ def test_a_later_divergence_names_its_trial_and_keeps_the_trials_before(tmp_path
     err = error_lines(capsys.readouterr().err)
     assert exc.value.code == 3 and len(err) == 1, err
     assert "trial 1: model training diverged in epoch 1" in err[0] and "lower model.lr (now 1e+30)" in err[0]
-    assert "the run directory keeps the trials completed before this one" in err[0]
+    assert "the trials completed before it are kept in" in err[0]
     assert [int(r["trial"]) for r in rows(out)] == [0]
     assert rundir.load_checkpoint(out)["trials_done"] == 1
     monkeypatch.setattr(loop.PETSRun, "_train", real_train)
