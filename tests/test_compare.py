@@ -1030,3 +1030,46 @@ def test_openloop_bad_input_exits_2(args, fragment, offline, capsys):
         openloop.main(["--run", str(out / "runs" / "invertedpendulum-delta-s0"), *args])
     lines = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
     assert err.value.code == 2 and len(lines) == 1 and fragment in lines[0]
+
+
+def test_arms_compare_a_model_with_its_own_overrides_in_one_command(tmp_path, capsys):
+    """--arm LABEL=MODEL:key=value,...: its runs get the model plus its overrides, under LABEL in the tables."""
+    single = "delta-x1=delta:model.ensemble_size=1,model.num_elites=1"
+    args = ["offline", "--envs", "invertedpendulum", "--models", "delta", "--arm", single, "--seeds", "0,1"]
+    args += ["--episodes", 3, "--test-episodes", 1, "--horizons", "1,2", "--starts", 10, "--preset", "fast"]
+    code, out, _ = cli(capsys, *args, "--device", "cpu", "--quiet", "--out", tmp_path / "off", *TINY_OFFLINE)
+    assert code == 0 and "| delta-x1 |" in out
+    cfg = load_config(str(tmp_path / "off" / "runs" / "invertedpendulum-delta-x1-s1" / "config.yaml"))
+    assert (cfg.head, cfg.model.ensemble_size, cfg.model.num_elites) == ("delta", 1, 1)
+    assert (
+        load_config(str(tmp_path / "off" / "runs" / "invertedpendulum-delta-s1" / "config.yaml")).model.num_elites == 2
+    )
+    rows = csv_rows(tmp_path / "off" / "summary.csv")
+    assert {r["model"] for r in rows} == {"delta", "delta-x1"}
+    assert all(r["ratio_to_delta"] for r in rows if r["model"] == "delta-x1" and r["metric"] == "mean_step_error")
+
+    args = ["online", "--envs", "invertedpendulum", "--models", "gem", "--arm", "gem-h3=gem:planner.horizon=3"]
+    code, out, _ = cli(
+        capsys, *args, "--seeds", "0", "--trials", 1, "--preset", "fast", "--quiet", "--out", tmp_path / "on", *TINY
+    )
+    assert code == 0 and "| gem-h3 |" in out
+    cfg = load_config(str(tmp_path / "on" / "runs" / "invertedpendulum-gem-h3-s0" / "config.yaml"))
+    assert (cfg.head, cfg.planner.horizon) == ("gem", 3)
+
+
+@pytest.mark.parametrize(
+    "arm, fragment",
+    [
+        ("delta=gem", "not a model name"),
+        ("x=transformer", "unknown model 'transformer' in --arm x"),
+        ("x=gem:seed=3", "--arm x sets seed="),
+        ("x=gem:model.lr", "--arm must be LABEL=MODEL[:key=value,key=value]"),
+        ("x=gem:model.nope=1", "model.nope"),
+    ],
+)
+def test_bad_arms_are_one_line_exit_2(arm, fragment, tmp_path, capsys):
+    code, _, err = cli(
+        capsys, "online", "--envs", "reacher", "--models", "delta", "--arm", arm, "--trials", 1, "--out", tmp_path / "x"
+    )
+    assert code == 2 and fragment in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "x").exists()

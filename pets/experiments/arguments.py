@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 from pets.experiments.statistics import MIN_SEEDS
 
 #: The program name in every message of the comparison.
@@ -77,3 +79,40 @@ def parse_planners(text: str) -> list[str]:
     from pets import config
 
     return _parse_choices(text, "planners", config.PLANNERS)
+
+
+#: An arm's label: a run-directory-safe name.
+_LABEL = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.+-]*")
+#: Keys a comparison sets itself, never an arm.
+_OWN_KEYS = ("seed", "head", "env", "trials", "device", "threads")
+
+
+def parse_arm(text: str) -> tuple[str, str, dict[str, str]]:
+    """``LABEL=MODEL[:key=value,key=value]`` -> (label, model, overrides): a model with its own config overrides,
+    compared as one more arm under its label (e.g. ``delta-det-x1=delta-det:model.ensemble_size=1,model.num_elites=1``
+    beside ``delta-det``). UsageError for a bad label, model or key."""
+    from pets import config
+
+    label, sep, rest = str(text).partition("=")
+    head, _, keys = rest.partition(":")
+    form = "--arm must be LABEL=MODEL[:key=value,key=value]"
+    if not sep or not head:
+        raise UsageError(f"{form}, got {text!r}")
+    if not _LABEL.fullmatch(label) or label in config.HEADS:
+        raise UsageError(
+            f"--arm label {label!r} must be letters, digits and _.+- and not a model name ({', '.join(config.HEADS)})"
+        )
+    if head not in config.HEADS:
+        raise UsageError(f"unknown model {head!r} in --arm {label}; accepted: {', '.join(config.HEADS)}")
+    items = [k for k in keys.split(",") if k] if keys else []
+    if any("=" not in k for k in items):
+        raise UsageError(f"{form}, got {text!r}")
+    overrides = dict(k.split("=", 1) for k in items)
+    own = [k for k in overrides if k in _OWN_KEYS]
+    if own:
+        raise UsageError(f"--arm {label} sets {own[0]}=, which the comparison sets itself")
+    try:
+        config.parse_overrides(items)
+    except config.ConfigError as err:
+        raise UsageError(f"--arm {label}: {err}") from None
+    return label, head, overrides

@@ -2,13 +2,15 @@
 
     python -m pets.compare online  --envs E1,E2 --models M1,M2 [--seeds 0,1,2,3,4] --trials N --out DIR
                                    [--planners cem,icem] [--preset research|fast]
-                                   [--final-window W] [--device D] [--quiet] [BACKEND] [key=value ...]
+                                   [--final-window W] [--device D] [--quiet] [ARMS] [BACKEND] [key=value ...]
     python -m pets.compare offline --envs E1,E2 --models M1,M2 [--seeds 0,1,2,3,4] --out DIR
                                    [--episodes E] [--test-episodes E2] [--max-steps T]
                                    [--policy random|smooth-random[:BETA]|existing] [--horizons 1,5,10,25,50]
                                    [--starts K]
                                    [--openloop] [--planners cem,mppi] [--openloop-steps 50] [--openloop-episodes 5]
-                                   [--preset research|fast] [--device D] [--quiet] [BACKEND] [key=value ...]
+                                   [--preset research|fast] [--device D] [--quiet] [ARMS] [BACKEND]
+                                   [key=value ...]
+    ARMS:    [--arm LABEL=MODEL[:key=value,...]] ... (more compared arms: a model with its own overrides)
     BACKEND: [--backend local] [--workers K] [--threads T]
              --backend ray [--address auto|ray://HOST:10001] [--threads T] [--max-retries R]
 
@@ -16,7 +18,9 @@ Models are the names in ``pets.config.HEADS`` (read at run time); envs are catal
 gymnasium ids. Seeds default to 0..4; with fewer than 5 a one-line warning goes to stderr once the
 arguments are checked (fewer than 5 seeds cannot carry a claim; with 3 or fewer the bootstrap CI
 is the min-max of the seeds).
-Every (env, model, seed) has its run directory ``DIR/runs/ENV-MODEL-sSEED``. ``--backend ray`` runs each run as a
+Every (env, model, seed) has its run directory ``DIR/runs/ENV-MODEL-sSEED``. ``--arm LABEL=MODEL[:key=value,...]``
+adds a compared arm: a model with its own overrides (e.g. the paper's single deterministic model beside its
+5-member ensemble), with run directories and table rows under LABEL. ``--backend ray`` runs each run as a
 Ray task (:mod:`pets.experiments.ray_backend`, docs/cluster.md); the files are the same.
 Everything is resumable: rerunning a command reuses finished work and runs only what is missing.
 A run directory that was made with a different config than the command asks for (other
@@ -36,7 +40,15 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from pets.cli import OneLineParser, fail
-from pets.experiments.arguments import PROG, UsageError, parse_envs, parse_models, parse_planners, parse_seeds
+from pets.experiments.arguments import (
+    PROG,
+    UsageError,
+    parse_arm,
+    parse_envs,
+    parse_models,
+    parse_planners,
+    parse_seeds,
+)
 from pets.experiments.backend import BACKENDS, Backend
 from pets.experiments.offline import compare_offline
 from pets.experiments.online import compare_online
@@ -60,6 +72,14 @@ def build_parser() -> OneLineParser:
     def common(q: OneLineParser) -> None:
         q.add_argument("--envs", required=True, help="comma-separated envs (catalogue names or gymnasium ids)")
         q.add_argument("--models", required=True, help="comma-separated models (pets.config.HEADS)")
+        q.add_argument(
+            "--arm",
+            action="append",
+            default=[],
+            metavar="LABEL=MODEL[:key=value,...]",
+            help="one more compared arm: a model with its own overrides, under LABEL (repeatable), e.g. "
+            "delta-det-x1=delta-det:model.ensemble_size=1,model.num_elites=1",
+        )
         q.add_argument(
             "--seeds",
             default=DEFAULT_SEEDS,
@@ -159,6 +179,13 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise UsageError(f"unknown preset {args.preset!r}; accepted: {', '.join(PRESETS)}")
         env_names = parse_envs(args.envs)
         models = parse_models(args.models)
+        arms = {}
+        for text in args.arm:
+            label, head, own = parse_arm(text)
+            if label in arms:
+                raise UsageError(f"--arm {label} is given twice")
+            arms[label] = (head, own)
+        models += list(arms)
         seeds = parse_seeds(args.seeds)
         overrides = list(args.overrides)
         if args.device is not None:
@@ -181,6 +208,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 final_window=args.final_window,
                 progress=not args.quiet,
                 planners=planners,
+                arms=arms,
             )
             report = args.out / "summary.md"
         else:
@@ -212,6 +240,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 overrides=overrides,
                 protocol=args.protocol,
                 progress=not args.quiet,
+                arms=arms,
             )
             report = args.out / "prediction.md"
     except UsageError as err:

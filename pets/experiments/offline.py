@@ -249,11 +249,13 @@ def compare_offline(
     overrides: Sequence[str] = (),
     protocol: str = "pets",
     progress: bool = True,
+    arms: Mapping[str, tuple[str, Mapping[str, str]]] | None = None,
 ) -> dict[str, Any]:
     """Collect, train, evaluate (and open-loop plan) everything missing, then write the summaries.
 
     ``test_episodes`` None: 20, or under a protocol with a test-set size, enough episodes of the env's length.
     ``backend``: where the runs run (default: one local worker, one thread per run).
+    ``arms``: ``{label: (model, overrides)}`` for the names in ``models`` that are arms (``--arm``), not models.
 
     Returns ``{"data": {file: collected|reused}, "todo": {run: [what was missing]}, "done": {run: [what was
     done]}, "failed": {run: message}, "summary"}``; runs absent from "todo" were reused as they were.
@@ -304,11 +306,12 @@ def compare_offline(
     jobs, data_actions, pending = [], {}, {}
     for env in env_names:
         for model in models:
+            head, own = (arms or {}).get(model, (model, {}))
             for seed in seeds:
                 run_dir = out / "runs" / run_name(env, model, seed)
                 try:
                     expected = offline_config(
-                        env, model, extra, preset=preset, seed=seed, device=device, protocol=protocol
+                        env, head, {**extra, **own}, preset=preset, seed=seed, device=device, protocol=protocol
                     )
                 except ConfigError as err:
                     raise UsageError(str(err)) from None
@@ -329,16 +332,17 @@ def compare_offline(
     openloop_request = {"steps": openloop_steps, "episodes": openloop_episodes, "seed": OPENLOOP_SEED}
     for env in env_names:
         for model in models:
+            head, own = (arms or {}).get(model, (model, {}))
             for seed in seeds:
                 name = run_name(env, model, seed)
                 job = {
                     "env": env,
-                    "model": model,
+                    "model": head,
                     "seed": seed,
                     "run_dir": str(out / "runs" / name),
                     "train_data": str(data_dir / f"{env}-train.npz"),
                     "test_data": str(data_dir / f"{env}-test.npz"),
-                    "overrides": extra,
+                    "overrides": {**extra, **own},
                     "preset": preset,
                     "protocol": protocol,
                     "device": device,

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import math
 import sys
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -73,12 +73,14 @@ def compare_online(
     final_window: int = 3,
     progress: bool = True,
     planners: Sequence[str] | None = None,
+    arms: Mapping[str, tuple[str, Mapping[str, str]]] | None = None,
 ) -> dict[str, Any]:
     """Run (or reuse/resume) every online run, then write the summary. Returns ``{"actions", "failed",
     "summary"}``. UsageError for bad settings or a run directory with another config.
 
     ``planners``: also compare these planners (``planner.name``); every (model, planner) pair is an arm.
     ``backend``: where the runs run (default: one local worker, one thread per run).
+    ``arms``: ``{label: (model, overrides)}`` for the names in ``models`` that are arms (``--arm``), not models.
     """
     from pets.config import ConfigError, make_config, parse_overrides
 
@@ -102,14 +104,15 @@ def compare_online(
     jobs, actions = [], {}
     for env in env_names:
         for model, planner in online_arms(models, planners):
-            arm_extra = extra if planner is None else {**extra, "planner.name": planner}
+            head, own = (arms or {}).get(model, (model, {}))
+            arm_extra = {**extra, **own} if planner is None else {**extra, **own, "planner.name": planner}
             arm_list = [f"{k}={v}" for k, v in arm_extra.items()]
             for seed in seeds:
                 name = run_name(env, model, seed, planner)
                 run_dir = out / "runs" / name
                 try:
                     expected = make_config(
-                        env, model, preset, {**arm_extra, "seed": seed, "trials": trials, "threads": backend.threads}
+                        env, head, preset, {**arm_extra, "seed": seed, "trials": trials, "threads": backend.threads}
                     )
                 except ConfigError as err:
                     raise UsageError(str(err)) from None
@@ -123,7 +126,7 @@ def compare_online(
                         )
                 actions[name] = action
                 if action != "reuse":
-                    args = start_arguments(run_dir, env, model, seed, trials, preset, arm_list, backend.threads)
+                    args = start_arguments(run_dir, env, head, seed, trials, preset, arm_list, backend.threads)
                     log = str(out / "logs" / f"{name}.log")
                     jobs.append((name, online_job, (str(run_dir), args, trials, log, backend.threads)))
     checked_out(out)  # after every argument is checked: bad input leaves no directory behind
