@@ -4,11 +4,11 @@ Under ``torch.autocast("cpu", bfloat16)`` without autograd (the planner's ``prec
 member's layers run as ``torch.ops.mkldnn._linear_pointwise(h, W^T, b, "swish")``: the GEMM, bias and SiLU in
 one oneDNN call (post-op), so the SiLU's separate memory pass goes away and a member's activations stay in
 cache from layer to layer. Measured on a Zen 4 core (AVX-512 BF16), 5 members x 1600 rows x 4 x 200: 7.9 ms
-per ensemble forward against 8.7 ms for the batched ``baddbmm`` + SiLU, 1.08x on the whole HalfCheetah
-research planning step (docs/performance.md); the members are looped over in Python (5 x 5 calls), which
-the measurement includes, so it is used only from :data:`MIN_ROWS` rows per member. The weights are transposed and cast
-to bf16 once per weight version and member selection (cached; an optimiser step or ``load_state_dict``
-changes the version), not per call.
+per ensemble forward against 8.7 ms for the batched ``baddbmm`` + SiLU, 1.08-1.11x on the whole
+HalfCheetah research planning step (docs/performance.md); the members are looped over in Python (5 x 5
+calls), which the measurement includes, so it is used only from :data:`MIN_ROWS` rows per member. The weights are
+transposed and cast to bf16 once per :func:`cached_weights` scope (``TrajectoryEvaluator`` opens one per call:
+the weights cannot change during a rollout), else on every forward.
 
 Numerics: bf16 inputs and weights like autocast's batched path; oneDNN applies the SiLU in fp32 before
 rounding to bf16, so the outputs differ from the batched path by bf16 rounding (and are slightly closer to
@@ -18,7 +18,9 @@ off CPU, and where the op is missing; ``FUSED_CPU_BF16 = False`` turns it off.
 
 from __future__ import annotations
 
-import weakref
+import contextlib
+import threading
+from collections.abc import Iterator
 
 import torch
 from torch import Tensor, nn
@@ -31,9 +33,22 @@ FUSED_CPU_BF16 = True
 MIN_ROWS = 512
 
 _AVAILABLE = torch.backends.mkldnn.is_available() and hasattr(torch.ops.mkldnn, "_linear_pointwise")
-_CACHE: weakref.WeakKeyDictionary[nn.ParameterList, tuple[tuple, list[tuple[Tensor, Tensor]]]] = (
-    weakref.WeakKeyDictionary()
-)
+_SCOPE = threading.local()  # .cache: {key: prepared layers} inside a cached_weights() scope of this thread
+
+
+@contextlib.contextmanager
+def cached_weights() -> Iterator[None]:
+    """Within this scope the prepared bf16 weights are reused from one forward to the next (keyed on the
+    parameters, their versions and the member selection); the caller promises not to change the weights
+    inside it in a way that bypasses the version counter. Nested scopes share the outer one."""
+    outer = getattr(_SCOPE, "cache", None)
+    if outer is None:
+        _SCOPE.cache = {}
+    try:
+        yield
+    finally:
+        if outer is None:
+            _SCOPE.cache = None
 
 
 def applies(h: Tensor) -> bool:
@@ -52,21 +67,25 @@ def applies(h: Tensor) -> bool:
 
 
 def _packed(weights: nn.ParameterList, biases: nn.ParameterList, idx: Tensor | None) -> list[tuple[Tensor, Tensor]]:
-    """Per layer ``(W^T as (M, out, in), b as (M, out))`` in bf16 for the selected members, cached."""
-    key = (
-        tuple((p._version, p.data_ptr()) for p in (*weights, *biases)),
-        None if idx is None else tuple(idx.tolist()),
-    )
-    hit = _CACHE.get(weights)
-    if hit is not None and hit[0] == key:
-        return hit[1]
+    """Per layer ``(W^T as (M, out, in), b as (M, out))`` in bf16 for the selected members (reused inside a
+    :func:`cached_weights` scope)."""
+    cache = getattr(_SCOPE, "cache", None)
+    if cache is not None:
+        key = (
+            id(weights),
+            tuple((p._version, p.data_ptr()) for p in (*weights, *biases)),
+            None if idx is None else tuple(idx.tolist()),
+        )
+        if key in cache:
+            return cache[key]
     layers = []
     for w, b in zip(weights, biases):
         if idx is not None:
             w, b = w.index_select(0, idx), b.index_select(0, idx)
         wt = w.detach().transpose(1, 2).to(torch.bfloat16, memory_format=torch.contiguous_format)
         layers.append((wt, b.detach().squeeze(1).to(torch.bfloat16)))
-    _CACHE[weights] = (key, layers)
+    if cache is not None:
+        cache[key] = layers
     return layers
 
 

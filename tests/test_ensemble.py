@@ -294,11 +294,17 @@ def test_fused_cpu_bf16_path_matches_torch_ops_and_follows_weight_updates(monkey
     err_f, err_b = (mean_f - mean32).abs().mean(), (mean_b - mean32).abs().mean()
     assert err_f < 1.2 * err_b and (lv_f - lv32).abs().mean() < 1.2 * (lv_b - lv32).abs().mean()
     assert not torch.equal(mean_f, mean_b)  # really another kernel
-    # an in-place update of the weights (an optimiser step) and another selection are seen
-    with torch.no_grad():
-        ens.weights[-1].mul_(2.0)
-        mean32_new, _ = ens(x, idx)
-    mean_new, _ = run(True)
+    # inside a cached_weights() scope (the evaluator opens one per call) the bf16 weights are prepared once per
+    # selection; an in-place update of the weights (an optimiser step) and another selection are still seen
+    with fused.cached_weights():
+        assert torch.equal(run(True)[0], mean_f) and torch.equal(run(True)[0], mean_f)
+        assert len(fused._SCOPE.cache) == 1
+        with torch.no_grad():
+            ens.weights[-1].mul_(2.0)
+            mean32_new, _ = ens(x, idx)
+        mean_new, _ = run(True)
+        assert len(fused._SCOPE.cache) == 2
+    assert fused._SCOPE.cache is None
     # (a stale cache would be off by the whole change)
     assert (mean_new - mean32_new).abs().mean() < 0.05 * (mean32_new - mean32).abs().mean()
     idx = torch.tensor([1, 3, 0])
