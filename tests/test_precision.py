@@ -130,3 +130,32 @@ def test_bench_compare_marks_or_adds_the_default_row_and_names_the_isa(monkeypat
     with pytest.raises(SystemExit):
         bench.main(["--env", "hopper", "threads=1"])
     assert "CPU bf16 ISA: AMX;" in capsys.readouterr().out
+
+
+def test_the_fused_bf16_planner_path_is_deterministic(monkeypatch):
+    """The research config's bf16 path (dynamics.fused, forced here with MIN_ROWS = 0): the same generator
+    seed gives bit-identical returns, call after call and evaluator after evaluator."""
+    import envs
+    from dynamics import fused
+    from dynamics.heads import DeltaHead
+    from dynamics.model import DynamicsModel
+    from dynamics.networks import GaussianEnsemble
+    from pets.propagation import TrajectoryEvaluator
+
+    if not fused._AVAILABLE:
+        pytest.skip("no oneDNN fused linear in this build")
+    monkeypatch.setattr(fused, "MIN_ROWS", 0)
+    calls = []
+    real = fused.fused_member_mlp
+    monkeypatch.setattr(fused, "fused_member_mlp", lambda *a: calls.append(1) or real(*a))
+    spec = envs.get("halfcheetah")
+    head = DeltaHead(spec.layout, spec.act_dim)
+    torch.manual_seed(0)
+    ens = GaussianEnsemble(head.input_dim, head.target_dim, ensemble_size=5, hidden_size=64, num_layers=3)
+    obs0 = torch.randn(spec.obs_dim) * 0.1
+    actions = torch.rand(40, 6, spec.act_dim, generator=torch.Generator().manual_seed(1)) * 2 - 1
+    returns = []
+    for _ in range(2):
+        ev = TrajectoryEvaluator(DynamicsModel(head, ens), spec.reward, spec.terminated, particles=5, precision="bf16")
+        returns += [ev(obs0, actions, torch.Generator().manual_seed(2)) for _ in range(2)]
+    assert calls and all(torch.equal(r, returns[0]) for r in returns)
