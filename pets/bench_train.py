@@ -16,7 +16,9 @@ import statistics
 import sys
 import time
 
+import numpy as np
 import torch
+from omegaconf import DictConfig
 
 import envs
 from pets import builder
@@ -29,7 +31,9 @@ from pets.models import make_model
 PRECISIONS = ("fp32", "bf16")
 
 
-def train_once(cfg, spec, data, precision: str, epochs: int) -> tuple[float, float]:
+def train_once(
+    cfg: DictConfig, spec: envs.EnvSpec, data: tuple[np.ndarray, ...], precision: str, epochs: int
+) -> tuple[float, float]:
     """Seconds for ``epochs`` epochs and the final holdout error of one fresh model trained in ``precision``."""
     device = builder.resolve_device(cfg.device)
     torch.manual_seed(cfg.seed)
