@@ -122,9 +122,16 @@ class DynamicsModel(nn.Module):
         self.network.fit_normaliser(x)
         self.network.fit_target_normaliser(y)
 
-    def member_loss(self, x: Tensor, y: Tensor, obs: Tensor, next_obs: Tensor) -> Tensor:
-        """Per-member training loss (E,) of (E, B, .) batches (the head's loss, in standardised units)."""
-        mean, logvar = self.network(x)
+    def member_loss(self, x: Tensor, y: Tensor, obs: Tensor, next_obs: Tensor, bf16: bool = False) -> Tensor:
+        """Per-member training loss (E,) of (E, B, .) batches (the head's loss, in standardised units).
+
+        ``bf16``: the network's forward (and so its backward) under bfloat16 autocast; its outputs are cast
+        back to float32 at once, so the loss is computed in float32 against float32 weights.
+        """
+        with torch.autocast(device_type=x.device.type, dtype=torch.bfloat16, enabled=bf16):
+            mean, logvar = self.network(x)
+        if bf16:
+            mean, logvar = mean.float(), logvar.float()
         return self.head.loss(mean, logvar, y, obs, next_obs, scale=self.network.target_std)
 
     def add_regularisers(self, loss: Tensor, logvar_bound_coef: float) -> Tensor:

@@ -22,6 +22,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from dynamics import fused
+
 #: Per-layer L2 coefficients of the original PETS code (input layer, hidden layers, output layer).
 _DECAY_FIRST, _DECAY_SECOND, _DECAY_HIDDEN, _DECAY_OUT = 2.5e-5, 5e-5, 7.5e-5, 1e-4
 
@@ -70,7 +72,12 @@ def member_mlp(h: Tensor, weights: nn.ParameterList, biases: nn.ParameterList, i
     batched fp32 GEMM is up to 1.5x slower for such widths (200 -> 214, the GEM head's Ant output:
     12.0 ms vs 8.1 ms for 216, 5 members x 1600 rows). The kept columns are the same dot products
     (bit-identical on the machine tested; tests/test_ensemble.py). Training (autograd on) runs unpadded.
+
+    Under CPU bf16 autocast without autograd the layers run as oneDNN fused linear + SiLU calls, one member
+    at a time (:mod:`dynamics.fused`: measured faster there).
     """
+    if fused.applies(h):
+        return fused.fused_member_mlp(h, weights, biases, idx)
     last = len(weights) - 1
     pad_widths = not torch.is_grad_enabled()
     for i, (w, b) in enumerate(zip(weights, biases)):

@@ -8,10 +8,12 @@ realistic (normalised, finite) states. Every row times ``--repeats`` planning st
 from a fresh plan) after one warm-up step (reported separately: it includes any compilation);
 figures are medians. With ``--compare`` one run times, on the same model and start state, the
 rows: CEM eager fp32 (the precise path), CEM compiled fp32, CEM eager bf16, CEM compiled bf16,
-iCEM eager fp32, iCEM compiled bf16 and MPPI eager fp32, then the kernel floor at the config's
-shapes (:func:`kernel_floor`: the model's GEMMs + bias alone, fp32 and bf16, and bf16 with SiLU);
-the rows take turns within each repeat, so a change in machine load hits all of them alike. Use
-``threads=1`` on a shared machine.
+iCEM eager fp32, iCEM compiled bf16 and MPPI eager fp32 (the configured path, by default
+``planner.precision=auto`` resolved on this machine, is marked ``default``, or added as a row when it is
+none of these), then the kernel floor at the config's shapes (:func:`kernel_floor`: the model's GEMMs +
+bias alone, fp32 and bf16, and bf16 with SiLU); the rows take turns within each repeat, so a change in
+machine load hits all of them alike. Use ``threads=1`` on a shared machine. The header names the CPU's
+bf16 ISA (AMX, AVX-512 BF16 or none; :mod:`pets.hardware`).
 
 Columns: wall and process-CPU seconds per step (CPU time is the steadier figure on a loaded
 machine; with one thread it is close to the compute time), model GFLOP per step (counted from the
@@ -50,6 +52,7 @@ import envs
 from pets import builder
 from pets.cli import OneLineParser, fail
 from pets.config import ConfigError, make_config, parse_overrides, validate
+from pets.hardware import cpu_isa
 from pets.models import make_model
 from pets.rollout import RandomPolicy, run_steps
 
@@ -63,6 +66,17 @@ COMPARE_ROWS: list[tuple[str, dict[str, Any]]] = [
     ("icem bf16 compiled", {"name": "icem", "precision": "bf16", "compile": True}),
     ("mppi fp32 eager", {"name": "mppi", "precision": "fp32", "compile": False}),
 ]
+
+
+def compare_rows(cfg: DictConfig) -> list[tuple[str, dict[str, Any]]]:
+    """:data:`COMPARE_ROWS` with the configured path (the defaults: ``planner.precision=auto`` resolved on this
+    machine, ``planner.compile``) marked ``default``; appended as a row of its own when none of them is it."""
+    p = cfg.planner
+    here = {"name": p.name, "precision": p.precision, "compile": bool(p.compile)}
+    rows = [(f"default: {label}" if planner == here else label, planner) for label, planner in COMPARE_ROWS]
+    if here not in [planner for _, planner in COMPARE_ROWS]:
+        rows.append((f"default: {p.name} {p.precision} {'compiled' if p.compile else 'eager'}", here))
+    return rows
 
 
 def model_flops_per_row(in_dim: int, out_dim: int, hidden: int, layers: int) -> int:
@@ -334,7 +348,7 @@ def compare(cfg: DictConfig, repeats: int = 5) -> dict[str, Any]:
     """The ``--compare`` rows on one model, the fp32 and bf16 GEMM peaks, and the precise row's figures."""
     device = builder.resolve_device(cfg.device)
     parts = prepare(cfg)
-    rows = time_rows(cfg, COMPARE_ROWS, repeats, parts)
+    rows = time_rows(cfg, compare_rows(cfg), repeats, parts)
     peaks = {"fp32": matmul_peak_gflops(device), "bf16": matmul_peak_gflops(device, torch.bfloat16)}
     head = parts["model"].head
     floor = kernel_floor(cfg, head.input_dim, head.target_dim, device)
@@ -355,12 +369,12 @@ def compare(cfg: DictConfig, repeats: int = 5) -> dict[str, Any]:
 
 def _print_rows(rows: list[dict[str, Any]], repeats: int) -> None:
     print(
-        f"{'row':<20} {'wall s':>8} {'cpu s':>8} {'x wall':>7} {'x cpu':>6} {'first s':>8} {'GFLOP':>7} "
+        f"{'row':<28} {'wall s':>8} {'cpu s':>8} {'x wall':>7} {'x cpu':>6} {'first s':>8} {'GFLOP':>7} "
         f"{'GFLOP/s':>8} {'% peak':>7} {'mem MiB':>8}   (medians of {repeats} steps)"
     )
     for r in rows:
         print(
-            f"{r['label']:<20} {r['seconds_per_step']:8.3f} {r['cpu_seconds_per_step']:8.3f} "
+            f"{r['label']:<28} {r['seconds_per_step']:8.3f} {r['cpu_seconds_per_step']:8.3f} "
             f"{r.get('speedup_wall', 1.0):7.2f} {r.get('speedup_cpu', 1.0):6.2f} {r['first_step_seconds']:8.2f} "
             f"{r['model_gflop_per_step']:7.2f} {r['model_gflops']:8.1f} {100 * r.get('fraction_of_peak', 0.0):6.0f}% "
             f"{r['peak_memory_mib']:8.1f}"
@@ -399,6 +413,11 @@ def main(argv: list[str] | None = None) -> int:
         f"{cfg.env} / {cfg.head} on {cfg.device} ({torch.get_num_threads()} threads): population {p.population}, "
         f"{p.particles} particles, horizon {p.horizon}, {p.iterations} iterations, ensemble {cfg.model.ensemble_size}"
         f"x{cfg.model.num_layers}x{cfg.model.hidden_size}, propagation {p.propagation}"
+    )
+    gpu = f", GPU: {torch.cuda.get_device_name()}" if builder.resolve_device(cfg.device).type == "cuda" else ""
+    print(
+        f"CPU bf16 ISA: {cpu_isa()}{gpu}; the default path here (planner.precision=auto resolved, "
+        f"planner.compile={str(p.compile).lower()}): {p.name} {p.precision} {'compiled' if p.compile else 'eager'}"
     )
     if args.compare:
         res = compare(cfg, args.repeats)

@@ -39,6 +39,7 @@ def make_trainer(cfg: DictConfig, model: DynamicsModel) -> ModelTrainer:
         num_elites=m.num_elites,
         iterations=m.iterations,
         bootstrap=m.bootstrap,
+        precision=m.precision,
     )
 
 

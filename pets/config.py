@@ -22,7 +22,7 @@ HEADS = tuple(MODELS)
 #: Models without a predictive variance (MSE / Frobenius training, zero sampling noise).
 DETERMINISTIC_HEADS = tuple(name for name, entry in MODELS.items() if entry.deterministic)
 PLANNERS = ("cem", "icem", "mppi")
-PRECISIONS = ("fp32", "bf16")
+PRECISIONS = ("auto", "fp32", "bf16")  # auto: resolved by make_config / load_config (pets.hardware)
 PROPAGATIONS = ("ts1", "tsinf", "expectation")
 
 
@@ -45,6 +45,9 @@ class ModelConfig:
     max_holdout: int = 5000
     iterations: int = 0  # 0: epochs with holdout early stopping (PETS); N > 0: exactly N steps (the GEM paper)
     bootstrap: bool = True  # per-member bootstrap resamples (PETS); false: all members on the same batches
+    # auto | fp32 | bf16: the training forward/backward under bfloat16 autocast (fp32 weights, loss, optimiser
+    # and holdout error); auto: bf16 where the hardware has native bf16 matmuls (pets.hardware), else fp32
+    precision: str = "auto"
 
 
 @dataclass
@@ -80,7 +83,10 @@ class PlannerConfig:
     icem: ICEMConfig = field(default_factory=ICEMConfig)
     mppi: MPPIConfig = field(default_factory=MPPIConfig)
     # Speed of the rollouts (docs/performance.md)
-    precision: str = "fp32"  # fp32 | bf16 (ensemble matmuls under bfloat16 autocast; state and returns fp32)
+    # auto | fp32 | bf16: the ensemble's matmuls under bfloat16 autocast (state, sampling and returns fp32); auto:
+    # bf16 where the hardware has native bf16 matmuls (pets.hardware), else fp32, the precise path.
+    # config.yaml records the resolved value.
+    precision: str = "auto"
     compile: bool = False  # torch.compile the rollout step (eager fallback with a warning if it fails)
 
 
@@ -168,6 +174,7 @@ _CHOICES = {
     "planner.name": PLANNERS,
     "planner.propagation": PROPAGATIONS,
     "planner.precision": PRECISIONS,
+    "model.precision": PRECISIONS,
     "gem.compose": ("left", "right"),
     "gem.loss": ("nll", "frobenius", "nll+frobenius"),
     "device": ("auto", "cpu", "cuda"),
@@ -294,6 +301,16 @@ def make_config(
     for key, value in (overrides or {}).items():
         _set(cfg, key, value)
     validate(cfg)
+    resolve_auto(cfg)
+    return cfg
+
+
+def resolve_auto(cfg: DictConfig) -> DictConfig:
+    """Replace ``auto`` precisions by the concrete one for ``cfg.device`` on this machine (in place; returns it)."""
+    from pets.hardware import resolve_precision
+
+    for key in ("planner.precision", "model.precision"):
+        OmegaConf.update(cfg, key, resolve_precision(OmegaConf.select(cfg, key), cfg.device))
     return cfg
 
 
@@ -316,10 +333,12 @@ def load_config(path: str) -> DictConfig:
             if OmegaConf.select(stored, old) is not None:
                 OmegaConf.update(stored, new, OmegaConf.select(stored, old), merge=True)
                 del stored.planner[old.split(".")[1]]
+        if OmegaConf.select(stored, "model") is not None and "precision" not in stored.model:
+            stored.model.precision = "fp32"  # a run from before model.precision existed trained in fp32
         cfg = OmegaConf.merge(OmegaConf.structured(Config), stored)
     except Exception as err:  # a file from another version of the schema, or not a config at all
         raise ConfigError(
             f"{path} does not match this version's config schema: {str(err).splitlines()[0]}; {restore}"
         ) from None
     validate(cfg)
-    return cfg
+    return resolve_auto(cfg)

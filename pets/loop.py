@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import itertools
 import random
+import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -25,6 +26,7 @@ import envs
 from pets import builder, rundir
 from pets.buffer import ReplayBuffer
 from pets.config import ConfigError
+from pets.cost import CostEstimate
 from pets.fileio import locked
 from pets.models import make_model
 from pets.planners import PlanningFailed
@@ -67,6 +69,8 @@ class PETSRun:
         self.wall_time_s = 0.0
         self.last_train: TrainResult | None = None
         self.recorder = EpisodeRecorder(self.spec, self.env) if cfg.video_every else None
+        #: Set by :func:`run`: the one-line estimate of a long run from its first planning steps (pets.cost).
+        self.cost: CostEstimate | None = None
 
     # --- state -----------------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:
@@ -151,6 +155,10 @@ class PETSRun:
                 self.recorder.capture()
             bar.update(1)
             bar.set_postfix(reward=f"{so_far.total_reward:.1f}")
+            if self.cost is not None and not random_policy:
+                line = self.cost.step(steps, self.mpc_policy.seconds)
+                if line:
+                    tqdm.write(line, file=sys.stderr)
             every = self.cfg.train_every
             if every and not random_policy and not so_far.done and (self.env_steps + len(so_far)) % every == 0:
                 self._add(so_far, added)
@@ -224,6 +232,7 @@ def _run_locked(cfg: DictConfig, run_dir: Path, resume: bool, progress: bool) ->
     else:
         rundir.write_config(run_dir, cfg)
     rundir.append_history(run_dir, "resume" if resume else "start", pets_run.trials_done)
+    pets_run.cost = CostEstimate(cfg, pets_run.episode_length, cfg.trials - pets_run.trials_done)
     # Events past the last checkpoint (an interrupted trial's) are purged; each trial is written before its
     # checkpoint, so a resumed run neither loses nor repeats a scalar (pets.tblog).
     events = ScalarLog(run_dir, cfg.tensorboard, purge_step=pets_run.env_steps + 1 if resume else None)

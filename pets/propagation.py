@@ -69,6 +69,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
+from dynamics import fused
 from dynamics.model import DynamicsModel
 
 PROPAGATIONS = ("ts1", "tsinf", "expectation")
@@ -329,20 +330,21 @@ class TrajectoryEvaluator:
             noise = torch.empty((m, per_member, self.model.target_dim), device=device, dtype=noise_dtype)
         perm = inv = diverged = None  # diverged: set at t = 0 (H >= 1, checked)
 
-        for t in range(horizon):
-            if mode == "ts1":
-                perm = torch.randperm(b, generator=generator, device=device)
-                inv = torch.empty_like(perm).scatter_(0, perm, arange_b)
-            if noise is not None:
-                torch.randn(noise.shape, generator=generator, device=device, dtype=noise.dtype, out=noise)
-            obs, done, total, step_reward, went_bad = self._call_step(
-                obs, act_rows[t], noise, done, total, members, perm, inv, penalty, zero
-            )
-            if t == 0:
-                diverged = went_bad  # rows with nothing finite at all
-            if record:
-                obs_trace.append(obs)
-                rew_trace.append(step_reward)
+        with fused.cached_weights():  # CPU bf16 layers: weights prepared once per call (dynamics.fused)
+            for t in range(horizon):
+                if mode == "ts1":
+                    perm = torch.randperm(b, generator=generator, device=device)
+                    inv = torch.empty_like(perm).scatter_(0, perm, arange_b)
+                if noise is not None:
+                    torch.randn(noise.shape, generator=generator, device=device, dtype=noise.dtype, out=noise)
+                obs, done, total, step_reward, went_bad = self._call_step(
+                    obs, act_rows[t], noise, done, total, members, perm, inv, penalty, zero
+                )
+                if t == 0:
+                    diverged = went_bad  # rows with nothing finite at all
+                if record:
+                    obs_trace.append(obs)
+                    rew_trace.append(step_reward)
 
         obs_all = torch.stack(obs_trace, dim=1) if record else None
         rew_all = torch.stack(rew_trace, dim=1) if record else None

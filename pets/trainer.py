@@ -100,6 +100,7 @@ class ModelTrainer:
         eval_batch_size: int = 8192,
         iterations: int = 0,
         bootstrap: bool = True,
+        precision: str = "fp32",
     ) -> None:
         if not (math.isfinite(lr) and lr >= 0):
             raise ValueError(f"lr must be a finite number >= 0, got {lr}")
@@ -113,6 +114,8 @@ class ModelTrainer:
         ):
             if not isinstance(value, int) or isinstance(value, bool) or value < low:
                 raise ValueError(f"{name} must be an int >= {low}, got {value!r}")
+        if precision not in ("fp32", "bf16"):
+            raise ValueError(f"precision must be fp32 or bf16, got {precision!r}")
         if not 0.0 <= holdout_ratio < 1.0:
             raise ValueError(f"holdout_ratio must be in [0, 1), got {holdout_ratio}")
         if num_elites is None:
@@ -138,6 +141,8 @@ class ModelTrainer:
         self.eval_batch_size = eval_batch_size
         self.iterations = iterations
         self.bootstrap = bool(bootstrap)
+        #: ``bf16``: training steps under bfloat16 autocast (fp32 weights, optimiser, loss and holdout error).
+        self.precision = precision
         self.optimizer = torch.optim.Adam(model.parameters(), lr=lr)
         self._predicted = torch.tensor(model.head.layout.predicted_indices, dtype=torch.long)
         #: Per-entry std of ``next_obs - obs`` (predicted entries) that :meth:`evaluate` divides by; set by ``train``.
@@ -243,6 +248,7 @@ class ModelTrainer:
         else:  # every member on the same data, in the same order
             boot = torch.arange(n_tr, device=ref.device).expand(model.ensemble_size, n_tr)
         fixed = self.iterations > 0
+        bf16 = self.precision == "bf16"
         max_epochs = math.ceil(self.iterations / math.ceil(n_tr / self.batch_size)) if fixed else self.max_epochs
 
         params = model.member_parameters()
@@ -263,7 +269,7 @@ class ModelTrainer:
                 if fixed and steps == self.iterations:
                     break
                 idx = epoch_idx[:, start : start + self.batch_size]  # (E, B)
-                member_loss = model.member_loss(x_tr[idx], y_tr[idx], o_tr[idx], no_tr[idx])  # (E,)
+                member_loss = model.member_loss(x_tr[idx], y_tr[idx], o_tr[idx], no_tr[idx], bf16=bf16)  # (E,)
                 loss = model.add_regularisers(member_loss.sum(), self.logvar_bound_coef)
                 self.optimizer.zero_grad(set_to_none=True)
                 loss.backward()

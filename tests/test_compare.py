@@ -392,6 +392,58 @@ def test_online_summary_md_has_iqm_p_and_no_nan_or_inf(fake_online):
         assert (out / name).stat().st_size > 10_000
 
 
+def test_online_time_to_threshold_counts_runs_that_never_reach_it(tmp_path):
+    """Issue 13: minutes (wall_time_s / 60 at the end of the first trial at or above the threshold) and env steps
+    to the threshold; the IQM [CI] over the runs that reached it, the others counted in n_reached."""
+    from pets.experiments.online_summary import THRESHOLDS, time_to_threshold
+
+    assert THRESHOLDS["invertedpendulum"] == 1000 and THRESHOLDS["reacher"] == -5 and "halfcheetah" in THRESHOLDS
+    for model in ("delta", "gem"):
+        for seed in range(5):
+            fake_run(tmp_path, "reacher", model, seed, fake_rewards(model, seed))
+            fake_run(tmp_path, "hopper", model, seed, fake_rewards(model, seed))
+    # delta: 10 t + seed reaches 22 in trial 2 for seeds 2-4, trial 3 for seeds 0-1; gem (23 + 1.5 seed) in trial 2
+    summarise_online(
+        tmp_path, ["reacher", "hopper"], ["delta", "gem"], range(5), FAKE_TRIALS, FAKE_WINDOW, reps=200,
+        thresholds={"reacher": 22.0, "hopper": 1000.0},
+    )  # fmt: skip
+    runs = {(r["env"], r["model"], r["seed"]): r for r in csv_rows(tmp_path / "summary_runs.csv")}
+    expected = {s: (3 if s < 2 else 2) for s in range(5)}  # delta's trial index that first reaches 22
+    for s, t in expected.items():
+        r = runs["reacher", "delta", str(s)]
+        assert float(r["minutes_to_threshold"]) == (10.0 * (t + 1) + s) / 60
+        assert float(r["steps_to_threshold"]) == 100 * (t + 1)
+        assert runs["hopper", "delta", str(s)]["minutes_to_threshold"] == ""  # never reached: no number
+    r = online_row(tmp_path, "reacher", "delta")
+    assert (r["threshold"], r["n_reached"]) == ("22.0", "5")
+    times = np.array([[(10.0 * (t + 1) + s) / 60, 100.0 * (t + 1)] for s, t in expected.items()])
+    np.random.seed(0)
+    point, interval = library.get_interval_estimates({"x": times}, rliable_iqm_columns, reps=200)
+    assert [float(r[k]) for k in ("minutes_to_threshold_iqm", "steps_to_threshold_iqm")] == list(point["x"])
+    assert [float(r[k]) for k in ("minutes_to_threshold_ci_low", "steps_to_threshold_ci_low")] == list(interval["x"][0])
+    r = online_row(tmp_path, "hopper", "gem")  # nobody reached 1000: counted, no IQM
+    assert (r["n_seeds"], r["n_reached"], r["minutes_to_threshold_iqm"], r["steps_to_threshold_ci_high"]) == (
+        "5",
+        "0",
+        "",
+        "",
+    )
+    md = (tmp_path / "summary.md").read_text()
+    assert "| reached 22 | minutes to it | env steps to it |" in md and "| 0/5 | - | - |" in md
+    assert "| 5/5 | " + fmt_interval(*(float(r2) for r2 in times_iqm(online_row(tmp_path, "reacher", "delta")))) in md
+    # the function itself: the first trial at or above, NaN without one or without a threshold
+    rewards = [1, 5, 3, 7]
+    rows = [
+        {"episode_reward": v, "wall_time_s": 60.0 * (i + 1), "env_steps": 10 * (i + 1)} for i, v in enumerate(rewards)
+    ]
+    assert time_to_threshold(rows, 5.0) == (2.0, 20.0)
+    assert all(math.isnan(x) for x in (*time_to_threshold(rows, 8.0), *time_to_threshold(rows, None)))
+
+
+def times_iqm(row):
+    return [row[f"minutes_to_threshold_{k}"] for k in ("iqm", "ci_low", "ci_high")]
+
+
 def test_online_baseline_is_delta_with_the_same_planner_and_absent_without_delta(tmp_path):
     for model in ("delta", "gem"):
         for planner in ("cem", "icem"):

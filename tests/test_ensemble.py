@@ -248,3 +248,73 @@ def test_inference_pads_an_odd_output_width_and_changes_no_value(monkeypatch, ki
     assert mean.shape == mean_ref.shape == (3, 50, out_dim) and logvar.shape == logvar_ref.shape
     torch.testing.assert_close(mean, mean_ref.detach(), rtol=1e-6, atol=1e-6)
     torch.testing.assert_close(logvar, logvar_ref.detach(), rtol=1e-6, atol=1e-6)
+
+
+@pytest.mark.parametrize("shared", [False, True])
+def test_fused_cpu_bf16_path_matches_torch_ops_and_follows_weight_updates(monkeypatch, shared: bool) -> None:
+    """Issue 13: under CPU bf16 autocast without autograd, with enough rows per member, each member runs as
+    oneDNN fused linear + SiLU calls. Its outputs equal torch's own per-member ops in bf16 (F.linear, F.silu)
+    to bf16 rounding, are as close to float32 as autocast's batched path, and follow in-place weight changes
+    (the bf16 weight cache is keyed on the parameters' versions) and another member selection."""
+    from dynamics import fused
+
+    if not fused._AVAILABLE:
+        pytest.skip("torch.ops.mkldnn._linear_pointwise is not available in this build")
+    torch.manual_seed(3)
+    ens = GaussianEnsemble(24, 18, ensemble_size=5, hidden_size=64, num_layers=3)
+    idx = torch.tensor([4, 0, 2])
+    rows = fused.MIN_ROWS
+    x = torch.randn(rows, 24) if shared else torch.randn(3, rows, 24)
+    calls = []
+    real = fused.fused_member_mlp
+    monkeypatch.setattr(fused, "fused_member_mlp", lambda *a: calls.append(1) or real(*a))
+
+    def run(on: bool) -> tuple[torch.Tensor, torch.Tensor]:
+        monkeypatch.setattr(fused, "FUSED_CPU_BF16", on)
+        with torch.no_grad(), torch.autocast("cpu", torch.bfloat16):
+            return ens(x, idx)
+
+    with torch.no_grad():
+        mean32, lv32 = ens(x, idx)
+    (mean_f, lv_f), (mean_b, lv_b) = run(True), run(False)
+    assert len(calls) == 1 and mean_f.dtype == torch.float32
+    # torch's own ops per member, in bf16
+    h = ens.normalise(x).to(torch.bfloat16)
+    ref = []
+    for j, k in enumerate(idx.tolist()):
+        y = h if shared else h[j]
+        for i, (w, b) in enumerate(zip(ens.weights, ens.biases)):
+            y = F.linear(y, w[k].T.to(torch.bfloat16), b[k, 0].to(torch.bfloat16))
+            y = F.silu(y) if i < len(ens.weights) - 1 else y
+        ref.append(y)
+    with torch.no_grad():
+        ref_mean = ens.denormalise_target(torch.stack(ref)[..., :18].float())
+    scale = mean32.abs().max()
+    assert (mean_f - ref_mean).abs().max() < 0.02 * scale  # bf16 rounding of a 4-layer chain
+    err_f, err_b = (mean_f - mean32).abs().mean(), (mean_b - mean32).abs().mean()
+    assert err_f < 1.2 * err_b and (lv_f - lv32).abs().mean() < 1.2 * (lv_b - lv32).abs().mean()
+    assert not torch.equal(mean_f, mean_b)  # really another kernel
+    # inside a cached_weights() scope (the evaluator opens one per call) the bf16 weights are prepared once per
+    # selection; an in-place update of the weights (an optimiser step) and another selection are still seen
+    with fused.cached_weights():
+        assert torch.equal(run(True)[0], mean_f) and torch.equal(run(True)[0], mean_f)
+        assert len(fused._SCOPE.cache) == 1
+        with torch.no_grad():
+            ens.weights[-1].mul_(2.0)
+            mean32_new, _ = ens(x, idx)
+        mean_new, _ = run(True)
+        assert len(fused._SCOPE.cache) == 2
+    assert fused._SCOPE.cache is None
+    # (a stale cache would be off by the whole change)
+    assert (mean_new - mean32_new).abs().mean() < 0.05 * (mean32_new - mean32).abs().mean()
+    idx = torch.tensor([1, 3, 0])
+    with torch.no_grad():
+        mean32_other, _ = ens(x, idx)
+    assert (run(True)[0] - mean32_other).abs().mean() < 0.05 * (mean32_other - mean32_new).abs().mean()
+    # not with autograd, not below MIN_ROWS
+    calls.clear()
+    with torch.autocast("cpu", torch.bfloat16):
+        ens(x, idx)
+        with torch.no_grad():
+            ens(x[..., : rows - 1, :], idx)
+    assert calls == []

@@ -498,8 +498,17 @@ def cheetah_model():
 BF16_RELATIVE_L1 = 5e-3
 
 
+@pytest.mark.parametrize("bf16_path", ["batched", "fused"])
 @pytest.mark.parametrize("prop", PROPAGATIONS)
-def test_bf16_returns_stay_close_to_fp32_on_a_real_model(cheetah_model, prop: str) -> None:
+def test_bf16_returns_stay_close_to_fp32_on_a_real_model(cheetah_model, prop: str, bf16_path: str, monkeypatch) -> None:
+    """Every bf16 path the planner takes: autocast's batched baddbmm (few rows per member, e.g. the fast preset)
+    and the fused per-member oneDNN linear + SiLU (dynamics.fused; the research config's 1600 rows per member,
+    here forced with MIN_ROWS = 0)."""
+    from dynamics import fused
+
+    if bf16_path == "fused" and not fused._AVAILABLE:
+        pytest.skip("no oneDNN fused linear in this build")
+    monkeypatch.setattr(fused, "MIN_ROWS", 0 if bf16_path == "fused" else 10**9)
     spec, head, ens, obs0 = cheetah_model
     actions = torch.rand(100, 15, spec.act_dim, generator=torch.Generator().manual_seed(1)) * 2 - 1
     ret = {}

@@ -9,6 +9,12 @@ the baseline arm (:data:`BASELINE` with the same planner) P(final > baseline's) 
 runs: the worst final) and the IQM [CI] of the per-seed difference of final rewards. Diverged runs are
 counted (``n_diverged``), never averaged in; the cost columns are means over all complete runs.
 
+Time to threshold (:data:`THRESHOLDS`, per env): the wall-clock minutes (``wall_time_s`` of the first trial
+whose episode reward reaches the threshold, i.e. at the end of that trial, its model training included) and the
+env steps until then. Per arm over the runs that did not diverge: ``n_reached`` of ``n_seeds`` reached it
+(counted), and the IQM [CI] of minutes and env steps over the runs that reached it (never averaged with the
+ones that did not).
+
 Files: ``summary.md``, ``summary.csv`` (per env and arm, :data:`SUMMARY_COLUMNS`; the baseline columns
 empty for the baseline itself and where it has no run), ``summary_runs.csv`` (per run, with
 ``diverged``), ``rewards_ENV.png`` (episode reward vs env steps per arm: every seed's curve interpolated
@@ -40,6 +46,11 @@ from pets.experiments.statistics import (
 )
 from pets.fileio import atomic_write_bytes
 
+#: Reward thresholds of the time-to-threshold columns (``docs/performance.md``): InvertedPendulum's maximum
+#: (1000 = balanced for the whole 1000-step episode), Reacher -5 (near the target for most of the episode)
+#: and HalfCheetah 1000 at the fast preset (a steady forward gait; PETS' research config reaches ~10x that).
+THRESHOLDS: dict[str, float] = {"invertedpendulum": 1000.0, "reacher": -5.0, "halfcheetah": 1000.0}
+_THRESHOLD_KEYS = ("minutes_to_threshold", "steps_to_threshold")
 #: Cost columns of a run: their mean over the complete runs of an arm (``KEY_mean``).
 COST_KEYS = ("env_steps", "wall_time_s", "plan_seconds_per_step")
 _BASELINE_COLUMNS = [
@@ -65,6 +76,9 @@ SUMMARY_COLUMNS = [
     "auc_iqm",
     "auc_ci_low",
     "auc_ci_high",
+    "threshold",
+    "n_reached",
+    *[f"{k}_{stat}" for k in _THRESHOLD_KEYS for stat in ("iqm", "ci_low", "ci_high")],
     *[f"{k}_mean" for k in COST_KEYS],
     *_BASELINE_COLUMNS,
 ]
@@ -77,6 +91,7 @@ RUN_COLUMNS = [
     "diverged",
     "final_reward",
     "auc",
+    *_THRESHOLD_KEYS,
     *COST_KEYS,
 ]
 
@@ -98,12 +113,27 @@ def reward_divergence(rows: Sequence[Mapping[str, float]]) -> str | None:
     return None
 
 
-def online_run_stats(rows: Sequence[Mapping[str, float]], trials: int, final_window: int) -> dict[str, Any]:
+def time_to_threshold(rows: Sequence[Mapping[str, float]], threshold: float | None) -> tuple[float, float]:
+    """``(minutes, env steps)`` at the end of the first trial whose episode reward is >= ``threshold``
+    (``wall_time_s`` / 60 and ``env_steps`` of that row); NaN for both when no trial reaches it or there is no
+    threshold."""
+    if threshold is not None:
+        for r in rows:
+            if float(r["episode_reward"]) >= threshold:
+                return float(r["wall_time_s"]) / 60.0, float(r["env_steps"])
+    return math.nan, math.nan
+
+
+def online_run_stats(
+    rows: Sequence[Mapping[str, float]], trials: int, final_window: int, threshold: float | None = None
+) -> dict[str, Any]:
     """Per-run numbers from the first ``trials`` metrics rows: diverged (:func:`reward_divergence`: None or
     why), final (mean of the last ``final_window`` episode rewards), auc (mean episode reward over all
-    trials), env_steps, wall_time_s (the run's wall-clock seconds: planning, simulation and model training)
-    and plan_seconds_per_step (median over the planned trials; 0 if every trial was random)."""
+    trials), minutes_to_threshold and steps_to_threshold (:func:`time_to_threshold`), env_steps,
+    wall_time_s (the run's wall-clock seconds: planning, simulation and model training) and
+    plan_seconds_per_step (median over the planned trials; 0 if every trial was random)."""
     use = list(rows)[:trials]
+    minutes, steps = time_to_threshold(use, threshold)
     rewards = np.array([r["episode_reward"] for r in use], dtype=np.float64)
     w = min(final_window, len(use))
     planned = [r["plan_seconds_per_step"] for r in use if r.get("plan_seconds_per_step", 0.0) > 0]
@@ -113,6 +143,8 @@ def online_run_stats(rows: Sequence[Mapping[str, float]], trials: int, final_win
         "diverged": reward_divergence(use),
         "final_reward": final,
         "auc": auc,
+        "minutes_to_threshold": minutes,
+        "steps_to_threshold": steps,
         "env_steps": float(use[-1]["env_steps"]),
         "wall_time_s": float(use[-1]["wall_time_s"]),
         "plan_seconds_per_step": float(np.median(planned)) if planned else 0.0,
@@ -147,6 +179,13 @@ def arm_statistics(
             iqm, low, high = iqm_ci(scores, reps=reps, seed=seed)
             for j, key in enumerate(("final", "auc")):
                 s.update({f"{key}_iqm": iqm[j], f"{key}_ci_low": low[j], f"{key}_ci_high": high[j]})
+        reached = [r for r in good[arm].values() if math.isfinite(r["minutes_to_threshold"])]
+        s["n_reached"] = len(reached)
+        if reached:  # the runs that never reached it are counted (n_reached of n_seeds), not averaged in
+            times = np.array([[r[k] for k in _THRESHOLD_KEYS] for r in reached])
+            iqm, low, high = iqm_ci(times, reps=reps, seed=seed)
+            for j, key in enumerate(_THRESHOLD_KEYS):
+                s.update({f"{key}_iqm": iqm[j], f"{key}_ci_low": low[j], f"{key}_ci_high": high[j]})
         s.update({f"{k}_mean": float(np.mean([r[k] for r in rs])) for k in COST_KEYS})
         base = baselines.get(arm)
         if base is not None and base in runs:
@@ -176,9 +215,11 @@ def summarise_online(
     planners: Sequence[str] | None = None,
     *,
     reps: int = REPS,
+    thresholds: Mapping[str, float] = THRESHOLDS,
 ) -> list[dict[str, Any]]:
     """Write summary.md, summary.csv, summary_runs.csv, rewards_ENV.png and walltime_ENV.png (module
-    docstring) from the complete runs; returns the summary.csv rows."""
+    docstring) from the complete runs; returns the summary.csv rows. ``thresholds``: the reward threshold
+    per env of the time-to-threshold columns (an env without one gets none)."""
     out = Path(out)
     per_run, summary, missing, diverged_runs, text = [], [], [], [], []
     arms = online_arms(models, planners)
@@ -202,9 +243,10 @@ def summarise_online(
                         f"{'; failed: ' + failed[name] if failed and name in failed else ''})"
                     )
                     continue
-                s = {"seed": seed, **online_run_stats(rows, trials, final_window)}
+                s = {"seed": seed, **online_run_stats(rows, trials, final_window, thresholds.get(env))}
                 per_run.append({"env": env, "model": model, "planner": planner or "", "trials": trials, **s})
                 per_run[-1]["diverged"] = s["diverged"] or ""
+                per_run[-1].update({k: "" for k in _THRESHOLD_KEYS if not math.isfinite(s[k])})  # never reached
                 runs.setdefault(label, []).append(s)
                 curves.setdefault(label, [])
                 if s["diverged"]:
@@ -219,7 +261,7 @@ def summarise_online(
             label = labels[(model, planner)]
             if label in stats:
                 row = {"env": env, "model": model, "planner": planner or "", "trials": trials, "final_window": w}
-                rows_env.append({**row, **stats[label]})
+                rows_env.append({**row, **stats[label], "threshold": thresholds.get(env)})
         summary += rows_env
         text += _env_section(env, rows_env, planners is not None, compared, baselines)
         colors = model_colors(list(curves)) if planners is None else arm_colors(list(curves))
@@ -246,7 +288,10 @@ def summarise_online(
         + " A run with a non-finite episode reward is diverged: counted, left out of the IQMs, CIs and "
         "differences, and the worst final reward in P. Plan s/step: median seconds per planning step of "
         "a run; wall h: the run's wall-clock hours (planning, simulation, model training); both the mean "
-        "over the complete runs, diverged ones included.",
+        "over the complete runs, diverged ones included. To threshold: how many of the runs that did not "
+        "diverge reached the env's reward threshold, and over those that did the IQM [CI] of the wall-clock "
+        "minutes and env steps until the end of the first trial that reached it (the others counted, not "
+        "averaged in).",
         "",
     ]
     text = header + text
@@ -269,6 +314,9 @@ def _env_section(
     header = ["model", *(["planner"] if with_planner else []), "seeds", "diverged", "final reward", "AUC"]
     if compared:
         header += [f"P(final > {BASELINE}'s)", f"final - {BASELINE}", "pairs"]
+    threshold = rows[0]["threshold"] if rows else None
+    if threshold is not None:
+        header += [f"reached {threshold:g}", "minutes to it", "env steps to it"]
     header += ["env steps", "plan s/step", "wall h"]
     table = []
     for r in rows:
@@ -284,6 +332,10 @@ def _env_section(
                     fmt_interval(r["diff_to_delta"], r["diff_ci_low"], r["diff_ci_high"]),
                     "-" if r["n_pairs"] is None else str(r["n_pairs"]),
                 ]
+        if threshold is not None:
+            cells.append(f"{r['n_reached']}/{r['n_seeds']}")
+            for k in _THRESHOLD_KEYS:
+                cells.append(fmt_interval(r[f"{k}_iqm"], r[f"{k}_ci_low"], r[f"{k}_ci_high"], "-"))
         cells += [
             f"{r['env_steps_mean']:.0f}",
             fmt(r["plan_seconds_per_step_mean"], 3),

@@ -1,0 +1,86 @@
+"""An honest cost: the run's remaining time estimated from its first planning steps, one line when it is long.
+
+:class:`CostEstimate` watches the planning time of the first trial planned in a session. After
+:data:`WARMUP_STEPS` steps (the first includes any ``torch.compile``) and :data:`MEASURED_STEPS` more, it
+estimates the planning time of the rest of the run (seconds per step x episode length x trials left) and,
+when that exceeds :data:`LONG_RUN_HOURS`, gives one line naming faster settings. Planning is nearly all of
+a PETS run's time at the research config (docs/performance.md); model training adds to it, episodes that
+terminate early take less.
+"""
+
+from __future__ import annotations
+
+from omegaconf import DictConfig
+
+from pets.config import PRESETS
+from pets.hardware import device_type, native_bf16
+
+#: Steps before the measurement (the first planning step compiles when ``planner.compile``).
+WARMUP_STEPS = 2
+#: Planning steps the estimate is measured over.
+MEASURED_STEPS = 5
+#: A run whose planning alone is estimated above this gets the line.
+LONG_RUN_HOURS = 3.0
+
+
+def faster_options(cfg: DictConfig) -> list[str]:
+    """Settings that make planning faster and that ``cfg`` does not use yet."""
+    p, fast = cfg.planner, PRESETS["fast"]["planner"]
+    options = []
+    if p.population * p.particles * p.horizon * p.iterations > (
+        fast["population"] * fast["particles"] * fast["horizon"] * fast["iterations"]
+    ):
+        options.append("--preset fast (about 20x fewer model evaluations per step)")
+    if p.name == "cem":
+        options.append("planner.name=icem (about 30% fewer)")
+    if p.precision == "fp32" and native_bf16(device_type(cfg.device)):
+        options.append("planner.precision=bf16")
+    if not p.compile:
+        options.append("planner.compile=true")
+    return options
+
+
+def format_duration(seconds: float) -> str:
+    """``2 h 05 min``, ``3 d 4 h`` or ``12 min``."""
+    minutes = int(round(seconds / 60))
+    if minutes >= 48 * 60:
+        return f"{minutes // 1440} d {minutes % 1440 // 60} h"
+    if minutes >= 60:
+        return f"{minutes // 60} h {minutes % 60:02d} min"
+    return f"{minutes} min"
+
+
+def long_run_line(cfg: DictConfig, seconds_per_step: float, steps_per_trial: int, trials_left: int) -> str | None:
+    """The one line for a run whose planning is estimated above :data:`LONG_RUN_HOURS`, else None."""
+    estimate = seconds_per_step * steps_per_trial * trials_left
+    if estimate <= LONG_RUN_HOURS * 3600:
+        return None
+    options = faster_options(cfg)
+    return (
+        f"estimated time: about {format_duration(estimate)} of planning for the {trials_left} trials left "
+        f"({seconds_per_step:.2f} s per planning step x up to {steps_per_trial} steps per trial; model training "
+        "not counted)" + (f"; faster: {', '.join(options)}" if options else "")
+    )
+
+
+class CostEstimate:
+    """Feeds on the cumulative planning seconds after each step of the first planned trial of a session."""
+
+    def __init__(self, cfg: DictConfig, steps_per_trial: int, trials_left: int) -> None:
+        self.cfg = cfg
+        self.steps_per_trial = steps_per_trial
+        self.trials_left = trials_left
+        self.done = False
+        self._start = 0.0
+
+    def step(self, steps: int, plan_seconds: float) -> str | None:
+        """After step ``steps`` (1-based) with ``plan_seconds`` of planning so far: the line once, when due."""
+        if self.done:
+            return None
+        if steps == WARMUP_STEPS:
+            self._start = plan_seconds
+        elif steps == WARMUP_STEPS + MEASURED_STEPS:
+            self.done = True
+            per_step = (plan_seconds - self._start) / MEASURED_STEPS
+            return long_run_line(self.cfg, per_step, self.steps_per_trial, self.trials_left)
+        return None

@@ -1,0 +1,64 @@
+"""What the machine offers for bf16 matmuls, and ``precision=auto`` resolved against it.
+
+``auto`` means bfloat16 where the hardware multiplies bf16 natively: CPUs with AMX (``amx_bf16``) or
+AVX-512 BF16 (``avx512_bf16``) in ``/proc/cpuinfo`` (Linux x86), CUDA devices for which
+``torch.cuda.is_bf16_supported()``; float32 everywhere else (older x86, ARM, macOS, where bf16 would be
+emulated and slower than fp32). Resolved once, when the config is made, so config.yaml records the
+precision a run used and a resumed run (or the same run on another machine) keeps it.
+"""
+
+from __future__ import annotations
+
+import functools
+import sys
+
+import torch
+
+#: Concrete precisions; ``auto`` resolves to one of them.
+CONCRETE_PRECISIONS = ("fp32", "bf16")
+
+
+@functools.lru_cache(maxsize=1)
+def cpu_flags() -> frozenset[str]:
+    """The CPU feature flags of ``/proc/cpuinfo`` (empty off Linux or when unreadable)."""
+    if not sys.platform.startswith("linux"):
+        return frozenset()
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("flags"):
+                    return frozenset(line.partition(":")[2].split())
+    except OSError:
+        pass
+    return frozenset()
+
+
+def cpu_isa(flags: frozenset[str] | None = None) -> str:
+    """The CPU's bf16 matmul ISA in words: ``AMX``, ``AVX-512 BF16`` or ``no native bf16``."""
+    flags = cpu_flags() if flags is None else flags
+    if "amx_bf16" in flags:
+        return "AMX"
+    if "avx512_bf16" in flags:
+        return "AVX-512 BF16"
+    return "no native bf16"
+
+
+def native_bf16(device_type: str, flags: frozenset[str] | None = None) -> bool:
+    """Whether ``device_type`` (``cpu`` or ``cuda``) multiplies bf16 natively (see the module docstring)."""
+    if device_type == "cuda":
+        return torch.cuda.is_available() and torch.cuda.is_bf16_supported()
+    return cpu_isa(flags) != "no native bf16"
+
+
+def device_type(device: str) -> str:
+    """``cpu`` or ``cuda`` for a config ``device`` value (``auto``: CUDA when torch sees one)."""
+    if device == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    return "cuda" if device.startswith("cuda") else "cpu"
+
+
+def resolve_precision(precision: str, device: str, flags: frozenset[str] | None = None) -> str:
+    """``precision`` itself unless ``auto``; ``auto``: ``bf16`` where ``device`` has native bf16, else ``fp32``."""
+    if precision != "auto":
+        return precision
+    return "bf16" if native_bf16(device_type(device), flags) else "fp32"

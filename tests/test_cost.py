@@ -1,0 +1,46 @@
+"""The one-line estimate of a long run (pets.cost) and where run_pets.py prints it (issue 13 item 4)."""
+
+import pytest
+
+from pets import cost
+from pets.config import make_config
+from tests.test_cli import TINY
+
+
+def test_a_long_run_gets_one_line_naming_faster_options():
+    cfg = make_config("halfcheetah", "delta", "research", {"planner.precision": "fp32"})
+    est = cost.CostEstimate(cfg, steps_per_trial=1000, trials_left=300)
+    lines = [est.step(i, 2.0 + 3.5 * max(0, i - cost.WARMUP_STEPS)) for i in range(1, 40)]
+    (line,) = [x for x in lines if x]  # once, after the warm-up and the measured steps
+    assert lines.index(line) == cost.WARMUP_STEPS + cost.MEASURED_STEPS - 1
+    # 3.5 s per step x 1000 steps x 300 trials = 291.7 h
+    assert line.startswith("estimated time: about 12 d 3 h of planning for the 300 trials left (3.50 s per planning")
+    assert "--preset fast" in line and "planner.name=icem" in line and "planner.compile=true" in line
+    assert "\n" not in line
+
+
+def test_a_short_run_gets_no_line_and_used_options_are_not_offered():
+    cfg = make_config("halfcheetah", "delta", "fast", {"planner.name": "icem", "planner.compile": "true"})
+    assert cost.long_run_line(cfg, 0.1, 1000, 10) is None  # 17 min
+    line = cost.long_run_line(cfg, 0.1, 1000, 300)  # 8 h 20 min
+    assert line is not None and "8 h 20 min" in line
+    assert "--preset fast" not in line and "icem" not in line and "compile" not in line
+
+
+@pytest.mark.parametrize("seconds, text", [(59, "1 min"), (7500, "2 h 05 min"), (86400 * 3 + 7200, "3 d 2 h")])
+def test_format_duration(seconds, text):
+    assert cost.format_duration(seconds) == text
+
+
+def test_run_pets_prints_the_line_once_per_session(tmp_path, monkeypatch, capsys):
+    """With the threshold at 0 h every run is long: one line on stderr, after the first planning steps."""
+    import run_pets
+
+    monkeypatch.setattr(cost, "LONG_RUN_HOURS", 0.0)
+    monkeypatch.setattr(cost, "WARMUP_STEPS", 1)
+    monkeypatch.setattr(cost, "MEASURED_STEPS", 1)
+    out = tmp_path / "run"
+    assert run_pets.main(["--env", "invertedpendulum", "--trials", "2", "--out", str(out), *TINY]) == 0
+    err = capsys.readouterr().err
+    assert err.count("estimated time: about") == 1, err
+    assert "for the 2 trials left" in err
