@@ -140,11 +140,20 @@ def prepare_data(
     return "collected"
 
 
-def collect_data(env: str, parts: Sequence[tuple[str, str, int, int]], max_steps: int | None, progress: bool) -> list:
+def collect_data(
+    env: str, parts: Sequence[tuple[str, str, int, int]], max_steps: int | None, progress: bool, threads: int = 1
+) -> list:
     """Collect an env's missing data files ``(path, policy, episodes, seed)`` in order (SAC's test data needs the
-    agent its training data saved); the files' names. A job of the backend."""
-    for path, policy, episodes, seed in parts:
-        prepare_data(Path(path), env, policy, episodes, seed, max_steps, progress)
+    agent its training data saved) with ``threads`` torch threads; the files' names. A job of the backend."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        for path, policy, episodes, seed in parts:
+            prepare_data(Path(path), env, policy, episodes, seed, max_steps, progress)
+    finally:
+        torch.set_num_threads(before)
     return [Path(path).name for path, *_ in parts]
 
 
@@ -371,7 +380,8 @@ def compare_offline(
                 else:
                     missing.append((str(path), part_policy, n, seed))
             if missing:
-                data_jobs.append((f"{env} data", collect_data, (env, missing, max_steps, progress and alone)))
+                args = (env, missing, max_steps, progress and alone, backend.threads)
+                data_jobs.append((f"{env} data", collect_data, args))
         data_failed = {}
         for name, (ok, value) in run(data_jobs, processes=True, progress=progress, desc="data sets").items():
             if ok:
