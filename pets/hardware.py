@@ -1,10 +1,11 @@
 """What the machine offers for bf16 matmuls, and ``precision=auto`` resolved against it.
 
-``auto`` means bfloat16 where the hardware multiplies bf16 natively: CPUs with AMX (``amx_bf16``) or
-AVX-512 BF16 (``avx512_bf16``) in ``/proc/cpuinfo`` (Linux x86), CUDA devices for which
-``torch.cuda.is_bf16_supported()``; float32 everywhere else (older x86, ARM, macOS, where bf16 would be
-emulated and slower than fp32). Resolved once, when the config is made, so config.yaml records the
-precision a run used and a resumed run (or the same run on another machine) keeps it.
+``auto`` means bfloat16 where the hardware multiplies bf16 natively and it was measured to pay: CPUs with AMX
+(``amx_bf16``) or AVX-512 BF16 (``avx512_bf16``) in ``/proc/cpuinfo`` (Linux x86); float32 everywhere else: older
+x86, ARM, macOS (bf16 would be emulated, slower than fp32) and CUDA, where this project's small matmuls are
+bound by kernel launches, not arithmetic (bf16 eager measured 0.88x of fp32 on an H100 at both presets;
+``planner.compile=true`` is what pays there, 2x: docs/performance.md). Resolved once, when the config is made,
+so config.yaml records the precision a run used and a resumed run (or the same run on another machine) keeps it.
 """
 
 from __future__ import annotations
@@ -58,7 +59,9 @@ def device_type(device: str) -> str:
 
 
 def resolve_precision(precision: str, device: str, flags: frozenset[str] | None = None) -> str:
-    """``precision`` itself unless ``auto``; ``auto``: ``bf16`` where ``device`` has native bf16, else ``fp32``."""
+    """``precision`` itself unless ``auto``; ``auto``: ``bf16`` on a CPU with native bf16, else ``fp32`` (CUDA
+    included: see the module docstring)."""
     if precision != "auto":
         return precision
-    return "bf16" if native_bf16(device_type(device), flags) else "fp32"
+    kind = device_type(device)
+    return "bf16" if kind == "cpu" and native_bf16(kind, flags) else "fp32"
