@@ -334,6 +334,19 @@ def test_kill_9_at_random_moments_then_resume_gives_the_uninterrupted_metrics(tm
     assert (run / "rewards.png").stat().st_size > 0 and not list(run.glob(".*.tmp"))
 
 
+def start_stalled(name: str, nth: int, marker: Path, args: list) -> subprocess.Popen:
+    """``run_pets.py ARGS`` under tests/stall_write.py, which stops the ``nth`` write of ``name`` halfway and
+    creates ``marker``; returned once the write has stalled (or the run exited, or 240 s passed)."""
+    command = [sys.executable, "-m", "tests.stall_write", name, str(nth), str(marker), str(ROOT / "run_pets.py")]
+    proc = subprocess.Popen(
+        [*command, *map(str, args)], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True
+    )
+    deadline = time.time() + 240
+    while not marker.exists() and proc.poll() is None and time.time() < deadline:
+        time.sleep(0.05)
+    return proc
+
+
 def test_kill_9_inside_a_checkpoint_write_loses_nothing(tmp_path, reference):
     """Issue 17: kill -9 while trial 1's checkpoint is half written (tests/stall_write.py stops the real write
     halfway): checkpoint.pt still holds trial 0, metrics.csv lists trial 0, and --resume removes the half-written
@@ -341,27 +354,7 @@ def test_kill_9_inside_a_checkpoint_write_loses_nothing(tmp_path, reference):
     from pets import rundir
 
     run, marker = tmp_path / "run", tmp_path / "stalled"
-    proc = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "tests.stall_write",
-            "checkpoint.pt",
-            "2",
-            str(marker),
-            str(ROOT / "run_pets.py"),
-            *RUN_ARGS,
-            "--out",
-            str(run),
-        ],
-        cwd=ROOT,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    deadline = time.time() + 240
-    while not marker.exists() and proc.poll() is None and time.time() < deadline:
-        time.sleep(0.05)
+    proc = start_stalled("checkpoint.pt", 2, marker, [*RUN_ARGS, "--out", run])
     assert marker.exists(), f"the write never stalled (exit {proc.poll()}): {proc.stderr.read() if proc.poll() else ''}"
     (partial,) = run.glob(".checkpoint.pt.*.tmp")
     proc.send_signal(signal.SIGKILL)
@@ -555,26 +548,7 @@ def test_a_run_killed_while_writing_its_last_plot_gets_it_on_resume(tmp_path):
     run, marker = tmp_path / "run", tmp_path / "stalled"
     args = [*RUN_ARGS]
     args[args.index("--trials") + 1] = "1"
-    proc = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "tests.stall_write",
-            "rewards.png",
-            "1",
-            str(marker),
-            str(ROOT / "run_pets.py"),
-            *args,
-            "--out",
-            str(run),
-        ],
-        cwd=ROOT,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-    )
-    deadline = time.time() + 240
-    while not marker.exists() and proc.poll() is None and time.time() < deadline:
-        time.sleep(0.05)
+    proc = start_stalled("rewards.png", 1, marker, [*args, "--out", run])
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     assert marker.exists() and not (run / "rewards.png").exists()
