@@ -3,7 +3,6 @@ logged subprocesses of the online runs (:func:`online_job`)."""
 
 from __future__ import annotations
 
-import fcntl
 import os
 import socket
 import subprocess
@@ -118,27 +117,19 @@ def run_logged(command: Sequence[str], log: Path, threads: int = 1) -> int:
 
 
 def wait_until_unlocked(run_dir: Path, timeout: float = 60.0) -> None:
-    """Wait (up to ``timeout`` s) until no process holds ``run_dir``'s lock: a run killed with its worker releases it
-    when the kernel has reaped it, which may be just after the retry starts."""
-    from pets.fileio import LOCK_FILE
+    """Wait (up to ``timeout`` s) until no process holds ``run_dir``'s lock (:func:`pets.fileio.locked`): a run
+    killed with its worker releases it when the kernel has reaped it, which may be just after the retry starts."""
+    from pets.fileio import DirectoryInUse, locked
 
-    path = Path(run_dir) / LOCK_FILE
-    if not path.exists():
-        return
     deadline = time.monotonic() + timeout
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        while True:
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                fcntl.flock(fd, fcntl.LOCK_UN)
+    while True:
+        try:
+            with locked(run_dir):
                 return
-            except BlockingIOError:
-                if time.monotonic() > deadline:
-                    return  # the run itself then says who holds it
-                time.sleep(0.2)
-    finally:
-        os.close(fd)
+        except DirectoryInUse:
+            if time.monotonic() > deadline:
+                return  # the run itself then says who holds it
+            time.sleep(0.2)
 
 
 def online_job(run_dir: str, start_args: Sequence[str], trials: int, log: str, threads: int = 1) -> str:
