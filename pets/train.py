@@ -204,27 +204,18 @@ def train_offline(
 
 def _write_run(out: Path, state: dict[str, Any], row: dict[str, Any], cfg: Any) -> None:
     """Write the run's files, config.yaml last (a directory with config.yaml is a complete run); if a write fails
-    (a full disk) the files written before it are removed and the OSError propagates."""
+    (a full disk) the run's files are removed again and the OSError propagates (the caller holds the lock)."""
     from pets import rundir
     from pets.tblog import TRIAL_TAGS, ScalarLog
 
-    def events() -> None:  # the training result as TensorBoard scalars at step 0 (pets.tblog)
-        with ScalarLog(out, cfg.tensorboard, purge_step=0) as log:
-            log.scalars(row, 0, {k: v for k, v in TRIAL_TAGS.items() if k.startswith("model_") or k == "wall_time_s"})
-
-    writes = (
-        (rundir.CHECKPOINT_FILE, lambda: rundir.save_checkpoint(out, state)),
-        (rundir.METRICS_FILE, lambda: rundir.write_metrics(out, [row])),
-        ("events", events),
-        (rundir.CONFIG_FILE, lambda: rundir.write_config(out, cfg)),
-    )
-    written: list[Path] = []
     try:
-        for name, write in writes:
-            write()
-            written.append(out / name)
+        rundir.save_checkpoint(out, state)
+        rundir.write_metrics(out, [row])
+        with ScalarLog(out, cfg.tensorboard, purge_step=0) as log:  # the training result at step 0 (pets.tblog)
+            log.scalars(row, 0, {k: v for k, v in TRIAL_TAGS.items() if k.startswith("model_") or k == "wall_time_s"})
+        rundir.write_config(out, cfg)
     except OSError:
-        for path in written:
+        for path in [out / rundir.CHECKPOINT_FILE, out / rundir.METRICS_FILE, *out.glob("events.out.tfevents.*")]:
             path.unlink(missing_ok=True)
         raise
 
