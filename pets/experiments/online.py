@@ -26,7 +26,7 @@ from typing import Any
 from pets.experiments.arguments import PROG, UsageError, few_seeds_warning
 from pets.experiments.backend import Backend
 from pets.experiments.online_summary import online_rows, summarise_online
-from pets.experiments.rundirs import check_same_config, checked_out, online_arms, run_name
+from pets.experiments.rundirs import check_out_writable, check_same_config, online_arms, run_name
 from pets.experiments.runner import online_job, open_backend
 
 
@@ -129,7 +129,7 @@ def compare_online(
                     args = start_arguments(run_dir, env, head, seed, trials, preset, arm_list, backend.threads)
                     log = str(out / "logs" / f"{name}.log")
                     jobs.append((name, online_job, (str(run_dir), args, trials, log, backend.threads)))
-    checked_out(out)  # after every argument is checked: bad input leaves no directory behind
+    check_out_writable(out)  # after every argument is checked: bad input leaves no directory behind
     counts = {a: sum(1 for v in actions.values() if v == a) for a in ("reuse", "resume", "start")}
     with open_backend(backend, out, needed=bool(jobs)) as run:
         print(

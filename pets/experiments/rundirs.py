@@ -10,17 +10,16 @@ from typing import Any
 from pets.experiments.arguments import UsageError
 
 
-def checked_out(out: Path) -> Path:
-    """``out`` resolved, created if needed; UsageError unless files can be written in it (before any work)."""
+def check_out_writable(out: Path) -> None:
+    """Create ``out`` if needed; UsageError unless files can be written in it (before any work)."""
     from pets.fileio import writable_dir_error
 
-    out = Path(out).resolve()
+    out = Path(out)
     if out.exists() and not out.is_dir():
         raise UsageError(f"--out {out} is a file, not a directory; pick another --out")
     problem = writable_dir_error(out)
     if problem:
         raise UsageError(f"--out: {problem}; pick another --out")
-    return out
 
 
 def run_name(env: str, model: str, seed: int, planner: str | None = None) -> str:
