@@ -13,7 +13,7 @@ from __future__ import annotations
 from omegaconf import DictConfig
 
 from pets.config import PRESETS
-from pets.hardware import device_type, native_bf16
+from pets.hardware import resolve_precision
 
 #: Steps before the measurement (the first planning step compiles when ``planner.compile``).
 WARMUP_STEPS = 2
@@ -33,7 +33,7 @@ def faster_options(cfg: DictConfig) -> list[str]:
         options.append("--preset fast (about 20x fewer model evaluations per step)")
     if p.name == "cem":
         options.append("planner.name=icem (about 30% fewer)")
-    if p.precision == "fp32" and native_bf16(device_type(cfg.device)):
+    if p.precision == "fp32" and resolve_precision("auto", cfg.device) == "bf16":  # where bf16 was measured to pay
         options.append("planner.precision=bf16")
     if not p.compile:
         options.append("planner.compile=true")
