@@ -16,6 +16,8 @@ a thin layer over rliable (Agarwal et al. 2021, "Deep RL at the edge of the stat
   the CI of rliable's independent stratified bootstrap (each model's runs resampled on their own).
   Diverged runs (non-finite values) enter as the worst value (error ``+inf``, reward ``-inf``):
   rank-based, a diverged run loses to every finite run and ties (counts half) with another diverged one.
+- :func:`iqm_ci_finite`: :func:`iqm_ci` per column over the finite values only, for score matrices
+  where a run is left out of some columns (diverged at one horizon) and counts in the others.
 - :func:`paired_ratios` / :func:`paired_differences`: per seed that both have (both not diverged) the
   ratio model / baseline (errors: same data, same start points) or the difference model - baseline
   (rewards, which can be negative: same seed, same env seeds); :func:`iqm_ci` of those is the paired
@@ -141,6 +143,26 @@ def iqm_ci(
     )
 
 
+def iqm_ci_finite(
+    scores: Any, *, reps: int = REPS, seed: int = 0, confidence: float = CONFIDENCE
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`iqm_ci` of every column of ``scores`` (runs, columns) over its finite values only: a NaN or inf
+    is a run left out of that column (e.g. diverged at that horizon). NaN where a column has no finite value.
+
+    Columns with the same finite runs share one :func:`iqm_ci` call, so with every value finite this is
+    exactly :func:`iqm_ci` (one call, the same numbers)."""
+    x = _score_matrix(scores, "scores")
+    finite = np.isfinite(x)
+    groups: dict[bytes, list[int]] = {}
+    for j in np.flatnonzero(finite.any(axis=0)):
+        groups.setdefault(finite[:, j].tobytes(), []).append(int(j))
+    out = np.full((3, x.shape[1]), np.nan)
+    for cols in groups.values():
+        rows = finite[:, cols[0]]
+        out[:, cols] = iqm_ci(x[np.ix_(rows, cols)], reps=reps, seed=seed, confidence=confidence)
+    return out[0], out[1], out[2]
+
+
 def _as_errors(values: Any, name: str, higher_is_better: bool = False) -> np.ndarray:
     """Values as a float error matrix (runs, columns), lower is better: negated if ``higher_is_better``;
     every non-finite value (a diverged run) set to +inf, the worst."""
@@ -214,21 +236,24 @@ def p_improvement_ci(
 
 
 def paired_ratios(model: Mapping[Any, Any], delta: Mapping[Any, Any]) -> tuple[list[Any], np.ndarray]:
-    """``(seeds, ratios)``: per seed in both ``model`` and ``delta`` ({seed: per-column errors} of the runs
-    that did not diverge) the ratio model / delta, shape (seeds, columns); seeds in sorted order.
+    """``(seeds, ratios)``: per seed in both ``model`` and ``delta`` ({seed: per-column errors}, NaN where the
+    run diverged) the ratio model / delta, shape (seeds, columns); seeds in sorted order.
 
     Pairing by seed compares runs trained with the same seed on the same data and evaluated from the
-    same start points. A column whose ratio is not finite for some seed (delta's error 0, e.g. a part
-    the env does not have) is NaN for every seed: leave it out of :func:`iqm_ci`.
+    same start points. A ratio is NaN where either error is not finite (that pair is left out of that
+    column: :func:`iqm_ci_finite`). A column whose ratio is not finite for some seed where both errors
+    are (delta's error 0, e.g. a part the env does not have) is NaN for every seed.
     """
     seeds = sorted(set(model) & set(delta))
     if not seeds:
         return [], np.empty((0, 0))
     num = np.array([np.asarray(model[s], dtype=np.float64) for s in seeds])
     den = np.array([np.asarray(delta[s], dtype=np.float64) for s in seeds])
+    both = np.isfinite(num) & np.isfinite(den)
     with np.errstate(divide="ignore", invalid="ignore"):
-        ratios = num / den
-    return seeds, np.where(np.isfinite(ratios).all(axis=0), ratios, np.nan)
+        ratios = np.where(both, num / den, np.nan)
+    defined = (np.isfinite(ratios) | ~both).all(axis=0)
+    return seeds, np.where(defined, ratios, np.nan)
 
 
 def paired_differences(model: Mapping[Any, Any], baseline: Mapping[Any, Any]) -> tuple[list[Any], np.ndarray]:
