@@ -13,6 +13,7 @@ from pets.experiments.statistics import (
     bootstrap_band,
     bootstrap_ci,
     divergence,
+    divergences,
     iqm,
     iqm_ci,
     iqm_ci_finite,
@@ -200,16 +201,26 @@ def test_iqm_ci_finite_is_iqm_ci_over_the_finite_runs_of_each_column():
 
 
 def test_divergence_non_finite_values_and_the_standardized_threshold():
-    ok = {"1": {"mean_step_error": 0.1, "standardized_error": 2.0, "nonfinite_fraction": 0.0}}
+    ok = {"mean_step_error": 0.1, "standardized_error": 2.0, "nonfinite_fraction": 0.0}
     assert divergence(ok) is None
-    assert divergence({**ok, "5": {"mean_step_error": NAN, "nonfinite_fraction": 0.0}}) == "mean_step_error nan at h=5"
-    assert "inf" in divergence({"1": {"rotation_error": INF}})
-    assert "non-finite predictions" in divergence({"3": {"mean_step_error": 1.0, "nonfinite_fraction": 0.01}})
-    at = {"1": {"standardized_error": DIVERGED_STANDARDIZED_ERROR}}
-    assert divergence(at) is None  # the threshold itself is not diverged
-    over = {"1": {"standardized_error": 2.0}, "50": {"standardized_error": 7e4, "mean_step_error": 3.0}}
-    assert divergence(over) == "standardized_error 7e+04 > 100 at h=50"
-    assert divergence({"1": {"mean_step_error": 7e4, "position_error": 1e5}}) is None  # old keys: non-finite only
+    assert divergence({**ok, "mean_step_error": NAN}) == "mean_step_error nan"
+    assert divergence({"rotation_error": INF}) == "rotation_error inf"
+    assert (
+        divergence({"mean_step_error": 1.0, "nonfinite_fraction": 0.01}) == "non-finite predictions (0.01 of the steps)"
+    )
+    assert divergence({"standardized_error": DIVERGED_STANDARDIZED_ERROR}) is None  # the threshold itself is not
+    assert divergence({"standardized_error": 7e4, "mean_step_error": 3.0}) == "standardized_error 7e+04 > 100"
+    assert divergence({"mean_step_error": 7e4, "position_error": 1e5}) is None  # old keys: non-finite only
+
+
+def test_divergences_are_per_horizon():
+    ok = {"mean_step_error": 0.1, "standardized_error": 2.0, "nonfinite_fraction": 0.0}
+    assert divergences({"1": ok, "5": ok}) == {}
+    bad = {"1": ok, "5": {**ok, "standardized_error": 7e4}, "10": ok, "50": {**ok, "nonfinite_fraction": 0.5}}
+    assert divergences(bad) == {
+        "5": "standardized_error 7e+04 > 100",
+        "50": "non-finite predictions (0.5 of the steps)",
+    }
 
 
 # --------------------------------------------------------------------------- mean bootstrap

@@ -22,9 +22,10 @@ a thin layer over rliable (Agarwal et al. 2021, "Deep RL at the edge of the stat
   ratio model / baseline (errors: same data, same start points) or the difference model - baseline
   (rewards, which can be negative: same seed, same env seeds); :func:`iqm_ci` of those is the paired
   effect with its CI.
-- :func:`divergence`: a run whose evaluation holds a non-finite value, or predictions that went
-  non-finite, or a ``standardized_error`` above :data:`DIVERGED_STANDARDIZED_ERROR`. Diverged runs
-  are counted and shown as such, never averaged into an IQM.
+- :func:`divergence` / :func:`divergences`: per horizon, whether a run's evaluation holds a non-finite
+  value there, or predictions that went non-finite, or a ``standardized_error`` above
+  :data:`DIVERGED_STANDARDIZED_ERROR`. A run diverged at a horizon is counted and shown as such there,
+  never averaged into an IQM; at its other horizons it counts normally.
 
 Small samples: the IQM of ``n <= 3`` values is their mean, and the percentile bootstrap of a mean
 of ``n <= 3`` values is exactly ``[min, max]`` of the values (all-min and all-max resamples have
@@ -78,7 +79,7 @@ CONFIDENCE = 0.95
 #: summary (8 envs x 6 models x 5 horizons x 8 metrics) take about 15 s on 2 CPU cores with it.
 REPS = 5_000
 #: A run whose ``standardized_error`` (the RMS prediction error in units of the training data's standard
-#: deviations) exceeds this at any horizon is diverged: predicting the data mean scores about 1 and an
+#: deviations) exceeds this at a horizon is diverged at that horizon: predicting the data mean scores about 1 and an
 #: independent draw from the data about 1.4, so 100 is far beyond any model that still tracks the state.
 DIVERGED_STANDARDIZED_ERROR = 100.0
 
@@ -269,20 +270,25 @@ def paired_differences(model: Mapping[Any, Any], baseline: Mapping[Any, Any]) ->
     return seeds, a - b
 
 
-def divergence(horizons: Mapping[str, Mapping[str, Any]]) -> str | None:
-    """Why a run diverged, or None if it did not, from its evaluation's ``{"horizon": {key: value}}``: a value
-    is not finite, ``nonfinite_fraction > 0`` (some predictions went inf/NaN) or ``standardized_error``
-    exceeds :data:`DIVERGED_STANDARDIZED_ERROR` at some horizon (when the key exists)."""
-    for h, values in horizons.items():
-        for key, value in values.items():
-            v = float(value)
-            if not math.isfinite(v):
-                return f"{key} {v} at h={h}"
-            if key == "nonfinite_fraction" and v > 0:
-                return f"non-finite predictions ({v:.3g} of the steps) at h={h}"
-            if key == "standardized_error" and v > DIVERGED_STANDARDIZED_ERROR:
-                return f"standardized_error {v:.3g} > {DIVERGED_STANDARDIZED_ERROR:g} at h={h}"
+def divergence(values: Mapping[str, Any]) -> str | None:
+    """Why a run diverged at one horizon, or None if it did not, from its evaluation's ``{key: value}`` at that
+    horizon: a value is not finite, ``nonfinite_fraction > 0`` (some predictions went inf/NaN) or
+    ``standardized_error`` exceeds :data:`DIVERGED_STANDARDIZED_ERROR` (when the key exists)."""
+    for key, value in values.items():
+        v = float(value)
+        if not math.isfinite(v):
+            return f"{key} {v}"
+        if key == "nonfinite_fraction" and v > 0:
+            return f"non-finite predictions ({v:.3g} of the steps)"
+        if key == "standardized_error" and v > DIVERGED_STANDARDIZED_ERROR:
+            return f"standardized_error {v:.3g} > {DIVERGED_STANDARDIZED_ERROR:g}"
     return None
+
+
+def divergences(horizons: Mapping[str, Mapping[str, Any]]) -> dict[str, str]:
+    """``{horizon: why}`` of every horizon at which a run diverged (:func:`divergence`), from its evaluation's
+    ``{"horizon": {key: value}}``; empty if it diverged at none. At the other horizons the run counts normally."""
+    return {h: why for h, values in horizons.items() if (why := divergence(values)) is not None}
 
 
 # --------------------------------------------------------------------------- mean bootstrap
