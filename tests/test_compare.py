@@ -902,31 +902,65 @@ def test_summary_csv_has_every_env_model_horizon_and_metric(fake_offline):
             assert 0 <= float(r["p_improvement_ci_low"]) <= float(r["p_improvement"]) <= 1
 
 
-def test_diverged_runs_are_counted_never_averaged_in(fake_offline):
+def expected_statistics(model, h, diverged_seeds, metric="mean_step_error"):
+    """From the fixture's own values: (IQM over the seeds not diverged at h, rliable's P with a diverged seed's
+    error +inf, IQM of the ratios to delta over the seeds not diverged at h)."""
+    errors = [fake_values(model, s, h)[metric] for s in range(5)]
+    deltas = [fake_values("delta", s, h)[metric] for s in range(5)]
+    kept = [s for s in range(5) if s not in diverged_seeds]
+    iqm = metrics.aggregate_iqm(np.array([errors[s] for s in kept]))
+    worst = [math.inf if s in diverged_seeds else errors[s] for s in range(5)]
+    p = metrics.probability_of_improvement(-np.array(worst)[:, None], -np.array(deltas)[:, None])
+    ratio = metrics.aggregate_iqm(np.array([errors[s] / deltas[s] for s in kept]))
+    return iqm, p, ratio
+
+
+def test_a_run_diverged_at_one_horizon_counts_at_the_others(fake_offline):
     out, _ = fake_offline
-    for model, bad in (("gem", 4), ("gem2", 3)):  # diverged at h=5 only: the whole run is out, at every horizon
-        for h in (1, 5):
-            r = summary_row(out, "reacher", model, h, "mean_step_error")
-            assert (r["n_seeds"], r["n_diverged"]) == ("4", "1")
-            good = [fake_values(model, s, h)["mean_step_error"] for s in range(5) if s != bad]
-            assert float(r["iqm"]) == metrics.aggregate_iqm(np.array(good))
-            assert min(good) <= float(r["ci_low"]) <= float(r["ci_high"]) <= max(good)
-            # P: the diverged run is an infinite error; the ratio pairs the seeds both have and neither diverged
-            errors = [fake_values(model, s, h)["mean_step_error"] if s != bad else math.inf for s in range(5)]
-            deltas = [fake_values("delta", s, h)["mean_step_error"] for s in range(5)]
-            p = metrics.probability_of_improvement(-np.array(errors)[:, None], -np.array(deltas)[:, None])
-            assert float(r["p_improvement"]) == pytest.approx(p, abs=1e-15)
-            ratios = [good[i] / d for i, d in enumerate(d for s, d in enumerate(deltas) if s != bad)]
-            assert float(r["ratio_to_delta"]) == pytest.approx(metrics.aggregate_iqm(np.array(ratios)), rel=1e-12)
-            assert r["n_pairs"] == "4"
-    r = summary_row(out, "hopper", "gem", 1, "mean_step_error")  # every run diverged: no IQM, P = 0
-    assert (r["n_seeds"], r["n_diverged"], r["iqm"], r["ci_low"], r["ratio_to_delta"]) == ("0", "2", "", "", "")
-    assert float(r["p_improvement"]) == 0.0
+    for model, bad in (("gem", 4), ("gem2", 3)):  # diverged at h=5 only
+        for h, diverged, counts in ((1, [], ("5", "0", "5")), (5, [bad], ("4", "1", "4"))):
+            for metric in ("mean_step_error", "velocity_error"):  # velocity_error is finite at h=5: out all the same
+                r = summary_row(out, "reacher", model, h, metric)
+                assert (r["n_seeds"], r["n_diverged"], r["n_pairs"]) == counts
+                iqm, p, ratio = expected_statistics(model, h, diverged, metric)
+                assert float(r["iqm"]) == iqm
+                assert float(r["ci_low"]) <= iqm <= float(r["ci_high"])
+                assert float(r["p_improvement"]) == pytest.approx(p, abs=1e-15)  # diverged: an infinite error
+                assert float(r["ratio_to_delta"]) == pytest.approx(ratio, rel=1e-12)  # seeds neither diverged at
+    # the average over the horizons counts only the runs diverged at none of them
+    relative = {(r["model"], r["metric"]): r for r in csv_rows(out / "relative_error.csv") if r["env"] == "reacher"}
+    for model, bad in (("gem", 4), ("gem2", 3)):
+        r = relative[model, "mean_step_error"]
+        assert (r["n_seeds"], r["n_diverged"], r["n_pairs"]) == ("4", "1", "4")
+        kept = [s for s in range(5) if s != bad]
+        averaged = [np.mean([fake_values(model, s, h)["mean_step_error"] for h in (1, 5)]) for s in kept]
+        assert float(r["iqm"]) == pytest.approx(metrics.aggregate_iqm(np.array(averaged)), rel=1e-12)
+    assert (relative["delta", "mean_step_error"]["n_seeds"], relative["delta", "mean_step_error"]["n_diverged"]) == (
+        "5",
+        "0",
+    )
+    for h in (1, 5):  # every run diverged at every horizon: no IQM, P = 0
+        r = summary_row(out, "hopper", "gem", h, "mean_step_error")
+        assert (r["n_seeds"], r["n_diverged"], r["iqm"], r["ci_low"], r["ratio_to_delta"]) == ("0", "2", "", "", "")
+        assert float(r["p_improvement"]) == 0.0 and r["n_pairs"] == "0"
+
+
+def test_prediction_runs_csv_names_the_divergence_at_its_horizon_only(fake_offline):
+    out, _ = fake_offline
     runs = {(r["env"], r["model"], r["seed"], r["horizon"]): r for r in csv_rows(out / "prediction_runs.csv")}
-    assert runs["reacher", "gem2", "3", "1"]["diverged"] == "standardized_error 7e+04 > 100 at h=5"
-    assert runs["reacher", "gem", "4", "1"]["diverged"].startswith("mean_step_error nan at h=5")
-    assert runs["reacher", "gem", "3", "1"]["diverged"] == ""
+    assert runs["reacher", "gem2", "3", "5"]["diverged"] == "standardized_error 7e+04 > 100"
+    assert runs["reacher", "gem", "4", "5"]["diverged"] == "mean_step_error nan"
+    for run in (("gem2", "3"), ("gem", "4"), ("gem", "3")):
+        assert runs[("reacher", *run, "1")]["diverged"] == ""
+    assert runs["reacher", "gem", "3", "5"]["diverged"] == ""
+    assert runs["hopper", "gem", "0", "1"]["diverged"] == runs["hopper", "gem", "0", "5"]["diverged"] != ""
     assert set(NEW_KEYS) <= set(runs["reacher", "gem", "3", "1"]) and len(runs) == (15 + 6 + 4) * 2
+
+
+def first_row(markdown, model):
+    """The cells of the first table row of ``model`` in ``markdown``."""
+    line = next(line for line in markdown.splitlines() if line.startswith(f"| {model} |"))
+    return [cell.strip() for cell in line.strip().strip("|").split("|")]
 
 
 def test_prediction_md_shows_diverged_runs_as_such_and_no_nan_or_inf(fake_offline):
@@ -934,13 +968,17 @@ def test_prediction_md_shows_diverged_runs_as_such_and_no_nan_or_inf(fake_offlin
     md = (out / "prediction.md").read_text()
     tables = "\n".join(line for line in md.splitlines() if line.startswith("|"))
     assert not re.search(r"\b(nan|inf|None)\b", tables, re.I), "a non-finite or missing number reached a table"
-    assert "| gem2 | 4 | 1 |" in md and "all diverged" in md
-    assert "- reacher-gem2-s3: standardized_error 7e+04 > 100 at h=5" in md
     sections = dict(re.findall(r"^## (\w+) [^\n]*\n(.*?)(?=^## )", md, re.S | re.M))
+    model, seeds, h1, h5 = first_row(sections["reacher"].split("### mean_step_error")[1], "gem2")
+    assert seeds == "5"  # the model's runs
+    assert "diverged" not in h1 and h5.endswith("] (1 diverged)")  # h=1: every run; h=5: one left out
+    assert first_row(sections["hopper"], "gem") == ["gem", "2", "all diverged", "all diverged"]
+    assert "- reacher-gem2-s3: standardized_error 7e+04 > 100 at h=5" in md
+    assert "- hopper-gem-s0: standardized_error inf at h=1; standardized_error inf at h=5" in md
     assert "### rotation_error" in sections["reacher"] and "### rotation_error" not in sections["invertedpendulum"]
     assert "### standardized_error" in sections["reacher"] and "P(mean_step_error < delta's)" in sections["reacher"]
     assert "Fewer than 5 seeds cannot carry a claim" in sections["invertedpendulum"]
-    assert "Fewer than 5 seeds cannot carry a claim" in sections["reacher"]  # gem and gem2 have 4 seeds left
+    assert "Fewer than 5 seeds cannot carry a claim" in sections["reacher"]  # gem and gem2 have 4 seeds at h=5
     for name in ("relative_error.png", "ratio_to_delta.png", "absolute_error_reacher.png"):
         assert (out / name).stat().st_size > 10_000
 

@@ -13,8 +13,10 @@ from pets.experiments.statistics import (
     bootstrap_band,
     bootstrap_ci,
     divergence,
+    divergences,
     iqm,
     iqm_ci,
+    iqm_ci_finite,
     iqm_columns,
     p_improvement,
     p_improvement_ci,
@@ -171,17 +173,54 @@ def test_paired_ratios_use_the_seeds_both_have_and_drop_undefined_columns():
     np.testing.assert_array_equal(point, [1.75, 0.875])  # n = 2: the IQM is the mean
 
 
+def test_paired_ratios_leave_out_the_pairs_where_either_run_diverged():
+    model = {0: [2.0, NAN, 1.0], 1: [3.0, 4.0, 1.0], 2: [4.0, 6.0, 5.0]}
+    delta = {0: [1.0, 2.0, 0.0], 1: [INF, 2.0, 2.0], 2: [2.0, 3.0, 5.0]}
+    seeds, ratios = paired_ratios(model, delta)
+    assert seeds == [0, 1, 2]
+    np.testing.assert_array_equal(ratios[:, 0], [2.0, NAN, 2.0])  # seed 1: delta diverged there
+    np.testing.assert_array_equal(ratios[:, 1], [NAN, 2.0, 2.0])  # seed 0: the model diverged there
+    assert np.isnan(ratios[:, 2]).all()  # delta's error 0 for seed 0 (both finite): undefined for every seed
+
+
+def test_iqm_ci_finite_is_iqm_ci_over_the_finite_runs_of_each_column():
+    x = np.random.default_rng(4).gamma(2.0, 3.0, size=(6, 5))
+    all_finite = iqm_ci(x, reps=300, seed=2)
+    for got, want in zip(iqm_ci_finite(x, reps=300, seed=2), all_finite):
+        np.testing.assert_array_equal(got, want)  # every value finite: one iqm_ci call, the same numbers
+    x[1, [1, 3]] = NAN  # run 1 left out of columns 1 and 3 (one call for both)
+    x[4, 2] = INF
+    x[:, 4] = NAN  # no run left
+    point, low, high = iqm_ci_finite(x, reps=300, seed=2)
+    for cols, rows in (([0], [0, 1, 2, 3, 4, 5]), ([1, 3], [0, 2, 3, 4, 5]), ([2], [0, 1, 2, 3, 5])):
+        want = iqm_ci(x[np.ix_(rows, cols)], reps=300, seed=2)
+        for got, w in zip((point, low, high), want):
+            np.testing.assert_array_equal(got[cols], w)
+    np.testing.assert_array_equal(point[1], metrics.aggregate_iqm(np.delete(x[:, 1], 1)))
+    assert np.isnan([point[4], low[4], high[4]]).all()
+
+
 def test_divergence_non_finite_values_and_the_standardized_threshold():
-    ok = {"1": {"mean_step_error": 0.1, "standardized_error": 2.0, "nonfinite_fraction": 0.0}}
+    ok = {"mean_step_error": 0.1, "standardized_error": 2.0, "nonfinite_fraction": 0.0}
     assert divergence(ok) is None
-    assert divergence({**ok, "5": {"mean_step_error": NAN, "nonfinite_fraction": 0.0}}) == "mean_step_error nan at h=5"
-    assert "inf" in divergence({"1": {"rotation_error": INF}})
-    assert "non-finite predictions" in divergence({"3": {"mean_step_error": 1.0, "nonfinite_fraction": 0.01}})
-    at = {"1": {"standardized_error": DIVERGED_STANDARDIZED_ERROR}}
-    assert divergence(at) is None  # the threshold itself is not diverged
-    over = {"1": {"standardized_error": 2.0}, "50": {"standardized_error": 7e4, "mean_step_error": 3.0}}
-    assert divergence(over) == "standardized_error 7e+04 > 100 at h=50"
-    assert divergence({"1": {"mean_step_error": 7e4, "position_error": 1e5}}) is None  # old keys: non-finite only
+    assert divergence({**ok, "mean_step_error": NAN}) == "mean_step_error nan"
+    assert divergence({"rotation_error": INF}) == "rotation_error inf"
+    assert (
+        divergence({"mean_step_error": 1.0, "nonfinite_fraction": 0.01}) == "non-finite predictions (0.01 of the steps)"
+    )
+    assert divergence({"standardized_error": DIVERGED_STANDARDIZED_ERROR}) is None  # the threshold itself is not
+    assert divergence({"standardized_error": 7e4, "mean_step_error": 3.0}) == "standardized_error 7e+04 > 100"
+    assert divergence({"mean_step_error": 7e4, "position_error": 1e5}) is None  # old keys: non-finite only
+
+
+def test_divergences_are_per_horizon():
+    ok = {"mean_step_error": 0.1, "standardized_error": 2.0, "nonfinite_fraction": 0.0}
+    assert divergences({"1": ok, "5": ok}) == {}
+    bad = {"1": ok, "5": {**ok, "standardized_error": 7e4}, "10": ok, "50": {**ok, "nonfinite_fraction": 0.5}}
+    assert divergences(bad) == {
+        "5": "standardized_error 7e+04 > 100",
+        "50": "non-finite predictions (0.5 of the steps)",
+    }
 
 
 # --------------------------------------------------------------------------- mean bootstrap

@@ -3,27 +3,32 @@
 The prediction-error statistics (:mod:`pets.experiments.statistics`, rliable): per env, model, horizon
 and error metric the IQM over seeds with its 95 % stratified-bootstrap CI; the probability that the
 model's error is lower than delta's (P, with CI); the paired per-seed ratio model / delta (IQM and
-CI over the seeds both have). Diverged runs (:func:`pets.experiments.statistics.divergence`) are
-left out of IQMs, CIs and ratios, counted in ``n_diverged``, and enter P as error ``+inf``. The
+CI over the seeds both have). Divergence is per horizon (:func:`pets.experiments.statistics.divergences`):
+a run diverged at a horizon is left out of the IQM, CI and ratios at that horizon, counted in
+``n_diverged`` there, and enters P as error ``+inf`` there; at its other horizons it counts normally.
+The error averaged over the horizons counts only the runs that diverged at none of them. The
 metrics are the eval.json keys ending in ``_error`` that every run of the env has
 (``pets.evaluate.METRICS`` first, in that order, then the others alphabetically).
 
 Files:
 
 - ``summary.csv``: one row per env, model, horizon and metric (:data:`SUMMARY_COLUMNS`): ``iqm``,
-  ``ci_low``, ``ci_high`` over the ``n_seeds`` runs that did not diverge, ``n_diverged``;
+  ``ci_low``, ``ci_high`` over the ``n_seeds`` runs that did not diverge at that horizon, ``n_diverged``;
   ``p_improvement`` (P(model error < delta's), ties half) with ``p_improvement_ci_low/high``;
-  ``ratio_to_delta`` (IQM of the per-seed ratios over ``n_pairs`` seeds) with ``ratio_ci_low/high``.
+  ``ratio_to_delta`` (IQM of the per-seed ratios over the ``n_pairs`` seeds where neither model diverged
+  at that horizon) with ``ratio_ci_low/high``.
   The delta columns are empty for delta itself, where delta is not compared, and where a value
   does not exist (no run left, delta's error 0).
 - ``relative_error.csv``: the same per env, model and metric for the error averaged over the env's
-  horizons (per seed, then the statistics over seeds), plus ``relative`` (the IQM divided by the
-  largest model's IQM in the env, as the paper normalises Fig. 2) with its CI divided by the same number.
+  horizons (per seed, then the statistics over the seeds that diverged at none of them), plus
+  ``relative`` (the IQM divided by the largest model's IQM in the env, as the paper normalises Fig. 2)
+  with its CI divided by the same number.
 - ``prediction_runs.csv``: every run and horizon with all its metrics and a ``diverged`` column
-  (empty, or why the run counts as diverged).
+  (empty, or why the run counts as diverged at that horizon).
 - ``prediction.md``: per env a table per metric (mean_step_error, standardized_error, and
-  rotation_error where the env has rotations): IQM [CI] per horizon and the diverged runs, and P
-  against delta; the Fig. 2 table; the diverged and missing runs.
+  rotation_error where the env has rotations): per model its seeds and per horizon IQM [CI] with the
+  runs diverged there ("(k diverged)", or "all diverged"), and P against delta; the Fig. 2 table; the
+  diverged runs with their horizons; the missing runs.
 - ``relative_error.png`` (Fig. 2 as the paper normalises it), ``ratio_to_delta.png`` (Fig. 2 as the
   paired ratio to delta with its CI) and ``absolute_error_ENV.png`` (Fig. 3: IQM of the error vs
   horizon per model with CI bands; log y axis when the values span a factor 10 or more).
@@ -53,8 +58,8 @@ from pets.experiments.statistics import (
     MIN_SEEDS,
     REPS,
     SMALL_SAMPLE_NOTE,
-    divergence,
-    iqm_ci,
+    divergences,
+    iqm_ci_finite,
     p_improvement_ci,
     paired_ratios,
     summarise,
@@ -129,6 +134,15 @@ def _finite(x: float | None) -> float | None:
     return None if x is None or not math.isfinite(x) else float(x)
 
 
+def _run_scores(e: Mapping[str, Any], metrics: Sequence[str], horizons: Sequence[int]) -> np.ndarray:
+    """One run's errors per column: each metric at each horizon, then each metric averaged over the horizons.
+    NaN where the run diverged (``e["diverged"]``: {horizon: why}): at that horizon, and in the average
+    when at any of ``horizons``, since an average over a diverged horizon means nothing."""
+    per_h = np.array([[float(e["horizons"][str(h)][m]) for h in horizons] for m in metrics])
+    per_h[:, [str(h) in e["diverged"] for h in horizons]] = np.nan
+    return np.concatenate([per_h.ravel(), per_h.mean(axis=1)])
+
+
 def env_statistics(
     evals: Mapping[str, Sequence[Mapping[str, Any]]],
     metrics: Sequence[str],
@@ -140,51 +154,54 @@ def env_statistics(
     """{model: {(metric, horizon): statistics}} of one env; horizon :data:`AVERAGE` is the error averaged
     over ``horizons`` per run. Each entry has the :data:`SUMMARY_COLUMNS` statistics (None where absent).
 
-    One rliable call per model for all its columns (IQM), one for the P of improvement and one for the
-    ratios; every run's ``"diverged"`` (None or a reason) must be set.
+    Divergence is per horizon (every run's ``"diverged"``, {horizon: why}, must be set): a run diverged at
+    h is left out of the IQM, CI and ratios at h, counted in ``n_diverged`` there and enters P as error
+    ``+inf`` there; at its other horizons it counts normally. The :data:`AVERAGE` column counts only the
+    runs that diverged at none of ``horizons``. The ratio to delta at h pairs the seeds where neither
+    model diverged at h (``n_pairs``).
     """
     columns = [(m, h) for m in metrics for h in horizons] + [(m, AVERAGE) for m in metrics]
-
-    def vector(e: Mapping[str, Any]) -> np.ndarray:
-        per_h = np.array([[float(e["horizons"][str(h)][m]) for h in horizons] for m in metrics])
-        return np.concatenate([per_h.ravel(), per_h.mean(axis=1)])
-
-    good = {model: {e["seed"]: vector(e) for e in runs if not e["diverged"]} for model, runs in evals.items()}
+    scores = {model: {e["seed"]: _run_scores(e, metrics, horizons) for e in runs} for model, runs in evals.items()}
     out: dict[str, dict[tuple[str, int | str], dict[str, Any]]] = {}
-    for model, runs in evals.items():
-        n_good, n_div = len(good[model]), len(runs) - len(good[model])
+    for model, runs in scores.items():
+        x = np.array(list(runs.values()))
+        iqm, low, high = iqm_ci_finite(x, reps=reps, seed=seed)
+        n_good = np.isfinite(x).sum(axis=0)
         nan = np.full(len(columns), np.nan)
-        iqm, low, high = iqm_ci(np.array(list(good[model].values())), reps=reps, seed=seed) if n_good else (nan,) * 3
         p = p_low = p_high = ratio = r_low = r_high = nan
         n_pairs = None
-        if model != BASELINE and BASELINE in evals:
-            x = np.array([np.full(len(columns), np.inf) if e["diverged"] else vector(e) for e in runs])
-            y = np.array([np.full(len(columns), np.inf) if e["diverged"] else vector(e) for e in evals[BASELINE]])
-            p, p_low, p_high = p_improvement_ci(x, y, reps=reps, seed=seed)
-            pairs, ratios = paired_ratios(good[model], good[BASELINE])
-            n_pairs = len(pairs)
-            ok = np.isfinite(ratios).all(axis=0) if pairs else np.zeros(len(columns), bool)
-            ratio, r_low, r_high = nan.copy(), nan.copy(), nan.copy()
-            if ok.any():
-                ratio[ok], r_low[ok], r_high[ok] = iqm_ci(ratios[:, ok], reps=reps, seed=seed)
+        if model != BASELINE and BASELINE in scores:
+            base = scores[BASELINE]
+            # a diverged (NaN) error counts as +inf in P: worse than every run that did not diverge there
+            p, p_low, p_high = p_improvement_ci(x, np.array(list(base.values())), reps=reps, seed=seed)
+            pairs, ratios = paired_ratios(runs, base)  # NaN where either run diverged
+            n_pairs = np.zeros(len(columns), int)
+            if pairs:
+                n_pairs = np.sum([np.isfinite(runs[s]) & np.isfinite(base[s]) for s in pairs], axis=0)
+                ratio, r_low, r_high = iqm_ci_finite(ratios, reps=reps, seed=seed)
         out[model] = {
             col: {
                 "iqm": _finite(iqm[j]),
                 "ci_low": _finite(low[j]),
                 "ci_high": _finite(high[j]),
-                "n_seeds": n_good,
-                "n_diverged": n_div,
+                "n_seeds": int(n_good[j]),
+                "n_diverged": len(x) - int(n_good[j]),
                 "p_improvement": _finite(p[j]),
                 "p_improvement_ci_low": _finite(p_low[j]),
                 "p_improvement_ci_high": _finite(p_high[j]),
                 "ratio_to_delta": _finite(ratio[j]),
                 "ratio_ci_low": _finite(r_low[j]),
                 "ratio_ci_high": _finite(r_high[j]),
-                "n_pairs": n_pairs,
+                "n_pairs": None if n_pairs is None else int(n_pairs[j]),
             }
             for j, col in enumerate(columns)
         }
     return out
+
+
+def _divergence_text(diverged: Mapping[str, str]) -> str:
+    """A run's divergences ({horizon: why}) in one line, by horizon: "why at h=5; why at h=50"."""
+    return "; ".join(f"{why} at h={h}" for h, why in sorted(diverged.items(), key=lambda item: int(item[0])))
 
 
 def _has_rotations(runs: Sequence[Mapping[str, Any]]) -> bool:
@@ -196,16 +213,13 @@ def _has_rotations(runs: Sequence[Mapping[str, Any]]) -> bool:
 def _metric_tables(
     metric: str, models: Sequence[str], stats: Mapping[str, Mapping[tuple[str, Any], Mapping[str, Any]]], hs: Sequence
 ) -> list[str]:
-    """Markdown: the IQM [CI] table of one metric per model and horizon, then P of improvement over delta."""
-    rows = []
-    for model in models:
-        first = stats[model][(metric, hs[0])]
-        missing = "all diverged" if first["n_seeds"] == 0 else "n/a"
-        rows.append(
-            [model, str(first["n_seeds"]), str(first["n_diverged"])]
-            + [fmt_interval(stats[model][(metric, h)]["iqm"], *_ci(stats[model][(metric, h)]), missing) for h in hs]
-        )
-    text = [f"### {metric}", "", md_table(["model", "seeds", "diverged"] + [f"h={h}" for h in hs], rows), ""]
+    """Markdown: the IQM [CI] table of one metric per model and horizon (with the runs diverged at each
+    horizon, :func:`_fmt_iqm`), then P of improvement over delta."""
+    rows = [
+        [model, str(_runs(stats[model][(metric, hs[0])]))] + [_fmt_iqm(stats[model][(metric, h)]) for h in hs]
+        for model in models
+    ]
+    text = [f"### {metric}", "", md_table(["model", "seeds"] + [f"h={h}" for h in hs], rows), ""]
     others = [m for m in models if m != BASELINE]
     if BASELINE in models and others:
         text += [
@@ -218,6 +232,23 @@ def _metric_tables(
             "",
         ]
     return text
+
+
+def _runs(s: Mapping[str, Any]) -> int:
+    """The runs behind a statistic: the seeds in it and the seeds diverged there."""
+    return s["n_seeds"] + s["n_diverged"]
+
+
+def _fmt_iqm(s: Mapping[str, Any]) -> str:
+    """IQM [CI] of one column, then "(k diverged)" if k runs diverged there; "all diverged" if every run did."""
+    if s["n_seeds"] == 0:
+        return "all diverged"
+    return fmt_interval(s["iqm"], *_ci(s)) + (f" ({s['n_diverged']} diverged)" if s["n_diverged"] else "")
+
+
+def _small(s: Mapping[str, Any]) -> bool:
+    """Whether a statistic rests on fewer than :data:`MIN_SEEDS` seeds (and at least one)."""
+    return 0 < s["n_seeds"] < MIN_SEEDS
 
 
 def _ci(s: Mapping[str, Any], key: str = "ci") -> tuple[Any, Any]:
@@ -257,9 +288,9 @@ def summarise_offline(
             continue
         for model in env_models:
             for e in evals[model]:
-                e["diverged"] = divergence(e["horizons"])
+                e["diverged"] = divergences(e["horizons"])
                 if e["diverged"]:
-                    diverged_runs.append(f"{run_name(env, model, e['seed'])}: {e['diverged']}")
+                    diverged_runs.append(f"{run_name(env, model, e['seed'])}: {_divergence_text(e['diverged'])}")
                 for h, m in e["horizons"].items():
                     per_run.append(
                         {
@@ -268,7 +299,7 @@ def summarise_offline(
                             "seed": e["seed"],
                             "horizon": int(h),
                             "starts": e["starts"],
-                            "diverged": e["diverged"] or "",
+                            "diverged": e["diverged"].get(h, ""),
                             **m,
                         }
                     )
@@ -296,7 +327,7 @@ def summarise_offline(
         asked = set(request["horizons"])
         skipped = sorted(asked - set(common))
         note = f"; skipped: {', '.join(map(str, skipped))} (longer than the test episodes)" if skipped else ""
-        env_small = any(stats[m][(metrics[0], common[0])]["n_seeds"] < MIN_SEEDS for m in env_models)
+        env_small = any(_small(stats[m][(metrics[0], h)]) for m in env_models for h in common)
         text += [f"## {env} (horizons {', '.join(map(str, common))}{note})", ""]
         text += [SMALL_SAMPLE_NOTE, ""] if env_small else []
         for metric in TABLE_METRICS:
@@ -312,8 +343,8 @@ def summarise_offline(
                     "iqm": [stats[m][(FIGURE_METRIC, h)]["iqm"] for h in common],
                     "ci_low": [stats[m][(FIGURE_METRIC, h)]["ci_low"] for h in common],
                     "ci_high": [stats[m][(FIGURE_METRIC, h)]["ci_high"] for h in common],
-                    "n_seeds": stats[m][(FIGURE_METRIC, common[0])]["n_seeds"],
-                    "n_diverged": stats[m][(FIGURE_METRIC, common[0])]["n_diverged"],
+                    "n_runs": _runs(stats[m][(FIGURE_METRIC, common[0])]),
+                    "n_diverged": [stats[m][(FIGURE_METRIC, h)]["n_diverged"] for h in common],
                 }
                 for m in env_models
             },
@@ -333,10 +364,12 @@ def summarise_offline(
         "Step-wise errors of pets.evaluate (ensemble-mean rollouts on the test data, the same start points for "
         "every model and seed of an env) per horizon. Per model: the interquartile mean (IQM) over seeds with "
         "its 95 % stratified-bootstrap CI in brackets (rliable). P: the probability that the model's error "
-        f"is lower than {BASELINE}'s (a random seed of each; ties count half) with its CI. A run is diverged when "
-        "a value of its evaluation is not finite, some predictions went non-finite, or its standardized_error "
-        f"exceeds {DIVERGED_STANDARDIZED_ERROR:g} (training-data standard deviations) at some horizon; diverged "
-        "runs are counted, left out of the IQM, CI and ratios, and count as an infinite error in P.",
+        f"is lower than {BASELINE}'s (a random seed of each; ties count half) with its CI. A run is diverged at a "
+        "horizon when a value of its evaluation there is not finite, some predictions went non-finite, or its "
+        f"standardized_error exceeds {DIVERGED_STANDARDIZED_ERROR:g} (training-data standard deviations). At that "
+        "horizon it is counted ('(k diverged)' after the IQM; 'all diverged' when every run did), left out of the "
+        "IQM, CI and ratios, and counts as an infinite error in P; at its other horizons it counts normally. "
+        "seeds: the model's evaluated runs.",
         "",
     ]
     text = header + text
@@ -345,14 +378,15 @@ def summarise_offline(
         has_ratio = any(r["ratio_to_delta"] is not None for vals in fig2.values() for r in vals.values())
         if has_ratio:
             plot_ratio(out / "ratio_to_delta.png", fig2)
-        fig2_small = any(r["n_seeds"] < MIN_SEEDS for vals in fig2.values() for r in vals.values())
+        fig2_small = any(_small(r) for vals in fig2.values() for r in vals.values())
         text += [
             "## Fig. 2: error averaged over the horizons",
             "",
             f"Per seed the {FIGURE_METRIC} averaged over the env's horizons, then the IQM over seeds [95 % CI]. "
             "relative: divided by the largest model's IQM in the env, as the paper normalises (the CI divided "
             f"by the same number). ratio to {BASELINE}: IQM [CI] of the per-seed ratios over the seeds both "
-            "models have (paired: same seed, data and start points).",
+            "models have (paired: same seed, data and start points). A run diverged at any horizon is left out "
+            "of the average and counted under diverged.",
             "",
         ]
         text += [SMALL_SAMPLE_NOTE, ""] if fig2_small else []
@@ -390,7 +424,11 @@ def summarise_offline(
             "",
         ]
     if diverged_runs:
-        text += ["## Diverged runs (counted, not in the IQMs)", ""] + [f"- {d}" for d in diverged_runs] + [""]
+        text += (
+            ["## Diverged runs (counted, not in the IQMs at these horizons nor in the average)", ""]
+            + [f"- {d}" for d in diverged_runs]
+            + [""]
+        )
     missing = [
         run_name(e, m, s)
         for e in env_names

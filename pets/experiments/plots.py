@@ -125,14 +125,16 @@ def _nan(values: Sequence[float | None]) -> np.ndarray:
 
 def plot_absolute(path: Path, env: str, curves: Mapping[str, Mapping[str, Any]]) -> None:
     """Fig. 3: per model the IQM of the mean step-wise error vs horizon with its CI band (log y if the values
-    span a factor >= 10). ``curves``: {model: {"horizons", "iqm", "ci_low", "ci_high", "n_seeds", "n_diverged"}}."""
+    span a factor >= 10). ``curves``: {model: {"horizons", "iqm", "ci_low", "ci_high", "n_runs", "n_diverged"}},
+    ``n_diverged`` per horizon (the runs left out there, named in the legend)."""
     plt = _pyplot()
     colors = model_colors(list(curves))
     fig, ax = plt.subplots(figsize=(6.5, 4.5))
     values = []
     for model, c in curves.items():
         hs, mid, low, high = c["horizons"], _nan(c["iqm"]), _nan(c["ci_low"]), _nan(c["ci_high"])
-        label = _n_label(model, c["n_seeds"], c["n_diverged"])
+        diverged = [f"{k} at h={h}" for h, k in zip(hs, c["n_diverged"]) if k]
+        label = f"{model} (n={c['n_runs']}{'; diverged: ' + ', '.join(diverged) if diverged else ''})"
         if not np.isfinite(mid).any():
             ax.plot([], [], color=colors[model], label=f"{label}: no value")
             continue

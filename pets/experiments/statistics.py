@@ -16,13 +16,16 @@ a thin layer over rliable (Agarwal et al. 2021, "Deep RL at the edge of the stat
   the CI of rliable's independent stratified bootstrap (each model's runs resampled on their own).
   Diverged runs (non-finite values) enter as the worst value (error ``+inf``, reward ``-inf``):
   rank-based, a diverged run loses to every finite run and ties (counts half) with another diverged one.
+- :func:`iqm_ci_finite`: :func:`iqm_ci` per column over the finite values only, for score matrices
+  where a run is left out of some columns (diverged at one horizon) and counts in the others.
 - :func:`paired_ratios` / :func:`paired_differences`: per seed that both have (both not diverged) the
   ratio model / baseline (errors: same data, same start points) or the difference model - baseline
   (rewards, which can be negative: same seed, same env seeds); :func:`iqm_ci` of those is the paired
   effect with its CI.
-- :func:`divergence`: a run whose evaluation holds a non-finite value, or predictions that went
-  non-finite, or a ``standardized_error`` above :data:`DIVERGED_STANDARDIZED_ERROR`. Diverged runs
-  are counted and shown as such, never averaged into an IQM.
+- :func:`divergence` / :func:`divergences`: per horizon, whether a run's evaluation holds a non-finite
+  value there, or predictions that went non-finite, or a ``standardized_error`` above
+  :data:`DIVERGED_STANDARDIZED_ERROR`. A run diverged at a horizon is counted and shown as such there,
+  never averaged into an IQM; at its other horizons it counts normally.
 
 Small samples: the IQM of ``n <= 3`` values is their mean, and the percentile bootstrap of a mean
 of ``n <= 3`` values is exactly ``[min, max]`` of the values (all-min and all-max resamples have
@@ -76,7 +79,7 @@ CONFIDENCE = 0.95
 #: summary (8 envs x 6 models x 5 horizons x 8 metrics) take about 15 s on 2 CPU cores with it.
 REPS = 5_000
 #: A run whose ``standardized_error`` (the RMS prediction error in units of the training data's standard
-#: deviations) exceeds this at any horizon is diverged: predicting the data mean scores about 1 and an
+#: deviations) exceeds this at a horizon is diverged at that horizon: predicting the data mean scores about 1 and an
 #: independent draw from the data about 1.4, so 100 is far beyond any model that still tracks the state.
 DIVERGED_STANDARDIZED_ERROR = 100.0
 
@@ -139,6 +142,26 @@ def iqm_ci(
         interval["x"][0].astype(np.float64),
         interval["x"][1].astype(np.float64),
     )
+
+
+def iqm_ci_finite(
+    scores: Any, *, reps: int = REPS, seed: int = 0, confidence: float = CONFIDENCE
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`iqm_ci` of every column of ``scores`` (runs, columns) over its finite values only: a NaN or inf
+    is a run left out of that column (e.g. diverged at that horizon). NaN where a column has no finite value.
+
+    Columns with the same finite runs share one :func:`iqm_ci` call, so with every value finite this is
+    exactly :func:`iqm_ci` (one call, the same numbers)."""
+    x = _score_matrix(scores, "scores")
+    finite = np.isfinite(x)
+    groups: dict[bytes, list[int]] = {}
+    for j in np.flatnonzero(finite.any(axis=0)):
+        groups.setdefault(finite[:, j].tobytes(), []).append(int(j))
+    out = np.full((3, x.shape[1]), np.nan)
+    for cols in groups.values():
+        rows = finite[:, cols[0]]
+        out[:, cols] = iqm_ci(x[np.ix_(rows, cols)], reps=reps, seed=seed, confidence=confidence)
+    return out[0], out[1], out[2]
 
 
 def _as_errors(values: Any, name: str, higher_is_better: bool = False) -> np.ndarray:
@@ -214,21 +237,24 @@ def p_improvement_ci(
 
 
 def paired_ratios(model: Mapping[Any, Any], delta: Mapping[Any, Any]) -> tuple[list[Any], np.ndarray]:
-    """``(seeds, ratios)``: per seed in both ``model`` and ``delta`` ({seed: per-column errors} of the runs
-    that did not diverge) the ratio model / delta, shape (seeds, columns); seeds in sorted order.
+    """``(seeds, ratios)``: per seed in both ``model`` and ``delta`` ({seed: per-column errors}, NaN where the
+    run diverged) the ratio model / delta, shape (seeds, columns); seeds in sorted order.
 
     Pairing by seed compares runs trained with the same seed on the same data and evaluated from the
-    same start points. A column whose ratio is not finite for some seed (delta's error 0, e.g. a part
-    the env does not have) is NaN for every seed: leave it out of :func:`iqm_ci`.
+    same start points. A ratio is NaN where either error is not finite (that pair is left out of that
+    column: :func:`iqm_ci_finite`). A column whose ratio is not finite for some seed where both errors
+    are (delta's error 0, e.g. a part the env does not have) is NaN for every seed.
     """
     seeds = sorted(set(model) & set(delta))
     if not seeds:
         return [], np.empty((0, 0))
     num = np.array([np.asarray(model[s], dtype=np.float64) for s in seeds])
     den = np.array([np.asarray(delta[s], dtype=np.float64) for s in seeds])
+    both = np.isfinite(num) & np.isfinite(den)
     with np.errstate(divide="ignore", invalid="ignore"):
-        ratios = num / den
-    return seeds, np.where(np.isfinite(ratios).all(axis=0), ratios, np.nan)
+        ratios = np.where(both, num / den, np.nan)
+    defined = (np.isfinite(ratios) | ~both).all(axis=0)
+    return seeds, np.where(defined, ratios, np.nan)
 
 
 def paired_differences(model: Mapping[Any, Any], baseline: Mapping[Any, Any]) -> tuple[list[Any], np.ndarray]:
@@ -244,20 +270,25 @@ def paired_differences(model: Mapping[Any, Any], baseline: Mapping[Any, Any]) ->
     return seeds, a - b
 
 
-def divergence(horizons: Mapping[str, Mapping[str, Any]]) -> str | None:
-    """Why a run diverged, or None if it did not, from its evaluation's ``{"horizon": {key: value}}``: a value
-    is not finite, ``nonfinite_fraction > 0`` (some predictions went inf/NaN) or ``standardized_error``
-    exceeds :data:`DIVERGED_STANDARDIZED_ERROR` at some horizon (when the key exists)."""
-    for h, values in horizons.items():
-        for key, value in values.items():
-            v = float(value)
-            if not math.isfinite(v):
-                return f"{key} {v} at h={h}"
-            if key == "nonfinite_fraction" and v > 0:
-                return f"non-finite predictions ({v:.3g} of the steps) at h={h}"
-            if key == "standardized_error" and v > DIVERGED_STANDARDIZED_ERROR:
-                return f"standardized_error {v:.3g} > {DIVERGED_STANDARDIZED_ERROR:g} at h={h}"
+def divergence(values: Mapping[str, Any]) -> str | None:
+    """Why a run diverged at one horizon, or None if it did not, from its evaluation's ``{key: value}`` at that
+    horizon: a value is not finite, ``nonfinite_fraction > 0`` (some predictions went inf/NaN) or
+    ``standardized_error`` exceeds :data:`DIVERGED_STANDARDIZED_ERROR` (when the key exists)."""
+    for key, value in values.items():
+        v = float(value)
+        if not math.isfinite(v):
+            return f"{key} {v}"
+        if key == "nonfinite_fraction" and v > 0:
+            return f"non-finite predictions ({v:.3g} of the steps)"
+        if key == "standardized_error" and v > DIVERGED_STANDARDIZED_ERROR:
+            return f"standardized_error {v:.3g} > {DIVERGED_STANDARDIZED_ERROR:g}"
     return None
+
+
+def divergences(horizons: Mapping[str, Mapping[str, Any]]) -> dict[str, str]:
+    """``{horizon: why}`` of every horizon at which a run diverged (:func:`divergence`), from its evaluation's
+    ``{"horizon": {key: value}}``; empty if it diverged at none. At the other horizons the run counts normally."""
+    return {h: why for h, values in horizons.items() if (why := divergence(values)) is not None}
 
 
 # --------------------------------------------------------------------------- mean bootstrap
