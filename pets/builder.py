@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import torch
 from omegaconf import DictConfig, OmegaConf
+from torch import Tensor
 
 from dynamics.model import DynamicsModel
 from envs import EnvSpec
@@ -49,7 +51,9 @@ def make_agent(
     model: DynamicsModel,
     device: torch.device,
     generator: torch.Generator,
+    value: Callable[[Tensor], Tensor] | None = None,
 ) -> MPCAgent:
+    """The MPC agent of the config; ``value``: the terminal value of ``value.enabled`` (``pets.value``)."""
     p = cfg.planner
     if device.type == "cpu":
         retain_freed_memory()
@@ -61,6 +65,7 @@ def make_agent(
         propagation=p.propagation,
         precision=p.precision,
         compile=p.compile,
+        terminal_value=value,
     )
     planner = make_planner(cfg, spec, device)
     return MPCAgent(

@@ -91,6 +91,18 @@ class PlannerConfig:
 
 
 @dataclass
+class ValueConfig:
+    """``value.*``: a learned terminal value for the planner (``pets.value``; docs/planning.md)."""
+
+    # true: a candidate's return is its horizon rewards plus V(final state) for particles that did not terminate,
+    # V fitted after every trial to the discounted real returns-to-go. false: the horizon rewards only (PETS).
+    enabled: bool = False
+    discount: float = 0.99  # of the returns V estimates: they look about 1 / (1 - discount) steps ahead
+    hidden_size: int = 64
+    steps: int = 1000  # Adam steps (batch 256) per fit, continuing from the last fit
+
+
+@dataclass
 class GemConfig:
     compose: str = "right"  # right: G' = G exp(alpha) (body frame); left: G' = exp(alpha) G (the paper's notation)
     loss: str = "nll"  # nll | frobenius | nll+frobenius
@@ -113,6 +125,7 @@ class Config:
     model: ModelConfig = field(default_factory=ModelConfig)
     planner: PlannerConfig = field(default_factory=PlannerConfig)
     gem: GemConfig = field(default_factory=GemConfig)
+    value: ValueConfig = field(default_factory=ValueConfig)
 
 
 # Per-env research defaults, following the PETS references (REFERENCE.md section 1); envs without a
@@ -168,6 +181,8 @@ _POSITIVE_INTS = [
     "planner.horizon",
     "planner.particles",
     "planner.replan_every",
+    "value.hidden_size",
+    "value.steps",
 ]
 _CHOICES = {
     "head": HEADS,
@@ -280,6 +295,8 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError(
             f"planner.replan_every ({cfg.planner.replan_every}) must be <= planner.horizon ({cfg.planner.horizon})"
         )
+    if not 0 < cfg.value.discount < 1:
+        raise ConfigError(f"value.discount must be in (0, 1), got {cfg.value.discount}")
     if cfg.episode_length is not None and cfg.episode_length < 1:
         raise ConfigError(f"episode_length must be >= 1 or null, got {cfg.episode_length}")
 

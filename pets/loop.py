@@ -33,6 +33,7 @@ from pets.planners import PlanningFailed
 from pets.rollout import Episode, MPCPolicy, RandomPolicy, run_episode, run_steps
 from pets.tblog import ScalarLog
 from pets.trainer import TrainingDiverged, TrainResult
+from pets.value import ValueFunction, episode_ends, returns_to_go
 from pets.video import EpisodeRecorder, trial_video_path
 
 
@@ -59,7 +60,15 @@ class PETSRun:
         self.train_gen = torch.Generator(device=self.device).manual_seed(cfg.seed + 1)
         self.plan_gen = torch.Generator(device=self.device).manual_seed(cfg.seed + 2)
         self.np_rng = np.random.default_rng(cfg.seed + 3)
-        self.agent = builder.make_agent(cfg, self.spec, self.model, self.device, self.plan_gen)
+        self.value = (
+            ValueFunction(self.spec.obs_dim, hidden_size=cfg.value.hidden_size, discount=cfg.value.discount).to(
+                self.device
+            )
+            if cfg.value.enabled
+            else None
+        )
+        self.value_gen = torch.Generator(device=self.device).manual_seed(cfg.seed + 4)
+        self.agent = builder.make_agent(cfg, self.spec, self.model, self.device, self.plan_gen, self.value)
         self.mpc_policy = MPCPolicy(self.agent)
         self.random_policy = RandomPolicy(self.spec.action_low, self.spec.action_high)
         self.buffer = ReplayBuffer(self.spec.obs_dim, self.spec.act_dim)
@@ -87,6 +96,7 @@ class PETSRun:
             "np_rng": self.np_rng.bit_generator.state,
             "torch_rng": torch.get_rng_state(),
             "last_train": self.last_train,
+            **({"value": self.value.state_dict(), "value_gen": self.value_gen.get_state()} if self.value else {}),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -100,6 +110,9 @@ class PETSRun:
         self.np_rng.bit_generator.state = state["np_rng"]
         torch.set_rng_state(state["torch_rng"])
         self.last_train = state["last_train"]
+        if self.value is not None:
+            self.value.load_state_dict(state["value"])
+            self.value_gen.set_state(state["value_gen"])
 
     # --- one trial ---------------------------------------------------------------------------
     def _train(self, when: str | None = None) -> None:
@@ -109,6 +122,17 @@ class PETSRun:
             self.last_train = self.trainer.train(obs, act, next_obs, self.train_gen)
         except TrainingDiverged as err:
             raise TrainingDiverged(f"{when or f'trial {self.trials_done}'}: {err}") from None
+        if self.value is not None:
+            self._fit_value(obs, act, next_obs)
+
+    def _fit_value(self, obs: torch.Tensor, act: torch.Tensor, next_obs: torch.Tensor) -> None:
+        """Fit the terminal value to the discounted real returns-to-go of the buffer's episodes (pets.value)."""
+        with torch.no_grad():
+            rewards = self.spec.reward(obs, act, next_obs)
+            terminal = self.spec.terminated(obs, act, next_obs)
+            bootstrap = torch.where(terminal, torch.zeros_like(rewards), self.value(next_obs))
+        targets = returns_to_go(rewards, episode_ends(obs, next_obs), bootstrap, self.cfg.value.discount)
+        self.value.fit(obs, targets, self.value_gen, steps=self.cfg.value.steps)
 
     def _episode_seed(self, index: int) -> int:
         return self.cfg.seed * 100_003 + index

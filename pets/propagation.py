@@ -123,6 +123,8 @@ class TrajectoryEvaluator:
     compile: compile the rollout step with ``torch.compile`` (eager fallback on failure).
     compile_backend: the ``torch.compile`` backend (``inductor`` generates fused C++/Triton kernels; the
       tests use ``aot_eager``, which traces the same graph without code generation).
+    terminal_value: ``V(obs) -> (...)``, added to the return of every row that did not terminate, at its final
+      state (``pets.value``); None: the horizon rewards only.
     """
 
     def __init__(
@@ -138,6 +140,7 @@ class TrajectoryEvaluator:
         precision: str = "fp32",
         compile: bool = False,
         compile_backend: str = "inductor",
+        terminal_value: Callable[[Tensor], Tensor] | None = None,
     ) -> None:
         if propagation not in PROPAGATIONS:
             raise ValueError(f"unknown propagation {propagation!r}; accepted: {PROPAGATIONS}")
@@ -161,6 +164,7 @@ class TrajectoryEvaluator:
         self.precision = precision
         self.compile = compile
         self.compile_backend = compile_backend
+        self.terminal_value = terminal_value
         self._compiled_step: Callable | None = None
         self._compile_failed = False
 
@@ -346,6 +350,8 @@ class TrajectoryEvaluator:
                     obs_trace.append(obs)
                     rew_trace.append(step_reward)
 
+        if self.terminal_value is not None:
+            total = total + torch.where(done, torch.zeros_like(total), self.terminal_value(obs).to(total.dtype))
         obs_all = torch.stack(obs_trace, dim=1) if record else None
         rew_all = torch.stack(rew_trace, dim=1) if record else None
         if nat_to_flat is not None:
@@ -380,8 +386,9 @@ class TrajectoryEvaluator:
         Returns observations (N, P, H + 1, obs_dim) (index 0 is ``obs0``; frozen after a termination)
         and the rewards that count towards the return, (N, P, H) (zero after a termination,
         ``nonfinite_reward`` on a transition into a non-finite state), so that
-        ``rewards.sum(-1).mean(-1)`` equals ``self(obs0, actions)`` for the same generator state (unless every
-        row's first transition is non-finite: then the rewards keep the penalty and ``self`` returns NaN).
+        ``rewards.sum(-1).mean(-1)`` equals ``self(obs0, actions)`` for the same generator state without a
+        ``terminal_value`` (unless every row's first transition is non-finite: then the rewards keep the penalty
+        and ``self`` returns NaN).
         For ``expectation`` the single rollout per candidate is repeated over the P particles.
         """
         obs0, actions = self._check(obs0, actions, generator)
