@@ -88,3 +88,20 @@ def test_saved_config_round_trips(tmp_path):
     path.write_text(OmegaConf.to_yaml(cfg))
     back = load_config(str(path))
     assert OmegaConf.to_container(back) == OmegaConf.to_container(cfg)
+
+
+def test_fast_preset_plans_invertedpendulum_with_the_terminal_value_and_small_mppi_noise() -> None:
+    """Issue 16's measured amendment (docs/planning.md): fast InvertedPendulum only, and overrides still win."""
+    fast = make_config("invertedpendulum", "gem", "fast")
+    assert (fast.planner.name, fast.planner.horizon, fast.planner.mppi.sigma, fast.value.enabled) == (
+        "mppi",
+        20,
+        0.2,
+        True,
+    )
+    research = make_config("invertedpendulum", "gem", "research")
+    assert (research.planner.name, research.planner.mppi.sigma, research.value.enabled) == ("cem", 0.5, False)
+    idp = make_config("inverteddoublependulum", "gem", "fast")
+    assert (idp.planner.mppi.sigma, idp.value.enabled) == (0.5, False)
+    off = make_config("invertedpendulum", "gem", "fast", {"value.enabled": "false", "planner.mppi.sigma": "0.5"})
+    assert (off.planner.mppi.sigma, off.value.enabled) == (0.5, False)
