@@ -17,6 +17,7 @@ from pets.models import make_model
 from pets.planners import PLANNER_CLASSES, Planner
 from pets.propagation import TrajectoryEvaluator, retain_freed_memory
 from pets.trainer import ModelTrainer
+from pets.value import ValueFunction
 
 
 def resolve_device(name: str) -> torch.device:
@@ -110,3 +111,24 @@ def load_model(run_dir: str | Path, device: str | torch.device = "cpu") -> tuple
     rundir.load_model_state(model, state)
     model.eval()
     return cfg, spec, model
+
+
+def load_value(
+    run_dir: str | Path, cfg: DictConfig, spec: EnvSpec, device: str | torch.device = "cpu"
+) -> ValueFunction | None:
+    """The terminal value a run planned with (``value.enabled``; ``pets.value``), or None when it had none."""
+    from pets import rundir
+
+    if not cfg.value.enabled:
+        return None
+    state = rundir.load_checkpoint(Path(run_dir))
+    if state is None or "value" not in state:
+        raise ConfigError(f"{run_dir}: value.enabled is set but the checkpoint holds no value")
+    value = make_value(cfg, spec, torch.device(device))
+    value.load_state_dict(state["value"])
+    return value
+
+
+def make_value(cfg: DictConfig, spec: EnvSpec, device: torch.device) -> ValueFunction:
+    """An unfitted terminal value of the config's ``value.*`` settings."""
+    return ValueFunction(spec.obs_dim, hidden_size=cfg.value.hidden_size, discount=cfg.value.discount).to(device)

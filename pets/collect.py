@@ -87,7 +87,7 @@ class SmoothRandomPolicy:
 
 
 class AgentPolicy(MPCPolicy):
-    """The MPC agent of a trained run directory (its model and its config's planner)."""
+    """The MPC agent of a trained run directory (its model, its config's planner and its terminal value if any)."""
 
     def __init__(self, run_dir: str | Path, seed: int = 0, device: str = "auto") -> None:
         import torch
@@ -99,7 +99,15 @@ class AgentPolicy(MPCPolicy):
         self.cfg, self.spec, self.model = builder.load_model(self.run_dir, dev)
         self.generator = torch.Generator(device=dev).manual_seed(int(seed))
         super().__init__(
-            builder.make_agent(self.cfg, self.spec, self.model, dev, self.generator), f"run:{self.run_dir}"
+            builder.make_agent(
+                self.cfg,
+                self.spec,
+                self.model,
+                dev,
+                self.generator,
+                builder.load_value(self.run_dir, self.cfg, self.spec, dev),
+            ),
+            f"run:{self.run_dir}",
         )
 
 

@@ -33,7 +33,7 @@ from pets.planners import PlanningFailed
 from pets.rollout import Episode, MPCPolicy, RandomPolicy, run_episode, run_steps
 from pets.tblog import ScalarLog
 from pets.trainer import TrainingDiverged, TrainResult
-from pets.value import ValueFunction, episode_ends, returns_to_go
+from pets.value import episode_ends, returns_to_go
 from pets.video import EpisodeRecorder, trial_video_path
 
 
@@ -60,13 +60,7 @@ class PETSRun:
         self.train_gen = torch.Generator(device=self.device).manual_seed(cfg.seed + 1)
         self.plan_gen = torch.Generator(device=self.device).manual_seed(cfg.seed + 2)
         self.np_rng = np.random.default_rng(cfg.seed + 3)
-        self.value = (
-            ValueFunction(self.spec.obs_dim, hidden_size=cfg.value.hidden_size, discount=cfg.value.discount).to(
-                self.device
-            )
-            if cfg.value.enabled
-            else None
-        )
+        self.value = builder.make_value(cfg, self.spec, self.device) if cfg.value.enabled else None
         self.value_gen = torch.Generator(device=self.device).manual_seed(cfg.seed + 4)
         self.agent = builder.make_agent(cfg, self.spec, self.model, self.device, self.plan_gen, self.value)
         self.mpc_policy = MPCPolicy(self.agent)

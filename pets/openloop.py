@@ -12,7 +12,8 @@ env without any feedback (no replanning, no model update). The reward of every s
   setting (population, particles, propagation, iterations, ...) comes from the run's config, and can
   be overridden with ``planner.KEY=VALUE``. It is built by ``pets.builder.make_agent`` (the agent's
   planner and trajectory evaluator, as MPC uses them); the planner's objective is the expected
-  return over the horizon under the model and the env's exact reward/termination functions.
+  return over the horizon under the model and the env's exact reward/termination functions (without a run's
+  terminal value, ``value.*``: what is measured is the plan's own horizon).
 - Env: ``spec.make(max_episode_steps=steps)``, so the env's own time limit never cuts a plan short.
 - Termination: when the real env terminates at step t, the episode stops there; the rewards of the
   steps after t are 0 (the plan's remaining actions are not executed). ``lengths`` gives the number

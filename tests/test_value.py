@@ -12,6 +12,8 @@ from scipy.signal import lfilter
 
 import envs
 from dynamics.model import DynamicsModel
+from pets import builder
+from pets.collect import AgentPolicy
 from pets.config import ConfigError, make_config
 from pets.propagation import PROPAGATIONS, TrajectoryEvaluator
 from pets.rollout import RandomPolicy, run_steps
@@ -121,3 +123,12 @@ def test_run_with_value_resumes_to_the_same_metrics(tmp_path) -> None:
     assert [r["episode_reward"] for r in got] == [r["episode_reward"] for r in want]
     state = torch.load(tmp_path / "ref" / "checkpoint.pt", weights_only=False)
     assert bool(state["value"]["fitted"])
+    # The run's agent for pets.collect --policy run:DIR plans with the run's value, not a fresh one.
+    policy = AgentPolicy(tmp_path / "ref", device="cpu")
+    value = policy.agent.evaluator.terminal_value
+    obs = torch.as_tensor(state["buffer"]["obs"][:50])
+    assert value is not None and torch.equal(value.net[0].weight, state["value"]["net.0.weight"])
+    assert value(obs).abs().max() > 0  # fitted: not the zero of an unfitted value
+    cfg, spec, _ = builder.load_model(tmp_path / "ref")
+    cfg.value.enabled = False
+    assert builder.load_value(tmp_path / "ref", cfg, spec) is None
