@@ -3,7 +3,7 @@
 PETS scores a candidate by its rewards over the planning horizon only. Where the reward is flat while the
 system survives (InvertedPendulum's alive bonus), every candidate that survives the horizon ties, and what
 happens after it (the cart reaching the end of its rail) is invisible; docs/planning.md has the evidence.
-With ``planner.value.enabled`` the planner scores ``sum of horizon rewards + V(final state)`` for every
+With ``value.enabled`` the planner scores ``sum of horizon rewards + V(final state)`` for every
 particle that did not terminate (an estimate of the whole episode's return, not a shaped objective).
 
 Targets: Monte-Carlo returns-to-go ``G_t = r_t + discount * G_{t+1}`` of the real episodes in the replay
