@@ -3,8 +3,6 @@ run with it (checkpointed, resumed to the same metrics)."""
 
 from __future__ import annotations
 
-import csv
-
 import numpy as np
 import pytest
 import torch
@@ -18,7 +16,7 @@ from pets.config import ConfigError, make_config
 from pets.propagation import PROPAGATIONS, TrajectoryEvaluator
 from pets.rollout import RandomPolicy, run_steps
 from pets.value import ValueFunction, episode_ends, returns_to_go
-from tests.test_cli import TINY, cli
+from tests.test_cli import TINY, cli, rows
 from tests.test_propagation import OBS_DIM, FakeEnsemble, make_head
 
 
@@ -106,11 +104,6 @@ def test_terminal_value_is_added_for_surviving_rows_only(prop: str) -> None:
 def test_config_checks_the_discount() -> None:
     with pytest.raises(ConfigError, match=r"value.discount must be in \(0, 1\)"):
         make_config("invertedpendulum", overrides={"value.discount": "1.0"})
-
-
-def rows(run_dir) -> list[dict[str, str]]:
-    with open(run_dir / "metrics.csv") as f:
-        return list(csv.DictReader(f))
 
 
 def test_run_with_value_resumes_to_the_same_metrics(tmp_path) -> None:
