@@ -66,8 +66,10 @@ def applies(h: Tensor) -> bool:
     )
 
 
-def _packed(weights: nn.ParameterList, biases: nn.ParameterList, idx: Tensor | None) -> list[tuple[Tensor, Tensor]]:
-    """Per layer ``(W^T as (M, out, in), b as (M, out))`` in bf16 for the selected members (reused inside a
+def _packed(
+    weights: nn.ParameterList, biases: nn.ParameterList, idx: Tensor | None
+) -> list[list[tuple[Tensor, Tensor]]]:
+    """Per selected member, per layer ``(W^T as (out, in), b as (out,))`` in bf16 (reused inside a
     :func:`cached_weights` scope)."""
     cache = getattr(_SCOPE, "cache", None)
     if cache is not None:
@@ -83,22 +85,23 @@ def _packed(weights: nn.ParameterList, biases: nn.ParameterList, idx: Tensor | N
         if idx is not None:
             w, b = w.index_select(0, idx), b.index_select(0, idx)
         wt = w.detach().transpose(1, 2).to(torch.bfloat16, memory_format=torch.contiguous_format)
-        layers.append((wt, b.detach().squeeze(1).to(torch.bfloat16)))
+        layers.append((wt.unbind(0), b.detach().squeeze(1).to(torch.bfloat16).unbind(0)))
+    members = [[(w[m], b[m]) for w, b in layers] for m in range(len(layers[0][0]))]
     if cache is not None:
-        cache[key] = layers
-    return layers
+        cache[key] = members
+    return members
 
 
 def fused_member_mlp(h: Tensor, weights: nn.ParameterList, biases: nn.ParameterList, idx: Tensor | None) -> Tensor:
     """:func:`dynamics.networks.member_mlp` (SiLU between layers, linear output) in bf16, one member at a time;
     ``h`` is (B, in) shared by the members or (M, B, in). Returns (M, B, out) in bf16."""
-    layers = _packed(weights, biases, idx)
+    members = _packed(weights, biases, idx)
     x = h.to(torch.bfloat16)
-    last = len(layers) - 1
+    xs = [x] * len(members) if x.dim() == 2 else x.unbind(0)
+    linear = torch.ops.mkldnn._linear_pointwise
     outs = []
-    for m in range(layers[0][0].shape[0]):
-        y = x if x.dim() == 2 else x[m]
-        for i, (w, b) in enumerate(layers):
-            y = torch.ops.mkldnn._linear_pointwise(y, w[m], b[m], "swish" if i < last else "none", [], "")
-        outs.append(y)
+    for y, layers in zip(xs, members):
+        for w, b in layers[:-1]:
+            y = linear(y, w, b, "swish", [], "")
+        outs.append(linear(y, *layers[-1], "none", [], ""))
     return torch.stack(outs)

@@ -317,7 +317,8 @@ class GaussianEnsemble(MemberEnsemble):
         gathered from the stacked weights by index, e.g. the elites).
         """
         idx, _ = self._check_inputs(x, members)
-        h = member_mlp(self.normalise(x), self.weights, self.biases, idx)
+        # bf16 layers (autocast) return bf16: one exact cast, so that the tail below runs on float32 alone.
+        h = member_mlp(self.normalise(x), self.weights, self.biases, idx).to(self.target_mean.dtype)
         mean, logvar = h[..., : self.out_dim], h[..., self.out_dim :]
         return self.denormalise_target(mean), self.bound_logvar(logvar) + 2.0 * self.target_std.log()
 
