@@ -66,6 +66,7 @@ setup(
             "pets-train=pets.train:main",
             "pets-evaluate=pets.evaluate:main",
             "pets-openloop=pets.openloop:main",
+            "pets-oracle=pets.oracle:main",
             "pets-visualize=pets.visualize:main",
             "pets-onestep=pets.onestep:main",
             "pets-bench=pets.bench:main",
