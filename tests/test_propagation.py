@@ -339,6 +339,18 @@ def test_non_finite_predictions_give_finite_low_returns(prop: str) -> None:
     assert ((rew == -1e6).sum(-1) <= 1).all()  # penalised once, then terminated
 
 
+@pytest.mark.parametrize("prop", PROPAGATIONS)
+def test_a_finite_state_whose_sum_overflows_float32_counts_as_diverged(prop: str) -> None:
+    """The guard is one row sum (cheaper than isfinite + all): finite values summing beyond float32's range are a
+    diverged row too. Two entries grow by 1.5e38 per step: finite at step 2 (3e38 < 3.4e38), their sum is not."""
+    ens = FakeEnsemble(torch.tensor([[1.5e38, 1.5e38, 0.0]]))
+    zero_reward = lambda obs, act, nxt: torch.zeros(nxt.shape[:-1], dtype=nxt.dtype)  # noqa: E731
+    ev = TrajectoryEvaluator(DynamicsModel(make_head(), ens), zero_reward, None, particles=2, propagation=prop)
+    obs, rew = ev.rollout(torch.zeros(OBS_DIM), torch.zeros(3, 2, ACT_DIM), torch.Generator().manual_seed(0))
+    assert torch.isfinite(obs).all()
+    assert (rew[..., 0] == 0).all() and (rew[..., 1] == ev.nonfinite_reward).all()
+
+
 def test_bad_arguments() -> None:
     ens = FakeEnsemble(torch.zeros(2, OBS_DIM))
     with pytest.raises(ValueError, match="propagation"):
