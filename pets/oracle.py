@@ -72,8 +72,11 @@ def run_episode(cfg: Any, spec: Any, seed: int, episode: int, steps: int | None 
     from pets.agent import MPCAgent
     from pets.builder import make_planner
     from pets.collect import episode_seeds
+    from pets.rollout import MPCPolicy
+    from pets.rollout import run_episode as run_policy
 
-    env = spec.make() if steps is None else spec.make(max_episode_steps=steps)
+    limit = steps or spec.episode_length
+    env = spec.make(max_episode_steps=limit)
     device = torch.device("cpu")
     agent = MPCAgent(
         make_planner(cfg, spec, device),
@@ -84,20 +87,13 @@ def run_episode(cfg: Any, spec: Any, seed: int, episode: int, steps: int | None 
         device=device,
         generator=torch.Generator(device=device).manual_seed(seed),
     )
-    obs, _ = env.reset(seed=episode_seeds(seed, episode)[0])
-    total, done_steps, terminated, cart = 0.0, 0, False, 0.0
     start = time.perf_counter()
-    truncated = False
-    while not (terminated or truncated):
-        obs, reward, terminated, truncated, _ = env.step(agent.act(obs))
-        total += float(reward)
-        done_steps += 1
-        cart = max(cart, abs(float(env.unwrapped.data.qpos[0])))
-    env.close()
+    ep = run_policy(env, MPCPolicy(agent), max_steps=limit, reset_seed=episode_seeds(seed, episode)[0])
     seconds = time.perf_counter() - start
-    result = {"steps": done_steps, "reward": total, "terminated": bool(terminated), "seconds": seconds}
-    if spec.name in ("invertedpendulum", "inverteddoublependulum"):
-        result["max_abs_cart_x"] = cart
+    env.close()
+    result = {"steps": len(ep), "reward": ep.total_reward, "terminated": bool(ep.terminated[-1]), "seconds": seconds}
+    if spec.name in ("invertedpendulum", "inverteddoublependulum"):  # observation 0 is the cart's position
+        result["max_abs_cart_x"] = float(np.abs(ep.next_obs[:, 0]).max())
     return result
 
 
