@@ -6,6 +6,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from pets.feedback import LinearFeedback
 from pets.planners import Planner, shift_plan
 from pets.propagation import TrajectoryEvaluator
 
@@ -15,7 +16,9 @@ class MPCAgent:
 
     Every ``replan_every`` steps it plans a horizon-long action sequence from the current
     observation (warm-started with the previous plan shifted by the steps executed since)
-    and executes its first actions.
+    and executes its first actions. With ``feedback`` (:class:`pets.feedback.LinearFeedback`) it plans the gains
+    of a feedback law every step instead (warm-started with the last gains of the episode) and executes the law's
+    action at the current observation.
     """
 
     def __init__(
@@ -28,8 +31,14 @@ class MPCAgent:
         action_high: np.ndarray,
         device: torch.device,
         generator: torch.Generator,
+        feedback: LinearFeedback | None = None,
     ) -> None:
+        if feedback is not None and replan_every != 1:
+            raise ValueError(
+                f"feedback candidates are replanned every step: replan_every must be 1, got {replan_every}"
+            )
         self.planner = planner
+        self.feedback = feedback
         self.evaluator = evaluator
         self.replan_every = replan_every
         self.device = device
@@ -44,6 +53,13 @@ class MPCAgent:
         self._step_in_plan = 0
 
     def act(self, obs: np.ndarray) -> np.ndarray:
+        if self.feedback is not None:
+            obs_t = torch.as_tensor(obs, dtype=torch.float32, device=self.device)
+            self._plan = self.planner.plan(
+                lambda gains: self.evaluator(obs_t, gains, self.generator), self._plan, self.generator
+            )
+            action = self.feedback.actions(self._plan.unsqueeze(0), obs_t.unsqueeze(0))[0]
+            return action.detach().cpu().numpy().astype(np.float64)
         if self._plan is None or self._step_in_plan >= self.replan_every:
             init = None
             if self._plan is not None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 from torch import Tensor
@@ -13,6 +14,7 @@ from dynamics.model import DynamicsModel
 from envs import EnvSpec
 from pets.agent import MPCAgent
 from pets.config import ConfigError
+from pets.feedback import LinearFeedback
 from pets.models import make_model
 from pets.planners import PLANNER_CLASSES, Planner
 from pets.propagation import TrajectoryEvaluator, retain_freed_memory
@@ -58,6 +60,7 @@ def make_agent(
     p = cfg.planner
     if device.type == "cpu":
         retain_freed_memory()
+    feedback = make_feedback(cfg, spec, device)
     evaluator = TrajectoryEvaluator(
         model,
         spec.reward,
@@ -67,6 +70,7 @@ def make_agent(
         precision=p.precision,
         compile=p.compile,
         terminal_value=value,
+        feedback=feedback,
     )
     planner = make_planner(cfg, spec, device)
     return MPCAgent(
@@ -77,11 +81,35 @@ def make_agent(
         action_high=spec.action_high,
         device=device,
         generator=generator,
+        feedback=feedback,
     )
 
 
+def make_feedback(cfg: DictConfig, spec: EnvSpec, device: torch.device) -> LinearFeedback | None:
+    """The feedback law of ``planner.candidates=feedback`` (pets.feedback), else None."""
+    p = cfg.planner
+    if p.candidates != "feedback":
+        return None
+    f = p.feedback
+    try:
+        return LinearFeedback(
+            spec.obs_dim,
+            spec.action_low,
+            spec.action_high,
+            horizon=p.horizon,
+            features=None if f.features is None else list(f.features),
+            scale=None if f.scale is None else list(f.scale),
+            bias=f.bias,
+            device=device,
+        )
+    except ValueError as err:
+        raise ConfigError(f"planner.feedback: {err} ({spec.name} has {spec.obs_dim} observations)") from None
+
+
 def make_planner(cfg: DictConfig, spec: EnvSpec, device: torch.device) -> Planner:
-    """The planner named by ``planner.name`` (cem, icem, mppi) with the config's settings."""
+    """The planner named by ``planner.name`` (cem, icem, mppi) with the config's settings. With feedback
+    candidates it searches the gains (pets.feedback): a (rows, act_dim) box of +-``gain_bound`` sampled with
+    std ``gain_std`` at every plan."""
     p = cfg.planner
     planner_class = PLANNER_CLASSES[p.name]  # the name is validated by the config
     kwargs = dict(horizon=p.horizon, population=p.population, iterations=p.iterations, alpha=p.alpha, device=device)
@@ -89,7 +117,17 @@ def make_planner(cfg: DictConfig, spec: EnvSpec, device: torch.device) -> Planne
         kwargs["elites"] = p.elites if p.elites < 1 else int(p.elites)
     if p.name in p:  # the planner's own section, planner.<name>.*: its constructor's arguments
         kwargs.update(OmegaConf.to_container(p[p.name]))
-    return planner_class(spec.action_low, spec.action_high, **kwargs)
+    low, high = spec.action_low, spec.action_high
+    feedback = make_feedback(cfg, spec, device)
+    if feedback is not None:
+        f = p.feedback
+        kwargs["horizon"] = feedback.shape[0]
+        low, high = np.full(spec.act_dim, -f.gain_bound), np.full(spec.act_dim, f.gain_bound)
+        if p.name == "cem":
+            kwargs["init_std"] = f.gain_std
+        else:  # mppi: sigma in half-ranges of the box
+            kwargs["sigma"] = f.gain_std / f.gain_bound
+    return planner_class(low, high, **kwargs)
 
 
 def load_model(run_dir: str | Path, device: str | torch.device = "cpu") -> tuple[DictConfig, EnvSpec, DynamicsModel]:

@@ -13,6 +13,7 @@ import warnings
 from dataclasses import dataclass, field
 from typing import Any
 
+import yaml
 from omegaconf import DictConfig, OmegaConf
 
 from pets.models import MODELS
@@ -22,8 +23,10 @@ HEADS = tuple(MODELS)
 #: Models without a predictive variance (MSE / Frobenius training, zero sampling noise).
 DETERMINISTIC_HEADS = tuple(name for name, entry in MODELS.items() if entry.deterministic)
 PLANNERS = ("cem", "icem", "mppi")
+#: What a planner's candidate is: an action sequence (PETS) or the gains of a linear feedback law (pets.feedback).
+CANDIDATES = ("open_loop", "feedback")
 PRECISIONS = ("auto", "fp32", "bf16")  # auto: resolved by make_config / load_config (pets.hardware)
-PROPAGATIONS = ("ts1", "tsinf", "expectation")
+PROPAGATIONS = ("ts1", "tsinf", "expectation", "members")
 
 
 class ConfigError(ValueError):
@@ -69,8 +72,22 @@ class MPPIConfig:
 
 
 @dataclass
+class FeedbackConfig:
+    """``planner.feedback.*``: linear state-feedback candidates (``planner.candidates=feedback``, pets.feedback)."""
+
+    features: list[int] | None = None  # observation indices fed back; null: all
+    scale: list[float] | None = None  # their fixed scales; null: the replay buffer's std, refitted every training
+    bias: bool = False  # a constant term per action besides the gains
+    gain_bound: float = 10.0  # |gain| bound, in action half-ranges per feature scale
+    gain_std: float = 1.0  # the gains' sampling std at every plan (CEM's initial std; MPPI's sigma)
+
+
+@dataclass
 class PlannerConfig:
     name: str = "cem"
+    # open_loop: candidates are action sequences (PETS); feedback: gains of a linear state-feedback law, each
+    # rolled out for `horizon` steps in closed loop, replanned every step (pets.feedback, docs/planning.md)
+    candidates: str = "open_loop"
     population: int = 400
     elites: float = 0.1  # a ratio of the population when < 1, else a count
     iterations: int = 5
@@ -82,6 +99,7 @@ class PlannerConfig:
     # The settings of one planner only (used when planner.name is that planner)
     icem: ICEMConfig = field(default_factory=ICEMConfig)
     mppi: MPPIConfig = field(default_factory=MPPIConfig)
+    feedback: FeedbackConfig = field(default_factory=FeedbackConfig)
     # Speed of the rollouts (docs/performance.md)
     # auto | fp32 | bf16: the ensemble's matmuls under bfloat16 autocast (state, sampling and returns fp32); auto:
     # bf16 where the hardware has native bf16 matmuls (pets.hardware), else fp32, the precise path.
@@ -158,6 +176,19 @@ PRESETS: dict[str, dict[str, Any]] = {
     },
 }
 
+# InvertedDoublePendulum: open-loop sequences that keep it up for the horizon are too rare to sample, even with
+# the true dynamics; linear state-feedback candidates (the cart position, the two sines and the three velocities,
+# fixed scales) rolled out for 3 s balance it, with the simulator and with the learned model (docs/planning.md).
+_IDP_FEEDBACK = {
+    "planner": {
+        "name": "cem",
+        "candidates": "feedback",
+        "horizon": 60,
+        "propagation": "members",
+        "feedback": {"features": [0, 1, 2, 5, 6, 7], "scale": [0.5, 0.2, 0.2, 1.0, 2.0, 2.0]},
+    }
+}
+
 # Per-env amendments to a preset. The pendulums' reward is a flat "alive" bonus: every candidate that
 # survives the horizon ties, so CEM's elite mean of a small population is noise and the cart runs into
 # its rail. MPPI averages the whole population and is measured to balance (docs/results.md). On
@@ -168,7 +199,7 @@ PRESET_ENV_DEFAULTS: dict[tuple[str, str], dict[str, Any]] = {
         "planner": {"name": "mppi", "horizon": 20, "mppi": {"sigma": 0.2}},
         "value": {"enabled": True},
     },
-    ("fast", "inverteddoublependulum"): {"planner": {"name": "mppi", "horizon": 20}},
+    ("fast", "inverteddoublependulum"): _IDP_FEEDBACK,
 }
 
 _POSITIVE_INTS = [
@@ -192,6 +223,7 @@ _POSITIVE_INTS = [
 _CHOICES = {
     "head": HEADS,
     "planner.name": PLANNERS,
+    "planner.candidates": CANDIDATES,
     "planner.propagation": PROPAGATIONS,
     "planner.precision": PRECISIONS,
     "model.precision": PRECISIONS,
@@ -245,8 +277,14 @@ def _set(cfg: DictConfig, key: str, value: Any) -> None:
     key = _renamed(key)
     if key not in set(all_keys()):
         raise ConfigError(f"unknown config key {key!r}; accepted keys: {', '.join(all_keys())}")
-    if isinstance(value, str) and value.lower() in ("null", "none") and OmegaConf.select(cfg, key) is None:
+    current = OmegaConf.select(cfg, key)
+    if isinstance(value, str) and value.lower() in ("null", "none") and (current is None or OmegaConf.is_list(current)):
         value = None
+    elif isinstance(value, str) and value.startswith("["):  # a list on the command line, e.g. [0, 1, 5]
+        try:
+            value = yaml.safe_load(value)
+        except yaml.YAMLError as err:
+            raise ConfigError(f"bad value for {key}: {value!r} is not a list ({str(err).splitlines()[0]})") from None
     try:
         OmegaConf.update(cfg, key, value, merge=True)
     except Exception as err:  # omegaconf's validation errors carry a multi-line message
@@ -300,10 +338,38 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError(
             f"planner.replan_every ({cfg.planner.replan_every}) must be <= planner.horizon ({cfg.planner.horizon})"
         )
+    if cfg.planner.candidates == "feedback":
+        _check_feedback(cfg)
     if not 0 < cfg.value.discount < 1:
         raise ConfigError(f"value.discount must be in (0, 1), got {cfg.value.discount}")
     if cfg.episode_length is not None and cfg.episode_length < 1:
         raise ConfigError(f"episode_length must be >= 1 or null, got {cfg.episode_length}")
+
+
+def _check_feedback(cfg: DictConfig) -> None:
+    """The settings of ``planner.candidates=feedback`` (the observation indices are checked against the env's
+    observation size by pets.feedback when the agent is built)."""
+    p, f = cfg.planner, cfg.planner.feedback
+    if p.name not in ("cem", "mppi"):
+        raise ConfigError(
+            f"planner.candidates=feedback needs planner.name cem or mppi, got {p.name!r} "
+            "(iCEM's coloured noise and carried elites act along a time axis that gains do not have)"
+        )
+    if p.replan_every != 1:
+        raise ConfigError(
+            f"planner.candidates=feedback replans every step: planner.replan_every must be 1, got {p.replan_every}"
+        )
+    for key in ("gain_bound", "gain_std"):
+        if not math.isfinite(f[key]) or f[key] <= 0:
+            raise ConfigError(f"planner.feedback.{key} must be a finite number > 0, got {f[key]}")
+    if f.features is not None and len(f.features) == 0:
+        raise ConfigError("planner.feedback.features must be null (all observations) or a non-empty list of indices")
+    if f.scale is not None:
+        n = len(f.features) if f.features is not None else None
+        if (n is not None and len(f.scale) != n) or not all(math.isfinite(v) and v > 0 for v in f.scale):
+            raise ConfigError(
+                f"planner.feedback.scale must be null or one finite value > 0 per feature, got {list(f.scale)}"
+            )
 
 
 def make_config(

@@ -91,6 +91,7 @@ class PETSRun:
             "torch_rng": torch.get_rng_state(),
             "last_train": self.last_train,
             **({"value": self.value.state_dict(), "value_gen": self.value_gen.get_state()} if self.value else {}),
+            **({"feedback": self.agent.feedback.state_dict()} if self.agent.feedback else {}),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -107,6 +108,8 @@ class PETSRun:
         if self.value is not None:
             self.value.load_state_dict(state["value"])
             self.value_gen.set_state(state["value_gen"])
+        if self.agent.feedback is not None:
+            self.agent.feedback.load_state_dict(state["feedback"])
 
     # --- one trial ---------------------------------------------------------------------------
     def _train(self, when: str | None = None) -> None:
@@ -118,6 +121,8 @@ class PETSRun:
             raise TrainingDiverged(f"{when or f'trial {self.trials_done}'}: {err}") from None
         if self.value is not None:
             self._fit_value(obs, act, next_obs)
+        if self.agent.feedback is not None:
+            self.agent.feedback.fit_scale(obs)
 
     def _fit_value(self, obs: torch.Tensor, act: torch.Tensor, next_obs: torch.Tensor) -> None:
         """Fit the terminal value to the discounted real returns-to-go of the buffer's episodes (pets.value)."""

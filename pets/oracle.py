@@ -45,24 +45,31 @@ class SimulatorEvaluator:
     Scores from the current state of ``env`` (a live gymnasium MuJoCo env; ``obs`` is ignored, the full
     simulator state is used): per candidate, a private copy of the env is set to that state and stepped through
     the actions, summing rewards until the horizon ends or the env terminates (the terminating step's reward
-    counts). The live env is not touched.
+    counts). The live env is not touched. With ``feedback`` (pets.feedback) a candidate is the gains of a feedback
+    law, rolled out in closed loop for ``feedback.horizon`` steps from ``obs``.
     """
 
-    def __init__(self, env: Any, make_env: Any) -> None:
+    def __init__(self, env: Any, make_env: Any, feedback: Any = None) -> None:
         self.env = env.unwrapped
+        self.feedback = feedback
         self.sim = make_env().unwrapped
         self.sim.reset(seed=0)  # gymnasium requires a reset before step; the state is overwritten per candidate
 
     def __call__(self, obs: Tensor, actions: Tensor, generator: torch.Generator | None = None) -> Tensor:
         qpos, qvel = self.env.data.qpos.copy(), self.env.data.qvel.copy()
         returns = np.zeros(actions.shape[0])
-        for i, sequence in enumerate(actions.detach().cpu().numpy().astype(np.float64)):
+        fb = self.feedback
+        for i, candidate in enumerate(actions.detach().cpu()):
             self.sim.set_state(qpos, qvel)
-            for action in sequence:
-                _, reward, terminated, _, _ = self.sim.step(action)
+            state = torch.as_tensor(obs, dtype=torch.float32).reshape(1, -1).cpu()
+            for t in range(candidate.shape[0] if fb is None else fb.horizon):
+                action = candidate[t] if fb is None else fb.actions(candidate.unsqueeze(0), state)[0]
+                next_obs, reward, terminated, _, _ = self.sim.step(action.numpy().astype(np.float64))
                 returns[i] += reward
                 if terminated:
                     break
+                if fb is not None:
+                    state = torch.as_tensor(next_obs, dtype=torch.float32).reshape(1, -1)
         return torch.as_tensor(returns, dtype=actions.dtype, device=actions.device)
 
 
@@ -70,22 +77,34 @@ def run_episode(cfg: Any, spec: Any, seed: int, episode: int, steps: int | None 
     """One episode (at most ``steps`` long; default the env's own limit) of MPC with :class:`SimulatorEvaluator`:
     steps, reward, terminated, largest |cart x| (cart-pole envs), seconds."""
     from pets.agent import MPCAgent
-    from pets.builder import make_planner
+    from pets.builder import make_feedback, make_planner
     from pets.collect import episode_seeds
-    from pets.rollout import MPCPolicy
+    from pets.rollout import MPCPolicy, RandomPolicy, run_steps
     from pets.rollout import run_episode as run_policy
 
     limit = steps or spec.episode_length
     env = spec.make(max_episode_steps=limit)
     device = torch.device("cpu")
+    feedback = make_feedback(cfg, spec, device)
+    if feedback is not None and not feedback.fixed_scale:  # the features' scale from random steps, as PETS' seed data
+        random_steps = run_steps(
+            env,
+            RandomPolicy(spec.action_low, spec.action_high),
+            max(cfg.seed_steps, 2),
+            max_steps=limit,
+            reset_seeds=(seed * 100_003 + 50_000 + i for i in range(10**9)),
+            rng=np.random.default_rng(seed),
+        )
+        feedback.fit_scale(torch.as_tensor(np.concatenate([e.obs for e in random_steps]), dtype=torch.float32))
     agent = MPCAgent(
         make_planner(cfg, spec, device),
-        SimulatorEvaluator(env, spec.make),
+        SimulatorEvaluator(env, spec.make, feedback),
         replan_every=cfg.planner.replan_every,
         action_low=spec.action_low,
         action_high=spec.action_high,
         device=device,
         generator=torch.Generator(device=device).manual_seed(seed),
+        feedback=feedback,
     )
     start = time.perf_counter()
     ep = run_policy(env, MPCPolicy(agent), max_steps=limit, reset_seed=episode_seeds(seed, episode)[0])

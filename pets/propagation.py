@@ -14,6 +14,9 @@ Propagation modes (``PROPAGATIONS``):
   through the members (exactly ``P / M`` particles per member when ``M`` divides ``P``).
   The assignment is deterministic; candidates are i.i.d. samples of the planner, so a
   candidate's index carries no information and this adds no bias between candidates.
+- ``members``: as ``tsinf`` (each particle keeps one member) but without the Gaussian sampling: a particle
+  follows its member's predicted mean, so the particles of a candidate differ only where the members disagree
+  (the epistemic spread, without the aleatoric noise). Deterministic.
 - ``expectation``: no sampling; the next target is the mean over the members' predicted
   means (taken in target space, before ``head.next_obs``). All particles would be
   identical, so each candidate is rolled out once.
@@ -72,8 +75,9 @@ from torch import Tensor
 
 from dynamics import fused
 from dynamics.model import DynamicsModel
+from pets.feedback import LinearFeedback
 
-PROPAGATIONS = ("ts1", "tsinf", "expectation")
+PROPAGATIONS = ("ts1", "tsinf", "expectation", "members")
 PRECISIONS = ("fp32", "bf16")
 
 #: ``fn(obs, act, next_obs) -> (...,)`` batched torch reward / termination function.
@@ -126,6 +130,9 @@ class TrajectoryEvaluator:
       tests use ``aot_eager``, which traces the same graph without code generation).
     terminal_value: ``V(obs) -> (...)``, added to the return of every row that did not terminate, at its final
       state (``pets.value``); None: the horizon rewards only.
+    feedback: a :class:`pets.feedback.LinearFeedback`: candidates are then gains (N, rows, act_dim), rolled out
+      for ``feedback.horizon`` steps with each particle's action computed from its own predicted state; None:
+      candidates are action sequences (N, H, act_dim).
     """
 
     def __init__(
@@ -142,6 +149,7 @@ class TrajectoryEvaluator:
         compile: bool = False,
         compile_backend: str = "inductor",
         terminal_value: Callable[[Tensor], Tensor] | None = None,
+        feedback: LinearFeedback | None = None,
     ) -> None:
         if propagation not in PROPAGATIONS:
             raise ValueError(f"unknown propagation {propagation!r}; accepted: {PROPAGATIONS}")
@@ -166,6 +174,7 @@ class TrajectoryEvaluator:
         self.compile = compile
         self.compile_backend = compile_backend
         self.terminal_value = terminal_value
+        self.feedback = feedback
         self._compiled_step: Callable | None = None
         self._compile_failed = False
 
@@ -191,6 +200,11 @@ class TrajectoryEvaluator:
         act_dim = self.model.act_dim
         if actions.shape[2] != act_dim:
             raise ValueError(f"actions have act_dim {actions.shape[2]}, the model expects {act_dim}")
+        if self.feedback is not None and tuple(actions.shape[1:]) != self.feedback.shape:
+            raise ValueError(
+                f"feedback candidates must be gains of shape (N, {self.feedback.shape[0]}, {act_dim}), "
+                f"got {tuple(actions.shape)}"
+            )
         if not actions.is_floating_point():
             actions = actions.float()
         obs0 = torch.as_tensor(obs0, device=actions.device, dtype=actions.dtype)
@@ -239,13 +253,15 @@ class TrajectoryEvaluator:
             if mode == "expectation":
                 mean, logvar = self.model(inp, members)  # (M, b, out), input shared by the members
             else:
-                m = noise.shape[0]
+                m = self._num_members(members) if noise is None else noise.shape[0]
                 mean, logvar = self.model(inp.reshape(m, inp.shape[0] // m, -1), members)
         if self.precision == "bf16":  # back to float32 (the noise dtype) before any sampling
             out_dtype = zero.dtype if noise is None else noise.dtype
             mean, logvar = mean.to(out_dtype), logvar.to(out_dtype)
         if mode == "expectation":
             target = mean.mean(dim=0)
+        elif noise is None:  # members: each row its member's mean
+            target = mean.reshape(inp.shape[0], -1)
         else:
             target = (mean + torch.exp(0.5 * logvar) * noise).reshape(inp.shape[0], -1)
             if inv is not None:
@@ -287,6 +303,10 @@ class TrajectoryEvaluator:
             )
             return self._step(*args)  # the step is pure: rerun it eagerly on the same inputs
 
+    def horizon(self, actions: Tensor) -> int:
+        """Rollout length of candidates ``actions``: H of a sequence, ``feedback.horizon`` for gains."""
+        return actions.shape[1] if self.feedback is None else self.feedback.horizon
+
     # ------------------------------------------------------------------ core
     def _run(
         self, obs0: Tensor, actions: Tensor, generator: torch.Generator | None, record: bool
@@ -298,7 +318,8 @@ class TrajectoryEvaluator:
         Traces (when ``record``) are ``(R, H + 1, obs_dim)`` and ``(R, H)`` in natural order.
         """
         device, dtype = actions.device, actions.dtype
-        n_cand, horizon, _ = actions.shape
+        n_cand = actions.shape[0]
+        horizon = self.horizon(actions)
         members = self.members(device)
         m = self._num_members(members)
         mode = self.propagation
@@ -308,7 +329,7 @@ class TrajectoryEvaluator:
         b = rows if mode == "expectation" else per_member * m
 
         # Flat row index -> candidate, and natural row -> flat row.
-        if mode == "tsinf":
+        if mode in ("tsinf", "members"):
             # Flat (slot) s = k * per_member + j holds virtual row r = j * m + k, which uses member k.
             slot = torch.arange(b, device=device)
             virtual = (slot % per_member) * m + slot // per_member
@@ -319,8 +340,10 @@ class TrajectoryEvaluator:
             flat = torch.arange(b, device=device)
             cand = torch.clamp(flat // p_eff, max=n_cand - 1)  # padded rows replay candidate N-1
             nat_to_flat = None
-        # Time-major (H, b, A): every step reads one contiguous (b, A) block.
-        act_rows = actions.transpose(0, 1).index_select(1, cand)
+        if self.feedback is None:  # time-major (H, b, A): every step reads one contiguous (b, A) block
+            act_rows = actions.transpose(0, 1).index_select(1, cand)
+        else:  # each row's gains (b, rows, A)
+            gains = actions.index_select(0, cand)
 
         obs = obs0.expand(b, -1).clone()
         done = torch.zeros(b, dtype=torch.bool, device=device)
@@ -331,7 +354,7 @@ class TrajectoryEvaluator:
         rew_trace: list[Tensor] | None = [] if record else None
         arange_b = torch.arange(b, device=device) if mode == "ts1" else None
         noise = None
-        if mode != "expectation":  # one buffer, refilled in place every step (same stream as fresh draws)
+        if mode in ("ts1", "tsinf"):  # one buffer, refilled in place every step (same stream as fresh draws)
             noise_dtype = dtype if self.precision == "bf16" else self._model_dtype(dtype)
             noise = torch.empty((m, per_member, self.model.target_dim), device=device, dtype=noise_dtype)
         perm = inv = diverged = None  # diverged: set at t = 0 (H >= 1, checked)
@@ -343,8 +366,9 @@ class TrajectoryEvaluator:
                     inv = torch.empty_like(perm).scatter_(0, perm, arange_b)
                 if noise is not None:
                     torch.randn(noise.shape, generator=generator, device=device, dtype=noise.dtype, out=noise)
+                act = act_rows[t] if self.feedback is None else self.feedback.actions(gains, obs)
                 obs, done, total, step_reward, went_bad = self._call_step(
-                    obs, act_rows[t], noise, done, total, members, perm, inv, penalty, zero
+                    obs, act, noise, done, total, members, perm, inv, penalty, zero
                 )
                 if t == 0:
                     diverged = went_bad  # rows with nothing finite at all
@@ -394,7 +418,7 @@ class TrajectoryEvaluator:
         For ``expectation`` the single rollout per candidate is repeated over the P particles.
         """
         obs0, actions = self._check(obs0, actions, generator)
-        n, h = actions.shape[:2]
+        n, h = actions.shape[0], self.horizon(actions)
         _, obs_all, rew_all, p_eff, _ = self._run(obs0, actions, generator, record=True)
         obs_all = obs_all.view(n, p_eff, h + 1, -1).expand(n, self.particles, h + 1, obs_all.shape[-1])
         rew_all = rew_all.view(n, p_eff, h).expand(n, self.particles, h)

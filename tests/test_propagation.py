@@ -159,6 +159,26 @@ def test_tsinf_keeps_one_member_per_particle_and_spreads_particles(n: int, p: in
     torch.testing.assert_close(ret.double(), expected, rtol=1e-5, atol=1e-3)
 
 
+def test_members_is_tsinf_without_the_sampling() -> None:
+    """Each particle follows its TS-inf member's mean exactly, whatever the predicted variance and generator."""
+    m, n, p = 5, 4, 7
+    ens = FakeEnsemble(member_offsets(m), logvar=2.0)  # large variance: it must not matter
+    model = DynamicsModel(make_head(), ens)
+    ev = TrajectoryEvaluator(model, reward_fn, None, particles=p, propagation="members")
+    actions = torch.rand(n, 6, ACT_DIM, generator=torch.Generator().manual_seed(3))
+    obs, _ = ev.rollout(torch.zeros(OBS_DIM), actions, torch.Generator().manual_seed(0))
+    inc = (obs[..., 1:, :] - obs[..., :-1, :]).double()  # exactly one member's offset per particle and step
+    member = _member_per_step(obs.double(), m)
+    torch.testing.assert_close(inc, member_offsets(m).double()[member], rtol=0, atol=1e-4)
+    tsinf = TrajectoryEvaluator(
+        DynamicsModel(make_head(), FakeEnsemble(member_offsets(m))), reward_fn, None, particles=p, propagation="tsinf"
+    )
+    tsinf_obs, _ = tsinf.rollout(torch.zeros(OBS_DIM), actions, torch.Generator().manual_seed(0))
+    assert torch.equal(member, _member_per_step(tsinf_obs.double(), m))  # the same member assignment as TS-inf
+    r1 = ev(torch.zeros(OBS_DIM), actions, torch.Generator().manual_seed(1))
+    assert torch.equal(r1, ev(torch.zeros(OBS_DIM), actions, torch.Generator().manual_seed(2)))
+
+
 def test_ts1_redraws_members_uniformly() -> None:
     m, n, p, h = 5, 40, 20, 10
     ens = FakeEnsemble(member_offsets(m))
@@ -309,7 +329,7 @@ def test_reproducible_with_the_same_generator(prop: str) -> None:
     r2 = ev(torch.zeros(OBS_DIM), actions, torch.Generator().manual_seed(42))
     r3 = ev(torch.zeros(OBS_DIM), actions, torch.Generator().manual_seed(43))
     assert torch.equal(r1, r2)
-    assert torch.equal(r1, r3) == (prop == "expectation")
+    assert torch.equal(r1, r3) == (prop in ("expectation", "members"))  # the deterministic modes ignore it
 
 
 class ExplodingEnsemble(FakeEnsemble):
@@ -465,7 +485,7 @@ PINNED = {
 }
 
 
-@pytest.mark.parametrize("prop", PROPAGATIONS)
+@pytest.mark.parametrize("prop", sorted(PINNED))  # members came after the speed work
 def test_precise_path_matches_values_pinned_before_the_speed_work(prop: str) -> None:
     from pets.planners import CEMPlanner
     from pets.propagation import retain_freed_memory

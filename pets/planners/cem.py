@@ -12,6 +12,7 @@ from pets.planners.base import (
     BoxPlanner,
     check_generator,
     check_planned,
+    check_real,
     elite_count,
     initial_mean,
     no_finite,
@@ -29,6 +30,8 @@ class CEMPlanner(BoxPlanner):
     epsilon: PETS's early stop: stop iterating once every variance is below it (0 disables it;
       when enabled it costs one host synchronisation per iteration).
     return_mean_elites: return the final CEM mean (PETS), else the best sample seen.
+    init_std: the samples' std at the start of every call (a number, in the bounds' units); None: a quarter of the
+      box width, ``(high - low) / 4`` (PETS).
     device, dtype: where the samples live (the objective gets tensors there).
     """
 
@@ -46,6 +49,7 @@ class CEMPlanner(BoxPlanner):
         alpha: float = 0.1,
         epsilon: float = 0.0,
         return_mean_elites: bool = True,
+        init_std: float | None = None,
         device: torch.device | str | None = None,
         dtype: torch.dtype = torch.float32,
     ) -> None:
@@ -56,6 +60,7 @@ class CEMPlanner(BoxPlanner):
             raise ValueError(f"epsilon must be >= 0, got {epsilon}")
         self.epsilon = float(epsilon)
         self.return_mean_elites = return_mean_elites
+        self.init_std = None if init_std is None else check_real("init_std", init_std, 0.0, math.inf, low_open=True)
 
     def plan(
         self,
@@ -72,7 +77,10 @@ class CEMPlanner(BoxPlanner):
         lb, ub = self.low, self.high
         check_generator(generator, self.device)
         mu = initial_mean(init_mean, lb, ub, h, a)
-        var = ((ub - lb) ** 2 / 16.0).expand(h, a).clone()
+        if self.init_std is None:
+            var = ((ub - lb) ** 2 / 16.0).expand(h, a).clone()
+        else:
+            var = torch.full((h, a), self.init_std**2, device=self.device, dtype=self.dtype)
         best_value = torch.full((), -math.inf, device=self.device, dtype=self.dtype)
         best = mu.clone()
         failed = torch.zeros((), dtype=torch.bool, device=self.device)
