@@ -137,6 +137,9 @@ class Config:
     threads: int = 0  # torch CPU threads; 0: torch's default. Use 1 per process when running runs in parallel
     seed_steps: int = 1000  # uniformly random steps (over as many episodes as needed) before trial 0
     episode_length: int | None = None  # None: the env's own episode length
+    # A run to a threshold: stop after the first trial whose episode reward reaches it (`trials` stays the most);
+    # None: always `trials` trials. pets.compare online --until-threshold sets it per env.
+    stop_reward: float | None = None
     train_every: int = 0  # 0: train after every trial; N > 0: also every N env steps
     video_every: int = 0  # N > 0: an MP4 of the real episode of every N-th trial (RUN/videos/trial-NNNN.mp4); 0: none
     tensorboard: bool = True  # TensorBoard event files in the run directory (when the tensorboard package is there)
@@ -344,6 +347,8 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError(f"value.discount must be in (0, 1), got {cfg.value.discount}")
     if cfg.episode_length is not None and cfg.episode_length < 1:
         raise ConfigError(f"episode_length must be >= 1 or null, got {cfg.episode_length}")
+    if cfg.stop_reward is not None and not math.isfinite(cfg.stop_reward):
+        raise ConfigError(f"stop_reward must be a finite number or null, got {cfg.stop_reward}")
 
 
 def _check_feedback(cfg: DictConfig) -> None:

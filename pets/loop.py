@@ -225,7 +225,8 @@ class PETSRun:
 
 
 def run(cfg: DictConfig, run_dir: Path, resume: bool = False, progress: bool = True) -> list[dict[str, Any]]:
-    """Run (or continue) the PETS loop in ``run_dir`` until ``cfg.trials`` trials are done."""
+    """Run (or continue) the PETS loop in ``run_dir`` until ``cfg.trials`` trials are done, or until a trial's
+    reward reaches ``cfg.stop_reward``."""
     with locked(run_dir):  # one process per run directory; DirectoryInUse for a second one
         if not resume and (run_dir / rundir.CONFIG_FILE).exists():
             raise ConfigError(
@@ -263,7 +264,7 @@ def _run_locked(cfg: DictConfig, run_dir: Path, resume: bool, progress: bool) ->
         total=cfg.trials, initial=pets_run.trials_done, desc=f"{cfg.env}-{cfg.head}", unit="trial", disable=not progress
     )
     try:
-        while pets_run.trials_done < cfg.trials:
+        while pets_run.trials_done < cfg.trials and not rundir.stopped(pets_run.rows, cfg.stop_reward):
             row = pets_run.run_trial(progress=progress)
             if pets_run.recorder is not None and pets_run.recorder.recording:
                 pets_run.recorder.save(trial_video_path(run_dir, int(row["trial"])))

@@ -159,3 +159,8 @@ def plot_rewards(run_dir: Path, rows: list[dict[str, Any]], title: str) -> None:
     fig.savefig(buf, format="png", dpi=100)
     plt.close(fig)
     atomic_write_bytes(run_dir / PLOT_FILE, buf.getvalue())
+
+
+def stopped(rows: list[dict[str, Any]], stop_reward: float | None) -> bool:
+    """Whether a run to a threshold is done: some trial's episode reward reached ``stop_reward`` (None: never)."""
+    return stop_reward is not None and any(float(r["episode_reward"]) >= stop_reward for r in rows)

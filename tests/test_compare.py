@@ -1163,3 +1163,27 @@ def test_bad_arms_are_one_line_exit_2(arm, fragment, tmp_path, capsys):
     )
     assert code == 2 and fragment in err and len(err.strip().splitlines()) == 1, err
     assert not (tmp_path / "x").exists()
+
+
+def test_online_until_threshold_stops_each_run_at_the_mark_and_counts_it_complete(tmp_path, capsys, monkeypatch):
+    """--until-threshold: stop_reward = the env's threshold, a run ends after its first trial at or above it, is
+    complete with fewer than --trials rows (summary, reuse), and resuming it adds nothing."""
+    from pets.experiments.online_summary import THRESHOLDS
+
+    monkeypatch.setitem(THRESHOLDS, "invertedpendulum", 3.0)  # every tiny episode lasts >= 3 steps: trial 0 stops
+    args = ["online", "--envs", "invertedpendulum", "--models", "delta", "--seeds", "0,1", "--trials", 4, "--out",
+            tmp_path, "--preset", "fast", "--quiet", "--until-threshold", *TINY]  # fmt: skip
+    code, _, err = cli(capsys, *args)
+    assert code == 0, err
+    for seed in (0, 1):
+        run = tmp_path / "runs" / f"invertedpendulum-delta-s{seed}"
+        rows = csv_rows(run / "metrics.csv")
+        assert len(rows) == 1 and float(rows[0]["episode_reward"]) >= 3.0
+        assert load_config(str(run / "config.yaml")).stop_reward == 3.0
+    summary = online_row(tmp_path, "invertedpendulum", "delta")
+    assert (summary["n_seeds"], summary["n_reached"]) == ("2", "2")
+    before = snapshot(tmp_path / "runs" / "invertedpendulum-delta-s0")
+    code, _, err = cli(capsys, *args)
+    assert code == 0 and "2 reused" in err and snapshot(tmp_path / "runs" / "invertedpendulum-delta-s0") == before
+    code, _, err = cli(capsys, *[a if a != "invertedpendulum" else "hopper" for a in args])
+    assert code == 2 and "--until-threshold: no threshold for hopper" in err

@@ -114,6 +114,12 @@ def build_parser() -> OneLineParser:
     on.add_argument("--trials", type=int, required=True, help="trials per run")
     on.add_argument("--final-window", type=int, default=3, help="trials averaged for the final reward (default 3)")
     on.add_argument(
+        "--until-threshold",
+        action="store_true",
+        help="stop each run at its first trial reaching the env's threshold (pets.experiments.online_summary."
+        "THRESHOLDS); --trials is then the most",
+    )
+    on.add_argument(
         "--planners",
         help="also compare these planners (comma-separated pets.config.PLANNERS); every model x planner pair is an arm",
     )
@@ -209,6 +215,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 progress=not args.quiet,
                 planners=planners,
                 arms=arms,
+                until_threshold=args.until_threshold,
             )
             report = args.out / "summary.md"
         else:

@@ -9,6 +9,10 @@ threads each (``--threads``, default 1; ``OMP_NUM_THREADS=T``); their output goe
 ``DIR/logs/ENV-MODEL-sSEED.log``. Only the first N trials of a run enter the summary. A user
 ``threads=`` override is ignored (``--threads`` sets it).
 
+``--until-threshold`` runs each run to a threshold: ``stop_reward=`` the env's :data:`THRESHOLDS` entry, so a run
+stops after its first trial that reaches it (at most N trials) and counts as complete from then on; the summary's
+time-to-threshold columns are then the answer, and its final / AUC columns cover the trials up to the stop.
+
 ``--planners P1,P2`` makes the planner a second axis: every (model, planner) pair is an arm with
 its runs in ``DIR/runs/ENV-MODEL-PLANNER-sSEED`` (``planner.name=P`` for the run), and the tables
 and plots show ``MODEL+PLANNER``. Wall-clock figures compare fairly only between runs that shared
@@ -25,16 +29,19 @@ from typing import Any
 
 from pets.experiments.arguments import PROG, UsageError, few_seeds_warning
 from pets.experiments.backend import Backend
-from pets.experiments.online_summary import online_rows, summarise_online
+from pets.experiments.online_summary import THRESHOLDS, online_rows, summarise_online
 from pets.experiments.rundirs import check_out_writable, check_same_config, online_arms, run_name
 from pets.experiments.runner import online_job, open_backend
+from pets.rundir import stopped
 
 
-def online_plan(run_dir: Path, trials: int) -> str:
-    """``reuse`` (>= trials rows), ``resume`` (a run with fewer rows) or ``start`` (no run yet)."""
+def online_plan(run_dir: Path, trials: int, stop_reward: float | None = None) -> str:
+    """``reuse`` (>= trials rows, or a trial at ``stop_reward``), ``resume`` (a run with fewer rows) or ``start``
+    (no run yet)."""
     if not (run_dir / "config.yaml").is_file():
         return "start"
-    return "reuse" if len(online_rows(run_dir)) >= trials else "resume"
+    rows = online_rows(run_dir)
+    return "reuse" if len(rows) >= trials or stopped(rows, stop_reward) else "resume"
 
 
 def start_arguments(
@@ -74,6 +81,7 @@ def compare_online(
     progress: bool = True,
     planners: Sequence[str] | None = None,
     arms: Mapping[str, tuple[str, Mapping[str, str]]] | None = None,
+    until_threshold: bool = False,
 ) -> dict[str, Any]:
     """Run (or reuse/resume) every online run, then write the summary. Returns ``{"actions", "failed",
     "summary"}``. UsageError for bad settings or a run directory with another config.
@@ -81,6 +89,7 @@ def compare_online(
     ``planners``: also compare these planners (``planner.name``); every (model, planner) pair is an arm.
     ``backend``: where the runs run (default: one local worker, one thread per run).
     ``arms``: ``{label: (model, overrides)}`` for the names in ``models`` that are arms (``--arm``), not models.
+    ``until_threshold``: stop every run at its env's threshold (module docstring).
     """
     from pets.config import ConfigError, make_config, parse_overrides
 
@@ -100,12 +109,24 @@ def compare_online(
             )
     if planners is not None and "planner.name" in extra:
         raise UsageError("give the planner once: --planners or planner.name=, not both")
+    if until_threshold:
+        if "stop_reward" in extra:
+            raise UsageError("give the stop once: --until-threshold or stop_reward=, not both")
+        unknown = [env for env in env_names if env not in THRESHOLDS]
+        if unknown:
+            raise UsageError(
+                f"--until-threshold: no threshold for {', '.join(unknown)}; thresholds exist for "
+                f"{', '.join(THRESHOLDS)} (pets.experiments.online_summary.THRESHOLDS), or pass stop_reward=R"
+            )
     out = Path(out).resolve()
     jobs, actions = [], {}
     for env in env_names:
+        stop = {"stop_reward": THRESHOLDS[env]} if until_threshold else {}
         for model, planner in online_arms(models, planners):
             head, own = (arms or {}).get(model, (model, {}))
-            arm_extra = {**extra, **own} if planner is None else {**extra, **own, "planner.name": planner}
+            arm_extra = (
+                {**extra, **own, **stop} if planner is None else {**extra, **own, **stop, "planner.name": planner}
+            )
             arm_list = [f"{k}={v}" for k, v in arm_extra.items()]
             for seed in seeds:
                 name = run_name(env, model, seed, planner)
@@ -116,7 +137,7 @@ def compare_online(
                     )
                 except ConfigError as err:
                     raise UsageError(str(err)) from None
-                action = online_plan(run_dir, trials)
+                action = online_plan(run_dir, trials, expected.stop_reward)
                 if action != "start":
                     check_same_config(run_dir, expected)
                     if any(math.isnan(r["trial"]) for r in online_rows(run_dir)):
@@ -142,5 +163,7 @@ def compare_online(
             print(warning, file=sys.stderr)
         results = run(jobs, processes=False, progress=progress, desc="online runs")
     failed = {name: msg for name, (ok, msg) in results.items() if not ok}
-    summary = summarise_online(out, env_names, models, seeds, trials, final_window, failed, planners)
+    summary = summarise_online(
+        out, env_names, models, seeds, trials, final_window, failed, planners, until_threshold=until_threshold
+    )
     return {"actions": actions, "failed": failed, "summary": summary}

@@ -221,10 +221,12 @@ def summarise_online(
     *,
     reps: int = REPS,
     thresholds: Mapping[str, float] = THRESHOLDS,
+    until_threshold: bool = False,
 ) -> list[dict[str, Any]]:
     """Write summary.md, summary.csv, summary_runs.csv, rewards_ENV.png and walltime_ENV.png (module
     docstring) from the complete runs; returns the summary.csv rows. ``thresholds``: the reward threshold
-    per env of the time-to-threshold columns (an env without one gets none)."""
+    per env of the time-to-threshold columns (an env without one gets none). ``until_threshold``: a run that
+    reached its env's threshold is complete with fewer rows (``pets.compare online --until-threshold``)."""
     out = Path(out)
     per_run, summary, missing, diverged_runs, text = [], [], [], [], []
     arms = online_arms(models, planners)
@@ -242,7 +244,12 @@ def summarise_online(
             for seed in seeds:
                 name = run_name(env, model, seed, planner)
                 rows = online_rows(out / "runs" / name)
-                if len(rows) < trials:
+                hit = next(
+                    (i for i, r in enumerate(rows) if r["episode_reward"] >= thresholds.get(env, math.inf)), None
+                )
+                if until_threshold and hit is not None:
+                    rows = rows[: hit + 1]  # a run to the threshold ends there (a longer run is cut at it)
+                if len(rows) < trials and not (until_threshold and hit is not None):
                     missing.append(
                         f"{name} ({len(rows)}/{trials} trials"
                         f"{'; failed: ' + failed[name] if failed and name in failed else ''})"
@@ -276,11 +283,16 @@ def summarise_online(
     write_csv(out / "summary.csv", summary, SUMMARY_COLUMNS)
     write_csv(out / "summary_runs.csv", per_run, RUN_COLUMNS)
     base_name = BASELINE if planners is None else f"{BASELINE} with the same planner"
+    if until_threshold:
+        runs_line = f"# Online comparison (runs to the threshold, at most {trials} trials each)"
+        span = "the trials up to the one that reached the threshold (or all, if none did)"
+    else:
+        runs_line, span = f"# Online comparison ({trials} trials per run)", f"all {trials} trials"
     header = [
-        f"# Online comparison ({trials} trials per run)",
+        runs_line,
         "",
         f"final = mean episode reward of the last {w} trial{'s' if w > 1 else ''} of each run; "
-        f"AUC = mean episode reward over all {trials} trials. Per arm: the interquartile mean (IQM) over seeds "
+        f"AUC = mean episode reward over {span}. Per arm: the interquartile mean (IQM) over seeds "
         "with its 95 % stratified-bootstrap CI in brackets (rliable)."
         + (
             f" P(final > {BASELINE}'s): the probability that a random seed of the arm ends with a higher final "
