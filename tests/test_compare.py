@@ -1187,3 +1187,5 @@ def test_online_until_threshold_stops_each_run_at_the_mark_and_counts_it_complet
     assert code == 0 and "2 reused" in err and snapshot(tmp_path / "runs" / "invertedpendulum-delta-s0") == before
     code, _, err = cli(capsys, *[a if a != "invertedpendulum" else "hopper" for a in args])
     assert code == 2 and "--until-threshold: no threshold for hopper" in err
+    code, _, err = cli(capsys, *[a for a in args if a != "--until-threshold"], "stop_reward=5")
+    assert code == 2 and "stop_reward= is set by --until-threshold" in err

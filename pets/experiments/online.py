@@ -109,24 +109,23 @@ def compare_online(
             )
     if planners is not None and "planner.name" in extra:
         raise UsageError("give the planner once: --planners or planner.name=, not both")
-    if until_threshold:
-        if "stop_reward" in extra:
-            raise UsageError("give the stop once: --until-threshold or stop_reward=, not both")
-        unknown = [env for env in env_names if env not in THRESHOLDS]
-        if unknown:
-            raise UsageError(
-                f"--until-threshold: no threshold for {', '.join(unknown)}; thresholds exist for "
-                f"{', '.join(THRESHOLDS)} (pets.experiments.online_summary.THRESHOLDS), or pass stop_reward=R"
-            )
+    if "stop_reward" in extra:
+        raise UsageError(
+            "stop_reward= is set by --until-threshold (the env's threshold); do not pass it as an override"
+        )
+    unknown = [env for env in env_names if env not in THRESHOLDS]
+    if until_threshold and unknown:
+        raise UsageError(
+            f"--until-threshold: no threshold for {', '.join(unknown)}; thresholds exist for "
+            f"{', '.join(THRESHOLDS)} (pets.experiments.online_summary.THRESHOLDS)"
+        )
     out = Path(out).resolve()
     jobs, actions = [], {}
     for env in env_names:
         stop = {"stop_reward": THRESHOLDS[env]} if until_threshold else {}
         for model, planner in online_arms(models, planners):
             head, own = (arms or {}).get(model, (model, {}))
-            arm_extra = (
-                {**extra, **own, **stop} if planner is None else {**extra, **own, **stop, "planner.name": planner}
-            )
+            arm_extra = {**extra, **own, **stop, **({} if planner is None else {"planner.name": planner})}
             arm_list = [f"{k}={v}" for k, v in arm_extra.items()]
             for seed in seeds:
                 name = run_name(env, model, seed, planner)
