@@ -70,10 +70,13 @@ COMPARE_ROWS: list[tuple[str, dict[str, Any]]] = [
 
 def compare_rows(cfg: DictConfig) -> list[tuple[str, dict[str, Any]]]:
     """:data:`COMPARE_ROWS` with the configured path (the defaults: ``planner.precision=auto`` resolved on this
-    machine, ``planner.compile``) marked ``default``; appended as a row of its own when none of them is it."""
+    machine, ``planner.compile``) marked ``default``; appended as a row of its own when none of them is it. With
+    feedback candidates the iCEM rows are left out."""
     p = cfg.planner
     here = {"name": p.name, "precision": p.precision, "compile": bool(p.compile)}
     rows = [(f"default: {label}" if planner == here else label, planner) for label, planner in COMPARE_ROWS]
+    if p.candidates == "feedback":  # iCEM does not search feedback gains (pets.config)
+        rows = [(label, planner) for label, planner in rows if planner["name"] != "icem"]
     if here not in [planner for _, planner in COMPARE_ROWS]:
         rows.append((f"default: {p.name} {p.precision} {'compiled' if p.compile else 'eager'}", here))
     return rows

@@ -50,6 +50,7 @@ _FIXED = {
     "planner.name": "--planner",
     "planner.horizon": "--steps",
     "planner.replan_every": "one plan per episode, never replanned",
+    "planner.candidates": "open-loop planning plans action sequences",
 }
 
 
@@ -91,6 +92,7 @@ def planning_config(cfg: Any, planner: str, steps: int, overrides: Mapping[str, 
     cfg.planner.name = planner
     cfg.planner.horizon = steps
     cfg.planner.replan_every = 1  # unused here (one plan per episode); keeps validate() happy for short plans
+    cfg.planner.candidates = "open_loop"  # a run planned with feedback candidates is replayed open loop here
     validate(cfg)
     return cfg
 

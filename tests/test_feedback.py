@@ -17,6 +17,7 @@ from pets import builder, oracle
 from pets.agent import MPCAgent
 from pets.config import ConfigError, make_config, parse_overrides
 from pets.feedback import LinearFeedback
+from pets.models import make_model
 from pets.planners import CEMPlanner
 from pets.propagation import PROPAGATIONS, TrajectoryEvaluator
 from tests.test_propagation import ACT_DIM, OBS_DIM, FakeEnsemble, make_head, reward_fn
@@ -251,3 +252,32 @@ def test_a_feedback_run_resumes_with_its_fitted_scale_and_matches_an_uninterrupt
     key = [line.split(",")[2:4] for line in (ref / "metrics.csv").read_text().splitlines()]
     assert key == [line.split(",")[2:4] for line in (resumed / "metrics.csv").read_text().splitlines()]
     assert len(key) == 4
+
+
+def test_open_loop_replay_of_a_feedback_run_plans_action_sequences() -> None:
+    """pets.openloop plans one action sequence per episode: a run made with feedback candidates (IDP's fast preset)
+    is replayed with open-loop candidates of --steps actions, and asking for feedback there is an error."""
+    from pets.openloop import planning_config
+
+    run_cfg = make_config("inverteddoublependulum", "gem", "fast")
+    assert run_cfg.planner.candidates == "feedback"
+    cfg = planning_config(run_cfg, "cem", 25)
+    assert cfg.planner.candidates == "open_loop" and cfg.planner.horizon == 25
+    spec, cpu = envs.get("inverteddoublependulum"), torch.device("cpu")
+    agent = builder.make_agent(cfg, spec, make_model(cfg, spec, cpu), cpu, torch.Generator())
+    assert agent.feedback is None and agent.planner.horizon == 25
+    with pytest.raises(ConfigError, match="planner.candidates is set by open-loop planning itself"):
+        planning_config(run_cfg, "cem", 25, {"planner.candidates": "feedback"})
+
+
+def test_the_benchmark_compares_the_planners_that_search_gains() -> None:
+    """pets.bench --compare on a feedback config (IDP's fast preset): no iCEM rows (refused by the config), the
+    configured path marked default, and every row's config valid."""
+    from pets.bench import _row_config, compare_rows
+
+    cfg = make_config("inverteddoublependulum", "gem", "fast", {"planner.precision": "bf16"})
+    rows = compare_rows(cfg)
+    assert [planner["name"] for _, planner in rows] == ["cem", "cem", "cem", "cem", "mppi"]
+    assert [label for label, _ in rows if label.startswith("default: ")] == ["default: cem bf16 eager"]
+    for _, planner in rows:
+        assert _row_config(cfg, planner).planner.candidates == "feedback"
