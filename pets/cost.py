@@ -26,12 +26,13 @@ LONG_RUN_HOURS = 3.0
 def faster_options(cfg: DictConfig) -> list[str]:
     """Settings that make planning faster and that ``cfg`` does not use yet."""
     p, fast = cfg.planner, PRESETS["fast"]["planner"]
+    feedback = p.candidates == "feedback"  # a closed-loop horizon of its own (IDP's fast preset), no iCEM for gains
     options = []
-    if p.population * p.particles * p.horizon * p.iterations > (
+    if not feedback and p.population * p.particles * p.horizon * p.iterations > (
         fast["population"] * fast["particles"] * fast["horizon"] * fast["iterations"]
     ):
         options.append("--preset fast (about 20x fewer model evaluations per step)")
-    if p.name == "cem":
+    if p.name == "cem" and not feedback:
         options.append("planner.name=icem (about 30% fewer)")
     if p.precision == "fp32" and resolve_precision("auto", cfg.device) == "bf16":  # where bf16 was measured to pay
         options.append("planner.precision=bf16")

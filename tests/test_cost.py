@@ -27,6 +27,14 @@ def test_a_short_run_gets_no_line_and_used_options_are_not_offered():
     assert "--preset fast" not in line and "icem" not in line and "compile" not in line
 
 
+def test_feedback_candidates_are_not_offered_settings_they_cannot_use():
+    """IDP's fast preset plans feedback gains with CEM over a 60-step closed loop: iCEM does not search gains and
+    the fast preset is what it already is, so neither is offered."""
+    cfg = make_config("inverteddoublependulum", "gem", "fast")
+    line = cost.long_run_line(cfg, 0.5, 1000, 60)
+    assert line is not None and "icem" not in line and "--preset fast" not in line and "compile=true" in line
+
+
 @pytest.mark.parametrize("seconds, text", [(59, "1 min"), (7500, "2 h 05 min"), (86400 * 3 + 7200, "3 d 2 h")])
 def test_format_duration(seconds, text):
     assert cost.format_duration(seconds) == text
