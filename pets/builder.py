@@ -72,7 +72,7 @@ def make_agent(
         terminal_value=value,
         feedback=feedback,
     )
-    planner = make_planner(cfg, spec, device)
+    planner = make_planner(cfg, spec, device, feedback)
     return MPCAgent(
         planner,
         evaluator,
@@ -106,10 +106,12 @@ def make_feedback(cfg: DictConfig, spec: EnvSpec, device: torch.device) -> Linea
         raise ConfigError(f"planner.feedback: {err} ({spec.name} has {spec.obs_dim} observations)") from None
 
 
-def make_planner(cfg: DictConfig, spec: EnvSpec, device: torch.device) -> Planner:
+def make_planner(
+    cfg: DictConfig, spec: EnvSpec, device: torch.device, feedback: LinearFeedback | None = None
+) -> Planner:
     """The planner named by ``planner.name`` (cem, icem, mppi) with the config's settings. With feedback
     candidates it searches the gains (pets.feedback): a (rows, act_dim) box of +-``gain_bound`` sampled with
-    std ``gain_std`` at every plan."""
+    std ``gain_std`` at every plan. ``feedback``: the law already built for the config (else built here)."""
     p = cfg.planner
     planner_class = PLANNER_CLASSES[p.name]  # the name is validated by the config
     kwargs = dict(horizon=p.horizon, population=p.population, iterations=p.iterations, alpha=p.alpha, device=device)
@@ -118,7 +120,8 @@ def make_planner(cfg: DictConfig, spec: EnvSpec, device: torch.device) -> Planne
     if p.name in p:  # the planner's own section, planner.<name>.*: its constructor's arguments
         kwargs.update(OmegaConf.to_container(p[p.name]))
     low, high = spec.action_low, spec.action_high
-    feedback = make_feedback(cfg, spec, device)
+    if feedback is None:
+        feedback = make_feedback(cfg, spec, device)
     if feedback is not None:
         f = p.feedback
         kwargs["horizon"] = feedback.shape[0]

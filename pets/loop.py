@@ -36,6 +36,14 @@ from pets.trainer import TrainingDiverged, TrainResult
 from pets.value import episode_ends, returns_to_go
 from pets.video import EpisodeRecorder, trial_video_path
 
+#: Episode indices of the random seed phase start here (the trials' episodes are 0, 1, ...).
+SEED_PHASE = 50_000
+
+
+def episode_reset_seed(seed: int, index: int) -> int:
+    """The env reset seed of episode ``index`` of a run with ``seed`` (seed-phase episodes from :data:`SEED_PHASE`)."""
+    return seed * 100_003 + index
+
 
 def seed_everything(seed: int) -> None:
     random.seed(seed)
@@ -134,7 +142,7 @@ class PETSRun:
         self.value.fit(obs, targets, self.value_gen, steps=self.cfg.value.steps)
 
     def _episode_seed(self, index: int) -> int:
-        return self.cfg.seed * 100_003 + index
+        return episode_reset_seed(self.cfg.seed, index)
 
     def _add(self, episode: Episode, start: int = 0) -> None:
         """Put the transitions ``start:`` of ``episode`` into the replay buffer."""
@@ -142,7 +150,7 @@ class PETSRun:
 
     def collect_seed_data(self) -> None:
         """``seed_steps`` uniformly random steps over as many episodes as needed, then the first training."""
-        seeds = (self._episode_seed(50_000 + i) for i in itertools.count())
+        seeds = (self._episode_seed(SEED_PHASE + i) for i in itertools.count())
         episodes = run_steps(
             self.env,
             self.random_policy,

@@ -23,6 +23,7 @@ cart-pole envs) the cart's largest distance from the centre.
 
 from __future__ import annotations
 
+import itertools
 import json
 import sys
 import time
@@ -60,9 +61,10 @@ class SimulatorEvaluator:
         qpos, qvel = self.env.data.qpos.copy(), self.env.data.qvel.copy()
         returns = np.zeros(actions.shape[0])
         fb = self.feedback
+        start = torch.as_tensor(obs, dtype=torch.float32).reshape(1, -1).cpu()
         for i, candidate in enumerate(actions.detach().cpu()):
             self.sim.set_state(qpos, qvel)
-            state = torch.as_tensor(obs, dtype=torch.float32).reshape(1, -1).cpu()
+            state = start
             for t in range(candidate.shape[0] if fb is None else fb.horizon):
                 action = candidate[t] if fb is None else fb.actions(candidate.unsqueeze(0), state)[0]
                 next_obs, reward, terminated, _, _ = self.sim.step(action.numpy().astype(np.float64))
@@ -80,6 +82,7 @@ def run_episode(cfg: Any, spec: Any, seed: int, episode: int, steps: int | None 
     from pets.agent import MPCAgent
     from pets.builder import make_feedback, make_planner
     from pets.collect import episode_seeds
+    from pets.loop import SEED_PHASE, episode_reset_seed
     from pets.rollout import MPCPolicy, RandomPolicy, run_steps
     from pets.rollout import run_episode as run_policy
 
@@ -93,12 +96,12 @@ def run_episode(cfg: Any, spec: Any, seed: int, episode: int, steps: int | None 
             RandomPolicy(spec.action_low, spec.action_high),
             max(cfg.seed_steps, 2),
             max_steps=limit,
-            reset_seeds=(seed * 100_003 + 50_000 + i for i in range(10**9)),
+            reset_seeds=(episode_reset_seed(seed, SEED_PHASE + i) for i in itertools.count()),
             rng=np.random.default_rng(seed),
         )
         feedback.fit_scale(torch.as_tensor(np.concatenate([e.obs for e in random_steps]), dtype=torch.float32))
     agent = MPCAgent(
-        make_planner(cfg, spec, device),
+        make_planner(cfg, spec, device, feedback),
         SimulatorEvaluator(env, spec.make, feedback),
         replan_every=cfg.planner.replan_every,
         action_low=spec.action_low,

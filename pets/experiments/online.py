@@ -113,8 +113,8 @@ def compare_online(
         raise UsageError(
             "stop_reward= is set by --until-threshold (the env's threshold); do not pass it as an override"
         )
-    unknown = [env for env in env_names if env not in THRESHOLDS]
-    if until_threshold and unknown:
+    unknown = [env for env in env_names if env not in THRESHOLDS] if until_threshold else []
+    if unknown:
         raise UsageError(
             f"--until-threshold: no threshold for {', '.join(unknown)}; thresholds exist for "
             f"{', '.join(THRESHOLDS)} (pets.experiments.online_summary.THRESHOLDS)"

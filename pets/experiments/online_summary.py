@@ -244,12 +244,13 @@ def summarise_online(
             for seed in seeds:
                 name = run_name(env, model, seed, planner)
                 rows = online_rows(out / "runs" / name)
-                hit = next(
-                    (i for i, r in enumerate(rows) if r["episode_reward"] >= thresholds.get(env, math.inf)), None
-                )
-                if until_threshold and hit is not None:
-                    rows = rows[: hit + 1]  # a run to the threshold ends there (a longer run is cut at it)
-                if len(rows) < trials and not (until_threshold and hit is not None):
+                reached = False
+                if until_threshold:  # a run to the threshold ends there (a longer run is cut at it)
+                    limit = thresholds.get(env, math.inf)
+                    hit = next((i for i, r in enumerate(rows) if r["episode_reward"] >= limit), None)
+                    reached = hit is not None
+                    rows = rows[: hit + 1] if reached else rows
+                if len(rows) < trials and not reached:
                     missing.append(
                         f"{name} ({len(rows)}/{trials} trials"
                         f"{'; failed: ' + failed[name] if failed and name in failed else ''})"
