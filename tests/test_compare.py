@@ -21,6 +21,7 @@ from pets.config import load_config, make_config
 from pets.experiments import arguments, runner
 from pets.experiments import cli as cli_module
 from pets.experiments.cli import EXIT_FAILED, main
+from pets.experiments.headline import write_headline
 from pets.experiments.offline import compare_offline
 from pets.experiments.offline_summary import SUMMARY_COLUMNS, summarise_offline
 from pets.experiments.online_summary import SUMMARY_COLUMNS as ONLINE_COLUMNS
@@ -1189,3 +1190,59 @@ def test_online_until_threshold_stops_each_run_at_the_mark_and_counts_it_complet
     assert code == 2 and "--until-threshold: no threshold for hopper" in err
     code, _, err = cli(capsys, *[a for a in args if a != "--until-threshold"], "stop_reward=5")
     assert code == 2 and "stop_reward= is set by --until-threshold" in err
+
+
+# --------------------------------------------------------------------------- headline across summaries
+def test_headline_takes_each_comparison_from_the_summaries_at_the_longest_horizon(fake_offline, fake_online, tmp_path):
+    off, _ = fake_offline
+    on, _ = fake_online
+    text = write_headline([off / "summary.csv"], [on / "summary.csv"], tmp_path, horizon=50)
+    rows = csv_rows(tmp_path / "headline_offline.csv")
+    assert {(r["env"], r["model"]) for r in rows} == {
+        ("reacher", "gem"),
+        ("reacher", "gem2"),
+        ("invertedpendulum", "gem"),
+        ("hopper", "gem"),
+    }
+    hopper = [r for r in rows if r["env"] == "hopper"]  # gem diverged in both seeds: counted, no ratio
+    assert hopper and all(
+        (r["n_diverged"], r["delta_n_diverged"], r["ratio_to_delta"]) == ("2", "0", "") for r in hopper
+    )
+    assert all(float(r["p_improvement"]) == 0 for r in hopper)
+    for r in rows:
+        assert r["horizon"] == "5"  # the longest below 50
+        s = summary_row(off, r["env"], r["model"], 5, r["metric"])
+        for col in ("p_improvement", "p_improvement_ci_low", "p_improvement_ci_high", "n_diverged"):
+            assert float(r[col]) == float(s[col]), (r, col)
+        assert r["ratio_to_delta"] == s["ratio_to_delta"] or float(r["ratio_to_delta"]) == float(s["ratio_to_delta"])
+        assert r["delta_n_diverged"] == summary_row(off, r["env"], "delta", 5, r["metric"])["n_diverged"]
+    # invertedpendulum has no rotations: its rotation errors are 0, so there is nothing to compare
+    assert {r["metric"] for r in rows if r["env"] == "invertedpendulum"} == {"standardized_error", "mean_step_error"}
+    assert {r["horizon"] for r in csv_rows(write_dir(tmp_path, off, horizon=1) / "headline_offline.csv")} == {"1"}
+    online = {(r["env"], r["model"]): r for r in csv_rows(tmp_path / "headline_online.csv")}
+    assert set(online) == {("reacher", "gem"), ("reacher", "gem2"), ("hopper", "gem")}
+    gem, delta = online_row(on, "reacher", "gem"), online_row(on, "reacher", "delta")
+    assert float(online["reacher", "gem"]["final_iqm"]) == float(gem["final_iqm"])
+    assert float(online["reacher", "gem"]["delta_final_iqm"]) == float(delta["final_iqm"])
+    assert float(online["reacher", "gem"]["p_improvement"]) == float(gem["p_improvement"])
+    assert "| reacher | gem |" in text and "nan" not in text.lower().replace("n/a", "")
+    assert (tmp_path / "headline_ratio.png").stat().st_size > 0
+
+
+def write_dir(tmp_path, off, horizon):
+    out = tmp_path / f"h{horizon}"
+    write_headline([off / "summary.csv"], [], out, horizon=horizon)
+    return out
+
+
+def test_headline_rejects_what_is_not_a_summary_in_one_line(fake_offline, tmp_path, capsys):
+    off, _ = fake_offline
+    code, _, err = cli(capsys, "headline", "--offline", tmp_path / "missing.csv", "--out", tmp_path / "h")
+    assert code == 2 and "no such file" in err and "Traceback" not in err
+    code, _, err = cli(capsys, "headline", "--online", off / "summary.csv", "--out", tmp_path / "h")
+    assert code == 2 and "an offline summary given as --online" in err
+    (tmp_path / "other.csv").write_text("a,b\n1,2\n")
+    code, _, err = cli(capsys, "headline", "--offline", tmp_path / "other.csv", "--out", tmp_path / "h")
+    assert code == 2 and "not a pets.compare summary.csv" in err
+    code, out, _ = cli(capsys, "headline", "--offline", off / "summary.csv", "--out", tmp_path / "h")
+    assert code == 0 and out.startswith("# Headline") and (tmp_path / "h" / "headline.md").read_text() in out

@@ -10,6 +10,8 @@
                                    [--openloop] [--planners cem,mppi] [--openloop-steps 50] [--openloop-episodes 5]
                                    [--preset research|fast] [--device D] [--quiet] [ARMS] [BACKEND]
                                    [key=value ...]
+    python -m pets.compare headline [--offline S1.csv ...] [--online S2.csv ...] --out DIR [--horizon 50]
+                                   [--model gem] [--caption TEXT]
     ARMS:    [--arm LABEL=MODEL[:key=value,...]] ... (more compared arms: a model with its own overrides)
     BACKEND: [--backend local] [--workers K] [--threads T]
              --backend ray [--address auto|ray://HOST:10001] [--threads T] [--max-retries R]
@@ -153,6 +155,18 @@ def build_parser() -> OneLineParser:
     off.add_argument("--planners", default="cem,mppi", help="open-loop planners (default cem,mppi)")
     off.add_argument("--openloop-steps", type=int, default=50, help="open-loop plan length (default 50)")
     off.add_argument("--openloop-episodes", type=int, default=5, help="open-loop episodes per run (default 5)")
+
+    head = sub.add_parser(
+        "headline",
+        prog=f"{PROG} headline",
+        help="the per-env answer (each model against delta) from summary.csv files of earlier comparisons",
+    )
+    head.add_argument("--offline", type=Path, nargs="*", default=[], help="offline summary.csv files")
+    head.add_argument("--online", type=Path, nargs="*", default=[], help="online summary.csv files")
+    head.add_argument("--horizon", type=int, default=50, help="offline horizon (default 50; else the longest below)")
+    head.add_argument("--model", default="gem", help="the model whose ratio to delta is plotted (default gem)")
+    head.add_argument("--caption", default="", help="a line under the figure, e.g. the machine the runs came from")
+    head.add_argument("--out", type=Path, required=True, help="output directory (headline.md, CSVs, figure)")
     return p
 
 
@@ -175,9 +189,26 @@ def make_backend(args: argparse.Namespace) -> Backend:
     )
 
 
+def headline_main(args: argparse.Namespace) -> int:
+    """``compare headline``: print headline.md; exit 2 with one line on a bad summary file."""
+    from pets.experiments.headline import HeadlineError, write_headline
+
+    try:
+        print(
+            write_headline(
+                args.offline, args.online, args.out, horizon=args.horizon, model=args.model, caption=args.caption
+            )
+        )
+    except HeadlineError as err:
+        fail(PROG, str(err))
+    return 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run ``compare`` with ``argv`` and print the report; 0, 1 (a run failed) or exit 2 (bad input)."""
     args = build_parser().parse_args(argv)
+    if args.mode == "headline":
+        return headline_main(args)
     from pets.config import PRESETS
 
     try:

@@ -1,0 +1,322 @@
+"""The headline answer across studies: per env, does a model beat delta, from ``pets.compare`` summary files.
+
+``python -m pets.compare headline --offline A/summary.csv ... --online B/summary.csv ... --out DIR`` reads the
+summaries that ``pets.compare offline`` and ``online`` wrote (no statistics are recomputed: every number is the
+summary's, from rliable) and writes:
+
+- ``headline_offline.csv``: per env, compared model and metric, at the requested horizon (or the env's longest one below
+  it, named in ``horizon``): the paired ratio model / delta with its CI, P(model error < delta's) with its CI,
+  the seed pairs and the runs diverged there.
+- ``headline_online.csv``: per online env and model: the final reward and the env steps to the threshold against
+  delta's, P(final > delta's) and the paired difference.
+- ``headline.md``: the same as tables.
+- ``headline_ratio.png``: the paired ratio to delta per horizon and env (one panel per metric), CI bars.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from pets.experiments.report import fmt, fmt_interval, md_table, write_csv
+from pets.experiments.statistics import BASELINE
+from pets.fileio import atomic_write_bytes
+
+#: Offline metrics of the headline, in order: the whole state, then the group coordinates (where GEM composes).
+OFFLINE_METRICS = ("standardized_error", "rotation_error", "mean_step_error")
+OFFLINE_COLUMNS = [
+    "env",
+    "model",
+    "metric",
+    "horizon",
+    "ratio_to_delta",
+    "ratio_ci_low",
+    "ratio_ci_high",
+    "p_improvement",
+    "p_improvement_ci_low",
+    "p_improvement_ci_high",
+    "n_pairs",
+    "n_diverged",
+    "delta_n_diverged",
+    "source",
+]
+ONLINE_COLUMNS = [
+    "env",
+    "model",
+    "n_seeds",
+    "trials",
+    "final_iqm",
+    "final_ci_low",
+    "final_ci_high",
+    "delta_final_iqm",
+    "delta_final_ci_low",
+    "delta_final_ci_high",
+    "p_improvement",
+    "p_improvement_ci_low",
+    "p_improvement_ci_high",
+    "diff_to_delta",
+    "diff_ci_low",
+    "diff_ci_high",
+    "threshold",
+    "n_reached",
+    "delta_n_reached",
+    "steps_to_threshold_iqm",
+    "delta_steps_to_threshold_iqm",
+    "source",
+]
+
+
+class HeadlineError(ValueError):
+    """A summary file that cannot give the headline (missing, of neither kind, or without delta)."""
+
+
+def _number(text: str | None) -> float:
+    return float(text) if text not in (None, "") else math.nan
+
+
+def read_summary(path: Path) -> tuple[str, list[dict[str, str]]]:
+    """(``"offline"`` or ``"online"``, rows) of a ``pets.compare`` summary.csv."""
+    if not path.is_file():
+        raise HeadlineError(f"{path}: no such file (give the summary.csv that pets.compare wrote)")
+    with path.open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    columns = set(rows[0]) if rows else set()
+    if {"env", "model", "horizon", "metric", "ratio_to_delta"} <= columns:
+        kind = "offline"
+    elif {"env", "model", "final_iqm", "p_improvement"} <= columns:
+        kind = "online"
+    else:
+        raise HeadlineError(
+            f"{path}: not a pets.compare summary.csv (offline: env, model, horizon, metric, ratio_to_delta; "
+            "online: env, model, final_iqm, p_improvement)"
+        )
+    if not any(r["model"] == BASELINE for r in rows):
+        raise HeadlineError(f"{path}: has no {BASELINE} rows, so nothing is compared with {BASELINE}")
+    return kind, rows
+
+
+def offline_rows(rows: Sequence[Mapping[str, str]], horizon: int, source: str) -> list[dict[str, Any]]:
+    """Per env, non-delta model and headline metric: the summary's comparison at ``horizon`` (or the longest
+    horizon below it that the env has)."""
+    out = []
+    by_key = {(r["env"], r["model"], int(r["horizon"]), r["metric"]): r for r in rows}
+    for env in dict.fromkeys(r["env"] for r in rows):
+        horizons = sorted({h for (e, _, h, _) in by_key if e == env and h <= horizon})
+        if not horizons:
+            continue
+        h = horizons[-1]
+        for model in dict.fromkeys(r["model"] for r in rows if r["env"] == env and r["model"] != BASELINE):
+            for metric in OFFLINE_METRICS:
+                row, base = by_key.get((env, model, h, metric)), by_key.get((env, BASELINE, h, metric))
+                if row is None or base is None or math.isnan(_number(row["p_improvement"])):
+                    continue
+                if _number(row["iqm"]) == 0 and _number(base["iqm"]) == 0:  # the env has no such coordinates
+                    continue
+                out.append(
+                    {
+                        "env": env,
+                        "model": model,
+                        "metric": metric,
+                        "horizon": h,
+                        **{k: _number(row[k]) for k in OFFLINE_COLUMNS[4:10]},
+                        "n_pairs": int(_number(row["n_pairs"]) if row["n_pairs"] else 0),
+                        "n_diverged": int(_number(row["n_diverged"])),
+                        "delta_n_diverged": int(_number(base["n_diverged"])),
+                        "source": source,
+                    }
+                )
+    return out
+
+
+def online_rows(rows: Sequence[Mapping[str, str]], source: str) -> list[dict[str, Any]]:
+    """Per env and non-delta arm of an online summary: its final reward and steps to threshold against delta's."""
+    out = []
+    base = {r["env"]: r for r in rows if r["model"] == BASELINE}
+    for row in rows:
+        if row["model"] == BASELINE or row["env"] not in base:
+            continue
+        b = base[row["env"]]
+        out.append(
+            {
+                "env": row["env"],
+                "model": row["model"],
+                "n_seeds": int(_number(row["n_seeds"])),
+                "trials": int(_number(row["trials"])),
+                **{k: _number(row[k]) for k in ("final_iqm", "final_ci_low", "final_ci_high")},
+                **{f"delta_{k}": _number(b[k]) for k in ("final_iqm", "final_ci_low", "final_ci_high")},
+                **{k: _number(row[k]) for k in ONLINE_COLUMNS[10:16]},
+                "threshold": _number(row.get("threshold")),
+                "n_reached": row.get("n_reached", ""),
+                "delta_n_reached": b.get("n_reached", ""),
+                "steps_to_threshold_iqm": _number(row.get("steps_to_threshold_iqm")),
+                "delta_steps_to_threshold_iqm": _number(b.get("steps_to_threshold_iqm")),
+                "source": source,
+            }
+        )
+    return out
+
+
+def _p(row: Mapping[str, Any]) -> str:
+    text = fmt_interval(row["p_improvement"], row["p_improvement_ci_low"], row["p_improvement_ci_high"])
+    low, high = row["p_improvement_ci_low"], row["p_improvement_ci_high"]
+    return f"**{text}**" if low > 0.5 or high < 0.5 else text
+
+
+def offline_table(rows: Sequence[Mapping[str, Any]]) -> str:
+    """One line per env and model: each headline metric's ratio [CI] and P [CI] (bold: P's CI excludes 0.5)."""
+    lines = {}
+    for r in rows:
+        key = (r["env"], r["model"])
+        lines.setdefault(key, {"horizon": r["horizon"], "pairs": r["n_pairs"], "div": (0, 0)})
+        ratio = fmt_interval(r["ratio_to_delta"], r["ratio_ci_low"], r["ratio_ci_high"])
+        lines[key][r["metric"]] = f"{ratio}; P {_p(r)}"
+        div = lines[key]["div"]
+        lines[key]["div"] = (max(div[0], r["n_diverged"]), max(div[1], r["delta_n_diverged"]))
+    header = ["env", "model", "h", "seed pairs", *(f"{m}: ratio to delta; P(lower)" for m in OFFLINE_METRICS)]
+    header.append("diverged (model, delta)")
+    body = [
+        [
+            env,
+            model,
+            str(v["horizon"]),
+            str(v["pairs"]),
+            *(v.get(m, "-") for m in OFFLINE_METRICS),
+            "{}, {}".format(*v["div"]),
+        ]
+        for (env, model), v in lines.items()
+    ]
+    return md_table(header, body)
+
+
+def online_table(rows: Sequence[Mapping[str, Any]]) -> str:
+    """One line per env and arm: final rewards, P(final > delta's), paired difference, steps to threshold."""
+    header = ["env", "model", "seeds", "trials", "final", "delta's final", "P(final > delta's)", "paired diff"]
+    header += ["reached (model, delta)", "env steps to threshold (model, delta)"]
+    body = []
+    for r in rows:
+        body.append(
+            [
+                r["env"],
+                r["model"],
+                str(r["n_seeds"]),
+                str(r["trials"]),
+                fmt_interval(r["final_iqm"], r["final_ci_low"], r["final_ci_high"]),
+                fmt_interval(r["delta_final_iqm"], r["delta_final_ci_low"], r["delta_final_ci_high"]),
+                _p(r),
+                fmt_interval(r["diff_to_delta"], r["diff_ci_low"], r["diff_ci_high"]),
+                f"{r['n_reached']}, {r['delta_n_reached']}" if r["n_reached"] != "" else "-",
+                ", ".join(
+                    fmt(v) if math.isfinite(v) else "-"
+                    for v in (r["steps_to_threshold_iqm"], r["delta_steps_to_threshold_iqm"])
+                ),
+            ]
+        )
+    return md_table(header, body)
+
+
+def plot_ratios(path: Path, offline: Mapping[str, Sequence[Mapping[str, str]]], model: str, caption: str = "") -> None:
+    """The paired ratio ``model`` / delta against the horizon, one line per env, one panel per metric; ``caption``
+    under the panels (say where the runs were made)."""
+    from pets.experiments.plots import _figure_bytes, _pyplot
+
+    plt = _pyplot()
+    from matplotlib.ticker import NullFormatter, ScalarFormatter
+
+    metrics = OFFLINE_METRICS[:2]
+    fig, axes = plt.subplots(1, len(metrics), figsize=(5.2 * len(metrics), 3.8), squeeze=False)
+    for ax, metric in zip(axes[0], metrics):
+        for rows in offline.values():
+            for env in dict.fromkeys(r["env"] for r in rows):
+                pts = sorted(
+                    (
+                        int(r["horizon"]),
+                        _number(r["ratio_to_delta"]),
+                        _number(r["ratio_ci_low"]),
+                        _number(r["ratio_ci_high"]),
+                    )
+                    for r in rows
+                    if r["env"] == env and r["model"] == model and r["metric"] == metric and r["ratio_to_delta"]
+                )
+                if not pts:
+                    continue
+                h, v, lo, hi = (list(x) for x in zip(*pts))
+                yerr = [[a - b for a, b in zip(v, lo)], [b - a for a, b in zip(v, hi)]]
+                ax.errorbar(h, v, yerr=yerr, marker="o", capsize=3, label=env)
+        ax.axhline(1.0, color="grey", lw=0.8, ls="--")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        for axis in (ax.xaxis, ax.yaxis):
+            axis.set_major_formatter(ScalarFormatter())
+            axis.set_minor_formatter(NullFormatter())
+        low, high = ax.get_ylim()
+        ax.set_yticks([t for t in (0.1, 0.2, 0.3, 0.5, 0.7, 1, 1.5, 2, 3, 5, 10, 30, 100) if low <= t <= high])
+        ax.set_ylim(low, high)
+        ax.set_xticks(sorted({int(r["horizon"]) for rows in offline.values() for r in rows}))
+        ax.set_xlabel("horizon (steps)")
+        ax.set_ylabel(f"{model} / {BASELINE}, paired (IQM, 95 % CI)")
+        ax.set_title(metric)
+        ax.legend(fontsize=8)
+    if caption:
+        fig.text(0.01, 0.01, caption, fontsize=7, color="dimgrey")
+    fig.tight_layout(rect=(0, 0.04 if caption else 0, 1, 1))
+    atomic_write_bytes(path, _figure_bytes(fig))
+
+
+def _blank_nan(rows: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
+    """Rows with missing values written empty, as the summaries write them."""
+    return [{k: "" if isinstance(v, float) and math.isnan(v) else v for k, v in r.items()} for r in rows]
+
+
+def write_headline(
+    offline: Sequence[Path],
+    online: Sequence[Path],
+    out: Path,
+    horizon: int = 50,
+    model: str = "gem",
+    caption: str = "",
+) -> str:
+    """Write headline.csv, headline.md and headline_ratio.png (module docstring) to ``out``; returns the markdown."""
+    if not offline and not online:
+        raise HeadlineError("give at least one summary.csv (--offline or --online)")
+    off_rows: list[dict[str, Any]] = []
+    on_rows: list[dict[str, Any]] = []
+    curves: dict[str, list[dict[str, str]]] = {}
+    for path, expected in [(p, "offline") for p in offline] + [(p, "online") for p in online]:
+        kind, rows = read_summary(path)
+        if kind != expected:
+            raise HeadlineError(f"{path}: an {kind} summary given as --{expected}")
+        if kind == "offline":
+            off_rows += offline_rows(rows, horizon, str(path))
+            curves[str(path)] = rows
+        else:
+            on_rows += online_rows(rows, str(path))
+    out.mkdir(parents=True, exist_ok=True)
+    write_csv(out / "headline_offline.csv", _blank_nan(off_rows), OFFLINE_COLUMNS)
+    write_csv(out / "headline_online.csv", _blank_nan(on_rows), ONLINE_COLUMNS)
+    parts = ["# Headline: each model against delta, paired seeds\n"]
+    if off_rows:
+        parts += [
+            f"## Offline prediction error at horizon {horizon} (or the env's longest below it)\n",
+            "Ratio: IQM of the per-seed ratio model / delta with its 95 % CI; P(lower): the probability that the "
+            "model's error is lower than delta's, with its CI (bold: the CI excludes 0.5). From the summaries:\n",
+            offline_table(off_rows),
+            "",
+        ]
+        if any(r["model"] == model for r in off_rows):
+            plot_ratios(out / "headline_ratio.png", curves, model, caption)
+            parts.append("![ratio to delta](headline_ratio.png)\n")
+    if on_rows:
+        parts += [
+            "## Online reward (same planner and budget)\n",
+            "IQM [95 % CI] over seeds; P: P(the model's final reward > delta's); paired diff: model - delta.\n",
+            online_table(on_rows),
+            "",
+        ]
+    sources = sorted({str(p) for p in (*offline, *online)})
+    parts.append("Sources: " + ", ".join(f"`{s}`" for s in sources) + "\n")
+    text = "\n".join(parts)
+    atomic_write_bytes(out / "headline.md", text.encode())
+    return text
