@@ -1196,7 +1196,9 @@ def test_online_until_threshold_stops_each_run_at_the_mark_and_counts_it_complet
 def test_headline_takes_each_comparison_from_the_summaries_at_the_longest_horizon(fake_offline, fake_online, tmp_path):
     off, _ = fake_offline
     on, _ = fake_online
-    text = write_headline([off / "summary.csv"], [on / "summary.csv"], tmp_path, horizon=50)
+    text = write_headline(
+        [off / "summary.csv"], [on / "summary.csv"], tmp_path, horizon=50, relative=[off / "relative_error.csv"]
+    )
     rows = csv_rows(tmp_path / "headline_offline.csv")
     assert {(r["env"], r["model"]) for r in rows} == {
         ("reacher", "gem"),
@@ -1226,7 +1228,8 @@ def test_headline_takes_each_comparison_from_the_summaries_at_the_longest_horizo
     assert float(online["reacher", "gem"]["delta_final_iqm"]) == float(delta["final_iqm"])
     assert float(online["reacher", "gem"]["p_improvement"]) == float(gem["p_improvement"])
     assert "| reacher | gem |" in text and "nan" not in text.lower().replace("n/a", "")
-    assert (tmp_path / "headline_ratio.png").stat().st_size > 0
+    for figure in ("headline_ratio.png", "headline_relative.png", "headline_fig2_ratio.png"):
+        assert (tmp_path / figure).stat().st_size > 0
 
 
 def write_dir(tmp_path, off, horizon):
@@ -1244,5 +1247,8 @@ def test_headline_rejects_what_is_not_a_summary_in_one_line(fake_offline, tmp_pa
     (tmp_path / "other.csv").write_text("a,b\n1,2\n")
     code, _, err = cli(capsys, "headline", "--offline", tmp_path / "other.csv", "--out", tmp_path / "h")
     assert code == 2 and "not a pets.compare summary.csv" in err
+    args = ("--offline", off / "summary.csv", "--relative", off / "summary.csv", "--out", tmp_path / "h")
+    code, _, err = cli(capsys, "headline", *args)
+    assert code == 2 and "not a pets.compare relative_error.csv" in err
     code, out, _ = cli(capsys, "headline", "--offline", off / "summary.csv", "--out", tmp_path / "h")
     assert code == 0 and out.startswith("# Headline") and (tmp_path / "h" / "headline.md").read_text() in out

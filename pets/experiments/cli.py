@@ -10,8 +10,8 @@
                                    [--openloop] [--planners cem,mppi] [--openloop-steps 50] [--openloop-episodes 5]
                                    [--preset research|fast] [--device D] [--quiet] [ARMS] [BACKEND]
                                    [key=value ...]
-    python -m pets.compare headline [--offline S1.csv ...] [--online S2.csv ...] --out DIR [--horizon 50]
-                                   [--model gem] [--caption TEXT]
+    python -m pets.compare headline [--offline S1.csv ...] [--online S2.csv ...] [--relative R1.csv ...]
+                                   --out DIR [--horizon 50] [--model gem] [--caption TEXT]
     ARMS:    [--arm LABEL=MODEL[:key=value,...]] ... (more compared arms: a model with its own overrides)
     BACKEND: [--backend local] [--workers K] [--threads T]
              --backend ray [--address auto|ray://HOST:10001] [--threads T] [--max-retries R]
@@ -163,6 +163,9 @@ def build_parser() -> OneLineParser:
     )
     head.add_argument("--offline", type=Path, nargs="*", default=[], help="offline summary.csv files")
     head.add_argument("--online", type=Path, nargs="*", default=[], help="online summary.csv files")
+    head.add_argument(
+        "--relative", type=Path, nargs="*", default=[], help="offline relative_error.csv files (Fig. 2 across envs)"
+    )
     head.add_argument("--horizon", type=int, default=50, help="offline horizon (default 50; else the longest below)")
     head.add_argument("--model", default="gem", help="the model whose ratio to delta is plotted (default gem)")
     head.add_argument("--caption", default="", help="a line under the figure, e.g. the machine the runs came from")
@@ -194,13 +197,18 @@ def headline_main(args: argparse.Namespace) -> int:
     from pets.experiments.headline import HeadlineError, write_headline
 
     try:
-        print(
-            write_headline(
-                args.offline, args.online, args.out, horizon=args.horizon, model=args.model, caption=args.caption
-            )
+        text = write_headline(
+            args.offline,
+            args.online,
+            args.out,
+            horizon=args.horizon,
+            model=args.model,
+            caption=args.caption,
+            relative=args.relative,
         )
     except HeadlineError as err:
         fail(PROG, str(err))
+    print(text)
     return 0
 
 

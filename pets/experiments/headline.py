@@ -11,6 +11,9 @@ summary's, from rliable) and writes:
   delta's, P(final > delta's) and the paired difference.
 - ``headline.md``: the same as tables.
 - ``headline_ratio.png``: the paired ratio to delta per horizon and env (one panel per metric), CI bars.
+- With ``--relative`` (the studies' relative_error.csv files): the paper's Fig. 2 across the envs, both
+  normalisations: ``headline_relative.png`` (divided by the env's worst model) and ``headline_fig2_ratio.png``
+  (paired ratio to delta), for the error averaged over the horizons (mean_step_error, as the paper).
 """
 
 from __future__ import annotations
@@ -265,6 +268,27 @@ def plot_ratios(path: Path, offline: Mapping[str, Sequence[Mapping[str, str]]], 
     atomic_write_bytes(path, _figure_bytes(fig))
 
 
+def relative_rows(path: Path, metric: str = "mean_step_error") -> dict[str, dict[str, dict[str, Any]]]:
+    """``rows[env][model]`` of a relative_error.csv for ``metric``, as :func:`pets.experiments.plots.plot_relative`
+    takes them (missing values None)."""
+    if not path.is_file():
+        raise HeadlineError(f"{path}: no such file (give the relative_error.csv that pets.compare offline wrote)")
+    with path.open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    if not rows or not {"env", "model", "metric", "relative", "ratio_to_delta"} <= set(rows[0]):
+        raise HeadlineError(f"{path}: not a pets.compare relative_error.csv (env, model, metric, relative, ...)")
+    out: dict[str, dict[str, dict[str, Any]]] = {}
+    for r in rows:
+        if r["metric"] != metric:
+            continue
+        values = {
+            k: (None if v in ("", None) else float(v)) for k, v in r.items() if k not in ("env", "model", "metric")
+        }
+        values.update(n_seeds=int(values["n_seeds"] or 0), n_diverged=int(values["n_diverged"] or 0))
+        out.setdefault(r["env"], {})[r["model"]] = values
+    return out
+
+
 def _blank_nan(rows: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
     """Rows with missing values written empty, as the summaries write them."""
     return [{k: "" if isinstance(v, float) and math.isnan(v) else v for k, v in r.items()} for r in rows]
@@ -277,10 +301,14 @@ def write_headline(
     horizon: int = 50,
     model: str = "gem",
     caption: str = "",
+    relative: Sequence[Path] = (),
 ) -> str:
     """Write headline.csv, headline.md and headline_ratio.png (module docstring) to ``out``; returns the markdown."""
     if not offline and not online:
         raise HeadlineError("give at least one summary.csv (--offline or --online)")
+    fig2: dict[str, dict[str, dict[str, Any]]] = {}
+    for path in relative:
+        fig2.update(relative_rows(path))
     off_rows: list[dict[str, Any]] = []
     on_rows: list[dict[str, Any]] = []
     curves: dict[str, list[dict[str, str]]] = {}
@@ -308,6 +336,12 @@ def write_headline(
         if any(r["model"] == model for r in off_rows):
             plot_ratios(out / "headline_ratio.png", curves, model, caption)
             parts.append("![ratio to delta](headline_ratio.png)\n")
+    if fig2:
+        from pets.experiments.plots import plot_ratio, plot_relative
+
+        plot_relative(out / "headline_relative.png", fig2)
+        plot_ratio(out / "headline_fig2_ratio.png", fig2)
+        parts.append("![Fig. 2, relative](headline_relative.png) ![Fig. 2, ratio](headline_fig2_ratio.png)\n")
     if on_rows:
         parts += [
             "## Online reward (same planner and budget)\n",
@@ -315,7 +349,7 @@ def write_headline(
             online_table(on_rows),
             "",
         ]
-    sources = sorted({str(p) for p in (*offline, *online)})
+    sources = sorted({str(p) for p in (*offline, *online, *relative)})
     parts.append("Sources: " + ", ".join(f"`{s}`" for s in sources) + "\n")
     text = "\n".join(parts)
     atomic_write_bytes(out / "headline.md", text.encode())
