@@ -1250,5 +1250,7 @@ def test_headline_rejects_what_is_not_a_summary_in_one_line(fake_offline, tmp_pa
     args = ("--offline", off / "summary.csv", "--relative", off / "summary.csv", "--out", tmp_path / "h")
     code, _, err = cli(capsys, "headline", *args)
     assert code == 2 and "not a pets.compare relative_error.csv" in err
-    code, out, _ = cli(capsys, "headline", "--offline", off / "summary.csv", "--out", tmp_path / "h")
+    args = ("--offline", off / "summary.csv", "--out", tmp_path / "h", "--figures", tmp_path / "figs")
+    code, out, _ = cli(capsys, "headline", *args)
     assert code == 0 and out.startswith("# Headline") and (tmp_path / "h" / "headline.md").read_text() in out
+    assert "](../figs/headline_ratio.png)" in out and (tmp_path / "figs" / "headline_ratio.png").is_file()

@@ -11,7 +11,7 @@
                                    [--preset research|fast] [--device D] [--quiet] [ARMS] [BACKEND]
                                    [key=value ...]
     python -m pets.compare headline [--offline S1.csv ...] [--online S2.csv ...] [--relative R1.csv ...]
-                                   --out DIR [--horizon 50] [--model gem] [--caption TEXT]
+                                   --out DIR [--figures DIR] [--horizon 50] [--model gem] [--caption TEXT]
     ARMS:    [--arm LABEL=MODEL[:key=value,...]] ... (more compared arms: a model with its own overrides)
     BACKEND: [--backend local] [--workers K] [--threads T]
              --backend ray [--address auto|ray://HOST:10001] [--threads T] [--max-retries R]
@@ -169,7 +169,8 @@ def build_parser() -> OneLineParser:
     head.add_argument("--horizon", type=int, default=50, help="offline horizon (default 50; else the longest below)")
     head.add_argument("--model", default="gem", help="the model whose ratio to delta is plotted (default gem)")
     head.add_argument("--caption", default="", help="a line under the figure, e.g. the machine the runs came from")
-    head.add_argument("--out", type=Path, required=True, help="output directory (headline.md, CSVs, figure)")
+    head.add_argument("--out", type=Path, required=True, help="output directory (headline.md, the CSVs)")
+    head.add_argument("--figures", type=Path, help="directory of the figures (default: --out)")
     return p
 
 
@@ -205,6 +206,7 @@ def headline_main(args: argparse.Namespace) -> int:
             model=args.model,
             caption=args.caption,
             relative=args.relative,
+            figures=args.figures,
         )
     except HeadlineError as err:
         fail(PROG, str(err))

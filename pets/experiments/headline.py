@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import csv
 import math
+import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -302,8 +303,10 @@ def write_headline(
     model: str = "gem",
     caption: str = "",
     relative: Sequence[Path] = (),
+    figures: Path | None = None,
 ) -> str:
-    """Write headline.csv, headline.md and headline_ratio.png (module docstring) to ``out``; returns the markdown."""
+    """Write the CSVs and headline.md to ``out`` and the figures (module docstring) to ``figures`` (default
+    ``out``); returns the markdown, whose image links are relative to ``out``."""
     if not offline and not online:
         raise HeadlineError("give at least one summary.csv (--offline or --online)")
     fig2: dict[str, dict[str, dict[str, Any]]] = {}
@@ -321,7 +324,10 @@ def write_headline(
             curves[str(path)] = rows
         else:
             on_rows += online_rows(rows, str(path))
+    figures = out if figures is None else figures
     out.mkdir(parents=True, exist_ok=True)
+    figures.mkdir(parents=True, exist_ok=True)
+    link = Path(os.path.relpath(figures, out))
     write_csv(out / "headline_offline.csv", _blank_nan(off_rows), OFFLINE_COLUMNS)
     write_csv(out / "headline_online.csv", _blank_nan(on_rows), ONLINE_COLUMNS)
     parts = ["# Headline: each model against delta, paired seeds\n"]
@@ -334,14 +340,15 @@ def write_headline(
             "",
         ]
         if any(r["model"] == model for r in off_rows):
-            plot_ratios(out / "headline_ratio.png", curves, model, caption)
-            parts.append("![ratio to delta](headline_ratio.png)\n")
+            plot_ratios(figures / "headline_ratio.png", curves, model, caption)
+            parts.append(f"![ratio to delta]({(link / 'headline_ratio.png').as_posix()})\n")
     if fig2:
         from pets.experiments.plots import plot_ratio, plot_relative
 
-        plot_relative(out / "headline_relative.png", fig2)
-        plot_ratio(out / "headline_fig2_ratio.png", fig2)
-        parts.append("![Fig. 2, relative](headline_relative.png) ![Fig. 2, ratio](headline_fig2_ratio.png)\n")
+        plot_relative(figures / "headline_relative.png", fig2)
+        plot_ratio(figures / "headline_fig2_ratio.png", fig2)
+        rel, ratio = ((link / name).as_posix() for name in ("headline_relative.png", "headline_fig2_ratio.png"))
+        parts.append(f"![Fig. 2, relative]({rel}) ![Fig. 2, ratio]({ratio})\n")
     if on_rows:
         parts += [
             "## Online reward (same planner and budget)\n",
