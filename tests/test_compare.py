@@ -305,6 +305,9 @@ def test_online_summary_csv_columns(fake_online):
         "diff_ci_low",
         "diff_ci_high",
         "n_pairs",
+        "p_fewer_steps",
+        "p_fewer_steps_ci_low",
+        "p_fewer_steps_ci_high",
     ]
     assert not any(c.endswith("_mean") and c.startswith(("final", "auc")) for c in header)  # no mean of rewards
     assert [(r["env"], r["model"]) for r in rows] == [
@@ -429,8 +432,18 @@ def test_online_time_to_threshold_counts_runs_that_never_reach_it(tmp_path):
         "",
         "",
     )
+    # P(gem needs fewer env steps than delta), from rliable on the runs' steps (never reached: the most)
+    steps = {
+        m: np.array([float(runs["reacher", m, str(s)]["steps_to_threshold"]) for s in range(5)])
+        for m in ("gem", "delta")
+    }
+    expected_p = metrics.probability_of_improvement(-steps["gem"][:, None], -steps["delta"][:, None])
+    assert float(online_row(tmp_path, "reacher", "gem")["p_fewer_steps"]) == pytest.approx(expected_p)
+    assert expected_p > 0.5 and online_row(tmp_path, "reacher", "delta")["p_fewer_steps"] == ""
+    assert float(online_row(tmp_path, "hopper", "gem")["p_fewer_steps"]) == 0.5  # neither reached it: ties
     md = (tmp_path / "summary.md").read_text()
-    assert "| reached 22 | minutes to it | env steps to it |" in md and "| 0/5 | - | - |" in md
+    assert "| reached 22 | minutes to it | env steps to it | P(fewer steps than delta) |" in md
+    assert "| 0/5 | - | - | 0.5 [" in md
     assert "| 5/5 | " + fmt_interval(*(float(r2) for r2 in times_iqm(online_row(tmp_path, "reacher", "delta")))) in md
     # the function itself: the first trial at or above, NaN without one or without a threshold
     rewards = [1, 5, 3, 7]
@@ -1227,6 +1240,7 @@ def test_headline_takes_each_comparison_from_the_summaries_at_the_longest_horizo
     assert float(online["reacher", "gem"]["final_iqm"]) == float(gem["final_iqm"])
     assert float(online["reacher", "gem"]["delta_final_iqm"]) == float(delta["final_iqm"])
     assert float(online["reacher", "gem"]["p_improvement"]) == float(gem["p_improvement"])
+    assert float(online["reacher", "gem"]["p_fewer_steps"]) == float(gem["p_fewer_steps"])
     assert "| reacher | gem |" in text and "nan" not in text.lower().replace("n/a", "")
     for figure in ("headline_ratio.png", "headline_relative.png", "headline_fig2_ratio.png"):
         assert (tmp_path / figure).stat().st_size > 0

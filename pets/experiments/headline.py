@@ -8,7 +8,7 @@ summary's, from rliable) and writes:
   it, named in ``horizon``): the paired ratio model / delta with its CI, P(model error < delta's) with its CI,
   the seed pairs and the runs diverged there.
 - ``headline_online.csv``: per online env and model: the final reward and the env steps to the threshold against
-  delta's, P(final > delta's) and the paired difference.
+  delta's, P(final > delta's), the paired difference and P(fewer env steps to the threshold than delta).
 - ``headline.md``: the same as tables.
 - ``headline_ratio.png``: the paired ratio to delta per horizon and env (one panel per metric), CI bars.
 - With ``--relative`` (the studies' relative_error.csv files): the paper's Fig. 2 across the envs, both
@@ -69,6 +69,9 @@ ONLINE_COLUMNS = [
     "delta_n_reached",
     "steps_to_threshold_iqm",
     "delta_steps_to_threshold_iqm",
+    "p_fewer_steps",
+    "p_fewer_steps_ci_low",
+    "p_fewer_steps_ci_high",
     "source",
 ]
 
@@ -157,15 +160,19 @@ def online_rows(rows: Sequence[Mapping[str, str]], source: str) -> list[dict[str
                 "delta_n_reached": b.get("n_reached", ""),
                 "steps_to_threshold_iqm": _number(row.get("steps_to_threshold_iqm")),
                 "delta_steps_to_threshold_iqm": _number(b.get("steps_to_threshold_iqm")),
+                **{k: _number(row.get(k)) for k in ("p_fewer_steps", "p_fewer_steps_ci_low", "p_fewer_steps_ci_high")},
                 "source": source,
             }
         )
     return out
 
 
-def _p(row: Mapping[str, Any]) -> str:
-    text = fmt_interval(row["p_improvement"], row["p_improvement_ci_low"], row["p_improvement_ci_high"])
-    low, high = row["p_improvement_ci_low"], row["p_improvement_ci_high"]
+def _p(row: Mapping[str, Any], key: str = "p_improvement") -> str:
+    """``P [low, high]``, bold when the CI excludes 0.5; "-" when absent."""
+    p, low, high = row[key], row[f"{key}_ci_low"], row[f"{key}_ci_high"]
+    if any(math.isnan(v) for v in (p, low, high)):
+        return "-"
+    text = fmt_interval(p, low, high)
     return f"**{text}**" if low > 0.5 or high < 0.5 else text
 
 
@@ -198,7 +205,7 @@ def offline_table(rows: Sequence[Mapping[str, Any]]) -> str:
 def online_table(rows: Sequence[Mapping[str, Any]]) -> str:
     """One line per env and arm: final rewards, P(final > delta's), paired difference, steps to threshold."""
     header = ["env", "model", "seeds", "trials", "final", "delta's final", "P(final > delta's)", "paired diff"]
-    header += ["reached (model, delta)", "env steps to threshold (model, delta)"]
+    header += ["reached (model, delta)", "env steps to threshold (model, delta)", "P(fewer steps)"]
     body = []
     for r in rows:
         body.append(
@@ -216,6 +223,7 @@ def online_table(rows: Sequence[Mapping[str, Any]]) -> str:
                     fmt(v) if math.isfinite(v) else "-"
                     for v in (r["steps_to_threshold_iqm"], r["delta_steps_to_threshold_iqm"])
                 ),
+                _p(r, "p_fewer_steps"),
             ]
         )
     return md_table(header, body)

@@ -13,7 +13,8 @@ Time to threshold (:data:`THRESHOLDS`, per env): the wall-clock minutes (``wall_
 whose episode reward reaches the threshold, i.e. at the end of that trial, its model training included) and the
 env steps until then. Per arm over the runs that did not diverge: ``n_reached`` of ``n_seeds`` reached it
 (counted), and the IQM [CI] of minutes and env steps over the runs that reached it (never averaged with the
-ones that did not).
+ones that did not). Against the baseline, ``p_fewer_steps``: P(the arm needs fewer env steps to the threshold than
+the baseline) with its CI, a run that never reached it (or diverged) counting as the most steps.
 
 Files: ``summary.md``, ``summary.csv`` (per env and arm, :data:`SUMMARY_COLUMNS`; the baseline columns
 empty for the baseline itself and where it has no run), ``summary_runs.csv`` (per run, with
@@ -66,6 +67,9 @@ _BASELINE_COLUMNS = [
     "diff_ci_low",
     "diff_ci_high",
     "n_pairs",
+    "p_fewer_steps",
+    "p_fewer_steps_ci_low",
+    "p_fewer_steps_ci_high",
 ]
 SUMMARY_COLUMNS = [
     "env",
@@ -167,12 +171,14 @@ def arm_statistics(
     *,
     reps: int = REPS,
     seed: int = BOOT_SEED,
+    threshold: bool = False,
 ) -> dict[str, dict[str, Any]]:
     """{arm: statistics} of one env: ``n_seeds``, ``n_diverged`` and the :data:`SUMMARY_COLUMNS` from
     ``final_iqm`` on (None where absent or not finite).
 
     ``runs``: {arm: the :func:`online_run_stats` of its complete runs, each with its ``"seed"``};
-    ``baselines``: {arm: the arm it is compared with, None for the baseline itself or when there is none}.
+    ``baselines``: {arm: the arm it is compared with, None for the baseline itself or when there is none};
+    ``threshold``: whether the env has a threshold (then ``p_fewer_steps`` against the baseline).
     """
     good = {arm: {r["seed"]: r for r in rs if not r["diverged"]} for arm, rs in runs.items()}
     out: dict[str, dict[str, Any]] = {}
@@ -205,6 +211,11 @@ def arm_statistics(
             if pairs:
                 (d,), (d_low,), (d_high,) = iqm_ci(diffs, reps=reps, seed=seed)
                 s.update(diff_to_delta=d, diff_ci_low=d_low, diff_ci_high=d_high)
+            if threshold:  # steps as errors: never reached or diverged = NaN, the most steps
+                x = [math.nan if r["diverged"] else r["steps_to_threshold"] for r in rs]
+                y = [math.nan if r["diverged"] else r["steps_to_threshold"] for r in runs[base]]
+                (p,), (p_low,), (p_high,) = p_improvement_ci(x, y, reps=reps, seed=seed)
+                s.update(p_fewer_steps=p, p_fewer_steps_ci_low=p_low, p_fewer_steps_ci_high=p_high)
         out[arm] = {k: _finite(v) if isinstance(v, float) else v for k, v in s.items()}
     return out
 
@@ -268,7 +279,7 @@ def summarise_online(
                     curves[label].append(rows[:trials])
         if not runs:
             continue
-        stats = arm_statistics(runs, baselines, reps=reps)
+        stats = arm_statistics(runs, baselines, reps=reps, threshold=env in thresholds)
         rows_env = []
         for model, planner in arms:
             label = labels[(model, planner)]
@@ -335,6 +346,7 @@ def _env_section(
     threshold = rows[0]["threshold"] if rows else None
     if threshold is not None:
         header += [f"reached {threshold:g}", "minutes to it", "env steps to it"]
+        header += [f"P(fewer steps than {BASELINE})"] if compared else []
     header += ["env steps", "plan s/step", "wall h"]
     table = []
     for r in rows:
@@ -354,6 +366,10 @@ def _env_section(
             cells.append(f"{r['n_reached']}/{r['n_seeds']}")
             for k in _THRESHOLD_KEYS:
                 cells.append(fmt_interval(r[f"{k}_iqm"], r[f"{k}_ci_low"], r[f"{k}_ci_high"], "-"))
+            if compared:
+                cells.append(
+                    fmt_interval(r["p_fewer_steps"], r["p_fewer_steps_ci_low"], r["p_fewer_steps_ci_high"], "-")
+                )
         cells += [
             f"{r['env_steps_mean']:.0f}",
             fmt(r["plan_seconds_per_step_mean"], 3),
