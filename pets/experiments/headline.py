@@ -76,6 +76,16 @@ ONLINE_COLUMNS = [
 ]
 
 
+_P_AND_DIFF = (
+    "p_improvement",
+    "p_improvement_ci_low",
+    "p_improvement_ci_high",
+    "diff_to_delta",
+    "diff_ci_low",
+    "diff_ci_high",
+)
+
+
 class HeadlineError(ValueError):
     """A summary file that cannot give the headline (missing, of neither kind, or without delta)."""
 
@@ -139,22 +149,23 @@ def offline_rows(rows: Sequence[Mapping[str, str]], horizon: int, source: str) -
 
 
 def online_rows(rows: Sequence[Mapping[str, str]], source: str) -> list[dict[str, Any]]:
-    """Per env and non-delta arm of an online summary: its final reward and steps to threshold against delta's."""
+    """Per env and non-delta arm of an online summary: its final reward and steps to threshold against delta's
+    (delta with the same planner where planners were compared)."""
     out = []
-    base = {r["env"]: r for r in rows if r["model"] == BASELINE}
+    base = {(r["env"], r.get("planner", "")): r for r in rows if r["model"] == BASELINE}
     for row in rows:
-        if row["model"] == BASELINE or row["env"] not in base:
+        b = base.get((row["env"], row.get("planner", "")))
+        if row["model"] == BASELINE or b is None:
             continue
-        b = base[row["env"]]
         out.append(
             {
                 "env": row["env"],
-                "model": row["model"],
+                "model": row["model"] + (f"+{row['planner']}" if row.get("planner") else ""),
                 "n_seeds": int(_number(row["n_seeds"])),
                 "trials": int(_number(row["trials"])),
                 **{k: _number(row[k]) for k in ("final_iqm", "final_ci_low", "final_ci_high")},
                 **{f"delta_{k}": _number(b[k]) for k in ("final_iqm", "final_ci_low", "final_ci_high")},
-                **{k: _number(row[k]) for k in ONLINE_COLUMNS[10:16]},
+                **{k: _number(row[k]) for k in _P_AND_DIFF},
                 "threshold": _number(row.get("threshold")),
                 "n_reached": row.get("n_reached", ""),
                 "delta_n_reached": b.get("n_reached", ""),
