@@ -47,35 +47,7 @@ OFFLINE_COLUMNS = [
     "delta_n_diverged",
     "source",
 ]
-ONLINE_COLUMNS = [
-    "env",
-    "model",
-    "n_seeds",
-    "trials",
-    "final_iqm",
-    "final_ci_low",
-    "final_ci_high",
-    "delta_final_iqm",
-    "delta_final_ci_low",
-    "delta_final_ci_high",
-    "p_improvement",
-    "p_improvement_ci_low",
-    "p_improvement_ci_high",
-    "diff_to_delta",
-    "diff_ci_low",
-    "diff_ci_high",
-    "threshold",
-    "n_reached",
-    "delta_n_reached",
-    "steps_to_threshold_iqm",
-    "delta_steps_to_threshold_iqm",
-    "p_fewer_steps",
-    "p_fewer_steps_ci_low",
-    "p_fewer_steps_ci_high",
-    "source",
-]
-
-
+_FINAL = ("final_iqm", "final_ci_low", "final_ci_high")
 _P_AND_DIFF = (
     "p_improvement",
     "p_improvement_ci_low",
@@ -84,6 +56,23 @@ _P_AND_DIFF = (
     "diff_ci_low",
     "diff_ci_high",
 )
+_FEWER_STEPS = ("p_fewer_steps", "p_fewer_steps_ci_low", "p_fewer_steps_ci_high")
+ONLINE_COLUMNS = [
+    "env",
+    "model",
+    "n_seeds",
+    "trials",
+    *_FINAL,
+    *(f"delta_{k}" for k in _FINAL),
+    *_P_AND_DIFF,
+    "threshold",
+    "n_reached",
+    "delta_n_reached",
+    "steps_to_threshold_iqm",
+    "delta_steps_to_threshold_iqm",
+    *_FEWER_STEPS,
+    "source",
+]
 
 
 class HeadlineError(ValueError):
@@ -163,15 +152,15 @@ def online_rows(rows: Sequence[Mapping[str, str]], source: str) -> list[dict[str
                 "model": row["model"] + (f"+{row['planner']}" if row.get("planner") else ""),
                 "n_seeds": int(_number(row["n_seeds"])),
                 "trials": int(_number(row["trials"])),
-                **{k: _number(row[k]) for k in ("final_iqm", "final_ci_low", "final_ci_high")},
-                **{f"delta_{k}": _number(b[k]) for k in ("final_iqm", "final_ci_low", "final_ci_high")},
+                **{k: _number(row[k]) for k in _FINAL},
+                **{f"delta_{k}": _number(b[k]) for k in _FINAL},
                 **{k: _number(row[k]) for k in _P_AND_DIFF},
                 "threshold": _number(row.get("threshold")),
                 "n_reached": row.get("n_reached", ""),
                 "delta_n_reached": b.get("n_reached", ""),
                 "steps_to_threshold_iqm": _number(row.get("steps_to_threshold_iqm")),
                 "delta_steps_to_threshold_iqm": _number(b.get("steps_to_threshold_iqm")),
-                **{k: _number(row.get(k)) for k in ("p_fewer_steps", "p_fewer_steps_ci_low", "p_fewer_steps_ci_high")},
+                **{k: _number(row.get(k)) for k in _FEWER_STEPS},
                 "source": source,
             }
         )
