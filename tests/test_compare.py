@@ -26,7 +26,7 @@ from pets.experiments.offline import compare_offline
 from pets.experiments.offline_summary import SUMMARY_COLUMNS, summarise_offline
 from pets.experiments.online_summary import SUMMARY_COLUMNS as ONLINE_COLUMNS
 from pets.experiments.online_summary import summarise_online
-from pets.experiments.report import fmt_interval
+from pets.experiments.report import fmt, fmt_interval
 from pets.experiments.statistics import REPS
 from tests.threads import one_thread
 from tests.tiny import TINY_MODEL, TINY_PLANNER
@@ -1268,3 +1268,14 @@ def test_headline_rejects_what_is_not_a_summary_in_one_line(fake_offline, tmp_pa
     code, out, _ = cli(capsys, "headline", *args)
     assert code == 0 and out.startswith("# Headline") and (tmp_path / "h" / "headline.md").read_text() in out
     assert "](../figs/headline_ratio.png)" in out and (tmp_path / "figs" / "headline_ratio.png").is_file()
+
+
+def test_table_numbers_are_readable():
+    """Four significant digits, large counts written out (env steps), non-finite values spelt out."""
+    assert fmt(0.59374) == "0.5937"
+    assert fmt(1135.155) == "1135"
+    assert fmt(13333.33) == "13333"
+    assert fmt(-16666.7) == "-16667"
+    assert fmt(7e12) == "7e+12"
+    assert fmt(float("nan")) == "nan"
+    assert fmt_interval(13333.3, 10666.7, float("inf")) == "n/a"

@@ -25,9 +25,12 @@ def write_csv(path: Path, rows: Sequence[Mapping[str, Any]], columns: Sequence[s
 
 
 def fmt(x: float, digits: int = 4) -> str:
-    """A number for a markdown table (``nan``/``inf`` spelt out)."""
+    """A number for a markdown table: ``digits`` significant digits, whole numbers from 10^digits up to 10^9
+    written out (``13333``, not ``1.333e+04``), ``nan``/``inf`` spelt out."""
     if x is None or not math.isfinite(x):
         return str(x)
+    if 10**digits <= abs(x) < 1e9:
+        return f"{x:.0f}"
     return f"{x:.{digits}g}"
 
 
