@@ -9,6 +9,7 @@ import csv
 import json
 import os
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -80,6 +81,34 @@ def test_offline_ray_gives_the_local_backends_errors(tmp_path):
         assert local["horizons"] == remote["horizons"] and local["start_points"] == remote["start_points"]
         assert local["horizons"]["5"]["mean_step_error"] > 0
         assert metrics(tmp_path / "local" / "runs" / name) == metrics(tmp_path / "ray" / "runs" / name)
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_sweep_on_a_cluster_started_with_ray_start_gives_the_local_backends_metrics(online, tmp_path):
+    """docs/cluster.md's path: ``ray start --head`` (in a shell with no Ray settings: Ray's own default auth mode,
+    token auth since Ray 2.59), then ``pets.compare --address auto`` from another process on the head node."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("RAY_")}
+    port = free_port()
+    head = subprocess.Popen(
+        ["ray", "start", "--head", "--block", f"--port={port}", "--num-cpus=2", "--include-dashboard=false",
+         "--disable-usage-stats"],
+        env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
+    )  # fmt: skip
+    try:
+        out = tmp_path / "cluster"
+        cmd = [sys.executable, "-m", "pets.compare", *argv(ONLINE, out, "--backend", "ray", "--address", "auto")]
+        done = subprocess.run(cmd, env=env, cwd=ROOT, capture_output=True, text=True)
+        assert done.returncode == 0, done.stderr[-2000:]
+    finally:
+        os.killpg(head.pid, signal.SIGTERM)
+        head.wait(timeout=60)
+    for name in sorted(p.name for p in (online / "local" / "runs").iterdir()):
+        assert metrics(online / "local" / "runs" / name) == metrics(out / "runs" / name), name
 
 
 def children(pid: int) -> list[int]:

@@ -41,7 +41,8 @@ def connect(backend: Backend) -> Any:
     ray = require_ray()
     if ray.is_initialized():
         return ray
-    os.environ.setdefault("RAY_AUTH_MODE", "disabled")  # a local instance for one sweep; clusters set their own
+    if backend.address is None:  # a private instance for one sweep; a cluster's own auth mode and token are kept
+        os.environ.setdefault("RAY_AUTH_MODE", "disabled")
     try:
         ray.init(
             address="local" if backend.address is None else backend.address,
@@ -53,7 +54,9 @@ def connect(backend: Backend) -> Any:
         reason = " ".join(str(err).split())[:200]
         raise UsageError(
             f"cannot connect to Ray at {backend.address or 'a new local instance'} ({reason}); "
-            "start the cluster with `ray start --head` (docs/cluster.md) or check --address"
+            "start the cluster with `ray start --head` (docs/cluster.md) or check --address; a cluster with token "
+            "authentication (the default of `ray start` since Ray 2.59) needs RAY_AUTH_MODE=token and its token "
+            "(RAY_AUTH_TOKEN or ~/.ray/auth_token) in this shell, or --address auto on its head node"
         ) from None
     return ray
 
