@@ -93,20 +93,27 @@ def test_sweep_on_a_cluster_started_with_ray_start_gives_the_local_backends_metr
     """docs/cluster.md's path: ``ray start --head`` (in a shell with no Ray settings: Ray's own default auth mode,
     token auth since Ray 2.59), then ``pets.compare --address auto`` from another process on the head node."""
     env = {k: v for k, v in os.environ.items() if not k.startswith("RAY_")}
-    port = free_port()
-    head = subprocess.Popen(
-        ["ray", "start", "--head", "--block", f"--port={port}", "--num-cpus=2", "--include-dashboard=false",
-         "--disable-usage-stats"],
-        env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
-    )  # fmt: skip
+    ports = [f"--port={free_port()}", f"--ray-client-server-port={free_port()}"]
+    log = tmp_path / "ray-start.log"
+    with open(log, "w") as f:
+        head = subprocess.Popen(
+            ["ray", "start", "--head", "--block", *ports, "--num-cpus=2", "--include-dashboard=false",
+             "--disable-usage-stats"],
+            env=env, stdout=f, stderr=subprocess.STDOUT, start_new_session=True,
+        )  # fmt: skip
     try:
         out = tmp_path / "cluster"
         cmd = [sys.executable, "-m", "pets.compare", *argv(ONLINE, out, "--backend", "ray", "--address", "auto")]
-        done = subprocess.run(cmd, env=env, cwd=ROOT, capture_output=True, text=True)
-        assert done.returncode == 0, done.stderr[-2000:]
+        # a hang (e.g. `auto` finding another cluster on this machine) fails here instead of stalling the suite
+        done = subprocess.run(cmd, env=env, cwd=ROOT, capture_output=True, text=True, timeout=600)
     finally:
         os.killpg(head.pid, signal.SIGTERM)
-        head.wait(timeout=60)
+        try:
+            head.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            os.killpg(head.pid, signal.SIGKILL)
+            head.wait()
+    assert done.returncode == 0, done.stderr[-1500:] + "\nray start: " + log.read_text()[-1500:]
     for name in sorted(p.name for p in (online / "local" / "runs").iterdir()):
         assert metrics(online / "local" / "runs" / name) == metrics(out / "runs" / name), name
 
