@@ -13,7 +13,8 @@ the weights cannot change during a rollout), else on every forward.
 Numerics: bf16 inputs and weights like autocast's batched path; oneDNN applies the SiLU in fp32 before
 rounding to bf16, so the outputs differ from the batched path by bf16 rounding (and are slightly closer to
 fp32: tests/test_ensemble.py). Off under ``torch.compile`` (inductor fuses the tail itself), with autograd,
-off CPU, and where the op is missing; ``FUSED_CPU_BF16 = False`` turns it off.
+off CPU, and where the op is missing or oneDNN has no bf16 kernels for the CPU (AVX2-only x86: there bf16 runs
+autocast's batched path); ``FUSED_CPU_BF16 = False`` turns it off.
 """
 
 from __future__ import annotations
@@ -32,7 +33,17 @@ FUSED_CPU_BF16 = True
 #: 800, 1.10x at 1600; the fast preset has 100, the research config 1600).
 MIN_ROWS = 512
 
-_AVAILABLE = torch.backends.mkldnn.is_available() and hasattr(torch.ops.mkldnn, "_linear_pointwise")
+
+def _onednn_bf16() -> bool:
+    """Whether this build has the fused op and oneDNN has bf16 kernels for this CPU (x86 from AVX-512 on; on an
+    AVX2-only CPU the op raises "could not create a primitive descriptor")."""
+    if not (torch.backends.mkldnn.is_available() and hasattr(torch.ops.mkldnn, "_linear_pointwise")):
+        return False
+    probe = getattr(torch.ops.mkldnn, "_is_mkldnn_bf16_supported", None)
+    return bool(probe is not None and probe())
+
+
+_AVAILABLE = _onednn_bf16()
 _SCOPE = threading.local()  # .cache: {key: prepared layers} inside a cached_weights() scope of this thread
 
 

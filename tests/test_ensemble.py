@@ -250,6 +250,30 @@ def test_inference_pads_an_odd_output_width_and_changes_no_value(monkeypatch, ki
     torch.testing.assert_close(logvar, logvar_ref.detach(), rtol=1e-6, atol=1e-6)
 
 
+def test_fused_path_is_on_exactly_where_onednn_runs_the_bf16_linear(monkeypatch) -> None:
+    """The fused path is used where oneDNN itself runs a bf16 linear + SiLU on this CPU, and nowhere else: on an
+    AVX2-only x86 CPU the op raises ("could not create a primitive descriptor"), and a bf16 planning step must
+    then take autocast's batched path instead of crashing (found on an AMD EPYC Zen 3)."""
+    from dynamics import fused
+
+    x, w, b = torch.randn(8, 6).bfloat16(), torch.randn(4, 6).bfloat16(), torch.randn(4).bfloat16()
+    try:
+        out = torch.ops.mkldnn._linear_pointwise(x, w, b, "swish", [], "")
+        expected = F.silu(x.float() @ w.float().T + b.float())
+        onednn_runs = bool(torch.allclose(out.float(), expected, rtol=2e-2, atol=2e-2))
+    except (RuntimeError, AttributeError):
+        onednn_runs = False
+    assert fused._AVAILABLE is onednn_runs
+
+    monkeypatch.setattr(fused, "_AVAILABLE", False)  # as on such a CPU: bf16 inference still runs, batched
+    monkeypatch.setattr(fused, "MIN_ROWS", 0)
+    ens = GaussianEnsemble(6, 3, ensemble_size=2, hidden_size=16, num_layers=2)
+    with torch.no_grad(), torch.autocast("cpu", torch.bfloat16):
+        assert not fused.applies(torch.randn(2, 8, 6))
+        mean, logvar = ens(torch.randn(2, 8, 6))
+    assert mean.shape == (2, 8, 3) and torch.isfinite(mean).all() and torch.isfinite(logvar).all()
+
+
 @pytest.mark.parametrize("shared", [False, True])
 def test_fused_cpu_bf16_path_matches_torch_ops_and_follows_weight_updates(monkeypatch, shared: bool) -> None:
     """Issue 13: under CPU bf16 autocast without autograd, with enough rows per member, each member runs as
@@ -259,7 +283,7 @@ def test_fused_cpu_bf16_path_matches_torch_ops_and_follows_weight_updates(monkey
     from dynamics import fused
 
     if not fused._AVAILABLE:
-        pytest.skip("torch.ops.mkldnn._linear_pointwise is not available in this build")
+        pytest.skip("oneDNN has no fused bf16 linear on this CPU or build (AVX2-only x86: the batched bf16 path runs)")
     torch.manual_seed(3)
     ens = GaussianEnsemble(24, 18, ensemble_size=5, hidden_size=64, num_layers=3)
     idx = torch.tensor([4, 0, 2])

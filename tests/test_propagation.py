@@ -539,7 +539,7 @@ def test_bf16_returns_stay_close_to_fp32_on_a_real_model(cheetah_model, prop: st
     from dynamics import fused
 
     if bf16_path == "fused" and not fused._AVAILABLE:
-        pytest.skip("no oneDNN fused linear in this build")
+        pytest.skip("oneDNN has no fused bf16 linear on this CPU or build (AVX2-only x86: the batched bf16 path runs)")
     monkeypatch.setattr(fused, "MIN_ROWS", 0 if bf16_path == "fused" else 10**9)
     spec, head, ens, obs0 = cheetah_model
     actions = torch.rand(100, 15, spec.act_dim, generator=torch.Generator().manual_seed(1)) * 2 - 1
@@ -685,6 +685,9 @@ def test_bench_kernel_floor_times_the_models_gemms_at_the_planners_shapes(monkey
     assert {s[2] for s in shapes} == {torch.float32, torch.bfloat16} and len(shapes) == 3 * 3 * layers
     assert set(floor) == {"fp32_gemm_seconds_per_step", "bf16_gemm_seconds_per_step", "bf16_gemm_silu_seconds_per_step"}
     assert all(math.isfinite(v) and v > 0 for v in floor.values())
+    shapes.clear()  # fp32 only (a CPU where bf16 is emulated)
+    floor = bench.kernel_floor(cfg, 14, 12, torch.device("cpu"), repeats=1, bf16=False)
+    assert set(floor) == {"fp32_gemm_seconds_per_step"} and {s[2] for s in shapes} == {torch.float32}
 
 
 class NaNEnsemble(FakeEnsemble):
