@@ -52,7 +52,7 @@ import envs
 from pets import builder
 from pets.cli import OneLineParser, fail
 from pets.config import ConfigError, make_config, parse_overrides, validate
-from pets.hardware import cpu_isa
+from pets.hardware import EMULATED_BF16_SLOWDOWN, cpu_isa, native_bf16
 from pets.models import make_model
 from pets.rollout import RandomPolicy, run_steps
 
@@ -68,15 +68,18 @@ COMPARE_ROWS: list[tuple[str, dict[str, Any]]] = [
 ]
 
 
-def compare_rows(cfg: DictConfig) -> list[tuple[str, dict[str, Any]]]:
+def compare_rows(cfg: DictConfig, bf16: bool = True) -> list[tuple[str, dict[str, Any]]]:
     """:data:`COMPARE_ROWS` with the configured path (the defaults: ``planner.precision=auto`` resolved on this
     machine, ``planner.compile``) marked ``default``; appended as a row of its own when none of them is it. With
-    feedback candidates the iCEM rows are left out."""
+    feedback candidates the iCEM rows are left out; with ``bf16=False`` (a CPU where bf16 is emulated) the bf16
+    rows, unless the configured path is one."""
     p = cfg.planner
     here = {"name": p.name, "precision": p.precision, "compile": bool(p.compile)}
     rows = [(f"default: {label}" if planner == here else label, planner) for label, planner in COMPARE_ROWS]
     if p.candidates == "feedback":  # iCEM does not search feedback gains (pets.config)
         rows = [(label, planner) for label, planner in rows if planner["name"] != "icem"]
+    if not bf16:
+        rows = [(label, planner) for label, planner in rows if planner["precision"] != "bf16" or planner == here]
     if here not in [planner for _, planner in COMPARE_ROWS]:
         rows.append((f"default: {p.name} {p.precision} {'compiled' if p.compile else 'eager'}", here))
     return rows
@@ -110,7 +113,7 @@ def matmul_peak_gflops(
 
 
 def kernel_floor(
-    cfg: DictConfig, input_dim: int, target_dim: int, device: torch.device, repeats: int = 10
+    cfg: DictConfig, input_dim: int, target_dim: int, device: torch.device, repeats: int = 10, bf16: bool = True
 ) -> dict[str, float]:
     """Seconds per MPC step that the model's own kernels need at the planner's shapes, nothing else.
 
@@ -121,7 +124,7 @@ def kernel_floor(
     layers alone (fp32 and bf16) and the bf16 layers with the SiLUs, on random data (median of
     ``repeats``), and multiplies by the model steps of one CEM planning step (``horizon x iterations``).
     It is the floor the rollout code can reach with these kernels (sampling, head decode, reward and
-    planner cost nothing in it), the yardstick for the rows' seconds per step.
+    planner cost nothing in it), the yardstick for the rows' seconds per step. ``bf16=False``: the fp32 floor only.
     """
     p, mdl = cfg.planner, cfg.model
     members = mdl.num_elites
@@ -130,7 +133,7 @@ def kernel_floor(
     gen = torch.Generator(device=device).manual_seed(0)
     steps = p.horizon * p.iterations
     out: dict[str, float] = {}
-    for dtype, name in ((torch.float32, "fp32"), (torch.bfloat16, "bf16")):
+    for dtype, name in ((torch.float32, "fp32"), (torch.bfloat16, "bf16"))[: 2 if bf16 else 1]:
         x = torch.randn(members, rows, dims[0], generator=gen, device=device).to(dtype)
         ws = [
             (torch.randn(members, a, b, generator=gen, device=device) / a**0.5).to(dtype)
@@ -347,14 +350,24 @@ def benchmark(cfg: DictConfig, repeats: int = 5) -> dict[str, float]:
     return row
 
 
+def bf16_is_native(device: torch.device) -> bool:
+    """Whether bf16 rows are worth timing on ``device``: CUDA, or a CPU with native bf16 matmul (elsewhere an
+    emulated bf16 GEMM is ~35x slower than fp32, :data:`pets.hardware.EMULATED_BF16_SLOWDOWN`: minutes a step)."""
+    return device.type == "cuda" or native_bf16("cpu")
+
+
 def compare(cfg: DictConfig, repeats: int = 5) -> dict[str, Any]:
-    """The ``--compare`` rows on one model, the fp32 and bf16 GEMM peaks, and the precise row's figures."""
+    """The ``--compare`` rows on one model, the fp32 and bf16 GEMM peaks, and the precise row's figures (bf16
+    rows, peak and floor only where bf16 is native, :func:`bf16_is_native`; the bf16 peak is None elsewhere)."""
     device = builder.resolve_device(cfg.device)
+    bf16 = bf16_is_native(device)
     parts = prepare(cfg)
-    rows = time_rows(cfg, compare_rows(cfg), repeats, parts)
-    peaks = {"fp32": matmul_peak_gflops(device), "bf16": matmul_peak_gflops(device, torch.bfloat16)}
+    rows = time_rows(cfg, compare_rows(cfg, bf16), repeats, parts)
+    peaks = {"fp32": matmul_peak_gflops(device), "bf16": matmul_peak_gflops(device, torch.bfloat16) if bf16 else None}
+    if peaks["bf16"] is None and any(r["precision"] == "bf16" for r in rows):  # the configured path asked for it
+        peaks["bf16"] = matmul_peak_gflops(device, torch.bfloat16, repeats=1)
     head = parts["model"].head
-    floor = kernel_floor(cfg, head.input_dim, head.target_dim, device)
+    floor = kernel_floor(cfg, head.input_dim, head.target_dim, device, bf16=bf16)
     base = rows[0]
     for r in rows:
         r["fraction_of_peak"] = r["model_gflops"] / peaks[r["precision"]]
@@ -423,17 +436,28 @@ def main(argv: list[str] | None = None) -> int:
         f"planner.compile={str(p.compile).lower()}): {p.name} {p.precision} {'compiled' if p.compile else 'eager'}"
     )
     if args.compare:
+        if not bf16_is_native(builder.resolve_device(cfg.device)):
+            print(
+                f"bf16 rows left out: bf16 is emulated on this CPU (~{EMULATED_BF16_SLOWDOWN}x slower than fp32 per "
+                "GEMM, minutes per step); time one with planner.precision=bf16 and no --compare"
+            )
         res = compare(cfg, args.repeats)
+        bf16_peak = res["peak_gflops_bf16"]
         print(
             f"measured GEMM peak (2048^3): fp32 {res['peak_gflops']:.1f} GFLOP/s, "
-            f"bf16 {res['peak_gflops_bf16']:.1f} GFLOP/s"
+            f"bf16 {'not timed' if bf16_peak is None else f'{bf16_peak:.1f} GFLOP/s'}"
         )
         _print_rows(res["rows"], args.repeats)
         fl = res["floor"]
+        bf16_floor = (
+            f", bf16 {fl['bf16_gemm_seconds_per_step']:.3f}, "
+            f"bf16 GEMMs + SiLU {fl['bf16_gemm_silu_seconds_per_step']:.3f}"
+            if "bf16_gemm_seconds_per_step" in fl
+            else ""
+        )
         print(
             "kernel floor at these shapes (s per CEM step; the model's GEMMs + bias alone, see kernel_floor): "
-            f"fp32 {fl['fp32_gemm_seconds_per_step']:.3f}, bf16 {fl['bf16_gemm_seconds_per_step']:.3f}, "
-            f"bf16 GEMMs + SiLU {fl['bf16_gemm_silu_seconds_per_step']:.3f}"
+            f"fp32 {fl['fp32_gemm_seconds_per_step']:.3f}{bf16_floor}"
         )
     else:
         res = benchmark(cfg, args.repeats)

@@ -18,7 +18,7 @@ import torch
 
 from dynamics import fused
 from dynamics.networks import GaussianEnsemble
-from pets.cli import OneLineParser
+from pets.cli import OneLineParser, fail
 from pets.hardware import cpu_isa
 from pets.propagation import retain_freed_memory
 
@@ -29,6 +29,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--repeats", type=int, default=15)
     ap.add_argument("--threads", type=int, default=1)
     args = ap.parse_args(argv)
+    if not fused._AVAILABLE:
+        fail(
+            "pets.bench_layers",
+            f"oneDNN has no fused bf16 linear on this CPU or build (CPU bf16 ISA: {cpu_isa()}): the planner's bf16 "
+            "path is the batched one here and there is nothing to compare; run it on a CPU with AVX-512 or AMX",
+        )
     torch.set_num_threads(args.threads)
     retain_freed_memory()
     torch.manual_seed(0)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 
@@ -15,6 +16,7 @@ from envs import EnvSpec
 from pets.agent import MPCAgent
 from pets.config import ConfigError
 from pets.feedback import LinearFeedback
+from pets.hardware import emulated_bf16_warning
 from pets.models import make_model
 from pets.planners import PLANNER_CLASSES, Planner
 from pets.propagation import TrajectoryEvaluator, retain_freed_memory
@@ -31,8 +33,16 @@ def resolve_device(name: str) -> torch.device:
     return torch.device(name)
 
 
+def warn_if_emulated(key: str, precision: str, device: str | torch.device) -> None:
+    """RuntimeWarning where ``precision`` is bf16 on a CPU without native bf16 (emulated there, ~35x slower)."""
+    message = emulated_bf16_warning(key, precision, str(device))
+    if message:
+        warnings.warn(message, RuntimeWarning, 3)
+
+
 def make_trainer(cfg: DictConfig, model: DynamicsModel) -> ModelTrainer:
     m = cfg.model
+    warn_if_emulated("model.precision", m.precision, next(model.parameters()).device)
     return ModelTrainer(
         model,
         lr=m.lr,
@@ -58,6 +68,7 @@ def make_agent(
 ) -> MPCAgent:
     """The MPC agent of the config; ``value``: the terminal value of ``value.enabled`` (``pets.value``)."""
     p = cfg.planner
+    warn_if_emulated("planner.precision", p.precision, device)
     if device.type == "cpu":
         retain_freed_memory()
     feedback = make_feedback(cfg, spec, device)

@@ -32,6 +32,42 @@ def test_cpu_isa_and_auto_resolution_per_machine_kind(monkeypatch):
         assert hardware.resolve_precision("bf16", "cuda", AMX) == "bf16"
 
 
+def test_bf16_where_it_would_be_emulated_warns_when_the_run_is_built_with_what_to_do(monkeypatch, recwarn):
+    """On a CPU without native bf16 (AVX2 only: an emulated bf16 GEMM measured 35x slower than fp32 on a Zen 3),
+    building a planner or trainer in bf16 (asked for, or a resumed run that recorded it) warns, once per key;
+    reading such a config does not (a study's rerun reads every run's). auto resolves to fp32 there and stays
+    quiet, and so does bf16 where the CPU has it."""
+    import envs
+    from pets import builder
+    from pets.models import make_model
+
+    cpu, spec = torch.device("cpu"), envs.get("reacher")
+
+    def build(**overrides):
+        cfg = make_config("reacher", preset="fast", overrides={"device": "cpu", **overrides})
+        model = make_model(cfg, spec, cpu)
+        builder.make_trainer(cfg, model)
+        builder.make_agent(cfg, spec, model, cpu, torch.Generator())
+        return cfg
+
+    monkeypatch.setattr(hardware, "cpu_flags", lambda: OLD)
+    cfg = make_config("reacher", overrides={"device": "cpu", "planner.precision": "bf16"})
+    assert cfg.planner.precision == "bf16" and cfg.model.precision == "fp32"
+    assert not [w for w in recwarn if "emulated" in str(w.message)]  # a config alone: quiet
+    with pytest.warns(RuntimeWarning, match=r"planner.precision=bf16 on a CPU without native bf16.*emulated") as got:
+        build(**{"planner.precision": "bf16"})
+    emulated = [str(w.message) for w in got if "emulated" in str(w.message)]
+    assert len(emulated) == 1 and "use planner.precision=fp32 or auto" in emulated[0]  # model: fp32, quiet
+    with pytest.warns(RuntimeWarning, match=r"model.precision=bf16 on a CPU without native bf16"):
+        build(**{"model.precision": "bf16"})
+    recwarn.clear()
+    assert build().planner.precision == "fp32"
+    for flags in (ZEN4, AMX):
+        monkeypatch.setattr(hardware, "cpu_flags", lambda f=flags: f)
+        build(**{"planner.precision": "bf16", "model.precision": "bf16"})
+    assert not [w for w in recwarn if "emulated" in str(w.message)]
+
+
 def test_the_config_default_is_auto_resolved_once_and_recorded(tmp_path, monkeypatch):
     native = hardware.device_type("auto") == "cpu" and hardware.native_bf16("cpu")  # auto: bf16 on such CPUs only
     cfg = make_config("halfcheetah")
@@ -127,6 +163,20 @@ def test_bench_compare_marks_or_adds_the_default_row_and_names_the_isa(monkeypat
     rows = bench.compare_rows(make_config("hopper", overrides={"planner.precision": "bf16", "planner.name": "mppi"}))
     assert rows[-1] == ("default: mppi bf16 eager", {"name": "mppi", "precision": "bf16", "compile": False})
     assert len(rows) == len(labels) + 1
+    # where bf16 is emulated (~35x slower, minutes a step) the bf16 rows are left out, unless asked for
+    rows = bench.compare_rows(make_config("halfcheetah", overrides={"planner.precision": "fp32"}), bf16=False)
+    assert [label for label, _ in rows] == [
+        "default: cem fp32 eager",
+        "cem fp32 compiled",
+        "icem fp32 eager",
+        "mppi fp32 eager",
+    ]
+    rows = bench.compare_rows(make_config("halfcheetah", overrides={"planner.precision": "bf16"}), bf16=False)
+    assert [planner["precision"] for _, planner in rows].count("bf16") == 1 and rows[2][0] == "default: cem bf16 eager"
+    monkeypatch.setattr(hardware, "cpu_flags", lambda: OLD)
+    assert not bench.bf16_is_native(torch.device("cpu")) and bench.bf16_is_native(torch.device("cuda"))
+    monkeypatch.setattr(hardware, "cpu_flags", lambda: ZEN4)
+    assert bench.bf16_is_native(torch.device("cpu"))
     monkeypatch.setattr(hardware, "cpu_flags", lambda: AMX)
     monkeypatch.setattr(bench, "benchmark", lambda cfg, repeats: (_ for _ in ()).throw(SystemExit(0)))
     with pytest.raises(SystemExit):
@@ -145,7 +195,7 @@ def test_the_fused_bf16_planner_path_is_deterministic(monkeypatch):
     from pets.propagation import TrajectoryEvaluator
 
     if not fused._AVAILABLE:
-        pytest.skip("no oneDNN fused linear in this build")
+        pytest.skip("oneDNN has no fused bf16 linear on this CPU or build (AVX2-only x86: the batched bf16 path runs)")
     monkeypatch.setattr(fused, "MIN_ROWS", 0)
     calls = []
     real = fused.fused_member_mlp
@@ -161,3 +211,15 @@ def test_the_fused_bf16_planner_path_is_deterministic(monkeypatch):
         ev = TrajectoryEvaluator(DynamicsModel(head, ens), spec.reward, spec.terminated, particles=5, precision="bf16")
         returns += [ev(obs0, actions, torch.Generator().manual_seed(2)) for _ in range(2)]
     assert calls and all(torch.equal(r, returns[0]) for r in returns)
+
+
+def test_bench_layers_says_why_where_oneDNN_has_no_fused_bf16_linear(monkeypatch, capsys):
+    from dynamics import fused
+    from pets import bench_layers
+
+    monkeypatch.setattr(fused, "_AVAILABLE", False)
+    with pytest.raises(SystemExit) as stop:
+        bench_layers.main(["--rows", "8", "--repeats", "1"])
+    assert stop.value.code == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "oneDNN has no fused bf16 linear on this CPU" in err
