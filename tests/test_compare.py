@@ -1279,3 +1279,50 @@ def test_table_numbers_are_readable():
     assert fmt(7e12) == "7e+12"
     assert fmt(float("nan")) == "nan"
     assert fmt_interval(13333.3, 10666.7, float("inf")) == "n/a"
+
+
+# --------------------------------------------------------------------------- precisions resolved per machine
+def _as_if_started_on_another_cpu_kind(run_dir):
+    """Rewrite a run's recorded precisions to the other concrete value, as ``auto`` resolves on a machine of
+    another CPU kind (bf16 where native, fp32 elsewhere) in a study spread over a mixed cluster."""
+    cfg = load_config(str(run_dir / "config.yaml"))
+    other = "fp32" if cfg.planner.precision == "bf16" else "bf16"
+    cfg.planner.precision = cfg.model.precision = other
+    rundir.write_config(run_dir, cfg)
+    return other
+
+
+def test_online_rerun_accepts_runs_whose_auto_precision_resolved_elsewhere_and_says_so(online, tmp_path, capsys):
+    """planner.precision and model.precision left at auto: a run started on a machine of another CPU kind holds
+    the other concrete value. A rerun reuses it (it used to refuse the directory as "made with another config",
+    so such a study could not be resumed or summarised) and summary.md names the precisions per run; an explicit
+    precision is still compared."""
+    import shutil
+
+    copy = tmp_path / "study"
+    shutil.copytree(online[0], copy)
+    other = _as_if_started_on_another_cpu_kind(copy / "runs" / "invertedpendulum-gem-s1")
+    common = ["--envs", "invertedpendulum", "--models", "delta,gem", "--seeds", "0,1", "--trials", 2]
+    common += ["--out", copy, "--workers", 1, "--preset", "fast", "--quiet", *TINY]
+    code, _, err = cli(capsys, "online", *common)
+    assert code == 0 and "4 reused" in err
+    md = (copy / "summary.md").read_text()
+    assert "## The runs used different precisions" in md
+    assert f"- {other} / {other}: 1 runs (invertedpendulum-gem-s1)" in md
+    mine = "bf16" if other == "fp32" else "fp32"
+    code, _, err = cli(capsys, "online", *common, f"planner.precision={mine}", f"model.precision={mine}")
+    assert code == 2 and "invertedpendulum-gem-s1 was made with another config" in err
+    assert f"planner.precision: '{other}' != '{mine}'" in err
+    assert "different precisions" not in (online[0] / "summary.md").read_text()  # one machine: no note
+
+
+def test_offline_rerun_accepts_runs_whose_auto_precision_resolved_elsewhere_and_says_so(offline, tmp_path, capsys):
+    import shutil
+
+    copy = tmp_path / "study"
+    shutil.copytree(offline[0], copy)
+    other = _as_if_started_on_another_cpu_kind(copy / "runs" / "invertedpendulum-delta-s0")
+    code, _, err = cli(capsys, *OFFLINE_ARGS, "--out", copy)
+    assert code == 0, err
+    md = (copy / "prediction.md").read_text()
+    assert f"- {other} / {other}: 1 runs (invertedpendulum-delta-s0)" in md

@@ -32,7 +32,14 @@ from typing import Any
 from pets.experiments.arguments import PROG, UsageError, few_seeds_warning
 from pets.experiments.backend import Backend
 from pets.experiments.offline_summary import summarise_offline, summarise_openloop
-from pets.experiments.rundirs import NOT_COMPARED, check_out_writable, check_same_config, json_matches, run_name
+from pets.experiments.rundirs import (
+    NOT_COMPARED,
+    check_out_writable,
+    check_same_config,
+    json_matches,
+    left_to_auto,
+    run_name,
+)
 from pets.experiments.runner import open_backend
 from pets.fileio import atomic_write_bytes
 
@@ -326,7 +333,8 @@ def compare_offline(
                     raise UsageError(str(err)) from None
                 if (run_dir / "config.yaml").is_file():  # the searched architecture is the run's own choice
                     searched = ("model.hidden_size", "model.num_layers") if proto.architectures(env) else ()
-                    check_same_config(run_dir, expected, ignore=(*NOT_COMPARED, *searched))
+                    ignore = (*NOT_COMPARED, *searched, *left_to_auto({**extra, **own}))
+                    check_same_config(run_dir, expected, ignore=ignore)
     check_out_writable(out)  # after every argument is checked: bad input leaves no directory behind
     data_dir = out / "data"
     eval_request = {

@@ -51,7 +51,7 @@ import numpy as np
 from pets.evaluate import METRICS as EVALUATE_METRICS
 from pets.experiments.plots import model_colors, plot_absolute, plot_openloop, plot_ratio, plot_relative
 from pets.experiments.report import BOOT_SEED, fmt_ci, fmt_interval, md_table, write_csv
-from pets.experiments.rundirs import json_matches, run_name
+from pets.experiments.rundirs import json_matches, precision_note, run_name
 from pets.experiments.statistics import (
     BASELINE,
     DIVERGED_STANDARDIZED_ERROR,
@@ -273,6 +273,7 @@ def summarise_offline(
     docstring) from the runs' eval.json files; returns the summary.csv rows."""
     out = Path(out)
     summary, relative_rows, per_run, diverged_runs, text = [], [], [], [], []
+    included: list[Path] = []
     run_columns: list[str] = []
     fig2: dict[str, dict[str, dict[str, Any]]] = {}
     for env in env_names:
@@ -281,6 +282,7 @@ def summarise_offline(
             continue
         env_models = [m for m in models if m in evals]
         runs = [e for m in env_models for e in evals[m]]
+        included += [out / "runs" / run_name(env, m, e["seed"]) for m in env_models for e in evals[m]]
         common = sorted(set.intersection(*[set(map(int, e["horizons"])) for e in runs]))
         metrics = order_metrics(sorted(set.intersection(*[set(v) for e in runs for v in e["horizons"].values()])))
         if not common or not metrics:
@@ -423,6 +425,7 @@ def summarise_offline(
             "![relative error](relative_error.png)" + (" ![ratio to delta](ratio_to_delta.png)" if has_ratio else ""),
             "",
         ]
+    text += precision_note(included)
     if diverged_runs:
         text += (
             ["## Diverged runs (counted, not in the IQMs at these horizons nor in the average)", ""]

@@ -30,7 +30,14 @@ from typing import Any
 from pets.experiments.arguments import PROG, UsageError, few_seeds_warning
 from pets.experiments.backend import Backend
 from pets.experiments.online_summary import THRESHOLDS, online_rows, summarise_online
-from pets.experiments.rundirs import check_out_writable, check_same_config, online_arms, run_name
+from pets.experiments.rundirs import (
+    NOT_COMPARED,
+    check_out_writable,
+    check_same_config,
+    left_to_auto,
+    online_arms,
+    run_name,
+)
 from pets.experiments.runner import online_job, open_backend
 from pets.rundir import stopped
 
@@ -138,7 +145,7 @@ def compare_online(
                     raise UsageError(str(err)) from None
                 action = online_plan(run_dir, trials, expected.stop_reward)
                 if action != "start":
-                    check_same_config(run_dir, expected)
+                    check_same_config(run_dir, expected, ignore=(*NOT_COMPARED, *left_to_auto(arm_extra)))
                     if any(math.isnan(r["trial"]) for r in online_rows(run_dir)):
                         raise UsageError(
                             f"{run_dir} is an offline training run (pets.train), not an online run; "

@@ -35,7 +35,7 @@ import numpy as np
 
 from pets.experiments.plots import arm_colors, model_colors, plot_online
 from pets.experiments.report import BOOT_SEED, fmt, fmt_interval, md_table, write_csv
-from pets.experiments.rundirs import arm_label, online_arms, run_name
+from pets.experiments.rundirs import arm_label, online_arms, precision_note, run_name
 from pets.experiments.statistics import (
     BASELINE,
     MIN_SEEDS,
@@ -240,6 +240,7 @@ def summarise_online(
     reached its env's threshold is complete with fewer rows (``pets.compare online --until-threshold``)."""
     out = Path(out)
     per_run, summary, missing, diverged_runs, text = [], [], [], [], []
+    included: list[Path] = []
     arms = online_arms(models, planners)
     labels = {arm: arm_label(*arm) for arm in arms}
     baselines = {
@@ -272,6 +273,7 @@ def summarise_online(
                 per_run[-1]["diverged"] = s["diverged"] or ""
                 per_run[-1].update({k: "" for k in _THRESHOLD_KEYS if not math.isfinite(s[k])})  # never reached
                 runs.setdefault(label, []).append(s)
+                included.append(out / "runs" / name)
                 curves.setdefault(label, [])
                 if s["diverged"]:
                     diverged_runs.append(f"{name}: {s['diverged']}")
@@ -323,7 +325,7 @@ def summarise_online(
         "averaged in).",
         "",
     ]
-    text = header + text
+    text = header + text + precision_note(included)
     if diverged_runs:
         text += ["## Diverged runs (counted, not in the IQMs)", ""] + [f"- {d}" for d in diverged_runs] + [""]
     if missing:

@@ -52,6 +52,44 @@ def _flatten(d: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
 NOT_COMPARED = ("trials", "threads")
 
 
+#: Keys whose ``auto`` (their default) is resolved by the machine that makes a run's config (``pets.hardware``): on a
+#: cluster of mixed CPU kinds the runs of one study may hold different concrete values for them.
+PRECISION_KEYS = ("planner.precision", "model.precision")
+
+
+def left_to_auto(overrides: Mapping[str, Any]) -> tuple[str, ...]:
+    """The :data:`PRECISION_KEYS` that ``overrides`` leaves at ``auto``: a run made on another machine may hold
+    either concrete value for them, so a rerun does not compare them."""
+    return tuple(k for k in PRECISION_KEYS if str(overrides.get(k, "auto")) == "auto")
+
+
+def precision_note(run_dirs: Iterable[Path]) -> list[str]:
+    """Markdown lines naming the precisions the runs in ``run_dirs`` used, when they are not all the same (else
+    none): ``auto`` resolved differently on machines of different CPU kinds."""
+    from omegaconf import OmegaConf
+
+    used: dict[str, list[str]] = {}
+    for run_dir in run_dirs:
+        path = Path(run_dir) / "config.yaml"
+        if path.is_file():
+            cfg = OmegaConf.load(path)
+            key = " / ".join(str(OmegaConf.select(cfg, k, default="fp32")) for k in PRECISION_KEYS)
+            used.setdefault(key, []).append(Path(run_dir).name)
+    if len(used) < 2:
+        return []
+    return [
+        "## The runs used different precisions",
+        "",
+        f"{' / '.join(PRECISION_KEYS)} left at auto resolve on the machine that starts a run (bf16 on CPUs with "
+        "native bf16, fp32 elsewhere), and these runs started on machines of different kinds. bf16 moves planned "
+        "returns by ~6e-4 relative and holdout errors by < 0.1 % (docs/performance.md); for an A/B free of it, "
+        "pass both keys explicitly.",
+        "",
+        *[f"- {key}: {len(names)} runs ({', '.join(sorted(names))})" for key, names in sorted(used.items())],
+        "",
+    ]
+
+
 def config_differences(run_dir: Path, expected: Any, ignore: Iterable[str] = NOT_COMPARED) -> list[str]:
     """``key: found != expected`` for every config key where ``run_dir/config.yaml`` differs from ``expected``."""
     from omegaconf import OmegaConf
