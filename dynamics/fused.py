@@ -103,9 +103,12 @@ def _packed(
     return members
 
 
-def fused_member_mlp(h: Tensor, weights: nn.ParameterList, biases: nn.ParameterList, idx: Tensor | None) -> Tensor:
-    """:func:`dynamics.networks.member_mlp` (SiLU between layers, linear output) in bf16, one member at a time;
-    ``h`` is (B, in) shared by the members or (M, B, in). Returns (M, B, out) in bf16."""
+def fused_member_mlp(
+    h: Tensor, weights: nn.ParameterList, biases: nn.ParameterList, idx: Tensor | None, post_op: str = "swish"
+) -> Tensor:
+    """:func:`dynamics.networks.member_mlp` (the activation between layers as oneDNN's ``post_op``: ``swish`` for
+    SiLU, ``relu``; linear output) in bf16, one member at a time; ``h`` is (B, in) shared by the members or
+    (M, B, in). Returns (M, B, out) in bf16."""
     members = _packed(weights, biases, idx)
     x = h.to(torch.bfloat16)
     xs = [x] * len(members) if x.dim() == 2 else x.unbind(0)
@@ -113,6 +116,6 @@ def fused_member_mlp(h: Tensor, weights: nn.ParameterList, biases: nn.ParameterL
     outs = []
     for y, layers in zip(xs, members):
         for w, b in layers[:-1]:
-            y = linear(y, w, b, "swish", [], "")
+            y = linear(y, w, b, post_op, [], "")
         outs.append(linear(y, *layers[-1], "none", [], ""))
     return torch.stack(outs)

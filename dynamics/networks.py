@@ -56,12 +56,27 @@ def init_member_layers(sizes: list[int], ensemble_size: int) -> tuple[nn.Paramet
     return weights, biases
 
 
+#: Hidden-layer activations (``model.activation``): name -> (the torch function, oneDNN's post-op name for
+#: :mod:`dynamics.fused`). SiLU (swish) is PETS' and the GEM paper's; ReLU costs a fraction of its ``exp``
+#: (docs/performance.md, "The activation").
+ACTIVATIONS = {"silu": (F.silu, "swish"), "relu": (F.relu, "relu")}
+
+
+def check_activation(activation: str) -> None:
+    """ValueError unless ``activation`` is a key of :data:`ACTIVATIONS`."""
+    if activation not in ACTIVATIONS:
+        raise ValueError(f"activation must be one of {', '.join(ACTIVATIONS)}, got {activation!r}")
+
+
 #: Inference pads the output layer's width up to a multiple of this (see :func:`member_mlp`).
 GEMM_WIDTH_MULTIPLE = 8
 
 
-def member_mlp(h: Tensor, weights: nn.ParameterList, biases: nn.ParameterList, idx: Tensor | None) -> Tensor:
-    """Run all (or the ``idx``-selected) members' MLPs at once: SiLU between layers, linear output.
+def member_mlp(
+    h: Tensor, weights: nn.ParameterList, biases: nn.ParameterList, idx: Tensor | None, activation: str = "silu"
+) -> Tensor:
+    """Run all (or the ``idx``-selected) members' MLPs at once: ``activation`` (:data:`ACTIVATIONS`) between layers,
+    linear output.
 
     ``h`` is (B, in), shared by the members (one broadcast matmul per layer), or (M, B, in), one batch per
     member (one ``baddbmm`` per layer). Returns (M, B, out).
@@ -76,8 +91,9 @@ def member_mlp(h: Tensor, weights: nn.ParameterList, biases: nn.ParameterList, i
     Under CPU bf16 autocast without autograd the layers run as oneDNN fused linear + SiLU calls, one member
     at a time (:mod:`dynamics.fused`: measured faster there).
     """
+    act, post_op = ACTIVATIONS[activation]
     if fused.applies(h):
-        return fused.fused_member_mlp(h, weights, biases, idx)
+        return fused.fused_member_mlp(h, weights, biases, idx, post_op)
     last = len(weights) - 1
     pad_widths = not torch.is_grad_enabled()
     for i, (w, b) in enumerate(zip(weights, biases)):
@@ -94,7 +110,7 @@ def member_mlp(h: Tensor, weights: nn.ParameterList, biases: nn.ParameterList, i
         if pad:
             h = h[..., :width]
         if i < last:
-            h = F.silu(h)
+            h = act(h)
     return h
 
 
@@ -125,8 +141,11 @@ class MemberEnsemble(nn.Module, ABC):
     #: Whether ``logvar_bound_penalty`` has trainable terms (the trainer adds it to the loss only then).
     learn_logvar_bounds: bool = False
 
-    def __init__(self, in_dim: int, out_dim: int, ensemble_size: int, num_elites: int | None) -> None:
+    def __init__(
+        self, in_dim: int, out_dim: int, ensemble_size: int, num_elites: int | None, activation: str = "silu"
+    ) -> None:
         super().__init__()
+        check_activation(activation)
         if num_elites is None:
             num_elites = ensemble_size
         if not isinstance(num_elites, int) or not 1 <= num_elites <= ensemble_size:
@@ -135,6 +154,8 @@ class MemberEnsemble(nn.Module, ABC):
         self.out_dim = out_dim
         self.ensemble_size = ensemble_size
         self.num_elites = num_elites
+        #: Hidden-layer activation, a key of :data:`ACTIVATIONS`.
+        self.activation = activation
         self.register_buffer("input_mean", torch.zeros(in_dim))
         self.register_buffer("input_std", torch.ones(in_dim))
         self.register_buffer("target_mean", torch.zeros(out_dim))
@@ -280,13 +301,14 @@ class GaussianEnsemble(MemberEnsemble):
         max_logvar: float = 0.5,
         learn_logvar_bounds: bool = True,
         num_elites: int | None = None,
+        activation: str = "silu",
     ) -> None:
         check_member_args(
             in_dim=in_dim, out_dim=out_dim, ensemble_size=ensemble_size, hidden_size=hidden_size, num_layers=num_layers
         )
         if not (math.isfinite(min_logvar) and math.isfinite(max_logvar) and min_logvar < max_logvar):
             raise ValueError(f"need finite min_logvar < max_logvar, got min {min_logvar}, max {max_logvar}")
-        super().__init__(in_dim, out_dim, ensemble_size, num_elites)
+        super().__init__(in_dim, out_dim, ensemble_size, num_elites, activation)
         self.hidden_size = hidden_size
         self.num_layers = num_layers
         self.learn_logvar_bounds = learn_logvar_bounds
@@ -318,7 +340,7 @@ class GaussianEnsemble(MemberEnsemble):
         """
         idx, _ = self._check_inputs(x, members)
         # bf16 layers (autocast) return bf16: one exact cast, so that the tail below runs on float32 alone.
-        h = member_mlp(self.normalise(x), self.weights, self.biases, idx).to(self.target_mean.dtype)
+        h = member_mlp(self.normalise(x), self.weights, self.biases, idx, self.activation).to(self.target_mean.dtype)
         mean, logvar = h[..., : self.out_dim], h[..., self.out_dim :]
         return self.denormalise_target(mean), self.bound_logvar(logvar) + 2.0 * self.target_std.log()
 
@@ -341,7 +363,7 @@ class GaussianEnsemble(MemberEnsemble):
         return (
             f"in_dim={self.in_dim}, out_dim={self.out_dim}, ensemble_size={self.ensemble_size}, "
             f"hidden_size={self.hidden_size}, num_layers={self.num_layers}, num_elites={self.num_elites}, "
-            f"learn_logvar_bounds={self.learn_logvar_bounds}"
+            f"activation={self.activation}, learn_logvar_bounds={self.learn_logvar_bounds}"
         )
 
 
@@ -368,11 +390,12 @@ class DeterministicEnsemble(MemberEnsemble):
         hidden_size: int = 200,
         num_layers: int = 4,
         num_elites: int | None = None,
+        activation: str = "silu",
     ) -> None:
         check_member_args(
             in_dim=in_dim, out_dim=out_dim, ensemble_size=ensemble_size, hidden_size=hidden_size, num_layers=num_layers
         )
-        super().__init__(in_dim, out_dim, ensemble_size, num_elites)
+        super().__init__(in_dim, out_dim, ensemble_size, num_elites, activation)
         self.hidden_size = hidden_size
         self.num_layers = num_layers
         sizes = [in_dim] + [hidden_size] * num_layers + [out_dim]
@@ -387,7 +410,7 @@ class DeterministicEnsemble(MemberEnsemble):
         """Mean (M, B, out_dim) of raw inputs ``x`` ((B, in_dim) shared, or (M, B, in_dim)) and the constant
         log-variance :data:`DETERMINISTIC_LOGVAR` of the same shape."""
         idx, _ = self._check_inputs(x, members)
-        mean = self.denormalise_target(member_mlp(self.normalise(x), self.weights, self.biases, idx))
+        mean = self.denormalise_target(member_mlp(self.normalise(x), self.weights, self.biases, idx, self.activation))
         return mean, torch.full_like(mean, DETERMINISTIC_LOGVAR)
 
     def weight_decay_loss(self) -> Tensor:
@@ -402,5 +425,5 @@ class DeterministicEnsemble(MemberEnsemble):
         return (
             f"in_dim={self.in_dim}, out_dim={self.out_dim}, ensemble_size={self.ensemble_size}, "
             f"hidden_size={self.hidden_size}, num_layers={self.num_layers}, num_elites={self.num_elites}, "
-            f"deterministic=True"
+            f"activation={self.activation}, deterministic=True"
         )

@@ -103,6 +103,7 @@ class TwoStageGemEnsemble(MemberEnsemble):
         hidden_size: int = 200,
         num_layers: int = 4,
         num_elites: int | None = None,
+        activation: str = "silu",
     ) -> None:
         check_member_args(
             in_dim=in_dim, out_dim=out_dim, ensemble_size=ensemble_size, hidden_size=hidden_size, num_layers=num_layers
@@ -113,7 +114,7 @@ class TwoStageGemEnsemble(MemberEnsemble):
                 f"group_slots and velocity_slots must be non-empty and split range({out_dim}) exactly, "
                 f"got {group_slots} and {velocity_slots}"
             )
-        super().__init__(in_dim, out_dim, ensemble_size, num_elites)
+        super().__init__(in_dim, out_dim, ensemble_size, num_elites, activation)
         self.hidden_size = hidden_size
         self.num_layers = num_layers
         self.group_slots = tuple(group_slots)
@@ -137,14 +138,14 @@ class TwoStageGemEnsemble(MemberEnsemble):
 
     def coefficient_net(self, h: Tensor, idx: Tensor | None) -> Tensor:
         """Standardised alpha_hat (M, B, num_coef) from normalised inputs ``h`` ((B, in) shared or (M, B, in))."""
-        return member_mlp(h, self.coef_weights, self.coef_biases, idx)
+        return member_mlp(h, self.coef_weights, self.coef_biases, idx, self.activation)
 
     def velocity_net(self, h: Tensor, alpha: Tensor, idx: Tensor | None) -> Tensor:
         """Standardised dv_hat (M, B, len(velocity_slots)) from normalised inputs ``h`` and standardised
         coefficients ``alpha`` (M, B, .)."""
         if h.dim() == 2:
             h = h.expand(alpha.shape[0], *h.shape)
-        return member_mlp(torch.cat([h, alpha], dim=-1), self.vel_weights, self.vel_biases, idx)
+        return member_mlp(torch.cat([h, alpha], dim=-1), self.vel_weights, self.vel_biases, idx, self.activation)
 
     def assemble(self, alpha: Tensor, dv: Tensor) -> Tensor:
         """The target vector (..., out_dim) in GemHead order: alpha in ``group_slots``, dv in ``velocity_slots``."""

@@ -39,6 +39,9 @@ class ModelConfig:
     num_elites: int = 5
     hidden_size: int = 200
     num_layers: int = 4
+    # silu | relu: the hidden layers' activation (dynamics.networks.ACTIVATIONS); silu (swish) is PETS' and the
+    # GEM paper's, relu skips its exp (docs/performance.md, "The activation")
+    activation: str = "silu"
     learn_logvar_bounds: bool = True
     lr: float = 1e-3
     batch_size: int = 256
@@ -230,6 +233,7 @@ _CHOICES = {
     "planner.propagation": PROPAGATIONS,
     "planner.precision": PRECISIONS,
     "model.precision": PRECISIONS,
+    "model.activation": ("silu", "relu"),
     "gem.compose": ("left", "right"),
     "gem.loss": ("nll", "frobenius", "nll+frobenius"),
     "device": ("auto", "cpu", "cuda"),

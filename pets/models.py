@@ -61,10 +61,14 @@ def _groupfeat_head(cfg: DictConfig, spec: EnvSpec) -> DynamicsHead:
 
 
 def _sizes(cfg: DictConfig) -> dict[str, int]:
-    """The ``model.*`` sizes every network takes."""
+    """The ``model.*`` sizes (and the activation) every network takes."""
     m = cfg.model
     return dict(
-        ensemble_size=m.ensemble_size, hidden_size=m.hidden_size, num_layers=m.num_layers, num_elites=m.num_elites
+        ensemble_size=m.ensemble_size,
+        hidden_size=m.hidden_size,
+        num_layers=m.num_layers,
+        num_elites=m.num_elites,
+        activation=m.activation,
     )
 
 

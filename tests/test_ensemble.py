@@ -274,10 +274,11 @@ def test_fused_path_is_on_exactly_where_onednn_runs_the_bf16_linear(monkeypatch)
     assert mean.shape == (2, 8, 3) and torch.isfinite(mean).all() and torch.isfinite(logvar).all()
 
 
-@pytest.mark.parametrize("shared", [False, True])
-def test_fused_cpu_bf16_path_matches_torch_ops_and_follows_weight_updates(monkeypatch, shared: bool) -> None:
+@pytest.mark.parametrize("shared,activation", [(False, "silu"), (True, "silu"), (False, "relu")])
+def test_fused_cpu_bf16_path_matches_torch_ops_and_follows_weight_updates(monkeypatch, shared, activation) -> None:
     """Issue 13: under CPU bf16 autocast without autograd, with enough rows per member, each member runs as
-    oneDNN fused linear + SiLU calls. Its outputs equal torch's own per-member ops in bf16 (F.linear, F.silu)
+    oneDNN fused linear + activation (SiLU, or ReLU) calls. Its outputs equal torch's own per-member ops in bf16
+    (F.linear, F.silu / F.relu)
     to bf16 rounding, are as close to float32 as autocast's batched path, and follow in-place weight changes
     (the bf16 weight cache is keyed on the parameters' versions) and another member selection."""
     from dynamics import fused
@@ -285,7 +286,7 @@ def test_fused_cpu_bf16_path_matches_torch_ops_and_follows_weight_updates(monkey
     if not fused._AVAILABLE:
         pytest.skip("oneDNN has no fused bf16 linear on this CPU or build (AVX2-only x86: the batched bf16 path runs)")
     torch.manual_seed(3)
-    ens = GaussianEnsemble(24, 18, ensemble_size=5, hidden_size=64, num_layers=3)
+    ens = GaussianEnsemble(24, 18, ensemble_size=5, hidden_size=64, num_layers=3, activation=activation)
     idx = torch.tensor([4, 0, 2])
     rows = fused.MIN_ROWS
     x = torch.randn(rows, 24) if shared else torch.randn(3, rows, 24)
@@ -309,7 +310,7 @@ def test_fused_cpu_bf16_path_matches_torch_ops_and_follows_weight_updates(monkey
         y = h if shared else h[j]
         for i, (w, b) in enumerate(zip(ens.weights, ens.biases)):
             y = F.linear(y, w[k].T.to(torch.bfloat16), b[k, 0].to(torch.bfloat16))
-            y = F.silu(y) if i < len(ens.weights) - 1 else y
+            y = getattr(F, activation)(y) if i < len(ens.weights) - 1 else y
         ref.append(y)
     with torch.no_grad():
         ref_mean = ens.denormalise_target(torch.stack(ref)[..., :18].float())
@@ -342,3 +343,50 @@ def test_fused_cpu_bf16_path_matches_torch_ops_and_follows_weight_updates(monkey
         with torch.no_grad():
             ens(x[..., : rows - 1, :], idx)
     assert calls == []
+
+
+@pytest.mark.parametrize("kind", ["gaussian", "deterministic", "two-stage"])
+def test_the_activation_is_the_one_asked_for_in_every_network(kind: str) -> None:
+    """model.activation: every member network runs its hidden layers through it, checked against torch's own
+    per-member ops (F.linear, then F.silu or F.relu); the default is SiLU (PETS', the GEM paper's); an unknown
+    name is a ValueError naming the accepted ones."""
+    from dynamics.networks import ACTIVATIONS, DeterministicEnsemble
+    from gem_head.two_stage import TwoStageGemEnsemble
+    from pets.config import _CHOICES
+
+    assert tuple(ACTIVATIONS) == _CHOICES["model.activation"]  # pets.config lists them without importing torch
+
+    def build(activation=None):
+        torch.manual_seed(0)
+        kw = {} if activation is None else {"activation": activation}
+        if kind == "gaussian":
+            return GaussianEnsemble(6, 4, ensemble_size=3, hidden_size=16, num_layers=2, **kw)
+        if kind == "deterministic":
+            return DeterministicEnsemble(6, 4, ensemble_size=3, hidden_size=16, num_layers=2, **kw)
+        return TwoStageGemEnsemble(6, 4, [0, 2], [1, 3], ensemble_size=3, hidden_size=16, num_layers=2, **kw)
+
+    def reference(ens, x, act):  # the first stage / the plain MLP, member 1
+        weights, biases = (ens.coef_weights, ens.coef_biases) if kind == "two-stage" else (ens.weights, ens.biases)
+        y = ens.normalise(x)
+        for i, (w, b) in enumerate(zip(weights, biases)):
+            y = F.linear(y, w[1].T, b[1, 0])
+            y = act(y) if i < len(weights) - 1 else y
+        return y
+
+    x = torch.randn(10, 6) * 3
+    assert build().activation == "silu"
+    with torch.no_grad():
+        for name, act in (("silu", F.silu), ("relu", F.relu)):
+            ens = build(name)
+            (ens.coef_weights if kind == "two-stage" else ens.weights)[0].mul_(3)  # more units below zero
+            if kind == "two-stage":
+                got = ens.coefficient_net(ens.normalise(x), torch.tensor([1]))[0]
+            else:
+                got = ens(x, torch.tensor([1]))[0][0]
+                got = (got - ens.target_mean) / ens.target_std
+            want = reference(ens, x, act)[..., : got.shape[-1]]
+            torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-5)
+            other = F.relu if act is F.silu else F.silu
+            assert not torch.allclose(got, reference(ens, x, other)[..., : got.shape[-1]], atol=1e-3)
+    with pytest.raises(ValueError, match="activation must be one of silu, relu, got 'tanh'"):
+        build("tanh")

@@ -501,3 +501,35 @@ def test_cli_end_to_end_delta_det_and_gem2(tmp_path, capsys):
             main(args)
         err = capsys.readouterr().err.strip()
         assert exc.value.code == 2 and "delta-groupfeat" in err and len(err.splitlines()) == 1, err
+
+
+def test_a_run_with_relu_records_it_and_reloads_the_same_network(tmp_path, capsys):
+    """model.activation=relu end to end: the run's config.yaml records it and the reloaded model has it; a
+    config.yaml from before the key existed loads as SiLU (what every such run used); an unknown activation is one
+    line, exit 2, and no run directory."""
+    from omegaconf import OmegaConf
+
+    import run_pets
+    from pets.config import load_config
+    from tests.test_cli import TINY
+
+    out = tmp_path / "relu"
+    assert (
+        run_pets.main(
+            ["--env", "reacher", "--trials", "1", "--out", str(out), "--quiet", *TINY, "model.activation=relu"]
+        )
+        == 0
+    )
+    assert "activation: relu" in (out / "config.yaml").read_text()
+    cfg, spec, model = builder.load_model(out)
+    assert cfg.model.activation == model.network.activation == "relu"
+    stored = OmegaConf.to_container(OmegaConf.load(out / "config.yaml"))
+    del stored["model"]["activation"]
+    (tmp_path / "old.yaml").write_text(OmegaConf.to_yaml(OmegaConf.create(stored)))
+    assert load_config(str(tmp_path / "old.yaml")).model.activation == "silu"
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as stop:
+        run_pets.main(["--env", "reacher", "--out", str(tmp_path / "bad"), "model.activation=tanh"])
+    err = capsys.readouterr().err
+    assert stop.value.code == 2 and "model.activation must be one of silu, relu, got 'tanh'" in err
+    assert err.count("\n") == 1 and not (tmp_path / "bad").exists()
