@@ -10,10 +10,12 @@ figures are medians. With ``--compare`` one run times, on the same model and sta
 rows: CEM eager fp32 (the precise path), CEM compiled fp32, CEM eager bf16, CEM compiled bf16,
 iCEM eager fp32, iCEM compiled bf16 and MPPI eager fp32 (the configured path, by default
 ``planner.precision=auto`` resolved on this machine, is marked ``default``, or added as a row when it is
-none of these), then the kernel floor at the config's shapes (:func:`kernel_floor`: the model's GEMMs +
-bias alone, fp32 and bf16, and bf16 with SiLU); the rows take turns within each repeat, so a change in
-machine load hits all of them alike. Use ``threads=1`` on a shared machine. The header names the CPU's
-bf16 ISA (AMX, AVX-512 BF16 or none; :mod:`pets.hardware`).
+none of these; where bf16 is emulated the bf16 rows are left out), the configured path with the other
+``model.activation`` (relu, or silu; the same weights, so its cost, not its accuracy), then the kernel
+floor at the config's shapes (:func:`kernel_floor`: the model's GEMMs + bias alone, fp32 and bf16, and bf16
+with SiLU); the rows take turns within each repeat, so a change in machine load hits all of them alike.
+Use ``threads=1`` on a shared machine. The header names the CPU's bf16 ISA (AMX, AVX-512 BF16 or none;
+:mod:`pets.hardware`).
 
 Columns: wall and process-CPU seconds per step (CPU time is the steadier figure on a loaded
 machine; with one thread it is close to the compute time), model GFLOP per step (counted from the
@@ -72,7 +74,8 @@ def compare_rows(cfg: DictConfig, bf16: bool = True) -> list[tuple[str, dict[str
     """:data:`COMPARE_ROWS` with the configured path (the defaults: ``planner.precision=auto`` resolved on this
     machine, ``planner.compile``) marked ``default``; appended as a row of its own when none of them is it. With
     feedback candidates the iCEM rows are left out; with ``bf16=False`` (a CPU where bf16 is emulated) the bf16
-    rows, unless the configured path is one."""
+    rows, unless the configured path is one. Last, the configured path with the other ``model.activation`` (its
+    ``activation`` key; timed on the same weights: the activation's cost, not its accuracy)."""
     p = cfg.planner
     here = {"name": p.name, "precision": p.precision, "compile": bool(p.compile)}
     rows = [(f"default: {label}" if planner == here else label, planner) for label, planner in COMPARE_ROWS]
@@ -80,9 +83,11 @@ def compare_rows(cfg: DictConfig, bf16: bool = True) -> list[tuple[str, dict[str
         rows = [(label, planner) for label, planner in rows if planner["name"] != "icem"]
     if not bf16:
         rows = [(label, planner) for label, planner in rows if planner["precision"] != "bf16" or planner == here]
+    label = f"{p.name} {p.precision} {'compiled' if p.compile else 'eager'}"
     if here not in [planner for _, planner in COMPARE_ROWS]:
-        rows.append((f"default: {p.name} {p.precision} {'compiled' if p.compile else 'eager'}", here))
-    return rows
+        rows.append((f"default: {label}", here))
+    other = "relu" if cfg.model.activation == "silu" else "silu"
+    return [*rows, (f"{label} {other}", {**here, "activation": other})]
 
 
 def model_flops_per_row(in_dim: int, out_dim: int, hidden: int, layers: int) -> int:
@@ -258,16 +263,32 @@ def prepare(cfg: DictConfig) -> dict[str, Any]:
 
 
 def _row_config(cfg: DictConfig, planner: dict[str, Any]) -> DictConfig:
-    row = OmegaConf.merge(cfg, {"planner": planner})
+    """The config of a row: ``planner`` merged into ``cfg.planner``, its ``activation`` key into ``cfg.model``."""
+    planner = dict(planner)
+    model = {"activation": planner.pop("activation")} if "activation" in planner else {}
+    row = OmegaConf.merge(cfg, {"planner": planner, "model": model})
     validate(row)
     return row
+
+
+class _Activation:
+    """The shared model's network with the row's activation for the duration of one step."""
+
+    def __init__(self, network: Any, activation: str) -> None:
+        self.network, self.activation = network, activation
+
+    def __enter__(self) -> None:
+        self.before, self.network.activation = self.network.activation, self.activation
+
+    def __exit__(self, *exc: object) -> None:
+        self.network.activation = self.before
 
 
 def time_rows(
     cfg: DictConfig, rows: list[tuple[str, dict[str, Any]]], repeats: int = 5, parts: dict[str, Any] | None = None
 ) -> list[dict[str, Any]]:
-    """Time every row (label, planner overrides) on one model: a warm-up step each, then ``repeats``
-    rounds in which every row plans once. Returns one dict of figures per row."""
+    """Time every row (label, planner overrides, optionally ``activation``) on one model: a warm-up step each,
+    then ``repeats`` rounds in which every row plans once. Returns one dict of figures per row."""
     if not isinstance(repeats, int) or repeats < 1:
         raise ValueError(f"repeats must be a positive int, got {repeats!r}")
     parts = prepare(cfg) if parts is None else parts
@@ -284,7 +305,8 @@ def time_rows(
         agent.reset()
         _sync(device)
         t0 = time.perf_counter()
-        agent.act(start)  # warm-up (compiles the compiled rows)
+        with _Activation(model.network, row_cfg.model.activation):
+            agent.act(start)  # warm-up (compiles the compiled rows)
         _sync(device)
         first = time.perf_counter() - t0
         agents.append(agent)
@@ -295,6 +317,7 @@ def time_rows(
                 "planner": row_cfg.planner.name,
                 "precision": row_cfg.planner.precision,
                 "compile": bool(row_cfg.planner.compile),
+                "activation": row_cfg.model.activation,
                 "first_step_seconds": first,
                 "wall": [],
                 "cpu": [],
@@ -306,16 +329,17 @@ def time_rows(
             agent.reset()
             counter.rows = 0
             _sync(device)
-            t0, c0 = time.perf_counter(), time.process_time()
-            agent.act(start)
-            _sync(device)
+            with _Activation(model.network, res["activation"]):
+                t0, c0 = time.perf_counter(), time.process_time()
+                agent.act(start)
+                _sync(device)
             wall, cpu = time.perf_counter() - t0, time.process_time() - c0
             res["wall"].append(wall)
             res["cpu"].append(cpu)
             res["rows"].append(counter.rows)
     for agent, res in zip(agents, results):  # memory: one more step each, untimed (malloc_trim costs page faults)
         agent.reset()
-        with _PeakMemory(device) as mem:
+        with _PeakMemory(device) as mem, _Activation(model.network, res["activation"]):
             agent.act(start)
         res["mem"] = mem.peak_mib
     out = []
@@ -328,6 +352,7 @@ def time_rows(
                 "planner": res["planner"],
                 "precision": res["precision"],
                 "compile": res["compile"],
+                "activation": res["activation"],
                 "seconds_per_step": seconds,
                 "cpu_seconds_per_step": statistics.median(res["cpu"]),
                 "first_step_seconds": res["first_step_seconds"],

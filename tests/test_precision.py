@@ -158,11 +158,16 @@ def test_bench_compare_marks_or_adds_the_default_row_and_names_the_isa(monkeypat
     labels = [label for label, _ in bench.COMPARE_ROWS]
     rows = bench.compare_rows(make_config("halfcheetah", overrides={"planner.precision": "bf16"}))
     assert [label for label, _ in rows] == [
-        f"default: {label}" if label == "cem bf16 eager" else label for label in labels
+        *(f"default: {label}" if label == "cem bf16 eager" else label for label in labels),
+        "cem bf16 eager relu",  # the default path with the other activation, last
     ]  # marked, not timed twice
     rows = bench.compare_rows(make_config("hopper", overrides={"planner.precision": "bf16", "planner.name": "mppi"}))
-    assert rows[-1] == ("default: mppi bf16 eager", {"name": "mppi", "precision": "bf16", "compile": False})
-    assert len(rows) == len(labels) + 1
+    assert rows[-2] == ("default: mppi bf16 eager", {"name": "mppi", "precision": "bf16", "compile": False})
+    assert rows[-1][1] == {"name": "mppi", "precision": "bf16", "compile": False, "activation": "relu"}
+    assert len(rows) == len(labels) + 2
+    relu = make_config("hopper", overrides={"model.activation": "relu"})
+    assert bench.compare_rows(relu)[-1][1]["activation"] == "silu"
+    assert bench._row_config(relu, bench.compare_rows(relu)[-1][1]).model.activation == "silu"
     # where bf16 is emulated (~35x slower, minutes a step) the bf16 rows are left out, unless asked for
     rows = bench.compare_rows(make_config("halfcheetah", overrides={"planner.precision": "fp32"}), bf16=False)
     assert [label for label, _ in rows] == [
@@ -170,9 +175,13 @@ def test_bench_compare_marks_or_adds_the_default_row_and_names_the_isa(monkeypat
         "cem fp32 compiled",
         "icem fp32 eager",
         "mppi fp32 eager",
+        "cem fp32 eager relu",
     ]
     rows = bench.compare_rows(make_config("halfcheetah", overrides={"planner.precision": "bf16"}), bf16=False)
-    assert [planner["precision"] for _, planner in rows].count("bf16") == 1 and rows[2][0] == "default: cem bf16 eager"
+    assert [label for label, planner in rows if planner["precision"] == "bf16"] == [
+        "default: cem bf16 eager",
+        "cem bf16 eager relu",
+    ]
     monkeypatch.setattr(hardware, "cpu_flags", lambda: OLD)
     assert not bench.bf16_is_native(torch.device("cpu")) and bench.bf16_is_native(torch.device("cuda"))
     monkeypatch.setattr(hardware, "cpu_flags", lambda: ZEN4)

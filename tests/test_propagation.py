@@ -615,10 +615,14 @@ def test_speed_option_arguments() -> None:
         TrajectoryEvaluator(DynamicsModel(make_head(), ens), reward_fn, None, compile="yes")
 
 
-def test_bench_rows_and_json_keys(tmp_path) -> None:
-    """pets.bench on a tiny config: the JSON keeps its keys; FLOPs are counted from the evaluated candidates."""
+def test_bench_rows_and_json_keys(tmp_path, monkeypatch) -> None:
+    """pets.bench on a tiny config: the JSON keeps its keys; FLOPs are counted from the evaluated candidates; a
+    row with its own ``activation`` runs the shared model through it, and only that row."""
     import json
 
+    import torch.nn.functional as F
+
+    from dynamics import networks
     from pets import bench
     from pets.config import make_config
 
@@ -638,9 +642,13 @@ def test_bench_rows_and_json_keys(tmp_path) -> None:
     assert {"seconds_per_step", "model_gflops", "peak_gflops", "model_gflop_per_step"} <= set(res)
     assert res["seconds_per_step"] > 0 and res["peak_gflops"] > 0
     cfg = make_config("hopper", preset="fast", overrides=dict(item.split("=") for item in tiny))
-    rows = bench.time_rows(
-        cfg, [("cem bf16", {"precision": "bf16"}), ("icem", {"name": "icem"}), ("mppi", {"name": "mppi"})], repeats=1
-    )
+    relu_calls = []
+    monkeypatch.setitem(networks.ACTIVATIONS, "relu", (lambda h: relu_calls.append(1) or F.relu(h), "relu"))
+    specs = [("cem bf16", {"precision": "bf16"}), ("icem", {"name": "icem"}), ("mppi", {"name": "mppi"})]
+    rows = bench.time_rows(cfg, [*specs[:3], ("cem relu", {"activation": "relu"})], repeats=1)
+    assert [r["activation"] for r in rows] == ["silu", "silu", "silu", "relu"]
+    # the relu row's three steps (warm-up, timed, memory), each 4 model steps x 2 iterations x 2 hidden layers
+    assert len(relu_calls) == 3 * 4 * 2 * cfg.model.num_layers
     per_row = bench.model_flops_per_row(14, 12, 32, cfg.model.num_layers)  # Hopper: 11 + 3 inputs, 12 targets
     # CEM: population x particles x horizon x iterations rows; iCEM: the shrinking population (+ carried, + mean).
     assert rows[0]["model_gflop_per_step"] == pytest.approx(16 * 2 * 4 * 2 * per_row / 1e9)
