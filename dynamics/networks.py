@@ -88,7 +88,7 @@ def member_mlp(
     12.0 ms vs 8.1 ms for 216, 5 members x 1600 rows). The kept columns are the same dot products
     (bit-identical on the machine tested; tests/test_ensemble.py). Training (autograd on) runs unpadded.
 
-    Under CPU bf16 autocast without autograd the layers run as oneDNN fused linear + SiLU calls, one member
+    Under CPU bf16 autocast without autograd the layers run as oneDNN fused linear + activation calls, one member
     at a time (:mod:`dynamics.fused`: measured faster there).
     """
     act, post_op = ACTIVATIONS[activation]

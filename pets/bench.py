@@ -34,6 +34,7 @@ larger peak happened).
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import itertools
 import json
@@ -41,7 +42,7 @@ import resource
 import statistics
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from functools import partial
 from typing import Any
 
@@ -271,17 +272,14 @@ def _row_config(cfg: DictConfig, planner: dict[str, Any]) -> DictConfig:
     return row
 
 
-class _Activation:
-    """The shared model's network with the row's activation for the duration of one step."""
-
-    def __init__(self, network: Any, activation: str) -> None:
-        self.network, self.activation = network, activation
-
-    def __enter__(self) -> None:
-        self.before, self.network.activation = self.network.activation, self.activation
-
-    def __exit__(self, *exc: object) -> None:
-        self.network.activation = self.before
+@contextlib.contextmanager
+def _activation(network: Any, activation: str) -> Iterator[None]:
+    """The shared model's network with a row's activation for the duration of one step."""
+    before, network.activation = network.activation, activation
+    try:
+        yield
+    finally:
+        network.activation = before
 
 
 def time_rows(
@@ -305,7 +303,7 @@ def time_rows(
         agent.reset()
         _sync(device)
         t0 = time.perf_counter()
-        with _Activation(model.network, row_cfg.model.activation):
+        with _activation(model.network, row_cfg.model.activation):
             agent.act(start)  # warm-up (compiles the compiled rows)
         _sync(device)
         first = time.perf_counter() - t0
@@ -329,7 +327,7 @@ def time_rows(
             agent.reset()
             counter.rows = 0
             _sync(device)
-            with _Activation(model.network, res["activation"]):
+            with _activation(model.network, res["activation"]):
                 t0, c0 = time.perf_counter(), time.process_time()
                 agent.act(start)
                 _sync(device)
@@ -339,7 +337,7 @@ def time_rows(
             res["rows"].append(counter.rows)
     for agent, res in zip(agents, results):  # memory: one more step each, untimed (malloc_trim costs page faults)
         agent.reset()
-        with _PeakMemory(device) as mem, _Activation(model.network, res["activation"]):
+        with _PeakMemory(device) as mem, _activation(model.network, res["activation"]):
             agent.act(start)
         res["mem"] = mem.peak_mib
     out = []
