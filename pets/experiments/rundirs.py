@@ -65,7 +65,7 @@ def left_to_auto(overrides: Mapping[str, Any]) -> tuple[str, ...]:
 
 def precision_note(run_dirs: Iterable[Path]) -> list[str]:
     """Markdown lines naming the precisions the runs in ``run_dirs`` used, when they are not all the same (else
-    none): ``auto`` resolved differently on machines of different CPU kinds."""
+    none): set so by an arm, or ``auto`` resolved on machines of different CPU kinds."""
     from omegaconf import OmegaConf
 
     used: dict[str, list[str]] = {}
@@ -80,10 +80,11 @@ def precision_note(run_dirs: Iterable[Path]) -> list[str]:
     return [
         "## The runs used different precisions",
         "",
-        f"{' / '.join(PRECISION_KEYS)} left at auto resolve on the machine that starts a run (bf16 on CPUs with "
-        "native bf16, fp32 elsewhere), and these runs started on machines of different kinds. bf16 moves planned "
-        "returns by ~6e-4 relative and holdout errors by < 0.1 % (docs/performance.md); for an A/B free of it, "
-        "pass both keys explicitly.",
+        f"Not every run used the same {' / '.join(PRECISION_KEYS)}. An arm's own overrides may set them on purpose; "
+        "left at auto (the default) they resolve on the machine that starts a run, bf16 on CPUs with native bf16 "
+        "and fp32 elsewhere, so a study spread over machines of different CPU kinds mixes them. bf16 moves "
+        "planned returns by ~6e-4 relative and holdout errors by < 0.1 % (docs/performance.md); for an A/B free "
+        "of it, pass both keys explicitly.",
         "",
         *[f"- {key}: {len(names)} runs ({', '.join(sorted(names))})" for key, names in sorted(used.items())],
         "",
