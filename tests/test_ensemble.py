@@ -318,7 +318,8 @@ def test_fused_cpu_bf16_path_matches_torch_ops_and_follows_weight_updates(monkey
     assert (mean_f - ref_mean).abs().max() < 0.02 * scale  # bf16 rounding of a 4-layer chain
     err_f, err_b = (mean_f - mean32).abs().mean(), (mean_b - mean32).abs().mean()
     assert err_f < 1.2 * err_b and (lv_f - lv32).abs().mean() < 1.2 * (lv_b - lv32).abs().mean()
-    assert not torch.equal(mean_f, mean_b)  # really another kernel
+    if activation == "silu":  # really another kernel (len(calls) says so too); ReLU commutes with the bf16
+        assert not torch.equal(mean_f, mean_b)  # rounding, so there both paths give the same bits
     # inside a cached_weights() scope (the evaluator opens one per call) the bf16 weights are prepared once per
     # selection; an in-place update of the weights (an optimiser step) and another selection are still seen
     with fused.cached_weights():
