@@ -9,7 +9,13 @@ open-loop rewards.
 import csv
 import json
 import math
+import os
 import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -1062,6 +1068,69 @@ def test_process_pool_reports_a_failed_job_and_finishes_the_others():
     results = runner.run_pool(jobs, 2, processes=True, progress=False, desc="test")
     assert results["good"] == (True, ["a", "b"]) and results["also good"] == (True, [3, 1])
     assert results["bad"][0] is False and "UsageError" in results["bad"][1] and "empty items" in results["bad"][1]
+
+
+_SWEEP = """
+import os, sys, time
+from pathlib import Path
+
+def job(pid_file):  # a job of the process pool: says its pid, then works for two minutes
+    Path(pid_file).write_text(str(os.getpid()))
+    time.sleep(120)
+
+if __name__ == "__main__":
+    from pets.experiments import runner
+    import sweep
+
+    kind, out = sys.argv[1], Path(sys.argv[2])
+    child = "import os, sys, time; open(sys.argv[1], 'w').write(str(os.getpid())); time.sleep(120)"
+    if kind == "threads":  # as the online runs: threads waiting on subprocesses
+        jobs = [(f"j{i}", runner.run_logged, ([sys.executable, "-c", child, str(out / f"j{i}.pid")], out / f"j{i}.log"))
+                for i in range(4)]
+    else:  # as the offline runs: the jobs run in spawned worker processes
+        jobs = [(f"j{i}", sweep.job, (str(out / f"j{i}.pid"),)) for i in range(4)]
+    try:
+        runner.run_pool(jobs, 2, processes=kind == "processes", progress=False, desc="sweep")
+    except KeyboardInterrupt:
+        print("interrupted", flush=True)
+"""
+
+
+def _alive(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"  # a zombie has exited
+    except FileNotFoundError:
+        return False
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads process states from Linux's /proc")
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+@pytest.mark.parametrize("kind", ["threads", "processes"])
+def test_a_stopped_sweep_starts_no_more_jobs_and_leaves_no_process_running(tmp_path, kind, sig):
+    """SIGINT (Ctrl-C, ``kill -INT``) or SIGTERM to the sweep's process alone: the queued jobs never start and the
+    running ones stop (an online run resumes its last trial, an offline job is redone), instead of the sweep going
+    on without it (seen: offline workers computing for 10 minutes after their driver was killed)."""
+    (tmp_path / "sweep.py").write_text(_SWEEP)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), str(runner.ROOT)])}
+    proc = subprocess.Popen(
+        [sys.executable, str(tmp_path / "sweep.py"), kind, str(tmp_path)], stdout=subprocess.PIPE, text=True, env=env
+    )
+    try:
+        deadline = time.monotonic() + 120
+        while len([p for p in tmp_path.glob("j*.pid") if p.read_text()]) < 2:
+            assert proc.poll() is None and time.monotonic() < deadline, "the first two jobs did not start"
+            time.sleep(0.1)
+        proc.send_signal(sig)
+        out, _ = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    assert proc.returncode == (0 if sig == signal.SIGINT else -sig)
+    assert ("interrupted" in out) == (sig == signal.SIGINT)
+    time.sleep(0.5)  # the running jobs' processes get SIGTERM or SIGKILL, which takes effect at once
+    pids = {p.name: int(p.read_text()) for p in tmp_path.glob("j*.pid")}
+    assert sorted(pids) == ["j0.pid", "j1.pid"]  # the queued jobs never started
+    assert not [pid for pid in pids.values() if _alive(pid)]
 
 
 @pytest.mark.parametrize(

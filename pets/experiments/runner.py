@@ -4,9 +4,11 @@ logged subprocesses of the online runs (:func:`online_job`)."""
 from __future__ import annotations
 
 import os
+import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor, as_completed
@@ -18,6 +20,14 @@ from pets.experiments.backend import Backend, Jobs, Results, StatusLines, one_li
 
 #: The repository root: where run_pets.py is and where the runs' subprocesses start.
 ROOT = Path(__file__).resolve().parents[2]
+#: Seconds an interrupted sweep's subprocesses get to exit after SIGINT before SIGKILL.
+STOP_GRACE_SECONDS = 10.0
+
+# The live subprocesses of :func:`run_logged` in this process, and whether a sweep was interrupted (then no more
+# start): :func:`_stop_sweep` stops them.
+_children: set[subprocess.Popen] = set()
+_children_lock = threading.Lock()
+_interrupted = threading.Event()
 
 
 @contextmanager
@@ -44,10 +54,12 @@ def run_pool(jobs: Jobs, workers: int, *, processes: bool, progress: bool, desc:
 
     ``processes``: a spawn ProcessPoolExecutor (workers > 1) or this process (workers = 1); else a thread
     pool (for functions that only wait on subprocesses). A job that raises is reported, the rest go on.
-    ``threads``: BLAS/OpenMP threads of every worker process.
+    ``threads``: BLAS/OpenMP threads of every worker process. An interrupt (KeyboardInterrupt) cancels the jobs not
+    started and stops the running ones (:func:`_stop_sweep`) before it propagates.
     """
     if not jobs:
         return {}
+    _interrupted.clear()
     status = StatusLines(len(jobs), desc, progress)
     record = status.record
     if processes and workers == 1:
@@ -70,10 +82,37 @@ def run_pool(jobs: Jobs, workers: int, *, processes: bool, progress: bool, desc:
             pool = ThreadPoolExecutor(max_workers=workers)
         with pool:
             futures: dict[Future, str] = {pool.submit(fn, *args): name for name, fn, args in jobs}
-            for fut in as_completed(futures):
-                err = fut.exception()
-                record(futures[fut], err is None, fut.result() if err is None else one_line(err))
+            try:
+                for fut in as_completed(futures):
+                    err = fut.exception()
+                    record(futures[fut], err is None, fut.result() if err is None else one_line(err))
+            except BaseException:  # Ctrl-C or SIGINT: the sweep stops, not only the runs that were running
+                _stop_sweep(pool, processes)
+                raise
     return status.close()
+
+
+def _stop_sweep(pool: Any, processes: bool) -> None:
+    """An interrupted sweep: no job starts any more, and the running ones stop (an online run resumes from its last
+    completed trial, an offline job is redone whole): the worker processes get SIGTERM; the online runs'
+    subprocesses SIGINT (run_pets.py exits as on Ctrl-C), SIGKILL after :data:`STOP_GRACE_SECONDS`."""
+    workers = list((getattr(pool, "_processes", None) or {}).values())  # shutdown() forgets them
+    pool.shutdown(wait=False, cancel_futures=True)
+    if processes:  # jobs already handed to a worker are not cancelled: stop the workers themselves
+        for worker in workers:
+            worker.terminate()
+        return
+    with _children_lock:
+        _interrupted.set()
+        children = list(_children)
+    for child in children:
+        child.send_signal(signal.SIGINT)
+    deadline = time.monotonic() + STOP_GRACE_SECONDS
+    for child in children:
+        try:
+            child.wait(max(deadline - time.monotonic(), 0.0))
+        except subprocess.TimeoutExpired:
+            child.kill()
 
 
 def thread_env(threads: int) -> dict[str, str]:
@@ -82,8 +121,11 @@ def thread_env(threads: int) -> dict[str, str]:
 
 
 def _worker_init(threads: int) -> None:
-    """``threads`` CPU threads per worker (set before it imports torch; the jobs also set torch's thread count)."""
+    """``threads`` CPU threads per worker (set before it imports torch; the jobs also set torch's thread count);
+    the worker dies with the sweep's process (a killed driver leaves no orphan computing a job)."""
     os.environ.update(thread_env(threads))
+    if sys.platform == "linux":
+        _die_with_parent()
 
 
 def _die_with_parent() -> None:  # pragma: no cover - runs in the forked child
@@ -97,19 +139,30 @@ def _die_with_parent() -> None:  # pragma: no cover - runs in the forked child
 
 def run_logged(command: Sequence[str], log: Path, threads: int = 1) -> int:
     """Run ``command`` with ``threads`` CPU threads, appending its output to ``log``; raise if it fails."""
+    if _interrupted.is_set():
+        raise RuntimeError("not started: the sweep was interrupted")
     log.parent.mkdir(parents=True, exist_ok=True)
     with open(log, "a") as f:
         where = f"{socket.gethostname()} pid {os.getpid()}"
         f.write(f"\n[{time.strftime('%Y-%m-%d %H:%M:%S')}] ({where}) {' '.join(command)}\n")
         f.flush()
-        proc = subprocess.run(
-            command,
-            stdout=f,
-            stderr=subprocess.STDOUT,
-            cwd=ROOT,
-            env={**os.environ, **thread_env(threads)},
-            preexec_fn=_die_with_parent if sys.platform == "linux" else None,
-        )
+        with _children_lock:  # registered before an interrupt can miss it; none starts after one
+            if _interrupted.is_set():
+                raise RuntimeError("not started: the sweep was interrupted")
+            proc = subprocess.Popen(
+                command,
+                stdout=f,
+                stderr=subprocess.STDOUT,
+                cwd=ROOT,
+                env={**os.environ, **thread_env(threads)},
+                preexec_fn=_die_with_parent if sys.platform == "linux" else None,
+            )
+            _children.add(proc)
+        try:
+            proc.wait()
+        finally:
+            with _children_lock:
+                _children.discard(proc)
     if proc.returncode != 0:
         lines = [line for line in log.read_text(errors="replace").splitlines() if line.strip()]
         raise RuntimeError(f"exit {proc.returncode}; log {log}; last line: {lines[-1] if lines else ''}")
