@@ -34,6 +34,7 @@ from pets.experiments.online_summary import SUMMARY_COLUMNS as ONLINE_COLUMNS
 from pets.experiments.online_summary import summarise_online
 from pets.experiments.report import fmt, fmt_interval
 from pets.experiments.statistics import REPS
+from tests.processes import alive
 from tests.threads import one_thread
 from tests.tiny import TINY_MODEL, TINY_PLANNER
 
@@ -1096,14 +1097,6 @@ if __name__ == "__main__":
 """
 
 
-def _alive(pid: int) -> bool:
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            return f.read().rsplit(")", 1)[1].split()[0] != "Z"  # a zombie has exited
-    except FileNotFoundError:
-        return False
-
-
 @pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads process states from Linux's /proc")
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 @pytest.mark.parametrize("kind", ["threads", "processes"])
@@ -1130,7 +1123,7 @@ def test_a_stopped_sweep_starts_no_more_jobs_and_leaves_no_process_running(tmp_p
     time.sleep(0.5)  # the running jobs' processes get SIGTERM or SIGKILL, which takes effect at once
     pids = {p.name: int(p.read_text()) for p in tmp_path.glob("j*.pid")}
     assert sorted(pids) == ["j0.pid", "j1.pid"]  # the queued jobs never started
-    assert not [pid for pid in pids.values() if _alive(pid)]
+    assert not [pid for pid in pids.values() if alive(pid)]
 
 
 @pytest.mark.parametrize(

@@ -23,6 +23,7 @@ from pets.experiments.arguments import UsageError
 from pets.experiments.cli import main
 from pets.experiments.ray_backend import check_shared_storage
 from pets.experiments.runner import ROOT
+from tests.processes import alive, children
 from tests.test_compare import OFFLINE_ARGS, TINY
 
 #: Wall-clock columns: the only ones that may differ between two runs with the same seed.
@@ -116,27 +117,6 @@ def test_sweep_on_a_cluster_started_with_ray_start_gives_the_local_backends_metr
     assert done.returncode == 0, done.stderr[-1500:] + "\nray start: " + log.read_text()[-1500:]
     for name in sorted(p.name for p in (online / "local" / "runs").iterdir()):
         assert metrics(online / "local" / "runs" / name) == metrics(out / "runs" / name), name
-
-
-def children(pid: int) -> list[int]:
-    """Processes whose parent is ``pid`` (from /proc)."""
-    found = []
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-        except OSError:
-            continue
-        if int(fields[1]) == pid:
-            found.append(int(stat.parent.name))
-    return found
-
-
-def alive(pid: int) -> bool:
-    try:
-        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
-    except OSError:
-        return False
-    return state != "Z"
 
 
 def test_killed_ray_worker_run_resumes_from_its_checkpoint_with_the_same_metrics(tmp_path):

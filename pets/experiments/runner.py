@@ -128,7 +128,7 @@ def _worker_init(threads: int) -> None:
         _die_with_parent()
 
 
-def _die_with_parent() -> None:  # pragma: no cover - runs in the forked child
+def _die_with_parent() -> None:  # pragma: no cover - runs in the child or pool worker
     """Linux: the child gets SIGKILL when the process that started it dies (a killed Ray worker leaves no orphan
     run holding the run directory's lock)."""
     import ctypes
@@ -139,16 +139,14 @@ def _die_with_parent() -> None:  # pragma: no cover - runs in the forked child
 
 def run_logged(command: Sequence[str], log: Path, threads: int = 1) -> int:
     """Run ``command`` with ``threads`` CPU threads, appending its output to ``log``; raise if it fails."""
-    if _interrupted.is_set():
-        raise RuntimeError("not started: the sweep was interrupted")
     log.parent.mkdir(parents=True, exist_ok=True)
     with open(log, "a") as f:
-        where = f"{socket.gethostname()} pid {os.getpid()}"
-        f.write(f"\n[{time.strftime('%Y-%m-%d %H:%M:%S')}] ({where}) {' '.join(command)}\n")
-        f.flush()
-        with _children_lock:  # registered before an interrupt can miss it; none starts after one
+        with _children_lock:  # registered before an interrupt can miss it; none starts (nor is logged) after one
             if _interrupted.is_set():
                 raise RuntimeError("not started: the sweep was interrupted")
+            where = f"{socket.gethostname()} pid {os.getpid()}"
+            f.write(f"\n[{time.strftime('%Y-%m-%d %H:%M:%S')}] ({where}) {' '.join(command)}\n")
+            f.flush()
             proc = subprocess.Popen(
                 command,
                 stdout=f,
