@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import scipy.stats
 from rliable import library, metrics
 
 import envs
@@ -312,6 +313,8 @@ def test_online_summary_csv_columns(fake_online):
         "diff_ci_low",
         "diff_ci_high",
         "n_pairs",
+        "diff_p_signflip",
+        "diff_p_holm",
         "p_fewer_steps",
         "p_fewer_steps_ci_low",
         "p_fewer_steps_ci_high",
@@ -382,19 +385,53 @@ def test_online_p_improvement_higher_reward_wins_and_paired_differences(fake_onl
     assert float(gem["diff_to_delta"]) > 0 > float(gem2["diff_to_delta"])
 
 
+def test_online_exact_paired_p_counts_diverged_runs_as_worst_and_holm_adjusts_over_the_summary(fake_online):
+    from statsmodels.stats.multitest import multipletests
+
+    out, _ = fake_online
+    diverged_or_missing = {("gem", 2), ("gem2", 0), ("delta", 4)}
+    arms = [(m, s) for m in ("delta", "gem", "gem2") for s in range(5) if (m, s) not in diverged_or_missing]
+    finite = [fake_finals(m, s) for m, s in arms]
+    worst = min(finite)  # a diverged run's final in the exact test: the env's lowest finite final
+    raw = {}
+    for model, bad in (("gem", 2), ("gem2", 0)):
+        diffs = np.array([(worst if s == bad else fake_finals(model, s)) - fake_finals("delta", s) for s in range(4)])
+        ref = scipy.stats.permutation_test(
+            (diffs, np.zeros_like(diffs)),
+            lambda a, b, axis: np.mean(a - b, axis=axis),
+            permutation_type="samples",
+            n_resamples=np.inf,
+        )
+        raw[model] = float(online_row(out, "reacher", model)["diff_p_signflip"])
+        assert raw[model] == pytest.approx(ref.pvalue, rel=1e-9)
+    hopper = online_row(out, "hopper", "gem")  # both runs diverged: both the worst final, an exact test still
+    assert float(hopper["diff_p_signflip"]) > 0
+    family = [raw["gem"], raw["gem2"], float(hopper["diff_p_signflip"])]
+    adjusted = multipletests(family, method="holm")[1]
+    got = [
+        float(online_row(out, e, m)["diff_p_holm"])
+        for e, m in (("reacher", "gem"), ("reacher", "gem2"), ("hopper", "gem"))
+    ]
+    np.testing.assert_allclose(got, adjusted, rtol=1e-12)
+    assert online_row(out, "reacher", "delta")["diff_p_signflip"] == ""
+
+
 def test_online_summary_md_has_iqm_p_and_no_nan_or_inf(fake_online):
     out, _ = fake_online
     md = (out / "summary.md").read_text()
     tables = "\n".join(line for line in md.splitlines() if line.startswith("|"))
     assert not re.search(r"\b(nan|inf|None)\b", tables, re.I), "a non-finite or missing number reached a table"
-    assert "| model | seeds | diverged | final reward | AUC | P(final > delta's) | final - delta | pairs |" in md
+    assert (
+        "| model | seeds | diverged | final reward | AUC | P(final > delta's) | final - delta | pairs | p (sign-flip) "
+        "| p (Holm) |" in md
+    )
     assert "stratified-bootstrap CI" in md and "all diverged" in md
     gem = online_row(out, "reacher", "gem")
     assert (
         f"| gem | 4 | 1 | {fmt_interval(*(float(gem[k]) for k in ('final_iqm', 'final_ci_low', 'final_ci_high')))} |"
         in md
     )
-    assert "| delta | 4 | 0 |" in md and "| - | - | - |" in md
+    assert "| delta | 4 | 0 |" in md and "| - | - | - | - | - |" in md
     assert "- reacher-gem-s2: episode_reward nan at trial 1" in md and "- reacher-delta-s4 (2/4 trials)" in md
     sections = dict(re.findall(r"^## (\w+)\n(.*?)(?=^## )", md, re.S | re.M))
     assert "Fewer than 5 seeds cannot carry a claim" in sections["reacher"]  # 4 seeds left

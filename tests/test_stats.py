@@ -14,6 +14,7 @@ from pets.experiments.statistics import (
     bootstrap_ci,
     divergence,
     divergences,
+    holm,
     iqm,
     iqm_ci,
     iqm_ci_finite,
@@ -22,6 +23,7 @@ from pets.experiments.statistics import (
     p_improvement_ci,
     paired_differences,
     paired_ratios,
+    sign_flip_p,
     summarise,
 )
 
@@ -158,6 +160,42 @@ def test_paired_differences_use_the_seeds_both_have():
     seeds, diffs = paired_differences({3: [1.0, 2.0]}, {3: [0.5, 4.0]})
     np.testing.assert_array_equal(diffs, [[0.5, -2.0]])
     assert paired_differences({0: 1.0}, {1: 1.0})[0] == []
+
+
+@pytest.mark.parametrize("seed", range(6))
+@pytest.mark.parametrize("n", [2, 3, 5, 8])
+def test_sign_flip_p_is_scipys_exact_paired_permutation_test(n, seed):
+    rng = np.random.default_rng(seed)
+    x, y = rng.normal(0.3, 1.0, n), rng.normal(0.0, 1.0, n)
+    ref = scipy.stats.permutation_test(
+        (x, y), lambda a, b, axis: np.mean(a - b, axis=axis), permutation_type="samples", n_resamples=np.inf
+    )
+    assert sign_flip_p(x - y) == pytest.approx(ref.pvalue, rel=1e-12)
+
+
+def test_sign_flip_p_hand_computed_cases():
+    assert sign_flip_p([1.0, 2.0, 3.0, 4.0, 5.0]) == 2 / 32  # the smallest p five pairs can give
+    assert sign_flip_p([1.0, -2.0, 3.0, 4.0, 5.0]) == 6 / 32  # |mean| >= 2.2: the two all-same-sign, +-1, +-(1, 2)
+    assert sign_flip_p([0.0, 0.0, 0.0]) == 1.0
+    assert sign_flip_p([-7.0]) == 1.0  # one pair: both signs are as extreme
+    assert sign_flip_p([0.1, 0.2, 0.3]) == sign_flip_p([0.1 * 3, 0.2 * 3, 0.3 * 3])  # ties by float rounding
+    assert math.isnan(sign_flip_p([]))
+    with pytest.raises(ValueError, match="finite"):
+        sign_flip_p([1.0, NAN])
+    with pytest.raises(ValueError, match="at most 20 pairs"):
+        sign_flip_p(np.ones(21))
+
+
+def test_holm_is_statsmodels_holm():
+    from statsmodels.stats.multitest import multipletests
+
+    rng = np.random.default_rng(0)
+    for m in (1, 2, 4, 9):
+        p = rng.uniform(0, 0.2, m)
+        np.testing.assert_allclose(holm(p), multipletests(p, method="holm")[1], rtol=1e-12)
+    got = holm([0.01, NAN, 0.04, 0.03])  # NaN: no test, not counted in the family
+    np.testing.assert_allclose(got[:1] + got[2:], multipletests([0.01, 0.04, 0.03], method="holm")[1])
+    assert math.isnan(got[1])
 
 
 def test_paired_ratios_use_the_seeds_both_have_and_drop_undefined_columns():

@@ -41,9 +41,11 @@ from pets.experiments.statistics import (
     MIN_SEEDS,
     REPS,
     SMALL_SAMPLE_NOTE,
+    holm,
     iqm_ci,
     p_improvement_ci,
     paired_differences,
+    sign_flip_p,
 )
 from pets.fileio import atomic_write_bytes
 
@@ -67,6 +69,8 @@ _BASELINE_COLUMNS = [
     "diff_ci_low",
     "diff_ci_high",
     "n_pairs",
+    "diff_p_signflip",
+    "diff_p_holm",
     "p_fewer_steps",
     "p_fewer_steps_ci_low",
     "p_fewer_steps_ci_high",
@@ -211,6 +215,14 @@ def arm_statistics(
             if pairs:
                 (d,), (d_low,), (d_high,) = iqm_ci(diffs, reps=reps, seed=seed)
                 s.update(diff_to_delta=d, diff_ci_low=d_low, diff_ci_high=d_high)
+            # The exact test counts a diverged run as the worst outcome: the lowest finite final reward of the env.
+            worst = min((r["final_reward"] for rs_ in good.values() for r in rs_.values()), default=math.nan)
+            worst_of = {
+                a: {r["seed"]: worst if r["diverged"] else r["final_reward"] for r in runs[a]} for a in (arm, base)
+            }
+            _, all_diffs = paired_differences(worst_of[arm], worst_of[base])
+            if all_diffs.size and np.isfinite(all_diffs).all():
+                s["diff_p_signflip"] = sign_flip_p(all_diffs[:, 0])
             if threshold:  # steps as errors: never reached or diverged = NaN, the most steps
                 x = [math.nan if r["diverged"] else r["steps_to_threshold"] for r in rs]
                 y = [math.nan if r["diverged"] else r["steps_to_threshold"] for r in runs[base]]
@@ -240,6 +252,7 @@ def summarise_online(
     reached its env's threshold is complete with fewer rows (``pets.compare online --until-threshold``)."""
     out = Path(out)
     per_run, summary, missing, diverged_runs, text = [], [], [], [], []
+    envs_done: list[tuple[str, list[dict[str, Any]]]] = []
     included: list[Path] = []
     arms = online_arms(models, planners)
     labels = {arm: arm_label(*arm) for arm in arms}
@@ -289,11 +302,17 @@ def summarise_online(
                 row = {"env": env, "model": model, "planner": planner or "", "trials": trials, "final_window": w}
                 rows_env.append({**row, **stats[label], "threshold": thresholds.get(env)})
         summary += rows_env
-        text += _env_section(env, rows_env, planners is not None, compared, baselines)
+        envs_done.append((env, rows_env))
         colors = model_colors(list(curves)) if planners is None else arm_colors(list(curves))
         n_div = {label: stats[label]["n_diverged"] for label in curves}
         plot_online(out / f"rewards_{env}.png", env, curves, colors, diverged=n_div, reps=reps)
         plot_online(out / f"walltime_{env}.png", env, curves, colors, x_key="wall_time_s", diverged=n_div, reps=reps)
+    # Holm over the family of every arm-vs-baseline test of the primary endpoint in this summary (envs x arms).
+    adjusted = holm([math.nan if r.get("diff_p_signflip") is None else r["diff_p_signflip"] for r in summary])
+    for row, p_adj in zip(summary, adjusted):
+        row["diff_p_holm"] = _finite(p_adj)
+    for env, rows_env in envs_done:
+        text += _env_section(env, rows_env, planners is not None, compared, baselines)
     write_csv(out / "summary.csv", summary, SUMMARY_COLUMNS)
     write_csv(out / "summary_runs.csv", per_run, RUN_COLUMNS)
     base_name = BASELINE if planners is None else f"{BASELINE} with the same planner"
@@ -312,7 +331,10 @@ def summarise_online(
             f" P(final > {BASELINE}'s): the probability that a random seed of the arm ends with a higher final "
             f"reward than a random seed of {base_name} (ties count half), with its CI. final - {BASELINE}: IQM "
             "[CI] of the per-seed difference of the final rewards over the seeds both arms have (same seed: "
-            "the same random seed data and env reset seeds)."
+            "the same random seed data and env reset seeds). p (sign-flip): the exact paired permutation p-value of "
+            f"the mean final - {BASELINE} over the seeds both arms ran, a diverged run entered as the env's lowest "
+            "final reward (at 5 pairs it cannot go below 0.0625); p (Holm): Holm's adjustment over every "
+            "arm-vs-baseline test of this summary (envs x arms)."
             if compared
             else ""
         )
@@ -344,7 +366,7 @@ def _env_section(
     """Markdown of one env: the small-sample note where needed, the table of its arms, its two figures."""
     header = ["model", *(["planner"] if with_planner else []), "seeds", "diverged", "final reward", "AUC"]
     if compared:
-        header += [f"P(final > {BASELINE}'s)", f"final - {BASELINE}", "pairs"]
+        header += [f"P(final > {BASELINE}'s)", f"final - {BASELINE}", "pairs", "p (sign-flip)", "p (Holm)"]
     threshold = rows[0]["threshold"] if rows else None
     if threshold is not None:
         header += [f"reached {threshold:g}", "minutes to it", "env steps to it"]
@@ -357,12 +379,13 @@ def _env_section(
         cells += [fmt_interval(r[f"{k}_iqm"], r[f"{k}_ci_low"], r[f"{k}_ci_high"], none) for k in ("final", "auc")]
         if compared:
             if baselines[arm_label(r["model"], r["planner"] or None)] is None:
-                cells += ["-", "-", "-"]
+                cells += ["-"] * 5
             else:
                 cells += [
                     fmt_interval(r["p_improvement"], r["p_improvement_ci_low"], r["p_improvement_ci_high"]),
                     fmt_interval(r["diff_to_delta"], r["diff_ci_low"], r["diff_ci_high"]),
                     "-" if r["n_pairs"] is None else str(r["n_pairs"]),
+                    *("-" if r[k] is None else fmt(r[k], 3) for k in ("diff_p_signflip", "diff_p_holm")),
                 ]
         if threshold is not None:
             cells.append(f"{r['n_reached']}/{r['n_seeds']}")
