@@ -846,6 +846,27 @@ def test_offline_data_collected_as_backend_jobs_and_a_failed_env_fails_only_its_
     assert not (tmp_path / "data" / "reacher-train.npz").exists()
 
 
+def test_online_runs_start_seed_major_so_a_sweep_cut_short_is_paired(tmp_path, monkeypatch):
+    """Every arm of the first seed is handed to the backend before any run of the next seed."""
+    import contextlib
+
+    from pets.experiments import online
+
+    handed: list[str] = []
+
+    @contextlib.contextmanager
+    def recording_backend(backend, out, needed=True):
+        def run(jobs, *, processes, progress, desc):
+            handed.extend(name for name, _, _ in jobs)
+            return {name: (False, "not run (test)") for name, _, _ in jobs}
+
+        yield run
+
+    monkeypatch.setattr(online, "open_backend", recording_backend)
+    online.compare_online(["reacher"], ["delta", "gem"], [0, 1, 2], 2, tmp_path, preset="fast", progress=False)
+    assert handed == [f"reacher-{m}-s{s}" for s in (0, 1, 2) for m in ("delta", "gem")]
+
+
 def test_online_refuses_an_offline_run_directory(offline, capsys):
     out, _ = offline  # same config as the offline runs (trials aside): only the run kind differs
     code, _, err = cli(

@@ -21,6 +21,7 @@ the machine alike (one worker per core, no other load).
 
 from __future__ import annotations
 
+import itertools
 import math
 import sys
 from collections.abc import Mapping, Sequence
@@ -130,32 +131,32 @@ def compare_online(
     jobs, actions = [], {}
     for env in env_names:
         stop = {"stop_reward": THRESHOLDS[env]} if until_threshold else {}
-        for model, planner in online_arms(models, planners):
+        # Seed-major: every arm of the first seed, then of the next, so that a sweep cut short is still paired.
+        for seed, (model, planner) in itertools.product(seeds, online_arms(models, planners)):
             head, own = (arms or {}).get(model, (model, {}))
             arm_extra = {**extra, **own, **stop, **({} if planner is None else {"planner.name": planner})}
             arm_list = [f"{k}={v}" for k, v in arm_extra.items()]
-            for seed in seeds:
-                name = run_name(env, model, seed, planner)
-                run_dir = out / "runs" / name
-                try:
-                    expected = make_config(
-                        env, head, preset, {**arm_extra, "seed": seed, "trials": trials, "threads": backend.threads}
+            name = run_name(env, model, seed, planner)
+            run_dir = out / "runs" / name
+            try:
+                expected = make_config(
+                    env, head, preset, {**arm_extra, "seed": seed, "trials": trials, "threads": backend.threads}
+                )
+            except ConfigError as err:
+                raise UsageError(str(err)) from None
+            action = online_plan(run_dir, trials, expected.stop_reward)
+            if action != "start":
+                check_same_config(run_dir, expected, ignore=(*NOT_COMPARED, *left_to_auto(arm_extra)))
+                if any(math.isnan(r["trial"]) for r in online_rows(run_dir)):
+                    raise UsageError(
+                        f"{run_dir} is an offline training run (pets.train), not an online run; "
+                        "use separate --out directories for online and offline comparisons"
                     )
-                except ConfigError as err:
-                    raise UsageError(str(err)) from None
-                action = online_plan(run_dir, trials, expected.stop_reward)
-                if action != "start":
-                    check_same_config(run_dir, expected, ignore=(*NOT_COMPARED, *left_to_auto(arm_extra)))
-                    if any(math.isnan(r["trial"]) for r in online_rows(run_dir)):
-                        raise UsageError(
-                            f"{run_dir} is an offline training run (pets.train), not an online run; "
-                            "use separate --out directories for online and offline comparisons"
-                        )
-                actions[name] = action
-                if action != "reuse":
-                    args = start_arguments(run_dir, env, head, seed, trials, preset, arm_list, backend.threads)
-                    log = str(out / "logs" / f"{name}.log")
-                    jobs.append((name, online_job, (str(run_dir), args, trials, log, backend.threads)))
+            actions[name] = action
+            if action != "reuse":
+                args = start_arguments(run_dir, env, head, seed, trials, preset, arm_list, backend.threads)
+                log = str(out / "logs" / f"{name}.log")
+                jobs.append((name, online_job, (str(run_dir), args, trials, log, backend.threads)))
     check_out_writable(out)  # after every argument is checked: bad input leaves no directory behind
     counts = {a: sum(1 for v in actions.values() if v == a) for a in ("reuse", "resume", "start")}
     with open_backend(backend, out, needed=bool(jobs)) as run:
