@@ -121,7 +121,9 @@ def planar_layout(joints: tuple[str, ...]) -> ObsLayout:
         Group("rooty", "SO2_angle", (2,)),
         *(Group(j, "SO2_angle", (3 + k,)) for k, j in enumerate(joints)),
     )
-    return ObsLayout(obs_dim=2 * nq, groups=groups, velocities=_r(nq, 2 * nq), invariant=(0,))
+    return ObsLayout(
+        obs_dim=2 * nq, groups=groups, velocities=_r(nq, 2 * nq), invariant=(0,), root=("root_xz", "rooty")
+    )
 
 
 def ant_layout() -> ObsLayout:
@@ -137,6 +139,7 @@ def ant_layout() -> ObsLayout:
         velocities=_r(ANT_NQ, ANT_NQ + ANT_NV),
         derived=_r(*ANT_CFRC),
         invariant=(0, 1, ANT_XREF),
+        root=("torso_pos", "torso_quat"),
     )
 
 
@@ -153,6 +156,7 @@ def humanoid_layout() -> ObsLayout:
         velocities=_r(HUM_NQ, HUM_NQ + HUM_NV),
         derived=_r(HUM_CINERT[0], HUM_CFRC[1]),
         invariant=(0, 1, HUM_COMX),
+        root=("torso_pos", "torso_quat"),
     )
 
 

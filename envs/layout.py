@@ -54,6 +54,11 @@ class ObsLayout:
     and velocities, actuator forces): not part of the Markov state, never network inputs, never
     predicted; a predicted next observation carries them over from the current one (docs/envs.md).
     ``other`` entries (constraint forces, appended reward positions) are predicted like velocities.
+
+    ``root`` names the floating base as ``(translation group, rotation group)``: an ``Rn`` group of 2 coordinates
+    with an ``SO2_angle`` (a planar root: x, z and the pitch about y) or of 3 with an ``SO3_quat`` (a free joint);
+    ``None`` where the body has no floating base. The ``gem-se`` model composes these two as one SE(2) / SE(3)
+    element (``gem_head.se_root``); every other model reads the groups as usual.
     """
 
     obs_dim: int
@@ -62,6 +67,7 @@ class ObsLayout:
     other: tuple[int, ...] = ()
     invariant: tuple[int, ...] = field(default=())
     derived: tuple[int, ...] = ()
+    root: tuple[str, str] | None = None
 
     def __post_init__(self) -> None:
         seen = [i for g in self.groups for i in g.indices] + [*self.velocities, *self.other, *self.derived]
@@ -76,6 +82,15 @@ class ObsLayout:
         rn = {i for g in self.groups if g.kind == "Rn" for i in g.indices}
         if not set(self.invariant) <= rn:
             raise ValueError(f"invariant indices {sorted(set(self.invariant) - rn)} are not Rn group coordinates")
+        if self.root is not None:
+            by_name = {g.name: g for g in self.groups}
+            trans, rot = (by_name.get(name) for name in self.root)
+            ok = trans is not None and rot is not None and trans.kind == "Rn"
+            if not (ok and (rot.kind, len(trans.indices)) in (("SO2_angle", 2), ("SO3_quat", 3))):
+                raise ValueError(
+                    f"root {self.root!r} must name an Rn group of 2 coordinates and an SO2_angle group (planar) or an "
+                    "Rn group of 3 and an SO3_quat group (free joint)"
+                )
 
     @property
     def model_indices(self) -> tuple[int, ...]:
@@ -88,6 +103,13 @@ class ObsLayout:
         """Observation indices a model predicts (all but the derived ones), in order."""
         skip = set(self.derived)
         return tuple(i for i in range(self.obs_dim) if i not in skip)
+
+    def group(self, name: str) -> Group:
+        """The group called ``name`` (KeyError naming the groups there are, if none is)."""
+        for g in self.groups:
+            if g.name == name:
+                return g
+        raise KeyError(f"no group {name!r}; the layout has {[g.name for g in self.groups]}")
 
     def groups_of(self, kind: GroupKind) -> tuple[Group, ...]:
         return tuple(g for g in self.groups if g.kind == kind)

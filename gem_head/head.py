@@ -265,6 +265,15 @@ class GemHead(DynamicsHead):
         )
         self._by_device: dict[torch.device, _Indices] = {torch.device("cpu"): self._cpu}
 
+    def target_slots_of(self, group: str) -> tuple[int, ...]:
+        """Target slots of the layout's group ``group``: one per coordinate of an Rn group (in its order), the
+        tangent coordinates of a rotation group."""
+        g = self.layout.group(group)
+        if g.kind == "Rn":
+            return tuple(self.target_names.index(f"d {g.name}[{k}]") for k in range(len(g.indices)))
+        label = f"alpha {g.name}"
+        return tuple(i for i, n in enumerate(self.target_names) if n == label or n.startswith(label + "["))
+
     def __repr__(self) -> str:
         return (
             f"GemHead(obs_dim={self.obs_dim}, act_dim={self.act_dim}, input_dim={self.input_dim}, "

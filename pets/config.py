@@ -306,6 +306,24 @@ def _merge_nested(cfg: DictConfig, values: dict[str, Any], prefix: str = "") -> 
             _set(cfg, f"{prefix}{k}", v)
 
 
+def _check_root_model(cfg: DictConfig) -> None:
+    """A model that composes the floating root (``gem-se``) needs an env with one, and the body-frame composition."""
+    import envs
+
+    try:
+        root = envs.get(cfg.env).layout.root
+    except ValueError:  # an unknown env is reported where the env is built
+        return
+    if root is None:
+        with_root = [name for name in envs.names() if envs.get(name).layout.root is not None]
+        raise ConfigError(
+            f"--model {cfg.head} composes a floating root on SE(2)/SE(3) and {cfg.env} has none; it applies to "
+            f"{', '.join(with_root)}"
+        )
+    if cfg.gem.compose != "right":
+        raise ConfigError(f"--model {cfg.head} composes the root in the body frame: gem.compose must be right")
+
+
 def validate(cfg: DictConfig) -> None:
     """Range and choice checks that the types alone do not express."""
     for key in _POSITIVE_INTS:
@@ -334,6 +352,8 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError("seed, seed_steps and train_every must be >= 0")
     if cfg.video_every < 0:
         raise ConfigError(f"video_every must be >= 0 (0: no videos; N: every N-th trial), got {cfg.video_every}")
+    if MODELS[cfg.head].needs_root:
+        _check_root_model(cfg)
     from pets.planners import PLANNER_CLASSES  # each planner checks its own section: one range per argument
 
     for name in ("icem", "mppi"):

@@ -21,12 +21,14 @@ if TYPE_CHECKING:
 
 @dataclass(frozen=True)
 class ModelEntry:
-    """One ``--model``: a one-line summary, whether it is deterministic, and its two builders."""
+    """One ``--model``: a one-line summary, whether it is deterministic, its two builders, and whether it needs a
+    floating root in the env's layout (``ObsLayout.root``)."""
 
     summary: str
     deterministic: bool
     make_head: Callable[[DictConfig, EnvSpec], DynamicsHead]
     make_network: Callable[[DictConfig, DynamicsHead], MemberEnsemble]
+    needs_root: bool = False
 
 
 def _delta_head(cfg: DictConfig, spec: EnvSpec) -> DynamicsHead:
@@ -40,6 +42,13 @@ def _gem_head(cfg: DictConfig, spec: EnvSpec) -> DynamicsHead:
 
     g = cfg.gem
     return GemHead(spec.layout, spec.act_dim, compose=g.compose, loss=g.loss, frobenius_weight=g.frobenius_weight)
+
+
+def _gem_se_head(cfg: DictConfig, spec: EnvSpec) -> DynamicsHead:
+    from gem_head.se_root import GemSEHead
+
+    g = cfg.gem
+    return GemSEHead(spec.layout, spec.act_dim, compose=g.compose, loss=g.loss, frobenius_weight=g.frobenius_weight)
 
 
 def _delta_det_head(cfg: DictConfig, spec: EnvSpec) -> DynamicsHead:
@@ -98,7 +107,15 @@ MODELS: dict[str, ModelEntry] = {
     "delta-det": ModelEntry("the paper's deterministic baseline (MSE)", True, _delta_det_head, _deterministic),
     "gem2": ModelEntry("the paper's two-stage GEM (Algorithm 1), deterministic", True, _gem2_head, _two_stage),
     "delta-groupfeat": ModelEntry("ablation: GEM's input features, delta targets", False, _groupfeat_head, _gaussian),
+    "gem-se": ModelEntry(
+        "gem with the floating root on SE(2)/SE(3), body-frame twist", False, _gem_se_head, _gaussian, needs_root=True
+    ),
 }
+
+
+def models_for(spec: EnvSpec) -> list[str]:
+    """The ``--model`` names that apply to the env ``spec`` (``gem-se`` only where its layout has a root)."""
+    return [name for name, entry in MODELS.items() if not entry.needs_root or spec.layout.root is not None]
 
 
 def make_model(cfg: DictConfig, spec: EnvSpec, device: torch.device) -> DynamicsModel:

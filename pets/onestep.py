@@ -133,11 +133,14 @@ def _write_csv(path: Path, rows: list[dict[str, Any]]) -> None:
 def main(argv: list[str] | None = None) -> int:
     import envs
     from pets.config import HEADS, ConfigError, parse_overrides
+    from pets.models import models_for
     from pets.train import offline_config
 
     parser = OneLineParser(prog=PROG, description=__doc__.split("\n\n")[0])
     parser.add_argument("--envs", default="all", help="all, or a comma list of env names")
-    parser.add_argument("--models", default=",".join(HEADS), help="comma list of --model values")
+    parser.add_argument(
+        "--models", default=None, help=f"comma list of --model values (default: those of {', '.join(HEADS)} that apply)"
+    )
     parser.add_argument("--episodes", type=int, default=60, help="episodes of train and of held-out data")
     parser.add_argument("--max-steps", type=int, default=200, help="episode length cap")
     parser.add_argument("--epochs", type=int, default=40, help="model.max_epochs")
@@ -145,14 +148,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--csv", type=Path, default=None, help="also write the rows to this CSV file")
     parser.add_argument("overrides", nargs="*", help="config key=value overrides (e.g. threads=1)")
     args = parser.parse_intermixed_args(argv)
-    models = args.models.split(",")
     try:
         names = envs.names() if args.envs == "all" else [envs.get(e).name for e in args.envs.split(",")]
         if min(args.episodes, args.max_steps, args.epochs) < 1 or args.seed < 0:
             raise ValueError("--episodes, --max-steps and --epochs must be >= 1, --seed >= 0")
         overrides = parse_overrides(args.overrides)
+        models = {n: args.models.split(",") if args.models else models_for(envs.get(n)) for n in names}
         for name in names:  # every (env, model) config is valid before anything runs
-            for model in models:
+            for model in models[name]:
                 offline_config(name, model, {**overrides, "model.max_epochs": args.epochs}, seed=args.seed)
     except (ConfigError, ValueError) as err:
         fail(PROG, str(err))
@@ -164,7 +167,7 @@ def main(argv: list[str] | None = None) -> int:
     for name in names:
         for row in one_step_check(
             name,
-            models,
+            models[name],
             episodes=args.episodes,
             max_steps=args.max_steps,
             epochs=args.epochs,

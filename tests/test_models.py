@@ -22,13 +22,14 @@ from dynamics.networks import DETERMINISTIC_LOGVAR, DeterministicEnsemble, Gauss
 from envs.layout import Group, ObsLayout
 from gem_head.ablation import GroupFeatureDeltaHead
 from gem_head.head import GemHead
+from gem_head.se_root import GemSEHead
 from gem_head.two_stage import TwoStageGemEnsemble, TwoStageGemHead
 from pets import builder, rundir
 from pets.collect import collect
 from pets.config import DETERMINISTIC_HEADS, HEADS, make_config
 from pets.datasets import save_dataset, transitions
 from pets.evaluate import evaluate
-from pets.models import make_model
+from pets.models import make_model, models_for
 from pets.propagation import TrajectoryEvaluator
 from pets.train import train_offline
 from pets.trainer import ModelTrainer
@@ -82,8 +83,10 @@ def build(env: str, head_name: str, seed: int = 0, **overrides):
 
 
 # --------------------------------------------------------------------------- every model
-@pytest.mark.parametrize("env", ["invertedpendulum", "reacher", "ant"])
-@pytest.mark.parametrize("head_name", HEADS)
+@pytest.mark.parametrize(
+    "env, head_name",
+    [(env, head) for env in ("invertedpendulum", "reacher", "ant") for head in models_for(envs.get(env))],
+)
 def test_every_model_builds_trains_and_plans(env, head_name):
     cfg, spec, head, ens = build(env, head_name, **{"model.max_epochs": 20, "model.patience": 20, "model.lr": 3e-3})
     kinds = {
@@ -92,6 +95,7 @@ def test_every_model_builds_trains_and_plans(env, head_name):
         "delta-det": (DeterministicDeltaHead, DeterministicEnsemble),
         "gem2": (TwoStageGemHead, TwoStageGemEnsemble),
         "delta-groupfeat": (GroupFeatureDeltaHead, GaussianEnsemble),
+        "gem-se": (GemSEHead, GaussianEnsemble),
     }
     assert isinstance(head, kinds[head_name][0]) and type(ens) is kinds[head_name][1] and head.name == head_name
     assert head.deterministic == ens.deterministic == (head_name in DETERMINISTIC_HEADS)
@@ -366,9 +370,11 @@ def test_groupfeat_equals_gem_on_a_planar_env():
 
 
 # --------------------------------------------------------------------------- offline pipeline, in process
-@pytest.mark.parametrize("head_name", HEADS)
-def test_offline_train_and_evaluate_every_model(head_name, tmp_path):
-    arrays = data("reacher", episodes=4, steps=30)
+@pytest.mark.parametrize(
+    "env, head_name", [("reacher", head) for head in models_for(envs.get("reacher"))] + [("hopper", "gem-se")]
+)
+def test_offline_train_and_evaluate_every_model(env, head_name, tmp_path):
+    arrays = data(env, episodes=4, steps=30)
     extra = {"model.ensemble_size": 1, "model.num_elites": 1} if head_name in DETERMINISTIC_HEADS else {}
     out = train_offline(
         arrays, head_name, tmp_path / "run", {**dict(SMALL), **extra}, preset="fast", seed=0, device="cpu", epochs=3
@@ -396,7 +402,7 @@ def test_offline_train_and_evaluate_every_model(head_name, tmp_path):
 
 # --------------------------------------------------------------------------- config and CLIs
 def test_config_heads_and_deterministic_defaults():
-    assert set(HEADS) == {"delta", "gem", "delta-det", "gem2", "delta-groupfeat"}
+    assert set(HEADS) == {"delta", "gem", "delta-det", "gem2", "delta-groupfeat", "gem-se"}
     for name in HEADS:
         cfg = make_config("halfcheetah", name)
         assert cfg.head == name

@@ -36,15 +36,28 @@ class SE2(MatrixLieGroup):
         """exp(hat(omega, u)) = [[R(omega), V u], [0, 1]], V = [[A, -B], [B, A]],
         A = sin(omega)/omega, B = (1 - cos omega)/omega (A -> 1, B -> omega/2 as omega -> 0)."""
         _check_vec(v, 3, "SE2.exp")
-        w, vx, vy = v.unbind(-1)
-        c, k = _half_angle(w * w)
-        a = 2.0 * k * c
-        b = 2.0 * k * k * w
-        tx = a * vx - b * vy
-        ty = b * vx + a * vy
+        w = v[..., 0]
+        tx, ty = SE2.v_apply(w, v[..., 1:]).unbind(-1)
         cw, sw = torch.cos(w), torch.sin(w)
         o, one = torch.zeros_like(w), torch.ones_like(w)
         return torch.stack([cw, -sw, tx, sw, cw, ty, o, o, one], dim=-1).reshape(*w.shape, 3, 3)
+
+    @staticmethod
+    def v_apply(w: Tensor, u: Tensor) -> Tensor:
+        """V(omega) u: the translation of exp(hat(omega, u)); w (...), u (..., 2) -> (..., 2)."""
+        c, k = _half_angle(w * w)
+        a = 2.0 * k * c
+        b = 2.0 * k * k * w
+        vx, vy = u.unbind(-1)
+        return torch.stack([a * vx - b * vy, b * vx + a * vy], dim=-1)
+
+    @staticmethod
+    def v_inv_apply(w: Tensor, t: Tensor) -> Tensor:
+        """V(omega)^-1 t: the translation part of log([[R(omega), t], [0, 1]]); w (...), t (..., 2) -> (..., 2)."""
+        a = _coef_xcotx(w * w)
+        h = 0.5 * w
+        tx, ty = t.unbind(-1)
+        return torch.stack([a * tx + h * ty, -h * tx + a * ty], dim=-1)
 
     @staticmethod
     def log(t: Tensor) -> Tensor:
@@ -52,10 +65,7 @@ class SE2(MatrixLieGroup):
         V^-1 = [[a, omega/2], [-omega/2, a]], a = (omega/2) cot(omega/2)."""
         _check_mat(t, 3, "SE2.log")
         w = SO2.to_angle(t[..., :2, :2])
-        a = _coef_xcotx(w * w)
-        tx, ty = t[..., 0, 2], t[..., 1, 2]
-        h = 0.5 * w
-        return torch.stack([w, a * tx + h * ty, -h * tx + a * ty], dim=-1)
+        return torch.cat([w.unsqueeze(-1), SE2.v_inv_apply(w, t[..., :2, 2])], dim=-1)
 
     @staticmethod
     def inverse(t: Tensor) -> Tensor:
@@ -112,13 +122,25 @@ class SE3(MatrixLieGroup):
         c, k = _half_angle(theta2)
         a = (2.0 * k * c)[..., None, None]
         b = 2.0 * k * k
-        cc = _coef_c(theta2)
         eye = _eye(3, v)
         bm = b[..., None, None]
         r = (1.0 - bm * theta2[..., None, None]) * eye + a * SO3.hat(w) + bm * (w.unsqueeze(-1) * w.unsqueeze(-2))
+        return _homogeneous(r, SE3.v_apply(w, u))
+
+    @staticmethod
+    def v_apply(w: Tensor, u: Tensor) -> Tensor:
+        """V(w) u = u + B w x u + C w x (w x u): the translation of exp(hat(w, u)); (..., 3), (..., 3) -> (..., 3)."""
+        theta2 = (w * w).sum(-1)
+        _, k = _half_angle(theta2)
         wu = torch.linalg.cross(w, u, dim=-1)
-        t = u + b.unsqueeze(-1) * wu + cc.unsqueeze(-1) * torch.linalg.cross(w, wu, dim=-1)
-        return _homogeneous(r, t)
+        return u + (2.0 * k * k).unsqueeze(-1) * wu + _coef_c(theta2).unsqueeze(-1) * torch.linalg.cross(w, wu, dim=-1)
+
+    @staticmethod
+    def v_inv_apply(w: Tensor, t: Tensor) -> Tensor:
+        """V(w)^-1 t = t - w x t / 2 + D w x (w x t): the translation part of log([[exp(w), t], [0, 1]])."""
+        d = _coef_d((w * w).sum(-1))
+        wt = torch.linalg.cross(w, t, dim=-1)
+        return t - 0.5 * wt + d.unsqueeze(-1) * torch.linalg.cross(w, wt, dim=-1)
 
     @staticmethod
     def log(t: Tensor) -> Tensor:
@@ -126,11 +148,7 @@ class SE3(MatrixLieGroup):
         D = (1 - (t/2) cot(t/2)) / t^2, t = |w| <= pi; V^-1 t = t - w x t / 2 + D w x (w x t)."""
         _check_mat(t, 4, "SE3.log")
         w = SO3.log(t[..., :3, :3])
-        p = t[..., :3, 3]
-        d = _coef_d((w * w).sum(-1))
-        wp = torch.linalg.cross(w, p, dim=-1)
-        u = p - 0.5 * wp + d.unsqueeze(-1) * torch.linalg.cross(w, wp, dim=-1)
-        return torch.cat([w, u], dim=-1)
+        return torch.cat([w, SE3.v_inv_apply(w, t[..., :3, 3])], dim=-1)
 
     @staticmethod
     def inverse(t: Tensor) -> Tensor:
