@@ -103,6 +103,37 @@ def _packed(
     return members
 
 
+def batched_layers(
+    weights: nn.ParameterList, biases: nn.ParameterList, idx: Tensor | None, dtype: torch.dtype, pad_multiple: int
+) -> list[tuple[Tensor, Tensor]] | None:
+    """The batched path's per-layer ``(W, b)`` of the selected members, the output layer zero-padded to a multiple of
+    ``pad_multiple`` columns, cast to ``dtype``: prepared once per :func:`cached_weights` scope (the same values
+    that selecting, padding and autocast's cast give on every forward, so the same results). None outside a scope
+    (and while compiling): the caller prepares them itself."""
+    cache = getattr(_SCOPE, "cache", None)
+    if cache is None or torch.compiler.is_compiling():
+        return None
+    key = (
+        "batched",
+        id(weights),
+        tuple((p._version, p.data_ptr()) for p in (*weights, *biases)),
+        None if idx is None else tuple(idx.tolist()),
+        dtype,
+        pad_multiple,
+    )
+    if key not in cache:
+        layers = []
+        for i, (w, b) in enumerate(zip(weights, biases)):
+            if idx is not None:
+                w, b = w.index_select(0, idx), b.index_select(0, idx)
+            pad = -w.shape[-1] % pad_multiple if i == len(weights) - 1 else 0
+            if pad:
+                w, b = torch.nn.functional.pad(w, (0, pad)), torch.nn.functional.pad(b, (0, pad))
+            layers.append((w.detach().to(dtype), b.detach().to(dtype)))
+        cache[key] = layers
+    return cache[key]
+
+
 def fused_member_mlp(
     h: Tensor, weights: nn.ParameterList, biases: nn.ParameterList, idx: Tensor | None, post_op: str = "swish"
 ) -> Tensor:

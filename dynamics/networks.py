@@ -96,13 +96,21 @@ def member_mlp(
         return fused.fused_member_mlp(h, weights, biases, idx, post_op)
     last = len(weights) - 1
     pad_widths = not torch.is_grad_enabled()
+    prepared = None
+    if pad_widths:  # planning: the selected, padded, cast weights once per evaluator call (dynamics.fused)
+        device = h.device.type
+        dtype = torch.get_autocast_dtype(device) if torch.is_autocast_enabled(device) else weights[0].dtype
+        prepared = fused.batched_layers(weights, biases, idx, dtype, GEMM_WIDTH_MULTIPLE)
     for i, (w, b) in enumerate(zip(weights, biases)):
-        if idx is not None:
-            w, b = w.index_select(0, idx), b.index_select(0, idx)
         width = w.shape[-1]
         pad = -width % GEMM_WIDTH_MULTIPLE if pad_widths and i == last else 0
-        if pad:
-            w, b = F.pad(w, (0, pad)), F.pad(b, (0, pad))
+        if prepared is not None:
+            w, b = prepared[i]
+        else:
+            if idx is not None:
+                w, b = w.index_select(0, idx), b.index_select(0, idx)
+            if pad:
+                w, b = F.pad(w, (0, pad)), F.pad(b, (0, pad))
         if h.dim() == 2:  # shared inputs: one broadcast matmul gives (M, B, out)
             h = torch.matmul(h, w) + b
         else:
