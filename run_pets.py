@@ -68,8 +68,18 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         overrides = parse_overrides(args.overrides)
-        for flag, key in (("trials", "trials"), ("seed", "seed"), ("device", "device"), ("video", "video_every")):
-            if getattr(args, flag) is not None:
+        for flag, key in (
+            ("model", "head"),
+            ("trials", "trials"),
+            ("seed", "seed"),
+            ("device", "device"),
+            ("video", "video_every"),
+        ):
+            if getattr(args, flag) is None:
+                continue
+            if key in overrides:  # one setting given twice on one line: neither silently wins
+                _fail(f"give {key} once: --{flag} {getattr(args, flag)} or {key}={overrides[key]}, not both")
+            if flag != "model":  # --model is make_config's head argument
                 overrides[key] = str(getattr(args, flag))
         if args.resume is not None:
             if args.env or args.model or args.out:
@@ -91,6 +101,9 @@ def main(argv: list[str] | None = None) -> int:
             except ValueError as err:
                 _fail(str(err))
             cfg = make_config(env_name, args.model or "delta", args.preset, overrides)
+            from pets.builder import resolve_device
+
+            resolve_device(cfg.device)  # a device this machine lacks: refused before the run directory is made
             run_dir = args.out or Path("runs") / f"{env_name}-{cfg.head}-s{cfg.seed}-{time.strftime('%Y%m%d-%H%M%S')}"
             # a run directory that holds a run is refused by loop.run under the lock: "in use" while it runs
     except ConfigError as err:

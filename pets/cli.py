@@ -16,11 +16,15 @@ Each error is one stderr line ``PROG: error: MESSAGE`` that says what to do.
 from __future__ import annotations
 
 import argparse
+import functools
 import sys
+from collections.abc import Callable
 from typing import NoReturn
 
 #: Exit status of every command on bad input (as run_pets.py).
 EXIT_USAGE = 2
+#: Exit status after Ctrl-C (128 + SIGINT), as the shells report it.
+EXIT_INTERRUPTED = 130
 #: Exit status of work that failed on good input (model training diverged, planning got no finite return, or a
 #: write failed while it ran, e.g. a full disk).
 EXIT_FAILED = 3
@@ -43,3 +47,21 @@ def fail(prog: str, message: str, code: int = EXIT_USAGE) -> NoReturn:
 def write_failed(prog: str, err: OSError, advice: str) -> NoReturn:
     """Exit :data:`EXIT_FAILED` with one line naming the file whose write failed, why, and ``advice``."""
     fail(prog, f"writing {err.filename or 'a file'} failed ({err.strerror or err}); {advice}", EXIT_FAILED)
+
+
+def interruptible(prog: str, kept: str) -> Callable[[Callable[..., int]], Callable[..., int]]:
+    """A ``main`` that turns Ctrl-C (KeyboardInterrupt) into one stderr line ``PROG: interrupted; KEPT`` and exit
+    status 130, instead of a traceback. ``kept`` says what the interrupted command leaves behind."""
+
+    def wrap(main: Callable[..., int]) -> Callable[..., int]:
+        @functools.wraps(main)
+        def wrapped(*args: object, **kwargs: object) -> int:
+            try:
+                return main(*args, **kwargs)
+            except KeyboardInterrupt:
+                print(f"\n{prog}: interrupted; {kept}", file=sys.stderr)
+                return EXIT_INTERRUPTED
+
+        return wrapped
+
+    return wrap

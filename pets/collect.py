@@ -44,7 +44,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from pets.cli import OneLineParser, fail
+from pets.cli import OneLineParser, fail, interruptible
 from pets.datasets import save_dataset
 from pets.fileio import atomic_write_bytes, writable_dir_error
 from pets.rollout import Episode, MPCPolicy, Policy, RandomPolicy, run_episode
@@ -301,6 +301,7 @@ def build_parser() -> OneLineParser:
     return p
 
 
+@interruptible(PROG, "nothing was written (the data set is written only when the collection is complete)")
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:

@@ -356,6 +356,8 @@ def validate(cfg: DictConfig) -> None:
         _check_root_model(cfg)
     from pets.planners import PLANNER_CLASSES  # each planner checks its own section: one range per argument
 
+    if PLANNER_CLASSES[cfg.planner.name].uses_elites:
+        _check_elites(cfg.planner.elites, cfg.planner.population)
     for name in ("icem", "mppi"):
         try:
             PLANNER_CLASSES[name].check_args(**cfg.planner[name])
@@ -373,6 +375,19 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError(f"episode_length must be >= 1 or null, got {cfg.episode_length}")
     if cfg.stop_reward is not None and not math.isfinite(cfg.stop_reward):
         raise ConfigError(f"stop_reward must be a finite number or null, got {cfg.stop_reward}")
+
+
+def _check_elites(elites: float, population: int) -> None:
+    """``planner.elites``: a ratio in (0, 1) of the population, or a whole count in [1, population]."""
+    from pets.planners.base import elite_count
+
+    accepted = f"a ratio in (0, 1) of the population or a whole count in [1, planner.population={population}]"
+    if elites >= 1 and elites != int(elites):
+        raise ConfigError(f"planner.elites must be {accepted}, got {elites}")
+    try:
+        elite_count(elites if elites < 1 else int(elites), population)
+    except ValueError:
+        raise ConfigError(f"planner.elites must be {accepted}, got {elites}") from None
 
 
 def _check_feedback(cfg: DictConfig) -> None:

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 import torch
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
 import envs
@@ -86,6 +86,7 @@ class PETSRun:
     # --- state -----------------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:
         return {
+            "config": OmegaConf.to_container(self.cfg),
             "trials_done": self.trials_done,
             "env_steps": self.env_steps,
             "wall_time_s": self.wall_time_s,
@@ -251,6 +252,7 @@ def _run_locked(cfg: DictConfig, run_dir: Path, resume: bool, progress: bool) ->
         if state is not None and "offline" in state:
             raise ConfigError(f"{run_dir} is an offline training run (pets.train); it cannot be resumed online")
         if state is not None:
+            rundir.check_resumed_config(run_dir, state, cfg)
             try:
                 pets_run.load_state_dict(state)
             except (KeyError, TypeError) as err:  # a readable file that is not a whole run's state
@@ -258,6 +260,7 @@ def _run_locked(cfg: DictConfig, run_dir: Path, resume: bool, progress: bool) ->
                     f"{run_dir / rundir.CHECKPOINT_FILE} is not a complete run checkpoint (missing {err}); "
                     "restore it from a copy, or delete it to start the run over"
                 ) from None
+            rundir.check_finite_buffer(run_dir, pets_run.buffer.state_dict())
         rundir.write_metrics(run_dir, pets_run.rows)  # the checkpoint is the source of truth for the rows
         if pets_run.rows:  # a run killed right after its checkpoint, or resumed when finished, gets its plot
             rundir.plot_rewards(run_dir, pets_run.rows, title)

@@ -134,6 +134,48 @@ def load_model_state(model: torch.nn.Module, state: dict[str, Any]) -> None:
         ) from None
 
 
+#: Keys a resume may change: how many trials the run goes to (``--resume DIR --trials N``).
+RESUMABLE_KEYS = ("trials",)
+
+
+def _flat(d: Any, prefix: str = "") -> dict[str, Any]:
+    if not isinstance(d, dict):
+        return {prefix[:-1]: d}
+    return {k: v for key, value in d.items() for k, v in _flat(value, f"{prefix}{key}.").items()}
+
+
+def check_resumed_config(run_dir: Path, state: dict[str, Any], cfg: Any) -> None:
+    """ConfigError when config.yaml no longer says what the checkpoint was written with (an edit after the run
+    started: the run would go on with the checkpoint's optimiser state and claim the edited values). Checkpoints
+    from before the config was saved in them are not checked."""
+    from omegaconf import OmegaConf
+
+    if not isinstance(state.get("config"), dict):
+        return
+    saved, now = _flat(state["config"]), _flat(OmegaConf.to_container(cfg))
+    changed = sorted(k for k in saved.keys() | now.keys() if k not in RESUMABLE_KEYS and saved.get(k) != now.get(k))
+    if changed:
+        first = changed[0]
+        raise ConfigError(
+            f"{run_dir / CONFIG_FILE} was edited after the run started ({first}: {saved.get(first)!r} in the "
+            f"checkpoint, {now.get(first)!r} in config.yaml; keys edited: {', '.join(changed)}); put back the config "
+            "the run was started with (a resume may change only --trials), or start a new run"
+        )
+
+
+def check_finite_buffer(run_dir: Path, buffer: dict[str, Any]) -> None:
+    """ConfigError when the checkpoint's replay buffer holds NaN or inf (a damaged file: training on it would fail
+    with a traceback, or silently learn from it)."""
+    import numpy as np
+
+    bad = [name for name, values in buffer.items() if not np.isfinite(np.asarray(values)).all()]
+    if bad:
+        raise ConfigError(
+            f"{run_dir / CHECKPOINT_FILE} holds non-finite values (NaN or inf) in its replay buffer "
+            f"({', '.join(bad)}): the file is damaged; restore it from a copy, or delete it to start the run over"
+        )
+
+
 def _first_sentence(text: str, limit: int = 160) -> str:
     """The first sentence of an error message, on one line and at most ``limit`` characters."""
     line = " ".join(text.split())

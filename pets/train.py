@@ -48,7 +48,7 @@ from typing import Any
 
 import numpy as np
 
-from pets.cli import OneLineParser, fail
+from pets.cli import OneLineParser, fail, interruptible
 from pets.datasets import check_dataset, env_name, load_dataset, transitions
 from pets.fileio import locked, writable_dir_error
 
@@ -249,6 +249,7 @@ def build_parser() -> OneLineParser:
     return p
 
 
+@interruptible(PROG, "no run was written (a run is written only when its training is complete)")
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_intermixed_args(argv)
     from pets.config import HEADS
@@ -280,8 +281,16 @@ def main(argv: list[str] | None = None) -> int:
         import envs
         from pets.builder import resolve_device
 
-        if envs.get(cfg.env).name != cfg.env:
+        spec = envs.get(cfg.env)
+        if spec.name != cfg.env:
             raise ValueError(f"data set env {cfg.env!r} is not a canonical env name; re-collect it with pets.collect")
+        for field, need in (("obs", spec.obs_dim), ("act", spec.act_dim)):
+            width = arrays[field].shape[-1]
+            if width != need:
+                raise ValueError(
+                    f"{args.data}: its '{field}' entries are {width} wide, but {cfg.env} (its 'env' field) has "
+                    f"{field}_dim {need}; a data set of another env or version: collect it again with pets.collect"
+                )
         resolve_device(cfg.device)
     except (ValueError, ConfigError) as err:  # ConfigError is a ValueError; named for the reader
         fail(PROG, str(err))

@@ -867,6 +867,25 @@ def test_online_runs_start_seed_major_so_a_sweep_cut_short_is_paired(tmp_path, m
     assert handed == [f"reacher-{m}-s{s}" for s in (0, 1, 2) for m in ("delta", "gem")]
 
 
+def test_overrides_anywhere_on_the_line_and_cuda_refused_up_front(tmp_path, monkeypatch, capsys):
+    """Issue 34: a key=value after another option's value was "unrecognized arguments" (exit 2) although the key is
+    valid; --device cuda on a machine without CUDA launched every run to fail. Now the override is taken wherever
+    it stands (here an unknown key proves it reached the config check), and CUDA is refused before any work."""
+    import torch
+
+    base = ["online", "--envs", "reacher", "--models", "delta", "--trials", 1, "--preset", "fast"]
+    code, _, err = cli(capsys, *base, "--seeds", 0, "planner.nope=1", "--out", tmp_path / "a")
+    assert code == 2 and "unknown config key 'planner.nope'" in err and not (tmp_path / "a").exists()
+    code, _, err = cli(capsys, *base, "--seeds", 0, "--bogus", "--out", tmp_path / "a")
+    assert code == 2 and "unrecognized arguments: --bogus" in err
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    for device in (["--device", "cuda"], ["device=cuda"]):
+        code, _, err = cli(capsys, *base, "--seeds", 0, "--out", tmp_path / "b", *device)
+        lines = err.strip().splitlines()
+        assert code == 2 and len(lines) == 1 and "torch sees no CUDA device" in lines[0], err
+        assert not (tmp_path / "b").exists()
+
+
 def test_online_refuses_an_offline_run_directory(offline, capsys):
     out, _ = offline  # same config as the offline runs (trials aside): only the run kind differs
     code, _, err = cli(

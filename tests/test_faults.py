@@ -17,6 +17,7 @@ from pathlib import Path
 
 import pytest
 
+from tests.processes import cpu_seconds
 from tests.test_cli import ROOT, TINY, cli, error_lines, rows
 
 #: The run the kill -9, full-disk and read-only tests interrupt: 6 short trials (a few seconds).
@@ -164,7 +165,10 @@ def test_corrupt_or_mismatched_checkpoint_is_one_line_on_resume(tmp_path):
         "random": (bytes(range(256)) * 40, "is not a readable checkpoint"),
         "empty": (b"", "is not a readable checkpoint"),
         "foreign": (None, "is not a complete run checkpoint"),
-        "edited-config": (good, "does not match config.yaml"),
+        "edited-config": (
+            good,
+            "was edited after the run started (model.hidden_size: 32 in the checkpoint, 48 in config.yaml",
+        ),
     }
     for name, (content, fragment) in cases.items():
         run = tmp_path / name
@@ -179,6 +183,145 @@ def test_corrupt_or_mismatched_checkpoint_is_one_line_on_resume(tmp_path):
         proc = cli("--resume", run, "--trials", 2, check=False)
         lines = error_lines(proc.stderr)
         assert proc.returncode == 2 and len(lines) == 1 and fragment in lines[0], (name, proc.stderr)
+
+
+def test_an_edited_setting_or_a_nan_in_the_buffer_is_one_line_on_resume_and_the_run_is_untouched(tmp_path):
+    """Issue 34: a config.yaml whose model.lr was edited after the start was resumed with the checkpoint's lr while
+    config.yaml claimed the edit (exit 0); a NaN in the checkpoint's replay buffer was a traceback from training.
+    Both are now one line, exit 2, before any trial; --trials alone may change, and the untouched run resumes."""
+    import shutil
+
+    import torch
+
+    ref = tmp_path / "ref"
+    cli("--env", "invertedpendulum", "--trials", 1, "--seed", 2, "--out", ref, *TINY)
+    edited, nan = tmp_path / "edited", tmp_path / "nan"
+    shutil.copytree(ref, edited)
+    text = (edited / "config.yaml").read_text()
+    assert "  lr: 0.001\n" in text
+    (edited / "config.yaml").write_text(text.replace("  lr: 0.001\n", "  lr: 0.002\n"))
+    shutil.copytree(ref, nan)
+    state = torch.load(nan / "checkpoint.pt", weights_only=False)
+    state["buffer"]["next_obs"][5, 2] = float("nan")
+    torch.save(state, nan / "checkpoint.pt")
+    for run, fragment in (
+        (edited, "was edited after the run started (model.lr: 0.001 in the checkpoint, 0.002 in config.yaml"),
+        (nan, "holds non-finite values (NaN or inf) in its replay buffer (next_obs)"),
+    ):
+        before = (run / "metrics.csv").read_text()
+        proc = cli("--resume", run, "--trials", 2, check=False)
+        lines = error_lines(proc.stderr)
+        assert proc.returncode == 2 and len(lines) == 1 and fragment in lines[0], proc.stderr
+        assert (run / "metrics.csv").read_text() == before
+    assert cli("--resume", ref, "--trials", 2, check=False).returncode == 0
+    assert len(rows(ref)) == 2
+
+
+def _interrupt(argv: list[str], under_way, timeout: float = 120.0) -> subprocess.CompletedProcess:
+    """Run ``python -m ARGV``, send it SIGINT once ``under_way(pid)`` says its work has begun, return its result."""
+    proc = subprocess.Popen([sys.executable, "-m", *argv], cwd=ROOT, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + timeout
+    while not under_way(proc.pid) and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert proc.poll() is None, "the command ended before it could be interrupted"
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    return subprocess.CompletedProcess(argv, proc.returncode, "", err)
+
+
+def test_ctrl_c_in_collect_and_train_is_one_line_and_exit_130(tmp_path, invertedpendulum_data):
+    """Issue 34: Ctrl-C in pets.collect and pets.train was exit 130 with a KeyboardInterrupt traceback; now one line
+    that says nothing was written, and nothing is."""
+    out = tmp_path / "data.npz"
+    # Collecting once the process has spent more CPU time than its imports take (~3 s).
+    proc = _interrupt(
+        [
+            "pets.collect",
+            "--env",
+            "ant",
+            "--policy",
+            "random",
+            "--episodes",
+            "100000",
+            "--threads",
+            "1",
+            "--out",
+            str(out),
+            "--quiet",
+        ],
+        lambda pid: cpu_seconds(pid) > 8.0,
+    )
+    lines = error_lines(proc.stderr)
+    assert proc.returncode == 130 and len(lines) == 1 and "pets.collect: interrupted; nothing was written" in lines[0]
+    assert "Traceback" not in proc.stderr and not out.exists()
+    run = tmp_path / "run"
+    proc = _interrupt(
+        [
+            "pets.train",
+            "--data",
+            str(invertedpendulum_data),
+            "--model",
+            "delta",
+            "--out",
+            str(run),
+            "--epochs",
+            "100000",
+            "--quiet",
+            "threads=1",
+            "model.patience=100000",
+        ],
+        lambda pid: (run / ".lock").exists() and cpu_seconds(pid) > 1.0,  # the lock: training has begun
+    )
+    lines = error_lines(proc.stderr)
+    assert proc.returncode == 130 and len(lines) == 1 and "pets.train: interrupted; no run was written" in lines[0]
+    assert "Traceback" not in proc.stderr and not (run / "config.yaml").exists()
+
+
+def test_train_on_a_data_set_of_other_widths_is_one_line_naming_the_file_and_field(tmp_path, invertedpendulum_data):
+    """Issue 34: an .npz whose obs width does not match its env field was a traceback from training; now one line
+    (exit 2) naming the file, the field, what was found and what the env needs, before any directory is made."""
+    import numpy as np
+
+    data = dict(np.load(invertedpendulum_data))
+    data["obs"] = data["obs"][..., :3]
+    bad = tmp_path / "narrow.npz"
+    np.savez(bad, **data)
+    proc = subprocess.run(
+        [sys.executable, "-m", "pets.train", "--data", str(bad), "--model", "delta", "--out", str(tmp_path / "run")],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    lines = error_lines(proc.stderr)
+    assert proc.returncode == 2 and len(lines) == 1, proc.stderr
+    assert f"{bad}: its 'obs' entries are 3 wide, but invertedpendulum (its 'env' field) has obs_dim 4" in lines[0]
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_setting_given_twice_or_bad_elites_is_one_line_and_leaves_no_directory(tmp_path):
+    """Issue 34: `--trials 2 trials=1` silently took the flag; planner.elites=0 (or above the population) was a
+    traceback from the planner after the run directory was made. Both are one line, exit 2, nothing on disk."""
+    for extra, fragment in (
+        (["--trials", 2, "trials=1"], "give trials once: --trials 2 or trials=1, not both"),
+        (["--model", "gem", "head=delta"], "give head once: --model gem or head=delta, not both"),
+        (["planner.elites=0"], "planner.elites must be a ratio in (0, 1) of the population or a whole count"),
+        (["planner.elites=1000"], "whole count in [1, planner.population=16], got 1000"),
+    ):
+        out = tmp_path / "run"
+        proc = cli("--env", "reacher", "--out", out, *TINY, *extra, check=False)
+        lines = error_lines(proc.stderr)
+        assert proc.returncode == 2 and len(lines) == 1 and fragment in lines[0], (extra, proc.stderr)
+        assert not out.exists()
+
+
+@pytest.mark.skipif(__import__("torch").cuda.is_available(), reason="checks the refusal where torch sees no CUDA")
+def test_cuda_where_there_is_none_is_refused_before_the_run_directory_is_made(tmp_path):
+    out = tmp_path / "run"
+    proc = cli("--env", "reacher", "--out", out, "--device", "cuda", *TINY, check=False)
+    lines = error_lines(proc.stderr)
+    assert proc.returncode == 2 and len(lines) == 1 and "torch sees no CUDA device" in lines[0]
+    assert not out.exists()
 
 
 def test_a_second_run_on_the_same_directory_is_refused_and_the_first_is_intact(tmp_path):

@@ -216,7 +216,14 @@ def headline_main(args: argparse.Namespace) -> int:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run ``compare`` with ``argv`` and print the report; 0, 1 (a run failed) or exit 2 (bad input)."""
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    # key=value overrides anywhere on the line (as run_pets.py takes them), also after another option's value
+    args, extra = parser.parse_known_args(argv)
+    stray = [a for a in extra if a.startswith("-") or "=" not in a or not hasattr(args, "overrides")]
+    if stray:
+        parser.error(f"unrecognized arguments: {' '.join(stray)}")
+    if extra:
+        args.overrides = [*args.overrides, *extra]
     if args.mode == "headline":
         return headline_main(args)
     from pets.config import PRESETS
@@ -238,6 +245,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.device is not None:
             if any(o.startswith("device=") for o in overrides):
                 raise UsageError("give the device once: --device or device=, not both")
+        device = args.device or next((o.partition("=")[2] for o in overrides if o.startswith("device=")), None)
+        if device == "cuda" and args.backend == "local":
+            import torch
+
+            if not torch.cuda.is_available():
+                raise UsageError("--device cuda was asked for but torch sees no CUDA device here; use --device cpu")
         backend = make_backend(args)
         if args.mode == "online":
             if args.device is not None:
