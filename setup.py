@@ -4,6 +4,7 @@ setup(
     name="gem-pets",
     version="0.2.0",
     description="PETS model-based RL with a swappable dynamics head: delta-state or GEM (Group Enhanced Model)",
+    license="MIT",
     packages=find_packages(
         include=[
             "dynamics",
@@ -24,6 +25,8 @@ setup(
         "gymnasium[mujoco]>=1.0",
         "numpy>=1.24",
         "omegaconf>=2.3",
+        # config values and lists on the command line (pets.config)
+        "pyyaml>=6",
         "tqdm>=4.60",
         # Reward curves and the experiment plots.
         "matplotlib>=3.7",

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from typing import Any
+
+import numpy as np
 import torch
 from torch import Tensor, nn
 
@@ -82,15 +85,31 @@ class DynamicsModel(nn.Module):
         the members or (M, B, in)); M is ``ensemble_size`` or ``len(members)``."""
         return self.network(x, members)
 
+    def _as_model_tensor(self, x: Any) -> Tensor:
+        """``x`` (numpy, torch or a nested list) as a tensor on the model's device and dtype."""
+        ref = self.member_parameters()[0]
+        x = x if isinstance(x, (Tensor, np.ndarray)) else np.asarray(x)
+        return torch.as_tensor(x, device=ref.device).to(ref.dtype)
+
+    @torch.no_grad()
+    def predict(
+        self, obs: Any, act: Any, mode: str = "mean", generator: torch.Generator | None = None
+    ) -> np.ndarray | Tensor:
+        """Next observations (..., obs_dim) of observations (..., obs_dim) and actions (..., act_dim), batched over
+        any leading dims: numpy in, numpy out; torch in, torch out. ``mode`` as in :meth:`rollout`."""
+        actions = act[..., None, :] if isinstance(act, (Tensor, np.ndarray)) else np.asarray(act)[..., None, :]
+        return self.rollout(obs, actions, mode, generator)[..., 0, :]
+
     #: Open-loop rollout modes of :meth:`rollout`.
     ROLLOUT_MODES = ("mean", "sample")
 
     @torch.no_grad()
     def rollout(
-        self, obs0: Tensor, actions: Tensor, mode: str = "mean", generator: torch.Generator | None = None
-    ) -> Tensor:
+        self, obs0: Any, actions: Any, mode: str = "mean", generator: torch.Generator | None = None
+    ) -> Tensor | np.ndarray:
         """Open-loop predicted observations (K, H, obs_dim) from start observations (K, obs_dim) under actions
-        (K, H, act_dim), through the elite members.
+        (K, H, act_dim), through the elite members. Numpy in, numpy out (the observations' type decides); any
+        leading dims instead of K.
 
         ``mean``: the target is the mean over the elites of their predicted means. ``sample``: each row draws one
         elite once (TS-inf) and samples from its Gaussian every step. (Planning rolls out particles with rewards in
@@ -98,6 +117,21 @@ class DynamicsModel(nn.Module):
         """
         if mode not in self.ROLLOUT_MODES:
             raise ValueError(f"mode must be one of {self.ROLLOUT_MODES}, got {mode!r}")
+        numpy_in = not isinstance(obs0, Tensor)
+        obs0, actions = self._as_model_tensor(obs0), self._as_model_tensor(actions)
+        if obs0.shape[-1] != self.obs_dim or actions.shape[-1] != self.act_dim or actions.dim() < 2:
+            raise ValueError(
+                f"expected observations (..., {self.obs_dim}) and actions (..., H, {self.act_dim}), got "
+                f"{tuple(obs0.shape)} and {tuple(actions.shape)}"
+            )
+        if obs0.shape[:-1] != actions.shape[:-2]:
+            raise ValueError(f"observations {tuple(obs0.shape)} and actions {tuple(actions.shape)}: batch dims differ")
+        batch = obs0.shape[:-1]
+        obs0, actions = obs0.reshape(-1, self.obs_dim), actions.reshape(-1, *actions.shape[-2:])
+        out = self._rollout(obs0, actions, mode, generator).reshape(*batch, actions.shape[1], self.obs_dim)
+        return out.cpu().numpy() if numpy_in else out
+
+    def _rollout(self, obs0: Tensor, actions: Tensor, mode: str, generator: torch.Generator | None) -> Tensor:
         elites = self.elites.to(device=obs0.device, dtype=torch.long)
         k, horizon = actions.shape[:2]
         rows = torch.arange(k, device=obs0.device)

@@ -383,11 +383,11 @@ def _check_elites(elites: float, population: int) -> None:
 
     accepted = f"a ratio in (0, 1) of the population or a whole count in [1, planner.population={population}]"
     if elites >= 1 and elites != int(elites):
-        raise ConfigError(f"planner.elites must be {accepted}, got {elites}")
+        raise ConfigError(f"planner.elites must be {accepted}, got {elites:g}")
     try:
         elite_count(elites if elites < 1 else int(elites), population)
     except ValueError:
-        raise ConfigError(f"planner.elites must be {accepted}, got {elites}") from None
+        raise ConfigError(f"planner.elites must be {accepted}, got {elites:g}") from None
 
 
 def _check_feedback(cfg: DictConfig) -> None:

@@ -1,0 +1,150 @@
+"""The Python API: PETS with a swappable dynamics model, as an object (docs/api.md).
+
+A thin layer over what ``run_pets.py`` runs: :class:`PETS` holds one :class:`pets.loop.PETSRun` (the config,
+the model, the trainer, the MPC agent, the replay buffer and every random state), and ``save`` writes the same
+run directory as ``run_pets.py`` (``config.yaml``, ``checkpoint.pt``, ``metrics.csv``), so either side can
+continue what the other started: ``PETS.load(DIR)`` or ``run_pets.py --resume DIR``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from dynamics.model import DynamicsModel
+
+__all__ = ["PETS", "load_model"]
+
+
+class PETS:
+    """PETS (probabilistic ensemble, trajectory sampling, CEM/iCEM/MPPI with MPC) on a catalogue env.
+
+    env: a catalogue name or gymnasium id (``"halfcheetah"``, ``"Ant-v5"``).
+    model: a ``--model`` name (``delta``, ``gem``, ``gem-se``, ...; docs/models.md).
+    preset: ``research`` (the PETS papers' planner) or ``fast`` (~20x cheaper per step, for CPUs).
+    seed: fixes every random source (two runs with the same seed on one machine give the same metrics).
+    device: ``auto``, ``cpu`` or ``cuda``.
+    overrides: any config key (``pets/config.py``), e.g. ``seed_steps=500``; dotted keys as
+      ``**{"planner.horizon": 10}``. A bad key or value raises ``pets.config.ConfigError`` naming it.
+    progress: tqdm bars while learning.
+    """
+
+    def __init__(
+        self,
+        env: str,
+        model: str = "gem",
+        preset: str = "research",
+        *,
+        seed: int = 0,
+        device: str = "auto",
+        progress: bool = False,
+        **overrides: Any,
+    ) -> None:
+        import envs
+        from pets.config import ConfigError, make_config
+
+        try:
+            name = envs.get(env).name
+        except ValueError as err:
+            raise ConfigError(str(err)) from None
+        cfg = make_config(name, model, preset, {"seed": seed, "device": device, **overrides})
+        self._start(cfg, progress)
+
+    def _start(self, cfg: Any, progress: bool) -> None:
+        from pets.builder import resolve_device
+        from pets.loop import PETSRun
+
+        resolve_device(cfg.device)
+        self._run = PETSRun(cfg)
+        self.progress = progress
+
+    # ------------------------------------------------------------------ what it holds
+    @property
+    def config(self) -> Any:
+        """The resolved config (an omegaconf ``DictConfig``; read-only by convention)."""
+        return self._run.cfg
+
+    @property
+    def model(self) -> DynamicsModel:
+        """The dynamics model (head + ensemble + normalisers), trained on all data after every trial."""
+        return self._run.model
+
+    @property
+    def history(self) -> list[dict[str, Any]]:
+        """One row per trial, the columns of ``metrics.csv`` (episode reward, env steps, losses, timings)."""
+        return list(self._run.rows)
+
+    @property
+    def trials_done(self) -> int:
+        return self._run.trials_done
+
+    # ------------------------------------------------------------------ learning and acting
+    def learn(self, trials: int | None = None, callback: Callable[[dict[str, Any]], Any] | None = None) -> PETS:
+        """Run ``trials`` more trials (default: up to the config's ``trials``), each one real episode with the MPC
+        agent followed by training on all data; the first is preceded by ``seed_steps`` random steps.
+        ``callback(row)`` gets every trial's row; returning ``False`` stops. Returns ``self``."""
+        if trials is not None and (isinstance(trials, bool) or not isinstance(trials, int) or trials < 1):
+            raise ValueError(f"trials must be a positive int or None, got {trials!r}")
+        target = self.config.trials if trials is None else self._run.trials_done + trials
+        while self._run.trials_done < target:
+            row = self._run.run_trial(progress=self.progress)
+            if callback is not None and callback(dict(row)) is False:
+                break
+        return self
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        """One MPC step: the first action of a plan from ``obs`` (act_dim,), warm-started from the last plan.
+        Call :meth:`reset` at the start of every new episode."""
+        return self._run.agent.act(np.asarray(obs, dtype=np.float32))
+
+    def reset(self) -> None:
+        """Forget the warm start (a new episode)."""
+        self._run.agent.reset()
+
+    # ------------------------------------------------------------------ persistence
+    def save(self, path: str | Path) -> Path:
+        """Write the run directory (config.yaml, checkpoint.pt, metrics.csv) to ``path``; returns it."""
+        import pets.rundir as rundir
+
+        path = Path(path)
+        path.mkdir(parents=True, exist_ok=True)
+        rundir.write_config(path, self.config)
+        rundir.save_checkpoint(path, self._run.state_dict())
+        rundir.write_metrics(path, self._run.rows)
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path, progress: bool = False) -> PETS:
+        """A PETS object from a run directory (``save``'s or ``run_pets.py``'s): config, model, buffer and random
+        states, so that ``learn`` continues exactly where the run stopped."""
+        import pets.rundir as rundir
+        from pets.config import ConfigError, load_config
+
+        path = Path(path)
+        if not (path / rundir.CONFIG_FILE).exists():
+            raise ConfigError(f"{path} is not a run directory (no {rundir.CONFIG_FILE})")
+        cfg = load_config(str(path / rundir.CONFIG_FILE))
+        obj = cls.__new__(cls)
+        obj._start(cfg, progress)
+        state = rundir.load_checkpoint(path)
+        if state is not None:
+            if "offline" in state:
+                raise ConfigError(f"{path} is an offline training run (pets.train); use pets.load_model for its model")
+            rundir.check_resumed_config(path, state, cfg)
+            obj._run.load_state_dict(state)
+        return obj
+
+    def __repr__(self) -> str:
+        c = self.config
+        return f"PETS(env={c.env!r}, model={c.head!r}, trials_done={self.trials_done}, seed={c.seed})"
+
+
+def load_model(path: str | Path, device: str = "cpu") -> DynamicsModel:
+    """The trained dynamics model of a run directory (online or offline), in eval mode:
+    ``model.predict(obs, act)`` and ``model.rollout(obs, actions)`` take numpy arrays or tensors."""
+    from pets.builder import load_model as load
+
+    return load(path, device)[2]
