@@ -51,6 +51,13 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="EVERY",
         help="an MP4 of the real episode of every EVERY-th trial in RUN/videos (config key video_every)",
     )
+    p.add_argument(
+        "--config",
+        type=Path,
+        metavar="FILE",
+        help="a YAML file of config keys (any subset; --print-config writes one); flags and key=value win over it",
+    )
+    p.add_argument("--print-config", action="store_true", help="print the resolved config as YAML and exit")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides")
     return p
@@ -61,7 +68,7 @@ def main(argv: list[str] | None = None) -> int:
     import envs
     from envs.render import RenderingUnavailable
     from pets import loop, rundir
-    from pets.config import ConfigError, load_config, make_config, parse_overrides
+    from pets.config import ConfigError, load_config, make_config, parse_overrides, read_config_file
     from pets.fileio import DirectoryInUse, writable_dir_error
     from pets.planners import PlanningFailed
     from pets.trainer import TrainingDiverged
@@ -81,6 +88,12 @@ def main(argv: list[str] | None = None) -> int:
                 _fail(f"give {key} once: --{flag} {getattr(args, flag)} or {key}={overrides[key]}, not both")
             if flag != "model":  # --model is make_config's head argument
                 overrides[key] = str(getattr(args, flag))
+        from_file: dict = {}
+        if args.config is not None:
+            if args.resume is not None:
+                _fail("--config starts a new run; --resume DIR takes the run's own config")
+            from_file = read_config_file(args.config)
+            overrides = {**{k: v for k, v in from_file.items() if k not in ("env", "head")}, **overrides}
         if args.resume is not None:
             if args.env or args.model or args.out:
                 _fail("--resume DIR takes the run's own config; do not pass --env, --model or --out with it")
@@ -94,13 +107,20 @@ def main(argv: list[str] | None = None) -> int:
                 _fail(f"--resume accepts only --trials besides the run directory, got {sorted(overrides)}")
             run_dir = args.resume
         else:
-            if not args.env:
+            env_arg = args.env or from_file.get("env")
+            if not env_arg:
                 _fail(f"--env is required; accepted: {', '.join(envs.names())}")
             try:
-                env_name = envs.get(args.env).name
+                env_name = envs.get(env_arg).name
             except ValueError as err:
                 _fail(str(err))
-            cfg = make_config(env_name, args.model or "delta", args.preset, overrides)
+            cfg = make_config(env_name, args.model or from_file.get("head") or "delta", args.preset, overrides)
+        if args.print_config:  # the resolved config, valid as a --config file; nothing is run or written
+            from omegaconf import OmegaConf
+
+            print(OmegaConf.to_yaml(cfg), end="")
+            return 0
+        if args.resume is None:
             from pets.builder import resolve_device
 
             resolve_device(cfg.device)  # a device this machine lacks: refused before the run directory is made

@@ -8,9 +8,11 @@ range-checked.
 
 from __future__ import annotations
 
+import difflib
 import math
 import warnings
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import yaml
@@ -250,6 +252,29 @@ def all_keys(cfg: DictConfig | None = None, prefix: str = "") -> list[str]:
     return keys
 
 
+def read_config_file(path: str | Path) -> dict[str, Any]:
+    """A config file's settings as dotted keys (``{"planner.horizon": 10}``): a YAML mapping of any subset of the
+    keys, nested (as ``--print-config`` writes it) or dotted. ConfigError (one line) for a missing or unreadable file
+    or one that is not a mapping; the keys and values are checked where they are applied."""
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError) as err:
+        raise ConfigError(f"--config {path}: not a readable YAML file ({str(err).splitlines()[0]})") from None
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"--config {path}: expected a mapping of config keys, got a {type(data).__name__}")
+
+    def flat(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        for k, v in d.items():
+            out.update(flat(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}": v})
+        return out
+
+    return flat(data)
+
+
 def parse_overrides(items: list[str]) -> dict[str, str]:
     """Split ``key=value`` strings; a malformed item raises ConfigError."""
     out: dict[str, str] = {}
@@ -283,7 +308,9 @@ def _renamed(key: str) -> str:
 def _set(cfg: DictConfig, key: str, value: Any) -> None:
     key = _renamed(key)
     if key not in set(all_keys()):
-        raise ConfigError(f"unknown config key {key!r}; accepted keys: {', '.join(all_keys())}")
+        close = difflib.get_close_matches(key, all_keys(), n=1, cutoff=0.6)
+        hint = f"did you mean {close[0]}? " if close else ""
+        raise ConfigError(f"unknown config key {key!r}; {hint}accepted keys: {', '.join(all_keys())}")
     current = OmegaConf.select(cfg, key)
     if isinstance(value, str) and value.lower() in ("null", "none") and (current is None or OmegaConf.is_list(current)):
         value = None

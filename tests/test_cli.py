@@ -219,3 +219,42 @@ def test_atomic_writes_keep_the_usual_file_mode(tmp_path):
     atomic_write_bytes(tmp_path / "a.txt", b"x")
     (tmp_path / "b.txt").write_bytes(b"x")
     assert (tmp_path / "a.txt").stat().st_mode == (tmp_path / "b.txt").stat().st_mode
+
+
+def _main(capsys, *argv):
+    """run_pets.main in this process: (exit code, stdout, stderr)."""
+    import run_pets
+
+    try:
+        code = run_pets.main([str(a) for a in argv])
+    except SystemExit as err:
+        code = err.code
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+def test_print_config_round_trips_through_config_and_key_value_wins(tmp_path, capsys, monkeypatch):
+    """Issue 35: --print-config prints the resolved config (nothing is run or written), valid as a --config file
+    that gives the same config back; key=value and flags win over the file; a typo gets "did you mean"."""
+    monkeypatch.chdir(tmp_path)
+    code, printed, _ = _main(
+        capsys, "--env", "ant", "--model", "gem-se", "--preset", "fast", "planner.horizon=9", "--print-config"
+    )
+    assert code == 0 and "head: gem-se" in printed and "horizon: 9" in printed and not (tmp_path / "runs").exists()
+    file = tmp_path / "config.yaml"
+    file.write_text(printed)
+    assert _main(capsys, "--config", file, "--print-config")[1] == printed
+    code, again, _ = _main(capsys, "--config", file, "planner.horizon=4", "--seed", 7, "--print-config")
+    assert code == 0 and "horizon: 4" in again and "seed: 7" in again and "env: ant" in again
+    (tmp_path / "partial.yaml").write_text("env: reacher\nplanner:\n  population: 33\nmodel.lr: 0.002\n")
+    code, partial, _ = _main(capsys, "--config", tmp_path / "partial.yaml", "--print-config")
+    assert code == 0 and "env: reacher" in partial and "population: 33" in partial and "lr: 0.002" in partial
+    for content, fragment in (
+        ("planner:\n  horizn: 3\n", "unknown config key 'planner.horizn'; did you mean planner.horizon?"),
+        ("- a list\n", "expected a mapping of config keys, got a list"),
+        ("env: [unclosed\n", "not a readable YAML file"),
+    ):
+        (tmp_path / "bad.yaml").write_text(content)
+        code, _, err = _main(capsys, "--env", "reacher", "--config", tmp_path / "bad.yaml", "--print-config")
+        lines = error_lines(err)
+        assert code == 2 and len(lines) == 1 and fragment in lines[0], err
