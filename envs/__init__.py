@@ -15,13 +15,24 @@ from functools import cache
 from typing import Any
 
 from envs.catalogue import GYM_IDS, build
+from envs.custom import custom_spec, register, registered
 from envs.layout import Group, ObsLayout
 from envs.render import select_gl_backend
 from envs.spec import AppendObservation, EnvSpec
 
 select_gl_backend()  # headless MUJOCO_GL before anything imports mujoco (none of the imports above does)
 
-__all__ = ["names", "get", "canonical_name", "EnvSpec", "ObsLayout", "Group", "AppendObservation"]
+__all__ = [
+    "names",
+    "get",
+    "canonical_name",
+    "register",
+    "custom_spec",
+    "EnvSpec",
+    "ObsLayout",
+    "Group",
+    "AppendObservation",
+]
 
 
 def names() -> list[str]:
@@ -36,11 +47,15 @@ def canonical_name(name: str) -> str:
     """
     if not isinstance(name, str):
         raise ValueError(f"env name must be a string, got {type(name).__name__}; valid: {', '.join(names())}")
+    if registered(name) is not None:  # your own env: registered, or an import path module:ATTR
+        return name
     key = re.sub(r"[^a-z0-9]", "", name.lower())
     key = re.sub(r"v5$", "", key) if key not in GYM_IDS else key
     if key not in GYM_IDS:
         valid = ", ".join(f"{n} ({g})" for n, g in GYM_IDS.items())
-        raise ValueError(f"unknown env {name!r}; valid names (or gymnasium ids): {valid}")
+        raise ValueError(
+            f"unknown env {name!r}; valid names (or gymnasium ids): {valid}; or your own as package.module:ATTR"
+        )
     return key
 
 
@@ -54,5 +69,10 @@ def get(name: str, **env_kwargs: Any) -> EnvSpec:
 
     The spec's reward and termination read their constants from the env built with those kwargs.
     """
+    own = registered(name) if isinstance(name, str) else None
+    if own is not None:
+        if env_kwargs:
+            raise ValueError(f"{name}: env kwargs are fixed when your spec is built (envs.custom_spec(env_kwargs=...))")
+        return own
     key = canonical_name(name)
     return build(key, env_kwargs) if env_kwargs else _default(key)
