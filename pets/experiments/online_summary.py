@@ -6,8 +6,10 @@ seconds per planning step. A run with a non-finite episode reward is diverged (:
 Per (env, arm) over the runs that did not diverge (:mod:`pets.experiments.statistics`, the same
 statistics as the offline summary): IQM of final and auc with its 95 % stratified-bootstrap CI; against
 the baseline arm (:data:`BASELINE` with the same planner) P(final > baseline's) with its CI (diverged
-runs: the worst final) and the IQM [CI] of the per-seed difference of final rewards. Diverged runs are
-counted (``n_diverged``), never averaged in; the cost columns are means over all complete runs.
+runs: the worst final) and the IQM [CI] of the per-seed difference of final rewards, with the exact paired
+sign-flip p-value of its mean (``diff_p_signflip``; a diverged run enters as the env's lowest final reward) and
+Holm's adjustment of those p-values over every arm-vs-baseline test of the summary (``diff_p_holm``). Diverged runs
+are counted (``n_diverged``), never averaged in; the cost columns are means over all complete runs.
 
 Time to threshold (:data:`THRESHOLDS`, per env): the wall-clock minutes (``wall_time_s`` of the first trial
 whose episode reward reaches the threshold, i.e. at the end of that trial, its model training included) and the
