@@ -1465,3 +1465,43 @@ def test_offline_rerun_accepts_runs_whose_auto_precision_resolved_elsewhere_and_
     assert code == 0, err
     md = (copy / "prediction.md").read_text()
     assert f"- {other} / {other}: 1 runs (invertedpendulum-delta-s0)" in md
+
+
+def test_offline_primary_endpoint_recomputed_from_the_runs_and_data(offline):
+    """Issue 37: the no-information level from the data sets (numpy here), the tracking horizons, the clipped
+    endpoint per run, the paired ratio and its exact p-value (scipy's permutation test)."""
+    from pets.evaluate import MIN_STD
+
+    out, _ = offline
+    (train, test) = (dict(np.load(out / "data" / f"invertedpendulum-{p}.npz")) for p in ("train", "test"))
+
+    def real(a):
+        return a["obs"][np.arange(a["obs"].shape[1])[None, :] <= a["lengths"][:, None]].astype(np.float64)
+
+    sigma = real(train).std(axis=0)
+    sigma = np.where(sigma < MIN_STD, 1.0, sigma)
+    pick = np.random.default_rng(0).integers(0, len(real(train)), size=len(real(test)))
+    level = np.sqrt((((real(test) - real(train)[pick]) / sigma) ** 2).mean(axis=1)).mean()  # IP: no angle wraps
+    rows = {r["model"]: r for r in csv_rows(out / "primary.csv")}
+    assert float(rows["gem"]["level"]) == pytest.approx(level, rel=1e-9) and rows["gem"]["level_source"].startswith(
+        "data ("
+    )
+    err = {
+        (m, s): json.loads((out / "runs" / f"invertedpendulum-{m}-s{s}" / "eval.json").read_text())["horizons"]
+        for m in ("delta", "gem")
+        for s in (0, 1)
+    }
+    median = {h: np.median([err["delta", s][h]["standardized_error"] for s in (0, 1)]) for h in ("1", "3", "5")}
+    tracking = [h for h in ("1", "3", "5") if median[h] < level]  # the tiny models track all 5 steps
+    assert rows["gem"]["tracking_horizons"] == " ".join(tracking) == "1 3 5"
+    endpoint = {k: np.mean([min(v[h]["standardized_error"], level) for h in tracking]) for k, v in err.items()}
+    ratios = np.array([endpoint["gem", s] / endpoint["delta", s] for s in (0, 1)])
+    assert float(rows["gem"]["ratio_to_delta"]) == pytest.approx(ratios.mean(), rel=1e-12)
+    exact = scipy.stats.permutation_test(
+        (np.log(ratios),), np.mean, permutation_type="samples", n_resamples=np.inf
+    ).pvalue
+    assert float(rows["gem"]["p_value_exact"]) == pytest.approx(exact) == float(rows["gem"]["p_value_holm"])
+    assert rows["gem"]["verdict"] == "no difference shown" and rows["delta"]["ratio_to_delta"] == ""
+    assert "## Primary endpoint (pre-registered" in (out / "prediction.md").read_text()
+    summary = [r for r in csv_rows(out / "summary.csv") if r["model"] == "gem" and r["metric"] == "mean_step_error"]
+    assert all(float(r["p_value_exact"]) in (0.5, 1.0) for r in summary)  # 2 pairs: 2 / 4 or 4 / 4

@@ -10,6 +10,7 @@ from rliable import library, metrics
 
 from pets.experiments.statistics import (
     DIVERGED_STANDARDIZED_ERROR,
+    SIGN_FLIP_DRAWS,
     bootstrap_band,
     bootstrap_ci,
     divergence,
@@ -182,8 +183,19 @@ def test_sign_flip_p_hand_computed_cases():
     assert math.isnan(sign_flip_p([]))
     with pytest.raises(ValueError, match="finite"):
         sign_flip_p([1.0, NAN])
-    with pytest.raises(ValueError, match="at most 20 pairs"):
-        sign_flip_p(np.ones(21))
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_sign_flip_p_monte_carlo_above_16_pairs_is_within_its_error_of_scipys_exact_test(seed):
+    rng = np.random.default_rng(seed)
+    x, y = rng.normal(0.4, 1.0, 17), rng.normal(0.0, 1.0, 17)  # 17 pairs: sampled here, enumerated by scipy
+    exact = scipy.stats.permutation_test(
+        (x, y), lambda a, b, axis: np.mean(a - b, axis=axis), permutation_type="samples", n_resamples=np.inf
+    ).pvalue
+    p = sign_flip_p(x - y, seed=seed)
+    assert abs(p - exact) < 4 * math.sqrt(exact * (1 - exact) / SIGN_FLIP_DRAWS) + 2 / SIGN_FLIP_DRAWS
+    assert sign_flip_p(x - y, seed=seed) == p  # seeded
+    assert sign_flip_p(np.ones(40)) == 1 / (1 + SIGN_FLIP_DRAWS)  # no random pattern is as extreme
 
 
 def test_holm_is_statsmodels_holm():

@@ -3,10 +3,11 @@
 The prediction-error statistics (:mod:`pets.experiments.statistics`, rliable): per env, model, horizon
 and error metric the IQM over seeds with its 95 % stratified-bootstrap CI; the probability that the
 model's error is lower than delta's (P, with CI); the paired per-seed ratio model / delta (IQM and
-CI over the seeds both have). Divergence is per horizon (:func:`pets.experiments.statistics.divergences`):
-a run diverged at a horizon is left out of the IQM, CI and ratios at that horizon, counted in
-``n_diverged`` there, and enters P as error ``+inf`` there; at its other horizons it counts normally.
-The error averaged over the horizons counts only the runs that diverged at none of them. The
+CI over the seeds both have). Divergence is per horizon
+(:func:`pets.experiments.statistics.divergences` at the env's no-information level,
+:func:`pets.experiments.primary.env_level`): a run diverged at a horizon is left out of the IQM, CI and ratios
+at that horizon, counted in ``n_diverged`` there, and enters P as error ``+inf`` there; at its other horizons
+it counts normally. The error averaged over the horizons counts only the runs that diverged at none of them. The
 metrics are the eval.json keys ending in ``_error`` that every run of the env has
 (``pets.evaluate.METRICS`` first, in that order, then the others alphabetically).
 
@@ -16,13 +17,18 @@ Files:
   ``ci_low``, ``ci_high`` over the ``n_seeds`` runs that did not diverge at that horizon, ``n_diverged``;
   ``p_improvement`` (P(model error < delta's), ties half) with ``p_improvement_ci_low/high``;
   ``ratio_to_delta`` (IQM of the per-seed ratios over the ``n_pairs`` seeds where neither model diverged
-  at that horizon) with ``ratio_ci_low/high``.
+  at that horizon) with ``ratio_ci_low/high`` and ``p_value_exact`` (the exact paired sign-flip p-value of the
+  mean log ratio over those pairs; secondary: no multiplicity correction).
   The delta columns are empty for delta itself, where delta is not compared, and where a value
   does not exist (no run left, delta's error 0).
 - ``relative_error.csv``: the same per env, model and metric for the error averaged over the env's
   horizons (per seed, then the statistics over the seeds that diverged at none of them), plus
   ``relative`` (the IQM divided by the largest model's IQM in the env, as the paper normalises Fig. 2)
   with its CI divided by the same number.
+- ``primary.csv``: the pre-registered primary endpoint per env and arm (:mod:`pets.experiments.primary`: the
+  no-information level, the tracking horizons, the paired ratio of the clipped standardized error averaged over
+  them, its exact p-value and Holm's adjustment over the (env, arm) tests, the verdict), also at the top of
+  ``prediction.md``; ``past_level.csv``: per env, model and horizon the runs at or past the level (how models fail).
 - ``prediction_runs.csv``: every run and horizon with all its metrics and a ``diverged`` column
   (empty, or why the run counts as diverged at that horizon).
 - ``prediction.md``: per env a table per metric (mean_step_error, standardized_error, and
@@ -50,11 +56,18 @@ import numpy as np
 
 from pets.evaluate import METRICS as EVALUATE_METRICS
 from pets.experiments.plots import model_colors, plot_absolute, plot_openloop, plot_ratio, plot_relative
+from pets.experiments.primary import (
+    PAST_LEVEL_COLUMNS,
+    PRIMARY_COLUMNS,
+    env_level,
+    past_level_rows,
+    primary_markdown,
+    primary_rows,
+)
 from pets.experiments.report import BOOT_SEED, fmt_ci, fmt_interval, md_table, write_csv
 from pets.experiments.rundirs import json_matches, precision_note, run_name
 from pets.experiments.statistics import (
     BASELINE,
-    DIVERGED_STANDARDIZED_ERROR,
     MIN_SEEDS,
     REPS,
     SMALL_SAMPLE_NOTE,
@@ -62,6 +75,7 @@ from pets.experiments.statistics import (
     iqm_ci_finite,
     p_improvement_ci,
     paired_ratios,
+    sign_flip_p,
     summarise,
 )
 from pets.fileio import atomic_write_bytes
@@ -78,6 +92,7 @@ _DELTA_COLUMNS = [
     "ratio_ci_low",
     "ratio_ci_high",
     "n_pairs",
+    "p_value_exact",
 ]
 SUMMARY_COLUMNS = [
     "env",
@@ -168,7 +183,7 @@ def env_statistics(
         iqm, low, high = iqm_ci_finite(x, reps=reps, seed=seed)
         n_good = np.isfinite(x).sum(axis=0)
         nan = np.full(len(columns), np.nan)
-        p = p_low = p_high = ratio = r_low = r_high = nan
+        p = p_low = p_high = ratio = r_low = r_high = p_exact = nan
         n_pairs = None
         if model != BASELINE and BASELINE in scores:
             base = scores[BASELINE]
@@ -179,6 +194,7 @@ def env_statistics(
             if pairs:
                 n_pairs = np.sum([np.isfinite(runs[s]) & np.isfinite(base[s]) for s in pairs], axis=0)
                 ratio, r_low, r_high = iqm_ci_finite(ratios, reps=reps, seed=seed)
+                p_exact = np.array([_sign_flip_log(ratios[:, j]) for j in range(len(columns))])
         out[model] = {
             col: {
                 "iqm": _finite(iqm[j]),
@@ -193,10 +209,17 @@ def env_statistics(
                 "ratio_ci_low": _finite(r_low[j]),
                 "ratio_ci_high": _finite(r_high[j]),
                 "n_pairs": None if n_pairs is None else int(n_pairs[j]),
+                "p_value_exact": _finite(p_exact[j]),
             }
             for j, col in enumerate(columns)
         }
     return out
+
+
+def _sign_flip_log(ratios: np.ndarray) -> float:
+    """Exact sign-flip p-value of the mean log ratio over the finite pairs of one column (NaN without pairs)."""
+    r = ratios[np.isfinite(ratios) & (ratios > 0)]
+    return sign_flip_p(np.log(r)) if r.size else math.nan
 
 
 def _divergence_text(diverged: Mapping[str, str]) -> str:
@@ -276,10 +299,12 @@ def summarise_offline(
     included: list[Path] = []
     run_columns: list[str] = []
     fig2: dict[str, dict[str, dict[str, Any]]] = {}
+    levels: dict[str, tuple[float, str]] = {}
     for env in env_names:
         evals = load_evals(out, env, models, seeds, request)
         if not evals:
             continue
+        levels[env] = level = env_level(out / "data", env)
         env_models = [m for m in models if m in evals]
         runs = [e for m in env_models for e in evals[m]]
         included += [out / "runs" / run_name(env, m, e["seed"]) for m in env_models for e in evals[m]]
@@ -290,7 +315,7 @@ def summarise_offline(
             continue
         for model in env_models:
             for e in evals[model]:
-                e["diverged"] = divergences(e["horizons"])
+                e["diverged"] = divergences(e["horizons"], level[0])
                 if e["diverged"]:
                     diverged_runs.append(f"{run_name(env, model, e['seed'])}: {_divergence_text(e['diverged'])}")
                 for h, m in e["horizons"].items():
@@ -368,13 +393,17 @@ def summarise_offline(
         "its 95 % stratified-bootstrap CI in brackets (rliable). P: the probability that the model's error "
         f"is lower than {BASELINE}'s (a random seed of each; ties count half) with its CI. A run is diverged at a "
         "horizon when a value of its evaluation there is not finite, some predictions went non-finite, or its "
-        f"standardized_error exceeds {DIVERGED_STANDARDIZED_ERROR:g} (training-data standard deviations). At that "
+        "standardized_error is at or past the env's no-information level (the error of predicting a random "
+        "training observation; primary.csv gives it): its prediction no longer tracks the state. At that "
         "horizon it is counted ('(k diverged)' after the IQM; 'all diverged' when every run did), left out of the "
         "IQM, CI and ratios, and counts as an infinite error in P; at its other horizons it counts normally. "
         "seeds: the model's evaluated runs.",
         "",
     ]
-    text = header + text
+    primary = primary_rows(per_run, levels, reps=reps)
+    write_csv(out / "primary.csv", primary, PRIMARY_COLUMNS)
+    write_csv(out / "past_level.csv", past_level_rows(per_run, levels), PAST_LEVEL_COLUMNS)
+    text = header + primary_markdown(primary) + text
     if fig2:
         plot_relative(out / "relative_error.png", fig2)
         has_ratio = any(r["ratio_to_delta"] is not None for vals in fig2.values() for r in vals.values())

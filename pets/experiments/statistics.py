@@ -26,8 +26,9 @@ a thin layer over rliable (Agarwal et al. 2021, "Deep RL at the edge of the stat
   bootstrap CIs (which are too narrow at n = 5: a percentile CI can exclude 0 where no exact test can reject);
   :func:`holm`: Holm's adjustment of a family of p-values (the primary endpoint over envs and arms).
 - :func:`divergence` / :func:`divergences`: per horizon, whether a run's evaluation holds a non-finite
-  value there, or predictions that went non-finite, or a ``standardized_error`` above
-  :data:`DIVERGED_STANDARDIZED_ERROR`. A run diverged at a horizon is counted and shown as such there,
+  value there, or predictions that went non-finite, or a ``standardized_error`` at or past the env's
+  no-information level (:mod:`pets.experiments.primary`; :data:`DIVERGED_STANDARDIZED_ERROR` without one).
+  A run diverged at a horizon is counted and shown as such there,
   never averaged into an IQM; at its other horizons it counts normally.
 
 Small samples: the IQM of ``n <= 3`` values is their mean, and the percentile bootstrap of a mean
@@ -273,19 +274,22 @@ def paired_differences(model: Mapping[Any, Any], baseline: Mapping[Any, Any]) ->
     return seeds, a - b
 
 
-#: Pairs up to which :func:`sign_flip_p` enumerates every sign pattern (2^20 ~ 1e6 patterns).
-EXACT_SIGN_FLIP_MAX_PAIRS = 20
+#: Pairs up to which :func:`sign_flip_p` enumerates every sign pattern (2^16 = 65,536 patterns); above, it samples.
+EXACT_SIGN_FLIP_MAX_PAIRS = 16
+#: Random sign patterns of the Monte Carlo p-value above :data:`EXACT_SIGN_FLIP_MAX_PAIRS` pairs.
+SIGN_FLIP_DRAWS = 100_000
 
 
-def sign_flip_p(differences: Any) -> float:
-    """Exact two-sided paired permutation (sign-flip) p-value of the mean of paired ``differences``.
+def sign_flip_p(differences: Any, *, seed: int = 0) -> float:
+    """Two-sided paired permutation (sign-flip) p-value of the mean of paired ``differences``.
 
     Under the null (the two arms' outcomes exchangeable within a pair) each difference's sign is a fair coin, so
     the p-value is the fraction of the ``2^n`` sign patterns whose mean is at least as far from 0 as the
-    observed one (``|mean(s * d)| >= |mean(d)|``, with a relative tolerance of 1e-9 for float ties). The
-    smallest attainable value is ``2 / 2^n``: 0.0625 at n = 5, so five pairs can never reach p < 0.05.
-    Differences must be finite (a diverged run enters as the worst outcome, decided by the caller); at most
-    :data:`EXACT_SIGN_FLIP_MAX_PAIRS` pairs; an empty sample gives NaN.
+    observed one (``|mean(s * d)| >= |mean(d)|``, with a relative tolerance of 1e-9 for float ties): exact up to
+    :data:`EXACT_SIGN_FLIP_MAX_PAIRS` pairs (the smallest attainable value is ``2 / 2^n``: 0.0625 at n = 5, so
+    five pairs can never reach p < 0.05); above, ``(1 + hits) / (1 + draws)`` over :data:`SIGN_FLIP_DRAWS`
+    random patterns drawn with ``seed`` (the unbiased Monte Carlo permutation p-value). Differences must be
+    finite (a diverged run enters as the worst outcome, decided by the caller); an empty sample gives NaN.
     """
     d = np.asarray(differences, dtype=np.float64).reshape(-1)
     if not np.isfinite(d).all():
@@ -293,12 +297,14 @@ def sign_flip_p(differences: Any) -> float:
     n = d.size
     if n == 0:
         return math.nan
+    observed = abs(d.mean()) * (1 - 1e-9) - 1e-300
     if n > EXACT_SIGN_FLIP_MAX_PAIRS:
-        raise ValueError(f"sign_flip_p enumerates 2^n patterns: at most {EXACT_SIGN_FLIP_MAX_PAIRS} pairs, got {n}")
+        signs = np.random.default_rng(seed).choice(np.array([-1.0, 1.0]), size=(SIGN_FLIP_DRAWS, n))
+        hits = int((np.abs(signs @ d / n) >= observed).sum())
+        return (1 + hits) / (1 + SIGN_FLIP_DRAWS)
     bits = (np.arange(2**n)[:, None] >> np.arange(n)[None, :]) & 1  # every sign pattern, one row each
     means = np.abs(((1 - 2 * bits) * d).mean(axis=1))
-    observed = abs(d.mean())
-    return float(np.mean(means >= observed * (1 - 1e-9) - 1e-300))
+    return float(np.mean(means >= observed))
 
 
 def holm(p_values: Sequence[float]) -> list[float]:
@@ -317,25 +323,29 @@ def holm(p_values: Sequence[float]) -> list[float]:
     return out.tolist()
 
 
-def divergence(values: Mapping[str, Any]) -> str | None:
+def divergence(values: Mapping[str, Any], level: float | None = None) -> str | None:
     """Why a run diverged at one horizon, or None if it did not, from its evaluation's ``{key: value}`` at that
     horizon: a value is not finite, ``nonfinite_fraction > 0`` (some predictions went inf/NaN) or
-    ``standardized_error`` exceeds :data:`DIVERGED_STANDARDIZED_ERROR` (when the key exists)."""
+    ``standardized_error`` (when the key exists) at or past ``level``, the env's no-information level
+    (:mod:`pets.experiments.primary`); without a level, past :data:`DIVERGED_STANDARDIZED_ERROR`."""
     for key, value in values.items():
         v = float(value)
         if not math.isfinite(v):
             return f"{key} {v}"
         if key == "nonfinite_fraction" and v > 0:
             return f"non-finite predictions ({v:.3g} of the steps)"
-        if key == "standardized_error" and v > DIVERGED_STANDARDIZED_ERROR:
-            return f"standardized_error {v:.3g} > {DIVERGED_STANDARDIZED_ERROR:g}"
+        if key == "standardized_error":
+            if level is not None and v >= level:
+                return f"standardized_error {v:.3g} >= the no-information level {level:.3g}"
+            if level is None and v > DIVERGED_STANDARDIZED_ERROR:
+                return f"standardized_error {v:.3g} > {DIVERGED_STANDARDIZED_ERROR:g}"
     return None
 
 
-def divergences(horizons: Mapping[str, Mapping[str, Any]]) -> dict[str, str]:
-    """``{horizon: why}`` of every horizon at which a run diverged (:func:`divergence`), from its evaluation's
-    ``{"horizon": {key: value}}``; empty if it diverged at none. At the other horizons the run counts normally."""
-    return {h: why for h, values in horizons.items() if (why := divergence(values)) is not None}
+def divergences(horizons: Mapping[str, Mapping[str, Any]], level: float | None = None) -> dict[str, str]:
+    """``{horizon: why}`` of every horizon at which a run diverged (:func:`divergence` with ``level``), from its
+    evaluation's ``{"horizon": {key: value}}``; empty if it diverged at none. At the other horizons it counts."""
+    return {h: why for h, values in horizons.items() if (why := divergence(values, level)) is not None}
 
 
 # --------------------------------------------------------------------------- mean bootstrap

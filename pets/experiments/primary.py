@@ -1,0 +1,261 @@
+"""The offline comparison's pre-registered primary endpoint (docs/experiments.md, "Primary endpoints").
+
+- **No-information level** ``L`` (:func:`no_information_level`): the ``standardized_error`` of a "model" that
+  predicts a random training observation in place of every true one, measured on the data with the same
+  formula as :func:`pets.evaluate.step_errors` (about sqrt(2) = 1.41 when test and training observations share
+  their distribution). A prediction past ``L`` carries no information about the state.
+- **Tracking horizons** (:func:`tracking_horizons`): the horizons, from the shortest on, at which the baseline's
+  median ``standardized_error`` over its runs is below ``L``; the first horizon at or past it ends them.
+  Verdicts are read there; longer horizons describe how models fail (:func:`past_level_rows`).
+- **Endpoint per run**: the mean over the tracking horizons of ``min(standardized_error, L)``, a non-finite
+  error counting as ``L``. Past ``L`` every prediction is equally useless, so a diverged run scores the worst
+  value and is never dropped, and one run's blow-up cannot outweigh the other seeds.
+- **Per env and arm** (:func:`primary_rows`): the per-seed ratio arm / baseline of the endpoint (paired: same
+  seed, data and start points), its IQM with the 95 % stratified-bootstrap CI, the exact paired sign-flip
+  p-value of the mean log ratio (``p_value_exact``), Holm's adjustment over every (env, arm) test of the call
+  (``p_value_holm``) and rliable's P(arm's endpoint < baseline's).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pets.experiments.statistics import BASELINE, REPS, holm, iqm_ci, p_improvement_ci, sign_flip_p
+
+#: The level used where the data sets are not at hand (e.g. summaries of committed runs CSVs): the standardized
+#: error of an independent draw from the training distribution, sqrt(2) training standard deviations.
+DEFAULT_LEVEL = math.sqrt(2.0)
+DEFAULT_SOURCE = "sqrt(2): data not at hand"
+#: Family-wise error rate of the primary verdicts.
+ALPHA = 0.05
+#: The metric of the primary endpoint.
+METRIC = "standardized_error"
+PRIMARY_COLUMNS = [
+    "env",
+    "model",
+    "level",
+    "level_source",
+    "tracking_horizons",
+    "n_pairs",
+    "endpoint_iqm",
+    "endpoint_ci_low",
+    "endpoint_ci_high",
+    "ratio_to_delta",
+    "ratio_ci_low",
+    "ratio_ci_high",
+    "p_value_exact",
+    "p_value_holm",
+    "p_improvement",
+    "p_improvement_ci_low",
+    "p_improvement_ci_high",
+    "n_past_level",
+    "verdict",
+]
+PAST_LEVEL_COLUMNS = ["env", "model", "horizon", "n_runs", "n_past_level", "fraction_past_level", "median_error"]
+
+
+def no_information_level(train: Mapping[str, np.ndarray], test: Mapping[str, np.ndarray], layout: Any) -> float:
+    """``standardized_error`` of predicting, for each real test observation, a random real training observation
+    (a fixed seed), standardized by the training data's per-entry std as :mod:`pets.evaluate` does."""
+    import torch
+
+    from pets.evaluate import obs_std, step_errors
+
+    def real(arrays: Mapping[str, np.ndarray]) -> np.ndarray:
+        obs, lengths = np.asarray(arrays["obs"], dtype=np.float64), np.asarray(arrays["lengths"])
+        return obs[np.arange(obs.shape[1])[None, :] <= lengths[:, None]]
+
+    true, pool = real(test), real(train)
+    pick = np.random.default_rng(0).integers(0, len(pool), size=len(true))
+    errors = step_errors(torch.as_tensor(pool[pick]), torch.as_tensor(true), layout, obs_std(train))
+    return float(errors["standardized"].mean())
+
+
+def env_level(data_dir: Path, env: str) -> tuple[float, str]:
+    """``(level, source)`` of an env: :func:`no_information_level` of ``DATA_DIR/ENV-train.npz`` and
+    ``ENV-test.npz`` where both exist, else :data:`DEFAULT_LEVEL`."""
+    train, test = Path(data_dir) / f"{env}-train.npz", Path(data_dir) / f"{env}-test.npz"
+    if not (train.is_file() and test.is_file()):
+        return DEFAULT_LEVEL, DEFAULT_SOURCE
+    import envs
+    from pets.datasets import load_dataset
+
+    level = no_information_level(load_dataset(train), load_dataset(test), envs.get(env).layout)
+    return level, f"data ({train.name} vs {test.name})"
+
+
+def _median(values: Iterable[float]) -> float:
+    """Median with non-finite values counted as +inf (a diverged run is past every level)."""
+    x = np.array([v if math.isfinite(v) else math.inf for v in values], dtype=np.float64)
+    return float(np.median(x)) if x.size else math.nan
+
+
+def _errors(rows: Iterable[Mapping[str, Any]]) -> dict[str, dict[str, dict[int, dict[int, float]]]]:
+    """{env: {model: {seed: {horizon: standardized_error}}}} of per-run rows (``prediction_runs.csv``)."""
+    out: dict[str, dict[str, dict[int, dict[int, float]]]] = {}
+    for r in rows:
+        value = r.get(METRIC)
+        err = math.inf if value in (None, "") else float(value)
+        seeds = out.setdefault(str(r["env"]), {}).setdefault(str(r["model"]), {})
+        seeds.setdefault(int(r["seed"]), {})[int(r["horizon"])] = err if math.isfinite(err) else math.inf
+    return out
+
+
+def tracking_horizons(baseline: Mapping[int, Mapping[int, float]], level: float) -> list[int]:
+    """The horizons, shortest first, before the first one at which the median over the baseline's runs
+    ({seed: {horizon: standardized_error}}) reaches ``level``; only horizons every run has."""
+    common = sorted(set.intersection(*[set(h) for h in baseline.values()])) if baseline else []
+    out = []
+    for h in common:
+        if not _median(run[h] for run in baseline.values()) < level:
+            break
+        out.append(h)
+    return out
+
+
+def endpoint(run: Mapping[int, float], horizons: Sequence[int], level: float) -> float:
+    """One run's endpoint: the mean over ``horizons`` of its error clipped at ``level`` (non-finite = level)."""
+    return float(np.mean([min(run[h], level) if math.isfinite(run[h]) else level for h in horizons]))
+
+
+def _verdict(ratio: float, p_holm: float) -> str:
+    if not math.isfinite(p_holm) or p_holm >= ALPHA:
+        return "no difference shown"
+    return "lower error (win)" if ratio < 1 else "higher error (loss)"
+
+
+def primary_rows(
+    rows: Iterable[Mapping[str, Any]],
+    levels: Mapping[str, tuple[float, str]] | None = None,
+    *,
+    reps: int = REPS,
+    seed: int = 0,
+) -> list[dict[str, Any]]:
+    """The :data:`PRIMARY_COLUMNS` rows (one per env and arm, the baseline first) from per-run rows with ``env``,
+    ``model``, ``seed``, ``horizon`` and ``standardized_error``; ``levels`` {env: (level, where it came from)},
+    :data:`DEFAULT_LEVEL` for the envs it lacks. Envs without baseline runs or without a tracking horizon get
+    no test (their rows say why in ``verdict``)."""
+    levels = dict(levels or {})
+    out: list[dict[str, Any]] = []
+    for env, models in _errors(rows).items():
+        level, source = levels.get(env, (DEFAULT_LEVEL, DEFAULT_SOURCE))
+        base = models.get(BASELINE, {})
+        hs = tracking_horizons(base, level) if base else []
+        for model, runs in sorted(models.items(), key=lambda kv: (kv[0] != BASELINE, kv[0])):
+            row: dict[str, Any] = {"env": env, "model": model, "level": level, "level_source": source}
+            row["tracking_horizons"] = " ".join(map(str, hs))
+            if not hs:
+                why = "no baseline runs" if not base else "the baseline's median is past the level at every horizon"
+                out.append({**row, "verdict": f"no test: {why}"})
+                continue
+            e = {s: endpoint(r, hs, level) for s, r in runs.items() if all(h in r for h in hs)}
+            vals = np.array(list(e.values()))[:, None]
+            row["endpoint_iqm"], row["endpoint_ci_low"], row["endpoint_ci_high"] = (
+                float(v[0]) for v in iqm_ci(vals, reps=reps, seed=seed)
+            )
+            row["n_past_level"] = sum(any(not r[h] < level for h in hs) for r in runs.values())
+            if model != BASELINE:
+                eb = {s: endpoint(r, hs, level) for s, r in base.items() if all(h in r for h in hs)}
+                pairs = sorted(set(e) & set(eb))
+                ratios = np.array([e[s] / eb[s] for s in pairs])
+                row["n_pairs"] = len(pairs)
+                row["ratio_to_delta"], row["ratio_ci_low"], row["ratio_ci_high"] = (
+                    float(v[0]) for v in iqm_ci(ratios[:, None], reps=reps, seed=seed)
+                )
+                row["p_value_exact"] = sign_flip_p(np.log(ratios))
+                p = p_improvement_ci(vals, np.array(list(eb.values()))[:, None], reps=reps, seed=seed)
+                row["p_improvement"], row["p_improvement_ci_low"], row["p_improvement_ci_high"] = (
+                    float(v[0]) for v in p
+                )
+            out.append(row)
+    tested = [i for i, r in enumerate(out) if "p_value_exact" in r]
+    for i, p in zip(tested, holm([out[i]["p_value_exact"] for i in tested])):
+        out[i]["p_value_holm"] = p
+        out[i]["verdict"] = _verdict(out[i]["ratio_to_delta"], p)
+    return out
+
+
+def past_level_rows(rows: Iterable[Mapping[str, Any]], levels: Mapping[str, tuple[float, str]] | None = None):
+    """How models fail: per env, model and horizon the runs whose ``standardized_error`` is at or past the
+    env's level (non-finite included) and the median error (:data:`PAST_LEVEL_COLUMNS`)."""
+    levels = dict(levels or {})
+    out = []
+    for env, models in _errors(rows).items():
+        level = levels.get(env, (DEFAULT_LEVEL, ""))[0]
+        for model, runs in models.items():
+            for h in sorted({h for r in runs.values() for h in r}):
+                errs = [r[h] for r in runs.values() if h in r]
+                past = sum(not v < level for v in errs)
+                out.append(
+                    {
+                        "env": env,
+                        "model": model,
+                        "horizon": h,
+                        "n_runs": len(errs),
+                        "n_past_level": past,
+                        "fraction_past_level": past / len(errs),
+                        "median_error": _median(errs),
+                    }
+                )
+    return out
+
+
+def _fmt(x: Any, digits: int = 3) -> str:
+    return "-" if x is None or (isinstance(x, float) and not math.isfinite(x)) else f"{x:.{digits}g}"
+
+
+def primary_markdown(rows: Sequence[Mapping[str, Any]]) -> list[str]:
+    """prediction.md's first section: the primary endpoint table of :func:`primary_rows`."""
+    if not rows:
+        return []
+    table = [
+        [
+            r["env"],
+            r["model"],
+            f"{r['level']:.3g} ({r['level_source']})",
+            r["tracking_horizons"] or "none",
+            f"{_fmt(r.get('endpoint_iqm'))} [{_fmt(r.get('endpoint_ci_low'))}, {_fmt(r.get('endpoint_ci_high'))}]",
+            "-"
+            if r["model"] == BASELINE
+            else f"{_fmt(r.get('ratio_to_delta'))} [{_fmt(r.get('ratio_ci_low'))}, {_fmt(r.get('ratio_ci_high'))}]",
+            _fmt(r.get("p_value_exact")),
+            _fmt(r.get("p_value_holm")),
+            str(r.get("n_past_level", "-")),
+            r.get("verdict", "-") if r["model"] != BASELINE else "-",
+        ]
+        for r in rows
+    ]
+    from pets.experiments.report import md_table
+
+    return [
+        "## Primary endpoint (pre-registered, docs/experiments.md)",
+        "",
+        "Per run: the standardized error averaged over the tracking horizons (those at which the baseline's median "
+        "is below the no-information level, the error of predicting a random training observation), each value "
+        f"clipped at that level (a diverged run scores the level). Per arm: IQM [95 % CI] over seeds; ratio to "
+        f"{BASELINE}: IQM [CI] of the per-seed ratios; p: the exact paired sign-flip p-value of the mean log "
+        f"ratio, and Holm's adjustment over every (env, arm) test here; verdict at family-wise {ALPHA:g}. "
+        "past level: runs at or past the level at some tracking horizon.",
+        "",
+        md_table(
+            [
+                "env",
+                "model",
+                "level",
+                "tracking horizons",
+                "endpoint",
+                f"ratio to {BASELINE}",
+                "p (exact)",
+                "p (Holm)",
+                "past level",
+                "verdict",
+            ],
+            table,
+        ),
+        "",
+    ]

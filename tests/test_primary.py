@@ -1,0 +1,101 @@
+"""The offline primary endpoint (pets.experiments.primary, issue 37): level, tracking horizons, clipping, tests."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import scipy.stats
+
+import envs
+from pets.experiments.primary import (
+    DEFAULT_LEVEL,
+    no_information_level,
+    past_level_rows,
+    primary_rows,
+    tracking_horizons,
+)
+from pets.experiments.statistics import holm
+
+HORIZONS = (1, 5, 10, 25)
+
+
+def _rows(env: str, model: str, errors: dict[int, list[float]]) -> list[dict]:
+    """Per-run rows as prediction_runs.csv has them: {seed: [error per horizon of HORIZONS]}."""
+    return [
+        {"env": env, "model": model, "seed": s, "horizon": h, "standardized_error": e}
+        for s, errs in errors.items()
+        for h, e in zip(HORIZONS, errs)
+    ]
+
+
+def test_no_information_level_of_gaussian_data_is_sqrt2():
+    """Independent draws of the same distribution: z = (x - y) / sigma ~ N(0, 2) per entry, so the RMS over the
+    entries is sqrt(2) up to the RMS's small-sample bias (here d = 17 entries: E sqrt(chi2_d / d) * sqrt(2))."""
+    layout = envs.get("halfcheetah").layout
+    rng = np.random.default_rng(1)
+
+    def data(n):  # std 0.1: hinge differences never reach pi, so no wrap changes an entry
+        return {"obs": rng.normal(0.0, 0.1, (n, 51, layout.obs_dim)), "lengths": np.full(n, 50)}
+
+    d = len(layout.predicted_indices)
+    expected = math.sqrt(2.0 / d) * math.sqrt(2.0) * math.exp(math.lgamma((d + 1) / 2) - math.lgamma(d / 2))
+    assert no_information_level(data(40), data(20), layout) == pytest.approx(expected, rel=0.01)
+    assert expected == pytest.approx(DEFAULT_LEVEL, rel=0.02)
+
+
+def test_tracking_horizons_stop_at_the_first_median_past_the_level():
+    base = {
+        0: {1: 0.1, 5: 0.5, 10: 2.0, 25: 0.3},
+        1: {1: 0.2, 5: 0.6, 10: 1.0, 25: 0.2},
+        2: {1: 0.1, 5: 9.0, 10: 3.0, 25: 1.0},
+    }
+    assert tracking_horizons(base, 1.5) == [1, 5]  # the median at 10 is 2.0; 25 comes after it and is not used
+    assert tracking_horizons(base, 0.05) == []
+    base[1][1], base[2][1] = math.nan, 0.12  # a diverged run counts as +inf: the median at h=1 is 0.12, not 0.11
+    assert tracking_horizons(base, 0.115) == []
+
+
+def test_primary_ratio_exact_p_and_holm_across_envs():
+    delta = {s: [0.05 * (s + 1), 0.1 * (s + 1), 0.15 * (s + 1), 0.2 * (s + 1)] for s in range(5)}  # below sqrt(2)
+    gem = {s: [0.8 * e for e in errs] for s, errs in delta.items()}  # 20 % lower at every horizon, every seed
+    worse = {s: [1.1 * e for e in errs] for s, errs in delta.items()}
+    rows = primary_rows(
+        _rows("a", "delta", delta) + _rows("a", "gem", gem) + _rows("b", "delta", delta) + _rows("b", "gem", worse)
+    )
+    by = {(r["env"], r["model"]): r for r in rows}
+    assert [r["model"] for r in rows] == ["delta", "gem", "delta", "gem"]  # the baseline first
+    a, b = by["a", "gem"], by["b", "gem"]
+    assert a["ratio_to_delta"] == pytest.approx(0.8) and b["ratio_to_delta"] == pytest.approx(1.1)
+    assert a["tracking_horizons"] == "1 5 10 25" and a["n_pairs"] == 5 and a["level"] == DEFAULT_LEVEL
+    assert a["p_value_exact"] == b["p_value_exact"] == 2 / 32  # every seed one way: the smallest 5-pair p
+    assert [a["p_value_holm"], b["p_value_holm"]] == holm([2 / 32, 2 / 32]) == [0.125, 0.125]
+    assert a["verdict"] == b["verdict"] == "no difference shown"  # 5 pairs can never be significant
+    # gem seed i (0.8 (i + 1)) beats delta seeds j > 0.8 (i + 1) - 1; gem s4 ties delta s3 (4.0): half
+    assert a["p_improvement"] == pytest.approx(15.5 / 25)
+
+
+def test_primary_clips_at_the_level_and_counts_a_diverged_run_as_the_level():
+    delta = {s: [0.2, 0.4, 0.9, 1.2] for s in range(6)}
+    gem = {s: [0.1, 0.2, 0.5, 0.6] for s in range(6)}
+    gem[5] = [0.1, math.nan, math.inf, 1e9]  # diverged from h=5: scores the level there, never dropped
+    rows = primary_rows(_rows("e", "delta", delta) + _rows("e", "gem", gem), {"e": (1.0, "given")})
+    (base, row) = rows
+    assert base["tracking_horizons"] == row["tracking_horizons"] == "1 5 10"  # delta's median reaches 1.2 at h=25
+    clipped_delta = np.mean([0.2, 0.4, 0.9])
+    ratios = [np.mean([0.1, 0.2, 0.5]) / clipped_delta] * 5 + [np.mean([0.1, 1.0, 1.0]) / clipped_delta]
+    assert row["n_pairs"] == 6 and row["n_past_level"] == 1 and base["n_past_level"] == 0
+    exact = scipy.stats.permutation_test((np.log(ratios),), np.mean, permutation_type="samples", n_resamples=np.inf)
+    assert row["p_value_exact"] == pytest.approx(exact.pvalue)
+    assert row["level_source"] == "given"
+
+
+def test_no_test_without_a_tracking_horizon_and_past_level_counts():
+    delta = {s: [5.0, 6.0, 7.0, 8.0] for s in range(5)}
+    rows = primary_rows(_rows("e", "delta", delta) + _rows("e", "gem", delta))
+    assert all(r["verdict"].startswith("no test: the baseline's median is past the level") for r in rows)
+    assert all("p_value_exact" not in r for r in rows)
+    past = {(r["model"], r["horizon"]): r for r in past_level_rows(_rows("e", "gem", {0: [1.0, 2.0, math.nan, 1.0]}))}
+    assert [past["gem", h]["n_past_level"] for h in HORIZONS] == [0, 1, 1, 0]
+    assert past["gem", 10]["median_error"] == math.inf
