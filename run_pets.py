@@ -68,7 +68,7 @@ def main(argv: list[str] | None = None) -> int:
     import envs
     from envs.render import RenderingUnavailable
     from pets import loop, rundir
-    from pets.config import ConfigError, load_config, make_config, parse_overrides, read_config_file
+    from pets.config import ConfigError, config_yaml, load_config, make_config, overrides_with_file, parse_overrides
     from pets.fileio import DirectoryInUse, writable_dir_error
     from pets.planners import PlanningFailed
     from pets.trainer import TrainingDiverged
@@ -88,12 +88,9 @@ def main(argv: list[str] | None = None) -> int:
                 _fail(f"give {key} once: --{flag} {getattr(args, flag)} or {key}={overrides[key]}, not both")
             if flag != "model":  # --model is make_config's head argument
                 overrides[key] = str(getattr(args, flag))
-        from_file: dict = {}
-        if args.config is not None:
-            if args.resume is not None:
-                _fail("--config starts a new run; --resume DIR takes the run's own config")
-            from_file = read_config_file(args.config)
-            overrides = {**{k: v for k, v in from_file.items() if k not in ("env", "head")}, **overrides}
+        if args.config is not None and args.resume is not None:
+            _fail("--config starts a new run; --resume DIR takes the run's own config")
+        overrides, from_file = overrides_with_file(args.config, overrides)  # env and head: --env, --model
         if args.resume is not None:
             if args.env or args.model or args.out:
                 _fail("--resume DIR takes the run's own config; do not pass --env, --model or --out with it")
@@ -116,9 +113,7 @@ def main(argv: list[str] | None = None) -> int:
                 _fail(str(err))
             cfg = make_config(env_name, args.model or from_file.get("head") or "delta", args.preset, overrides)
         if args.print_config:  # the resolved config, valid as a --config file; nothing is run or written
-            from omegaconf import OmegaConf
-
-            print(OmegaConf.to_yaml(cfg), end="")
+            print(config_yaml(cfg), end="")
             return 0
         if args.resume is None:
             from pets.builder import resolve_device

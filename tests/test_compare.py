@@ -1505,3 +1505,78 @@ def test_offline_primary_endpoint_recomputed_from_the_runs_and_data(offline):
     assert "## Primary endpoint (pre-registered" in (out / "prediction.md").read_text()
     summary = [r for r in csv_rows(out / "summary.csv") if r["model"] == "gem" and r["metric"] == "mean_step_error"]
     assert all(float(r["p_value_exact"]) in (0.5, 1.0) for r in summary)  # 2 pairs: 2 / 4 or 4 / 4
+
+
+def printed_configs(monkeypatch, capsys, *args):
+    """``--print-config`` through main: (exit code, stdout, stderr, every run's resolved config as a dict)."""
+    from omegaconf import OmegaConf
+
+    seen = {}
+    real = cli_module.print_shared_config
+
+    def spy(parsed, configs):
+        seen.update({name: OmegaConf.to_container(cfg) for name, cfg in configs.items()})
+        real(parsed, configs)
+
+    monkeypatch.setattr(cli_module, "print_shared_config", spy)
+    return (*cli(capsys, *args, "--print-config"), seen)
+
+
+@pytest.mark.parametrize("mode", ["online", "offline"])
+def test_compare_print_config_round_trips_through_config(tmp_path, capsys, monkeypatch, mode):
+    """Issue 35: pets.compare --print-config prints the settings every run shares (nothing is run or written),
+    valid as --config: fed back with the same options it gives the same text and the same config for every run;
+    key=value on the line wins over the file."""
+    monkeypatch.chdir(tmp_path)
+    line = ["--envs", "reacher,ant", "--models", "gem,delta", "--seeds", "0,1", "--preset", "fast"]
+    line += ["--trials", "3"] if mode == "online" else []
+    code, printed, _, configs = printed_configs(monkeypatch, capsys, mode, *line, "planner.horizon=9")
+    assert code == 0 and len(configs) == 8 and not list(tmp_path.iterdir())
+    assert "horizon: 9" in printed and "per run (not here" in printed and "\nenv:" not in printed
+    assert {c["planner"]["horizon"] for c in configs.values()} == {9}
+    file = tmp_path / "shared.yaml"
+    file.write_text(printed)
+    code, again, _, configs_again = printed_configs(monkeypatch, capsys, mode, *line, "--config", file)
+    assert code == 0 and again == printed and configs_again == configs
+    code, won, _, configs_won = printed_configs(monkeypatch, capsys, mode, *line, "--config", file, "planner.horizon=4")
+    assert code == 0 and "horizon: 4" in won and {c["planner"]["horizon"] for c in configs_won.values()} == {4}
+    # one env and one model: the file holds env and head (and online trials), so it stands for those options too
+    one = ["--envs", "reacher", "--models", "gem", *(["--trials", "2"] if mode == "online" else [])]
+    code, single, _, configs_one = printed_configs(monkeypatch, capsys, mode, *one, "--seeds", "3")
+    assert code == 0 and "env: reacher" in single and "head: gem" in single
+    file.write_text(single)
+    code, back, _, configs_back = printed_configs(monkeypatch, capsys, mode, "--config", file, "--seeds", "3")
+    assert code == 0 and back == single and configs_back == configs_one
+
+
+def test_compare_config_file_reaches_the_runs_and_bad_files_get_one_line(tmp_path, capsys, monkeypatch):
+    """A --config file's keys reach every run's config.yaml, key=value after it wins; a run_pets.py config (with
+    a seed) gets a note that --seeds decides; a typo gets "did you mean"; a missing option or bad device exits 2."""
+    monkeypatch.chdir(tmp_path)
+    keys = dict(item.split("=") for item in TINY)
+    file = tmp_path / "tiny.yaml"
+    file.write_text("".join(f"{k}: {v}\n" for k, v in keys.items()) + "env: reacher\nhead: gem\ntrials: 1\nseed: 7\n")
+    out = tmp_path / "out"
+    code, _, err = cli(capsys, "online", "--config", file, "--seeds", "0", "--out", out, "--quiet", "planner.horizon=3")
+    assert code == 0, err
+    assert "seed: 7 not used" in err
+    cfg = load_config(str(out / "runs" / "reacher-gem-s0" / rundir.CONFIG_FILE))
+    assert (cfg.env, cfg.head, cfg.trials, cfg.seed) == ("reacher", "gem", 1, 0)
+    assert cfg.planner.horizon == 3 and cfg.planner.population == 16 and cfg.episode_length == 30
+    for content, extra, fragment in (
+        (
+            "env: reacher\nhead: gem\ntrials: 1\nplanner:\n  horizn: 3\n",
+            [],
+            "unknown config key 'planner.horizn'; did you mean planner.horizon?",
+        ),
+        ("- a list\n", [], "expected a mapping of config keys, got a list"),
+        ("head: gem\n", [], "--envs is required (or env in a --config file)"),
+        ("env: reacher\nhead: gem\n", [], "--trials is required (or trials in a --config file)"),
+        ("env: reacher\nhead: gem\ntrials: 1\ndevice: tpu\n", [], "device must be cpu, cuda or auto, got 'tpu'"),
+        ("env: reacher\nhead: gem\ntrials: 1\n", ["--print-config", "x"], "expected key=value, got 'x'"),
+    ):
+        (tmp_path / "bad.yaml").write_text(content)
+        code, _, err = cli(capsys, "online", "--config", tmp_path / "bad.yaml", "--out", tmp_path / "o2", *extra)
+        lines = [x for x in err.splitlines() if x.strip()]
+        assert code == 2 and len(lines) == 1 and fragment in lines[0], err
+    assert not (tmp_path / "o2").exists()

@@ -1,6 +1,5 @@
-"""The console scripts named in setup.py: each resolves to a callable ``main(argv)`` whose ``--help`` exits 0."""
+"""The console scripts named in pyproject.toml: each resolves to a callable ``main(argv)`` whose ``--help`` exits 0."""
 
-import ast
 import importlib
 import subprocess
 import sys
@@ -8,15 +7,17 @@ from pathlib import Path
 
 import pytest
 
+try:
+    import tomllib
+except ModuleNotFoundError:  # Python 3.10: the dev extra installs tomli
+    import tomli as tomllib
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def console_scripts() -> dict[str, str]:
-    """``{name: "module:function"}`` of the ``console_scripts`` in setup.py (read, not run)."""
-    tree = ast.parse((ROOT / "setup.py").read_text())
-    call = next(n for n in ast.walk(tree) if isinstance(n, ast.Call) and getattr(n.func, "id", None) == "setup")
-    entry_points = ast.literal_eval(next(k.value for k in call.keywords if k.arg == "entry_points"))
-    return dict(item.replace(" ", "").split("=", 1) for item in entry_points["console_scripts"])
+    """``{name: "module:function"}`` of ``[project.scripts]`` in pyproject.toml (read, not run)."""
+    return tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"]
 
 
 SCRIPTS = console_scripts()

@@ -1,4 +1,4 @@
-"""InvertedDoublePendulum with the true dynamics and linear-feedback candidates (docs/planning.md, session 7).
+"""InvertedDoublePendulum with the true dynamics and linear-feedback candidates (docs/planning.md, 2026-11-23).
 
     python docs/scripts/idp_feedback_oracle.py HORIZON POPULATION ITERATIONS STEPS SEED GAIN_STD U_STD
 
@@ -6,8 +6,8 @@ Every MPC step, CEM (10 % elites, mean and std smoothed with alpha 0.1, the gain
 their mean warm-started) searches gains ``K`` of ``a = clip(u_t + K z(s), -1, 1)``, ``z`` = (cart x, sin 1,
 sin 2, cart v, omega 1, omega 2) divided by (0.5, 0.2, 0.2, 1, 2, 2), plus an open-loop ``u`` of std U_STD (0:
 none). Each candidate is scored by MuJoCo in closed loop over HORIZON steps from the live state. A one-off
-experiment (numpy, a Python loop per candidate), not part of the package. Session 7: ``60 100 3 1000 0 1.0 0.0``
-gave 1000 steps, reward 9358 (693 s on one Zen 4 core).
+experiment (numpy, a Python loop per candidate), not part of the package. On 2026-11-23:
+``60 100 3 1000 0 1.0 0.0`` gave 1000 steps, reward 9358 (693 s on one Zen 4 core).
 """
 
 import sys

@@ -15,6 +15,8 @@
     ARMS:    [--arm LABEL=MODEL[:key=value,...]] ... (more compared arms: a model with its own overrides)
     BACKEND: [--backend local] [--workers K] [--threads T]
              --backend ray [--address auto|ray://HOST:10001] [--threads T] [--max-retries R]
+    CONFIG:  [--config FILE.yaml] [--print-config] (online, offline: settings every run shares; key=value wins;
+             the file's env, head, trials stand for --envs, --models, --trials when not given)
 
 Models are the names in ``pets.config.HEADS`` (read at run time); envs are catalogue names or
 gymnasium ids. Seeds default to 0..4; with fewer than 5 a one-line warning goes to stderr once the
@@ -38,8 +40,9 @@ from __future__ import annotations
 
 import argparse
 import sys
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 from pets.cli import OneLineParser, fail
 from pets.experiments.arguments import (
@@ -72,8 +75,9 @@ def build_parser() -> OneLineParser:
     sub = p.add_subparsers(dest="mode", required=True, parser_class=OneLineParser)
 
     def common(q: OneLineParser) -> None:
-        q.add_argument("--envs", required=True, help="comma-separated envs (catalogue names or gymnasium ids)")
-        q.add_argument("--models", required=True, help="comma-separated models (pets.config.HEADS)")
+        # --envs, --models, --out (and online's --trials) are required unless --config gives them (main checks)
+        q.add_argument("--envs", help="comma-separated envs (catalogue names, gymnasium ids or package.module:ATTR)")
+        q.add_argument("--models", help="comma-separated models (pets.config.HEADS)")
         q.add_argument(
             "--arm",
             action="append",
@@ -87,7 +91,7 @@ def build_parser() -> OneLineParser:
             default=DEFAULT_SEEDS,
             help=f"comma-separated seeds (default {DEFAULT_SEEDS}; fewer than {MIN_SEEDS} cannot carry a claim)",
         )
-        q.add_argument("--out", type=Path, required=True, help="output directory (runs, data, summaries)")
+        q.add_argument("--out", type=Path, help="output directory (runs, data, summaries)")
         q.add_argument(
             "--backend",
             choices=BACKENDS,
@@ -109,11 +113,24 @@ def build_parser() -> OneLineParser:
         q.add_argument("--preset", default="research", help="config preset: research (default) or fast")
         q.add_argument("--device", choices=("cpu", "cuda", "auto"), default=None, help="device of every run")
         q.add_argument("--quiet", action="store_true", help="no progress bar")
+        q.add_argument(
+            "--config",
+            type=Path,
+            metavar="FILE",
+            help="a YAML file of config keys for every run (any subset; --print-config writes one); its env, head "
+            "and trials stand for --envs, --models and --trials when those are not given; options and key=value "
+            "win over it",
+        )
+        q.add_argument(
+            "--print-config",
+            action="store_true",
+            help="print the settings every run shares, resolved, as YAML (valid as --config) and exit",
+        )
         q.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides for every run")
 
     on = sub.add_parser("online", prog=f"{PROG} online", help="online PETS runs (run_pets.py)")
     common(on)
-    on.add_argument("--trials", type=int, required=True, help="trials per run")
+    on.add_argument("--trials", type=int, help="trials per run (required unless --config gives trials)")
     on.add_argument("--final-window", type=int, default=3, help="trials averaged for the final reward (default 3)")
     on.add_argument(
         "--until-threshold",
@@ -193,6 +210,64 @@ def make_backend(args: argparse.Namespace) -> Backend:
     )
 
 
+#: Per-run settings pets.compare makes itself (--seeds, --threads, --until-threshold): a config file's are not used.
+NOT_FROM_FILE = ("seed", "threads", "stop_reward")
+
+
+def overrides_from_line_and_file(args: argparse.Namespace) -> list[str]:
+    """The ``key=value`` overrides of every run: ``--config FILE``'s keys, then the line's (which win). The file's
+    ``env``, ``head``, ``trials`` (online) and ``device`` stand for ``--envs``, ``--models``, ``--trials`` and
+    ``--device`` where those are not given (set on ``args``); a note names the :data:`NOT_FROM_FILE` keys it sets
+    away from their defaults. UsageError (one line) for a bad file or a missing required option."""
+    from omegaconf import OmegaConf
+
+    from pets.config import Config, ConfigError, override_text, overrides_with_file, parse_overrides
+
+    online = args.mode == "online"
+    aside = ("env", "head", "device", *NOT_FROM_FILE, *(("trials",) if online else ()))
+    if online and args.planners is not None:
+        aside += ("planner.name",)  # --planners wins over the file's planner
+    try:
+        line = parse_overrides(list(args.overrides))
+        merged, kept = overrides_with_file(args.config, line, aside)
+    except ConfigError as err:
+        raise UsageError(str(err)) from None
+    if "device" in kept and args.device is None and "device" not in line:
+        if kept["device"] not in ("cpu", "cuda", "auto"):
+            raise UsageError(f"--config {args.config}: device must be cpu, cuda or auto, got {kept['device']!r}")
+        args.device = kept["device"]
+    if online and args.trials is None and "trials" in kept:
+        args.trials = int(kept["trials"])
+    for option, key in (("envs", "env"), ("models", "head"), *((("trials", "trials"),) if online else ())):
+        if getattr(args, option) is None:
+            if key not in kept:
+                raise UsageError(f"--{option} is required (or {key} in a --config file)")
+            if option != "trials":
+                setattr(args, option, str(kept[key]))
+    defaults = OmegaConf.structured(Config)
+    unused = [k for k in NOT_FROM_FILE if k in kept and kept[k] != defaults[k]]
+    if unused:
+        print(
+            f"{PROG}: note: --config {args.config}: {', '.join(f'{k}: {kept[k]}' for k in unused)} not used; every "
+            "run's seed, threads and stop_reward come from --seeds, --threads and --until-threshold",
+            file=sys.stderr,
+        )
+    return [override_text(k, v) for k, v in merged.items()]
+
+
+def print_shared_config(args: argparse.Namespace, configs: Mapping[str, Any]) -> None:
+    """``--print-config``: the settings every run shares, resolved, as YAML valid as ``--config``; a comment
+    names the keys that differ between runs (set per env and arm: pass the same options with the file)."""
+    from pets.config import config_yaml, shared_config
+
+    drop = (*NOT_FROM_FILE, *(("planner.name",) if args.mode == "online" and args.planners else ()))
+    same, differ = shared_config(configs.values(), drop)
+    print(f"# {PROG} {args.mode}: the settings all {len(configs)} runs share (--print-config)")
+    if differ:
+        print(f"# per run (not here; pass the same --envs, --models, --arm, --planners, --preset): {', '.join(differ)}")
+    print(config_yaml(same), end="")
+
+
 def headline_main(args: argparse.Namespace) -> int:
     """``compare headline``: print headline.md; exit 2 with one line on a bad summary file."""
     from pets.experiments.headline import HeadlineError, write_headline
@@ -231,6 +306,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         if args.preset not in PRESETS:
             raise UsageError(f"unknown preset {args.preset!r}; accepted: {', '.join(PRESETS)}")
+        overrides = overrides_from_line_and_file(args)
+        if args.out is None and not args.print_config:
+            raise UsageError("--out is required")
         env_names = parse_envs(args.envs)
         models = parse_models(args.models)
         arms = {}
@@ -241,7 +319,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             arms[label] = (head, own)
         models += list(arms)
         seeds = parse_seeds(args.seeds)
-        overrides = list(args.overrides)
+        out = args.out or Path(".")  # not looked at with --print-config
         if args.device is not None:
             if any(o.startswith("device=") for o in overrides):
                 raise UsageError("give the device once: --device or device=, not both")
@@ -261,7 +339,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 models,
                 seeds,
                 args.trials,
-                args.out,
+                out,
                 backend=backend,
                 preset=args.preset,
                 overrides=overrides,
@@ -270,8 +348,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                 planners=planners,
                 arms=arms,
                 until_threshold=args.until_threshold,
+                configs_only=args.print_config,
             )
-            report = args.out / "summary.md"
+            report = out / "summary.md"
         else:
             from pets.evaluate import parse_horizons
 
@@ -284,7 +363,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 env_names,
                 models,
                 seeds,
-                args.out,
+                out,
                 episodes=args.episodes,
                 test_episodes=args.test_episodes,
                 max_steps=args.max_steps,
@@ -302,13 +381,17 @@ def main(argv: Sequence[str] | None = None) -> int:
                 protocol=args.protocol,
                 progress=not args.quiet,
                 arms=arms,
+                configs_only=args.print_config,
             )
-            report = args.out / "prediction.md"
+            report = out / "prediction.md"
     except UsageError as err:
         fail(PROG, str(err))
     except KeyboardInterrupt:
         print(f"\n{PROG}: interrupted; rerun the same command to continue", file=sys.stderr)
         return 130
+    if args.print_config:
+        print_shared_config(args, result["configs"])
+        return 0
     print(report.read_text())
     if result["failed"]:
         print(f"{PROG}: {len(result['failed'])} run(s) failed: {', '.join(sorted(result['failed']))}", file=sys.stderr)

@@ -266,12 +266,15 @@ def compare_offline(
     protocol: str = "pets",
     progress: bool = True,
     arms: Mapping[str, tuple[str, Mapping[str, str]]] | None = None,
+    configs_only: bool = False,
 ) -> dict[str, Any]:
     """Collect, train, evaluate (and open-loop plan) everything missing, then write the summaries.
 
     ``test_episodes`` None: 20, or under a protocol with a test-set size, enough episodes of the env's length.
     ``backend``: where the runs run (default: one local worker, one thread per run).
     ``arms``: ``{label: (model, overrides)}`` for the names in ``models`` that are arms (``--arm``), not models.
+    ``configs_only``: return ``{"configs": {run name: resolved config}}`` once the arguments are checked, without
+    looking at ``out`` or running anything (``--print-config``).
 
     Returns ``{"data": {file: collected|reused}, "todo": {run: [what was missing]}, "done": {run: [what was
     done]}, "failed": {run: message}, "summary"}``; runs absent from "todo" were reused as they were.
@@ -319,7 +322,7 @@ def compare_offline(
             raise UsageError(f"{key}= is set by the command itself; do not pass it as an override")
     extra["threads"] = str(backend.threads)
     out = Path(out).resolve()
-    jobs, data_actions, pending = [], {}, {}
+    jobs, data_actions, pending, configs = [], {}, {}, {}
     for env in env_names:
         for model in models:
             head, own = (arms or {}).get(model, (model, {}))
@@ -331,10 +334,15 @@ def compare_offline(
                     )
                 except ConfigError as err:
                     raise UsageError(str(err)) from None
+                configs[run_name(env, model, seed)] = expected
+                if configs_only:
+                    continue
                 if (run_dir / "config.yaml").is_file():  # the searched architecture is the run's own choice
                     searched = ("model.hidden_size", "model.num_layers") if proto.architectures(env) else ()
                     ignore = (*NOT_COMPARED, *searched, *left_to_auto({**extra, **own}))
                     check_same_config(run_dir, expected, ignore=ignore)
+    if configs_only:
+        return {"configs": configs}
     check_out_writable(out)  # after every argument is checked: bad input leaves no directory behind
     data_dir = out / "data"
     eval_request = {

@@ -90,6 +90,7 @@ def compare_online(
     planners: Sequence[str] | None = None,
     arms: Mapping[str, tuple[str, Mapping[str, str]]] | None = None,
     until_threshold: bool = False,
+    configs_only: bool = False,
 ) -> dict[str, Any]:
     """Run (or reuse/resume) every online run, then write the summary. Returns ``{"actions", "failed",
     "summary"}``. UsageError for bad settings or a run directory with another config.
@@ -98,6 +99,8 @@ def compare_online(
     ``backend``: where the runs run (default: one local worker, one thread per run).
     ``arms``: ``{label: (model, overrides)}`` for the names in ``models`` that are arms (``--arm``), not models.
     ``until_threshold``: stop every run at its env's threshold (module docstring).
+    ``configs_only``: return ``{"configs": {run name: resolved config}}`` once the arguments are checked, without
+    looking at ``out`` or running anything (``--print-config``).
     """
     from pets.config import ConfigError, make_config, parse_overrides
 
@@ -128,7 +131,7 @@ def compare_online(
             f"{', '.join(THRESHOLDS)} (pets.experiments.online_summary.THRESHOLDS)"
         )
     out = Path(out).resolve()
-    jobs, actions = [], {}
+    jobs, actions, configs = [], {}, {}
     for env in env_names:
         stop = {"stop_reward": THRESHOLDS[env]} if until_threshold else {}
         # Seed-major: every arm of the first seed, then of the next, so that a sweep cut short is still paired.
@@ -144,6 +147,9 @@ def compare_online(
                 )
             except ConfigError as err:
                 raise UsageError(str(err)) from None
+            if configs_only:
+                configs[name] = expected
+                continue
             action = online_plan(run_dir, trials, expected.stop_reward)
             if action != "start":
                 check_same_config(run_dir, expected, ignore=(*NOT_COMPARED, *left_to_auto(arm_extra)))
@@ -157,6 +163,8 @@ def compare_online(
                 args = start_arguments(run_dir, env, head, seed, trials, preset, arm_list, backend.threads)
                 log = str(out / "logs" / f"{name}.log")
                 jobs.append((name, online_job, (str(run_dir), args, trials, log, backend.threads)))
+    if configs_only:
+        return {"configs": configs}
     check_out_writable(out)  # after every argument is checked: bad input leaves no directory behind
     counts = {a: sum(1 for v in actions.values() if v == a) for a in ("reuse", "resume", "start")}
     with open_backend(backend, out, needed=bool(jobs)) as run:
