@@ -1,0 +1,51 @@
+"""The pre-registered offline primary endpoint (docs/experiments.md) of committed runs CSVs.
+
+    python docs/scripts/offline_primary.py docs/results/paper_*_runs.csv --out docs/results/offline_primary
+
+Reads per-run rows (``prediction_runs.csv`` of ``pets.compare offline``, committed as
+``docs/results/paper_ENV_runs.csv``) and writes ``OUT.csv`` (:data:`pets.experiments.primary.PRIMARY_COLUMNS`,
+Holm over every (env, arm) test of the call) and ``OUT_past_level.csv`` (how models fail, per horizon), and prints
+the table. The data sets are not in the repository, so the level is sqrt(2) (``level_source`` says so); a fresh
+``pets.compare offline`` computes it from its data.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import sys
+from pathlib import Path
+
+from pets.experiments.primary import PAST_LEVEL_COLUMNS, PRIMARY_COLUMNS, past_level_rows, primary_rows
+from pets.experiments.report import write_csv
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("runs", nargs="+", type=Path, help="per-run CSVs (env, model, seed, horizon, standardized_error)")
+    p.add_argument("--out", type=Path, required=True, help="output prefix: OUT.csv and OUT_past_level.csv")
+    p.add_argument("--models", help="comma-separated models to keep (default: all; delta is always kept)")
+    args = p.parse_args(argv)
+    keep = None if args.models is None else {"delta", *args.models.split(",")}
+    rows = []
+    for path in args.runs:
+        if not path.is_file():
+            p.error(f"{path} does not exist")
+        rows += [r for r in csv.DictReader(open(path)) if keep is None or r["model"] in keep]
+    primary = primary_rows(rows)
+    write_csv(Path(f"{args.out}.csv"), primary, PRIMARY_COLUMNS)
+    write_csv(Path(f"{args.out}_past_level.csv"), past_level_rows(rows), PAST_LEVEL_COLUMNS)
+    for r in primary:
+        if r["model"] != "delta":
+            print(
+                f"{r['env']:>18} {r['model']:>16} h={r['tracking_horizons']:<12} "
+                f"ratio {r.get('ratio_to_delta', float('nan')):.3f} "
+                f"[{r.get('ratio_ci_low', float('nan')):.3f}, {r.get('ratio_ci_high', float('nan')):.3f}] "
+                f"n={r.get('n_pairs', 0):<3} p={r.get('p_value_exact', float('nan')):.4f} "
+                f"holm={r.get('p_value_holm', float('nan')):.4f} {r['verdict']}"
+            )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
