@@ -6,7 +6,7 @@
     python -m pets.compare offline --envs E1,E2 --models M1,M2 [--seeds 0,1,2,3,4] --out DIR
                                    [--episodes E] [--test-episodes E2] [--max-steps T]
                                    [--policy random|smooth-random[:BETA]|existing] [--horizons 1,5,10,25,50]
-                                   [--starts K]
+                                   [--starts K] [--data-seeds 0,1,2]
                                    [--openloop] [--planners cem,mppi] [--openloop-steps 50] [--openloop-episodes 5]
                                    [--preset research|fast] [--device D] [--quiet] [ARMS] [BACKEND]
                                    [key=value ...]
@@ -152,6 +152,13 @@ def build_parser() -> OneLineParser:
         help="test episodes per env (default 20; --protocol paper: 20k samples' worth, ceil(20000 / episode length))",
     )
     off.add_argument("--max-steps", type=int, help="steps per collected episode at most (default: env's length)")
+    off.add_argument(
+        "--data-seeds",
+        default="0",
+        help="data sets (comma-separated ints >= 0, default 0): each is collected anew (SAC too) with its own test "
+        "set, every model and seed runs on each, and the statistics pair by (data seed, seed), data sets as the "
+        "outer level of the bootstrap",
+    )
     off.add_argument(
         "--policy",
         default="random",
@@ -382,6 +389,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 progress=not args.quiet,
                 arms=arms,
                 configs_only=args.print_config,
+                data_seeds=parse_seeds(args.data_seeds, "--data-seeds"),
             )
             report = out / "prediction.md"
     except UsageError as err:
