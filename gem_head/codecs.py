@@ -350,25 +350,33 @@ class SO3QuatCodec(GroupCodec):
 CODECS: dict[str, type[GroupCodec]] = {}
 
 
+#: Kinds that ``register_codec`` added to ``envs.layout.KIND_WIDTH`` (``unregister_codec`` removes only those).
+_ADDED_KINDS: set[str] = set()
+
+
 def register_codec(cls: type[GroupCodec]) -> type[GroupCodec]:
-    """Add ``cls`` under ``cls.kind`` (usable as a decorator); a layout group kind (``width`` set, or ``Rn``) is
-    also accepted by ``envs.layout.Group`` from then on. A kind already registered to another class is an error."""
+    """Add ``cls`` under ``cls.kind`` (usable as a decorator); a layout group kind (any codec but a ``composite``
+    root codec) is also accepted by ``envs.layout.Group`` from then on. A kind already registered to another class,
+    or known to the layout with another width, is an error."""
     known = CODECS.get(cls.kind)
     if known is not None and known is not cls:
         raise ValueError(f"codec kind {cls.kind!r} is already registered to {known.__name__}")
-    if cls.kind in KIND_WIDTH and KIND_WIDTH[cls.kind] != cls.width:
+    composite = getattr(cls, "composite", False)
+    if not composite and cls.kind in KIND_WIDTH and KIND_WIDTH[cls.kind] != cls.width:
         raise ValueError(f"kind {cls.kind!r} has width {KIND_WIDTH[cls.kind]} in envs.layout, {cls.width} in {cls}")
     CODECS[cls.kind] = cls
-    if not getattr(cls, "composite", False):
+    if not composite and cls.kind not in KIND_WIDTH:
         KIND_WIDTH[cls.kind] = cls.width
+        _ADDED_KINDS.add(cls.kind)
     return cls
 
 
 def unregister_codec(kind: str) -> None:
-    """Remove a kind added by ``register_codec`` (layouts using it become invalid again)."""
-    cls = CODECS.pop(kind)
-    if not getattr(cls, "composite", False) and kind not in ("Rn", "SO2_angle", "SO2_cossin", "SO3_quat"):
-        KIND_WIDTH.pop(kind, None)
+    """Remove a kind added by ``register_codec`` (layouts using a kind it added become invalid again)."""
+    del CODECS[kind]
+    if kind in _ADDED_KINDS:
+        _ADDED_KINDS.discard(kind)
+        del KIND_WIDTH[kind]
 
 
 for _cls in (RnCodec, SO2AngleCodec, SO2CosSinCodec, SO3QuatCodec):
