@@ -1635,3 +1635,40 @@ def test_offline_data_seeds_pair_by_data_set_and_seed(offline, tmp_path):
     exact = scipy.stats.permutation_test((np.log(ratios),), np.mean, permutation_type="samples", n_resamples=np.inf)
     assert float(row["p_value_exact"]) == pytest.approx(exact.pvalue)
     assert float(row["ratio_ci_low"]) <= float(row["ratio_to_delta"]) <= float(row["ratio_ci_high"])
+
+
+def test_offline_closedloop_plans_with_the_frozen_models_and_pairs_them(offline, tmp_path):
+    """Issue 38: --closedloop drives MPC with every trained model (no training: the checkpoints are untouched),
+    writes closedloop_PLANNER.json per run and closedloop.csv with the paired difference to delta and its exact p."""
+    import shutil
+
+    out = tmp_path / "offline"
+    shutil.copytree(offline[0], out)
+    ckpt = {d.name: (d / "checkpoint.pt").read_bytes() for d in (out / "runs").iterdir()}
+    kwargs = dict(episodes=8, test_episodes=4, horizons=[1, 3, 5], starts=20, preset="fast", device="cpu")
+    result = compare_offline(
+        ["invertedpendulum"], ["delta", "gem"], [0, 1], out, overrides=TINY_OFFLINE, progress=False,
+        closedloop=True, closedloop_steps=10, planners=["cem"], openloop_episodes=2, **kwargs,
+    )  # fmt: skip
+    assert result["failed"] == {} and all("closedloop_cem" in todo for todo in result["todo"].values())
+    assert {d.name: (d / "checkpoint.pt").read_bytes() for d in (out / "runs").iterdir()} == ckpt
+    res = {
+        (m, s): json.loads((out / "runs" / f"invertedpendulum-{m}-s{s}" / "closedloop_cem.json").read_text())
+        for m in ("delta", "gem")
+        for s in (0, 1)
+    }
+    spec = envs.get("invertedpendulum")
+    sim = spec.make()
+    r = res["gem", 1]
+    assert r["mode"] == "closed" and r["steps"] == 10 and r["episodes"] == 2
+    for i in range(2):  # the recorded rewards are the simulator's for the executed actions
+        sim.reset(seed=r["reset_seeds"][i])
+        for t in range(r["lengths"][i]):
+            assert sim.step(np.array(r["executed_actions"][i][t]))[1] == pytest.approx(r["rewards"][i][t])
+    assert r["reset_seeds"] == res["delta", 1]["reset_seeds"]  # paired: the same episodes for every model
+    row = {x["model"]: x for x in csv_rows(out / "closedloop.csv")}["gem"]
+    d = [res["gem", s]["total"]["mean"] - res["delta", s]["total"]["mean"] for s in (0, 1)]
+    assert float(row["diff_to_delta"]) == pytest.approx(np.mean(d), rel=1e-12) and row["n_pairs"] == "2"
+    exact = scipy.stats.permutation_test((np.array(d),), np.mean, permutation_type="samples", n_resamples=np.inf)
+    assert float(row["p_value_exact"]) == pytest.approx(exact.pvalue)
+    assert (out / "closedloop.md").is_file() and (out / "closedloop_invertedpendulum.png").stat().st_size > 1000

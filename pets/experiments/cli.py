@@ -8,6 +8,7 @@
                                    [--policy random|smooth-random[:BETA]|existing] [--horizons 1,5,10,25,50]
                                    [--starts K] [--data-seeds 0,1,2]
                                    [--openloop] [--planners cem,mppi] [--openloop-steps 50] [--openloop-episodes 5]
+                                   [--closedloop] [--closedloop-steps 300]
                                    [--preset research|fast] [--device D] [--quiet] [ARMS] [BACKEND]
                                    [key=value ...]
     python -m pets.compare headline [--offline S1.csv ...] [--online S2.csv ...] [--relative R1.csv ...]
@@ -179,6 +180,13 @@ def build_parser() -> OneLineParser:
     off.add_argument("--planners", default="cem,mppi", help="open-loop planners (default cem,mppi)")
     off.add_argument("--openloop-steps", type=int, default=50, help="open-loop plan length (default 50)")
     off.add_argument("--openloop-episodes", type=int, default=5, help="open-loop episodes per run (default 5)")
+    off.add_argument(
+        "--closedloop",
+        action="store_true",
+        help="also drive MPC with every trained model, frozen (the run's planner per --planners, the open-loop "
+        "episodes' seeds; closedloop.csv, paired to delta)",
+    )
+    off.add_argument("--closedloop-steps", type=int, default=300, help="closed-loop steps per episode (default 300)")
 
     head = sub.add_parser(
         "headline",
@@ -381,6 +389,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                 planners=planners,
                 openloop_steps=args.openloop_steps,
                 openloop_episodes=args.openloop_episodes,
+                closedloop=args.closedloop,
+                closedloop_steps=args.closedloop_steps,
                 backend=backend,
                 preset=args.preset,
                 device=args.device or "auto",

@@ -18,9 +18,11 @@ Per run: train offline (``pets.train.train_offline``, model seed = the run's see
 run directory holds a trained model; evaluate on the test data (``pets.evaluate``, mean mode, the
 same start points for every model and seed of an env: evaluation seed 0; ``standardized_error`` scaled
 by the training data) into ``eval.json`` unless it holds this evaluation already; with ``--openloop``,
-open-loop planning (``pets.openloop``, seed 2) per planner into ``openloop_PLANNER.json``. Jobs run on the backend
-(:class:`pets.experiments.runner.Backend`): a pool of K processes or, with K = 1, this process; or one Ray task
-each. A job killed part way is redone whole when it runs again (``config.yaml`` is written last).
+open-loop planning (``pets.openloop``, seed 2) per planner into ``openloop_PLANNER.json``; with ``--closedloop``,
+MPC with the frozen model (``pets.openloop --closed-loop``, the same episodes) into ``closedloop_PLANNER.json``.
+Jobs run on the backend (:class:`pets.experiments.runner.Backend`): a pool of K processes or, with K = 1, this
+process; or one Ray task each. A job killed part way is redone whole when it runs again (``config.yaml`` is
+written last).
 """
 
 from __future__ import annotations
@@ -33,7 +35,8 @@ from typing import Any
 
 from pets.experiments.arguments import PROG, UsageError, few_seeds_warning
 from pets.experiments.backend import Backend
-from pets.experiments.offline_summary import summarise_offline, summarise_openloop
+from pets.experiments.offline_summary import summarise_offline
+from pets.experiments.planning_summary import summarise_openloop
 from pets.experiments.rundirs import (
     NOT_COMPARED,
     check_out_writable,
@@ -238,16 +241,28 @@ def _offline_job(job: Mapping[str, Any]) -> dict[str, Any]:
         if load_config(str(run_dir / "config.yaml")).tensorboard:  # per-horizon errors for TensorBoard (pets.tblog)
             write_events(run_dir, job["test_data"], result)
         done.append("eval")
-    for planner in job["planners"]:
-        path = run_dir / f"openloop_{planner}.json"
-        request = {**job["openloop_request"], "planner": planner}
+    for kind, planner in _planning_tasks(job):
+        path = run_dir / f"{kind}_{planner}.json"
+        request = {**job[f"{kind}_request"], "planner": planner}
         if "train" in done or not json_matches(path, request):
             r = request
-            result = open_loop(run_dir, planner, r["steps"], r["episodes"], r["seed"], device=job["device"])
+            result = open_loop(
+                run_dir, planner, r["steps"], r["episodes"], r["seed"], device=job["device"], closed=kind == CLOSED
+            )
             result["request"] = request
             atomic_write_bytes(path, (json.dumps(result) + "\n").encode())
-            done.append(f"openloop_{planner}")
+            done.append(f"{kind}_{planner}")
     return {"name": run_dir.name, "done": done}
+
+
+#: The planning kinds of the offline mode: open-loop plans (``--openloop``) and MPC with the frozen model
+#: (``--closedloop``); a run's results are ``KIND_PLANNER.json``.
+OPEN, CLOSED = "openloop", "closedloop"
+
+
+def _planning_tasks(job: Mapping[str, Any]) -> list[tuple[str, str]]:
+    """(kind, planner) of every planning result ``job`` asks for."""
+    return [(OPEN, p) for p in job["planners"]] + [(CLOSED, p) for p in job.get("closed_planners", [])]
 
 
 def offline_todo(job: Mapping[str, Any]) -> list[str]:
@@ -257,10 +272,10 @@ def offline_todo(job: Mapping[str, Any]) -> list[str]:
     if todo or not json_matches(run_dir / "eval.json", job["eval_request"]):
         todo.append("eval")
     todo += [
-        f"openloop_{p}"
-        for p in job["planners"]
+        f"{kind}_{p}"
+        for kind, p in _planning_tasks(job)
         if todo[:1] == ["train"]
-        or not json_matches(run_dir / f"openloop_{p}.json", {**job["openloop_request"], "planner": p})
+        or not json_matches(run_dir / f"{kind}_{p}.json", {**job[f"{kind}_request"], "planner": p})
     ]
     return todo
 
@@ -281,6 +296,8 @@ def compare_offline(
     planners: Sequence[str] = ("cem", "mppi"),
     openloop_steps: int = 50,
     openloop_episodes: int = 5,
+    closedloop: bool = False,
+    closedloop_steps: int = 300,
     backend: Backend | None = None,
     preset: str = "research",
     device: str = "auto",
@@ -332,6 +349,7 @@ def compare_offline(
         ("starts", starts),
         ("openloop-steps", openloop_steps),
         ("openloop-episodes", openloop_episodes),
+        ("closedloop-steps", closedloop_steps),
     ):
         if value < 1:
             raise UsageError(f"--{name} must be >= 1, got {value}")
@@ -382,6 +400,7 @@ def compare_offline(
         "standardized_by": "train data",
     }
     openloop_request = {"steps": openloop_steps, "episodes": openloop_episodes, "seed": OPENLOOP_SEED}
+    closedloop_request = {"steps": closedloop_steps, "episodes": openloop_episodes, "seed": OPENLOOP_SEED}
     for env in env_names:
         for model in models:
             head, own = (arms or {}).get(model, (model, {}))
@@ -403,6 +422,8 @@ def compare_offline(
                     "eval_request": {**eval_request, "data": f"data/{test_path.name}"},
                     "planners": list(planners) if openloop else [],
                     "openloop_request": openloop_request,
+                    "closed_planners": list(planners) if closedloop else [],
+                    "closedloop_request": closedloop_request,
                 }
                 todo = offline_todo(job)
                 if todo:
@@ -456,4 +477,6 @@ def compare_offline(
     summary = summarise_offline(out, env_names, models, seeds, eval_request, failed, data_seeds=data_seeds)
     if openloop:
         summarise_openloop(out, env_names, models, seeds, planners, openloop_request)
+    if closedloop:
+        summarise_openloop(out, env_names, models, seeds, planners, closedloop_request, kind=CLOSED)
     return {"data": data_actions, "todo": pending, "done": done, "failed": failed, "summary": summary}

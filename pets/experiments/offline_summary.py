@@ -55,7 +55,7 @@ from typing import Any
 import numpy as np
 
 from pets.evaluate import METRICS as EVALUATE_METRICS
-from pets.experiments.plots import model_colors, plot_absolute, plot_openloop, plot_ratio, plot_relative
+from pets.experiments.plots import plot_absolute, plot_ratio, plot_relative
 from pets.experiments.primary import (
     PAST_LEVEL_COLUMNS,
     PRIMARY_COLUMNS,
@@ -64,7 +64,7 @@ from pets.experiments.primary import (
     primary_markdown,
     primary_rows,
 )
-from pets.experiments.report import BOOT_SEED, fmt_ci, fmt_interval, md_table, write_csv
+from pets.experiments.report import BOOT_SEED, fmt_interval, md_table, write_csv
 from pets.experiments.rundirs import json_matches, precision_note, run_name
 from pets.experiments.statistics import (
     BASELINE,
@@ -76,7 +76,6 @@ from pets.experiments.statistics import (
     p_improvement_ci,
     paired_ratios,
     sign_flip_p,
-    summarise,
 )
 from pets.fileio import atomic_write_bytes
 
@@ -494,90 +493,3 @@ def summarise_offline(
         text += [f"- {m}{': ' + failed[m] if failed and m in failed else ''}" for m in missing] + [""]
     atomic_write_bytes(out / "prediction.md", "\n".join(text).encode())
     return summary
-
-
-def summarise_openloop(
-    out: Path,
-    env_names: Sequence[str],
-    models: Sequence[str],
-    seeds: Sequence[int],
-    planners: Sequence[str],
-    request: Mapping[str, Any],
-) -> list[dict[str, Any]]:
-    """Write openloop.md, openloop.csv and openloop_ENV.png from the runs' openloop_PLANNER.json files."""
-    out = Path(out)
-    rows, text = (
-        [],
-        [
-            "# Open-loop planning (GEM paper section 5.2)",
-            "",
-            f"Each trained model plans {request['steps']} actions once from the initial state of "
-            f"{request['episodes']} episodes (seed {request['seed']}); the actions run in the real env "
-            "without feedback (rewards after a real termination count as 0). Per seed: the mean over "
-            "episodes; then mean over seeds with the 95 % percentile-bootstrap CI.",
-            "",
-        ],
-    )
-    colors = model_colors(list(models))
-    for env in env_names:
-        table, panels = [], {}
-        for planner in planners:
-            for model in models:
-                results = []
-                for seed in seeds:
-                    path = out / "runs" / run_name(env, model, seed) / f"openloop_{planner}.json"
-                    if json_matches(path, {**request, "planner": planner}):
-                        results.append(json.loads(path.read_text()))
-                if not results:
-                    continue
-                per_step = summarise([r["mean_reward_per_step"]["mean"] for r in results], seed=BOOT_SEED)
-                total = summarise([r["total"]["mean"] for r in results], seed=BOOT_SEED)
-                rows.append(
-                    {
-                        "env": env,
-                        "planner": planner,
-                        "model": model,
-                        "n_seeds": per_step["n"],
-                        "steps": request["steps"],
-                        "reward_per_step_mean": per_step["mean"],
-                        "reward_per_step_ci_low": per_step["ci_low"],
-                        "reward_per_step_ci_high": per_step["ci_high"],
-                        "reward_per_step_iqm": per_step["iqm"],
-                        "total_mean": total["mean"],
-                        "total_ci_low": total["ci_low"],
-                        "total_ci_high": total["ci_high"],
-                    }
-                )
-                table.append([planner, model, str(per_step["n"]), fmt_ci(per_step), fmt_ci(total)])
-                panels.setdefault(planner, {})[model] = np.array([r["reward_per_step"]["mean"] for r in results])
-        if not table:
-            continue
-        text += [
-            f"## {env}",
-            "",
-            md_table(["planner", "model", "seeds", "reward per step", "total reward"], table),
-            "",
-            f"![open loop](openloop_{env}.png)",
-            "",
-        ]
-        plot_openloop(out / f"openloop_{env}.png", env, panels, colors)
-    write_csv(
-        out / "openloop.csv",
-        rows,
-        [
-            "env",
-            "planner",
-            "model",
-            "n_seeds",
-            "steps",
-            "reward_per_step_mean",
-            "reward_per_step_ci_low",
-            "reward_per_step_ci_high",
-            "reward_per_step_iqm",
-            "total_mean",
-            "total_ci_low",
-            "total_ci_high",
-        ],
-    )
-    atomic_write_bytes(out / "openloop.md", "\n".join(text).encode())
-    return rows
