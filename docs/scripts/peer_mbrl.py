@@ -292,7 +292,10 @@ def mbrl_planner(cfg: Any, obs: Any, act: Any, nxt: Any, reward_fn: Any, term_fn
 
 
 # ---------------------------------------------------------------------------------------------- plan
-def plan(args: argparse.Namespace) -> int:
+def halfcheetah_pair(threads: int) -> dict[str, Any]:
+    """The research config (delta, CPU, ``threads``), this project's fitted model and start state
+    (``pets.bench.prepare``), and mbrl-lib's agent on a model fitted to the same 400 random transitions, with its
+    observation of the same start state; ``elites``: the members mbrl propagates."""
     require_mbrl()
     import mbrl.env.reward_fns
     import mbrl.env.termination_fns
@@ -302,16 +305,10 @@ def plan(args: argparse.Namespace) -> int:
     from pets import bench
     from pets.config import make_config
 
-    torch.set_num_threads(args.threads)
-    torch.set_num_interop_threads(args.threads)
-    cfg = make_config("halfcheetah", "delta", "research", {"device": "cpu", "threads": args.threads})
+    torch.set_num_threads(threads)
+    torch.set_num_interop_threads(threads)
+    cfg = make_config("halfcheetah", "delta", "research", {"device": "cpu", "threads": threads})
     p, m = cfg.planner, cfg.model
-    rows = [
-        (f"gem-pets default: {p.name} {p.precision} {'compiled' if p.compile else 'eager'}", {}),
-        ("gem-pets fp32: cem fp32 eager", {"name": "cem", "precision": "fp32", "compile": False}),
-    ]
-    mach = machine()
-    print(f"{_utc_now()}: {mach}", flush=True)
     parts = bench.prepare(cfg)  # the project's model, fitted on 400 random transitions (seed cfg.seed)
     spec = parts["spec"]
     obs, act, nxt = bench.collect_random(spec, 400, cfg.seed)  # the same transitions, for mbrl's model
@@ -350,6 +347,22 @@ def plan(args: argparse.Namespace) -> int:
     elites = len(model.elite_models) if model.elite_models is not None else len(model)
     if (p.population * p.particles) % elites:
         raise SystemExit(f"{PROG}: population x particles must be a multiple of mbrl's {elites} elites")
+    return {"cfg": cfg, "parts": parts, "agent": agent, "start_m": start_m, "elites": elites}
+
+
+def plan(args: argparse.Namespace) -> int:
+    from pets import bench
+
+    pair = halfcheetah_pair(args.threads)
+    mach = machine()
+    print(f"{_utc_now()}: {mach}", flush=True)
+    cfg, parts, agent, start_m, elites = (pair[k] for k in ("cfg", "parts", "agent", "start_m", "elites"))
+    model = agent.mbrl_model.model
+    p, m = cfg.planner, cfg.model
+    rows = [
+        (f"gem-pets default: {p.name} {p.precision} {'compiled' if p.compile else 'eager'}", {}),
+        ("gem-pets fp32: cem fp32 eager", {"name": "cem", "precision": "fp32", "compile": False}),
+    ]
     t0 = time.perf_counter()
     agent.reset()
     agent.act(start_m)  # warm-up
@@ -421,6 +434,22 @@ def plan(args: argparse.Namespace) -> int:
             f"mbrl/this wall {r['mbrl_over_this_wall']:.2f} cpu {r['mbrl_over_this_cpu']:.2f}"
         )
     print(f"wrote {args.out}")
+    return 0
+
+
+def profile(args: argparse.Namespace) -> int:
+    """torch.profiler over one mbrl-lib planning step at the ``plan`` shapes: the ops by self CPU time."""
+    import torch
+
+    pair = halfcheetah_pair(args.threads)
+    agent, start_m = pair["agent"], pair["start_m"]
+    agent.reset()
+    agent.act(start_m)  # warm-up
+    agent.reset()
+    with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as prof:
+        agent.act(start_m)
+    print(f"{_utc_now()}: {machine()}")
+    print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=args.rows))
     return 0
 
 
@@ -842,6 +871,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--repeats", type=int, default=7, help="rounds (steps per row); medians over them")
     s.add_argument("--threads", type=int, default=1, help="torch intra- and inter-op threads")
     s.add_argument("--out", default=str(RESULTS / "peer_planning_step.csv"))
+    s = sub.add_parser("profile", help="torch.profiler over one mbrl-lib planning step at the plan shapes")
+    s.add_argument("--threads", type=int, default=1)
+    s.add_argument("--rows", type=int, default=15)
     for name, helptext in (
         ("learn", "mbrl-lib's PETS loop vs run_pets.py --model delta, paired seeds"),
         ("_mbrl-run", argparse.SUPPRESS),
@@ -879,7 +911,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.command == "setup":
             return setup(args)
-        return {"plan": plan, "learn": learn, "_mbrl-run": mbrl_run}[args.command](args)
+        return {"plan": plan, "profile": profile, "learn": learn, "_mbrl-run": mbrl_run}[args.command](args)
     except MbrlMissing as err:
         print(f"{PROG}: {err}", file=sys.stderr)
         return 2
