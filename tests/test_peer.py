@@ -119,6 +119,8 @@ def test_learning_summary_pairs_and_tests():
                         "episode_reward": base + trial,
                         "trial_wall_s": 1.0,
                         "run_cpu_s": 8.0 if impl == "gem-pets" else 16.0,
+                        "env_steps": 100 * (trial + 1),
+                        "steps_to_threshold": 300.0 if impl == "gem-pets" or seed < 2 else math.nan,
                     }
                 )
     summary = {s["metric"]: s for s in peer.learning_summary(rows, trials=4)}
@@ -130,3 +132,7 @@ def test_learning_summary_pairs_and_tests():
     cpu = summary["cpu_s_per_trial"]
     assert cpu["gem_pets_mean"] == 2.0 and cpu["mbrl_lib_mean"] == 4.0
     assert math.isclose(cpu["diff_mean"], -2.0)
+    assert summary["cpu_s_per_env_step"]["diff_mean"] == pytest.approx(8 / 400 - 16 / 400)
+    reached = summary["reached_threshold"]
+    assert reached["gem_pets_mean"] == 1.0 and reached["mbrl_lib_mean"] == pytest.approx(0.4)
+    assert summary["steps_to_threshold"]["n_pairs"] == 2  # only the seeds where both reached it

@@ -52,6 +52,7 @@ import argparse
 import csv
 import datetime
 import json
+import math
 import os
 import platform
 import resource
@@ -809,8 +810,10 @@ def _project_overrides(s: dict[str, Any]) -> list[str]:
 def learning_summary(rows: list[dict[str, Any]], trials: int) -> list[dict[str, Any]]:
     """Per metric: each arm's mean, and the paired difference gem-pets - mbrl-lib over the seeds both have, its
     mean, 95 % percentile-bootstrap CI (pets.experiments.statistics.bootstrap_ci) and the exact sign-flip
-    p-value (sign_flip_p). Metrics: final reward (mean of the last 3 trials), mean reward over all trials,
-    wall seconds per trial (all trials), CPU seconds per trial (the run's CPU from rusage / trials)."""
+    p-value (sign_flip_p). Metrics: final reward (mean of the last 3 trials), mean reward over all trials, env
+    steps taken (seed phase included), reached the threshold (1/0), env steps to the threshold (seeds where both
+    reached it), wall seconds per trial (all trials), CPU seconds per trial and per env step (the run's CPU from
+    rusage, process start-up and seed phase included, / trials or / env steps), the run's CPU seconds."""
     import numpy as np
 
     from pets.experiments.statistics import bootstrap_ci, paired_differences, sign_flip_p
@@ -827,12 +830,19 @@ def learning_summary(rows: list[dict[str, Any]], trials: int) -> list[dict[str, 
             m.setdefault("final_reward_last3", {})[seed] = float(np.mean(rewards[-3:]))
             m.setdefault("mean_reward_all_trials", {})[seed] = float(np.mean(rewards))
             m.setdefault("trials_run", {})[seed] = float(len(rs))
+            steps = float(rs[-1]["env_steps"])
+            m.setdefault("env_steps", {})[seed] = steps
+            to_threshold = float(rs[0]["steps_to_threshold"])
+            m.setdefault("reached_threshold", {})[seed] = float(math.isfinite(to_threshold))
+            if math.isfinite(to_threshold):
+                m.setdefault("steps_to_threshold", {})[seed] = to_threshold
             m.setdefault("wall_s_per_trial", {})[seed] = float(np.mean([float(r["trial_wall_s"]) for r in rs]))
             m.setdefault("cpu_s_per_trial", {})[seed] = float(rs[0]["run_cpu_s"]) / len(rs)
+            m.setdefault("cpu_s_per_env_step", {})[seed] = float(rs[0]["run_cpu_s"]) / steps
             m.setdefault("run_cpu_s", {})[seed] = float(rs[0]["run_cpu_s"])
     out = []
-    for metric in per["gem-pets"]:
-        a, b = per["gem-pets"][metric], per["mbrl-lib"].get(metric, {})
+    for metric in dict.fromkeys([*per["gem-pets"], *per["mbrl-lib"]]):
+        a, b = per["gem-pets"].get(metric, {}), per["mbrl-lib"].get(metric, {})
         seeds, d = paired_differences(a, b)
         d = d[:, 0] if d.size else d
         low, high = bootstrap_ci(d) if len(seeds) else (float("nan"), float("nan"))
@@ -849,6 +859,19 @@ def learning_summary(rows: list[dict[str, Any]], trials: int) -> list[dict[str, 
             }
         )
     return out
+
+
+def summarise(args: argparse.Namespace) -> int:
+    """The summary CSV of a ``learn`` runs CSV again (no mbrl-lib needed)."""
+    path = Path(args.runs)
+    with open(path, newline="") as f:
+        rows = list(csv.DictReader(f))
+    trials = max(int(r["trial"]) for r in rows) + 1
+    summary = learning_summary(rows, trials)
+    write_csv(path.with_name(path.stem + "_summary.csv"), summary)
+    for row in summary:
+        print(row)
+    return 0
 
 
 # ---------------------------------------------------------------------------------------------- setup
@@ -871,6 +894,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--repeats", type=int, default=7, help="rounds (steps per row); medians over them")
     s.add_argument("--threads", type=int, default=1, help="torch intra- and inter-op threads")
     s.add_argument("--out", default=str(RESULTS / "peer_planning_step.csv"))
+    s = sub.add_parser("summarise", help="write RUNS_summary.csv again from a learn runs CSV")
+    s.add_argument("runs")
     s = sub.add_parser("profile", help="torch.profiler over one mbrl-lib planning step at the plan shapes")
     s.add_argument("--threads", type=int, default=1)
     s.add_argument("--rows", type=int, default=15)
@@ -911,6 +936,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.command == "setup":
             return setup(args)
+        if args.command == "summarise":
+            return summarise(args)
         return {"plan": plan, "profile": profile, "learn": learn, "_mbrl-run": mbrl_run}[args.command](args)
     except MbrlMissing as err:
         print(f"{PROG}: {err}", file=sys.stderr)
