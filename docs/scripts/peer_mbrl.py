@@ -21,6 +21,9 @@ are fitted briefly on the same 400 random HalfCheetah-v5 transitions (2 epochs) 
 realistic normalised states. The three rows take turns in every round (a change in machine load hits them alike);
 each round times one fresh-plan step per row (the project's rows after an untimed warm-up step of
 ``time_rows``); the CSV gives medians over the rounds of wall and process-CPU seconds, and the machine.
+mbrl-lib's timed steps run after this project's agents are built, so under this project's process-wide glibc
+allocator setting (``pets.propagation.retain_freed_memory``); ``profile`` times mbrl-lib's step in a process of
+its own without and then with that setting, and profiles one step (torch.profiler, ops by self CPU time).
 
 ``learn``: mbrl-lib's PETS example loop (``mbrl.algorithms.pets.train``) vs ``run_pets.py --model delta`` at
 matched settings (ensemble, elites, CEM population/iterations/elite ratio/momentum, horizon, particles, TS-inf,
@@ -439,17 +442,42 @@ def plan(args: argparse.Namespace) -> int:
 
 
 def profile(args: argparse.Namespace) -> int:
-    """torch.profiler over one mbrl-lib planning step at the ``plan`` shapes: the ops by self CPU time."""
+    """mbrl-lib's planning step at the ``plan`` shapes in a process where this project built no agent: median
+    wall/CPU seconds and minor page faults of ``--repeats`` steps with glibc's default allocator settings, then
+    as many with this project's ``pets.propagation.retain_freed_memory()`` (process-wide; ``plan`` runs mbrl-lib
+    after this project's agents, so with it), then torch.profiler over one more step: the ops by self CPU time."""
     import torch
+
+    from pets.propagation import retain_freed_memory
 
     pair = halfcheetah_pair(args.threads)
     agent, start_m = pair["agent"], pair["start_m"]
     agent.reset()
     agent.act(start_m)  # warm-up
+    print(f"{_utc_now()}: {machine()}")
+
+    def timed(label: str) -> None:
+        wall, cpu, faults = [], [], []
+        for _ in range(args.repeats):
+            agent.reset()
+            f0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+            t0, c0 = time.perf_counter(), time.process_time()
+            agent.act(start_m)
+            wall.append(time.perf_counter() - t0)
+            cpu.append(time.process_time() - c0)
+            faults.append(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - f0)
+        print(
+            f"mbrl-lib step, {label}: wall {statistics.median(wall):.3f} s, cpu {statistics.median(cpu):.3f} s, "
+            f"minor page faults {statistics.median(faults):.0f} (medians of {args.repeats})",
+            flush=True,
+        )
+
+    timed("glibc defaults")
+    print(f"retain_freed_memory() in effect: {retain_freed_memory()}")
+    timed("with retain_freed_memory()")
     agent.reset()
     with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as prof:
         agent.act(start_m)
-    print(f"{_utc_now()}: {machine()}")
     print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=args.rows))
     return 0
 
@@ -898,6 +926,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("runs")
     s = sub.add_parser("profile", help="torch.profiler over one mbrl-lib planning step at the plan shapes")
     s.add_argument("--threads", type=int, default=1)
+    s.add_argument("--repeats", type=int, default=3, help="timed steps per allocator setting")
     s.add_argument("--rows", type=int, default=15)
     for name, helptext in (
         ("learn", "mbrl-lib's PETS loop vs run_pets.py --model delta, paired seeds"),
