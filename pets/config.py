@@ -11,7 +11,8 @@ from __future__ import annotations
 import difflib
 import math
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields, make_dataclass
+from functools import cache
 from pathlib import Path
 from typing import Any
 
@@ -19,12 +20,17 @@ import yaml
 from omegaconf import DictConfig, OmegaConf
 
 from pets.models import MODELS
+from pets.planners import PLANNER_CLASSES, ICEMConfig, MPPIConfig
+
+__all__ = ["ICEMConfig", "MPPIConfig"]  # the planners' sections, once defined here
 
 #: ``--model`` values (config key ``head``): the names of ``pets.models.MODELS``.
 HEADS = tuple(MODELS)
 #: Models without a predictive variance (MSE / Frobenius training, zero sampling noise).
 DETERMINISTIC_HEADS = tuple(name for name, entry in MODELS.items() if entry.deterministic)
-PLANNERS = ("cem", "icem", "mppi")
+#: ``planner.name`` values: the names of the planner table (``pets.planners.PLANNER_CLASSES``; a live view, so a
+#: planner registered later is accepted too).
+PLANNERS = PLANNER_CLASSES.keys()
 #: What a planner's candidate is: an action sequence (PETS) or the gains of a linear feedback law (pets.feedback).
 CANDIDATES = ("open_loop", "feedback")
 PRECISIONS = ("auto", "fp32", "bf16")  # auto: resolved by make_config / load_config (pets.hardware)
@@ -59,24 +65,6 @@ class ModelConfig:
 
 
 @dataclass
-class ICEMConfig:
-    """``planner.icem.*``: the iCEM planner's own arguments (``pets.planners.ICEMPlanner``)."""
-
-    noise_beta: float = 2.0  # colored-noise exponent: 0 white, 2 red (the iCEM paper's locomotion choice)
-    population_decay: float = 1.25  # population_i = max(population * decay^-i, 2 * elites)
-    keep_elites: float = 0.3  # fraction of the elites carried into the next iteration / MPC step
-
-
-@dataclass
-class MPPIConfig:
-    """``planner.mppi.*``: the MPPI planner's own arguments (``pets.planners.MPPIPlanner``)."""
-
-    sigma: float = 0.5  # perturbation std in units of the action half-range (ub - lb) / 2
-    temperature: float = 0.3  # softmax temperature on returns normalised by (max - median)
-    smoothing: float = 1.0  # low-pass coefficient in (0, 1] along the horizon; 1 = independent steps
-
-
-@dataclass
 class FeedbackConfig:
     """``planner.feedback.*``: linear state-feedback candidates (``planner.candidates=feedback``, pets.feedback)."""
 
@@ -89,6 +77,8 @@ class FeedbackConfig:
 
 @dataclass
 class PlannerConfig:
+    """``planner.*``: the settings every planner shares (each planner's own section is added by :func:`schema`)."""
+
     name: str = "cem"
     # open_loop: candidates are action sequences (PETS); feedback: gains of a linear state-feedback law, each
     # rolled out for `horizon` steps in closed loop, replanned every step (pets.feedback, docs/planning.md)
@@ -101,9 +91,8 @@ class PlannerConfig:
     particles: int = 20
     propagation: str = "tsinf"
     replan_every: int = 1
-    # The settings of one planner only (used when planner.name is that planner)
-    icem: ICEMConfig = field(default_factory=ICEMConfig)
-    mppi: MPPIConfig = field(default_factory=MPPIConfig)
+    # The settings of one planner only, planner.<name>.* (used when planner.name is that planner), are added by
+    # schema() from the planner table (pets.planners.PLANNER_CLASSES: each class's `section`)
     feedback: FeedbackConfig = field(default_factory=FeedbackConfig)
     # Speed of the rollouts (docs/performance.md)
     # auto | fp32 | bf16: the ensemble's matmuls under bfloat16 autocast (state, sampling and returns fp32); auto:
@@ -152,6 +141,25 @@ class Config:
     planner: PlannerConfig = field(default_factory=PlannerConfig)
     gem: GemConfig = field(default_factory=GemConfig)
     value: ValueConfig = field(default_factory=ValueConfig)
+
+
+@cache
+def _schema_class(sections: tuple[tuple[str, type], ...]) -> type:
+    """:class:`Config` whose ``planner`` has the fields ``sections`` (name, dataclass) besides the shared ones."""
+    own = [(name, section, field(default_factory=section)) for name, section in sections]
+    planner = make_dataclass("PlannerConfig", own, bases=(PlannerConfig,))
+    return make_dataclass("Config", [("planner", planner, field(default_factory=planner))], bases=(Config,))
+
+
+def schema() -> DictConfig:
+    """The typed config at its defaults: :class:`Config` with the section ``planner.<name>.*`` of every planner in
+    the table that has one (``pets.planners``: the class's ``section``)."""
+    shared = {item.name for item in fields(PlannerConfig)}
+    sections = tuple((name, cls.section) for name, cls in PLANNER_CLASSES.items() if cls.section is not None)
+    clash = [name for name, _ in sections if name in shared]
+    if clash:
+        raise ConfigError(f"planner {clash[0]!r} has a section but planner.{clash[0]} is a shared planner setting")
+    return OmegaConf.structured(_schema_class(sections))
 
 
 # Per-env research defaults, following the PETS references (REFERENCE.md section 1); envs without a
@@ -230,7 +238,6 @@ _POSITIVE_INTS = [
 ]
 _CHOICES = {
     "head": HEADS,
-    "planner.name": PLANNERS,
     "planner.candidates": CANDIDATES,
     "planner.propagation": PROPAGATIONS,
     "planner.precision": PRECISIONS,
@@ -244,7 +251,7 @@ _CHOICES = {
 
 def all_keys(cfg: DictConfig | None = None, prefix: str = "") -> list[str]:
     """Every dotted key of the config, e.g. ``planner.population``."""
-    cfg = OmegaConf.structured(Config) if cfg is None else cfg
+    cfg = schema() if cfg is None else cfg
     keys: list[str] = []
     for k, v in cfg.items():
         name = f"{prefix}{k}"
@@ -381,15 +388,7 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError(f"video_every must be >= 0 (0: no videos; N: every N-th trial), got {cfg.video_every}")
     if MODELS[cfg.head].needs_root:
         _check_root_model(cfg)
-    from pets.planners import PLANNER_CLASSES  # each planner checks its own section: one range per argument
-
-    if PLANNER_CLASSES[cfg.planner.name].uses_elites:
-        _check_elites(cfg.planner.elites, cfg.planner.population)
-    for name in ("icem", "mppi"):
-        try:
-            PLANNER_CLASSES[name].check_args(**cfg.planner[name])
-        except ValueError as err:
-            raise ConfigError(f"planner.{name}.{err}") from None
+    _check_planner(cfg)
     if cfg.planner.replan_every > cfg.planner.horizon:
         raise ConfigError(
             f"planner.replan_every ({cfg.planner.replan_every}) must be <= planner.horizon ({cfg.planner.horizon})"
@@ -402,6 +401,22 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError(f"episode_length must be >= 1 or null, got {cfg.episode_length}")
     if cfg.stop_reward is not None and not math.isfinite(cfg.stop_reward):
         raise ConfigError(f"stop_reward must be a finite number or null, got {cfg.stop_reward}")
+
+
+def _check_planner(cfg: DictConfig) -> None:
+    """``planner.name`` against the planner table, ``planner.elites`` where the planner ranks, and every planner's
+    own section (each planner checks its own arguments: one range per argument)."""
+    name = cfg.planner.name
+    if name not in PLANNER_CLASSES:
+        raise ConfigError(f"planner.name must be one of {', '.join(PLANNER_CLASSES)}, got {name!r}")
+    if PLANNER_CLASSES[name].uses_elites:
+        _check_elites(cfg.planner.elites, cfg.planner.population)
+    for other, cls in PLANNER_CLASSES.items():
+        if cls.section is not None:
+            try:
+                cls.options(**cfg.planner[other])
+            except ValueError as err:
+                raise ConfigError(f"planner.{other}.{err}") from None
 
 
 def _check_elites(elites: float, population: int) -> None:
@@ -421,18 +436,21 @@ def _check_feedback(cfg: DictConfig) -> None:
     """The settings of ``planner.candidates=feedback`` (the observation indices are checked against the env's
     observation size by pets.feedback when the agent is built)."""
     p, f = cfg.planner, cfg.planner.feedback
-    if p.name not in ("cem", "mppi"):
+    for key in ("gain_bound", "gain_std"):
+        if not math.isfinite(f[key]) or f[key] <= 0:
+            raise ConfigError(f"planner.feedback.{key} must be a finite number > 0, got {f[key]}")
+    can = [  # the planners that search gains (pets.planners.BoxPlanner.gain_options)
+        name for name, cls in PLANNER_CLASSES.items() if cls.gain_options(f.gain_bound, f.gain_std) is not None
+    ]
+    if p.name not in can:
         raise ConfigError(
-            f"planner.candidates=feedback needs planner.name cem or mppi, got {p.name!r} "
-            "(iCEM's coloured noise and carried elites act along a time axis that gains do not have)"
+            f"planner.candidates=feedback needs planner.name {' or '.join(can)}, got {p.name!r} "
+            f"({PLANNER_CLASSES[p.name].gains_note})"
         )
     if p.replan_every != 1:
         raise ConfigError(
             f"planner.candidates=feedback replans every step: planner.replan_every must be 1, got {p.replan_every}"
         )
-    for key in ("gain_bound", "gain_std"):
-        if not math.isfinite(f[key]) or f[key] <= 0:
-            raise ConfigError(f"planner.feedback.{key} must be a finite number > 0, got {f[key]}")
     if f.features is not None and len(f.features) == 0:
         raise ConfigError("planner.feedback.features must be null (all observations) or a non-empty list of indices")
     if f.scale is not None:
@@ -449,7 +467,7 @@ def make_config(
     """Resolve the full config for ``env`` (a canonical env name) and validate it."""
     if preset not in PRESETS:
         raise ConfigError(f"unknown preset {preset!r}; accepted: {', '.join(PRESETS)}")
-    cfg = OmegaConf.structured(Config)
+    cfg = schema()
     cfg.env = env
     _merge_nested(cfg, ENV_DEFAULTS.get(env, {}))
     _merge_nested(cfg, PRESETS[preset])
@@ -494,7 +512,7 @@ def load_config(path: str) -> DictConfig:
                 del stored.planner[old.split(".")[1]]
         if OmegaConf.select(stored, "model") is not None and "precision" not in stored.model:
             stored.model.precision = "fp32"  # a run from before model.precision existed trained in fp32
-        cfg = OmegaConf.merge(OmegaConf.structured(Config), stored)
+        cfg = OmegaConf.merge(schema(), stored)
     except Exception as err:  # a file from another version of the schema, or not a config at all
         raise ConfigError(
             f"{path} does not match this version's config schema: {str(err).splitlines()[0]}; {restore}"
