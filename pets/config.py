@@ -19,10 +19,15 @@ from typing import Any
 import yaml
 from omegaconf import DictConfig, OmegaConf
 
+from dynamics.networks import ACTIVATIONS
+from gem_head.head import COMPOSE_MODES, LOSSES
+from pets.feedback import FeedbackConfig, check_feedback
+from pets.hardware import CONCRETE_PRECISIONS
 from pets.models import MODELS
 from pets.planners import PLANNER_CLASSES, ICEMConfig, MPPIConfig
+from pets.propagation import CANDIDATES, PROPAGATIONS
 
-__all__ = ["ICEMConfig", "MPPIConfig"]  # the planners' sections, once defined here
+__all__ = ["FeedbackConfig", "ICEMConfig", "MPPIConfig"]  # sections defined by their owners
 
 #: ``--model`` values (config key ``head``): the names of ``pets.models.MODELS``.
 HEADS = tuple(MODELS)
@@ -31,10 +36,10 @@ DETERMINISTIC_HEADS = tuple(name for name, entry in MODELS.items() if entry.dete
 #: ``planner.name`` values: the names of the planner table (``pets.planners.PLANNER_CLASSES``; a live view, so a
 #: planner registered later is accepted too).
 PLANNERS = PLANNER_CLASSES.keys()
-#: What a planner's candidate is: an action sequence (PETS) or the gains of a linear feedback law (pets.feedback).
-CANDIDATES = ("open_loop", "feedback")
-PRECISIONS = ("auto", "fp32", "bf16")  # auto: resolved by make_config / load_config (pets.hardware)
-PROPAGATIONS = ("ts1", "tsinf", "expectation", "members")
+PRECISIONS = ("auto", *CONCRETE_PRECISIONS)  # auto: resolved by make_config / load_config (pets.hardware)
+DEVICES = ("auto", "cpu", "cuda")
+# The other choice lists are their owners': PROPAGATIONS and CANDIDATES (pets.propagation), ACTIVATIONS
+# (dynamics.networks), COMPOSE_MODES and LOSSES (gem_head.head), PLANNERS (the planner table), PRESETS (below).
 
 
 class ConfigError(ValueError):
@@ -62,17 +67,6 @@ class ModelConfig:
     # auto | fp32 | bf16: the training forward/backward under bfloat16 autocast (fp32 weights, loss, optimiser
     # and holdout error); auto: bf16 where the hardware has native bf16 matmuls (pets.hardware), else fp32
     precision: str = "auto"
-
-
-@dataclass
-class FeedbackConfig:
-    """``planner.feedback.*``: linear state-feedback candidates (``planner.candidates=feedback``, pets.feedback)."""
-
-    features: list[int] | None = None  # observation indices fed back; null: all
-    scale: list[float] | None = None  # their fixed scales; null: the replay buffer's std, refitted every training
-    bias: bool = False  # a constant term per action besides the gains
-    gain_bound: float = 10.0  # |gain| bound, in action half-ranges per feature scale
-    gain_std: float = 1.0  # the gains' sampling std at every plan (CEM's initial std; MPPI's sigma)
 
 
 @dataclass
@@ -242,10 +236,10 @@ _CHOICES = {
     "planner.propagation": PROPAGATIONS,
     "planner.precision": PRECISIONS,
     "model.precision": PRECISIONS,
-    "model.activation": ("silu", "relu"),
-    "gem.compose": ("left", "right"),
-    "gem.loss": ("nll", "frobenius", "nll+frobenius"),
-    "device": ("auto", "cpu", "cuda"),
+    "model.activation": tuple(ACTIVATIONS),
+    "gem.compose": COMPOSE_MODES,
+    "gem.loss": LOSSES,
+    "device": DEVICES,
 }
 
 
@@ -394,7 +388,10 @@ def validate(cfg: DictConfig) -> None:
             f"planner.replan_every ({cfg.planner.replan_every}) must be <= planner.horizon ({cfg.planner.horizon})"
         )
     if cfg.planner.candidates == "feedback":
-        _check_feedback(cfg)
+        try:
+            check_feedback(cfg.planner)
+        except ValueError as err:
+            raise ConfigError(str(err)) from None
     if not 0 < cfg.value.discount < 1:
         raise ConfigError(f"value.discount must be in (0, 1), got {cfg.value.discount}")
     if cfg.episode_length is not None and cfg.episode_length < 1:
@@ -430,35 +427,6 @@ def _check_elites(elites: float, population: int) -> None:
         elite_count(elites if elites < 1 else int(elites), population)
     except ValueError:
         raise ConfigError(f"planner.elites must be {accepted}, got {elites:g}") from None
-
-
-def _check_feedback(cfg: DictConfig) -> None:
-    """The settings of ``planner.candidates=feedback`` (the observation indices are checked against the env's
-    observation size by pets.feedback when the agent is built)."""
-    p, f = cfg.planner, cfg.planner.feedback
-    for key in ("gain_bound", "gain_std"):
-        if not math.isfinite(f[key]) or f[key] <= 0:
-            raise ConfigError(f"planner.feedback.{key} must be a finite number > 0, got {f[key]}")
-    can = [  # the planners that search gains (pets.planners.BoxPlanner.gain_options)
-        name for name, cls in PLANNER_CLASSES.items() if cls.gain_options(f.gain_bound, f.gain_std) is not None
-    ]
-    if p.name not in can:
-        raise ConfigError(
-            f"planner.candidates=feedback needs planner.name {' or '.join(can)}, got {p.name!r} "
-            f"({PLANNER_CLASSES[p.name].gains_note})"
-        )
-    if p.replan_every != 1:
-        raise ConfigError(
-            f"planner.candidates=feedback replans every step: planner.replan_every must be 1, got {p.replan_every}"
-        )
-    if f.features is not None and len(f.features) == 0:
-        raise ConfigError("planner.feedback.features must be null (all observations) or a non-empty list of indices")
-    if f.scale is not None:
-        n = len(f.features) if f.features is not None else None
-        if (n is not None and len(f.scale) != n) or not all(math.isfinite(v) and v > 0 for v in f.scale):
-            raise ConfigError(
-                f"planner.feedback.scale must be null or one finite value > 0 per feature, got {list(f.scale)}"
-            )
 
 
 def make_config(

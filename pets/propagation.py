@@ -76,9 +76,13 @@ from torch import Tensor
 from dynamics import fused
 from dynamics.model import DynamicsModel
 from pets.feedback import LinearFeedback
+from pets.hardware import CONCRETE_PRECISIONS as PRECISIONS
 
+#: ``planner.propagation``: how particles go through the ensemble (the module docstring).
 PROPAGATIONS = ("ts1", "tsinf", "expectation", "members")
-PRECISIONS = ("fp32", "bf16")
+#: ``planner.candidates``: what a planner's candidate is, an action sequence (PETS) or the gains of a linear
+#: feedback law (``pets.feedback``).
+CANDIDATES = ("open_loop", "feedback")
 
 #: ``fn(obs, act, next_obs) -> (...,)`` batched torch reward / termination function.
 TransitionFn = Callable[[Tensor, Tensor, Tensor], Tensor]

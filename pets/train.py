@@ -221,26 +221,29 @@ def _write_run(out: Path, state: dict[str, Any], row: dict[str, Any], cfg: Any) 
 
 
 def build_parser() -> OneLineParser:
+    from pets.config import DEVICES, HEADS, PRESETS
+    from pets.protocols import PROTOCOLS
+
     p = OneLineParser(
         prog=PROG,
         description="Train a dynamics ensemble offline on a collected .npz data set.",
         epilog="Any config key can be overridden as key=value, e.g. model.hidden_size=200.",
     )
     p.add_argument("--data", type=Path, required=True, help="data set written by pets.collect")
-    p.add_argument("--model", required=True, help="dynamics model: delta, gem, delta-det, gem2 or delta-groupfeat")
+    p.add_argument("--model", required=True, help=f"dynamics model: {', '.join(HEADS)} (docs/models.md)")
     p.add_argument("--out", type=Path, required=True, help="run directory to create")
     p.add_argument("--seed", type=int, help="seed (default 0)")
-    p.add_argument("--device", choices=("cpu", "cuda", "auto"), help="training device (default auto)")
+    p.add_argument("--device", choices=DEVICES, help="training device (default auto)")
     p.add_argument(
         "--epochs",
         type=int,
         help=f"max epochs (offline default {OFFLINE_DEFAULTS['model.max_epochs']}, "
         f"patience {OFFLINE_DEFAULTS['model.patience']})",
     )
-    p.add_argument("--preset", choices=("research", "fast"), default="research", help="config preset (model sizes)")
+    p.add_argument("--preset", choices=tuple(PRESETS), default="research", help="config preset (model sizes)")
     p.add_argument(
         "--protocol",
-        choices=("pets", "paper"),
+        choices=tuple(PROTOCOLS),
         default="pets",
         help="pets: bootstrap ensemble, early stopping (default); paper: the GEM paper's (pets.protocols)",
     )
