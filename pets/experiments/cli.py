@@ -41,7 +41,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from pets.cli import OneLineParser, fail
+from pets.cli import EXIT_FAILED, EXIT_INTERRUPTED, OneLineParser, fail
 from pets.experiments.arguments import (
     PROG,
     UsageError,
@@ -56,8 +56,6 @@ from pets.experiments.offline import compare_offline
 from pets.experiments.online import compare_online
 from pets.experiments.statistics import MIN_SEEDS
 
-#: Exit status when a run failed (the summary covers the others).
-EXIT_FAILED = 1
 #: Seeds of a comparison unless ``--seeds`` says otherwise (the paper's 5).
 DEFAULT_SEEDS = ",".join(str(s) for s in range(MIN_SEEDS))
 
@@ -308,7 +306,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         fail(PROG, str(err))
     except KeyboardInterrupt:
         print(f"\n{PROG}: interrupted; rerun the same command to continue", file=sys.stderr)
-        return 130
+        return EXIT_INTERRUPTED
     print(report.read_text())
     if result["failed"]:
         print(f"{PROG}: {len(result['failed'])} run(s) failed: {', '.join(sorted(result['failed']))}", file=sys.stderr)
