@@ -5,7 +5,8 @@
 Runs short fixed-seed PETS runs (``run_pets.py``, ``--preset fast``, 2 trials, short episodes, one thread, fp32)
 that between them take every planner (CEM, iCEM, MPPI), every propagation (ts1, tsinf, expectation, members),
 both candidate kinds (open loop, feedback), a learned terminal value and the delta, GEM and deterministic heads;
-then ``pets.collect`` and ``pets.evaluate`` (``eval.json``) on the first run. It also scores random candidates
+then ``pets.collect`` and ``pets.evaluate`` (``eval.json``) on the first run, and ``pets.train`` on the collected
+data under both protocols. It also scores random candidates
 with a :class:`pets.propagation.TrajectoryEvaluator` in every propagation x candidate kind, and runs every
 planner on a fixed objective, hashing the returned tensors (bit identity). Prints one line per item,
 ``NAME sha256``: ``metrics.csv`` without its timing columns, ``eval.json`` with the run directory's path
@@ -88,6 +89,21 @@ def evaluation(out: Path) -> None:
     print(f"eval.json {sha(text)}", flush=True)
 
 
+def offline(out: Path) -> None:
+    """pets.train on the collected data, under both protocols: metrics.csv and the trained weights."""
+    import torch
+
+    for protocol in ("pets", "paper"):
+        run_dir = out / f"offline-{protocol}"
+        args = ["--data", str(out / "ip-random.npz"), "--model", "delta", "--out", str(run_dir), "--quiet"]
+        keys = ["threads=1", "model.precision=fp32", "tensorboard=false", "model.max_epochs=5"]
+        keys += ["model.iterations=30"] if protocol == "paper" else []  # the paper's 10k iterations: too long here
+        run([sys.executable, "-m", "pets.train", *args, "--protocol", protocol, *keys])
+        state = torch.load(run_dir / "checkpoint.pt", weights_only=False)
+        weights = b"".join(v.numpy().tobytes() for v in state["model"].values())
+        print(f"offline-{protocol} {sha(metrics_without_timing(run_dir / 'metrics.csv') + weights)}", flush=True)
+
+
 def tensors() -> None:
     """Planned returns of every propagation x candidate kind, and every planner's plan, on an untrained model."""
     sys.path.insert(0, str(ROOT))
@@ -134,15 +150,17 @@ def tensors() -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("out", type=Path)
-    parser.add_argument("--only", help="comma-separated item names (runs, eval, tensors); default all")
+    parser.add_argument("--only", help="comma-separated item names (runs, eval, offline, tensors); default all")
     args = parser.parse_args()
     only = set(args.only.split(",")) if args.only else None
     args.out.mkdir(parents=True, exist_ok=True)
     if not only or "tensors" in only:
         tensors()
-    online(args.out.resolve(), only - {"tensors", "eval"} if only else None)
+    online(args.out.resolve(), only - {"tensors", "eval", "offline"} if only else None)
     if not only or "eval" in only:
         evaluation(args.out.resolve())
+    if not only or "offline" in only:
+        offline(args.out.resolve())
 
 
 if __name__ == "__main__":
