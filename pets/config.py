@@ -23,11 +23,13 @@ from dynamics.networks import ACTIVATIONS
 from gem_head.head import COMPOSE_MODES, LOSSES
 from pets.feedback import FeedbackConfig, check_feedback
 from pets.hardware import CONCRETE_PRECISIONS
-from pets.models import MODELS
+from pets.models import MODELS, check_root
 from pets.planners import PLANNER_CLASSES, ICEMConfig, MPPIConfig
+from pets.planners.base import check_elites_setting
 from pets.propagation import CANDIDATES, PROPAGATIONS
+from pets.value import ValueConfig
 
-__all__ = ["FeedbackConfig", "ICEMConfig", "MPPIConfig"]  # sections defined by their owners
+__all__ = ["FeedbackConfig", "ICEMConfig", "MPPIConfig", "ValueConfig"]  # sections defined by their owners
 
 #: ``--model`` values (config key ``head``): the names of ``pets.models.MODELS``.
 HEADS = tuple(MODELS)
@@ -94,18 +96,6 @@ class PlannerConfig:
     # config.yaml records the resolved value.
     precision: str = "auto"
     compile: bool = False  # torch.compile the rollout step (eager fallback with a warning if it fails)
-
-
-@dataclass
-class ValueConfig:
-    """``value.*``: a learned terminal value for the planner (``pets.value``; docs/planning.md)."""
-
-    # true: a candidate's return is its horizon rewards plus V(final state) for particles that did not terminate,
-    # V fitted after every trial to the discounted real returns-to-go. false: the horizon rewards only (PETS).
-    enabled: bool = False
-    discount: float = 0.99  # of the returns V estimates: they look about 1 / (1 - discount) steps ahead
-    hidden_size: int = 64
-    steps: int = 1000  # Adam steps (batch 256) per fit, continuing from the last fit
 
 
 @dataclass
@@ -334,24 +324,6 @@ def _merge_nested(cfg: DictConfig, values: dict[str, Any], prefix: str = "") -> 
             _set(cfg, f"{prefix}{k}", v)
 
 
-def _check_root_model(cfg: DictConfig) -> None:
-    """A model that composes the floating root (``gem-se``) needs an env with one, and the body-frame composition."""
-    import envs
-
-    try:
-        root = envs.get(cfg.env).layout.root
-    except ValueError:  # an unknown env is reported where the env is built
-        return
-    if root is None:
-        with_root = [name for name in envs.names() if envs.get(name).layout.root is not None]
-        raise ConfigError(
-            f"--model {cfg.head} composes a floating root on SE(2)/SE(3) and {cfg.env} has none; it applies to "
-            f"{', '.join(with_root)}"
-        )
-    if cfg.gem.compose != "right":
-        raise ConfigError(f"--model {cfg.head} composes the root in the body frame: gem.compose must be right")
-
-
 def validate(cfg: DictConfig) -> None:
     """Range and choice checks that the types alone do not express."""
     for key in _POSITIVE_INTS:
@@ -380,9 +352,11 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError("seed, seed_steps and train_every must be >= 0")
     if cfg.video_every < 0:
         raise ConfigError(f"video_every must be >= 0 (0: no videos; N: every N-th trial), got {cfg.video_every}")
-    if MODELS[cfg.head].needs_root:
-        _check_root_model(cfg)
-    _check_planner(cfg)
+    try:  # the checks of the model table and the planner table, each in its owner
+        check_root(cfg.head, cfg.env, cfg.gem.compose)
+        _check_planner(cfg)
+    except ValueError as err:
+        raise ConfigError(str(err)) from None
     if cfg.planner.replan_every > cfg.planner.horizon:
         raise ConfigError(
             f"planner.replan_every ({cfg.planner.replan_every}) must be <= planner.horizon ({cfg.planner.horizon})"
@@ -402,31 +376,18 @@ def validate(cfg: DictConfig) -> None:
 
 def _check_planner(cfg: DictConfig) -> None:
     """``planner.name`` against the planner table, ``planner.elites`` where the planner ranks, and every planner's
-    own section (each planner checks its own arguments: one range per argument)."""
+    own section (each planner checks its own arguments: one range per argument); a ValueError in one line."""
     name = cfg.planner.name
     if name not in PLANNER_CLASSES:
-        raise ConfigError(f"planner.name must be one of {', '.join(PLANNER_CLASSES)}, got {name!r}")
+        raise ValueError(f"planner.name must be one of {', '.join(PLANNER_CLASSES)}, got {name!r}")
     if PLANNER_CLASSES[name].uses_elites:
-        _check_elites(cfg.planner.elites, cfg.planner.population)
+        check_elites_setting(cfg.planner.elites, cfg.planner.population)
     for other, cls in PLANNER_CLASSES.items():
         if cls.section is not None:
             try:
                 cls.options(**cfg.planner[other])
             except ValueError as err:
-                raise ConfigError(f"planner.{other}.{err}") from None
-
-
-def _check_elites(elites: float, population: int) -> None:
-    """``planner.elites``: a ratio in (0, 1) of the population, or a whole count in [1, population]."""
-    from pets.planners.base import elite_count
-
-    accepted = f"a ratio in (0, 1) of the population or a whole count in [1, planner.population={population}]"
-    if elites >= 1 and elites != int(elites):
-        raise ConfigError(f"planner.elites must be {accepted}, got {elites:g}")
-    try:
-        elite_count(elites if elites < 1 else int(elites), population)
-    except ValueError:
-        raise ConfigError(f"planner.elites must be {accepted}, got {elites:g}") from None
+                raise ValueError(f"planner.{other}.{err}") from None
 
 
 def make_config(

@@ -123,6 +123,18 @@ def elite_count(elites: object, population: int) -> int:
     return min(population, max(1, math.ceil(round(float(elites) * population, 4))))
 
 
+def check_elites_setting(elites: float, population: int) -> None:
+    """The config's ``planner.elites``: a ratio in (0, 1) of the population, or a whole count in [1, population]; a
+    ValueError naming the key otherwise."""
+    accepted = f"a ratio in (0, 1) of the population or a whole count in [1, planner.population={population}]"
+    if elites >= 1 and elites != int(elites):
+        raise ValueError(f"planner.elites must be {accepted}, got {elites:g}")
+    try:
+        elite_count(elites if elites < 1 else int(elites), population)
+    except ValueError:
+        raise ValueError(f"planner.elites must be {accepted}, got {elites:g}") from None
+
+
 def check_real(
     name: str, value: object, low: float, high: float, *, low_open: bool = False, high_open: bool = False
 ) -> float:
