@@ -71,10 +71,10 @@ setup(
             "pets-train=pets.train:main",
             "pets-evaluate=pets.evaluate:main",
             "pets-openloop=pets.openloop:main",
-            "pets-oracle=pets.oracle:main",
-            "pets-visualize=pets.visualize:main",
-            "pets-onestep=pets.onestep:main",
-            "pets-bench=pets.bench:main",
+            "pets-oracle=pets.tools.oracle:main",
+            "pets-visualize=pets.tools.visualize:main",
+            "pets-onestep=pets.tools.onestep:main",
+            "pets-bench=pets.tools.bench:main",
         ]
     },
 )
