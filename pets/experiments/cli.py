@@ -45,7 +45,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from pets.cli import OneLineParser, fail
+from pets.cli import EXIT_FAILED, EXIT_INTERRUPTED, OneLineParser, fail
 from pets.experiments.arguments import (
     PROG,
     UsageError,
@@ -60,8 +60,6 @@ from pets.experiments.offline import compare_offline
 from pets.experiments.online import compare_online
 from pets.experiments.statistics import MIN_SEEDS
 
-#: Exit status when a run failed (the summary covers the others).
-EXIT_FAILED = 1
 #: Seeds of a comparison unless ``--seeds`` says otherwise (the paper's 5).
 DEFAULT_SEEDS = ",".join(str(s) for s in range(MIN_SEEDS))
 
@@ -406,7 +404,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         fail(PROG, str(err))
     except KeyboardInterrupt:
         print(f"\n{PROG}: interrupted; rerun the same command to continue", file=sys.stderr)
-        return 130
+        return EXIT_INTERRUPTED
     if args.print_config:
         print_shared_config(args, result["configs"])
         return 0
