@@ -937,6 +937,8 @@ def fake_eval(out, env, model, seed, horizons):
 def fake_values(model, seed, h, keys=NEW_KEYS, rotations=True):
     """Distinct error values per model, seed, horizon and key (no ties between models)."""
     values = {k: SCALE[model] * (1 + seed + 0.01 * seed**2) * h * (i + 1) / 10 for i, k in enumerate(keys)}
+    if "standardized_error" in values:  # below the no-information level (sqrt(2)): these runs track the state
+        values["standardized_error"] /= 100
     if "rotation_error" in values and not rotations:
         values["rotation_error"] = 0.0
     return {**values, "nonfinite_fraction": 0.0}
@@ -1046,7 +1048,7 @@ def test_a_run_diverged_at_one_horizon_counts_at_the_others(fake_offline):
 def test_prediction_runs_csv_names_the_divergence_at_its_horizon_only(fake_offline):
     out, _ = fake_offline
     runs = {(r["env"], r["model"], r["seed"], r["horizon"]): r for r in csv_rows(out / "prediction_runs.csv")}
-    assert runs["reacher", "gem2", "3", "5"]["diverged"] == "standardized_error 7e+04 > 100"
+    assert runs["reacher", "gem2", "3", "5"]["diverged"] == "standardized_error 7e+04 >= the no-information level 1.41"
     assert runs["reacher", "gem", "4", "5"]["diverged"] == "mean_step_error nan"
     for run in (("gem2", "3"), ("gem", "4"), ("gem", "3")):
         assert runs[("reacher", *run, "1")]["diverged"] == ""
@@ -1071,7 +1073,7 @@ def test_prediction_md_shows_diverged_runs_as_such_and_no_nan_or_inf(fake_offlin
     assert seeds == "5"  # the model's runs
     assert "diverged" not in h1 and h5.endswith("] (1 diverged)")  # h=1: every run; h=5: one left out
     assert first_row(sections["hopper"], "gem") == ["gem", "2", "all diverged", "all diverged"]
-    assert "- reacher-gem2-s3: standardized_error 7e+04 > 100 at h=5" in md
+    assert "- reacher-gem2-s3: standardized_error 7e+04 >= the no-information level 1.41 at h=5" in md
     assert "- hopper-gem-s0: standardized_error inf at h=1; standardized_error inf at h=5" in md
     assert "### rotation_error" in sections["reacher"] and "### rotation_error" not in sections["invertedpendulum"]
     assert "### standardized_error" in sections["reacher"] and "P(mean_step_error < delta's)" in sections["reacher"]

@@ -19,6 +19,7 @@ import pytest
 import ray
 
 from pets import rundir
+from pets.cli import EXIT_FAILED
 from pets.experiments.arguments import UsageError
 from pets.experiments.cli import main
 from pets.experiments.ray_backend import check_shared_storage
@@ -189,7 +190,7 @@ def test_storage_check_names_the_node_that_cannot_write_out():
 
 def test_a_run_that_fails_by_itself_is_reported_with_its_reason_not_retried(tmp_path, capsys):
     """A run directory with a corrupt checkpoint: its resume exits 2; the task fails once (no retry: only lost
-    workers are retried), the driver prints the reason, the summary lists the run, the exit status is 1."""
+    workers are retried), the driver prints the reason, the summary lists the run, exit status EXIT_FAILED (3)."""
     from pets.config import make_config
 
     broken = tmp_path / "runs" / "invertedpendulum-delta-s9"
@@ -199,7 +200,7 @@ def test_a_run_that_fails_by_itself_is_reported_with_its_reason_not_retried(tmp_
     rundir.write_config(broken, cfg)
     (broken / "checkpoint.pt").write_bytes(b"not a checkpoint")
     args = ["online", "--envs", "invertedpendulum", "--models", "delta", "--seeds", "9", "--trials", 1]
-    assert main(argv([*args, "--preset", "fast", *TINY], tmp_path, "--backend", "ray")) == 1
+    assert main(argv([*args, "--preset", "fast", *TINY], tmp_path, "--backend", "ray")) == EXIT_FAILED
     err = capsys.readouterr().err
     assert "invertedpendulum-delta-s9 failed: RuntimeError: exit 2; log" in err
     assert "is not a readable checkpoint" in err

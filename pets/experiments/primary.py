@@ -237,7 +237,7 @@ def primary_markdown(rows: Sequence[Mapping[str, Any]]) -> list[str]:
             r["env"],
             r["model"],
             f"{r['level']:.3g} ({r['level_source']})",
-            r["tracking_horizons"] or "none",
+            r["tracking_horizons"] or "-",
             f"{_fmt(r.get('endpoint_iqm'))} [{_fmt(r.get('endpoint_ci_low'))}, {_fmt(r.get('endpoint_ci_high'))}]",
             "-"
             if r["model"] == BASELINE
