@@ -31,6 +31,7 @@ from __future__ import annotations
 import copy
 import math
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -120,7 +121,12 @@ class CompiledStep:
     """
 
     def __init__(
-        self, model: DynamicsModel, optimizer: torch.optim.Adam, logvar_bound_coef: float, bf16: bool, backend: str
+        self,
+        model: DynamicsModel,
+        optimizer: torch.optim.Adam,
+        logvar_bound_coef: float,
+        bf16: bool,
+        backend: str | Callable,
     ) -> None:
         group = optimizer.param_groups[0]
         if len(optimizer.param_groups) != 1 or group["weight_decay"] or group["amsgrad"] or group["maximize"]:
@@ -193,6 +199,8 @@ class ModelTrainer:
     and ``logvar_bound_coef`` times the log-variance bound penalty where the bounds are learnt).
     Every ``train`` call refits the model's input and target normalisers on all its data.
     The optimiser persists across ``train`` calls (one call per PETS trial).
+    ``compile``: full minibatches run as one compiled step (:class:`CompiledStep`, built once per trainer with
+    ``torch.compile(backend=compile_backend)``; a failure to compile warns once and trains eagerly from then on).
     """
 
     def __init__(
@@ -214,7 +222,7 @@ class ModelTrainer:
         bootstrap: bool = True,
         precision: str = "fp32",
         compile: bool = False,
-        compile_backend: str = "inductor",
+        compile_backend: str | Callable = "inductor",
     ) -> None:
         if not (math.isfinite(lr) and lr >= 0):
             raise ValueError(f"lr must be a finite number >= 0, got {lr}")

@@ -10,10 +10,12 @@ one compiles with inductor, the path runs use.
 from __future__ import annotations
 
 import warnings
+from collections.abc import Callable
 
 import pytest
 import torch
 from omegaconf import OmegaConf
+from torch._dynamo.testing import CompileCounterWithBackend
 
 import envs
 from pets import builder
@@ -43,7 +45,7 @@ def reacher_data() -> tuple[torch.Tensor, ...]:
 
 
 def train_pair(
-    data: tuple[torch.Tensor, ...], precision: str, backend: str, overrides: dict[str, str] | None = None
+    data: tuple[torch.Tensor, ...], precision: str, backend: str | Callable, overrides: dict[str, str] | None = None
 ) -> list[tuple[ModelTrainer, list, torch.Tensor]]:
     """Eager and compiled trainers from the same initial weights, each trained twice (two trials) on ``data``:
     (trainer, [TrainResult, TrainResult], predictions on the test transitions)."""
@@ -66,8 +68,10 @@ def test_compiled_fp32_matches_eager(reacher_data, monkeypatch) -> None:
     epoch, with the
     gathers split into several chunks (GATHER_BATCHES) and a partial last batch (run eagerly)."""
     monkeypatch.setattr(trainer_mod, "GATHER_BATCHES", 4)
-    (eager, r_e, p_e), (comp, r_c, p_c) = train_pair(reacher_data, "fp32", "aot_eager", {"model.max_epochs": "1"})
+    backend = CompileCounterWithBackend("aot_eager")
+    (eager, r_e, p_e), (comp, r_c, p_c) = train_pair(reacher_data, "fp32", backend, {"model.max_epochs": "1"})
     assert comp._compiled is not None and not comp._compile_failed
+    assert backend.frame_count == 1  # compiled once for both trials (train calls)
     for a, b in zip(r_e, r_c):
         assert a.epochs == b.epochs
         assert b.val_loss == pytest.approx(a.val_loss, rel=FP32_RELATIVE)
