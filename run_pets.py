@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 from typing import NoReturn
 
-from pets.cli import EXIT_FAILED, OneLineParser, fail, write_failed
+from pets.cli import EXIT_FAILED, EXIT_INTERRUPTED, OneLineParser, fail, write_failed
 
 PROG = "run_pets.py"
 
@@ -145,7 +145,7 @@ def main(argv: list[str] | None = None) -> int:
         fail(PROG, f"{err}; {kept}", EXIT_FAILED)
     except KeyboardInterrupt:
         print(f"\ninterrupted; continue with: python run_pets.py --resume {run_dir}", file=sys.stderr)
-        return 130
+        return EXIT_INTERRUPTED
     if rows:
         last = rows[-1]
         print(

@@ -29,6 +29,13 @@ class DynamicsModel(nn.Module):
                 f"head {head.name!r} has input_dim {head.input_dim} / target_dim {head.target_dim} but the "
                 f"network has in_dim {network.in_dim} / out_dim {network.out_dim}"
             )
+        if head.deterministic != network.deterministic:  # the one place the two declarations must agree
+            kind = {True: "deterministic", False: "Gaussian"}
+            raise ValueError(
+                f"head {head.name!r} is {kind[head.deterministic]} but the network "
+                f"{type(network).__name__} is {kind[network.deterministic]}: a deterministic head (loss without "
+                "logvar) needs a network without a predictive variance, and a Gaussian head one with it"
+            )
         self.head = head
         self.network = network
 
@@ -51,7 +58,8 @@ class DynamicsModel(nn.Module):
 
     @property
     def deterministic(self) -> bool:
-        """True for models without a predictive variance (their sampling noise is exactly zero)."""
+        """True for models without a predictive variance (their sampling noise is exactly zero); the head and the
+        network agree on it (checked when the model is made)."""
         return self.network.deterministic
 
     @property

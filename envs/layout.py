@@ -13,7 +13,8 @@ from typing import Literal
 
 GroupKind = Literal["Rn", "SO2_angle", "SO2_cossin", "SO3_quat"]
 
-#: Number of observation entries each group kind occupies (None: any n >= 1).
+#: Number of observation entries each group kind occupies (None: any n >= 1); ``gem_head.codecs.register_codec``
+#: adds the kinds of new codecs.
 KIND_WIDTH: dict[str, int | None] = {"Rn": None, "SO2_angle": 1, "SO2_cossin": 2, "SO3_quat": 4}
 
 

@@ -3,12 +3,13 @@
 ``GemHead`` composes a floating root as independent pieces: its translation in R^n (targets ``p' - p`` in the world
 frame) and its rotation on SO(2) or SO(3). ``GemSEHead`` composes the two together, on SE(2) for a planar root
 (x, z and the pitch about y: Hopper, Walker2d, HalfCheetah) or SE(3) for a free joint (Ant, Humanoid), as the
-right (body-frame) action ``G' = G exp(xi)``, ``xi = (omega, u)``:
+right (body-frame) action ``G' = G exp(xi)``, ``xi = (omega, u)``, through a root codec (``SE2`` / ``SE3`` in
+``gem_head.codecs.CODECS``) that runs after the group codecs:
 
-- rotation ``omega``: the same as ``gem``'s right-composed target (``log(R^T R')``; for the pitch the wrapped
+- rotation ``omega``: the rotation codec's right-composed target (``log(R^T R')``; for the pitch the wrapped
   angle difference);
-- translation ``u = V(omega)^-1 R^T (p' - p)`` in the root's target slots, where ``R`` is the root's rotation and
-  ``V`` the left Jacobian of SO(2) / SO(3) (``gem_head.lie.SE2.v_inv_apply`` / ``SE3.v_inv_apply``). Decoding
+- translation ``u = V(omega)^-1 R^T (p' - p)`` in the root's translation slots, where ``R`` is the root's rotation
+  and ``V`` the left Jacobian of SO(2) / SO(3) (``gem_head.lie.SE2.v_inv_apply`` / ``SE3.v_inv_apply``). Decoding
   inverts it exactly: ``p' = p + R V(omega) u``.
 
 So the target is the displacement seen from the body: a step along the body's own axis is the same target
@@ -16,21 +17,95 @@ whatever the body's heading, pitch or position (tests/test_gem_se.py checks that
 the world is moved by any rigid motion). In the x-z plane MuJoCo's pitch ``theta`` (a hinge about +y) rotates the
 body by ``R(-theta)``, so the planar SE(2) angle is ``-theta`` (checked against MuJoCo's body frame in the tests).
 
-Everything else is ``GemHead``'s: the network inputs (the root x, and y, still never enter), the other groups, the
-velocities, the losses (the root's ``u`` slots are scored like the other additive slots by the Frobenius loss).
-Only the body-frame composition is defined: ``compose`` must be ``"right"``.
+Everything else is ``GemHead``'s: the network inputs (the root codec adds none: the root x, and y, still never
+enter), the other groups, the velocities, the losses (the root codec adds no Frobenius term: the root's ``u``
+slots are scored like the other additive slots). Only the body-frame composition is defined: ``compose`` must be
+``"right"``.
 """
 
 from __future__ import annotations
+
+from typing import ClassVar
 
 import torch
 from torch import Tensor
 
 from envs.layout import ObsLayout
+from gem_head.codecs import GroupCodec, register_codec
 from gem_head.head import GemHead
-from gem_head.lie import SE2, SE3, SO3
+from gem_head.lie import SE2, SE3, SO3, LieGroup
 
-__all__ = ["GemSEHead"]
+__all__ = ["GemSEHead", "SE2RootCodec", "SE3RootCodec"]
+
+
+class _RootCodec(GroupCodec):
+    """A root codec: the layout's root translation p (``translation_dim`` entries) and rotation R as one SE(n)
+    element, right action G' = G exp(omega, u): target u = V(omega)^-1 R^T (p' - p), decoding p' = p + R V(omega) u,
+    omega being the rotation codec's target. Built on (translation, rotation) obs indices and target slots."""
+
+    composite: ClassVar[bool] = True
+    rotation_kind: ClassVar[str]
+    translation_dim: ClassVar[int]
+    group: ClassVar[type[LieGroup]]
+
+    def __init__(self, obs: list[int], slots: list[int], layout: ObsLayout, compose: str) -> None:
+        super().__init__(obs, slots, layout, compose)
+        n = self.translation_dim
+        self._p_obs, self._r_obs = self.obs[:n], self.obs[n:]
+        self._p_tgt, self._w_tgt = self.slots[:n], self.slots[n:]
+
+    def rotation(self, obs: Tensor) -> Tensor:
+        """The root's rotation R as a matrix (..., n, n)."""
+        raise NotImplementedError
+
+    def omega(self, target: Tensor) -> Tensor:
+        """The root's rotation coefficients in the group's convention."""
+        raise NotImplementedError
+
+    def target(self, obs: Tensor, next_obs: Tensor, out: Tensor) -> None:
+        dp = out[..., self._p_tgt]  # p' - p in the world frame (the additive step)
+        local = (self.rotation(obs).transpose(-1, -2) @ dp.unsqueeze(-1)).squeeze(-1)
+        out[..., self._p_tgt] = self.group.v_inv_apply(self.omega(out), local)
+
+    def decode(self, obs: Tensor, target: Tensor, out: Tensor) -> None:
+        step = self.group.v_apply(self.omega(target), target[..., self._p_tgt])  # in the body frame
+        world = (self.rotation(obs) @ step.unsqueeze(-1)).squeeze(-1)
+        out[..., self._p_obs] = obs[..., self._p_obs] + world.to(out.dtype)
+
+
+@register_codec
+class SE2RootCodec(_RootCodec):
+    """SE(2) root of the x-z plane: p = (x, z), R = R(-theta) for MuJoCo's pitch theta (a hinge about +y),
+    omega = -alpha_pitch; u = V(omega)^-1 R^T (p' - p), p' = p + R V(omega) u with
+    V(omega) = [[A, -B], [B, A]], A = sin(omega)/omega, B = (1 - cos omega)/omega (``SE2.v_apply``)."""
+
+    kind, width, tangent_dim = "SE2", None, SE2.dim
+    rotation_kind, translation_dim, group = "SO2_angle", 2, SE2
+
+    def rotation(self, obs: Tensor) -> Tensor:
+        phi = -obs[..., self._r_obs[0]]
+        c, s = torch.cos(phi), torch.sin(phi)
+        return torch.stack([c, -s, s, c], dim=-1).unflatten(-1, (2, 2))
+
+    def omega(self, target: Tensor) -> Tensor:
+        return -target[..., self._w_tgt][..., 0]
+
+
+@register_codec
+class SE3RootCodec(_RootCodec):
+    """SE(3) root of a free joint: p = (x, y, z), R = R(q / |q|), omega = the quaternion's body-frame alpha;
+    u = V(omega)^-1 R^T (p' - p), p' = p + R V(omega) u with V = I + B hat(w) + C hat(w)^2,
+    B = (1 - cos t)/t^2, C = (t - sin t)/t^3, t = |w| (``SE3.v_apply``)."""
+
+    kind, width, tangent_dim = "SE3", None, SE3.dim
+    rotation_kind, translation_dim, group = "SO3_quat", 3, SE3
+
+    def rotation(self, obs: Tensor) -> Tensor:
+        q = obs[..., self._r_obs]
+        return SO3.from_quat(q * torch.rsqrt((q * q).sum(-1, keepdim=True)))
+
+    def omega(self, target: Tensor) -> Tensor:
+        return target[..., self._w_tgt]
 
 
 class GemSEHead(GemHead):
@@ -40,6 +115,7 @@ class GemSEHead(GemHead):
     """
 
     name = "gem-se"
+    compose_root = True
 
     def __init__(
         self,
@@ -58,47 +134,12 @@ class GemSEHead(GemHead):
         if compose != "right":
             raise ValueError(f"gem-se composes the root in the body frame only (gem.compose=right), got {compose!r}")
         super().__init__(layout, act_dim, compose=compose, loss=loss, frobenius_weight=frobenius_weight)
-        trans, rot = (layout.group(name) for name in layout.root)
-        self.planar = rot.kind == "SO2_angle"
-        self._p_obs = list(trans.indices)
-        self._r_obs = list(rot.indices)
-        self._p_tgt = list(self.target_slots_of(trans.name))
-        self._w_tgt = list(self.target_slots_of(rot.name))
+        self.root_codec: _RootCodec = self.codecs[-1]
+        self.planar = isinstance(self.root_codec, SE2RootCodec)
 
     def __repr__(self) -> str:
         return super().__repr__().replace("GemHead(", "GemSEHead(", 1)
 
     def _root_rotation(self, obs: Tensor) -> Tensor:
         """The root's rotation as a matrix: (..., 2, 2) in the x-z plane (angle -pitch) or (..., 3, 3)."""
-        if self.planar:
-            phi = -obs[..., self._r_obs[0]]
-            c, s = torch.cos(phi), torch.sin(phi)
-            return torch.stack([c, -s, s, c], dim=-1).unflatten(-1, (2, 2))
-        q = obs[..., self._r_obs]
-        return SO3.from_quat(q * torch.rsqrt((q * q).sum(-1, keepdim=True)))
-
-    def _omega(self, target: Tensor) -> Tensor:
-        """The root's rotation coefficients in the group's convention: the SE(2) angle (...) or w (..., 3)."""
-        w = target[..., self._w_tgt]
-        return -w[..., 0] if self.planar else w
-
-    def targets(self, obs: Tensor, next_obs: Tensor) -> Tensor:
-        """GemHead's targets with the root's translation slots replaced by ``u = V(omega)^-1 R^T (p' - p)``."""
-        out = super().targets(obs, next_obs)
-        obs = obs.expand(*out.shape[:-1], self.obs_dim)
-        dp = out[..., self._p_tgt]  # p' - p in the world frame
-        local = (self._root_rotation(obs).transpose(-1, -2) @ dp.unsqueeze(-1)).squeeze(-1)
-        group = SE2 if self.planar else SE3
-        out[..., self._p_tgt] = group.v_inv_apply(self._omega(out), local)
-        return out
-
-    def next_obs(self, obs: Tensor, target: Tensor) -> Tensor:
-        """GemHead's next observation with the root's translation ``p' = p + R V(omega) u``."""
-        out = super().next_obs(obs, target)
-        batch = out.shape[:-1]
-        obs, target = obs.expand(*batch, self.obs_dim), target.expand(*batch, self.target_dim)
-        group = SE2 if self.planar else SE3
-        step = group.v_apply(self._omega(target), target[..., self._p_tgt])  # in the body frame
-        world = (self._root_rotation(obs) @ step.unsqueeze(-1)).squeeze(-1)
-        out[..., self._p_obs] = obs[..., self._p_obs] + world.to(out.dtype)
-        return out
+        return self.root_codec.rotation(obs)

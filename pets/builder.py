@@ -121,15 +121,16 @@ def make_feedback(cfg: DictConfig, spec: EnvSpec, device: torch.device) -> Linea
 def make_planner(
     cfg: DictConfig, spec: EnvSpec, device: torch.device, feedback: LinearFeedback | None = None
 ) -> Planner:
-    """The planner named by ``planner.name`` (cem, icem, mppi) with the config's settings. With feedback
-    candidates it searches the gains (pets.feedback): a (rows, act_dim) box of +-``gain_bound`` sampled with
-    std ``gain_std`` at every plan. ``feedback``: the law already built for the config (else built here)."""
+    """The planner named by ``planner.name`` (``pets.planners.PLANNER_CLASSES``) with the config's settings. With
+    feedback candidates it searches the gains (pets.feedback): a (rows, act_dim) box of +-``gain_bound`` sampled
+    with std ``gain_std`` at every plan (the planner's ``gain_options``). ``feedback``: the law already built for
+    the config (else built here)."""
     p = cfg.planner
     planner_class = PLANNER_CLASSES[p.name]  # the name is validated by the config
     kwargs = dict(horizon=p.horizon, population=p.population, iterations=p.iterations, alpha=p.alpha, device=device)
     if planner_class.uses_elites:
         kwargs["elites"] = p.elites if p.elites < 1 else int(p.elites)
-    if p.name in p:  # the planner's own section, planner.<name>.*: its constructor's arguments
+    if planner_class.section is not None:  # the planner's own section, planner.<name>.*: its constructor's arguments
         kwargs.update(OmegaConf.to_container(p[p.name]))
     low, high = spec.action_low, spec.action_high
     if feedback is None:
@@ -138,10 +139,7 @@ def make_planner(
         f = p.feedback
         kwargs["horizon"] = feedback.shape[0]
         low, high = np.full(spec.act_dim, -f.gain_bound), np.full(spec.act_dim, f.gain_bound)
-        if p.name == "cem":
-            kwargs["init_std"] = f.gain_std
-        else:  # mppi: sigma in half-ranges of the box
-            kwargs["sigma"] = f.gain_std / f.gain_bound
+        kwargs.update(planner_class.gain_options(f.gain_bound, f.gain_std))  # validated: it searches gains
     return planner_class(low, high, **kwargs)
 
 

@@ -1,14 +1,16 @@
 """What every command-line entry point shares: one-line errors and their exit status.
 
-Exit status of run_pets.py, pets.train, pets.collect, pets.evaluate and pets.openloop (README, "Exit codes"):
+Exit status of every command, run_pets.py, pets.train, pets.collect, pets.evaluate, pets.openloop and
+pets.compare (README, "Exit codes"; :data:`EXIT_CODES` is the one table):
 
 - 0: done;
 - 2 (:data:`EXIT_USAGE`): bad input, checked before any long work: a bad option, key or value; a missing,
   corrupt or mismatched file (checkpoint, config.yaml, data set); an output location that cannot be written
   (read-only, under /proc, a file in place of a directory); a run directory in use by another run;
 - 3 (:data:`EXIT_FAILED`): the work failed on good input: model training diverged, planning got no finite
-  return, or a write failed while it ran (a full disk); the run keeps what it completed before;
-- 130: interrupted (Ctrl-C).
+  return, or a write failed while it ran (a full disk); the run keeps what it completed before; for
+  pets.compare, some of its runs failed (the summary covers the others);
+- 130 (:data:`EXIT_INTERRUPTED`): interrupted (Ctrl-C).
 
 Each error is one stderr line ``PROG: error: MESSAGE`` that says what to do.
 """
@@ -28,6 +30,13 @@ EXIT_INTERRUPTED = 130
 #: Exit status of work that failed on good input (model training diverged, planning got no finite return, or a
 #: write failed while it ran, e.g. a full disk).
 EXIT_FAILED = 3
+#: Every exit status of the commands and what it means.
+EXIT_CODES = {
+    0: "done",
+    EXIT_USAGE: "bad input, one line before any long work",
+    EXIT_FAILED: "the work failed on good input (what completed before is kept)",
+    EXIT_INTERRUPTED: "interrupted (Ctrl-C)",
+}
 
 
 class OneLineParser(argparse.ArgumentParser):

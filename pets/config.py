@@ -12,24 +12,37 @@ import difflib
 import math
 import warnings
 from collections.abc import Collection, Iterable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields, make_dataclass
+from functools import cache
 from pathlib import Path
 from typing import Any
 
 import yaml
 from omegaconf import DictConfig, OmegaConf
 
-from pets.models import MODELS
+from dynamics.networks import ACTIVATIONS
+from gem_head.head import COMPOSE_MODES, LOSSES
+from pets.feedback import FeedbackConfig, check_feedback
+from pets.hardware import CONCRETE_PRECISIONS
+from pets.models import MODELS, check_root
+from pets.planners import PLANNER_CLASSES, ICEMConfig, MPPIConfig
+from pets.planners.base import check_elites_setting
+from pets.propagation import CANDIDATES, PROPAGATIONS
+from pets.value import ValueConfig
+
+__all__ = ["FeedbackConfig", "ICEMConfig", "MPPIConfig", "ValueConfig"]  # sections defined by their owners
 
 #: ``--model`` values (config key ``head``): the names of ``pets.models.MODELS``.
 HEADS = tuple(MODELS)
 #: Models without a predictive variance (MSE / Frobenius training, zero sampling noise).
 DETERMINISTIC_HEADS = tuple(name for name, entry in MODELS.items() if entry.deterministic)
-PLANNERS = ("cem", "icem", "mppi")
-#: What a planner's candidate is: an action sequence (PETS) or the gains of a linear feedback law (pets.feedback).
-CANDIDATES = ("open_loop", "feedback")
-PRECISIONS = ("auto", "fp32", "bf16")  # auto: resolved by make_config / load_config (pets.hardware)
-PROPAGATIONS = ("ts1", "tsinf", "expectation", "members")
+#: ``planner.name`` values: the names of the planner table (``pets.planners.PLANNER_CLASSES``; a live view, so a
+#: planner registered later is accepted too).
+PLANNERS = PLANNER_CLASSES.keys()
+PRECISIONS = ("auto", *CONCRETE_PRECISIONS)  # auto: resolved by make_config / load_config (pets.hardware)
+DEVICES = ("auto", "cpu", "cuda")
+# The other choice lists are their owners': PROPAGATIONS and CANDIDATES (pets.propagation), ACTIVATIONS
+# (dynamics.networks), COMPOSE_MODES and LOSSES (gem_head.head), PLANNERS (the planner table), PRESETS (below).
 
 
 class ConfigError(ValueError):
@@ -64,36 +77,9 @@ class ModelConfig:
 
 
 @dataclass
-class ICEMConfig:
-    """``planner.icem.*``: the iCEM planner's own arguments (``pets.planners.ICEMPlanner``)."""
-
-    noise_beta: float = 2.0  # colored-noise exponent: 0 white, 2 red (the iCEM paper's locomotion choice)
-    population_decay: float = 1.25  # population_i = max(population * decay^-i, 2 * elites)
-    keep_elites: float = 0.3  # fraction of the elites carried into the next iteration / MPC step
-
-
-@dataclass
-class MPPIConfig:
-    """``planner.mppi.*``: the MPPI planner's own arguments (``pets.planners.MPPIPlanner``)."""
-
-    sigma: float = 0.5  # perturbation std in units of the action half-range (ub - lb) / 2
-    temperature: float = 0.3  # softmax temperature on returns normalised by (max - median)
-    smoothing: float = 1.0  # low-pass coefficient in (0, 1] along the horizon; 1 = independent steps
-
-
-@dataclass
-class FeedbackConfig:
-    """``planner.feedback.*``: linear state-feedback candidates (``planner.candidates=feedback``, pets.feedback)."""
-
-    features: list[int] | None = None  # observation indices fed back; null: all
-    scale: list[float] | None = None  # their fixed scales; null: the replay buffer's std, refitted every training
-    bias: bool = False  # a constant term per action besides the gains
-    gain_bound: float = 10.0  # |gain| bound, in action half-ranges per feature scale
-    gain_std: float = 1.0  # the gains' sampling std at every plan (CEM's initial std; MPPI's sigma)
-
-
-@dataclass
 class PlannerConfig:
+    """``planner.*``: the settings every planner shares (each planner's own section is added by :func:`schema`)."""
+
     name: str = "cem"
     # open_loop: candidates are action sequences (PETS); feedback: gains of a linear state-feedback law, each
     # rolled out for `horizon` steps in closed loop, replanned every step (pets.feedback, docs/planning.md)
@@ -106,9 +92,8 @@ class PlannerConfig:
     particles: int = 20
     propagation: str = "tsinf"
     replan_every: int = 1
-    # The settings of one planner only (used when planner.name is that planner)
-    icem: ICEMConfig = field(default_factory=ICEMConfig)
-    mppi: MPPIConfig = field(default_factory=MPPIConfig)
+    # The settings of one planner only, planner.<name>.* (used when planner.name is that planner), are added by
+    # schema() from the planner table (pets.planners.PLANNER_CLASSES: each class's `section`)
     feedback: FeedbackConfig = field(default_factory=FeedbackConfig)
     # Speed of the rollouts (docs/performance.md)
     # auto | fp32 | bf16: the ensemble's matmuls under bfloat16 autocast (state, sampling and returns fp32); auto:
@@ -116,18 +101,6 @@ class PlannerConfig:
     # config.yaml records the resolved value.
     precision: str = "auto"
     compile: bool = False  # torch.compile the rollout step (eager fallback with a warning if it fails)
-
-
-@dataclass
-class ValueConfig:
-    """``value.*``: a learned terminal value for the planner (``pets.value``; docs/planning.md)."""
-
-    # true: a candidate's return is its horizon rewards plus V(final state) for particles that did not terminate,
-    # V fitted after every trial to the discounted real returns-to-go. false: the horizon rewards only (PETS).
-    enabled: bool = False
-    discount: float = 0.99  # of the returns V estimates: they look about 1 / (1 - discount) steps ahead
-    hidden_size: int = 64
-    steps: int = 1000  # Adam steps (batch 256) per fit, continuing from the last fit
 
 
 @dataclass
@@ -157,6 +130,25 @@ class Config:
     planner: PlannerConfig = field(default_factory=PlannerConfig)
     gem: GemConfig = field(default_factory=GemConfig)
     value: ValueConfig = field(default_factory=ValueConfig)
+
+
+@cache
+def _schema_class(sections: tuple[tuple[str, type], ...]) -> type:
+    """:class:`Config` whose ``planner`` has the fields ``sections`` (name, dataclass) besides the shared ones."""
+    own = [(name, section, field(default_factory=section)) for name, section in sections]
+    planner = make_dataclass("PlannerConfig", own, bases=(PlannerConfig,))
+    return make_dataclass("Config", [("planner", planner, field(default_factory=planner))], bases=(Config,))
+
+
+def schema() -> DictConfig:
+    """The typed config at its defaults: :class:`Config` with the section ``planner.<name>.*`` of every planner in
+    the table that has one (``pets.planners``: the class's ``section``)."""
+    shared = {item.name for item in fields(PlannerConfig)}
+    sections = tuple((name, cls.section) for name, cls in PLANNER_CLASSES.items() if cls.section is not None)
+    clash = [name for name, _ in sections if name in shared]
+    if clash:
+        raise ConfigError(f"planner {clash[0]!r} has a section but planner.{clash[0]} is a shared planner setting")
+    return OmegaConf.structured(_schema_class(sections))
 
 
 # Per-env research defaults, following the PETS references (REFERENCE.md section 1); envs without a
@@ -235,21 +227,20 @@ _POSITIVE_INTS = [
 ]
 _CHOICES = {
     "head": HEADS,
-    "planner.name": PLANNERS,
     "planner.candidates": CANDIDATES,
     "planner.propagation": PROPAGATIONS,
     "planner.precision": PRECISIONS,
     "model.precision": PRECISIONS,
-    "model.activation": ("silu", "relu"),
-    "gem.compose": ("left", "right"),
-    "gem.loss": ("nll", "frobenius", "nll+frobenius"),
-    "device": ("auto", "cpu", "cuda"),
+    "model.activation": tuple(ACTIVATIONS),
+    "gem.compose": COMPOSE_MODES,
+    "gem.loss": LOSSES,
+    "device": DEVICES,
 }
 
 
 def all_keys(cfg: DictConfig | None = None, prefix: str = "") -> list[str]:
     """Every dotted key of the config, e.g. ``planner.population``."""
-    cfg = OmegaConf.structured(Config) if cfg is None else cfg
+    cfg = schema() if cfg is None else cfg
     keys: list[str] = []
     for k, v in cfg.items():
         name = f"{prefix}{k}"
@@ -378,24 +369,6 @@ def _merge_nested(cfg: DictConfig, values: dict[str, Any], prefix: str = "") -> 
             _set(cfg, f"{prefix}{k}", v)
 
 
-def _check_root_model(cfg: DictConfig) -> None:
-    """A model that composes the floating root (``gem-se``) needs an env with one, and the body-frame composition."""
-    import envs
-
-    try:
-        root = envs.get(cfg.env).layout.root
-    except ValueError:  # an unknown env is reported where the env is built
-        return
-    if root is None:
-        with_root = [name for name in envs.names() if envs.get(name).layout.root is not None]
-        raise ConfigError(
-            f"--model {cfg.head} composes a floating root on SE(2)/SE(3) and {cfg.env} has none; it applies to "
-            f"{', '.join(with_root)}"
-        )
-    if cfg.gem.compose != "right":
-        raise ConfigError(f"--model {cfg.head} composes the root in the body frame: gem.compose must be right")
-
-
 def validate(cfg: DictConfig) -> None:
     """Range and choice checks that the types alone do not express."""
     for key in _POSITIVE_INTS:
@@ -424,23 +397,20 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError("seed, seed_steps and train_every must be >= 0")
     if cfg.video_every < 0:
         raise ConfigError(f"video_every must be >= 0 (0: no videos; N: every N-th trial), got {cfg.video_every}")
-    if MODELS[cfg.head].needs_root:
-        _check_root_model(cfg)
-    from pets.planners import PLANNER_CLASSES  # each planner checks its own section: one range per argument
-
-    if PLANNER_CLASSES[cfg.planner.name].uses_elites:
-        _check_elites(cfg.planner.elites, cfg.planner.population)
-    for name in ("icem", "mppi"):
-        try:
-            PLANNER_CLASSES[name].check_args(**cfg.planner[name])
-        except ValueError as err:
-            raise ConfigError(f"planner.{name}.{err}") from None
+    try:  # the checks of the model table and the planner table, each in its owner
+        check_root(cfg.head, cfg.env, cfg.gem.compose)
+        _check_planner(cfg)
+    except ValueError as err:
+        raise ConfigError(str(err)) from None
     if cfg.planner.replan_every > cfg.planner.horizon:
         raise ConfigError(
             f"planner.replan_every ({cfg.planner.replan_every}) must be <= planner.horizon ({cfg.planner.horizon})"
         )
     if cfg.planner.candidates == "feedback":
-        _check_feedback(cfg)
+        try:
+            check_feedback(cfg.planner)
+        except ValueError as err:
+            raise ConfigError(str(err)) from None
     if not 0 < cfg.value.discount < 1:
         raise ConfigError(f"value.discount must be in (0, 1), got {cfg.value.discount}")
     if cfg.episode_length is not None and cfg.episode_length < 1:
@@ -449,43 +419,20 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError(f"stop_reward must be a finite number or null, got {cfg.stop_reward}")
 
 
-def _check_elites(elites: float, population: int) -> None:
-    """``planner.elites``: a ratio in (0, 1) of the population, or a whole count in [1, population]."""
-    from pets.planners.base import elite_count
-
-    accepted = f"a ratio in (0, 1) of the population or a whole count in [1, planner.population={population}]"
-    if elites >= 1 and elites != int(elites):
-        raise ConfigError(f"planner.elites must be {accepted}, got {elites:g}")
-    try:
-        elite_count(elites if elites < 1 else int(elites), population)
-    except ValueError:
-        raise ConfigError(f"planner.elites must be {accepted}, got {elites:g}") from None
-
-
-def _check_feedback(cfg: DictConfig) -> None:
-    """The settings of ``planner.candidates=feedback`` (the observation indices are checked against the env's
-    observation size by pets.feedback when the agent is built)."""
-    p, f = cfg.planner, cfg.planner.feedback
-    if p.name not in ("cem", "mppi"):
-        raise ConfigError(
-            f"planner.candidates=feedback needs planner.name cem or mppi, got {p.name!r} "
-            "(iCEM's coloured noise and carried elites act along a time axis that gains do not have)"
-        )
-    if p.replan_every != 1:
-        raise ConfigError(
-            f"planner.candidates=feedback replans every step: planner.replan_every must be 1, got {p.replan_every}"
-        )
-    for key in ("gain_bound", "gain_std"):
-        if not math.isfinite(f[key]) or f[key] <= 0:
-            raise ConfigError(f"planner.feedback.{key} must be a finite number > 0, got {f[key]}")
-    if f.features is not None and len(f.features) == 0:
-        raise ConfigError("planner.feedback.features must be null (all observations) or a non-empty list of indices")
-    if f.scale is not None:
-        n = len(f.features) if f.features is not None else None
-        if (n is not None and len(f.scale) != n) or not all(math.isfinite(v) and v > 0 for v in f.scale):
-            raise ConfigError(
-                f"planner.feedback.scale must be null or one finite value > 0 per feature, got {list(f.scale)}"
-            )
+def _check_planner(cfg: DictConfig) -> None:
+    """``planner.name`` against the planner table, ``planner.elites`` where the planner ranks, and every planner's
+    own section (each planner checks its own arguments: one range per argument); a ValueError in one line."""
+    name = cfg.planner.name
+    if name not in PLANNER_CLASSES:
+        raise ValueError(f"planner.name must be one of {', '.join(PLANNER_CLASSES)}, got {name!r}")
+    if PLANNER_CLASSES[name].uses_elites:
+        check_elites_setting(cfg.planner.elites, cfg.planner.population)
+    for other, cls in PLANNER_CLASSES.items():
+        if cls.section is not None:
+            try:
+                cls.options(**cfg.planner[other])
+            except ValueError as err:
+                raise ValueError(f"planner.{other}.{err}") from None
 
 
 def make_config(
@@ -494,7 +441,7 @@ def make_config(
     """Resolve the full config for ``env`` (a canonical env name) and validate it."""
     if preset not in PRESETS:
         raise ConfigError(f"unknown preset {preset!r}; accepted: {', '.join(PRESETS)}")
-    cfg = OmegaConf.structured(Config)
+    cfg = schema()
     cfg.env = env
     _merge_nested(cfg, ENV_DEFAULTS.get(env, {}))
     _merge_nested(cfg, PRESETS[preset])
@@ -539,7 +486,7 @@ def load_config(path: str) -> DictConfig:
                 del stored.planner[old.split(".")[1]]
         if OmegaConf.select(stored, "model") is not None and "precision" not in stored.model:
             stored.model.precision = "fp32"  # a run from before model.precision existed trained in fp32
-        cfg = OmegaConf.merge(OmegaConf.structured(Config), stored)
+        cfg = OmegaConf.merge(schema(), stored)
     except Exception as err:  # a file from another version of the schema, or not a config at all
         raise ConfigError(
             f"{path} does not match this version's config schema: {str(err).splitlines()[0]}; {restore}"

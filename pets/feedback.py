@@ -14,10 +14,56 @@ the horizon are too rare to sample, closed-loop ones are not (InvertedDoublePend
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
 
 import torch
 from torch import Tensor
+
+from pets.planners import PLANNER_CLASSES
+
+
+@dataclass
+class FeedbackConfig:
+    """``planner.feedback.*``: linear state-feedback candidates (``planner.candidates=feedback``)."""
+
+    features: list[int] | None = None  # observation indices fed back; null: all
+    scale: list[float] | None = None  # their fixed scales; null: the replay buffer's std, refitted every training
+    bias: bool = False  # a constant term per action besides the gains
+    gain_bound: float = 10.0  # |gain| bound, in action half-ranges per feature scale
+    gain_std: float = 1.0  # the gains' sampling std at every plan (CEM's initial std; MPPI's sigma)
+
+
+def check_feedback(p: Any) -> None:
+    """The settings of ``planner.candidates=feedback`` in the config's ``planner`` section ``p``: a ValueError in
+    one line naming the key. (The observation indices are checked against the env's observation size when the law
+    is built, :class:`LinearFeedback`.)"""
+    f = p.feedback
+    for key in ("gain_bound", "gain_std"):
+        if not math.isfinite(f[key]) or f[key] <= 0:
+            raise ValueError(f"planner.feedback.{key} must be a finite number > 0, got {f[key]}")
+    can = [  # the planners that search gains (pets.planners.BoxPlanner.gain_options)
+        name for name, cls in PLANNER_CLASSES.items() if cls.gain_options(f.gain_bound, f.gain_std) is not None
+    ]
+    if p.name not in can:
+        raise ValueError(
+            f"planner.candidates=feedback needs planner.name {' or '.join(can)}, got {p.name!r} "
+            f"({PLANNER_CLASSES[p.name].gains_note})"
+        )
+    if p.replan_every != 1:
+        raise ValueError(
+            f"planner.candidates=feedback replans every step: planner.replan_every must be 1, got {p.replan_every}"
+        )
+    if f.features is not None and len(f.features) == 0:
+        raise ValueError("planner.feedback.features must be null (all observations) or a non-empty list of indices")
+    if f.scale is not None:
+        n = len(f.features) if f.features is not None else None
+        if (n is not None and len(f.scale) != n) or not all(math.isfinite(v) and v > 0 for v in f.scale):
+            raise ValueError(
+                f"planner.feedback.scale must be null or one finite value > 0 per feature, got {list(f.scale)}"
+            )
 
 
 class LinearFeedback:

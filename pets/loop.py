@@ -14,8 +14,9 @@ import itertools
 import random
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import torch
@@ -51,8 +52,34 @@ def seed_everything(seed: int) -> None:
     torch.manual_seed(seed)
 
 
+class Stateful(Protocol):
+    """A part of a run with a state dict (a module, the trainer, the buffer, an adapter of an RNG)."""
+
+    def state_dict(self) -> Any: ...
+
+    def load_state_dict(self, state: Any) -> None: ...
+
+
+class Part:
+    """A state-dict part made of a getter and a setter (RNG states, plain values)."""
+
+    def __init__(self, get: Callable[[], Any], put: Callable[[Any], None]) -> None:
+        self.get, self.put = get, put
+
+    def state_dict(self) -> Any:
+        return self.get()
+
+    def load_state_dict(self, state: Any) -> None:
+        self.put(state)
+
+
+def generator_part(generator: torch.Generator) -> Part:
+    """A torch generator's state as a part."""
+    return Part(generator.get_state, generator.set_state)
+
+
 class PETSRun:
-    """Holds every stateful part of a run; ``state_dict``/``load_state_dict`` cover all of it."""
+    """Holds every stateful part of a run (:meth:`parts`); ``state_dict``/``load_state_dict`` cover all of it."""
 
     def __init__(self, cfg: DictConfig) -> None:
         self.cfg = cfg
@@ -84,41 +111,46 @@ class PETSRun:
         self.cost: CostEstimate | None = None
 
     # --- state -----------------------------------------------------------------------------
-    def state_dict(self) -> dict[str, Any]:
-        return {
-            "config": OmegaConf.to_container(self.cfg),
-            "trials_done": self.trials_done,
-            "env_steps": self.env_steps,
-            "wall_time_s": self.wall_time_s,
-            "rows": self.rows,
-            "model": self.model.state_dict(),
-            "trainer": self.trainer.state_dict(),
-            "buffer": self.buffer.state_dict(),
-            "train_gen": self.train_gen.get_state(),
-            "plan_gen": self.plan_gen.get_state(),
-            "np_rng": self.np_rng.bit_generator.state,
-            "torch_rng": torch.get_rng_state(),
-            "last_train": self.last_train,
-            **({"value": self.value.state_dict(), "value_gen": self.value_gen.get_state()} if self.value else {}),
-            **({"feedback": self.agent.feedback.state_dict()} if self.agent.feedback else {}),
+    #: The run's progress, kept in the checkpoint as plain values (the parts below have state dicts).
+    PROGRESS = ("trials_done", "env_steps", "wall_time_s", "rows")
+
+    def parts(self) -> dict[str, Stateful]:
+        """Every stateful part of the run by its checkpoint key, in loading order (the model before the trainer,
+        whose optimiser holds the model's parameters); the value and the feedback law where the config has them."""
+        parts: dict[str, Stateful] = {
+            "model": Part(self.model.state_dict, lambda state: rundir.load_model_state(self.model, {"model": state})),
+            "trainer": self.trainer,
+            "buffer": self.buffer,
+            "train_gen": generator_part(self.train_gen),
+            "plan_gen": generator_part(self.plan_gen),
+            "np_rng": Part(lambda: self.np_rng.bit_generator.state, self._set_np_rng),
+            "torch_rng": Part(torch.get_rng_state, torch.set_rng_state),
+            "last_train": Part(lambda: self.last_train, lambda state: setattr(self, "last_train", state)),
         }
+        if self.value is not None:
+            parts.update(value=self.value, value_gen=generator_part(self.value_gen))
+        if self.agent.feedback is not None:
+            parts["feedback"] = self.agent.feedback
+        return parts
+
+    def _set_np_rng(self, state: dict[str, Any]) -> None:
+        self.np_rng.bit_generator.state = state
+
+    def state_dict(self) -> dict[str, Any]:
+        """The checkpoint: the config, the progress and every part's state dict."""
+        progress = {key: getattr(self, key) for key in self.PROGRESS}
+        parts = {key: part.state_dict() for key, part in self.parts().items()}
+        return {"config": OmegaConf.to_container(self.cfg), **progress, **parts}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        self.trials_done, self.env_steps = state["trials_done"], state["env_steps"]
-        self.wall_time_s, self.rows = state["wall_time_s"], state["rows"]
-        rundir.load_model_state(self.model, state)
-        self.trainer.load_state_dict(state["trainer"])
-        self.buffer.load_state_dict(state["buffer"])
-        self.train_gen.set_state(state["train_gen"])
-        self.plan_gen.set_state(state["plan_gen"])
-        self.np_rng.bit_generator.state = state["np_rng"]
-        torch.set_rng_state(state["torch_rng"])
-        self.last_train = state["last_train"]
-        if self.value is not None:
-            self.value.load_state_dict(state["value"])
-            self.value_gen.set_state(state["value_gen"])
-        if self.agent.feedback is not None:
-            self.agent.feedback.load_state_dict(state["feedback"])
+        """Continue from a checkpoint of :meth:`state_dict` (also one written before the parts had a protocol:
+        the keys are the same); ConfigError for a checkpoint of an older format or a mismatched model."""
+        for key in self.PROGRESS:  # a KeyError first: not a run's checkpoint at all
+            setattr(self, key, state[key])
+        if "model" not in state:
+            rundir.load_model_state(self.model, state)  # a run's checkpoint of an older format: says so
+        for key, part in self.parts().items():
+            part.load_state_dict(state[key])
 
     # --- one trial ---------------------------------------------------------------------------
     def _train(self, when: str | None = None) -> None:

@@ -113,6 +113,27 @@ MODELS: dict[str, ModelEntry] = {
 }
 
 
+def check_root(head: str, env: str, compose: str) -> None:
+    """A model that composes the floating root (``gem-se``) needs an env with one, and the body-frame composition;
+    a ValueError in one line otherwise (an unknown env or model is reported where it is built or validated)."""
+    import envs
+
+    if head not in MODELS or not MODELS[head].needs_root:
+        return
+    try:
+        root = envs.get(env).layout.root
+    except ValueError:
+        return
+    if root is None:
+        with_root = [name for name in envs.names() if envs.get(name).layout.root is not None]
+        raise ValueError(
+            f"--model {head} composes a floating root on SE(2)/SE(3) and {env} has none; it applies to "
+            f"{', '.join(with_root)}"
+        )
+    if compose != "right":
+        raise ValueError(f"--model {head} composes the root in the body frame: gem.compose must be right")
+
+
 def models_for(spec: EnvSpec) -> list[str]:
     """The ``--model`` names that apply to the env ``spec`` (``gem-se`` only where its layout has a root)."""
     return [name for name, entry in MODELS.items() if not entry.needs_root or spec.layout.root is not None]
@@ -124,4 +145,7 @@ def make_model(cfg: DictConfig, spec: EnvSpec, device: torch.device) -> Dynamics
 
     entry = MODELS[cfg.head]
     head = entry.make_head(cfg, spec)
-    return DynamicsModel(head, entry.make_network(cfg, head)).to(device)
+    model = DynamicsModel(head, entry.make_network(cfg, head))  # checks that head and network agree
+    if model.deterministic != entry.deterministic:  # the table's flag (read without building) is the model's
+        raise ValueError(f"MODELS[{cfg.head!r}].deterministic is {entry.deterministic}, the model it builds is not")
+    return model.to(device)

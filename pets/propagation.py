@@ -28,7 +28,9 @@ Vectorised layout: the rows (N * P, padded up to a multiple of M with dummy rows
 dropped at the end) are arranged member-major, so the ensemble gets one ``(M, B / M, in)``
 input per step (one batched GEMM per layer). For ``tsinf`` the layout is fixed for the whole
 rollout (no gather per step); for ``ts1`` rows are gathered into a fresh random permutation
-before the model and scattered back after. The only Python loop is over the horizon and
+before the model and scattered back after. Each mode is a row layout and a noise, and each candidate kind
+(``CANDIDATES``: action sequences or feedback gains) a strategy, that the evaluator composes (``pets.particles``).
+The only Python loop is over the horizon and
 there is no host synchronisation inside it.
 
 Terminations and the non-finite guard: ``terminated_fn(obs, act, next_obs)`` marks a row
@@ -76,9 +78,14 @@ from torch import Tensor
 from dynamics import fused
 from dynamics.model import DynamicsModel
 from pets.feedback import LinearFeedback
+from pets.hardware import CONCRETE_PRECISIONS as PRECISIONS
+from pets.particles import CANDIDATE_TABLE, PROPAGATION_TABLE, FeedbackGains, OpenLoop
 
-PROPAGATIONS = ("ts1", "tsinf", "expectation", "members")
-PRECISIONS = ("fp32", "bf16")
+#: ``planner.propagation``: how particles go through the ensemble (the module docstring; ``pets.particles``).
+PROPAGATIONS = tuple(PROPAGATION_TABLE)
+#: ``planner.candidates``: what a planner's candidate is, an action sequence (PETS) or the gains of a linear
+#: feedback law (``pets.feedback``; ``pets.particles``).
+CANDIDATES = tuple(CANDIDATE_TABLE)
 
 #: ``fn(obs, act, next_obs) -> (...,)`` batched torch reward / termination function.
 TransitionFn = Callable[[Tensor, Tensor, Tensor], Tensor]
@@ -175,6 +182,8 @@ class TrajectoryEvaluator:
         self.compile_backend = compile_backend
         self.terminal_value = terminal_value
         self.feedback = feedback
+        self._propagation = PROPAGATION_TABLE[propagation]
+        self._candidates = OpenLoop() if feedback is None else FeedbackGains(feedback)
         self._compiled_step: Callable | None = None
         self._compile_failed = False
 
@@ -200,11 +209,7 @@ class TrajectoryEvaluator:
         act_dim = self.model.act_dim
         if actions.shape[2] != act_dim:
             raise ValueError(f"actions have act_dim {actions.shape[2]}, the model expects {act_dim}")
-        if self.feedback is not None and tuple(actions.shape[1:]) != self.feedback.shape:
-            raise ValueError(
-                f"feedback candidates must be gains of shape (N, {self.feedback.shape[0]}, {act_dim}), "
-                f"got {tuple(actions.shape)}"
-            )
+        self._candidates.check(actions)
         if not actions.is_floating_point():
             actions = actions.float()
         obs0 = torch.as_tensor(obs0, device=actions.device, dtype=actions.dtype)
@@ -245,27 +250,18 @@ class TrajectoryEvaluator:
         caller, so this function is pure (no randomness, no host synchronisation) and can be compiled.
         """
         dtype = total.dtype
-        mode = self.propagation
+        layout, sampling = self._propagation.layout, self._propagation.noise
         inp = self.model.inputs(obs, act)  # (b, in)
         if perm is not None:
             inp = inp.index_select(0, perm)
         with torch.autocast(device_type=obs.device.type, dtype=torch.bfloat16, enabled=self.precision == "bf16"):
-            if mode == "expectation":
-                mean, logvar = self.model(inp, members)  # (M, b, out), input shared by the members
-            else:
-                m = self._num_members(members) if noise is None else noise.shape[0]
-                mean, logvar = self.model(inp.reshape(m, inp.shape[0] // m, -1), members)
+            mean, logvar = layout.forward(self.model, inp, members, self._num_members(members))
         if self.precision == "bf16":  # back to float32 (the noise dtype) before any sampling
             out_dtype = zero.dtype if noise is None else noise.dtype
             mean, logvar = mean.to(out_dtype), logvar.to(out_dtype)
-        if mode == "expectation":
-            target = mean.mean(dim=0)
-        elif noise is None:  # members: each row its member's mean
-            target = mean.reshape(inp.shape[0], -1)
-        else:
-            target = (mean + torch.exp(0.5 * logvar) * noise).reshape(inp.shape[0], -1)
-            if inv is not None:
-                target = target.index_select(0, inv)
+        target = layout.combine(sampling.target(mean, logvar, noise), inp.shape[0])
+        if inv is not None:
+            target = target.index_select(0, inv)
         nxt = self.model.next_obs(obs, target.to(dtype))
         reward = self.reward_fn(obs, act, nxt).to(dtype)
         # One row sum instead of isfinite + all over the state (measured ~10x cheaper): it is non-finite
@@ -305,7 +301,7 @@ class TrajectoryEvaluator:
 
     def horizon(self, actions: Tensor) -> int:
         """Rollout length of candidates ``actions``: H of a sequence, ``feedback.horizon`` for gains."""
-        return actions.shape[1] if self.feedback is None else self.feedback.horizon
+        return self._candidates.horizon(actions)
 
     # ------------------------------------------------------------------ core
     def _run(
@@ -322,28 +318,11 @@ class TrajectoryEvaluator:
         horizon = self.horizon(actions)
         members = self.members(device)
         m = self._num_members(members)
-        mode = self.propagation
-        p_eff = 1 if mode == "expectation" else self.particles
-        rows = n_cand * p_eff
-        per_member = -(-rows // m)  # rows of each member block (ts modes)
-        b = rows if mode == "expectation" else per_member * m
-
-        # Flat row index -> candidate, and natural row -> flat row.
-        if mode in ("tsinf", "members"):
-            # Flat (slot) s = k * per_member + j holds virtual row r = j * m + k, which uses member k.
-            slot = torch.arange(b, device=device)
-            virtual = (slot % per_member) * m + slot // per_member
-            cand = torch.clamp(virtual // p_eff, max=n_cand - 1)
-            natural = torch.arange(rows, device=device)
-            nat_to_flat = (natural % m) * per_member + natural // m
-        else:
-            flat = torch.arange(b, device=device)
-            cand = torch.clamp(flat // p_eff, max=n_cand - 1)  # padded rows replay candidate N-1
-            nat_to_flat = None
-        if self.feedback is None:  # time-major (H, b, A): every step reads one contiguous (b, A) block
-            act_rows = actions.transpose(0, 1).index_select(1, cand)
-        else:  # each row's gains (b, rows, A)
-            gains = actions.index_select(0, cand)
+        layout, sampling = self._propagation.layout, self._propagation.noise
+        p_eff = layout.particles(self.particles)
+        rows = layout.arrange(n_cand, p_eff, m, device)
+        b = rows.b
+        per_row = self._candidates.per_row(actions, rows.cand)
 
         obs = obs0.expand(b, -1).clone()
         done = torch.zeros(b, dtype=torch.bool, device=device)
@@ -352,21 +331,15 @@ class TrajectoryEvaluator:
         zero = torch.zeros((), dtype=dtype, device=device)
         obs_trace = [obs] if record else None
         rew_trace: list[Tensor] | None = [] if record else None
-        arange_b = torch.arange(b, device=device) if mode == "ts1" else None
-        noise = None
-        if mode in ("ts1", "tsinf"):  # one buffer, refilled in place every step (same stream as fresh draws)
-            noise_dtype = dtype if self.precision == "bf16" else self._model_dtype(dtype)
-            noise = torch.empty((m, per_member, self.model.target_dim), device=device, dtype=noise_dtype)
-        perm = inv = diverged = None  # diverged: set at t = 0 (H >= 1, checked)
+        noise_dtype = dtype if self.precision == "bf16" else self._model_dtype(dtype)
+        noise = sampling.buffer((m, rows.per_member, self.model.target_dim), device, noise_dtype)
+        diverged = None  # set at t = 0 (H >= 1, checked)
 
         with fused.cached_weights():  # CPU bf16 layers: weights prepared once per call (dynamics.fused)
             for t in range(horizon):
-                if mode == "ts1":
-                    perm = torch.randperm(b, generator=generator, device=device)
-                    inv = torch.empty_like(perm).scatter_(0, perm, arange_b)
-                if noise is not None:
-                    torch.randn(noise.shape, generator=generator, device=device, dtype=noise.dtype, out=noise)
-                act = act_rows[t] if self.feedback is None else self.feedback.actions(gains, obs)
+                perm, inv = layout.draw(rows, generator)
+                sampling.draw(noise, generator)
+                act = self._candidates.action(t, per_row, obs)
                 obs, done, total, step_reward, went_bad = self._call_step(
                     obs, act, noise, done, total, members, perm, inv, penalty, zero
                 )
@@ -378,18 +351,11 @@ class TrajectoryEvaluator:
 
         if self.terminal_value is not None:
             total = total + torch.where(done, torch.zeros_like(total), self.terminal_value(obs).to(total.dtype))
-        obs_all = torch.stack(obs_trace, dim=1) if record else None
-        rew_all = torch.stack(rew_trace, dim=1) if record else None
-        if nat_to_flat is not None:
-            total = total.index_select(0, nat_to_flat)
-            diverged = diverged.index_select(0, nat_to_flat)  # the real rows only, not the padding
-            if record:
-                obs_all = obs_all.index_select(0, nat_to_flat)
-                rew_all = rew_all.index_select(0, nat_to_flat)
-        else:
-            total, diverged = total[:rows], diverged[:rows]
-            if record:
-                obs_all, rew_all = obs_all[:rows], rew_all[:rows]
+        n_rows = n_cand * p_eff
+        total = layout.natural(rows, total, n_rows)
+        diverged = layout.natural(rows, diverged, n_rows)  # the real rows only, not the padding
+        obs_all = layout.natural(rows, torch.stack(obs_trace, dim=1), n_rows) if record else None
+        rew_all = layout.natural(rows, torch.stack(rew_trace, dim=1), n_rows) if record else None
         return total, obs_all, rew_all, p_eff, diverged.all()
 
     @torch.no_grad()

@@ -109,7 +109,6 @@ def train_offline(
     import envs
     from pets import builder, rundir
     from pets.config import ConfigError
-    from pets.models import make_model
 
     data_label = str(Path(data).resolve()) if isinstance(data, (str, Path)) else None
     arrays = load_dataset(data) if isinstance(data, (str, Path)) else data
@@ -149,34 +148,10 @@ def train_offline(
         train_set = tensors(train_idx)
         validation = tensors(val_idx) if len(val_idx) else None
         start = time.perf_counter()
-        search, best = [], None
-        for hidden, layers in candidates or [(cfg.model.hidden_size, cfg.model.num_layers)]:
-            cfg.model.hidden_size, cfg.model.num_layers = hidden, layers
-            torch.manual_seed(cfg.seed)
-            model = make_model(cfg, spec, dev)
-            trainer = builder.make_trainer(cfg, model)
-            generator = torch.Generator(device=dev).manual_seed(cfg.seed + 1)
-            result = trainer.train(*train_set, generator, progress=progress, validation=validation)
-            search.append({"hidden_size": hidden, "num_layers": layers, "val_error": result.val_loss})
-            if best is None or result.val_loss < best[0].val_loss:  # NaN (no holdout) keeps the first
-                best = (result, model, trainer, hidden, layers)
-        result, model, trainer, hidden, layers = best
-        cfg.model.hidden_size, cfg.model.num_layers = hidden, layers
+        architectures = candidates or [(cfg.model.hidden_size, cfg.model.num_layers)]
+        result, model, trainer, search = _search(cfg, spec, dev, architectures, train_set, validation, progress)
         wall = time.perf_counter() - start
 
-        nan = float("nan")
-        row = {
-            "trial": nan,
-            "env_steps": int(len(train_idx)),
-            "episode_reward": nan,
-            "episode_length": nan,
-            "model_train_loss": result.train_loss,
-            "model_val_loss": result.val_loss,
-            "model_val_loss_initial": result.initial_val_loss,
-            "model_epochs": result.epochs,
-            "plan_seconds_per_step": nan,
-            "wall_time_s": round(wall, 3),
-        }
         meta = {
             "data": data_label,
             "episodes": int(len(arrays["lengths"])),
@@ -188,18 +163,72 @@ def train_offline(
             "validation_transitions": int(len(val_idx)),
             "search": search if candidates else [],
         }
-        state = {
-            "trials_done": 0,
-            "env_steps": 0,
-            "wall_time_s": round(wall, 3),
-            "rows": [row],
-            "model": model.state_dict(),
-            "trainer": trainer.state_dict(),
-            "last_train": result,
-            "offline": meta,
-        }
+        state, row = _run_state(result, model, trainer, meta, wall)
         _write_run(out, state, row, cfg)
     return out
+
+
+def _search(
+    cfg: Any,
+    spec: Any,
+    dev: Any,
+    architectures: list[tuple[int, int]],
+    train_set: list[Any],
+    validation: list[Any] | None,
+    progress: bool,
+) -> tuple[Any, Any, Any, list[dict[str, Any]]]:
+    """Train a model of each ``(hidden_size, num_layers)`` in ``architectures`` (each from the config's seed);
+    the best on the validation error (the first where there is none) as ``(result, model, trainer, search)``,
+    with ``cfg.model`` set to its architecture."""
+    import torch
+
+    from pets import builder
+    from pets.models import make_model
+
+    search, best = [], None
+    for hidden, layers in architectures:
+        cfg.model.hidden_size, cfg.model.num_layers = hidden, layers
+        torch.manual_seed(cfg.seed)
+        model = make_model(cfg, spec, dev)
+        trainer = builder.make_trainer(cfg, model)
+        generator = torch.Generator(device=dev).manual_seed(cfg.seed + 1)
+        result = trainer.train(*train_set, generator, progress=progress, validation=validation)
+        search.append({"hidden_size": hidden, "num_layers": layers, "val_error": result.val_loss})
+        if best is None or result.val_loss < best[0].val_loss:  # NaN (no holdout) keeps the first
+            best = (result, model, trainer, hidden, layers)
+    result, model, trainer, hidden, layers = best
+    cfg.model.hidden_size, cfg.model.num_layers = hidden, layers
+    return result, model, trainer, search
+
+
+def _run_state(
+    result: Any, model: Any, trainer: Any, meta: dict[str, Any], wall: float
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The checkpoint state of an offline run and its one metrics row (the online columns without a trial)."""
+    nan = float("nan")
+    row = {
+        "trial": nan,
+        "env_steps": meta["train_transitions"],
+        "episode_reward": nan,
+        "episode_length": nan,
+        "model_train_loss": result.train_loss,
+        "model_val_loss": result.val_loss,
+        "model_val_loss_initial": result.initial_val_loss,
+        "model_epochs": result.epochs,
+        "plan_seconds_per_step": nan,
+        "wall_time_s": round(wall, 3),
+    }
+    state = {
+        "trials_done": 0,
+        "env_steps": 0,
+        "wall_time_s": round(wall, 3),
+        "rows": [row],
+        "model": model.state_dict(),
+        "trainer": trainer.state_dict(),
+        "last_train": result,
+        "offline": meta,
+    }
+    return state, row
 
 
 def _write_run(out: Path, state: dict[str, Any], row: dict[str, Any], cfg: Any) -> None:
@@ -221,26 +250,29 @@ def _write_run(out: Path, state: dict[str, Any], row: dict[str, Any], cfg: Any) 
 
 
 def build_parser() -> OneLineParser:
+    from pets.config import DEVICES, HEADS, PRESETS
+    from pets.protocols import PROTOCOLS
+
     p = OneLineParser(
         prog=PROG,
         description="Train a dynamics ensemble offline on a collected .npz data set.",
         epilog="Any config key can be overridden as key=value, e.g. model.hidden_size=200.",
     )
     p.add_argument("--data", type=Path, required=True, help="data set written by pets.collect")
-    p.add_argument("--model", required=True, help="dynamics model: delta, gem, delta-det, gem2 or delta-groupfeat")
+    p.add_argument("--model", required=True, help=f"dynamics model: {', '.join(HEADS)} (docs/models.md)")
     p.add_argument("--out", type=Path, required=True, help="run directory to create")
     p.add_argument("--seed", type=int, help="seed (default 0)")
-    p.add_argument("--device", choices=("cpu", "cuda", "auto"), help="training device (default auto)")
+    p.add_argument("--device", choices=DEVICES, help="training device (default auto)")
     p.add_argument(
         "--epochs",
         type=int,
         help=f"max epochs (offline default {OFFLINE_DEFAULTS['model.max_epochs']}, "
         f"patience {OFFLINE_DEFAULTS['model.patience']})",
     )
-    p.add_argument("--preset", choices=("research", "fast"), default="research", help="config preset (model sizes)")
+    p.add_argument("--preset", choices=tuple(PRESETS), default="research", help="config preset (model sizes)")
     p.add_argument(
         "--protocol",
-        choices=("pets", "paper"),
+        choices=tuple(PROTOCOLS),
         default="pets",
         help="pets: bootstrap ensemble, early stopping (default); paper: the GEM paper's (pets.protocols)",
     )

@@ -14,10 +14,24 @@ the value before this fit.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 from torch import Tensor, nn
 
 from dynamics.networks import column_mean_std
+
+
+@dataclass
+class ValueConfig:
+    """``value.*``: a learned terminal value for the planner (:class:`ValueFunction`; docs/planning.md)."""
+
+    # true: a candidate's return is its horizon rewards plus V(final state) for particles that did not terminate,
+    # V fitted after every trial to the discounted real returns-to-go. false: the horizon rewards only (PETS).
+    enabled: bool = False
+    discount: float = 0.99  # of the returns V estimates: they look about 1 / (1 - discount) steps ahead
+    hidden_size: int = 64
+    steps: int = 1000  # Adam steps (batch 256) per fit, continuing from the last fit
 
 
 def episode_ends(obs: Tensor, next_obs: Tensor) -> Tensor:

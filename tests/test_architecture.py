@@ -75,3 +75,44 @@ def test_no_import_cycle_between_modules() -> None:
         return False
 
     assert not any(visit(m, []) for m in sorted(modules) if m not in state), " -> ".join(cycle)
+
+
+def test_one_exit_code_table() -> None:
+    """Every command's exit statuses are pets.cli's: no module defines its own EXIT_* constant."""
+    from pets import cli
+    from pets.experiments import cli as compare_cli
+
+    assert compare_cli.EXIT_FAILED == cli.EXIT_FAILED == 3 and set(cli.EXIT_CODES) == {0, 2, 3, 130}
+    own = [
+        str(path.relative_to(ROOT))
+        for path in sorted((ROOT / "pets").rglob("*.py"))
+        if path.name != "cli.py" or path.parent.name != "pets"
+        for node in ast.walk(ast.parse(path.read_text()))
+        if isinstance(node, ast.Assign)
+        for target in node.targets
+        if isinstance(target, ast.Name) and target.id.startswith("EXIT_")
+    ]
+    assert not own, own
+
+
+def test_the_library_is_free_of_the_tools() -> None:
+    """No module outside ``pets.tools`` imports a tool (the old paths ``pets.<tool>`` only forward to it), and each
+    old path is a forwarding module that resolves to the tool itself."""
+    import importlib
+
+    from pets.tools import MOVED
+
+    tools = {f"pets.tools.{name}" for name in MOVED} | {f"pets.{name}" for name in MOVED}
+    bad = [
+        f"{module} imports {target}"
+        for module, imports in _imports().items()
+        if not module.startswith("pets.tools") and module not in tools
+        for target, names in imports
+        if target in tools
+        or (target == "pets.tools" and set(names) - {"forward"})
+        or (target == "pets" and {f"pets.{n}" for n in names} & tools)
+    ]
+    assert not bad, bad
+    for name in MOVED:
+        assert importlib.import_module(f"pets.{name}") is importlib.import_module(f"pets.tools.{name}")
+        assert len((ROOT / "pets" / f"{name}.py").read_text().splitlines()) <= 5  # a forwarder, not a copy

@@ -1467,12 +1467,28 @@ def test_offline_rerun_accepts_runs_whose_auto_precision_resolved_elsewhere_and_
     assert f"- {other} / {other}: 1 runs (invertedpendulum-delta-s0)" in md
 
 
-def test_offline_primary_endpoint_recomputed_from_the_runs_and_data(offline):
+def _offline_copy_summarised(offline, tmp_path, data_seeds=(0,)):
+    """A copy of the offline fixture's directory, summarised again at its own settings (other tests re-summarise the
+    fixture with other models or horizons), with ``data_seeds``; the compare_offline result."""
+    import shutil
+
+    out = tmp_path / "offline"
+    shutil.copytree(offline[0], out)
+    kwargs = dict(episodes=8, test_episodes=4, horizons=[1, 3, 5], starts=20, preset="fast", device="cpu")
+    result = compare_offline(
+        ["invertedpendulum"], ["delta", "gem"], [0, 1], out, overrides=TINY_OFFLINE, progress=False,
+        data_seeds=list(data_seeds), **kwargs,
+    )  # fmt: skip
+    assert result["failed"] == {}
+    return out, result
+
+
+def test_offline_primary_endpoint_recomputed_from_the_runs_and_data(offline, tmp_path):
     """Issue 37: the no-information level from the data sets (numpy here), the tracking horizons, the clipped
     endpoint per run, the paired ratio and its exact p-value (scipy's permutation test)."""
     from pets.evaluate import MIN_STD
 
-    out, _ = offline
+    out, _ = _offline_copy_summarised(offline, tmp_path)
     (train, test) = (dict(np.load(out / "data" / f"invertedpendulum-{p}.npz")) for p in ("train", "test"))
 
     def real(a):
@@ -1580,3 +1596,79 @@ def test_compare_config_file_reaches_the_runs_and_bad_files_get_one_line(tmp_pat
         lines = [x for x in err.splitlines() if x.strip()]
         assert code == 2 and len(lines) == 1 and fragment in lines[0], err
     assert not (tmp_path / "o2").exists()
+
+
+def test_offline_data_seeds_pair_by_data_set_and_seed(offline, tmp_path):
+    """Issue 37: --data-seeds 0,1 reuses data set 0 and its runs, collects data set 1 with its own seeds, runs every
+    model and seed on it, and pairs the primary endpoint by (data seed, seed)."""
+    out, result = _offline_copy_summarised(offline, tmp_path, data_seeds=(0, 1))
+    assert result["data"]["invertedpendulum-train.npz"] == "reused"
+    assert (
+        result["data"]["invertedpendulum-d1-train.npz"]
+        == result["data"]["invertedpendulum-d1-test.npz"]
+        == ("collected")
+    )
+    assert {n for n, todo in result["todo"].items() if "train" in todo} == {
+        f"invertedpendulum-{m}-d1-s{s}" for m in ("delta", "gem") for s in (0, 1)
+    }  # data set 0's runs were trained before (other tests may have changed their horizons: evaluated again)
+    train, test = (np.load(out / "data" / f"invertedpendulum-d1-{p}.npz") for p in ("train", "test"))
+    assert (int(train["seed"]), int(test["seed"])) == (100, 101)
+    runs = csv_rows(out / "prediction_runs.csv")
+    assert {(r["data_seed"], r["seed"]) for r in runs} == {(d, s) for d in "01" for s in "01"}
+    err = {
+        (m, d, s): json.loads((out / "runs" / name / "eval.json").read_text())
+        for m in ("delta", "gem")
+        for d in (0, 1)
+        for s in (0, 1)
+        if (name := f"invertedpendulum-{m}{'-d1' if d else ''}-s{s}")
+    }
+    assert err["gem", 1, 0]["data"].endswith("invertedpendulum-d1-test.npz")
+    row = {r["model"]: r for r in csv_rows(out / "primary.csv")}["gem"]
+    assert (row["n_pairs"], row["n_data_sets"]) == ("4", "2")
+    level, hs = float(row["level"]), row["tracking_horizons"].split()
+
+    def endpoint(e):
+        return np.mean([min(e["horizons"][h]["standardized_error"], level) for h in hs])
+
+    ratios = [endpoint(err["gem", d, s]) / endpoint(err["delta", d, s]) for d in (0, 1) for s in (0, 1)]
+    assert float(row["ratio_to_delta"]) == pytest.approx(scipy.stats.trim_mean(ratios, 0.25), rel=1e-12)
+    exact = scipy.stats.permutation_test((np.log(ratios),), np.mean, permutation_type="samples", n_resamples=np.inf)
+    assert float(row["p_value_exact"]) == pytest.approx(exact.pvalue)
+    assert float(row["ratio_ci_low"]) <= float(row["ratio_to_delta"]) <= float(row["ratio_ci_high"])
+
+
+def test_offline_closedloop_plans_with_the_frozen_models_and_pairs_them(offline, tmp_path):
+    """Issue 38: --closedloop drives MPC with every trained model (no training: the checkpoints are untouched),
+    writes closedloop_PLANNER.json per run and closedloop.csv with the paired difference to delta and its exact p."""
+    import shutil
+
+    out = tmp_path / "offline"
+    shutil.copytree(offline[0], out)
+    ckpt = {d.name: (d / "checkpoint.pt").read_bytes() for d in (out / "runs").iterdir()}
+    kwargs = dict(episodes=8, test_episodes=4, horizons=[1, 3, 5], starts=20, preset="fast", device="cpu")
+    result = compare_offline(
+        ["invertedpendulum"], ["delta", "gem"], [0, 1], out, overrides=TINY_OFFLINE, progress=False,
+        closedloop=True, closedloop_steps=10, planners=["cem"], openloop_episodes=2, **kwargs,
+    )  # fmt: skip
+    assert result["failed"] == {} and all("closedloop_cem" in todo for todo in result["todo"].values())
+    assert {d.name: (d / "checkpoint.pt").read_bytes() for d in (out / "runs").iterdir()} == ckpt
+    res = {
+        (m, s): json.loads((out / "runs" / f"invertedpendulum-{m}-s{s}" / "closedloop_cem.json").read_text())
+        for m in ("delta", "gem")
+        for s in (0, 1)
+    }
+    spec = envs.get("invertedpendulum")
+    sim = spec.make()
+    r = res["gem", 1]
+    assert r["mode"] == "closed" and r["steps"] == 10 and r["episodes"] == 2
+    for i in range(2):  # the recorded rewards are the simulator's for the executed actions
+        sim.reset(seed=r["reset_seeds"][i])
+        for t in range(r["lengths"][i]):
+            assert sim.step(np.array(r["executed_actions"][i][t]))[1] == pytest.approx(r["rewards"][i][t])
+    assert r["reset_seeds"] == res["delta", 1]["reset_seeds"]  # paired: the same episodes for every model
+    row = {x["model"]: x for x in csv_rows(out / "closedloop.csv")}["gem"]
+    d = [res["gem", s]["total"]["mean"] - res["delta", s]["total"]["mean"] for s in (0, 1)]
+    assert float(row["diff_to_delta"]) == pytest.approx(np.mean(d), rel=1e-12) and row["n_pairs"] == "2"
+    exact = scipy.stats.permutation_test((np.array(d),), np.mean, permutation_type="samples", n_resamples=np.inf)
+    assert float(row["p_value_exact"]) == pytest.approx(exact.pvalue)
+    assert (out / "closedloop.md").is_file() and (out / "closedloop_invertedpendulum.png").stat().st_size > 1000

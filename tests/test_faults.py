@@ -698,3 +698,32 @@ def test_a_run_killed_while_writing_its_last_plot_gets_it_on_resume(tmp_path):
     assert rundir.load_checkpoint(run)["trials_done"] == 1
     assert "done: 1 trials" in cli("--resume", run).stdout
     assert (run / "rewards.png").stat().st_size > 0 and not list(run.glob(".*.tmp"))
+
+
+def test_the_checkpoint_keeps_the_keys_of_before_the_parts_protocol_and_round_trips() -> None:
+    """PETSRun's state is its parts' (``PETSRun.parts``): the checkpoint has the keys that runs written before wrote,
+    with the value and the feedback law where the config has them, and loading it gives the same state back."""
+    import torch
+
+    from pets import loop
+    from pets.config import make_config
+
+    def same(a, b) -> bool:
+        if isinstance(a, torch.Tensor):
+            return torch.equal(a, b)
+        if isinstance(a, dict):
+            return a.keys() == b.keys() and all(same(a[k], b[k]) for k in a)
+        return bool((a == b).all()) if hasattr(a, "all") else a == b
+
+    keys = "config trials_done env_steps wall_time_s rows model trainer buffer train_gen plan_gen np_rng torch_rng"
+    keys = keys.split() + ["last_train"]
+    for env, extra in (("invertedpendulum", ["value", "value_gen"]), ("inverteddoublependulum", ["feedback"])):
+        cfg = make_config(env, preset="fast", overrides={"threads": 1, "model.hidden_size": 8})
+        run = loop.PETSRun(cfg)
+        run.trials_done, run.rows = 2, [{"trial": 0}, {"trial": 1}]
+        torch.rand(3, generator=run.plan_gen)
+        state = run.state_dict()
+        assert list(state) == keys + extra
+        other = loop.PETSRun(cfg)
+        other.load_state_dict(state)
+        assert same(other.state_dict(), state) and other.rows == run.rows

@@ -120,6 +120,21 @@ def test_every_model_builds_trains_and_plans(env, head_name):
 
 
 # --------------------------------------------------------------------------- delta-det
+def test_deterministic_is_declared_by_head_and_network_and_they_agree_with_the_table():
+    """The model table's flag (read without building, e.g. for the config's per-model defaults) is each built
+    model's, and a head and a network that disagree are refused in one line."""
+    from pets.models import MODELS
+
+    for name, entry in MODELS.items():
+        env = "ant" if entry.needs_root else "reacher"
+        model = make_model(make_config(env, name, "fast"), envs.get(env), torch.device("cpu"))
+        assert model.deterministic == model.head.deterministic == entry.deterministic == (name in DETERMINISTIC_HEADS)
+    layout = envs.get("reacher").layout
+    head = DeterministicDeltaHead(layout, 2)
+    with pytest.raises(ValueError, match="head 'delta-det' is deterministic but the network GaussianEnsemble is Gauss"):
+        DynamicsModel(head, GaussianEnsemble(head.input_dim, head.target_dim, ensemble_size=2, hidden_size=8))
+
+
 def test_deterministic_logvar_gives_exactly_zero_noise_in_every_dtype():
     for dtype in (torch.float16, torch.bfloat16, torch.float32, torch.float64):
         lv = torch.tensor(DETERMINISTIC_LOGVAR, dtype=dtype)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 import pytest
@@ -10,7 +11,7 @@ import torch
 from scipy.stats import truncnorm
 from torch import Tensor
 
-from pets.planners import CEMPlanner, shift_plan, truncated_normal
+from pets.planners import BoxPlanner, CEMPlanner, shift_plan, truncated_normal
 
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 LOW = np.array([-1.0, -2.0])
@@ -528,8 +529,82 @@ def test_the_planner_table_is_the_config_choice_list() -> None:
     from pets.config import PLANNERS
     from pets.planners import PLANNER_CLASSES
 
-    assert tuple(PLANNER_CLASSES) == PLANNERS
+    assert tuple(PLANNERS) == tuple(PLANNER_CLASSES) == ("cem", "icem", "mppi")
     assert [cls.uses_elites for cls in PLANNER_CLASSES.values()] == [True, True, False]
+    assert all(name == cls.name for name, cls in PLANNER_CLASSES.items())
+
+
+def test_a_planner_section_is_the_config_section_and_its_checks() -> None:
+    from pets.config import ConfigError, make_config
+    from pets.planners import PLANNER_CLASSES
+
+    cfg = make_config("hopper", preset="fast")
+    sections = {name for name, cls in PLANNER_CLASSES.items() if cls.section is not None}
+    assert sections == {"icem", "mppi"} and all(name in cfg.planner for name in sections) and "cem" not in cfg.planner
+    assert cfg.planner.icem.noise_beta == ICEMPlanner(LOW, HIGH, horizon=2, population=4).noise_beta == 2.0
+    with pytest.raises(ValueError, match="MPPIPlanner has no argument 'noise_beta'; its own arguments: sigma"):
+        MPPIPlanner(LOW, HIGH, horizon=2, population=4, noise_beta=1.0)
+    with pytest.raises(ValueError, match="MPPIPlanner takes no elites"):
+        MPPIPlanner(LOW, HIGH, horizon=2, population=4, elites=2)
+    with pytest.raises(ConfigError, match=r"planner\.icem\.noise_beta must be a finite number"):
+        make_config("hopper", overrides={"planner.icem.noise_beta": "nan"})
+
+
+@dataclass
+class ShootingOptions:
+    """The toy planner's own argument (and config section ``planner.shooting.*``): how far it samples around the
+    warm start, in half-ranges of the box."""
+
+    spread: float = 1.0
+
+    def checked(self) -> ShootingOptions:
+        if not 0 < self.spread <= 1:
+            raise ValueError(f"spread must be in (0, 1], got {self.spread}")
+        return self
+
+
+class RandomShooting(BoxPlanner):
+    """A toy planner outside pets/: uniform samples around the warm start, the best one of all iterations."""
+
+    name = "shooting"
+    Options = ShootingOptions
+    section = ShootingOptions
+
+    def search(self, objective, mu, init_mean, generator):
+        best, best_value = mu, torch.tensor(-math.inf)
+        half = self.spread * 0.5 * (self.high - self.low)
+        for _ in range(self.iterations):
+            u = torch.rand((self.population, self.horizon, self.act_dim), generator=generator) * 2 - 1
+            samples = self.clip(mu + half * u)
+            values = torch.nan_to_num(objective(samples), nan=-math.inf)
+            top = int(values.argmax())
+            if values[top] > best_value:
+                best, best_value = samples[top], values[top]
+        return best
+
+
+def test_a_planner_registered_from_outside_the_package_plans_a_run(tmp_path, monkeypatch, capsys) -> None:
+    import run_pets
+    from pets.config import ConfigError, make_config
+    from pets.planners import PLANNER_CLASSES, register_planner
+    from tests.test_cli import TINY
+
+    monkeypatch.setitem(PLANNER_CLASSES, "shooting", RandomShooting)  # removed again after the test
+    assert register_planner(RandomShooting) is RandomShooting
+    f, _ = quadratic(torch.zeros(3, 2))
+    plan = RandomShooting(LOW, HIGH, horizon=3, population=200).plan(f, generator=torch.Generator().manual_seed(0))
+    assert plan.shape == (3, 2) and float(f(plan[None])[0]) > -0.5
+    cfg = make_config("invertedpendulum", overrides={"planner.name": "shooting", "planner.shooting.spread": "0.5"})
+    assert cfg.planner.shooting.spread == 0.5 and cfg.planner.mppi.sigma == 0.5
+    with pytest.raises(ConfigError, match=r"planner\.shooting\.spread must be in \(0, 1\], got 2\.0"):
+        make_config("invertedpendulum", overrides={"planner.shooting.spread": "2"})
+    with pytest.raises(ConfigError, match="planner.candidates=feedback needs planner.name cem or mppi, got 'shooting'"):
+        make_config("invertedpendulum", overrides={"planner.name": "shooting", "planner.candidates": "feedback"})
+    out = tmp_path / "run"
+    args = ["--env", "invertedpendulum", "--trials", "1", "--out", str(out), *TINY, "planner.name=shooting"]
+    assert run_pets.main([*args, "value.enabled=false"]) == 0
+    assert (out / "metrics.csv").read_text().count("\n") == 2  # the header and the one trial
+    assert "name: shooting" in (out / "config.yaml").read_text()
 
 
 def test_flat_planner_keys_of_version_0_1_still_work_with_a_warning(tmp_path) -> None:

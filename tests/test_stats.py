@@ -395,3 +395,20 @@ def test_band_matches_columnwise_ci_and_handles_edge_cases():
     curves[2, 1] = np.inf
     low, high = bootstrap_band(curves)
     assert np.isnan(low[1]) and np.isnan(high[1]) and np.isfinite(low[[0, 2, 3]]).all()
+
+
+def test_two_level_iqm_ci_carries_the_data_sets_variance():
+    from pets.experiments.statistics import two_level_iqm_ci
+
+    rng = np.random.default_rng(0)
+    groups = {d: 1.0 + d + rng.normal(0.0, 0.05, 5) for d in range(3)}  # data sets far apart, seeds close
+    point, low, high = two_level_iqm_ci(groups, reps=2000)
+    pooled = np.concatenate(list(groups.values()))
+    assert point == pytest.approx(scipy.stats.trim_mean(pooled, 0.25), rel=1e-12)
+    one_level = iqm_ci(pooled[:, None], reps=2000)  # rliable's stratified bootstrap over the 15 runs as if iid
+    assert low <= point <= high
+    assert high - low > 1.3 * float(one_level[2][0] - one_level[1][0])  # the outer level widens the interval
+    assert two_level_iqm_ci(groups, reps=2000) == (point, low, high)  # seeded
+    assert two_level_iqm_ci({0: [2.0, 2.0]}, reps=50) == (2.0, 2.0, 2.0)
+    with pytest.raises(ValueError, match="finite"):
+        two_level_iqm_ci({0: [1.0, NAN]})

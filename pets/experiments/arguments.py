@@ -51,15 +51,15 @@ def parse_models(text: str) -> list[str]:
     return _parse_choices(text, "models", config.HEADS)
 
 
-def parse_seeds(text: str) -> list[int]:
-    """Seeds: comma-separated ints >= 0."""
-    items = split_list(text, "seeds")
+def parse_seeds(text: str, flag: str = "--seeds") -> list[int]:
+    """Seeds (of ``flag``): comma-separated ints >= 0."""
+    items = split_list(text, flag.lstrip("-"))
     try:
         seeds = [int(s) for s in items]
     except ValueError:
-        raise UsageError(f"--seeds must be comma-separated ints >= 0 such as 0,1,2, got {text!r}") from None
+        raise UsageError(f"{flag} must be comma-separated ints >= 0 such as 0,1,2, got {text!r}") from None
     if min(seeds) < 0:
-        raise UsageError(f"--seeds must be ints >= 0, got {text!r}")
+        raise UsageError(f"{flag} must be ints >= 0, got {text!r}")
     return list(dict.fromkeys(seeds))
 
 

@@ -6,8 +6,9 @@
     python -m pets.compare offline --envs E1,E2 --models M1,M2 [--seeds 0,1,2,3,4] --out DIR
                                    [--episodes E] [--test-episodes E2] [--max-steps T]
                                    [--policy random|smooth-random[:BETA]|existing] [--horizons 1,5,10,25,50]
-                                   [--starts K]
+                                   [--starts K] [--data-seeds 0,1,2]
                                    [--openloop] [--planners cem,mppi] [--openloop-steps 50] [--openloop-episodes 5]
+                                   [--closedloop] [--closedloop-steps 300]
                                    [--preset research|fast] [--device D] [--quiet] [ARMS] [BACKEND]
                                    [key=value ...]
     python -m pets.compare headline [--offline S1.csv ...] [--online S2.csv ...] [--relative R1.csv ...]
@@ -44,7 +45,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from pets.cli import OneLineParser, fail
+from pets.cli import EXIT_FAILED, EXIT_INTERRUPTED, OneLineParser, fail
 from pets.experiments.arguments import (
     PROG,
     UsageError,
@@ -59,8 +60,6 @@ from pets.experiments.offline import compare_offline
 from pets.experiments.online import compare_online
 from pets.experiments.statistics import MIN_SEEDS
 
-#: Exit status when a run failed (the summary covers the others).
-EXIT_FAILED = 1
 #: Seeds of a comparison unless ``--seeds`` says otherwise (the paper's 5).
 DEFAULT_SEEDS = ",".join(str(s) for s in range(MIN_SEEDS))
 
@@ -153,6 +152,13 @@ def build_parser() -> OneLineParser:
     )
     off.add_argument("--max-steps", type=int, help="steps per collected episode at most (default: env's length)")
     off.add_argument(
+        "--data-seeds",
+        default="0",
+        help="data sets (comma-separated ints >= 0, default 0): each is collected anew (SAC too) with its own test "
+        "set, every model and seed runs on each, and the statistics pair by (data seed, seed), data sets as the "
+        "outer level of the bootstrap",
+    )
+    off.add_argument(
         "--policy",
         default="random",
         help="data policy: random (default), smooth-random[:BETA], sac[:STEPS] (SAC's training transitions; "
@@ -172,6 +178,13 @@ def build_parser() -> OneLineParser:
     off.add_argument("--planners", default="cem,mppi", help="open-loop planners (default cem,mppi)")
     off.add_argument("--openloop-steps", type=int, default=50, help="open-loop plan length (default 50)")
     off.add_argument("--openloop-episodes", type=int, default=5, help="open-loop episodes per run (default 5)")
+    off.add_argument(
+        "--closedloop",
+        action="store_true",
+        help="also drive MPC with every trained model, frozen (the run's planner per --planners, the open-loop "
+        "episodes' seeds; closedloop.csv, paired to delta)",
+    )
+    off.add_argument("--closedloop-steps", type=int, default=300, help="closed-loop steps per episode (default 300)")
 
     head = sub.add_parser(
         "headline",
@@ -374,6 +387,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                 planners=planners,
                 openloop_steps=args.openloop_steps,
                 openloop_episodes=args.openloop_episodes,
+                closedloop=args.closedloop,
+                closedloop_steps=args.closedloop_steps,
                 backend=backend,
                 preset=args.preset,
                 device=args.device or "auto",
@@ -382,13 +397,14 @@ def main(argv: Sequence[str] | None = None) -> int:
                 progress=not args.quiet,
                 arms=arms,
                 configs_only=args.print_config,
+                data_seeds=parse_seeds(args.data_seeds, "--data-seeds"),
             )
             report = out / "prediction.md"
     except UsageError as err:
         fail(PROG, str(err))
     except KeyboardInterrupt:
         print(f"\n{PROG}: interrupted; rerun the same command to continue", file=sys.stderr)
-        return 130
+        return EXIT_INTERRUPTED
     if args.print_config:
         print_shared_config(args, result["configs"])
         return 0

@@ -3,7 +3,9 @@
 Per env: a training and a separate test data set with ``pets.collect`` (``DIR/data/ENV-train.npz``
 with data seed 0 and E episodes, ``DIR/data/ENV-test.npz`` with data seed 1 and E2 episodes, same
 policy), reused if present (an error if they were collected with another policy, seed or episode
-count). ``--policy existing`` takes both files as they are (e.g. collected from a trained agent with
+count). With ``--data-seeds`` D > 0 also ``ENV-dD-{train,test}.npz``, collected with seeds 100 D and 100 D + 1
+(SAC trained anew with 100 D): data sets as a second source of variance, runs ``ENV-MODEL-dD-sS``.
+``--policy existing`` takes both files as they are (e.g. collected from a trained agent with
 ``pets.collect --policy run:RUN_DIR --out DIR/data/ENV-train.npz``); then the data options are unused.
 ``--policy sac[:STEPS]`` trains SAC for STEPS env steps (default: the protocol's training plus validation
 samples, 110k for ``paper``) and keeps every transition as the training data, saves the agent as
@@ -16,9 +18,11 @@ Per run: train offline (``pets.train.train_offline``, model seed = the run's see
 run directory holds a trained model; evaluate on the test data (``pets.evaluate``, mean mode, the
 same start points for every model and seed of an env: evaluation seed 0; ``standardized_error`` scaled
 by the training data) into ``eval.json`` unless it holds this evaluation already; with ``--openloop``,
-open-loop planning (``pets.openloop``, seed 2) per planner into ``openloop_PLANNER.json``. Jobs run on the backend
-(:class:`pets.experiments.runner.Backend`): a pool of K processes or, with K = 1, this process; or one Ray task
-each. A job killed part way is redone whole when it runs again (``config.yaml`` is written last).
+open-loop planning (``pets.openloop``, seed 2) per planner into ``openloop_PLANNER.json``; with ``--closedloop``,
+MPC with the frozen model (``pets.openloop --closed-loop``, the same episodes) into ``closedloop_PLANNER.json``.
+Jobs run on the backend (:class:`pets.experiments.runner.Backend`): a pool of K processes or, with K = 1, this
+process; or one Ray task each. A job killed part way is redone whole when it runs again (``config.yaml`` is
+written last).
 """
 
 from __future__ import annotations
@@ -31,7 +35,8 @@ from typing import Any
 
 from pets.experiments.arguments import PROG, UsageError, few_seeds_warning
 from pets.experiments.backend import Backend
-from pets.experiments.offline_summary import summarise_offline, summarise_openloop
+from pets.experiments.offline_summary import summarise_offline
+from pets.experiments.planning_summary import summarise_openloop
 from pets.experiments.rundirs import (
     NOT_COMPARED,
     check_out_writable,
@@ -45,10 +50,30 @@ from pets.fileio import atomic_write_bytes
 
 #: Data seeds of the offline mode: training data, test data, open-loop initial states.
 TRAIN_DATA_SEED, TEST_DATA_SEED, OPENLOOP_SEED = 0, 1, 2
+#: Data set D > 0 (``--data-seeds``) collects with seeds ``D * DATA_SEED_STRIDE + TRAIN_DATA_SEED / TEST_DATA_SEED``
+#: (SAC trained with the training seed), so that no two data sets share a random stream.
+DATA_SEED_STRIDE = 100
 #: Seed of the start points of the prediction-error evaluation (the same for every model and seed).
 EVAL_SEED = 0
 #: ``--policy`` value that uses the data files already in DIR/data as they are.
 EXISTING = "existing"
+
+
+def data_paths(data_dir: Path, env: str, data_seed: int = 0) -> tuple[Path, Path]:
+    """The training and test files of one data set: ``ENV-{train,test}.npz`` (data set 0), else
+    ``ENV-dD-{train,test}.npz``."""
+    stem = f"{env}-d{data_seed}" if data_seed else env
+    return data_dir / f"{stem}-train.npz", data_dir / f"{stem}-test.npz"
+
+
+def collect_seeds(data_seed: int = 0) -> tuple[int, int]:
+    """The collection seeds (training, test) of data set ``data_seed``."""
+    return data_seed * DATA_SEED_STRIDE + TRAIN_DATA_SEED, data_seed * DATA_SEED_STRIDE + TEST_DATA_SEED
+
+
+def sac_agent_path(train_path: Path) -> Path:
+    """Where the SAC agent of a training data file lives: ``ENV[-dD]-sac.zip`` beside it."""
+    return train_path.with_name(train_path.name.replace("-train.npz", "-sac.zip"))
 
 
 def sac_steps(policy: str, protocol: str) -> int | None:
@@ -140,7 +165,7 @@ def prepare_data(
 
         data, agent = collect_sac(spec, sac_steps(policy, "pets"), seed, max_steps, device="cpu", progress=progress)
         path.parent.mkdir(parents=True, exist_ok=True)
-        atomic_write_bytes(path.with_name(f"{env}-sac.zip"), agent_bytes(agent))  # before the data: it needs it
+        atomic_write_bytes(sac_agent_path(path), agent_bytes(agent))  # before the data: it needs it
         save_dataset(path, data)
         return "collected"
     save_dataset(path, collect(spec, policy, episodes, seed, max_steps, progress=progress))
@@ -216,16 +241,28 @@ def _offline_job(job: Mapping[str, Any]) -> dict[str, Any]:
         if load_config(str(run_dir / "config.yaml")).tensorboard:  # per-horizon errors for TensorBoard (pets.tblog)
             write_events(run_dir, job["test_data"], result)
         done.append("eval")
-    for planner in job["planners"]:
-        path = run_dir / f"openloop_{planner}.json"
-        request = {**job["openloop_request"], "planner": planner}
+    for kind, planner in _planning_tasks(job):
+        path = run_dir / f"{kind}_{planner}.json"
+        request = {**job[f"{kind}_request"], "planner": planner}
         if "train" in done or not json_matches(path, request):
             r = request
-            result = open_loop(run_dir, planner, r["steps"], r["episodes"], r["seed"], device=job["device"])
+            result = open_loop(
+                run_dir, planner, r["steps"], r["episodes"], r["seed"], device=job["device"], closed=kind == CLOSED
+            )
             result["request"] = request
             atomic_write_bytes(path, (json.dumps(result) + "\n").encode())
-            done.append(f"openloop_{planner}")
+            done.append(f"{kind}_{planner}")
     return {"name": run_dir.name, "done": done}
+
+
+#: The planning kinds of the offline mode: open-loop plans (``--openloop``) and MPC with the frozen model
+#: (``--closedloop``); a run's results are ``KIND_PLANNER.json``.
+OPEN, CLOSED = "openloop", "closedloop"
+
+
+def _planning_tasks(job: Mapping[str, Any]) -> list[tuple[str, str]]:
+    """(kind, planner) of every planning result ``job`` asks for."""
+    return [(OPEN, p) for p in job["planners"]] + [(CLOSED, p) for p in job.get("closed_planners", [])]
 
 
 def offline_todo(job: Mapping[str, Any]) -> list[str]:
@@ -235,10 +272,10 @@ def offline_todo(job: Mapping[str, Any]) -> list[str]:
     if todo or not json_matches(run_dir / "eval.json", job["eval_request"]):
         todo.append("eval")
     todo += [
-        f"openloop_{p}"
-        for p in job["planners"]
+        f"{kind}_{p}"
+        for kind, p in _planning_tasks(job)
         if todo[:1] == ["train"]
-        or not json_matches(run_dir / f"openloop_{p}.json", {**job["openloop_request"], "planner": p})
+        or not json_matches(run_dir / f"{kind}_{p}.json", {**job[f"{kind}_request"], "planner": p})
     ]
     return todo
 
@@ -259,6 +296,8 @@ def compare_offline(
     planners: Sequence[str] = ("cem", "mppi"),
     openloop_steps: int = 50,
     openloop_episodes: int = 5,
+    closedloop: bool = False,
+    closedloop_steps: int = 300,
     backend: Backend | None = None,
     preset: str = "research",
     device: str = "auto",
@@ -267,6 +306,7 @@ def compare_offline(
     progress: bool = True,
     arms: Mapping[str, tuple[str, Mapping[str, str]]] | None = None,
     configs_only: bool = False,
+    data_seeds: Sequence[int] = (0,),
 ) -> dict[str, Any]:
     """Collect, train, evaluate (and open-loop plan) everything missing, then write the summaries.
 
@@ -275,6 +315,8 @@ def compare_offline(
     ``arms``: ``{label: (model, overrides)}`` for the names in ``models`` that are arms (``--arm``), not models.
     ``configs_only``: return ``{"configs": {run name: resolved config}}`` once the arguments are checked, without
     looking at ``out`` or running anything (``--print-config``).
+    ``data_seeds``: the data sets (``--data-seeds``): every model and seed is trained and evaluated on each
+    (:func:`data_paths`, :func:`collect_seeds`); runs pair by (data seed, seed).
 
     Returns ``{"data": {file: collected|reused}, "todo": {run: [what was missing]}, "done": {run: [what was
     done]}, "failed": {run: message}, "summary"}``; runs absent from "todo" were reused as they were.
@@ -307,6 +349,7 @@ def compare_offline(
         ("starts", starts),
         ("openloop-steps", openloop_steps),
         ("openloop-episodes", openloop_episodes),
+        ("closedloop-steps", closedloop_steps),
     ):
         if value < 1:
             raise UsageError(f"--{name} must be >= 1, got {value}")
@@ -323,24 +366,26 @@ def compare_offline(
     extra["threads"] = str(backend.threads)
     out = Path(out).resolve()
     jobs, data_actions, pending, configs = [], {}, {}, {}
+    data_seeds = list(dict.fromkeys(int(d) for d in data_seeds))
+    if not data_seeds or min(data_seeds) < 0:
+        raise UsageError(f"--data-seeds must be ints >= 0, got {data_seeds}")
     for env in env_names:
         for model in models:
             head, own = (arms or {}).get(model, (model, {}))
             for seed in seeds:
-                run_dir = out / "runs" / run_name(env, model, seed)
                 try:
                     expected = offline_config(
                         env, head, {**extra, **own}, preset=preset, seed=seed, device=device, protocol=protocol
                     )
                 except ConfigError as err:
                     raise UsageError(str(err)) from None
-                configs[run_name(env, model, seed)] = expected
-                if configs_only:
-                    continue
-                if (run_dir / "config.yaml").is_file():  # the searched architecture is the run's own choice
-                    searched = ("model.hidden_size", "model.num_layers") if proto.architectures(env) else ()
-                    ignore = (*NOT_COMPARED, *searched, *left_to_auto({**extra, **own}))
-                    check_same_config(run_dir, expected, ignore=ignore)
+                for d in data_seeds:
+                    configs[run_name(env, model, seed, data_seed=d)] = expected
+                    run_dir = out / "runs" / run_name(env, model, seed, data_seed=d)
+                    if not configs_only and (run_dir / "config.yaml").is_file():  # the searched architecture is the
+                        searched = ("model.hidden_size", "model.num_layers") if proto.architectures(env) else ()
+                        ignore = (*NOT_COMPARED, *searched, *left_to_auto({**extra, **own}))  # run's own choice
+                        check_same_config(run_dir, expected, ignore=ignore)
     if configs_only:
         return {"configs": configs}
     check_out_writable(out)  # after every argument is checked: bad input leaves no directory behind
@@ -355,39 +400,46 @@ def compare_offline(
         "standardized_by": "train data",
     }
     openloop_request = {"steps": openloop_steps, "episodes": openloop_episodes, "seed": OPENLOOP_SEED}
+    closedloop_request = {"steps": closedloop_steps, "episodes": openloop_episodes, "seed": OPENLOOP_SEED}
     for env in env_names:
         for model in models:
             head, own = (arms or {}).get(model, (model, {}))
-            for seed in seeds:
-                name = run_name(env, model, seed)
+            for seed, d in ((seed, d) for d in data_seeds for seed in seeds):
+                name = run_name(env, model, seed, data_seed=d)
+                train_path, test_path = data_paths(data_dir, env, d)
                 job = {
                     "env": env,
                     "model": head,
                     "seed": seed,
+                    "data_seed": d,
                     "run_dir": str(out / "runs" / name),
-                    "train_data": str(data_dir / f"{env}-train.npz"),
-                    "test_data": str(data_dir / f"{env}-test.npz"),
+                    "train_data": str(train_path),
+                    "test_data": str(test_path),
                     "overrides": {**extra, **own},
                     "preset": preset,
                     "protocol": protocol,
                     "device": device,
-                    "eval_request": {**eval_request, "data": f"data/{env}-test.npz"},
+                    "eval_request": {**eval_request, "data": f"data/{test_path.name}"},
                     "planners": list(planners) if openloop else [],
                     "openloop_request": openloop_request,
+                    "closed_planners": list(planners) if closedloop else [],
+                    "closedloop_request": closedloop_request,
                 }
                 todo = offline_todo(job)
                 if todo:
                     jobs.append((name, offline_job, (job,)))
                     pending[name] = todo
-    total = len(env_names) * len(models) * len(seeds)
+    total = len(env_names) * len(models) * len(seeds) * len(data_seeds)
     alone = backend.kind == "local" and backend.workers == 1  # a job's own progress bar only when it runs here
     with open_backend(backend, out, needed=bool(jobs)) as run:  # Ray: connected and checked before any work
         data_jobs = []
-        for env in env_names:  # existing files checked here; missing ones collected on the backend, a job per env
-            missing = []
-            for part, seed, n in (("train", TRAIN_DATA_SEED, episodes), ("test", TEST_DATA_SEED, n_test(env))):
-                path = data_dir / f"{env}-{part}.npz"
-                part_policy = f"sb3:{data_dir / f'{env}-sac.zip'}" if steps is not None and part == "test" else policy
+        for env, d in ((env, d) for env in env_names for d in data_seeds):  # existing files checked here; missing
+            missing = []  # ones collected on the backend, a job per data set
+            train_path, test_path = data_paths(data_dir, env, d)
+            (train_seed, test_seed), n_tests = collect_seeds(d), n_test(env)
+            parts = (("train", train_path, train_seed, episodes), ("test", test_path, test_seed, n_tests))
+            for part, path, seed, n in parts:
+                part_policy = f"sb3:{sac_agent_path(train_path)}" if steps is not None and part == "test" else policy
                 if path.is_file() or policy == EXISTING:
                     try:
                         data_actions[path.name] = prepare_data(path, env, part_policy, n, seed, max_steps)
@@ -397,15 +449,16 @@ def compare_offline(
                     missing.append((str(path), part_policy, n, seed))
             if missing:
                 args = (env, missing, max_steps, progress and alone, backend.threads)
-                data_jobs.append((f"{env} data", collect_data, args))
+                data_jobs.append((f"{env} data {d}", collect_data, args))
         data_failed = {}
         for name, (ok, value) in run(data_jobs, processes=True, progress=progress, desc="data sets").items():
             if ok:
                 data_actions.update({file: "collected" for file in value})
             else:
-                data_failed[name.split()[0]] = value
-        if data_failed:  # the runs of an env without data fail with the reason; the others go on
-            jobs = [job for job in jobs if job[2][0]["env"] not in data_failed]
+                env, _, d = name.split()
+                data_failed[env, int(d)] = value
+        if data_failed:  # the runs of a data set that could not be made fail with the reason; the others go on
+            jobs = [job for job in jobs if (job[2][0]["env"], job[2][0]["data_seed"]) not in data_failed]
         print(
             f"{PROG}: {total} runs: {total - len(jobs)} reused, {len(jobs)} with work to do "
             f"({backend.describe()}); data: " + ", ".join(f"{k} {v}" for k, v in data_actions.items()),
@@ -415,13 +468,15 @@ def compare_offline(
         if warning:
             print(warning, file=sys.stderr)
         results = run(jobs, processes=True, progress=progress, desc="offline runs")
-    for env, message in data_failed.items():
+    for (env, d), message in data_failed.items():
         for model in models:
             for seed in seeds:
-                results[run_name(env, model, seed)] = (False, f"no data: {message}")
+                results[run_name(env, model, seed, data_seed=d)] = (False, f"no data: {message}")
     failed = {name: msg for name, (ok, msg) in results.items() if not ok}
     done = {name: res["done"] for name, (ok, res) in results.items() if ok}
-    summary = summarise_offline(out, env_names, models, seeds, eval_request, failed)
+    summary = summarise_offline(out, env_names, models, seeds, eval_request, failed, data_seeds=data_seeds)
     if openloop:
         summarise_openloop(out, env_names, models, seeds, planners, openloop_request)
+    if closedloop:
+        summarise_openloop(out, env_names, models, seeds, planners, closedloop_request, kind=CLOSED)
     return {"data": data_actions, "todo": pending, "done": done, "failed": failed, "summary": summary}

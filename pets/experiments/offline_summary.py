@@ -55,7 +55,7 @@ from typing import Any
 import numpy as np
 
 from pets.evaluate import METRICS as EVALUATE_METRICS
-from pets.experiments.plots import model_colors, plot_absolute, plot_openloop, plot_ratio, plot_relative
+from pets.experiments.plots import plot_absolute, plot_ratio, plot_relative
 from pets.experiments.primary import (
     PAST_LEVEL_COLUMNS,
     PRIMARY_COLUMNS,
@@ -64,7 +64,7 @@ from pets.experiments.primary import (
     primary_markdown,
     primary_rows,
 )
-from pets.experiments.report import BOOT_SEED, fmt_ci, fmt_interval, md_table, write_csv
+from pets.experiments.report import BOOT_SEED, fmt_interval, md_table, write_csv
 from pets.experiments.rundirs import json_matches, precision_note, run_name
 from pets.experiments.statistics import (
     BASELINE,
@@ -76,7 +76,6 @@ from pets.experiments.statistics import (
     p_improvement_ci,
     paired_ratios,
     sign_flip_p,
-    summarise,
 )
 from pets.fileio import atomic_write_bytes
 
@@ -124,17 +123,30 @@ RELATIVE_COLUMNS = [
 AVERAGE = "average"
 
 
+def _test_label(env: str, data_seed: int) -> str:
+    """The ``data`` entry of an evaluation request on data set ``data_seed`` (pets.experiments.offline.data_paths)."""
+    return f"data/{env}-d{data_seed}-test.npz" if data_seed else f"data/{env}-test.npz"
+
+
 def load_evals(
-    out: Path, env: str, models: Sequence[str], seeds: Sequence[int], request: Mapping[str, Any]
+    out: Path,
+    env: str,
+    models: Sequence[str],
+    seeds: Sequence[int],
+    request: Mapping[str, Any],
+    data_seeds: Sequence[int] = (0,),
 ) -> dict[str, list[dict[str, Any]]]:
-    """{model: [eval.json of each seed that has one for this request]}."""
+    """{model: [eval.json of each (data seed, seed) that has one for this request]}; each with ``seed``,
+    ``data_seed`` and ``pair`` (the key runs pair by: the seed alone with one data set, else (data seed, seed))."""
     found: dict[str, list[dict[str, Any]]] = {}
     for model in models:
-        for seed in seeds:
-            path = out / "runs" / run_name(env, model, seed) / "eval.json"
-            req = {**request, "data": f"data/{env}-test.npz"}
-            if json_matches(path, req):
-                found.setdefault(model, []).append({**json.loads(path.read_text()), "seed": seed})
+        for d in data_seeds:
+            for seed in seeds:
+                path = out / "runs" / run_name(env, model, seed, data_seed=d) / "eval.json"
+                if json_matches(path, {**request, "data": _test_label(env, d)}):
+                    pair = seed if len(data_seeds) == 1 else (d, seed)
+                    e = {**json.loads(path.read_text()), "seed": seed, "data_seed": d, "pair": pair}
+                    found.setdefault(model, []).append(e)
     return found
 
 
@@ -176,7 +188,7 @@ def env_statistics(
     model diverged at h (``n_pairs``).
     """
     columns = [(m, h) for m in metrics for h in horizons] + [(m, AVERAGE) for m in metrics]
-    scores = {model: {e["seed"]: _run_scores(e, metrics, horizons) for e in runs} for model, runs in evals.items()}
+    scores = {model: {e["pair"]: _run_scores(e, metrics, horizons) for e in runs} for model, runs in evals.items()}
     out: dict[str, dict[tuple[str, int | str], dict[str, Any]]] = {}
     for model, runs in scores.items():
         x = np.array(list(runs.values()))
@@ -291,6 +303,7 @@ def summarise_offline(
     failed: Mapping[str, str] | None = None,
     *,
     reps: int = REPS,
+    data_seeds: Sequence[int] = (0,),
 ) -> list[dict[str, Any]]:
     """Write summary.csv, relative_error.csv, prediction_runs.csv, prediction.md and the figures (module
     docstring) from the runs' eval.json files; returns the summary.csv rows."""
@@ -301,13 +314,15 @@ def summarise_offline(
     fig2: dict[str, dict[str, dict[str, Any]]] = {}
     levels: dict[str, tuple[float, str]] = {}
     for env in env_names:
-        evals = load_evals(out, env, models, seeds, request)
+        evals = load_evals(out, env, models, seeds, request, data_seeds)
         if not evals:
             continue
         levels[env] = level = env_level(out / "data", env)
         env_models = [m for m in models if m in evals]
         runs = [e for m in env_models for e in evals[m]]
-        included += [out / "runs" / run_name(env, m, e["seed"]) for m in env_models for e in evals[m]]
+        included += [
+            out / "runs" / run_name(env, m, e["seed"], data_seed=e["data_seed"]) for m in env_models for e in evals[m]
+        ]
         common = sorted(set.intersection(*[set(map(int, e["horizons"])) for e in runs]))
         metrics = order_metrics(sorted(set.intersection(*[set(v) for e in runs for v in e["horizons"].values()])))
         if not common or not metrics:
@@ -317,13 +332,15 @@ def summarise_offline(
             for e in evals[model]:
                 e["diverged"] = divergences(e["horizons"], level[0])
                 if e["diverged"]:
-                    diverged_runs.append(f"{run_name(env, model, e['seed'])}: {_divergence_text(e['diverged'])}")
+                    name = run_name(env, model, e["seed"], data_seed=e["data_seed"])
+                    diverged_runs.append(f"{name}: {_divergence_text(e['diverged'])}")
                 for h, m in e["horizons"].items():
                     per_run.append(
                         {
                             "env": env,
                             "model": model,
                             "seed": e["seed"],
+                            "data_seed": e["data_seed"],
                             "horizon": int(h),
                             "starts": e["starts"],
                             "diverged": e["diverged"].get(h, ""),
@@ -382,7 +399,7 @@ def summarise_offline(
     write_csv(
         out / "prediction_runs.csv",
         per_run,
-        ["env", "model", "seed", "horizon", "starts", "diverged", *errors]
+        ["env", "model", "seed", "data_seed", "horizon", "starts", "diverged", *errors]
         + [k for k in run_columns if k not in errors],
     )
     header = [
@@ -462,101 +479,17 @@ def summarise_offline(
             + [""]
         )
     missing = [
-        run_name(e, m, s)
+        run_name(e, m, s, data_seed=d)
         for e in env_names
         for m in models
+        for d in data_seeds
         for s in seeds
-        if not json_matches(out / "runs" / run_name(e, m, s) / "eval.json", {**request, "data": f"data/{e}-test.npz"})
+        if not json_matches(
+            out / "runs" / run_name(e, m, s, data_seed=d) / "eval.json", {**request, "data": _test_label(e, d)}
+        )
     ]
     if missing:
         text += ["## Missing runs (not in the statistics)", ""]
         text += [f"- {m}{': ' + failed[m] if failed and m in failed else ''}" for m in missing] + [""]
     atomic_write_bytes(out / "prediction.md", "\n".join(text).encode())
     return summary
-
-
-def summarise_openloop(
-    out: Path,
-    env_names: Sequence[str],
-    models: Sequence[str],
-    seeds: Sequence[int],
-    planners: Sequence[str],
-    request: Mapping[str, Any],
-) -> list[dict[str, Any]]:
-    """Write openloop.md, openloop.csv and openloop_ENV.png from the runs' openloop_PLANNER.json files."""
-    out = Path(out)
-    rows, text = (
-        [],
-        [
-            "# Open-loop planning (GEM paper section 5.2)",
-            "",
-            f"Each trained model plans {request['steps']} actions once from the initial state of "
-            f"{request['episodes']} episodes (seed {request['seed']}); the actions run in the real env "
-            "without feedback (rewards after a real termination count as 0). Per seed: the mean over "
-            "episodes; then mean over seeds with the 95 % percentile-bootstrap CI.",
-            "",
-        ],
-    )
-    colors = model_colors(list(models))
-    for env in env_names:
-        table, panels = [], {}
-        for planner in planners:
-            for model in models:
-                results = []
-                for seed in seeds:
-                    path = out / "runs" / run_name(env, model, seed) / f"openloop_{planner}.json"
-                    if json_matches(path, {**request, "planner": planner}):
-                        results.append(json.loads(path.read_text()))
-                if not results:
-                    continue
-                per_step = summarise([r["mean_reward_per_step"]["mean"] for r in results], seed=BOOT_SEED)
-                total = summarise([r["total"]["mean"] for r in results], seed=BOOT_SEED)
-                rows.append(
-                    {
-                        "env": env,
-                        "planner": planner,
-                        "model": model,
-                        "n_seeds": per_step["n"],
-                        "steps": request["steps"],
-                        "reward_per_step_mean": per_step["mean"],
-                        "reward_per_step_ci_low": per_step["ci_low"],
-                        "reward_per_step_ci_high": per_step["ci_high"],
-                        "reward_per_step_iqm": per_step["iqm"],
-                        "total_mean": total["mean"],
-                        "total_ci_low": total["ci_low"],
-                        "total_ci_high": total["ci_high"],
-                    }
-                )
-                table.append([planner, model, str(per_step["n"]), fmt_ci(per_step), fmt_ci(total)])
-                panels.setdefault(planner, {})[model] = np.array([r["reward_per_step"]["mean"] for r in results])
-        if not table:
-            continue
-        text += [
-            f"## {env}",
-            "",
-            md_table(["planner", "model", "seeds", "reward per step", "total reward"], table),
-            "",
-            f"![open loop](openloop_{env}.png)",
-            "",
-        ]
-        plot_openloop(out / f"openloop_{env}.png", env, panels, colors)
-    write_csv(
-        out / "openloop.csv",
-        rows,
-        [
-            "env",
-            "planner",
-            "model",
-            "n_seeds",
-            "steps",
-            "reward_per_step_mean",
-            "reward_per_step_ci_low",
-            "reward_per_step_ci_high",
-            "reward_per_step_iqm",
-            "total_mean",
-            "total_ci_low",
-            "total_ci_high",
-        ],
-    )
-    atomic_write_bytes(out / "openloop.md", "\n".join(text).encode())
-    return rows

@@ -254,7 +254,11 @@ def plot_ratio(path: Path, rows: Mapping[str, Mapping[str, Mapping[str, Any]]], 
 
 
 def plot_openloop(
-    path: Path, env: str, panels: Mapping[str, Mapping[str, np.ndarray]], colors: Mapping[str, Any]
+    path: Path,
+    env: str,
+    panels: Mapping[str, Mapping[str, np.ndarray]],
+    colors: Mapping[str, Any],
+    kind: str = "open-loop",
 ) -> None:
     """Open-loop reward per step, one panel per planner: per model the mean over seeds (rows of each
     ``(n_seeds, steps)`` array) with the bootstrap band."""
@@ -266,7 +270,7 @@ def plot_openloop(
             low, high = bootstrap_band(curves, seed=BOOT_SEED)
             ax.plot(steps, curves.mean(axis=0), color=colors[model], label=f"{model} (n={len(curves)})")
             ax.fill_between(steps, low, high, color=colors[model], alpha=0.25, lw=0)
-        ax.set_title(f"{env}, {planner}: open-loop reward per step", fontsize=10)
+        ax.set_title(f"{env}, {planner}: {kind} reward per step", fontsize=10)
         ax.set_xlabel("step")
         ax.set_ylabel("reward (mean over seeds, 95 % CI)")
         ax.grid(alpha=0.3)

@@ -10,9 +10,10 @@
 - **Endpoint per run**: the mean over the tracking horizons of ``min(standardized_error, L)``, a non-finite
   error counting as ``L``. Past ``L`` every prediction is equally useless, so a diverged run scores the worst
   value and is never dropped, and one run's blow-up cannot outweigh the other seeds.
-- **Per env and arm** (:func:`primary_rows`): the per-seed ratio arm / baseline of the endpoint (paired: same
-  seed, data and start points), its IQM with the 95 % stratified-bootstrap CI, the exact paired sign-flip
-  p-value of the mean log ratio (``p_value_exact``), Holm's adjustment over every (env, arm) test of the call
+- **Per env and arm** (:func:`primary_rows`): the per-run ratio arm / baseline of the endpoint (paired by data
+  set and seed: same data, seed and start points), its IQM with the 95 % stratified-bootstrap CI (with several
+  data sets, the two-level bootstrap of :func:`pets.experiments.statistics.two_level_iqm_ci`), the exact paired
+  sign-flip p-value of the mean log ratio (``p_value_exact``), Holm's adjustment over every (env, arm) test of the call
   (``p_value_holm``) and rliable's P(arm's endpoint < baseline's).
 """
 
@@ -25,7 +26,15 @@ from typing import Any
 
 import numpy as np
 
-from pets.experiments.statistics import BASELINE, REPS, holm, iqm_ci, p_improvement_ci, sign_flip_p
+from pets.experiments.statistics import (
+    BASELINE,
+    REPS,
+    holm,
+    iqm_ci,
+    p_improvement_ci,
+    sign_flip_p,
+    two_level_iqm_ci,
+)
 
 #: The level used where the data sets are not at hand (e.g. summaries of committed runs CSVs): the standardized
 #: error of an independent draw from the training distribution, sqrt(2) training standard deviations.
@@ -41,6 +50,7 @@ PRIMARY_COLUMNS = [
     "level",
     "level_source",
     "tracking_horizons",
+    "n_data_sets",
     "n_pairs",
     "endpoint_iqm",
     "endpoint_ci_low",
@@ -95,20 +105,25 @@ def _median(values: Iterable[float]) -> float:
     return float(np.median(x)) if x.size else math.nan
 
 
-def _errors(rows: Iterable[Mapping[str, Any]]) -> dict[str, dict[str, dict[int, dict[int, float]]]]:
-    """{env: {model: {seed: {horizon: standardized_error}}}} of per-run rows (``prediction_runs.csv``)."""
-    out: dict[str, dict[str, dict[int, dict[int, float]]]] = {}
+Run = tuple[int, int]  # (data seed, model seed): what runs pair by
+
+
+def _errors(rows: Iterable[Mapping[str, Any]]) -> dict[str, dict[str, dict[Run, dict[int, float]]]]:
+    """{env: {model: {(data seed, seed): {horizon: standardized_error}}}} of per-run rows (``prediction_runs.csv``;
+    data seed 0 where the rows have none)."""
+    out: dict[str, dict[str, dict[Run, dict[int, float]]]] = {}
     for r in rows:
         value = r.get(METRIC)
         err = math.inf if value in (None, "") else float(value)
-        seeds = out.setdefault(str(r["env"]), {}).setdefault(str(r["model"]), {})
-        seeds.setdefault(int(r["seed"]), {})[int(r["horizon"])] = err if math.isfinite(err) else math.inf
+        runs = out.setdefault(str(r["env"]), {}).setdefault(str(r["model"]), {})
+        run = (int(r.get("data_seed") or 0), int(r["seed"]))
+        runs.setdefault(run, {})[int(r["horizon"])] = err if math.isfinite(err) else math.inf
     return out
 
 
-def tracking_horizons(baseline: Mapping[int, Mapping[int, float]], level: float) -> list[int]:
+def tracking_horizons(baseline: Mapping[Any, Mapping[int, float]], level: float) -> list[int]:
     """The horizons, shortest first, before the first one at which the median over the baseline's runs
-    ({seed: {horizon: standardized_error}}) reaches ``level``; only horizons every run has."""
+    ({run: {horizon: standardized_error}}) reaches ``level``; only horizons every run has."""
     common = sorted(set.intersection(*[set(h) for h in baseline.values()])) if baseline else []
     out = []
     for h in common:
@@ -164,9 +179,13 @@ def primary_rows(
                 pairs = sorted(set(e) & set(eb))
                 ratios = np.array([e[s] / eb[s] for s in pairs])
                 row["n_pairs"] = len(pairs)
-                row["ratio_to_delta"], row["ratio_ci_low"], row["ratio_ci_high"] = (
-                    float(v[0]) for v in iqm_ci(ratios[:, None], reps=reps, seed=seed)
-                )
+                row["n_data_sets"] = len({d for d, _ in pairs})
+                if row["n_data_sets"] > 1:  # data sets as the outer level of the bootstrap
+                    by_data = {d: [r for (dd, _), r in zip(pairs, ratios) if dd == d] for d, _ in pairs}
+                    ci = two_level_iqm_ci(by_data, reps=reps, seed=seed)
+                else:
+                    ci = tuple(float(v[0]) for v in iqm_ci(ratios[:, None], reps=reps, seed=seed))
+                row["ratio_to_delta"], row["ratio_ci_low"], row["ratio_ci_high"] = ci
                 row["p_value_exact"] = sign_flip_p(np.log(ratios))
                 p = p_improvement_ci(vals, np.array(list(eb.values()))[:, None], reps=reps, seed=seed)
                 row["p_improvement"], row["p_improvement_ci_low"], row["p_improvement_ci_high"] = (

@@ -22,9 +22,11 @@ def check_out_writable(out: Path) -> None:
         raise UsageError(f"--out: {problem}; pick another --out")
 
 
-def run_name(env: str, model: str, seed: int, planner: str | None = None) -> str:
-    """The run directory's name: ``ENV-MODEL-sSEED``, or ``ENV-MODEL-PLANNER-sSEED`` when planners are compared."""
-    return f"{env}-{model}-s{seed}" if planner is None else f"{env}-{model}-{planner}-s{seed}"
+def run_name(env: str, model: str, seed: int, planner: str | None = None, data_seed: int = 0) -> str:
+    """The run directory's name: ``ENV-MODEL-sSEED``, ``ENV-MODEL-PLANNER-sSEED`` when planners are compared, and
+    ``ENV-MODEL-dDATA-sSEED`` for offline runs on data set DATA > 0 (data set 0 keeps the plain name)."""
+    data = f"-d{data_seed}" if data_seed else ""
+    return f"{env}-{model}{data}-s{seed}" if planner is None else f"{env}-{model}-{planner}{data}-s{seed}"
 
 
 def arm_label(model: str, planner: str | None) -> str:

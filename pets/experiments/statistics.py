@@ -24,7 +24,8 @@ a thin layer over rliable (Agarwal et al. 2021, "Deep RL at the edge of the stat
   effect with its CI.
 - :func:`sign_flip_p`: the exact paired permutation (sign-flip) p-value of a mean paired difference, beside the
   bootstrap CIs (which are too narrow at n = 5: a percentile CI can exclude 0 where no exact test can reject);
-  :func:`holm`: Holm's adjustment of a family of p-values (the primary endpoint over envs and arms).
+  :func:`holm`: Holm's adjustment of a family of p-values (the primary endpoint over envs and arms);
+  :func:`two_level_iqm_ci`: the IQM's CI with data sets as the outer level of a two-level bootstrap.
 - :func:`divergence` / :func:`divergences`: per horizon, whether a run's evaluation holds a non-finite
   value there, or predictions that went non-finite, or a ``standardized_error`` at or past the env's
   no-information level (:mod:`pets.experiments.primary`; :data:`DIVERGED_STANDARDIZED_ERROR` without one).
@@ -305,6 +306,29 @@ def sign_flip_p(differences: Any, *, seed: int = 0) -> float:
     bits = (np.arange(2**n)[:, None] >> np.arange(n)[None, :]) & 1  # every sign pattern, one row each
     means = np.abs(((1 - 2 * bits) * d).mean(axis=1))
     return float(np.mean(means >= observed))
+
+
+def two_level_iqm_ci(
+    groups: Mapping[Any, Sequence[float]], *, reps: int = REPS, seed: int = 0, confidence: float = CONFIDENCE
+) -> tuple[float, float, float]:
+    """``(iqm, ci_low, ci_high)`` of values grouped by data set ({data set: values over model seeds}): the IQM of
+    all values, with the percentile CI of a two-level bootstrap: each replication draws the data sets with
+    replacement (outer level), then within each drawn data set its values with replacement (inner level), and
+    takes the IQM of the pooled draw. A claim that rests on the data then carries the data sets' variance too,
+    not only that of network initialisation. One data set: the one-level bootstrap of its values."""
+    _check_reps(reps)
+    _check_confidence(confidence, reps)
+    samples = [np.asarray(v, dtype=np.float64).reshape(-1) for v in groups.values()]
+    if not samples or any(x.size == 0 or not np.isfinite(x).all() for x in samples):
+        raise ValueError("two_level_iqm_ci needs finite values in every group and at least one group")
+    rng = np.random.default_rng(seed)
+    stats = np.empty(reps)
+    for r in range(reps):
+        drawn = [samples[g] for g in rng.integers(0, len(samples), size=len(samples))]
+        stats[r] = iqm_columns(np.concatenate([x[rng.integers(0, x.size, size=x.size)] for x in drawn])[:, None])[0]
+    tail = (1.0 - confidence) / 2.0
+    low, high = np.quantile(stats, [tail, 1.0 - tail])
+    return float(iqm_columns(np.concatenate(samples)[:, None])[0]), float(low), float(high)
 
 
 def holm(p_values: Sequence[float]) -> list[float]:

@@ -45,24 +45,41 @@ weighted by a softmax of the normalised returns.
 
 from __future__ import annotations
 
-from pets.planners.base import Planner, PlanningFailed, shift_plan, truncated_normal
+from pets.planners.base import BoxPlanner, Objective, Planner, PlanningFailed, shift_plan, truncated_normal
 from pets.planners.cem import CEMPlanner
-from pets.planners.icem import ICEMPlanner, colored_noise
-from pets.planners.mppi import MPPIPlanner, smoothing_matrix
+from pets.planners.icem import ICEMConfig, ICEMPlanner, colored_noise
+from pets.planners.mppi import MPPIConfig, MPPIPlanner, smoothing_matrix
 
 __all__ = [
     "PLANNER_CLASSES",
+    "BoxPlanner",
     "CEMPlanner",
+    "ICEMConfig",
     "ICEMPlanner",
+    "MPPIConfig",
     "MPPIPlanner",
+    "Objective",
     "Planner",
     "PlanningFailed",
     "colored_noise",
+    "register_planner",
     "shift_plan",
     "smoothing_matrix",
     "truncated_normal",
 ]
 
-#: The table of planners (``planner.name``): each name's class. ``planner.<name>.*`` holds the class's own
-#: constructor arguments where it has any (``pets.config.ICEMConfig``, ``MPPIConfig``).
-PLANNER_CLASSES: dict[str, type[Planner]] = {"cem": CEMPlanner, "icem": ICEMPlanner, "mppi": MPPIPlanner}
+#: The table of planners (``planner.name``): each name's class. The config reads it when it is used (choices, the
+#: ``planner.<name>.*`` sections, their checks; ``pets.config``), so a planner registered later is accepted too.
+PLANNER_CLASSES: dict[str, type[BoxPlanner]] = {}
+
+
+def register_planner(cls: type[BoxPlanner]) -> type[BoxPlanner]:
+    """Add ``cls`` to :data:`PLANNER_CLASSES` under ``cls.name`` (usable as a class decorator); returns it."""
+    if not (isinstance(cls, type) and issubclass(cls, BoxPlanner)) or not cls.name:
+        raise ValueError(f"a planner must be a BoxPlanner subclass with a name, got {cls!r}")
+    PLANNER_CLASSES[cls.name] = cls
+    return cls
+
+
+for _planner in (CEMPlanner, ICEMPlanner, MPPIPlanner):
+    register_planner(_planner)

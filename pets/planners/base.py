@@ -5,7 +5,8 @@ from __future__ import annotations
 import math
 import numbers
 from collections.abc import Callable
-from typing import Protocol
+from dataclasses import dataclass, fields
+from typing import Any, ClassVar, Protocol
 
 import torch
 from torch import Tensor
@@ -122,6 +123,18 @@ def elite_count(elites: object, population: int) -> int:
     return min(population, max(1, math.ceil(round(float(elites) * population, 4))))
 
 
+def check_elites_setting(elites: float, population: int) -> None:
+    """The config's ``planner.elites``: a ratio in (0, 1) of the population, or a whole count in [1, population]; a
+    ValueError naming the key otherwise."""
+    accepted = f"a ratio in (0, 1) of the population or a whole count in [1, planner.population={population}]"
+    if elites >= 1 and elites != int(elites):
+        raise ValueError(f"planner.elites must be {accepted}, got {elites:g}")
+    try:
+        elite_count(elites if elites < 1 else int(elites), population)
+    except ValueError:
+        raise ValueError(f"planner.elites must be {accepted}, got {elites:g}") from None
+
+
 def check_real(
     name: str, value: object, low: float, high: float, *, low_open: bool = False, high_open: bool = False
 ) -> float:
@@ -157,12 +170,54 @@ def check_values(values: Tensor, n: int, dtype: torch.dtype) -> Tensor:
     return values.to(dtype)
 
 
-class BoxPlanner:
-    """What the planners here share: box bounds, horizon, population, iterations, smoothing ``alpha``, where the
-    samples live; ``reset`` has nothing to forget unless a planner carries state between calls (iCEM)."""
+@dataclass
+class NoOptions:
+    """The own arguments of a planner that has none besides the shared ones."""
 
+    def checked(self) -> NoOptions:
+        """The arguments validated (a ValueError naming the first out of range)."""
+        return self
+
+
+class Objective:
+    """The objective of one plan call: values (N,) in the planner's dtype, shape-checked; remembers (on the device,
+    without a synchronisation) whether some call returned no finite value, for :meth:`check`."""
+
+    def __init__(self, fn: Callable[[Tensor], Tensor], dtype: torch.dtype, device: torch.device) -> None:
+        self.fn, self.dtype = fn, dtype
+        self.failed = torch.zeros((), dtype=torch.bool, device=device)
+
+    def __call__(self, samples: Tensor) -> Tensor:
+        values = check_values(self.fn(samples), samples.shape[0], self.dtype)
+        self.failed = self.failed | no_finite(values)
+        return values
+
+    def check(self) -> None:
+        """PlanningFailed if some call had no finite value (one host synchronisation)."""
+        check_planned(self.failed)
+
+
+class BoxPlanner:
+    """What every planner shares: box bounds, horizon, population, iterations, smoothing ``alpha``, elites (where
+    it ranks), where the samples live, and the opening and close of :meth:`plan`.
+
+    A planner declares, as class attributes, what the rest of the code asks of it (one table entry in
+    ``pets.planners.PLANNER_CLASSES`` then makes it ``planner.name``): ``name``; ``Options``, the dataclass of its
+    own keyword arguments (defaults, and ``checked()``, its range checks; they become attributes of the planner);
+    ``section``, the dataclass of its config section ``planner.<name>.*`` (its fields are keyword arguments; None:
+    no section); ``uses_elites``; ``faster``, a faster setting the cost estimate may name (``pets.cost``); and
+    :meth:`gain_options`, how it searches the gains of feedback candidates. It implements :meth:`search`.
+    """
+
+    name: ClassVar[str] = ""
+    Options: ClassVar[type] = NoOptions
+    section: ClassVar[type | None] = None
     #: Whether the constructor takes ``elites`` (the config's ``planner.elites``).
-    uses_elites = False
+    uses_elites: ClassVar[bool] = False
+    #: A setting that plans faster, with how much, for the cost estimate's line (``pets.cost``); None: none.
+    faster: ClassVar[str | None] = None
+    #: Why the planner cannot search feedback gains (where :meth:`gain_options` is None).
+    gains_note: ClassVar[str] = "it plans action sequences only"
 
     def __init__(
         self,
@@ -171,10 +226,12 @@ class BoxPlanner:
         *,
         horizon: int,
         population: int,
-        iterations: int,
-        alpha: float,
-        device: torch.device | str | None,
-        dtype: torch.dtype,
+        iterations: int = 5,
+        alpha: float = 0.1,
+        elites: int | float | None = None,
+        device: torch.device | str | None = None,
+        dtype: torch.dtype = torch.float32,
+        **options: object,
     ) -> None:
         check_positive_ints(horizon=horizon, population=population, iterations=iterations)
         self.alpha = check_real("alpha", alpha, 0.0, 1.0)
@@ -185,6 +242,69 @@ class BoxPlanner:
         self.iterations = iterations
         self.device = self.low.device
         self.dtype = dtype
+        if self.uses_elites:
+            self.num_elites = elite_count(0.1 if elites is None else elites, population)
+        elif elites is not None:
+            raise ValueError(f"{type(self).__name__} takes no elites (it weights the whole population)")
+        own = self.options(**options)
+        for item in fields(own):
+            setattr(self, item.name, getattr(own, item.name))
+        self.setup()
+
+    @classmethod
+    def options(cls, **values: object) -> Any:
+        """The planner's own arguments ``values`` as its checked ``Options``; a ValueError names an unknown one or
+        the first out of range (also the config's check of ``planner.<name>.*``)."""
+        known = [item.name for item in fields(cls.Options)]
+        unknown = [name for name in values if name not in known]
+        if unknown:
+            accepted = ", ".join(known) or "none"
+            raise ValueError(f"{cls.__name__} has no argument {unknown[0]!r}; its own arguments: {accepted}")
+        return cls.Options(**values).checked()
+
+    def setup(self) -> None:
+        """What a planner derives from its arguments once (after they are set as attributes)."""
+
+    @classmethod
+    def gain_options(cls, gain_bound: float, gain_std: float) -> dict[str, float] | None:
+        """The arguments that make it sample feedback gains in a box of +-``gain_bound`` with std ``gain_std``
+        (``planner.candidates=feedback``, ``pets.feedback``); None: it cannot (:attr:`gains_note` says why)."""
+        return None
 
     def reset(self) -> None:
         """Nothing to forget: every call starts from ``init_mean`` (or the box centre)."""
+
+    def plan(
+        self,
+        objective: Callable[[Tensor], Tensor],
+        init_mean: Tensor | None = None,
+        generator: torch.Generator | None = None,
+    ) -> Tensor:
+        """Optimise ``objective`` ((N, H, act_dim) -> (N,), higher is better); returns (H, act_dim) in bounds.
+
+        init_mean: warm start (H, act_dim), clipped to the bounds; default the middle of the bounds.
+        generator: source of all the randomness (on the planner's device).
+        PlanningFailed when every candidate of some iteration got a non-finite return.
+        """
+        check_generator(generator, self.device)
+        mu = initial_mean(init_mean, self.low, self.high, self.horizon, self.act_dim)
+        scored = Objective(objective, self.dtype, self.device)
+        out = self.search(scored, mu, init_mean, generator)
+        scored.check()
+        out = self.clip(out)
+        self.planned(out)
+        return out
+
+    def search(
+        self, objective: Objective, mu: Tensor, init_mean: Tensor | None, generator: torch.Generator | None
+    ) -> Tensor:
+        """The planner's own iterations from the mean ``mu`` (the warm start ``init_mean`` clipped, or the box
+        centre); returns the plan (clipped to the bounds after)."""
+        raise NotImplementedError
+
+    def planned(self, plan: Tensor) -> None:
+        """What a planner keeps of a successful call for the next one (nothing here)."""
+
+    def clip(self, x: Tensor) -> Tensor:
+        """``x`` clipped to the action box."""
+        return torch.minimum(torch.maximum(x, self.low), self.high)

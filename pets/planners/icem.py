@@ -4,21 +4,12 @@ from __future__ import annotations
 
 import math
 import numbers
-from collections.abc import Callable
+from dataclasses import dataclass, replace
 
 import torch
 from torch import Tensor
 
-from pets.planners.base import (
-    BoxPlanner,
-    check_generator,
-    check_planned,
-    check_real,
-    check_values,
-    elite_count,
-    initial_mean,
-    no_finite,
-)
+from pets.planners.base import BoxPlanner, Objective, check_real
 
 
 def colored_noise(
@@ -69,6 +60,32 @@ def colored_noise(
     return y.to(dtype)
 
 
+@dataclass
+class ICEMConfig:
+    """``planner.icem.*``: the iCEM planner's own settings in the config (:class:`ICEMPlanner`)."""
+
+    noise_beta: float = 2.0  # colored-noise exponent: 0 white, 2 red (the iCEM paper's locomotion choice)
+    population_decay: float = 1.25  # population_i = max(population * decay^-i, 2 * elites)
+    keep_elites: float = 0.3  # fraction of the elites carried into the next iteration / MPC step
+
+    def checked(self) -> ICEMConfig:
+        """The arguments validated (a ValueError naming the first out of range)."""
+        return replace(
+            self,
+            noise_beta=check_real("noise_beta", self.noise_beta, 0.0, math.inf),
+            population_decay=check_real("population_decay", self.population_decay, 1.0, math.inf),
+            keep_elites=check_real("keep_elites", self.keep_elites, 0.0, 1.0),
+        )
+
+
+@dataclass
+class ICEMOptions(ICEMConfig):
+    """All of iCEM's own arguments: its config section and two that the config leaves at these defaults."""
+
+    return_mean_elites: bool = False
+    keep_between_steps: bool = True
+
+
 def _shift_rows(x: Tensor, k: int, fill: Tensor) -> Tensor:
     """``x`` (..., H, A) moved ``k`` steps earlier along H, the last ``k`` steps set to ``fill`` (A,)."""
     if k == 0:
@@ -107,51 +124,23 @@ class ICEMPlanner(BoxPlanner):
     keep_between_steps: also carry the previous call's elites into the first iteration.
     """
 
+    name = "icem"
+    Options = ICEMOptions
+    section = ICEMConfig
     uses_elites = True
+    gains_note = "iCEM's coloured noise and carried elites act along a time axis that gains do not have"
 
-    def __init__(
-        self,
-        action_low: object,
-        action_high: object,
-        *,
-        horizon: int,
-        population: int,
-        elites: int | float = 0.1,
-        iterations: int = 5,
-        alpha: float = 0.1,
-        noise_beta: float = 2.0,
-        population_decay: float = 1.25,
-        keep_elites: float = 0.3,
-        return_mean_elites: bool = False,
-        keep_between_steps: bool = True,
-        device: torch.device | str | None = None,
-        dtype: torch.dtype = torch.float32,
-    ) -> None:
-        common = dict(horizon=horizon, population=population, iterations=iterations, alpha=alpha)
-        super().__init__(action_low, action_high, **common, device=device, dtype=dtype)
-        self.num_elites = elite_count(elites, population)
-        self.noise_beta, self.population_decay, self.keep_elites = self.check_args(
-            noise_beta=noise_beta, population_decay=population_decay, keep_elites=keep_elites
-        )
-        self.return_mean_elites = bool(return_mean_elites)
-        self.keep_between_steps = bool(keep_between_steps)
+    def setup(self) -> None:
+        """The carried elites per iteration, the population of each iteration, nothing carried yet."""
         self.num_keep = min(self.num_elites, math.ceil(round(self.keep_elites * self.num_elites, 4)))
         #: fresh samples per iteration (N_i)
         self.populations = [
-            max(int(population * self.population_decay ** (-i)), 2 * self.num_elites) for i in range(iterations)
+            max(int(self.population * self.population_decay ** (-i)), 2 * self.num_elites)
+            for i in range(self.iterations)
         ]
         self._last_plan: Tensor | None = None
         self._last_elites: Tensor | None = None
-
-    @staticmethod
-    def check_args(*, noise_beta: float, population_decay: float, keep_elites: float) -> tuple[float, float, float]:
-        """The iCEM-only arguments as floats, or a ValueError naming the first out of range (also the config's
-        check of ``planner.icem.*``)."""
-        return (
-            check_real("noise_beta", noise_beta, 0.0, math.inf),
-            check_real("population_decay", population_decay, 1.0, math.inf),
-            check_real("keep_elites", keep_elites, 0.0, 1.0),
-        )
+        self._elites: Tensor | None = None
 
     def reset(self) -> None:
         """Forget the elites kept from the previous call."""
@@ -176,48 +165,35 @@ class ICEMPlanner(BoxPlanner):
             return None
         return _shift_rows(self._last_elites[: self.num_keep], hits[0], mid)
 
-    def plan(
-        self,
-        objective: Callable[[Tensor], Tensor],
-        init_mean: Tensor | None = None,
-        generator: torch.Generator | None = None,
+    def search(
+        self, objective: Objective, mu: Tensor, init_mean: Tensor | None, generator: torch.Generator | None
     ) -> Tensor:
-        """Optimise ``objective`` ((N, H, act_dim) -> (N,), higher is better); returns (H, act_dim) in bounds.
-
-        init_mean: warm start (H, act_dim), clipped to the bounds; default the middle of the bounds
-          (and no elites carried from the previous call).
-        generator: source of all the randomness (on the planner's device).
-        """
+        """iCEM's iterations (the class docstring): the best sample of the last iteration, or the final mean."""
         h, a = self.horizon, self.act_dim
-        lb, ub = self.low, self.high
-        check_generator(generator, self.device)
         carry = self._carried_from_last_call(init_mean)
-        mu = initial_mean(init_mean, lb, ub, h, a)
-        std = (0.25 * (ub - lb)).expand(h, a).clone()
+        std = (0.25 * (self.high - self.low)).expand(h, a).clone()
         elite = best = None
-        failed = torch.zeros((), dtype=torch.bool, device=self.device)
         for i in range(self.iterations):
             n = self.populations[i]
             noise = colored_noise(
                 (n, a, h), self.noise_beta, generator=generator, device=self.device, dtype=self.dtype
             ).transpose(1, 2)  # (n, H, A), colored along H
-            parts = [torch.minimum(torch.maximum(mu + std * noise, lb), ub)]
+            parts = [self.clip(mu + std * noise)]
             if carry is not None:
                 parts.append(carry)
             if i == self.iterations - 1:
                 parts.append(mu.unsqueeze(0))
             samples = torch.cat(parts) if len(parts) > 1 else parts[0]
-            values = check_values(objective(samples), samples.shape[0], self.dtype)
-            failed = failed | no_finite(values)
-            values = torch.nan_to_num(values, nan=-math.inf)
+            values = torch.nan_to_num(objective(samples), nan=-math.inf)
             _, idx = torch.topk(values, self.num_elites)  # sorted, best first
             elite = samples.index_select(0, idx)
             best = elite[0]
             mu = self.alpha * mu + (1.0 - self.alpha) * elite.mean(dim=0)
             std = self.alpha * std + (1.0 - self.alpha) * elite.std(dim=0, unbiased=False)
             carry = elite[: self.num_keep] if self.num_keep > 0 else None
-        check_planned(failed)  # before keeping this call's elites for the next one
-        out = mu if self.return_mean_elites else best
-        out = torch.minimum(torch.maximum(out, lb), ub)
-        self._last_plan, self._last_elites = out, elite
-        return out
+        self._elites = elite
+        return mu if self.return_mean_elites else best
+
+    def planned(self, plan: Tensor) -> None:
+        """Keep the plan and its call's elites for the next call (only after a successful call)."""
+        self._last_plan, self._last_elites = plan, self._elites

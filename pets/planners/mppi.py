@@ -3,21 +3,12 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from dataclasses import dataclass, replace
 
 import torch
 from torch import Tensor
 
-from pets.planners.base import (
-    BoxPlanner,
-    check_generator,
-    check_planned,
-    check_positive_ints,
-    check_real,
-    check_values,
-    initial_mean,
-    no_finite,
-)
+from pets.planners.base import BoxPlanner, Objective, check_positive_ints, check_real
 
 
 def smoothing_matrix(
@@ -39,6 +30,24 @@ def smoothing_matrix(
     filt = torch.tril(decay * first)
     filt = filt / filt.norm(dim=1, keepdim=True)
     return filt.to(device=device, dtype=dtype)
+
+
+@dataclass
+class MPPIConfig:
+    """``planner.mppi.*``: the MPPI planner's own arguments (:class:`MPPIPlanner`)."""
+
+    sigma: float = 0.5  # perturbation std in units of the action half-range (ub - lb) / 2
+    temperature: float = 0.3  # softmax temperature on returns normalised by (max - median)
+    smoothing: float = 1.0  # low-pass coefficient in (0, 1] along the horizon; 1 = independent steps
+
+    def checked(self) -> MPPIConfig:
+        """The arguments validated (a ValueError naming the first out of range)."""
+        return replace(
+            self,
+            sigma=check_real("sigma", self.sigma, 0.0, math.inf, low_open=True),
+            temperature=check_real("temperature", self.temperature, 0.0, math.inf, low_open=True),
+            smoothing=check_real("smoothing", self.smoothing, 0.0, 1.0, low_open=True),
+        )
 
 
 class MPPIPlanner(BoxPlanner):
@@ -63,30 +72,21 @@ class MPPIPlanner(BoxPlanner):
     planner keeps no state between calls.
     """
 
-    def __init__(
-        self,
-        action_low: object,
-        action_high: object,
-        *,
-        horizon: int,
-        population: int,
-        iterations: int = 5,
-        alpha: float = 0.1,
-        sigma: float = 0.5,
-        temperature: float = 0.3,
-        smoothing: float = 1.0,
-        device: torch.device | str | None = None,
-        dtype: torch.dtype = torch.float32,
-    ) -> None:
-        common = dict(horizon=horizon, population=population, iterations=iterations, alpha=alpha)
-        super().__init__(action_low, action_high, **common, device=device, dtype=dtype)
-        self.sigma, self.temperature, self.smoothing = self.check_args(
-            sigma=sigma, temperature=temperature, smoothing=smoothing
-        )
+    name = "mppi"
+    Options = MPPIConfig
+    section = MPPIConfig
+
+    @classmethod
+    def gain_options(cls, gain_bound: float, gain_std: float) -> dict[str, float] | None:
+        """``sigma`` in half-ranges of the gains' box."""
+        return {"sigma": gain_std / gain_bound}
+
+    def setup(self) -> None:
+        """The smoothing filter (none for independent steps)."""
         self._filter = (
             None
             if self.smoothing == 1.0
-            else smoothing_matrix(horizon, self.smoothing, device=self.device, dtype=dtype)
+            else smoothing_matrix(self.horizon, self.smoothing, device=self.device, dtype=self.dtype)
         )
 
     def weights(self, values: Tensor) -> Tensor:
@@ -100,41 +100,17 @@ class MPPIPlanner(BoxPlanner):
         spread = (top - v.median()).clamp(min=1e-12)
         return torch.softmax((v - top) / (spread * self.temperature), dim=0)
 
-    @staticmethod
-    def check_args(*, sigma: float, temperature: float, smoothing: float) -> tuple[float, float, float]:
-        """The MPPI-only arguments as floats, or a ValueError naming the first out of range (also the config's
-        check of ``planner.mppi.*``)."""
-        return (
-            check_real("sigma", sigma, 0.0, math.inf, low_open=True),
-            check_real("temperature", temperature, 0.0, math.inf, low_open=True),
-            check_real("smoothing", smoothing, 0.0, 1.0, low_open=True),
-        )
-
-    def plan(
-        self,
-        objective: Callable[[Tensor], Tensor],
-        init_mean: Tensor | None = None,
-        generator: torch.Generator | None = None,
+    def search(
+        self, objective: Objective, mu: Tensor, init_mean: Tensor | None, generator: torch.Generator | None
     ) -> Tensor:
-        """Optimise ``objective`` ((N, H, act_dim) -> (N,), higher is better); returns (H, act_dim) in bounds.
-
-        init_mean: warm start (H, act_dim), clipped to the bounds; default the middle of the bounds.
-        generator: source of all the randomness (on the planner's device).
-        """
+        """MPPI's iterations (the class docstring): the final mean."""
         h, a = self.horizon, self.act_dim
-        lb, ub = self.low, self.high
-        check_generator(generator, self.device)
-        mu = initial_mean(init_mean, lb, ub, h, a)
-        scale = self.sigma * 0.5 * (ub - lb)
-        failed = torch.zeros((), dtype=torch.bool, device=self.device)
+        scale = self.sigma * 0.5 * (self.high - self.low)
         for _ in range(self.iterations):
             n = torch.randn((self.population, h, a), generator=generator, device=self.device, dtype=self.dtype)
             if self._filter is not None:
                 n = torch.matmul(self._filter, n)  # (H, H) @ (N, H, A): smoothed along the horizon
-            samples = torch.minimum(torch.maximum(mu + scale * n, lb), ub)
-            values = check_values(objective(samples), self.population, self.dtype)
-            failed = failed | no_finite(values)
-            w = self.weights(values)
+            samples = self.clip(mu + scale * n)
+            w = self.weights(objective(samples))
             mu = self.alpha * mu + (1.0 - self.alpha) * torch.einsum("n,nha->ha", w, samples)
-        check_planned(failed)
-        return torch.minimum(torch.maximum(mu, lb), ub)
+        return mu

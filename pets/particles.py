@@ -1,0 +1,216 @@
+"""The two choices of a trajectory evaluator as small strategy objects (``pets.propagation``).
+
+A propagation mode (``planner.propagation``, :data:`PROPAGATION_TABLE`) is a :class:`RowLayout` (how the rows of the
+particles are arranged for the ensemble, which member each row uses, how the members' predictions are combined)
+with a :class:`Noise` (whether the next target is sampled from the predicted Gaussian):
+
+- ``ts1``: :class:`Shuffled` rows (a fresh random permutation per step), :class:`Gaussian` noise;
+- ``tsinf``: :class:`MemberMajor` rows (each particle keeps one member), :class:`Gaussian` noise;
+- ``members``: :class:`MemberMajor` rows, :class:`NoNoise` (each row follows its member's mean);
+- ``expectation``: :class:`Shared` rows (one per candidate, every member sees it, their means averaged), no noise.
+
+A candidate kind (``planner.candidates``, :data:`CANDIDATE_TABLE`) says what a candidate is: :class:`OpenLoop`, an
+action sequence (N, H, act_dim); :class:`FeedbackGains`, the gains (N, rows, act_dim) of a
+:class:`pets.feedback.LinearFeedback` rolled out for its horizon. Both choices are vectorised over all rows: a
+strategy adds no Python loop and no host synchronisation.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from dynamics.model import DynamicsModel
+from pets.feedback import LinearFeedback
+
+
+@dataclass(frozen=True)
+class Rows:
+    """The rows of one evaluator call: ``b`` rows (padded), ``per_member`` rows of each member block, each row's
+    candidate ``cand`` (b,), and the flat index of each natural row (``n * P + p``) where the layout reorders them."""
+
+    b: int
+    per_member: int
+    cand: Tensor
+    nat_to_flat: Tensor | None = None
+    arange: Tensor | None = None  # 0..b-1, for the inverse of a permutation (Shuffled)
+
+
+class RowLayout:
+    """Candidate-major rows (``n * P + p``), padded up to a multiple of the members with rows that replay the last
+    candidate; each member gets one block of consecutive rows."""
+
+    def particles(self, particles: int) -> int:
+        """Rows per candidate."""
+        return particles
+
+    def arrange(self, n_cand: int, p_eff: int, m: int, device: torch.device) -> Rows:
+        rows = n_cand * p_eff
+        per_member = -(-rows // m)
+        b = per_member * m
+        flat = torch.arange(b, device=device)
+        return Rows(b, per_member, torch.clamp(flat // p_eff, max=n_cand - 1))
+
+    def draw(self, rows: Rows, generator: torch.Generator | None) -> tuple[Tensor | None, Tensor | None]:
+        """This step's permutation of the rows and its inverse (None, None: the rows keep their order)."""
+        return None, None
+
+    def forward(self, model: DynamicsModel, inp: Tensor, members: Tensor | None, m: int) -> tuple[Tensor, Tensor]:
+        """The ensemble on the rows: one (M, b / M, in) block per member."""
+        return model(inp.reshape(m, inp.shape[0] // m, -1), members)
+
+    def combine(self, target: Tensor, b: int) -> Tensor:
+        """Each row's next target (b, target_dim) from the members' (M, b / M, target_dim)."""
+        return target.reshape(b, -1)
+
+    def natural(self, rows: Rows, x: Tensor, n_rows: int) -> Tensor:
+        """``x`` (b, ...) in natural order, without the padding."""
+        return x[:n_rows]
+
+
+class Shuffled(RowLayout):
+    """Candidate-major rows gathered into a fresh random permutation before the model every step, scattered back
+    after: each row's member is uniform over the members, every member gets the same number of rows (TS1)."""
+
+    def arrange(self, n_cand: int, p_eff: int, m: int, device: torch.device) -> Rows:
+        rows = super().arrange(n_cand, p_eff, m, device)
+        return Rows(rows.b, rows.per_member, rows.cand, arange=torch.arange(rows.b, device=device))
+
+    def draw(self, rows: Rows, generator: torch.Generator | None) -> tuple[Tensor | None, Tensor | None]:
+        perm = torch.randperm(rows.b, generator=generator, device=rows.cand.device)
+        return perm, torch.empty_like(perm).scatter_(0, perm, rows.arange)
+
+
+class MemberMajor(RowLayout):
+    """Rows fixed for the whole rollout, member-major: particle ``p`` of candidate ``n`` (virtual row
+    ``r = n * P + p``) uses member ``r % M`` and sits in slot ``(r % M) * per_member + r // M`` (no gather per
+    step)."""
+
+    def arrange(self, n_cand: int, p_eff: int, m: int, device: torch.device) -> Rows:
+        rows = n_cand * p_eff
+        per_member = -(-rows // m)
+        b = per_member * m
+        # Flat (slot) s = k * per_member + j holds virtual row r = j * m + k, which uses member k.
+        slot = torch.arange(b, device=device)
+        virtual = (slot % per_member) * m + slot // per_member
+        cand = torch.clamp(virtual // p_eff, max=n_cand - 1)
+        natural = torch.arange(rows, device=device)
+        return Rows(b, per_member, cand, nat_to_flat=(natural % m) * per_member + natural // m)
+
+    def natural(self, rows: Rows, x: Tensor, n_rows: int) -> Tensor:
+        return x.index_select(0, rows.nat_to_flat)
+
+
+class Shared(RowLayout):
+    """One row per candidate, the same input for every member; the next target is the mean of the members' means
+    (in target space). All particles would be alike, so there is one."""
+
+    def particles(self, particles: int) -> int:
+        return 1
+
+    def arrange(self, n_cand: int, p_eff: int, m: int, device: torch.device) -> Rows:
+        rows = n_cand * p_eff
+        flat = torch.arange(rows, device=device)
+        return Rows(rows, -(-rows // m), torch.clamp(flat // p_eff, max=n_cand - 1))
+
+    def forward(self, model: DynamicsModel, inp: Tensor, members: Tensor | None, m: int) -> tuple[Tensor, Tensor]:
+        return model(inp, members)  # (M, b, out), the input shared by the members
+
+    def combine(self, target: Tensor, b: int) -> Tensor:
+        return target.mean(dim=0)
+
+
+class Noise:
+    """How the next target comes from the predicted Gaussian; this base samples nothing (the mean)."""
+
+    def buffer(self, shape: tuple[int, int, int], device: torch.device, dtype: torch.dtype) -> Tensor | None:
+        """The call's noise buffer (refilled every step), or None."""
+        return None
+
+    def draw(self, noise: Tensor | None, generator: torch.Generator | None) -> None:
+        """Refill the buffer with this step's noise."""
+
+    def target(self, mean: Tensor, logvar: Tensor, noise: Tensor | None) -> Tensor:
+        return mean
+
+
+class NoNoise(Noise):
+    """No sampling: the next target is the predicted mean."""
+
+
+class Gaussian(Noise):
+    """``target = mean + exp(0.5 * logvar) * eps``, ``eps ~ N(0, I)`` from the generator, one buffer refilled in
+    place every step (the same stream as fresh draws)."""
+
+    def buffer(self, shape: tuple[int, int, int], device: torch.device, dtype: torch.dtype) -> Tensor | None:
+        return torch.empty(shape, device=device, dtype=dtype)
+
+    def draw(self, noise: Tensor | None, generator: torch.Generator | None) -> None:
+        torch.randn(noise.shape, generator=generator, device=noise.device, dtype=noise.dtype, out=noise)
+
+    def target(self, mean: Tensor, logvar: Tensor, noise: Tensor | None) -> Tensor:
+        return mean + torch.exp(0.5 * logvar) * noise
+
+
+@dataclass(frozen=True)
+class Propagation:
+    """A propagation mode: its row layout and its noise."""
+
+    layout: RowLayout
+    noise: Noise
+
+
+#: ``planner.propagation``: each mode's strategies (the module docstring).
+PROPAGATION_TABLE: dict[str, Propagation] = {
+    "ts1": Propagation(Shuffled(), Gaussian()),
+    "tsinf": Propagation(MemberMajor(), Gaussian()),
+    "expectation": Propagation(Shared(), NoNoise()),
+    "members": Propagation(MemberMajor(), NoNoise()),
+}
+
+
+class OpenLoop:
+    """Candidates are action sequences (N, H, act_dim), read time-major: every step one contiguous (b, A) block."""
+
+    def horizon(self, actions: Tensor) -> int:
+        return actions.shape[1]
+
+    def check(self, actions: Tensor) -> None:
+        """A ValueError when ``actions`` are not candidates of this kind (beyond the (N, H, act_dim) checks)."""
+
+    def per_row(self, actions: Tensor, cand: Tensor) -> Tensor:
+        """What each row follows: here its candidate's actions (H, b, A)."""
+        return actions.transpose(0, 1).index_select(1, cand)
+
+    def action(self, t: int, per_row: Tensor, obs: Tensor) -> Tensor:
+        """The rows' actions (b, A) at step ``t`` and observations ``obs``."""
+        return per_row[t]
+
+
+class FeedbackGains(OpenLoop):
+    """Candidates are gains (N, rows, act_dim) of the feedback law, each row's action computed from its own state."""
+
+    def __init__(self, law: LinearFeedback) -> None:
+        self.law = law
+
+    def horizon(self, actions: Tensor) -> int:
+        return self.law.horizon
+
+    def check(self, actions: Tensor) -> None:
+        if tuple(actions.shape[1:]) != self.law.shape:
+            raise ValueError(
+                f"feedback candidates must be gains of shape (N, {self.law.shape[0]}, {self.law.shape[1]}), "
+                f"got {tuple(actions.shape)}"
+            )
+
+    def per_row(self, actions: Tensor, cand: Tensor) -> Tensor:
+        return actions.index_select(0, cand)  # (b, rows, A)
+
+    def action(self, t: int, per_row: Tensor, obs: Tensor) -> Tensor:
+        return self.law.actions(per_row, obs)
+
+
+#: ``planner.candidates``: each kind's strategy class.
+CANDIDATE_TABLE: dict[str, type[OpenLoop]] = {"open_loop": OpenLoop, "feedback": FeedbackGains}

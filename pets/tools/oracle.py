@@ -1,0 +1,184 @@
+"""MPC with the true simulator as its model: is a failure the planner's or the learned model's?
+
+    python -m pets.oracle --env ENV [--preset fast] [--steps N] [--episodes K] [--seed S] [--quiet]
+                          [--json OUT] [planner.KEY=VALUE ...]
+
+The configured planner (``planner.*`` of the env's config and preset, overrides as in ``run_pets.py``) plans
+every step as PETS' MPC agent does (:class:`pets.agent.MPCAgent`: warm start, ``replan_every``), but every
+candidate action sequence is scored by MuJoCo itself: a second copy of the env is set to the live env's exact
+state (``qpos``, ``qvel``) and stepped through the sequence, summing the env's own rewards up to and including
+a terminating step. So the planner sees the exact returns of its candidates over its horizon, with no model
+error and no sampling noise. If it still fails, the planner (its horizon, population, action
+parameterisation, the objective's ties) is the cause; if it succeeds where ``run_pets.py`` fails, the learned
+model or its data is. Episode ``i`` resets with ``pets.collect.episode_seeds(seed, i)[0]``; the planner draws
+from one ``torch.Generator`` seeded with ``seed``.
+
+A diagnostic, not a hot path: candidates are simulated one at a time in Python (about ``population x
+iterations x horizon`` simulator steps per MPC step; at InvertedDoublePendulum's fast preset, feedback candidates
+over 60 steps, 0.3-0.7 s per step, so a whole 1000-step episode takes 5-12 min: ``--steps`` shortens it).
+Model settings (``model.*``, ``planner.particles``, ``planner.propagation``, ``planner.precision``) and
+``value.*`` have no effect. Output: per episode the steps, the reward, whether the env terminated, and (for the
+cart-pole envs) the cart's largest distance from the centre.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from pets.cli import OneLineParser, fail
+from pets.fileio import atomic_write_bytes, writable_dir_error
+
+PROG = "pets.oracle"
+
+
+class SimulatorEvaluator:
+    """The planner's objective with the true simulator: ``(obs, actions (N, H, A), generator) -> returns (N,)``.
+
+    Scores from the current state of ``env`` (a live gymnasium MuJoCo env; ``obs`` is ignored, the full
+    simulator state is used): per candidate, a private copy of the env is set to that state and stepped through
+    the actions, summing rewards until the horizon ends or the env terminates (the terminating step's reward
+    counts). The live env is not touched. With ``feedback`` (pets.feedback) a candidate is the gains of a feedback
+    law, rolled out in closed loop for ``feedback.horizon`` steps from ``obs``.
+    """
+
+    def __init__(self, env: Any, make_env: Any, feedback: Any = None) -> None:
+        self.env = env.unwrapped
+        self.feedback = feedback
+        self.sim = make_env().unwrapped
+        self.sim.reset(seed=0)  # gymnasium requires a reset before step; the state is overwritten per candidate
+
+    def __call__(self, obs: Tensor, actions: Tensor, generator: torch.Generator | None = None) -> Tensor:
+        qpos, qvel = self.env.data.qpos.copy(), self.env.data.qvel.copy()
+        returns = np.zeros(actions.shape[0])
+        fb = self.feedback
+        start = torch.as_tensor(obs, dtype=torch.float32).reshape(1, -1).cpu()
+        for i, candidate in enumerate(actions.detach().cpu()):
+            self.sim.set_state(qpos, qvel)
+            state = start
+            for t in range(candidate.shape[0] if fb is None else fb.horizon):
+                action = candidate[t] if fb is None else fb.actions(candidate.unsqueeze(0), state)[0]
+                next_obs, reward, terminated, _, _ = self.sim.step(action.numpy().astype(np.float64))
+                returns[i] += reward
+                if terminated:
+                    break
+                if fb is not None:
+                    state = torch.as_tensor(next_obs, dtype=torch.float32).reshape(1, -1)
+        return torch.as_tensor(returns, dtype=actions.dtype, device=actions.device)
+
+
+def run_episode(cfg: Any, spec: Any, seed: int, episode: int, steps: int | None = None) -> dict[str, Any]:
+    """One episode (at most ``steps`` long; default the env's own limit) of MPC with :class:`SimulatorEvaluator`:
+    steps, reward, terminated, largest |cart x| (cart-pole envs), seconds."""
+    from pets.agent import MPCAgent
+    from pets.builder import make_feedback, make_planner
+    from pets.collect import episode_seeds
+    from pets.loop import SEED_PHASE, episode_reset_seed
+    from pets.rollout import MPCPolicy, RandomPolicy, run_steps
+    from pets.rollout import run_episode as run_policy
+
+    limit = steps or spec.episode_length
+    env = spec.make(max_episode_steps=limit)
+    device = torch.device("cpu")
+    feedback = make_feedback(cfg, spec, device)
+    if feedback is not None and not feedback.fixed_scale:  # the features' scale from random steps, as PETS' seed data
+        random_steps = run_steps(
+            env,
+            RandomPolicy(spec.action_low, spec.action_high),
+            max(cfg.seed_steps, 2),
+            max_steps=limit,
+            reset_seeds=(episode_reset_seed(seed, SEED_PHASE + i) for i in itertools.count()),
+            rng=np.random.default_rng(seed),
+        )
+        feedback.fit_scale(torch.as_tensor(np.concatenate([e.obs for e in random_steps]), dtype=torch.float32))
+    agent = MPCAgent(
+        make_planner(cfg, spec, device, feedback),
+        SimulatorEvaluator(env, spec.make, feedback),
+        replan_every=cfg.planner.replan_every,
+        action_low=spec.action_low,
+        action_high=spec.action_high,
+        device=device,
+        generator=torch.Generator(device=device).manual_seed(seed),
+        feedback=feedback,
+    )
+    start = time.perf_counter()
+    ep = run_policy(env, MPCPolicy(agent), max_steps=limit, reset_seed=episode_seeds(seed, episode)[0])
+    seconds = time.perf_counter() - start
+    env.close()
+    result = {"steps": len(ep), "reward": ep.total_reward, "terminated": bool(ep.terminated[-1]), "seconds": seconds}
+    if spec.name in ("invertedpendulum", "inverteddoublependulum"):  # observation 0 is the cart's position
+        result["max_abs_cart_x"] = float(np.abs(ep.next_obs[:, 0]).max())
+    return result
+
+
+def build_parser() -> OneLineParser:
+    p = OneLineParser(prog=PROG, description=__doc__.split("\n\n")[0])
+    p.add_argument("--env", required=True, help="environment: a catalogue name or a gymnasium id")
+    p.add_argument("--preset", default="research", help="config preset: research (default) or fast")
+    p.add_argument("--steps", type=int, default=None, help="episode length (default: the env's own)")
+    p.add_argument("--episodes", type=int, default=1, help="episodes (default 1)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the env resets and the planner")
+    p.add_argument("--json", type=Path, default=None, help="also write the results as JSON to this file")
+    p.add_argument("--quiet", action="store_true", help="no line per episode while running")
+    p.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides (planner.*)")
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_intermixed_args(argv)
+    for name, low in (("steps", 1), ("episodes", 1), ("seed", 0)):
+        value = getattr(args, name)
+        if value is not None and value < low:
+            fail(PROG, f"--{name} must be >= {low}, got {value}")
+    if args.json is not None:
+        problem = "is a directory; give a file name" if args.json.is_dir() else writable_dir_error(args.json.parent)
+        if problem:
+            fail(PROG, f"cannot write --json {args.json}: {problem}")
+    from omegaconf import OmegaConf
+
+    import envs
+    from pets.config import ConfigError, make_config, parse_overrides
+
+    try:
+        cfg = make_config(args.env, "delta", args.preset, parse_overrides(args.overrides))
+        spec = envs.get(cfg.env)
+    except (ValueError, KeyError) as err:  # ConfigError is a ValueError
+        fail(PROG, str(err).strip("'\""))
+    if cfg.threads > 0:
+        torch.set_num_threads(cfg.threads)
+    p = cfg.planner
+    print(
+        f"{PROG}: {spec.name}, {p.name}, horizon {p.horizon}, population {p.population}, "
+        f"{p.iterations} iterations, true dynamics",
+        file=sys.stderr,
+    )
+    results = []
+    for episode in range(args.episodes):
+        try:
+            result = run_episode(cfg, spec, args.seed, episode, args.steps)
+        except ConfigError as err:
+            fail(PROG, str(err))
+        results.append(result)
+        if not args.quiet:
+            extra = f", max |cart x| {result['max_abs_cart_x']:.2f}" if "max_abs_cart_x" in result else ""
+            print(
+                f"episode {episode}: {result['steps']} steps, reward {result['reward']:.1f}, "
+                f"{'terminated' if result['terminated'] else 'time limit'}{extra}, {result['seconds']:.0f} s"
+            )
+    if args.json is not None:
+        record = {"planner": OmegaConf.to_container(p), "episodes": results}
+        atomic_write_bytes(args.json, json.dumps(record, indent=1).encode())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
