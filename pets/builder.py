@@ -55,6 +55,7 @@ def make_trainer(cfg: DictConfig, model: DynamicsModel) -> ModelTrainer:
         iterations=m.iterations,
         bootstrap=m.bootstrap,
         precision=m.precision,
+        compile=m.compile,
     )
 
 

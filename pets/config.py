@@ -70,6 +70,10 @@ class ModelConfig:
     # auto | fp32 | bf16: the training forward/backward under bfloat16 autocast (fp32 weights, loss, optimiser
     # and holdout error); auto: bf16 where the hardware has native bf16 matmuls (pets.hardware), else fp32
     precision: str = "auto"
+    # true: each full training minibatch (forward, loss, gradient, Adam update) as one torch.compile graph
+    # (pets.trainer.CompiledStep; compiled once per run, eager fallback with a warning if it fails); false: the
+    # eager step, the reference (docs/performance.md, "Training at the fast preset")
+    compile: bool = False
 
 
 @dataclass

@@ -18,16 +18,24 @@ The holdout error is the same for every head: the standardised one-step error of
 observation, ``mean_d (pred_d - next_obs_d)^2 / var_d(next_obs - obs)`` over the observation entries the
 model predicts (all but the layout's ``derived`` ones), ``var_d`` taken over the training data. It is
 unitless (velocities do not drown positions) and about 1 for the "no change" predictor.
+
+``compile=True`` (``model.compile``) runs every full minibatch as one compiled function (:class:`CompiledStep`:
+gradient by ``torch.func``, then the Adam update, in one ``torch.compile`` graph) on the epoch's batches gathered
+in one indexing op; the eager step above stays the reference (and runs the epoch's last, partial batch). Same
+data, batches, seeds and validation criterion; the numerics differ by float rounding (docs/performance.md,
+"Training at the fast preset").
 """
 
 from __future__ import annotations
 
 import copy
 import math
+import warnings
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 from tqdm.auto import tqdm
 
 from dynamics.model import DynamicsModel
@@ -57,6 +65,20 @@ class TrainResult:
     initial_val_loss: float = float("nan")  # the same for the weights this call started from (same members)
 
 
+#: Full minibatches gathered per indexing op on the compiled path (bounds the gathered copy's memory).
+GATHER_BATCHES = 64
+
+
+def batch_gather(epoch_idx: Tensor, start: int, batch_size: int, tensors: tuple[Tensor, ...]) -> list[Tensor]:
+    """The full (E, batch_size) minibatches of ``epoch_idx`` (E, n) from column ``start`` on, up to
+    :data:`GATHER_BATCHES` of them, gathered from each (n_data, d) tensor in one indexing op: a list of
+    (batches, E, batch_size, d) tensors whose ``[k]`` is minibatch k, contiguous."""
+    e, n = epoch_idx.shape
+    count = min(GATHER_BATCHES, (n - start) // batch_size)
+    idx = epoch_idx[:, start : start + count * batch_size].reshape(e, count, batch_size).transpose(0, 1).contiguous()
+    return [t[idx] for t in tensors]
+
+
 def bootstrap_indices(n: int, ensemble_size: int, generator: torch.Generator) -> Tensor:
     """Per-member bootstrap resamples: (ensemble_size, n) indices drawn uniformly with replacement from [0, n)."""
     if n < 1 or ensemble_size < 1:
@@ -74,6 +96,102 @@ def split_holdout(n: int, holdout_ratio: float, max_holdout: int, generator: tor
     return perm[n_hold:], perm[:n_hold]
 
 
+class _LossModule(nn.Module):
+    """``model.member_loss`` with the regularisers as a module, for ``torch.func.functional_call``."""
+
+    def __init__(self, model: DynamicsModel, logvar_bound_coef: float, bf16: bool) -> None:
+        super().__init__()
+        self.model = model
+        self.logvar_bound_coef = logvar_bound_coef
+        self.bf16 = bf16
+
+    def forward(self, x: Tensor, y: Tensor, obs: Tensor, next_obs: Tensor) -> tuple[Tensor, Tensor]:
+        member_loss = self.model.member_loss(x, y, obs, next_obs, bf16=self.bf16)
+        return self.model.add_regularisers(member_loss.sum(), self.logvar_bound_coef), member_loss.detach().mean()
+
+
+class CompiledStep:
+    """One training step (forward, loss, gradient, Adam update) as one ``torch.compile`` graph.
+
+    The gradient comes from ``torch.func.grad_and_value`` over the model's parameters, and the update is
+    ``torch.optim.Adam``'s (no weight decay, no amsgrad) applied in place to the parameters and to the
+    optimiser's own ``step``/``exp_avg``/``exp_avg_sq`` state, so checkpoints and the eager step keep working on
+    the same optimiser. Called with (E, B, .) batches; returns the detached mean member loss (no host sync).
+    Compiled lazily on the first call, once per trainer: the shapes are fixed, so later calls (and trials) reuse it.
+    """
+
+    def __init__(
+        self,
+        model: DynamicsModel,
+        optimizer: torch.optim.Adam,
+        logvar_bound_coef: float,
+        bf16: bool,
+        backend: str | Callable,
+    ) -> None:
+        group = optimizer.param_groups[0]
+        if len(optimizer.param_groups) != 1 or group["weight_decay"] or group["amsgrad"] or group["maximize"]:
+            raise ValueError("CompiledStep supports one Adam parameter group without weight decay, amsgrad, maximize")
+        self.optimizer = optimizer
+        self.loss = _LossModule(model, logvar_bound_coef, bf16)
+        self.names = [name for name, _ in self.loss.named_parameters()]
+        self.params = [p for _, p in self.loss.named_parameters()]
+        self._grad = torch.func.grad_and_value(
+            lambda params, *batch: torch.func.functional_call(self.loss, params, batch), has_aux=True
+        )
+        self.compiled = torch.compile(self._step, backend=backend, dynamic=False)
+        self._key: tuple | None = None  # hyperparameters and batch layout of the last call
+
+    def state(self) -> tuple[list[Tensor], list[Tensor], list[Tensor]]:
+        """The optimiser's per-parameter ``step``, ``exp_avg`` and ``exp_avg_sq`` (created as torch's Adam does)."""
+        for p in self.params:
+            st = self.optimizer.state[p]
+            if not st:
+                st["step"] = torch.tensor(0.0, dtype=torch.float32)
+                st["exp_avg"] = torch.zeros_like(p, memory_format=torch.preserve_format)
+                st["exp_avg_sq"] = torch.zeros_like(p, memory_format=torch.preserve_format)
+        states = [self.optimizer.state[p] for p in self.params]
+        return [s["step"] for s in states], [s["exp_avg"] for s in states], [s["exp_avg_sq"] for s in states]
+
+    def _step(
+        self,
+        params: list[Tensor],
+        steps: list[Tensor],
+        exp_avgs: list[Tensor],
+        exp_avg_sqs: list[Tensor],
+        lr: float,
+        beta1: float,
+        beta2: float,
+        eps: float,
+        x: Tensor,
+        y: Tensor,
+        obs: Tensor,
+        next_obs: Tensor,
+    ) -> Tensor:
+        grads, (_, mean_loss) = self._grad(dict(zip(self.names, params)), x, y, obs, next_obs)
+        with torch.no_grad():
+            for p, g, step, m, v in zip(params, grads.values(), steps, exp_avgs, exp_avg_sqs):
+                step.add_(1)
+                m.lerp_(g, 1 - beta1)
+                v.mul_(beta2).addcmul_(g, g, value=1 - beta2)
+                bias1, bias2 = 1 - beta1**step, 1 - beta2**step
+                p.addcdiv_(m, (v.sqrt() / bias2.sqrt() + eps) * (bias1 / lr), value=-1.0)
+        return mean_loss
+
+    def __call__(self, x: Tensor, y: Tensor, obs: Tensor, next_obs: Tensor) -> Tensor:
+        group = self.optimizer.param_groups[0]
+        hyper = (float(group["lr"]), *group["betas"], group["eps"])
+        args = (self.params, *self.state(), *hyper, x, y, obs, next_obs)
+        key = (hyper, *((t.shape, t.stride(), t.dtype, t.device) for t in (x, y, obs, next_obs)))
+        if key != self._key:  # a first call, or new hyperparameters or batch shapes: guards on (may compile)
+            out = self.compiled(*args)
+            self._key = key
+            return out
+        # The same function on inputs of the same shapes as the last call: dynamo's guards (~0.5-2 ms a call at
+        # these shapes, for ~50 tensors and the module) only re-check what ``key`` does.
+        with torch.compiler.set_stance(skip_guard_eval_unsafe=True):
+            return self.compiled(*args)
+
+
 class ModelTrainer:
     """Adam training of a :class:`dynamics.model.DynamicsModel`.
 
@@ -81,6 +199,8 @@ class ModelTrainer:
     and ``logvar_bound_coef`` times the log-variance bound penalty where the bounds are learnt).
     Every ``train`` call refits the model's input and target normalisers on all its data.
     The optimiser persists across ``train`` calls (one call per PETS trial).
+    ``compile``: full minibatches run as one compiled step (:class:`CompiledStep`, built once per trainer with
+    ``torch.compile(backend=compile_backend)``; a failure to compile warns once and trains eagerly from then on).
     """
 
     def __init__(
@@ -101,6 +221,8 @@ class ModelTrainer:
         iterations: int = 0,
         bootstrap: bool = True,
         precision: str = "fp32",
+        compile: bool = False,
+        compile_backend: str | Callable = "inductor",
     ) -> None:
         if not (math.isfinite(lr) and lr >= 0):
             raise ValueError(f"lr must be a finite number >= 0, got {lr}")
@@ -116,6 +238,8 @@ class ModelTrainer:
                 raise ValueError(f"{name} must be an int >= {low}, got {value!r}")
         if precision not in ("fp32", "bf16"):
             raise ValueError(f"precision must be fp32 or bf16, got {precision!r}")
+        if not isinstance(compile, bool):
+            raise ValueError(f"compile must be a bool, got {compile!r}")
         if not 0.0 <= holdout_ratio < 1.0:
             raise ValueError(f"holdout_ratio must be in [0, 1), got {holdout_ratio}")
         if num_elites is None:
@@ -143,6 +267,11 @@ class ModelTrainer:
         self.bootstrap = bool(bootstrap)
         #: ``bf16``: training steps under bfloat16 autocast (fp32 weights, optimiser, loss and holdout error).
         self.precision = precision
+        #: ``True``: full minibatches run as one compiled step (:class:`CompiledStep`); the eager step is the reference.
+        self.compile = compile
+        self.compile_backend = compile_backend
+        self._compiled: CompiledStep | None = None
+        self._compile_failed = False
         self.optimizer = torch.optim.Adam(model.parameters(), lr=lr)
         self._predicted = torch.tensor(model.head.layout.predicted_indices, dtype=torch.long)
         #: Per-entry std of ``next_obs - obs`` (predicted entries) that :meth:`evaluate` divides by; set by ``train``.
@@ -184,6 +313,39 @@ class ModelTrainer:
         return total / (x.shape[0] * idx.numel())
 
     # ------------------------------------------------------------------ training
+    def _compiled_step(self, bf16: bool) -> CompiledStep | None:
+        """The compiled step (built once per trainer) when ``compile`` is on and has not failed, else None."""
+        if not self.compile or self._compile_failed or self.grad_clip is not None:
+            return None
+        if self._compiled is None or self._compiled.loss.bf16 != bf16 or self._compiled.optimizer is not self.optimizer:
+            try:
+                self._compiled = CompiledStep(
+                    self.model, self.optimizer, self.logvar_bound_coef, bf16, self.compile_backend
+                )
+            except Exception as err:  # an unknown backend, an unsupported optimiser setting
+                self._compile_failed = True
+                warnings.warn(
+                    f"ModelTrainer: no compiled training step ({err}); using the eager step",
+                    RuntimeWarning,
+                    stacklevel=3,
+                )
+                return None
+        return self._compiled
+
+    def _run_compiled(self, step: CompiledStep, *batch: Tensor) -> Tensor | None:
+        """``step(*batch)``; None (after a warning, and eager from then on) if compiling it failed."""
+        try:
+            return step(*batch)
+        except Exception as err:  # e.g. no C++ compiler for inductor: the eager step reruns this batch
+            self._compile_failed = True
+            warnings.warn(
+                f"ModelTrainer: torch.compile of the training step failed ({type(err).__name__}: "
+                f"{str(err).splitlines()[0] if str(err) else ''}); using the eager step from now on",
+                RuntimeWarning,
+                stacklevel=3,
+            )
+            return None
+
     def _check_data(self, obs: Tensor, act: Tensor, next_obs: Tensor) -> None:
         if obs.dim() != 2 or next_obs.shape != obs.shape or act.dim() != 2 or act.shape[0] != obs.shape[0]:
             raise ValueError(
@@ -265,18 +427,29 @@ class ModelTrainer:
             order = torch.argsort(torch.rand(rows, n_tr, generator=generator, device=generator.device), dim=1)
             epoch_idx = torch.gather(boot, 1, order.to(ref.device).expand(model.ensemble_size, n_tr))
             loss_sum, seen = x_tr.new_zeros(()), 0
+            gathered: list[Tensor] = []
             for start in range(0, n_tr, self.batch_size):
                 if fixed and steps == self.iterations:
                     break
                 idx = epoch_idx[:, start : start + self.batch_size]  # (E, B)
-                member_loss = model.member_loss(x_tr[idx], y_tr[idx], o_tr[idx], no_tr[idx], bf16=bf16)  # (E,)
-                loss = model.add_regularisers(member_loss.sum(), self.logvar_bound_coef)
-                self.optimizer.zero_grad(set_to_none=True)
-                loss.backward()
-                if self.grad_clip is not None:
-                    torch.nn.utils.clip_grad_norm_(model.parameters(), self.grad_clip)
-                self.optimizer.step()
-                loss_sum = loss_sum + member_loss.detach().mean() * idx.shape[1]
+                step = self._compiled_step(bf16) if idx.shape[1] == self.batch_size else None
+                if step is not None:  # full batches: gathered GATHER_BATCHES at a time, one indexing op per tensor
+                    k = (start // self.batch_size) % GATHER_BATCHES
+                    if k == 0:
+                        gathered = batch_gather(epoch_idx, start, self.batch_size, (x_tr, y_tr, o_tr, no_tr))
+                    mean_loss = self._run_compiled(step, *(t[k] for t in gathered))
+                else:
+                    mean_loss = None
+                if mean_loss is None:  # the reference step
+                    member_loss = model.member_loss(x_tr[idx], y_tr[idx], o_tr[idx], no_tr[idx], bf16=bf16)  # (E,)
+                    loss = model.add_regularisers(member_loss.sum(), self.logvar_bound_coef)
+                    self.optimizer.zero_grad(set_to_none=True)
+                    loss.backward()
+                    if self.grad_clip is not None:
+                        torch.nn.utils.clip_grad_norm_(model.parameters(), self.grad_clip)
+                    self.optimizer.step()
+                    mean_loss = member_loss.detach().mean()
+                loss_sum = loss_sum + mean_loss * idx.shape[1]
                 seen += idx.shape[1]
                 steps += 1
             epochs += 1

@@ -1,0 +1,151 @@
+"""The compiled training step (``model.compile``, ``pets.trainer.CompiledStep``) against the eager reference.
+
+Same data, seeds and batches on both paths. In fp32 the two agree to float rounding (the compiled step is the
+same arithmetic in another order); under bf16 autocast the roundings of the two paths differ and drift apart over
+the steps, so bf16 is held to the tolerance of bf16 training itself (``tests/test_precision.py``: the holdout
+error within 1 % of fp32's). Most tests compile with ``aot_eager`` (graph capture and AOT autograd, no C++ build);
+one compiles with inductor, the path runs use.
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Callable
+
+import pytest
+import torch
+from omegaconf import OmegaConf
+from torch._dynamo.testing import CompileCounterWithBackend
+
+import envs
+from pets import builder
+from pets import trainer as trainer_mod
+from pets.bench import collect_random
+from pets.config import ConfigError, load_config, make_config
+from pets.models import make_model
+from pets.trainer import ModelTrainer
+
+pytestmark = pytest.mark.usefixtures("single_thread")
+
+#: fp32, one epoch per trial: compiled and eager holdout errors agree to this (relative). Over more steps the two
+#: float orders drift apart as any two do (Reacher / gem, fp32, 630 rows: weights 1e-6 apart after 30 steps, 7e-3
+#: after 60; torch's fused Adam against its loop drifts alike), so longer runs are held to outcome tolerances.
+FP32_RELATIVE = 1e-4
+#: bf16: the tolerance of bf16 training against fp32 (tests/test_precision.py::BF16_TRAIN_RELATIVE).
+BF16_RELATIVE = 0.01
+
+
+@pytest.fixture(scope="module")
+def reacher_data() -> tuple[torch.Tensor, ...]:
+    """700 random Reacher transitions (630 training rows: 19 full batches of 32 and a partial one) and 200 to test."""
+    spec = envs.get("reacher")
+    train = tuple(torch.as_tensor(x) for x in collect_random(spec, 700, 0))
+    test = tuple(torch.as_tensor(x) for x in collect_random(spec, 200, 5))
+    return train + test
+
+
+def train_pair(
+    data: tuple[torch.Tensor, ...], precision: str, backend: str | Callable, overrides: dict[str, str] | None = None
+) -> list[tuple[ModelTrainer, list, torch.Tensor]]:
+    """Eager and compiled trainers from the same initial weights, each trained twice (two trials) on ``data``:
+    (trainer, [TrainResult, TrainResult], predictions on the test transitions)."""
+    small = {"model.max_epochs": "3", "model.num_layers": "2", "model.hidden_size": "64"}  # compiles faster
+    cfg = make_config("reacher", "gem", "fast", {**small, **(overrides or {})})
+    spec = envs.get("reacher")
+    out = []
+    for compiled in (False, True):
+        torch.manual_seed(0)
+        model = make_model(cfg, spec, torch.device("cpu"))
+        tr = builder.make_trainer(cfg, model)
+        tr.precision, tr.compile, tr.compile_backend = precision, compiled, backend
+        results = [tr.train(*data[:3], torch.Generator().manual_seed(seed)) for seed in (1, 2)]
+        out.append((tr, results, model.predict(data[3], data[4])))
+    return out
+
+
+def test_compiled_fp32_matches_eager(reacher_data, monkeypatch) -> None:
+    """fp32: the same holdout errors, epochs, elites and predictions as the eager step, over two trials of one
+    epoch, with the
+    gathers split into several chunks (GATHER_BATCHES) and a partial last batch (run eagerly)."""
+    monkeypatch.setattr(trainer_mod, "GATHER_BATCHES", 4)
+    backend = CompileCounterWithBackend("aot_eager")
+    (eager, r_e, p_e), (comp, r_c, p_c) = train_pair(reacher_data, "fp32", backend, {"model.max_epochs": "1"})
+    assert comp._compiled is not None and not comp._compile_failed
+    assert backend.frame_count == 1  # compiled once for both trials (train calls)
+    for a, b in zip(r_e, r_c):
+        assert a.epochs == b.epochs
+        assert b.val_loss == pytest.approx(a.val_loss, rel=FP32_RELATIVE)
+        assert b.initial_val_loss == pytest.approx(a.initial_val_loss, rel=FP32_RELATIVE)
+    assert torch.equal(eager.model.elites, comp.model.elites)
+    assert torch.allclose(p_c, p_e, rtol=1e-4, atol=1e-4)
+    # The compiled step keeps torch Adam's state: one step per minibatch (full ones compiled, partial ones eager).
+    steps = sum(r.epochs for r in r_c) * 20
+    for p in comp.model.parameters():
+        assert float(comp.optimizer.state[p]["step"]) == steps
+
+
+def test_compiled_bf16_within_the_bf16_tolerance(reacher_data) -> None:
+    """bf16 autocast: the holdout errors and predictions within the tolerance bf16 training has against fp32."""
+    (_, r_e, p_e), (_, r_c, p_c) = train_pair(reacher_data, "bf16", "aot_eager")
+    for a, b in zip(r_e, r_c):
+        assert b.val_loss == pytest.approx(a.val_loss, rel=BF16_RELATIVE)
+    err = (p_e - reacher_data[5]).abs().mean()  # the model's own one-step error on the test transitions
+    assert (p_c - p_e).abs().mean() < 0.05 * err
+
+
+def test_inductor_step_within_tolerance(reacher_data) -> None:
+    """The path runs take (inductor, bf16 on this project's CPUs): within the bf16 tolerance of the eager step,
+    compiled once for both trials."""
+    (_, r_e, p_e), (comp, r_c, p_c) = train_pair(reacher_data, "bf16", "inductor")
+    assert not comp._compile_failed
+    for a, b in zip(r_e, r_c):
+        assert b.val_loss == pytest.approx(a.val_loss, rel=BF16_RELATIVE)
+    assert (p_c - p_e).abs().mean() < 0.05 * (p_e - reacher_data[5]).abs().mean()
+
+
+def test_a_failing_compile_warns_and_trains_eagerly(reacher_data) -> None:
+    """A backend that cannot compile: one warning, then the eager step, bit for bit the eager result."""
+
+    def broken(gm, inputs):
+        raise RuntimeError("no C++ compiler")
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        (_, r_e, p_e), (comp, r_c, p_c) = train_pair(reacher_data, "fp32", broken)
+    assert comp._compile_failed
+    assert sum("torch.compile of the training step failed" in str(w.message) for w in caught) == 1
+    assert [r.val_loss for r in r_c] == [r.val_loss for r in r_e]
+    assert torch.equal(p_c, p_e)
+
+
+def test_checkpointed_optimizer_moves_between_paths(reacher_data) -> None:
+    """The optimiser state a compiled trainer saves loads into an eager one, and the eager one trains on."""
+    (_, _, _), (comp, _, _) = train_pair(reacher_data, "fp32", "aot_eager", {"model.max_epochs": "1"})
+    state = comp.state_dict()
+    eager = ModelTrainer(comp.model, batch_size=32, max_epochs=1, compile=False)
+    eager.load_state_dict(state)
+    eager.train(*reacher_data[:3], torch.Generator().manual_seed(3))
+    p = next(comp.model.parameters())
+    assert float(eager.optimizer.state[p]["step"]) == float(state["optimizer"]["state"][0]["step"]) + 20
+
+
+def test_model_compile_key() -> None:
+    """``model.compile``: off by default, a bool (anything else is a ConfigError), passed to the trainer, and a
+    config.yaml from before the key loads as off."""
+    assert make_config("reacher", "gem", "fast").model.compile is False
+    cfg = make_config("reacher", "gem", "fast", {"model.compile": "true"})
+    assert cfg.model.compile is True
+    model = make_model(cfg, envs.get("reacher"), torch.device("cpu"))
+    assert builder.make_trainer(cfg, model).compile is True
+    with pytest.raises(ConfigError, match="model.compile"):
+        make_config("reacher", "gem", "fast", {"model.compile": "maybe"})
+    with pytest.raises(ValueError, match="compile must be a bool"):
+        ModelTrainer(model, compile="yes")  # type: ignore[arg-type]
+
+
+def test_a_config_yaml_without_model_compile_loads_as_eager(tmp_path) -> None:
+    stored = OmegaConf.to_container(make_config("reacher", "gem", "fast"))
+    del stored["model"]["compile"]
+    path = tmp_path / "config.yaml"
+    path.write_text(OmegaConf.to_yaml(stored))
+    assert load_config(str(path)).model.compile is False
