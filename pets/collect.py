@@ -1,4 +1,4 @@
-"""Collect trajectories from a catalogue env into an ``.npz`` data set (format: :mod:`pets.datasets`).
+"""Collect trajectories from a catalogue env into an ``.npz`` data set (format: :mod:`pets.data.datasets`).
 
     python -m pets.collect --env ENV --policy random|smooth-random[:BETA]|run:RUN_DIR|sb3:AGENT.zip
                            [--episodes N] [--seed S] [--max-steps T] [--device D] [--deterministic] [--quiet]
@@ -18,7 +18,7 @@ Policies:
   strongly correlated. BETA = 0 is ``random`` again.
 - ``run:RUN_DIR``: the MPC agent of a trained run (online ``run_pets.py`` or offline
   ``pets.train``), with the run's own planner config; its randomness comes from ``--seed``.
-- ``sb3:AGENT.zip``: a saved Stable-Baselines3 agent of any algorithm (``pets.sb3``), its stochastic
+- ``sb3:AGENT.zip``: a saved Stable-Baselines3 agent of any algorithm (``pets.data.sb3``), its stochastic
   policy seeded per episode, or its mean action with ``--deterministic``.
 - ``sac:STEPS``: trains SB3's SAC (default hyperparameters) for STEPS env steps and writes every transition it
   experienced, episode by episode as it happened (the GEM paper's data); ``--save-agent`` keeps the agent for
@@ -44,10 +44,10 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from pets.cli import OneLineParser, fail, interruptible
-from pets.datasets import save_dataset
-from pets.fileio import atomic_write_bytes, writable_dir_error
-from pets.rollout import Episode, MPCPolicy, Policy, RandomPolicy, run_episode
+from pets.data.datasets import save_dataset
+from pets.data.rollout import Episode, MPCPolicy, Policy, RandomPolicy, run_episode
+from pets.runs.fileio import atomic_write_bytes, writable_dir_error
+from pets.tools.cli import OneLineParser, fail, interruptible
 
 if TYPE_CHECKING:
     from envs import EnvSpec
@@ -158,7 +158,7 @@ def make_policy(text: str, spec: EnvSpec, seed: int = 0, device: str = "auto", d
     if kind == "smooth-random":
         return SmoothRandomPolicy(spec.action_low, spec.action_high, arg)
     if kind == "sb3":
-        from pets.sb3 import SB3Policy
+        from pets.data.sb3 import SB3Policy
 
         return SB3Policy(arg, spec, deterministic=deterministic, device=device)
     if kind == "sac":
@@ -173,8 +173,8 @@ def make_policy(text: str, spec: EnvSpec, seed: int = 0, device: str = "auto", d
 
 def run_env_name(run_dir: Path) -> str:
     """The env of a run directory (ValueError if it is not one or has no trained model yet)."""
-    from pets import rundir
     from pets.config import load_config
+    from pets.runs import rundir
 
     run_dir = Path(run_dir)
     if not (run_dir / rundir.CONFIG_FILE).is_file():
@@ -202,7 +202,7 @@ def collect(
 ) -> dict[str, np.ndarray]:
     """Roll ``policy`` (a :class:`Policy` or a ``--policy`` string) in ``spec.make()`` for ``episodes`` episodes.
 
-    Returns the data set arrays of :mod:`pets.datasets` (NaN-padded to the longest episode) plus
+    Returns the data set arrays of :mod:`pets.data.datasets` (NaN-padded to the longest episode) plus
     ``policy``, ``seed`` and ``reset_seeds``.
     """
     from tqdm.auto import tqdm
@@ -232,7 +232,7 @@ def collect(
 def pack_episodes(
     spec: EnvSpec, episodes: list[Episode], policy_name: str, seed: int, reset_seeds: list[int] | None = None
 ) -> dict[str, np.ndarray]:
-    """The data set arrays of :mod:`pets.datasets` for ``episodes`` (NaN-padded to the longest), with metadata."""
+    """The data set arrays of :mod:`pets.data.datasets` for ``episodes`` (NaN-padded to the longest), with metadata."""
     if not episodes:
         raise ValueError("no episodes to write: a data set needs at least one step")
     lengths = np.array([len(ep) for ep in episodes], np.int64)
@@ -271,8 +271,8 @@ def collect_sac(
     progress: bool = False,
     sac_kwargs: dict[str, Any] | None = None,
 ) -> tuple[dict[str, np.ndarray], Any]:
-    """Train SAC for ``steps`` env steps (:func:`pets.sb3.train_sac`); ``(data set arrays, agent)``."""
-    from pets.sb3 import train_sac
+    """Train SAC for ``steps`` env steps (:func:`pets.data.sb3.train_sac`); ``(data set arrays, agent)``."""
+    from pets.data.sb3 import train_sac
 
     episodes, agent = train_sac(
         spec, steps, seed=seed, max_steps=max_steps, device=device, progress=progress, sac_kwargs=sac_kwargs
@@ -338,7 +338,7 @@ def main(argv: list[str] | None = None) -> int:
         if problem:
             fail(PROG, f"cannot write {option} {path}: {problem}")
     if kind in ("sac", "sb3"):
-        from pets.sb3 import INSTALL_HINT, require_sb3
+        from pets.data.sb3 import INSTALL_HINT, require_sb3
 
         try:
             require_sb3()
@@ -365,22 +365,22 @@ def main(argv: list[str] | None = None) -> int:
         data, agent = collect_sac(spec, arg, args.seed, args.max_steps, device=args.device, progress=not args.quiet)
         seconds = time.perf_counter() - start
         if args.save_agent is not None:
-            from pets.cli import write_failed
-            from pets.sb3 import agent_bytes
+            from pets.data.sb3 import agent_bytes
+            from pets.tools.cli import write_failed
 
             try:
                 atomic_write_bytes(args.save_agent, agent_bytes(agent))
             except OSError as err:
                 write_failed(PROG, err, "no data set was written either; free space, then collect again")
     else:
-        from pets.cli import EXIT_FAILED
-        from pets.planners import PlanningFailed
+        from pets.planning.planners import PlanningFailed
+        from pets.tools.cli import EXIT_FAILED
 
         try:
             data = collect(spec, policy, episodes, args.seed, args.max_steps, progress=not args.quiet)
         except PlanningFailed as err:  # a run: policy whose model predicts non-finite states
             fail(PROG, f"{policy.name}: {err}; nothing was written", EXIT_FAILED)
-    from pets.cli import write_failed
+    from pets.tools.cli import write_failed
 
     try:
         save_dataset(args.out, data)

@@ -22,13 +22,13 @@ from omegaconf import DictConfig, OmegaConf
 
 from dynamics.networks import ACTIVATIONS
 from gem_head.head import COMPOSE_MODES, LOSSES
-from pets.feedback import FeedbackConfig, check_feedback
-from pets.hardware import CONCRETE_PRECISIONS
 from pets.models import MODELS, check_root
-from pets.planners import PLANNER_CLASSES, ICEMConfig, MPPIConfig
-from pets.planners.base import check_elites_setting
-from pets.propagation import CANDIDATES, PROPAGATIONS
-from pets.value import ValueConfig
+from pets.planning.feedback import FeedbackConfig, check_feedback
+from pets.planning.planners import PLANNER_CLASSES, ICEMConfig, MPPIConfig
+from pets.planning.planners.base import check_elites_setting
+from pets.planning.propagation import CANDIDATES, PROPAGATIONS
+from pets.planning.value import ValueConfig
+from pets.runs.hardware import CONCRETE_PRECISIONS
 
 __all__ = ["FeedbackConfig", "ICEMConfig", "MPPIConfig", "ValueConfig"]  # sections defined by their owners
 
@@ -36,12 +36,12 @@ __all__ = ["FeedbackConfig", "ICEMConfig", "MPPIConfig", "ValueConfig"]  # secti
 HEADS = tuple(MODELS)
 #: Models without a predictive variance (MSE / Frobenius training, zero sampling noise).
 DETERMINISTIC_HEADS = tuple(name for name, entry in MODELS.items() if entry.deterministic)
-#: ``planner.name`` values: the names of the planner table (``pets.planners.PLANNER_CLASSES``; a live view, so a
-#: planner registered later is accepted too).
+#: ``planner.name`` values: the names of the planner table (``pets.planning.planners.PLANNER_CLASSES``; a live view, so
+#: a planner registered later is accepted too).
 PLANNERS = PLANNER_CLASSES.keys()
-PRECISIONS = ("auto", *CONCRETE_PRECISIONS)  # auto: resolved by make_config / load_config (pets.hardware)
+PRECISIONS = ("auto", *CONCRETE_PRECISIONS)  # auto: resolved by make_config / load_config (pets.runs.hardware)
 DEVICES = ("auto", "cpu", "cuda")
-# The other choice lists are their owners': PROPAGATIONS and CANDIDATES (pets.propagation), ACTIVATIONS
+# The other choice lists are their owners': PROPAGATIONS and CANDIDATES (pets.planning.propagation), ACTIVATIONS
 # (dynamics.networks), COMPOSE_MODES and LOSSES (gem_head.head), PLANNERS (the planner table), PRESETS (below).
 
 
@@ -68,10 +68,10 @@ class ModelConfig:
     iterations: int = 0  # 0: epochs with holdout early stopping (PETS); N > 0: exactly N steps (the GEM paper)
     bootstrap: bool = True  # per-member bootstrap resamples (PETS); false: all members on the same batches
     # auto | fp32 | bf16: the training forward/backward under bfloat16 autocast (fp32 weights, loss, optimiser
-    # and holdout error); auto: bf16 where the hardware has native bf16 matmuls (pets.hardware), else fp32
+    # and holdout error); auto: bf16 where the hardware has native bf16 matmuls (pets.runs.hardware), else fp32
     precision: str = "auto"
     # true: each full training minibatch (forward, loss, gradient, Adam update) as one torch.compile graph
-    # (pets.trainer.CompiledStep; compiled once per run, eager fallback with a warning if it fails); false: the
+    # (pets.learning.trainer.CompiledStep; compiled once per run, eager fallback with a warning if it fails); false: the
     # eager step, the reference (docs/performance.md, "Training at the fast preset")
     compile: bool = False
 
@@ -82,7 +82,7 @@ class PlannerConfig:
 
     name: str = "cem"
     # open_loop: candidates are action sequences (PETS); feedback: gains of a linear state-feedback law, each
-    # rolled out for `horizon` steps in closed loop, replanned every step (pets.feedback, docs/planning.md)
+    # rolled out for `horizon` steps in closed loop, replanned every step (pets.planning.feedback, docs/planning.md)
     candidates: str = "open_loop"
     population: int = 400
     elites: float = 0.1  # a ratio of the population when < 1, else a count
@@ -93,11 +93,11 @@ class PlannerConfig:
     propagation: str = "tsinf"
     replan_every: int = 1
     # The settings of one planner only, planner.<name>.* (used when planner.name is that planner), are added by
-    # schema() from the planner table (pets.planners.PLANNER_CLASSES: each class's `section`)
+    # schema() from the planner table (pets.planning.planners.PLANNER_CLASSES: each class's `section`)
     feedback: FeedbackConfig = field(default_factory=FeedbackConfig)
     # Speed of the rollouts (docs/performance.md)
     # auto | fp32 | bf16: the ensemble's matmuls under bfloat16 autocast (state, sampling and returns fp32); auto:
-    # bf16 where the hardware has native bf16 matmuls (pets.hardware), else fp32, the precise path.
+    # bf16 where the hardware has native bf16 matmuls (pets.runs.hardware), else fp32, the precise path.
     # config.yaml records the resolved value.
     precision: str = "auto"
     compile: bool = False  # torch.compile the rollout step (eager fallback with a warning if it fails)
@@ -142,7 +142,7 @@ def _schema_class(sections: tuple[tuple[str, type], ...]) -> type:
 
 def schema() -> DictConfig:
     """The typed config at its defaults: :class:`Config` with the section ``planner.<name>.*`` of every planner in
-    the table that has one (``pets.planners``: the class's ``section``)."""
+    the table that has one (``pets.planning.planners``: the class's ``section``)."""
     shared = {item.name for item in fields(PlannerConfig)}
     sections = tuple((name, cls.section) for name, cls in PLANNER_CLASSES.items() if cls.section is not None)
     clash = [name for name, _ in sections if name in shared]
@@ -458,7 +458,7 @@ def make_config(
 
 def resolve_auto(cfg: DictConfig) -> DictConfig:
     """Replace ``auto`` precisions by the concrete one for ``cfg.device`` on this machine (in place; returns it)."""
-    from pets.hardware import resolve_precision
+    from pets.runs.hardware import resolve_precision
 
     for key in ("planner.precision", "model.precision"):
         OmegaConf.update(cfg, key, resolve_precision(OmegaConf.select(cfg, key), cfg.device))

@@ -53,9 +53,9 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from pets.cli import OneLineParser, fail
-from pets.datasets import env_name, load_dataset
-from pets.fileio import atomic_write_bytes, writable_dir_error
+from pets.data.datasets import env_name, load_dataset
+from pets.runs.fileio import atomic_write_bytes, writable_dir_error
+from pets.tools.cli import OneLineParser, fail
 
 if TYPE_CHECKING:
     from torch import Tensor
@@ -243,7 +243,7 @@ def step_errors(
 
 def obs_std(arrays: Mapping[str, np.ndarray]) -> np.ndarray:
     """Per-entry standard deviation (obs_dim,) of the real (un-padded) observations of a data set
-    (:mod:`pets.datasets`): ``obs[i, :lengths[i] + 1]`` of every episode i."""
+    (:mod:`pets.data.datasets`): ``obs[i, :lengths[i] + 1]`` of every episode i."""
     obs, lengths = np.asarray(arrays["obs"], dtype=np.float64), np.asarray(arrays["lengths"])
     real = np.arange(obs.shape[1])[None, :] <= lengths[:, None]  # (n, T + 1): reset observation and every step
     return obs[real].std(axis=0)
@@ -298,7 +298,7 @@ def load_inputs(
     longest = int(np.asarray(arrays["lengths"]).max())
     if min(horizons) > longest:
         raise ValueError(f"every horizon is longer than the longest episode ({longest} steps); use shorter horizons")
-    config_file = Path(run_dir) / "config.yaml"  # pets.rundir.CONFIG_FILE (rundir imports torch)
+    config_file = Path(run_dir) / "config.yaml"  # pets.runs.rundir.CONFIG_FILE (rundir imports torch)
     if not config_file.is_file():
         raise ConfigError(f"{run_dir} is not a run directory (no config.yaml)")
     run_env = str(load_config(str(config_file)).env)  # env check before the model is built
@@ -448,7 +448,7 @@ def build_parser() -> OneLineParser:
 def write_events(run_dir: str | Path, data: str | Path, result: Mapping[str, Any]) -> Path:
     """The per-horizon errors of ``result`` as TensorBoard scalars ``eval/METRIC`` at step = horizon, in
     ``RUN/eval/DATA_STEM`` (``purge_step=0``: an earlier evaluation there is hidden, not repeated)."""
-    from pets.tblog import ScalarLog
+    from pets.runs.tblog import ScalarLog
 
     log_dir = Path(run_dir) / "eval" / Path(data).stem
     with ScalarLog(log_dir, purge_step=0) as events:
@@ -494,7 +494,7 @@ def main(argv: list[str] | None = None) -> int:
     result = evaluate_loaded(inputs, args.seed)
     print(format_table(result))
     if args.json is not None:
-        from pets.cli import write_failed
+        from pets.tools.cli import write_failed
 
         try:
             atomic_write_bytes(args.json, (json.dumps(result, indent=1) + "\n").encode())

@@ -44,8 +44,8 @@ from typing import Any
 
 import numpy as np
 
-from pets.cli import OneLineParser, fail
-from pets.fileio import atomic_write_bytes, writable_dir_error
+from pets.runs.fileio import atomic_write_bytes, writable_dir_error
+from pets.tools.cli import OneLineParser, fail
 
 PROG = "pets.openloop"
 DEFAULT_STEPS = 50
@@ -151,13 +151,13 @@ def _play(
     from tqdm.auto import tqdm
 
     from pets.collect import episode_seeds
+    from pets.data.rollout import run_episode
     from pets.experiments.statistics import bootstrap_band, summarise
-    from pets.rollout import run_episode
 
     env = spec.make(max_episode_steps=steps)
     recorder = None
     if video is not None:
-        from pets.video import EpisodeRecorder
+        from pets.runs.video import EpisodeRecorder
 
         recorder = EpisodeRecorder(spec, env)
     videos: list[str] = []
@@ -243,13 +243,13 @@ def open_loop(
     """Open-loop planning with the model of ``run_dir`` (module docstring); returns the JSON-ready result.
     ``closed``: MPC with the frozen model instead (:func:`closed_loop`).
 
-    ``video``: a directory that gets ``episode-N.mp4`` of every executed episode (:mod:`pets.video`).
+    ``video``: a directory that gets ``episode-N.mp4`` of every executed episode (:mod:`pets.runs.video`).
     ValueError / ConfigError (one-line messages) for bad input.
     """
     import torch
 
     from pets import builder
-    from pets.rollout import MPCPolicy
+    from pets.data.rollout import MPCPolicy
 
     _check_episodes_seed(episodes, seed)
     dev = builder.resolve_device(device)
@@ -366,7 +366,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             fail(PROG, f"cannot write --video {args.video}: {problem}")
     try:
         if args.video is not None:
-            from pets.video import require_video
+            from pets.runs.video import require_video
 
             require_video()
         overrides = parse_overrides(args.overrides)
@@ -381,8 +381,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         torch.set_num_threads(args.threads)
     from envs.render import RenderingUnavailable
-    from pets.cli import EXIT_FAILED
-    from pets.planners import PlanningFailed
+    from pets.planning.planners import PlanningFailed
+    from pets.tools.cli import EXIT_FAILED
 
     try:
         result = open_loop(
@@ -403,7 +403,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         fail(PROG, f"{args.run}: {err}", EXIT_FAILED)
     print(format_table(result))
     if args.json is not None:
-        from pets.cli import write_failed
+        from pets.tools.cli import write_failed
 
         try:
             atomic_write_bytes(args.json, (json.dumps(result, indent=1) + "\n").encode())

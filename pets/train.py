@@ -8,7 +8,7 @@ delta-groupfeat; :mod:`pets.models` describes each). The deterministic ones (del
 the Frobenius loss; the paper's single model is ``model.ensemble_size=1 model.num_elites=1``, its averaged
 ensemble ``model.ensemble_size=5 model.num_elites=5``.
 
-The run directory has the format of ``run_pets.py`` (:mod:`pets.rundir`), so
+The run directory has the format of ``run_pets.py`` (:mod:`pets.runs.rundir`), so
 ``pets.builder.load_model``, ``pets.evaluate`` and ``pets.collect --policy run:DIR`` read it:
 
 - ``config.yaml``: the resolved config (env from the data set, ``head`` = MODEL, overrides applied);
@@ -17,7 +17,7 @@ The run directory has the format of ``run_pets.py`` (:mod:`pets.rundir`), so
   (data file, episodes, transitions, the data set's policy and seed);
 - ``metrics.csv``: one row with ``model_train_loss``, ``model_val_loss``, ``model_val_loss_initial``, ``model_epochs``,
   ``wall_time_s`` and ``env_steps`` (= transitions trained on); NaN in the other columns;
-- TensorBoard events (config key ``tensorboard``, :mod:`pets.tblog`): the same ``model/*`` and ``time/wall_time_s``
+- TensorBoard events (config key ``tensorboard``, :mod:`pets.runs.tblog`): the same ``model/*`` and ``time/wall_time_s``
   scalars at step 0.
 
 Training data: every real transition of the file (``lengths`` respected, padding never used). The
@@ -28,7 +28,7 @@ pays to train to convergence; the online loop retrains a little every trial):
 error by more than 1 %). ``--epochs N`` (or ``model.max_epochs=N``) overrides the first; ``--epochs``
 wins over ``model.max_epochs=``.
 
-``--protocol paper`` trains as the GEM paper did (:mod:`pets.protocols`): its config keys, a 100k/10k
+``--protocol paper`` trains as the GEM paper did (:mod:`pets.data.protocols`): its config keys, a 100k/10k
 train/validation split of the file, and a search over the hidden layers picked on the validation error (an
 explicit ``model.hidden_size=`` or ``model.num_layers=`` fixes the architecture instead). The checkpoint's
 ``offline`` entry records the protocol, the split sizes and every candidate's validation error.
@@ -48,9 +48,9 @@ from typing import Any
 
 import numpy as np
 
-from pets.cli import OneLineParser, fail, interruptible
-from pets.datasets import check_dataset, env_name, load_dataset, transitions
-from pets.fileio import locked, writable_dir_error
+from pets.data.datasets import check_dataset, env_name, load_dataset, transitions
+from pets.runs.fileio import locked, writable_dir_error
+from pets.tools.cli import OneLineParser, fail, interruptible
 
 PROG = "pets.train"
 #: Offline defaults, applied before the user's overrides (see the module docstring).
@@ -72,7 +72,7 @@ def offline_config(
     the protocol's keys, ``overrides``, then the explicit ``seed``/``device``/``epochs`` arguments (later wins).
     ConfigError if bad."""
     from pets.config import ConfigError, make_config
-    from pets.protocols import get_protocol
+    from pets.data.protocols import get_protocol
 
     try:
         keys = get_protocol(protocol).config
@@ -99,16 +99,17 @@ def train_offline(
     progress: bool = False,
 ) -> Path:
     """Train a fresh ensemble with head ``head_name`` on the real transitions of ``data`` under ``protocol``
-    (:mod:`pets.protocols`) and write run dir ``out``.
+    (:mod:`pets.data.protocols`) and write run dir ``out``.
 
-    ``data``: a data set file or its arrays (:mod:`pets.datasets`). ``out`` must not hold a run yet.
+    ``data``: a data set file or its arrays (:mod:`pets.data.datasets`). ``out`` must not hold a run yet.
     Returns ``out`` as a Path. ValueError / ConfigError (one-line messages) for bad input.
     """
     import torch
 
     import envs
-    from pets import builder, rundir
+    from pets import builder
     from pets.config import ConfigError
+    from pets.runs import rundir
 
     data_label = str(Path(data).resolve()) if isinstance(data, (str, Path)) else None
     arrays = load_dataset(data) if isinstance(data, (str, Path)) else data
@@ -121,7 +122,7 @@ def train_offline(
     with locked(out):  # one process per run directory (DirectoryInUse for a second one), for the whole training
         if (out / rundir.CONFIG_FILE).exists():  # again: another process may have finished a run there meanwhile
             raise ConfigError(f"{out} already holds a run; pick another --out")
-        from pets.protocols import get_protocol, split_samples
+        from pets.data.protocols import get_protocol, split_samples
 
         cfg = offline_config(
             env, head_name, overrides, preset=preset, seed=seed, device=device, epochs=epochs, protocol=protocol
@@ -234,13 +235,13 @@ def _run_state(
 def _write_run(out: Path, state: dict[str, Any], row: dict[str, Any], cfg: Any) -> None:
     """Write the run's files, config.yaml last (a directory with config.yaml is a complete run); if a write fails
     (a full disk) the run's files are removed again and the OSError propagates (the caller holds the lock)."""
-    from pets import rundir
-    from pets.tblog import TRIAL_TAGS, ScalarLog
+    from pets.runs import rundir
+    from pets.runs.tblog import TRIAL_TAGS, ScalarLog
 
     try:
         rundir.save_checkpoint(out, state)
         rundir.write_metrics(out, [row])
-        with ScalarLog(out, cfg.tensorboard, purge_step=0) as log:  # the training result at step 0 (pets.tblog)
+        with ScalarLog(out, cfg.tensorboard, purge_step=0) as log:  # the training result at step 0 (pets.runs.tblog)
             log.scalars(row, 0, {k: v for k, v in TRIAL_TAGS.items() if k.startswith("model_") or k == "wall_time_s"})
         rundir.write_config(out, cfg)
     except OSError:
@@ -251,7 +252,7 @@ def _write_run(out: Path, state: dict[str, Any], row: dict[str, Any], cfg: Any) 
 
 def build_parser() -> OneLineParser:
     from pets.config import DEVICES, HEADS, PRESETS
-    from pets.protocols import PROTOCOLS
+    from pets.data.protocols import PROTOCOLS
 
     p = OneLineParser(
         prog=PROG,
@@ -274,7 +275,7 @@ def build_parser() -> OneLineParser:
         "--protocol",
         choices=tuple(PROTOCOLS),
         default="pets",
-        help="pets: bootstrap ensemble, early stopping (default); paper: the GEM paper's (pets.protocols)",
+        help="pets: bootstrap ensemble, early stopping (default); paper: the GEM paper's (pets.data.protocols)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides")
@@ -326,9 +327,9 @@ def main(argv: list[str] | None = None) -> int:
         resolve_device(cfg.device)
     except (ValueError, ConfigError) as err:  # ConfigError is a ValueError; named for the reader
         fail(PROG, str(err))
-    from pets.cli import EXIT_FAILED, write_failed
-    from pets.fileio import DirectoryInUse
-    from pets.trainer import TrainingDiverged
+    from pets.learning.trainer import TrainingDiverged
+    from pets.runs.fileio import DirectoryInUse
+    from pets.tools.cli import EXIT_FAILED, write_failed
 
     problem = writable_dir_error(args.out)  # before training, not after
     if problem:
@@ -355,7 +356,7 @@ def main(argv: list[str] | None = None) -> int:
         fail(PROG, str(err))
     except OSError as err:  # a full disk: the files written before it are removed, no run is left half-written
         write_failed(PROG, err, "no run was written; free space or pick another --out, then train again")
-    from pets import rundir
+    from pets.runs import rundir
 
     row = rundir.read_metrics(out / rundir.METRICS_FILE)[0]
     for c in rundir.load_checkpoint(out)["offline"]["search"]:

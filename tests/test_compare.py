@@ -23,7 +23,7 @@ import scipy.stats
 from rliable import library, metrics
 
 import envs
-from pets import openloop, rundir
+from pets import openloop
 from pets.config import load_config, make_config
 from pets.experiments import arguments, runner
 from pets.experiments import cli as cli_module
@@ -35,6 +35,7 @@ from pets.experiments.online_summary import SUMMARY_COLUMNS as ONLINE_COLUMNS
 from pets.experiments.online_summary import summarise_online
 from pets.experiments.report import fmt, fmt_interval
 from pets.experiments.statistics import REPS
+from pets.runs import rundir
 from tests.processes import alive
 from tests.threads import one_thread
 from tests.tiny import TINY_MODEL, TINY_PLANNER

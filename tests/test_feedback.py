@@ -16,10 +16,10 @@ from dynamics.model import DynamicsModel
 from pets import builder, oracle
 from pets.agent import MPCAgent
 from pets.config import ConfigError, make_config, parse_overrides
-from pets.feedback import LinearFeedback
 from pets.models import make_model
-from pets.planners import CEMPlanner
-from pets.propagation import PROPAGATIONS, TrajectoryEvaluator
+from pets.planning.feedback import LinearFeedback
+from pets.planning.planners import CEMPlanner
+from pets.planning.propagation import PROPAGATIONS, TrajectoryEvaluator
 from tests.test_propagation import ACT_DIM, OBS_DIM, FakeEnsemble, make_head, reward_fn
 from tests.tiny import TINY_MODEL, TINY_PLANNER
 

@@ -24,15 +24,16 @@ from gem_head.ablation import GroupFeatureDeltaHead
 from gem_head.head import GemHead
 from gem_head.se_root import GemSEHead
 from gem_head.two_stage import TwoStageGemEnsemble, TwoStageGemHead
-from pets import builder, rundir
+from pets import builder
 from pets.collect import collect
 from pets.config import DETERMINISTIC_HEADS, HEADS, make_config
-from pets.datasets import save_dataset, transitions
+from pets.data.datasets import save_dataset, transitions
 from pets.evaluate import evaluate
+from pets.learning.trainer import ModelTrainer
 from pets.models import make_model, models_for
-from pets.propagation import TrajectoryEvaluator
+from pets.planning.propagation import TrajectoryEvaluator
+from pets.runs import rundir
 from pets.train import train_offline
-from pets.trainer import ModelTrainer
 from tests.tiny import TINY_PLANNER
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -19,12 +19,13 @@ import torch
 
 import envs
 from dynamics.model import DynamicsModel
-from pets import builder, rundir
+from pets import builder
 from pets.collect import collect, episode_seeds, make_policy
-from pets.datasets import load_dataset, save_dataset, transitions
+from pets.data.datasets import load_dataset, save_dataset, transitions
 from pets.evaluate import HORIZON_KEYS, evaluate, sample_starts
 from pets.models import make_model
-from pets.propagation import TrajectoryEvaluator
+from pets.planning.propagation import TrajectoryEvaluator
+from pets.runs import rundir
 from pets.train import OFFLINE_DEFAULTS, offline_config
 from tests.threads import one_thread
 from tests.tiny import TINY_MODEL as RUN_MODEL

@@ -14,7 +14,7 @@ import imageio.v3 as iio
 import pytest
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-from pets.tblog import TRIAL_TAGS
+from pets.runs.tblog import TRIAL_TAGS
 from tests.test_cli import ROOT, TINY, cli, error_lines
 
 
@@ -105,7 +105,7 @@ def offline(tmp_path_factory):
     """A small HalfCheetah data set and a tiny model trained on it offline (pets.train)."""
     import envs
     from pets.collect import collect
-    from pets.datasets import save_dataset
+    from pets.data.datasets import save_dataset
     from pets.train import train_offline
     from tests.tiny import TINY_MODEL
 

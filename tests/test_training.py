@@ -1,4 +1,4 @@
-"""Tests of the ensemble trainer (pets/trainer.py)."""
+"""Tests of the ensemble trainer (pets/learning/trainer.py)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from dynamics.heads import DeltaHead, DynamicsHead
 from dynamics.model import DynamicsModel
 from dynamics.networks import GaussianEnsemble
 from envs.layout import ObsLayout
-from pets.trainer import ModelTrainer, TrainResult, bootstrap_indices, split_holdout
+from pets.learning.trainer import ModelTrainer, TrainResult, bootstrap_indices, split_holdout
 
 LAYOUT_1D = ObsLayout(obs_dim=1, groups=(), velocities=(0,))
 
@@ -254,7 +254,7 @@ def test_bad_arguments_raise() -> None:
 
 
 def test_a_diverging_optimiser_raises_instead_of_returning_a_nan_model() -> None:
-    from pets.trainer import TrainingDiverged
+    from pets.learning.trainer import TrainingDiverged
 
     x, act, y, _ = sine_data(200, seed=1)
     for holdout_ratio in (0.1, 0.0):

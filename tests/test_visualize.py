@@ -16,7 +16,7 @@ import envs
 from envs.render import Renderer, qpos_from_obs, select_gl_backend
 from pets import visualize
 from pets.collect import collect
-from pets.datasets import save_dataset
+from pets.data.datasets import save_dataset
 from pets.train import train_offline
 from tests.tiny import TINY_MODEL
 

@@ -77,7 +77,7 @@ from pets.experiments.statistics import (
     paired_ratios,
     sign_flip_p,
 )
-from pets.fileio import atomic_write_bytes
+from pets.runs.fileio import atomic_write_bytes
 
 #: Metrics that get a table in prediction.md (rotation_error only where the env has rotations).
 TABLE_METRICS = ("mean_step_error", "standardized_error", "rotation_error")

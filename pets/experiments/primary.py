@@ -93,7 +93,7 @@ def env_level(data_dir: Path, env: str) -> tuple[float, str]:
     if not (train.is_file() and test.is_file()):
         return DEFAULT_LEVEL, DEFAULT_SOURCE
     import envs
-    from pets.datasets import load_dataset
+    from pets.data.datasets import load_dataset
 
     level = no_information_level(load_dataset(train), load_dataset(test), envs.get(env).layout)
     return level, f"data ({train.name} vs {test.name})"

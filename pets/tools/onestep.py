@@ -26,8 +26,8 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from pets.cli import OneLineParser, fail
-from pets.fileio import atomic_write_bytes
+from pets.runs.fileio import atomic_write_bytes
+from pets.tools.cli import OneLineParser, fail
 
 PROG = "pets.onestep"
 TRAIN_POLICY = "smooth-random:0.9"
@@ -71,10 +71,10 @@ def one_step_check(
     import envs
     from pets import builder
     from pets.collect import collect
-    from pets.datasets import transitions
+    from pets.data.datasets import transitions
+    from pets.learning.trainer import obs_change_scale
     from pets.models import make_model
     from pets.train import offline_config
-    from pets.trainer import obs_change_scale
 
     spec = envs.get(env)
     train = [

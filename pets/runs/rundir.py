@@ -19,7 +19,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from pets.config import ConfigError
-from pets.fileio import atomic_write_bytes
+from pets.runs.fileio import atomic_write_bytes
 
 CONFIG_FILE = "config.yaml"
 METRICS_FILE = "metrics.csv"
