@@ -257,7 +257,7 @@ def test_a_feedback_run_resumes_with_its_fitted_scale_and_matches_an_uninterrupt
 def test_open_loop_replay_of_a_feedback_run_plans_action_sequences() -> None:
     """pets.openloop plans one action sequence per episode: a run made with feedback candidates (IDP's fast preset)
     is replayed with open-loop candidates of --steps actions, and asking for feedback there is an error."""
-    from pets.openloop import planning_config
+    from pets.planning.openloop import planning_config
 
     run_cfg = make_config("inverteddoublependulum", "gem", "fast")
     assert run_cfg.planner.candidates == "feedback"

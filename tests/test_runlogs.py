@@ -104,9 +104,9 @@ def test_bad_video_every_is_one_line_exit_2(tmp_path, value):
 def offline(tmp_path_factory):
     """A small HalfCheetah data set and a tiny model trained on it offline (pets.train)."""
     import envs
-    from pets.collect import collect
+    from pets.data.collect import collect
     from pets.data.datasets import save_dataset
-    from pets.train import train_offline
+    from pets.learning.offline import train_offline
     from tests.tiny import TINY_MODEL
 
     work = tmp_path_factory.mktemp("offline")

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import envs
-from pets.collect import collect, collect_sac, make_policy
+from pets.data.collect import collect, collect_sac, make_policy
 from pets.data.datasets import load_dataset, transitions
 from tests.threads import one_thread
 

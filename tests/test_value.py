@@ -11,8 +11,8 @@ from scipy.signal import lfilter
 import envs
 from dynamics.model import DynamicsModel
 from pets import builder
-from pets.collect import AgentPolicy
 from pets.config import ConfigError, make_config
+from pets.data.collect import AgentPolicy
 from pets.data.rollout import RandomPolicy, run_steps
 from pets.planning.propagation import PROPAGATIONS, TrajectoryEvaluator
 from pets.planning.value import ValueFunction, episode_ends, returns_to_go

@@ -365,7 +365,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             )
             report = out / "summary.md"
         else:
-            from pets.evaluate import parse_horizons
+            from pets.learning.evaluation import parse_horizons
 
             try:
                 horizons = parse_horizons(args.horizons)

@@ -14,7 +14,7 @@ samples, 110k for ``paper``) and keeps every transition as the training data, sa
 ``--protocol`` (:mod:`pets.data.protocols`): ``pets`` (default) or ``paper`` (the GEM paper's training; its test
 set of 20k samples gives the default ``--test-episodes``, ceil(20000 / episode length)).
 
-Per run: train offline (``pets.train.train_offline``, model seed = the run's seed) unless the
+Per run: train offline (``pets.learning.offline.train_offline``, model seed = the run's seed) unless the
 run directory holds a trained model; evaluate on the test data (``pets.evaluate``, mean mode, the
 same start points for every model and seed of an env: evaluation seed 0; ``standardized_error`` scaled
 by the training data) into ``eval.json`` unless it holds this evaluation already; with ``--openloop``,
@@ -87,7 +87,7 @@ def sac_steps(policy: str, protocol: str) -> int | None:
         if proto.train_samples is None:
             raise UsageError(f"--policy sac needs a step budget with --protocol {protocol}: give sac:STEPS")
         return proto.train_samples + (proto.val_samples or 0)
-    from pets.collect import parse_policy
+    from pets.data.collect import parse_policy
 
     try:
         return parse_policy(policy)[1]
@@ -97,7 +97,7 @@ def sac_steps(policy: str, protocol: str) -> int | None:
 
 def expected_policy_name(policy: str) -> str:
     """The ``policy`` name ``pets.collect`` stores for a ``--policy`` string (random, smooth-random or sac:STEPS)."""
-    from pets.collect import DEFAULT_BETA, parse_policy
+    from pets.data.collect import DEFAULT_BETA, parse_policy
 
     if policy == EXISTING or policy.startswith("sac:"):
         return policy
@@ -124,7 +124,7 @@ def prepare_data(
     UsageError if an existing file was collected for another env, policy, seed or episode count.
     """
     import envs
-    from pets.collect import collect
+    from pets.data.collect import collect
     from pets.data.datasets import load_dataset, save_dataset
 
     want = {"env": env, "policy": expected_policy_name(policy), "seed": seed, "episodes": episodes}
@@ -159,7 +159,7 @@ def prepare_data(
         return "reused"
     spec = envs.get(env)
     if policy.startswith("sac:"):
-        from pets.collect import collect_sac
+        from pets.data.collect import collect_sac
         from pets.data.sb3 import agent_bytes
         from pets.runs.fileio import atomic_write_bytes
 
@@ -206,9 +206,9 @@ def offline_job(job: Mapping[str, Any]) -> dict[str, Any]:
 
 def _offline_job(job: Mapping[str, Any]) -> dict[str, Any]:
     from pets.config import load_config
-    from pets.evaluate import evaluate, write_events
-    from pets.openloop import open_loop
-    from pets.train import train_offline
+    from pets.learning.evaluation import evaluate, write_events
+    from pets.learning.offline import train_offline
+    from pets.planning.openloop import open_loop
 
     run_dir, done = Path(job["run_dir"]), []
     if not (run_dir / "config.yaml").is_file():
@@ -326,7 +326,7 @@ def compare_offline(
     import envs
     from pets.config import ConfigError, parse_overrides
     from pets.data.protocols import get_protocol
-    from pets.train import offline_config
+    from pets.learning.offline import offline_config
 
     backend = backend or Backend()
 
