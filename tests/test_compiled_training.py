@@ -1,4 +1,4 @@
-"""The compiled training step (``model.compile``, ``pets.learning.trainer.CompiledStep``) against the eager reference.
+"""The compiled training step (``model.compile``, ``pets.learning.compiled.CompiledStep``) against the eager reference.
 
 Same data, seeds and batches on both paths. In fp32 the two agree to float rounding (the compiled step is the
 same arithmetic in another order); under bf16 autocast the roundings of the two paths differ and drift apart over

@@ -26,7 +26,7 @@ import envs
 from pets import builder
 from pets.bench import collect_random
 from pets.config import make_config, parse_overrides
-from pets.learning.trainer import CompiledStep
+from pets.learning.compiled import CompiledStep
 from pets.models import make_model
 
 GROUPS = ("gather", "forward + loss", "regularisers", "backward", "Adam", "zero_grad", "compiled step", "holdout")
