@@ -305,3 +305,24 @@ def test_members_with_equal_weights_stay_equal_when_trained_in_unison() -> None:
 
     assert spread(False) < 1e-5
     assert spread(True) > 1e-3
+
+
+def test_a_checkpoint_of_the_old_module_path_still_loads(tmp_path, monkeypatch):
+    """Checkpoints pickle ``last_train`` (a TrainResult) by its module path, ``pets.trainer`` before the library
+    moved into subpackages (issue 33): such a checkpoint loads as the TrainResult of ``pets.learning.trainer``."""
+    import sys
+    import types
+
+    from pets.runs import rundir
+
+    result = TrainResult(train_loss=1.0, val_loss=2.0, epochs=3, initial_val_loss=4.0)
+    old = types.ModuleType("pets.trainer")
+    old.TrainResult = TrainResult
+    monkeypatch.setitem(sys.modules, "pets.trainer", old)
+    monkeypatch.setattr(TrainResult, "__module__", "pets.trainer")
+    rundir.save_checkpoint(tmp_path, {"last_train": result})
+    assert b"pets.trainer" in (tmp_path / rundir.CHECKPOINT_FILE).read_bytes()
+    monkeypatch.undo()
+    assert "pets.trainer" not in sys.modules and TrainResult.__module__ == "pets.learning.trainer"
+    state = rundir.load_checkpoint(tmp_path)
+    assert state["last_train"] == result
