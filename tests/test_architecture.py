@@ -120,6 +120,14 @@ def test_the_library_is_free_of_the_tools() -> None:
         if target.startswith("pets.tools") or (target == "pets" and {f"pets.{n}" for n in names} & tools)
     ]
     assert not bad, bad
+    old_paths = {f"pets.{name}" for name in MOVED}  # for the command line and old imports, not for the project
+    through_old = [
+        f"{module} imports {target}"
+        for module, imports in _imports().items()
+        for target, _ in imports
+        if target in old_paths
+    ]
+    assert not through_old, through_old
     for name in MOVED:
         assert importlib.import_module(f"pets.{name}") is importlib.import_module(f"pets.tools.{name}")
         assert len((ROOT / "pets" / f"{name}.py").read_text().splitlines()) <= 5  # a forwarder, not a copy

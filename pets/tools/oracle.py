@@ -10,7 +10,7 @@ state (``qpos``, ``qvel``) and stepped through the sequence, summing the env's o
 a terminating step. So the planner sees the exact returns of its candidates over its horizon, with no model
 error and no sampling noise. If it still fails, the planner (its horizon, population, action
 parameterisation, the objective's ties) is the cause; if it succeeds where ``run_pets.py`` fails, the learned
-model or its data is. Episode ``i`` resets with ``pets.collect.episode_seeds(seed, i)[0]``; the planner draws
+model or its data is. Episode ``i`` resets with ``pets.data.collect.episode_seeds(seed, i)[0]``; the planner draws
 from one ``torch.Generator`` seeded with ``seed``.
 
 A diagnostic, not a hot path: candidates are simulated one at a time in Python (about ``population x
@@ -81,7 +81,7 @@ def run_episode(cfg: Any, spec: Any, seed: int, episode: int, steps: int | None 
     steps, reward, terminated, largest |cart x| (cart-pole envs), seconds."""
     from pets.agent import MPCAgent
     from pets.builder import make_feedback, make_planner
-    from pets.collect import episode_seeds
+    from pets.data.collect import episode_seeds
     from pets.data.rollout import MPCPolicy, RandomPolicy, run_steps
     from pets.data.rollout import run_episode as run_policy
     from pets.loop import SEED_PHASE, episode_reset_seed
