@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 from typing import NoReturn
 
-from pets.cli import EXIT_FAILED, EXIT_INTERRUPTED, OneLineParser, fail, write_failed
+from pets.tools.cli import EXIT_FAILED, EXIT_INTERRUPTED, OneLineParser, fail, write_failed
 
 PROG = "run_pets.py"
 
@@ -67,11 +67,12 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_intermixed_args(argv)
     import envs
     from envs.render import RenderingUnavailable
-    from pets import loop, rundir
+    from pets import loop
     from pets.config import ConfigError, config_yaml, load_config, make_config, overrides_with_file, parse_overrides
-    from pets.fileio import DirectoryInUse, writable_dir_error
-    from pets.planners import PlanningFailed
-    from pets.trainer import TrainingDiverged
+    from pets.learning.trainer import TrainingDiverged
+    from pets.planning.planners import PlanningFailed
+    from pets.runs import rundir
+    from pets.runs.fileio import DirectoryInUse, writable_dir_error
 
     try:
         overrides = parse_overrides(args.overrides)

@@ -121,7 +121,7 @@ class DynamicsModel(nn.Module):
 
         ``mean``: the target is the mean over the elites of their predicted means. ``sample``: each row draws one
         elite once (TS-inf) and samples from its Gaussian every step. (Planning rolls out particles with rewards in
-        ``pets.propagation``.)
+        ``pets.planning.propagation``.)
         """
         if mode not in self.ROLLOUT_MODES:
             raise ValueError(f"mode must be one of {self.ROLLOUT_MODES}, got {mode!r}")

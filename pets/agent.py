@@ -6,9 +6,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from pets.feedback import LinearFeedback
-from pets.planners import Planner, shift_plan
-from pets.propagation import TrajectoryEvaluator
+from pets.planning.feedback import LinearFeedback
+from pets.planning.planners import Planner, shift_plan
+from pets.planning.propagation import TrajectoryEvaluator
 
 
 class MPCAgent:
@@ -16,8 +16,8 @@ class MPCAgent:
 
     Every ``replan_every`` steps it plans a horizon-long action sequence from the current
     observation (warm-started with the previous plan shifted by the steps executed since)
-    and executes its first actions. With ``feedback`` (:class:`pets.feedback.LinearFeedback`) it plans the gains
-    of a feedback law every step instead (warm-started with the last gains of the episode) and executes the law's
+    and executes its first actions. With ``feedback`` (:class:`pets.planning.feedback.LinearFeedback`) it plans the
+    gains of a feedback law every step instead (warm-started with the last gains of the episode) and executes the law's
     action at the current observation.
     """
 

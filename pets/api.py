@@ -107,7 +107,7 @@ class PETS:
     # ------------------------------------------------------------------ persistence
     def save(self, path: str | Path) -> Path:
         """Write the run directory (config.yaml, checkpoint.pt, metrics.csv) to ``path``; returns it."""
-        import pets.rundir as rundir
+        import pets.runs.rundir as rundir
 
         path = Path(path)
         path.mkdir(parents=True, exist_ok=True)
@@ -120,7 +120,7 @@ class PETS:
     def load(cls, path: str | Path, progress: bool = False) -> PETS:
         """A PETS object from a run directory (``save``'s or ``run_pets.py``'s): config, model, buffer and random
         states, so that ``learn`` continues exactly where the run stopped."""
-        import pets.rundir as rundir
+        import pets.runs.rundir as rundir
         from pets.config import ConfigError, load_config
 
         path = Path(path)

@@ -15,13 +15,13 @@ from dynamics.model import DynamicsModel
 from envs import EnvSpec
 from pets.agent import MPCAgent
 from pets.config import ConfigError
-from pets.feedback import LinearFeedback
-from pets.hardware import emulated_bf16_warning
+from pets.learning.trainer import ModelTrainer
 from pets.models import make_model
-from pets.planners import PLANNER_CLASSES, Planner
-from pets.propagation import TrajectoryEvaluator, retain_freed_memory
-from pets.trainer import ModelTrainer
-from pets.value import ValueFunction
+from pets.planning.feedback import LinearFeedback
+from pets.planning.planners import PLANNER_CLASSES, Planner
+from pets.planning.propagation import TrajectoryEvaluator, retain_freed_memory
+from pets.planning.value import ValueFunction
+from pets.runs.hardware import emulated_bf16_warning
 
 
 def resolve_device(name: str) -> torch.device:
@@ -67,7 +67,7 @@ def make_agent(
     generator: torch.Generator,
     value: Callable[[Tensor], Tensor] | None = None,
 ) -> MPCAgent:
-    """The MPC agent of the config; ``value``: the terminal value of ``value.enabled`` (``pets.value``)."""
+    """The MPC agent of the config; ``value``: the terminal value of ``value.enabled`` (``pets.planning.value``)."""
     p = cfg.planner
     warn_if_emulated("planner.precision", p.precision, device)
     if device.type == "cpu":
@@ -98,7 +98,7 @@ def make_agent(
 
 
 def make_feedback(cfg: DictConfig, spec: EnvSpec, device: torch.device) -> LinearFeedback | None:
-    """The feedback law of ``planner.candidates=feedback`` (pets.feedback), else None."""
+    """The feedback law of ``planner.candidates=feedback`` (pets.planning.feedback), else None."""
     p = cfg.planner
     if p.candidates != "feedback":
         return None
@@ -121,10 +121,10 @@ def make_feedback(cfg: DictConfig, spec: EnvSpec, device: torch.device) -> Linea
 def make_planner(
     cfg: DictConfig, spec: EnvSpec, device: torch.device, feedback: LinearFeedback | None = None
 ) -> Planner:
-    """The planner named by ``planner.name`` (``pets.planners.PLANNER_CLASSES``) with the config's settings. With
-    feedback candidates it searches the gains (pets.feedback): a (rows, act_dim) box of +-``gain_bound`` sampled
-    with std ``gain_std`` at every plan (the planner's ``gain_options``). ``feedback``: the law already built for
-    the config (else built here)."""
+    """The planner named by ``planner.name`` (``pets.planning.planners.PLANNER_CLASSES``) with the config's settings.
+    With feedback candidates it searches the gains (pets.planning.feedback): a (rows, act_dim) box of +-``gain_bound``
+    sampled with std ``gain_std`` at every plan (the planner's ``gain_options``). ``feedback``: the law already built
+    for the config (else built here)."""
     p = cfg.planner
     planner_class = PLANNER_CLASSES[p.name]  # the name is validated by the config
     kwargs = dict(horizon=p.horizon, population=p.population, iterations=p.iterations, alpha=p.alpha, device=device)
@@ -145,8 +145,8 @@ def make_planner(
 
 def load_model(run_dir: str | Path, device: str | torch.device = "cpu") -> tuple[DictConfig, EnvSpec, DynamicsModel]:
     """The trained model of a run directory (online or offline): ``(cfg, spec, model)``, in eval mode."""
-    from pets import rundir
     from pets.config import load_config
+    from pets.runs import rundir
 
     run_dir = Path(run_dir)
     if not (run_dir / rundir.CONFIG_FILE).exists():
@@ -167,8 +167,8 @@ def load_model(run_dir: str | Path, device: str | torch.device = "cpu") -> tuple
 def load_value(
     run_dir: str | Path, cfg: DictConfig, spec: EnvSpec, device: str | torch.device = "cpu"
 ) -> ValueFunction | None:
-    """The terminal value a run planned with (``value.enabled``; ``pets.value``), or None when it had none."""
-    from pets import rundir
+    """The terminal value a run planned with (``value.enabled``; ``pets.planning.value``), or None when it had none."""
+    from pets.runs import rundir
 
     if not cfg.value.enabled:
         return None

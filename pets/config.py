@@ -1,4 +1,5 @@
-"""All configuration in one place: global defaults, per-env defaults, presets, `key=value` overrides.
+"""All configuration in one place: global defaults, per-env defaults, presets (their tables: :mod:`pets.presets`),
+`key=value` overrides.
 
 Resolution order (later wins): ``Config`` defaults -> ``ENV_DEFAULTS[env]`` -> ``PRESETS[preset]``
 -> ``PRESET_ENV_DEFAULTS[(preset, env)]`` -> ``HEAD_DEFAULTS[head]`` -> command-line ``key=value`` overrides.
@@ -22,13 +23,14 @@ from omegaconf import DictConfig, OmegaConf
 
 from dynamics.networks import ACTIVATIONS
 from gem_head.head import COMPOSE_MODES, LOSSES
-from pets.feedback import FeedbackConfig, check_feedback
-from pets.hardware import CONCRETE_PRECISIONS
 from pets.models import MODELS, check_root
-from pets.planners import PLANNER_CLASSES, ICEMConfig, MPPIConfig
-from pets.planners.base import check_elites_setting
-from pets.propagation import CANDIDATES, PROPAGATIONS
-from pets.value import ValueConfig
+from pets.planning.feedback import FeedbackConfig, check_feedback
+from pets.planning.planners import PLANNER_CLASSES, ICEMConfig, MPPIConfig
+from pets.planning.planners.base import check_elites_setting
+from pets.planning.propagation import CANDIDATES, PROPAGATIONS
+from pets.planning.value import ValueConfig
+from pets.presets import ENV_DEFAULTS, HEAD_DEFAULTS, PRESET_ENV_DEFAULTS, PRESETS
+from pets.runs.hardware import CONCRETE_PRECISIONS
 
 __all__ = ["FeedbackConfig", "ICEMConfig", "MPPIConfig", "ValueConfig"]  # sections defined by their owners
 
@@ -36,13 +38,13 @@ __all__ = ["FeedbackConfig", "ICEMConfig", "MPPIConfig", "ValueConfig"]  # secti
 HEADS = tuple(MODELS)
 #: Models without a predictive variance (MSE / Frobenius training, zero sampling noise).
 DETERMINISTIC_HEADS = tuple(name for name, entry in MODELS.items() if entry.deterministic)
-#: ``planner.name`` values: the names of the planner table (``pets.planners.PLANNER_CLASSES``; a live view, so a
-#: planner registered later is accepted too).
+#: ``planner.name`` values: the names of the planner table (``pets.planning.planners.PLANNER_CLASSES``; a live view, so
+#: a planner registered later is accepted too).
 PLANNERS = PLANNER_CLASSES.keys()
-PRECISIONS = ("auto", *CONCRETE_PRECISIONS)  # auto: resolved by make_config / load_config (pets.hardware)
+PRECISIONS = ("auto", *CONCRETE_PRECISIONS)  # auto: resolved by make_config / load_config (pets.runs.hardware)
 DEVICES = ("auto", "cpu", "cuda")
-# The other choice lists are their owners': PROPAGATIONS and CANDIDATES (pets.propagation), ACTIVATIONS
-# (dynamics.networks), COMPOSE_MODES and LOSSES (gem_head.head), PLANNERS (the planner table), PRESETS (below).
+# The other choice lists are their owners': PROPAGATIONS and CANDIDATES (pets.planning.propagation), ACTIVATIONS
+# (dynamics.networks), COMPOSE_MODES and LOSSES (gem_head.head), PLANNERS (the planner table), PRESETS (pets.presets).
 
 
 class ConfigError(ValueError):
@@ -68,11 +70,11 @@ class ModelConfig:
     iterations: int = 0  # 0: epochs with holdout early stopping (PETS); N > 0: exactly N steps (the GEM paper)
     bootstrap: bool = True  # per-member bootstrap resamples (PETS); false: all members on the same batches
     # auto | fp32 | bf16: the training forward/backward under bfloat16 autocast (fp32 weights, loss, optimiser
-    # and holdout error); auto: bf16 where the hardware has native bf16 matmuls (pets.hardware), else fp32
+    # and holdout error); auto: bf16 where the hardware has native bf16 matmuls (pets.runs.hardware), else fp32
     precision: str = "auto"
     # true: each full training minibatch (forward, loss, gradient, Adam update) as one torch.compile graph
-    # (pets.trainer.CompiledStep; compiled once per run, eager fallback with a warning if it fails); false: the
-    # eager step, the reference (docs/performance.md, "Training at the fast preset")
+    # (pets.learning.compiled.CompiledStep; compiled once per run, eager fallback with a warning if it fails); false:
+    # the eager step, the reference (docs/performance.md, "Training at the fast preset")
     compile: bool = False
 
 
@@ -82,7 +84,7 @@ class PlannerConfig:
 
     name: str = "cem"
     # open_loop: candidates are action sequences (PETS); feedback: gains of a linear state-feedback law, each
-    # rolled out for `horizon` steps in closed loop, replanned every step (pets.feedback, docs/planning.md)
+    # rolled out for `horizon` steps in closed loop, replanned every step (pets.planning.feedback, docs/planning.md)
     candidates: str = "open_loop"
     population: int = 400
     elites: float = 0.1  # a ratio of the population when < 1, else a count
@@ -93,11 +95,11 @@ class PlannerConfig:
     propagation: str = "tsinf"
     replan_every: int = 1
     # The settings of one planner only, planner.<name>.* (used when planner.name is that planner), are added by
-    # schema() from the planner table (pets.planners.PLANNER_CLASSES: each class's `section`)
+    # schema() from the planner table (pets.planning.planners.PLANNER_CLASSES: each class's `section`)
     feedback: FeedbackConfig = field(default_factory=FeedbackConfig)
     # Speed of the rollouts (docs/performance.md)
     # auto | fp32 | bf16: the ensemble's matmuls under bfloat16 autocast (state, sampling and returns fp32); auto:
-    # bf16 where the hardware has native bf16 matmuls (pets.hardware), else fp32, the precise path.
+    # bf16 where the hardware has native bf16 matmuls (pets.runs.hardware), else fp32, the precise path.
     # config.yaml records the resolved value.
     precision: str = "auto"
     compile: bool = False  # torch.compile the rollout step (eager fallback with a warning if it fails)
@@ -142,7 +144,7 @@ def _schema_class(sections: tuple[tuple[str, type], ...]) -> type:
 
 def schema() -> DictConfig:
     """The typed config at its defaults: :class:`Config` with the section ``planner.<name>.*`` of every planner in
-    the table that has one (``pets.planners``: the class's ``section``)."""
+    the table that has one (``pets.planning.planners``: the class's ``section``)."""
     shared = {item.name for item in fields(PlannerConfig)}
     sections = tuple((name, cls.section) for name, cls in PLANNER_CLASSES.items() if cls.section is not None)
     clash = [name for name, _ in sections if name in shared]
@@ -150,62 +152,6 @@ def schema() -> DictConfig:
         raise ConfigError(f"planner {clash[0]!r} has a section but planner.{clash[0]} is a shared planner setting")
     return OmegaConf.structured(_schema_class(sections))
 
-
-# Per-env research defaults, following the PETS references (REFERENCE.md section 1); envs without a
-# published PETS config borrow the nearest one (IDP from InvertedPendulum, Walker2d from Hopper,
-# Ant and Humanoid from HalfCheetah).
-_HALFCHEETAH = {"trials": 300, "planner": {"horizon": 30, "population": 400, "elites": 0.16, "particles": 20}}
-_HOPPER = {"trials": 300, "planner": {"horizon": 30, "population": 350, "elites": 0.1, "particles": 20}}
-_PENDULUM = {"trials": 20, "planner": {"horizon": 45, "population": 480, "elites": 0.078, "particles": 20}}
-ENV_DEFAULTS: dict[str, dict[str, Any]] = {
-    "invertedpendulum": _PENDULUM,
-    "inverteddoublependulum": _PENDULUM,
-    "reacher": {"trials": 100, "planner": {"horizon": 15, "population": 350, "elites": 0.1, "particles": 20}},
-    "hopper": _HOPPER,
-    "walker2d": _HOPPER,
-    "halfcheetah": _HALFCHEETAH,
-    "ant": _HALFCHEETAH,
-    "humanoid": _HALFCHEETAH,
-}
-
-# Per-model defaults: the deterministic models (delta-det, gem2) average their members' predictions, as the
-# paper's ensembles do, which is PETS' expectation propagation (pets.models explains; tsinf also works).
-HEAD_DEFAULTS: dict[str, dict[str, Any]] = {h: {"planner": {"propagation": "expectation"}} for h in DETERMINISTIC_HEADS}
-
-# A CPU-friendly preset: ~20x fewer model evaluations per planning step than the research defaults.
-PRESETS: dict[str, dict[str, Any]] = {
-    "research": {},
-    "fast": {
-        "model": {"ensemble_size": 5, "num_elites": 5, "batch_size": 32},
-        "planner": {"population": 100, "particles": 5, "horizon": 15, "iterations": 3, "elites": 0.1},
-    },
-}
-
-# InvertedDoublePendulum: open-loop sequences that keep it up for the horizon are too rare to sample, even with
-# the true dynamics; linear state-feedback candidates (the cart position, the two sines and the three velocities,
-# fixed scales) rolled out for 3 s balance it, with the simulator and with the learned model (docs/planning.md).
-_IDP_FEEDBACK = {
-    "planner": {
-        "name": "cem",
-        "candidates": "feedback",
-        "horizon": 60,
-        "propagation": "members",
-        "feedback": {"features": [0, 1, 2, 5, 6, 7], "scale": [0.5, 0.2, 0.2, 1.0, 2.0, 2.0]},
-    }
-}
-
-# Per-env amendments to a preset. The pendulums' reward is a flat "alive" bonus: every candidate that
-# survives the horizon ties, so CEM's elite mean of a small population is noise and the cart runs into
-# its rail. MPPI averages the whole population and is measured to balance (docs/results.md). On
-# InvertedPendulum the cart still drifts into the end of its rail, beyond any horizon open-loop plans can
-# predict; a learned terminal value and a smaller MPPI noise keep it near the centre (docs/planning.md).
-PRESET_ENV_DEFAULTS: dict[tuple[str, str], dict[str, Any]] = {
-    ("fast", "invertedpendulum"): {
-        "planner": {"name": "mppi", "horizon": 20, "mppi": {"sigma": 0.2}},
-        "value": {"enabled": True},
-    },
-    ("fast", "inverteddoublependulum"): _IDP_FEEDBACK,
-}
 
 _POSITIVE_INTS = [
     "trials",
@@ -458,7 +404,7 @@ def make_config(
 
 def resolve_auto(cfg: DictConfig) -> DictConfig:
     """Replace ``auto`` precisions by the concrete one for ``cfg.device`` on this machine (in place; returns it)."""
-    from pets.hardware import resolve_precision
+    from pets.runs.hardware import resolve_precision
 
     for key in ("planner.precision", "model.precision"):
         OmegaConf.update(cfg, key, resolve_precision(OmegaConf.select(cfg, key), cfg.device))

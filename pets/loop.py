@@ -1,7 +1,7 @@
 """The model-based RL loop: random seed steps, then alternate model training and MPC trials.
 
 After every completed trial the run directory gets its video (``video_every``) and TensorBoard scalars
-(:mod:`pets.tblog`), an atomic checkpoint (model, optimiser, normaliser, replay buffer, all RNG states,
+(:mod:`pets.runs.tblog`), an atomic checkpoint (model, optimiser, normaliser, replay buffer, all RNG states,
 metrics so far), then metrics.csv and rewards.png.
 ``run(..., resume=True)`` continues from the last checkpoint; an interrupted trial is replayed
 from its start with the RNG states it began with, so a resumed run matches an uninterrupted one.
@@ -24,18 +24,19 @@ from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
 import envs
-from pets import builder, rundir
-from pets.buffer import ReplayBuffer
+from pets import builder
 from pets.config import ConfigError
-from pets.cost import CostEstimate
-from pets.fileio import locked
+from pets.data.buffer import ReplayBuffer
+from pets.data.rollout import Episode, MPCPolicy, RandomPolicy, run_episode, run_steps
+from pets.learning.trainer import TrainingDiverged, TrainResult
 from pets.models import make_model
-from pets.planners import PlanningFailed
-from pets.rollout import Episode, MPCPolicy, RandomPolicy, run_episode, run_steps
-from pets.tblog import ScalarLog
-from pets.trainer import TrainingDiverged, TrainResult
-from pets.value import episode_ends, returns_to_go
-from pets.video import EpisodeRecorder, trial_video_path
+from pets.planning.cost import CostEstimate
+from pets.planning.planners import PlanningFailed
+from pets.planning.value import episode_ends, returns_to_go
+from pets.runs import rundir
+from pets.runs.fileio import locked
+from pets.runs.tblog import ScalarLog
+from pets.runs.video import EpisodeRecorder, trial_video_path
 
 #: Episode indices of the random seed phase start here (the trials' episodes are 0, 1, ...).
 SEED_PHASE = 50_000
@@ -107,7 +108,7 @@ class PETSRun:
         self.wall_time_s = 0.0
         self.last_train: TrainResult | None = None
         self.recorder = EpisodeRecorder(self.spec, self.env) if cfg.video_every else None
-        #: Set by :func:`run`: the one-line estimate of a long run from its first planning steps (pets.cost).
+        #: Set by :func:`run`: the one-line estimate of a long run from its first planning steps (pets.planning.cost).
         self.cost: CostEstimate | None = None
 
     # --- state -----------------------------------------------------------------------------
@@ -166,7 +167,8 @@ class PETSRun:
             self.agent.feedback.fit_scale(obs)
 
     def _fit_value(self, obs: torch.Tensor, act: torch.Tensor, next_obs: torch.Tensor) -> None:
-        """Fit the terminal value to the discounted real returns-to-go of the buffer's episodes (pets.value)."""
+        """Fit the terminal value to the discounted real returns-to-go of the buffer's episodes
+        (pets.planning.value)."""
         with torch.no_grad():
             rewards = self.spec.reward(obs, act, next_obs)
             terminal = self.spec.terminated(obs, act, next_obs)
@@ -301,7 +303,7 @@ def _run_locked(cfg: DictConfig, run_dir: Path, resume: bool, progress: bool) ->
     rundir.append_history(run_dir, "resume" if resume else "start", pets_run.trials_done)
     pets_run.cost = CostEstimate(cfg, pets_run.episode_length, cfg.trials - pets_run.trials_done)
     # Events past the last checkpoint (an interrupted trial's) are purged; each trial is written before its
-    # checkpoint, so a resumed run neither loses nor repeats a scalar (pets.tblog).
+    # checkpoint, so a resumed run neither loses nor repeats a scalar (pets.runs.tblog).
     events = ScalarLog(run_dir, cfg.tensorboard, purge_step=pets_run.env_steps + 1 if resume else None)
     bar = tqdm(
         total=cfg.trials, initial=pets_run.trials_done, desc=f"{cfg.env}-{cfg.head}", unit="trial", disable=not progress

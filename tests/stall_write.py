@@ -2,7 +2,7 @@
 
     python -m tests.stall_write NAME N MARKER SCRIPT [ARGS ...]
 
-Runs SCRIPT (e.g. run_pets.py) as ``__main__``. Its N-th atomic write of a file named NAME (``pets.fileio``) is
+Runs SCRIPT (e.g. run_pets.py) as ``__main__``. Its N-th atomic write of a file named NAME (``pets.runs.fileio``) is
 stopped just before the data reach the disk for good: the temporary file is cut to half its bytes, MARKER is
 created, and the process sleeps until it is killed. The code under test runs unchanged up to that point.
 """

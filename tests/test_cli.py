@@ -203,7 +203,7 @@ def test_resume_of_a_finished_run_regenerates_its_missing_artefacts(tmp_path):
 
 def test_a_file_that_is_not_an_npz_archive_is_named_as_such(tmp_path):
     """Issue 17 item 6: numpy calls any non-zip file 'pickled (object) data'."""
-    from pets.datasets import load_dataset
+    from pets.data.datasets import load_dataset
 
     for content in (b"hello\n", bytes(range(256))):
         path = tmp_path / "data.npz"
@@ -214,7 +214,7 @@ def test_a_file_that_is_not_an_npz_archive_is_named_as_such(tmp_path):
 
 def test_atomic_writes_keep_the_usual_file_mode(tmp_path):
     """Atomic writes go through mkstemp (0600); the result must be as readable as a file written with open()."""
-    from pets.fileio import atomic_write_bytes
+    from pets.runs.fileio import atomic_write_bytes
 
     atomic_write_bytes(tmp_path / "a.txt", b"x")
     (tmp_path / "b.txt").write_bytes(b"x")

@@ -23,7 +23,7 @@ import scipy.stats
 from rliable import library, metrics
 
 import envs
-from pets import openloop, rundir
+from pets import openloop
 from pets.config import load_config, make_config
 from pets.experiments import arguments, runner
 from pets.experiments import cli as cli_module
@@ -35,6 +35,7 @@ from pets.experiments.online_summary import SUMMARY_COLUMNS as ONLINE_COLUMNS
 from pets.experiments.online_summary import summarise_online
 from pets.experiments.report import fmt, fmt_interval
 from pets.experiments.statistics import REPS
+from pets.runs import rundir
 from tests.processes import alive
 from tests.threads import one_thread
 from tests.tiny import TINY_MODEL, TINY_PLANNER
@@ -816,16 +817,16 @@ def test_offline_existing_policy_takes_the_data_files_as_they_are(offline, tmp_p
 def test_offline_data_collected_as_backend_jobs_and_a_failed_env_fails_only_its_runs(tmp_path, monkeypatch):
     """Missing data sets are jobs of the backend (one per env); an env whose collection fails fails its runs with the
     reason ("no data: ..."), the other env's runs go on."""
-    import pets.collect
+    import pets.data.collect
 
-    real = pets.collect.collect
+    real = pets.data.collect.collect
 
     def collect(spec, *args, **kwargs):
         if spec.name == "reacher":
             raise RuntimeError("simulated collection failure")
         return real(spec, *args, **kwargs)
 
-    monkeypatch.setattr(pets.collect, "collect", collect)
+    monkeypatch.setattr(pets.data.collect, "collect", collect)
     result = compare_offline(
         ["invertedpendulum", "reacher"],
         ["delta"],
@@ -1488,7 +1489,7 @@ def _offline_copy_summarised(offline, tmp_path, data_seeds=(0,)):
 def test_offline_primary_endpoint_recomputed_from_the_runs_and_data(offline, tmp_path):
     """Issue 37: the no-information level from the data sets (numpy here), the tracking horizons, the clipped
     endpoint per run, the paired ratio and its exact p-value (scipy's permutation test)."""
-    from pets.evaluate import MIN_STD
+    from pets.learning.evaluation import MIN_STD
 
     out, _ = _offline_copy_summarised(offline, tmp_path)
     (train, test) = (dict(np.load(out / "data" / f"invertedpendulum-{p}.npz")) for p in ("train", "test"))

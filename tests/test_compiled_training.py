@@ -1,4 +1,4 @@
-"""The compiled training step (``model.compile``, ``pets.trainer.CompiledStep``) against the eager reference.
+"""The compiled training step (``model.compile``, ``pets.learning.compiled.CompiledStep``) against the eager reference.
 
 Same data, seeds and batches on both paths. In fp32 the two agree to float rounding (the compiled step is the
 same arithmetic in another order); under bf16 autocast the roundings of the two paths differ and drift apart over
@@ -19,11 +19,11 @@ from torch._dynamo.testing import CompileCounterWithBackend
 
 import envs
 from pets import builder
-from pets import trainer as trainer_mod
 from pets.bench import collect_random
 from pets.config import ConfigError, load_config, make_config
+from pets.learning import trainer as trainer_mod
+from pets.learning.trainer import ModelTrainer
 from pets.models import make_model
-from pets.trainer import ModelTrainer
 
 pytestmark = pytest.mark.usefixtures("single_thread")
 

@@ -1,9 +1,9 @@
-"""The one-line estimate of a long run (pets.cost) and where run_pets.py prints it (issue 13 item 4)."""
+"""The one-line estimate of a long run (pets.planning.cost) and where run_pets.py prints it (issue 13 item 4)."""
 
 import pytest
 
-from pets import cost
 from pets.config import make_config
+from pets.planning import cost
 from tests.test_cli import TINY
 
 

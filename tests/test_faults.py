@@ -129,7 +129,8 @@ def test_planning_with_a_broken_model_is_one_line_in_collect_and_openloop(tmp_pa
     import torch
 
     import run_pets
-    from pets import collect, openloop, rundir
+    from pets import collect, openloop
+    from pets.runs import rundir
 
     run = tmp_path / "run"
     run_pets.main(["--env", "invertedpendulum", "--trials", "1", "--out", str(run), *TINY])
@@ -375,7 +376,7 @@ def test_a_full_disk_during_a_run_is_one_line_and_keeps_the_completed_trials(tmp
     import errno
 
     import run_pets
-    from pets import rundir
+    from pets.runs import rundir
 
     out = tmp_path / "run"
     real_write = rundir.atomic_write_bytes
@@ -404,7 +405,8 @@ def test_a_later_divergence_names_its_trial_and_keeps_the_trials_before(tmp_path
     exit 3 and one line naming trial 1; trial 0 stays in metrics.csv and the checkpoint, and --resume (with the
     configured learning rate again) finishes the run as if nothing had happened."""
     import run_pets
-    from pets import loop, rundir
+    from pets import loop
+    from pets.runs import rundir
 
     real_train, trainings = loop.PETSRun._train, {"n": 0}
 
@@ -494,7 +496,7 @@ def test_kill_9_inside_a_checkpoint_write_loses_nothing(tmp_path, reference):
     """Issue 17: kill -9 while trial 1's checkpoint is half written (tests/stall_write.py stops the real write
     halfway): checkpoint.pt still holds trial 0, metrics.csv lists trial 0, and --resume removes the half-written
     temporary file and finishes with the uninterrupted run's metrics."""
-    from pets import rundir
+    from pets.runs import rundir
 
     run, marker = tmp_path / "run", tmp_path / "stalled"
     proc = start_stalled("checkpoint.pt", 2, marker, [*RUN_ARGS, "--out", run])
@@ -634,7 +636,7 @@ def test_a_full_file_system_is_one_line_keeps_the_completed_trials_and_resume_fi
 def test_a_second_offline_training_on_the_same_directory_is_refused(tmp_path, invertedpendulum_data):
     """Issue 17 item 2: pets.train holds the run directory's lock too; while another process holds it, a second
     training exits 2 with one line before any work and writes nothing."""
-    from pets.fileio import locked
+    from pets.runs.fileio import locked
 
     out = tmp_path / "run"
     with locked(out):
@@ -686,7 +688,7 @@ def test_an_empty_truncated_or_unparsable_config_is_one_line_on_resume(tmp_path,
 def test_a_run_killed_while_writing_its_last_plot_gets_it_on_resume(tmp_path):
     """Issue 17 item 6: a run killed right after its last checkpoint (here: inside the write of rewards.png after
     the only trial) never got rewards.png; --resume of the finished run writes it and says done."""
-    from pets import rundir
+    from pets.runs import rundir
 
     run, marker = tmp_path / "run", tmp_path / "stalled"
     args = [*RUN_ARGS]

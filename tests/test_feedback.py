@@ -16,10 +16,10 @@ from dynamics.model import DynamicsModel
 from pets import builder, oracle
 from pets.agent import MPCAgent
 from pets.config import ConfigError, make_config, parse_overrides
-from pets.feedback import LinearFeedback
 from pets.models import make_model
-from pets.planners import CEMPlanner
-from pets.propagation import PROPAGATIONS, TrajectoryEvaluator
+from pets.planning.feedback import LinearFeedback
+from pets.planning.planners import CEMPlanner
+from pets.planning.propagation import PROPAGATIONS, TrajectoryEvaluator
 from tests.test_propagation import ACT_DIM, OBS_DIM, FakeEnsemble, make_head, reward_fn
 from tests.tiny import TINY_MODEL, TINY_PLANNER
 
@@ -257,7 +257,7 @@ def test_a_feedback_run_resumes_with_its_fitted_scale_and_matches_an_uninterrupt
 def test_open_loop_replay_of_a_feedback_run_plans_action_sequences() -> None:
     """pets.openloop plans one action sequence per episode: a run made with feedback candidates (IDP's fast preset)
     is replayed with open-loop candidates of --steps actions, and asking for feedback there is an error."""
-    from pets.openloop import planning_config
+    from pets.planning.openloop import planning_config
 
     run_cfg = make_config("inverteddoublependulum", "gem", "fast")
     assert run_cfg.planner.candidates == "feedback"

@@ -152,7 +152,7 @@ def test_one_wrap_angle_for_targets_and_evaluation() -> None:
     """The head's targets and the offline evaluation wrap with lie.wrap_angle; a hinge step of +-pi gives +pi."""
     from gem_head import head as head_module
     from gem_head import lie
-    from pets import evaluate
+    from pets.learning import evaluation as evaluate
 
     assert head_module.wrap_angle is lie.wrap_angle
     d = torch.linspace(-40, 40, 8001, dtype=torch.float64)

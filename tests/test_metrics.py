@@ -11,7 +11,7 @@ from scipy.spatial.transform import Rotation
 
 from envs.catalogue import LAYOUTS
 from envs.layout import Group, ObsLayout
-from pets.evaluate import (
+from pets.learning.evaluation import (
     HORIZON_KEYS,
     METRICS,
     PARTS,

@@ -24,15 +24,16 @@ from gem_head.ablation import GroupFeatureDeltaHead
 from gem_head.head import GemHead
 from gem_head.se_root import GemSEHead
 from gem_head.two_stage import TwoStageGemEnsemble, TwoStageGemHead
-from pets import builder, rundir
-from pets.collect import collect
+from pets import builder
 from pets.config import DETERMINISTIC_HEADS, HEADS, make_config
-from pets.datasets import save_dataset, transitions
-from pets.evaluate import evaluate
+from pets.data.collect import collect
+from pets.data.datasets import save_dataset, transitions
+from pets.learning.evaluation import evaluate
+from pets.learning.offline import train_offline
+from pets.learning.trainer import ModelTrainer
 from pets.models import make_model, models_for
-from pets.propagation import TrajectoryEvaluator
-from pets.train import train_offline
-from pets.trainer import ModelTrainer
+from pets.planning.propagation import TrajectoryEvaluator
+from pets.runs import rundir
 from tests.tiny import TINY_PLANNER
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -476,7 +477,7 @@ def test_cli_end_to_end_delta_det_and_gem2(tmp_path, capsys):
     }
     proc = _cli(["-m", "pets.train", *train_args["gem2"]])  # the real command, in a subprocess
     import run_pets
-    from pets.train import main as train_main
+    from pets.tools.train import main as train_main
 
     # meanwhile, in this process: the same CLI entry point for delta-det, and run_pets.py --model gem2 (1 trial)
     capsys.readouterr()

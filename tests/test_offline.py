@@ -19,13 +19,14 @@ import torch
 
 import envs
 from dynamics.model import DynamicsModel
-from pets import builder, rundir
-from pets.collect import collect, episode_seeds, make_policy
-from pets.datasets import load_dataset, save_dataset, transitions
-from pets.evaluate import HORIZON_KEYS, evaluate, sample_starts
+from pets import builder
+from pets.data.collect import collect, episode_seeds, make_policy
+from pets.data.datasets import load_dataset, save_dataset, transitions
+from pets.learning.evaluation import HORIZON_KEYS, evaluate, sample_starts
+from pets.learning.offline import OFFLINE_DEFAULTS, offline_config
 from pets.models import make_model
-from pets.propagation import TrajectoryEvaluator
-from pets.train import OFFLINE_DEFAULTS, offline_config
+from pets.planning.propagation import TrajectoryEvaluator
+from pets.runs import rundir
 from tests.threads import one_thread
 from tests.tiny import TINY_MODEL as RUN_MODEL
 from tests.tiny import TINY_PLANNER
@@ -491,7 +492,7 @@ def test_closed_loop_mpc_with_the_frozen_model_replays_in_the_simulator(delta_ru
     the same seed gives the same episodes, and the run's checkpoint is not touched."""
     import hashlib
 
-    from pets.openloop import closed_loop
+    from pets.planning.openloop import closed_loop
 
     small = {"planner.population": 20, "planner.iterations": 1, "planner.particles": 2, "planner.horizon": 5}
     ckpt = delta_run / "checkpoint.pt"

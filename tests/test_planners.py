@@ -11,7 +11,7 @@ import torch
 from scipy.stats import truncnorm
 from torch import Tensor
 
-from pets.planners import BoxPlanner, CEMPlanner, shift_plan, truncated_normal
+from pets.planning.planners import BoxPlanner, CEMPlanner, shift_plan, truncated_normal
 
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 LOW = np.array([-1.0, -2.0])
@@ -228,7 +228,7 @@ def test_bad_arguments() -> None:
 
 
 # ---------------------------------------------------------------------------------------------- iCEM / MPPI
-from pets.planners import ICEMPlanner, MPPIPlanner, colored_noise, smoothing_matrix  # noqa: E402
+from pets.planning.planners import ICEMPlanner, MPPIPlanner, colored_noise, smoothing_matrix  # noqa: E402
 
 TARGET = torch.tensor([[0.3, -1.2], [-0.4, -0.2], [0.0, -0.5], [0.5, -1.4], [-0.5, -0.5]])
 
@@ -527,7 +527,7 @@ def test_config_builds_the_named_planner(name: str, cls) -> None:
 
 def test_the_planner_table_is_the_config_choice_list() -> None:
     from pets.config import PLANNERS
-    from pets.planners import PLANNER_CLASSES
+    from pets.planning.planners import PLANNER_CLASSES
 
     assert tuple(PLANNERS) == tuple(PLANNER_CLASSES) == ("cem", "icem", "mppi")
     assert [cls.uses_elites for cls in PLANNER_CLASSES.values()] == [True, True, False]
@@ -536,7 +536,7 @@ def test_the_planner_table_is_the_config_choice_list() -> None:
 
 def test_a_planner_section_is_the_config_section_and_its_checks() -> None:
     from pets.config import ConfigError, make_config
-    from pets.planners import PLANNER_CLASSES
+    from pets.planning.planners import PLANNER_CLASSES
 
     cfg = make_config("hopper", preset="fast")
     sections = {name for name, cls in PLANNER_CLASSES.items() if cls.section is not None}
@@ -586,7 +586,7 @@ class RandomShooting(BoxPlanner):
 def test_a_planner_registered_from_outside_the_package_plans_a_run(tmp_path, monkeypatch, capsys) -> None:
     import run_pets
     from pets.config import ConfigError, make_config
-    from pets.planners import PLANNER_CLASSES, register_planner
+    from pets.planning.planners import PLANNER_CLASSES, register_planner
     from tests.test_cli import TINY
 
     monkeypatch.setitem(PLANNER_CLASSES, "shooting", RandomShooting)  # removed again after the test
@@ -660,7 +660,7 @@ def test_icem_carries_elites_through_the_mpc_agent(replan_every: int) -> None:
 
 
 # ------------------------------------------------------------------------------------- non-finite returns
-from pets.planners import PlanningFailed  # noqa: E402
+from pets.planning.planners import PlanningFailed  # noqa: E402
 
 
 @pytest.mark.parametrize("cls", [CEMPlanner, ICEMPlanner, MPPIPlanner])

@@ -1,4 +1,4 @@
-"""precision=auto (pets.hardware, pets.config) and bf16 model training (issue 13)."""
+"""precision=auto (pets.runs.hardware, pets.config) and bf16 model training (issue 13)."""
 
 import math
 
@@ -6,8 +6,8 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from pets import hardware
 from pets.config import ConfigError, load_config, make_config
+from pets.runs import hardware
 
 AMX = frozenset({"avx512f", "amx_tile", "amx_bf16", "avx512_bf16"})
 ZEN4 = frozenset({"avx512f", "avx512_bf16"})
@@ -201,7 +201,7 @@ def test_the_fused_bf16_planner_path_is_deterministic(monkeypatch):
     from dynamics.heads import DeltaHead
     from dynamics.model import DynamicsModel
     from dynamics.networks import GaussianEnsemble
-    from pets.propagation import TrajectoryEvaluator
+    from pets.planning.propagation import TrajectoryEvaluator
 
     if not fused._AVAILABLE:
         pytest.skip("oneDNN has no fused bf16 linear on this CPU or build (AVX2-only x86: the batched bf16 path runs)")

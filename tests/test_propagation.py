@@ -1,4 +1,4 @@
-"""Trajectory sampling (pets/propagation.py) against fake ensembles with known dynamics.
+"""Trajectory sampling (pets/planning/propagation.py) against fake ensembles with known dynamics.
 
 The fake ensemble has the real forward contract (x (M, B, in) or shared (B, in) -> mean,
 logvar (M, B, out)) and linear members ``target = x @ W + c_m`` with a fixed log-variance,
@@ -17,7 +17,7 @@ from torch import Tensor
 from dynamics.heads import DeltaHead
 from dynamics.model import DynamicsModel
 from envs.layout import Group, ObsLayout
-from pets.propagation import PROPAGATIONS, TrajectoryEvaluator
+from pets.planning.propagation import PROPAGATIONS, TrajectoryEvaluator
 
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 OBS_DIM, ACT_DIM = 3, 2
@@ -487,8 +487,8 @@ PINNED = {
 
 @pytest.mark.parametrize("prop", sorted(PINNED))  # members came after the speed work
 def test_precise_path_matches_values_pinned_before_the_speed_work(prop: str) -> None:
-    from pets.planners import CEMPlanner
-    from pets.propagation import retain_freed_memory
+    from pets.planning.planners import CEMPlanner
+    from pets.planning.propagation import retain_freed_memory
 
     ens, head, reward, terminated, obs0, actions = _pinned_model()
     ev = TrajectoryEvaluator(DynamicsModel(head, ens), reward, terminated, particles=5, propagation=prop)
@@ -510,7 +510,7 @@ def cheetah_model():
     import envs
     from dynamics.networks import GaussianEnsemble
     from pets.bench import collect_random
-    from pets.trainer import ModelTrainer
+    from pets.learning.trainer import ModelTrainer
 
     spec = envs.get("halfcheetah")
     obs, act, nxt = (torch.as_tensor(x) for x in collect_random(spec, 500, 0))
@@ -587,7 +587,7 @@ def test_compiled_step_matches_eager() -> None:
 
 
 def test_compile_failure_warns_once_and_falls_back_to_eager(monkeypatch) -> None:
-    import pets.propagation as propagation
+    import pets.planning.propagation as propagation
 
     def broken_compile(fn, **kwargs):
         def compiled(*args):
@@ -711,7 +711,7 @@ def test_a_model_broken_for_every_row_gives_nan_returns_and_the_planner_raises(p
     """Issue 17: nothing finite from the current state (every row's first transition non-finite): the -1e6 guard
     would rank equal candidates, i.e. act at random; all-NaN returns make the planner raise PlanningFailed instead.
     (A row that diverges later keeps the guard: test_non_finite_predictions_give_finite_low_returns.)"""
-    from pets.planners import CEMPlanner, PlanningFailed
+    from pets.planning.planners import CEMPlanner, PlanningFailed
 
     ev = TrajectoryEvaluator(
         DynamicsModel(make_head(), NaNEnsemble(torch.ones(3, OBS_DIM))), reward_fn, None, particles=5, propagation=prop

@@ -5,11 +5,11 @@ import pytest
 import torch
 
 import envs
-from pets import rundir
-from pets.collect import collect
 from pets.config import load_config
-from pets.protocols import PROTOCOLS, get_protocol, split_samples
-from pets.train import offline_config, train_offline
+from pets.data.collect import collect
+from pets.data.protocols import PROTOCOLS, get_protocol, split_samples
+from pets.learning.offline import offline_config, train_offline
+from pets.runs import rundir
 from tests.threads import one_thread
 
 

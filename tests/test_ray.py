@@ -18,12 +18,12 @@ from pathlib import Path
 import pytest
 import ray
 
-from pets import rundir
-from pets.cli import EXIT_FAILED
 from pets.experiments.arguments import UsageError
 from pets.experiments.cli import main
 from pets.experiments.ray_backend import check_shared_storage
 from pets.experiments.runner import ROOT
+from pets.runs import rundir
+from pets.tools.cli import EXIT_FAILED
 from tests.processes import alive, children
 from tests.test_compare import OFFLINE_ARGS, TINY
 

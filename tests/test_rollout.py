@@ -1,4 +1,4 @@
-"""pets.rollout: run_episode against stepping a real env by hand, its stopping rules, the hook and run_steps."""
+"""pets.data.rollout: run_episode against stepping a real env by hand, its stopping rules, the hook and run_steps."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import envs
-from pets.rollout import Episode, MPCPolicy, RandomPolicy, run_episode, run_steps
+from pets.data.rollout import Episode, MPCPolicy, RandomPolicy, run_episode, run_steps
 
 
 def _by_hand(spec: envs.EnvSpec, seed: int, actions: np.ndarray, limit: int | None = None) -> dict[str, list]:

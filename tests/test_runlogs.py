@@ -14,7 +14,7 @@ import imageio.v3 as iio
 import pytest
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-from pets.tblog import TRIAL_TAGS
+from pets.runs.tblog import TRIAL_TAGS
 from tests.test_cli import ROOT, TINY, cli, error_lines
 
 
@@ -104,9 +104,9 @@ def test_bad_video_every_is_one_line_exit_2(tmp_path, value):
 def offline(tmp_path_factory):
     """A small HalfCheetah data set and a tiny model trained on it offline (pets.train)."""
     import envs
-    from pets.collect import collect
-    from pets.datasets import save_dataset
-    from pets.train import train_offline
+    from pets.data.collect import collect
+    from pets.data.datasets import save_dataset
+    from pets.learning.offline import train_offline
     from tests.tiny import TINY_MODEL
 
     work = tmp_path_factory.mktemp("offline")

@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 import envs
-from pets.collect import collect, collect_sac, make_policy
-from pets.datasets import load_dataset, transitions
+from pets.data.collect import collect, collect_sac, make_policy
+from pets.data.datasets import load_dataset, transitions
 from tests.threads import one_thread
 
 pytest.importorskip("stable_baselines3", reason='the sac extra is part of .[dev]: pip install -e ".[dev]"')
@@ -153,8 +153,8 @@ def test_compare_offline_with_sac_data_and_the_paper_protocol(tmp_path):
     )
     assert str(train["policy"]) == "sac:200" and int(train["lengths"].sum()) == 200
     assert str(test["policy"]) == "sb3:invertedpendulum-sac.zip" and len(test["lengths"]) == 2
-    from pets import rundir
     from pets.config import load_config
+    from pets.runs import rundir
 
     for model in ("delta", "gem"):
         run = out / "runs" / f"invertedpendulum-{model}-s1"

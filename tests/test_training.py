@@ -1,4 +1,4 @@
-"""Tests of the ensemble trainer (pets/trainer.py)."""
+"""Tests of the ensemble trainer (pets/learning/trainer.py)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from dynamics.heads import DeltaHead, DynamicsHead
 from dynamics.model import DynamicsModel
 from dynamics.networks import GaussianEnsemble
 from envs.layout import ObsLayout
-from pets.trainer import ModelTrainer, TrainResult, bootstrap_indices, split_holdout
+from pets.learning.trainer import ModelTrainer, TrainResult, bootstrap_indices, split_holdout
 
 LAYOUT_1D = ObsLayout(obs_dim=1, groups=(), velocities=(0,))
 
@@ -254,7 +254,7 @@ def test_bad_arguments_raise() -> None:
 
 
 def test_a_diverging_optimiser_raises_instead_of_returning_a_nan_model() -> None:
-    from pets.trainer import TrainingDiverged
+    from pets.learning.trainer import TrainingDiverged
 
     x, act, y, _ = sine_data(200, seed=1)
     for holdout_ratio in (0.1, 0.0):
@@ -305,3 +305,24 @@ def test_members_with_equal_weights_stay_equal_when_trained_in_unison() -> None:
 
     assert spread(False) < 1e-5
     assert spread(True) > 1e-3
+
+
+def test_a_checkpoint_of_the_old_module_path_still_loads(tmp_path, monkeypatch):
+    """Checkpoints pickle ``last_train`` (a TrainResult) by its module path, ``pets.trainer`` before the library
+    moved into subpackages (issue 33): such a checkpoint loads as the TrainResult of ``pets.learning.trainer``."""
+    import sys
+    import types
+
+    from pets.runs import rundir
+
+    result = TrainResult(train_loss=1.0, val_loss=2.0, epochs=3, initial_val_loss=4.0)
+    old = types.ModuleType("pets.trainer")
+    old.TrainResult = TrainResult
+    monkeypatch.setitem(sys.modules, "pets.trainer", old)
+    monkeypatch.setattr(TrainResult, "__module__", "pets.trainer")
+    rundir.save_checkpoint(tmp_path, {"last_train": result})
+    assert b"pets.trainer" in (tmp_path / rundir.CHECKPOINT_FILE).read_bytes()
+    monkeypatch.undo()
+    assert "pets.trainer" not in sys.modules and TrainResult.__module__ == "pets.learning.trainer"
+    state = rundir.load_checkpoint(tmp_path)
+    assert state["last_train"] == result

@@ -1,5 +1,5 @@
-"""The learned terminal value (pets/value.py): its targets against scipy, its fit, the planner's use of it, and a
-run with it (checkpointed, resumed to the same metrics)."""
+"""The learned terminal value (pets/planning/value.py): its targets against scipy, its fit, the planner's use of it,
+and a run with it (checkpointed, resumed to the same metrics)."""
 
 from __future__ import annotations
 
@@ -11,11 +11,11 @@ from scipy.signal import lfilter
 import envs
 from dynamics.model import DynamicsModel
 from pets import builder
-from pets.collect import AgentPolicy
 from pets.config import ConfigError, make_config
-from pets.propagation import PROPAGATIONS, TrajectoryEvaluator
-from pets.rollout import RandomPolicy, run_steps
-from pets.value import ValueFunction, episode_ends, returns_to_go
+from pets.data.collect import AgentPolicy
+from pets.data.rollout import RandomPolicy, run_steps
+from pets.planning.propagation import PROPAGATIONS, TrajectoryEvaluator
+from pets.planning.value import ValueFunction, episode_ends, returns_to_go
 from tests.test_cli import TINY, cli, rows
 from tests.test_propagation import OBS_DIM, FakeEnsemble, make_head
 

@@ -15,9 +15,9 @@ import pytest
 import envs
 from envs.render import Renderer, qpos_from_obs, select_gl_backend
 from pets import visualize
-from pets.collect import collect
-from pets.datasets import save_dataset
-from pets.train import train_offline
+from pets.data.collect import collect
+from pets.data.datasets import save_dataset
+from pets.learning.offline import train_offline
 from tests.tiny import TINY_MODEL
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -7,7 +7,7 @@ that between them take every planner (CEM, iCEM, MPPI), every propagation (ts1, 
 both candidate kinds (open loop, feedback), a learned terminal value and the delta, GEM and deterministic heads;
 then ``pets.collect`` and ``pets.evaluate`` (``eval.json``) on the first run, and ``pets.train`` on the collected
 data under both protocols. It also scores random candidates
-with a :class:`pets.propagation.TrajectoryEvaluator` in every propagation x candidate kind, and runs every
+with a :class:`pets.planning.propagation.TrajectoryEvaluator` in every propagation x candidate kind, and runs every
 planner on a fixed objective, hashing the returned tensors (bit identity). Prints one line per item,
 ``NAME sha256``: ``metrics.csv`` without its timing columns, ``eval.json`` with the run directory's path
 replaced. Two trees behave alike when the printed lines are equal (``diff`` the outputs).
@@ -111,10 +111,10 @@ def tensors() -> None:
 
     import envs
     from pets.config import make_config
-    from pets.feedback import LinearFeedback
     from pets.models import make_model
-    from pets.planners import PLANNER_CLASSES
-    from pets.propagation import TrajectoryEvaluator
+    from pets.planning.feedback import LinearFeedback
+    from pets.planning.planners import PLANNER_CLASSES
+    from pets.planning.propagation import TrajectoryEvaluator
 
     torch.set_num_threads(1)
     spec = envs.get("halfcheetah")

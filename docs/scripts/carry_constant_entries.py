@@ -16,7 +16,7 @@ import sys
 import numpy as np
 import torch
 
-from pets.evaluate import evaluate_loaded, load_inputs
+from pets.learning.evaluation import evaluate_loaded, load_inputs
 
 torch.set_num_threads(1)
 study, env = sys.argv[1], sys.argv[2]

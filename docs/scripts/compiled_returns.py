@@ -21,7 +21,7 @@ import time
 import torch
 
 from pets import builder
-from pets.propagation import TrajectoryEvaluator
+from pets.planning.propagation import TrajectoryEvaluator
 
 
 def main(argv: list[str] | None = None) -> int:

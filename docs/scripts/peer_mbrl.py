@@ -22,7 +22,7 @@ realistic normalised states. The three rows take turns in every round (a change 
 each round times one fresh-plan step per row (the project's rows after an untimed warm-up step of
 ``time_rows``); the CSV gives medians over the rounds of wall and process-CPU seconds, and the machine.
 mbrl-lib's timed steps run after this project's agents are built, so under this project's process-wide glibc
-allocator setting (``pets.propagation.retain_freed_memory``); ``profile`` times mbrl-lib's step in a process of
+allocator setting (``pets.planning.propagation.retain_freed_memory``); ``profile`` times mbrl-lib's step in a process of
 its own without and then with that setting, and profiles one step (torch.profiler, ops by self CPU time).
 
 ``learn``: mbrl-lib's PETS example loop (``mbrl.algorithms.pets.train``) vs ``run_pets.py --model delta`` at
@@ -104,7 +104,7 @@ def machine() -> dict[str, Any]:
     """The CPU (lscpu's model name, family/model from /proc/cpuinfo), its bf16 flags, load, torch threads."""
     import torch
 
-    from pets.hardware import cpu_isa
+    from pets.runs.hardware import cpu_isa
 
     info: dict[str, str] = {}
     try:
@@ -444,11 +444,12 @@ def plan(args: argparse.Namespace) -> int:
 def profile(args: argparse.Namespace) -> int:
     """mbrl-lib's planning step at the ``plan`` shapes in a process where this project built no agent: median
     wall/CPU seconds and minor page faults of ``--repeats`` steps with glibc's default allocator settings, then
-    as many with this project's ``pets.propagation.retain_freed_memory()`` (process-wide; ``plan`` runs mbrl-lib
-    after this project's agents, so with it), then torch.profiler over one more step: the ops by self CPU time."""
+    as many with this project's ``pets.planning.propagation.retain_freed_memory()`` (process-wide; ``plan`` runs
+    mbrl-lib after this project's agents, so with it), then torch.profiler over one more step: the ops by self CPU
+    time."""
     import torch
 
-    from pets.propagation import retain_freed_memory
+    from pets.planning.propagation import retain_freed_memory
 
     pair = halfcheetah_pair(args.threads)
     agent, start_m = pair["agent"], pair["start_m"]

@@ -26,8 +26,8 @@ import envs
 from pets import builder
 from pets.bench import collect_random
 from pets.config import make_config, parse_overrides
+from pets.learning.compiled import CompiledStep
 from pets.models import make_model
-from pets.trainer import CompiledStep
 
 GROUPS = ("gather", "forward + loss", "regularisers", "backward", "Adam", "zero_grad", "compiled step", "holdout")
 

@@ -45,7 +45,6 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from pets.cli import EXIT_FAILED, EXIT_INTERRUPTED, OneLineParser, fail
 from pets.experiments.arguments import (
     PROG,
     UsageError,
@@ -59,6 +58,7 @@ from pets.experiments.backend import BACKENDS, Backend
 from pets.experiments.offline import compare_offline
 from pets.experiments.online import compare_online
 from pets.experiments.statistics import MIN_SEEDS
+from pets.tools.cli import EXIT_FAILED, EXIT_INTERRUPTED, OneLineParser, fail
 
 #: Seeds of a comparison unless ``--seeds`` says otherwise (the paper's 5).
 DEFAULT_SEEDS = ",".join(str(s) for s in range(MIN_SEEDS))
@@ -170,7 +170,7 @@ def build_parser() -> OneLineParser:
         choices=("pets", "paper"),
         default="pets",
         help="training protocol: pets (bootstrap ensemble, early stopping; default) or paper (the GEM paper's: "
-        "100k/10k split, Adam 5e-4, batch 10, 10k iterations, hidden-layer search; pets.protocols)",
+        "100k/10k split, Adam 5e-4, batch 10, 10k iterations, hidden-layer search; pets.data.protocols)",
     )
     off.add_argument("--horizons", default="1,5,10,25,50", help="prediction horizons (default 1,5,10,25,50)")
     off.add_argument("--starts", type=int, default=1000, help="start points of the evaluation (default 1000)")
@@ -365,7 +365,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             )
             report = out / "summary.md"
         else:
-            from pets.evaluate import parse_horizons
+            from pets.learning.evaluation import parse_horizons
 
             try:
                 horizons = parse_horizons(args.horizons)

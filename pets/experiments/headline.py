@@ -27,7 +27,7 @@ from typing import Any
 
 from pets.experiments.report import fmt, fmt_interval, md_table, write_csv
 from pets.experiments.statistics import BASELINE
-from pets.fileio import atomic_write_bytes
+from pets.runs.fileio import atomic_write_bytes
 
 #: Offline metrics of the headline, in order: the whole state, then the group coordinates (where GEM composes).
 OFFLINE_METRICS = ("standardized_error", "rotation_error", "mean_step_error")

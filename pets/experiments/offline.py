@@ -11,10 +11,10 @@ count). With ``--data-seeds`` D > 0 also ``ENV-dD-{train,test}.npz``, collected 
 samples, 110k for ``paper``) and keeps every transition as the training data, saves the agent as
 ``DIR/data/ENV-sac.zip`` and rolls it (stochastic policy) for the test episodes: the GEM paper's data.
 
-``--protocol`` (:mod:`pets.protocols`): ``pets`` (default) or ``paper`` (the GEM paper's training; its test
+``--protocol`` (:mod:`pets.data.protocols`): ``pets`` (default) or ``paper`` (the GEM paper's training; its test
 set of 20k samples gives the default ``--test-episodes``, ceil(20000 / episode length)).
 
-Per run: train offline (``pets.train.train_offline``, model seed = the run's seed) unless the
+Per run: train offline (``pets.learning.offline.train_offline``, model seed = the run's seed) unless the
 run directory holds a trained model; evaluate on the test data (``pets.evaluate``, mean mode, the
 same start points for every model and seed of an env: evaluation seed 0; ``standardized_error`` scaled
 by the training data) into ``eval.json`` unless it holds this evaluation already; with ``--openloop``,
@@ -46,7 +46,7 @@ from pets.experiments.rundirs import (
     run_name,
 )
 from pets.experiments.runner import open_backend
-from pets.fileio import atomic_write_bytes
+from pets.runs.fileio import atomic_write_bytes
 
 #: Data seeds of the offline mode: training data, test data, open-loop initial states.
 TRAIN_DATA_SEED, TEST_DATA_SEED, OPENLOOP_SEED = 0, 1, 2
@@ -78,7 +78,7 @@ def sac_agent_path(train_path: Path) -> Path:
 
 def sac_steps(policy: str, protocol: str) -> int | None:
     """The SAC budget of a ``sac[:STEPS]`` ``--policy`` (None for other policies); UsageError if it has none."""
-    from pets.protocols import get_protocol
+    from pets.data.protocols import get_protocol
 
     if policy != "sac" and not policy.startswith("sac:"):
         return None
@@ -87,7 +87,7 @@ def sac_steps(policy: str, protocol: str) -> int | None:
         if proto.train_samples is None:
             raise UsageError(f"--policy sac needs a step budget with --protocol {protocol}: give sac:STEPS")
         return proto.train_samples + (proto.val_samples or 0)
-    from pets.collect import parse_policy
+    from pets.data.collect import parse_policy
 
     try:
         return parse_policy(policy)[1]
@@ -97,7 +97,7 @@ def sac_steps(policy: str, protocol: str) -> int | None:
 
 def expected_policy_name(policy: str) -> str:
     """The ``policy`` name ``pets.collect`` stores for a ``--policy`` string (random, smooth-random or sac:STEPS)."""
-    from pets.collect import DEFAULT_BETA, parse_policy
+    from pets.data.collect import DEFAULT_BETA, parse_policy
 
     if policy == EXISTING or policy.startswith("sac:"):
         return policy
@@ -124,8 +124,8 @@ def prepare_data(
     UsageError if an existing file was collected for another env, policy, seed or episode count.
     """
     import envs
-    from pets.collect import collect
-    from pets.datasets import load_dataset, save_dataset
+    from pets.data.collect import collect
+    from pets.data.datasets import load_dataset, save_dataset
 
     want = {"env": env, "policy": expected_policy_name(policy), "seed": seed, "episodes": episodes}
     if policy.startswith("sac:"):  # SAC's episodes are as many as its steps made
@@ -159,9 +159,9 @@ def prepare_data(
         return "reused"
     spec = envs.get(env)
     if policy.startswith("sac:"):
-        from pets.collect import collect_sac
-        from pets.fileio import atomic_write_bytes
-        from pets.sb3 import agent_bytes
+        from pets.data.collect import collect_sac
+        from pets.data.sb3 import agent_bytes
+        from pets.runs.fileio import atomic_write_bytes
 
         data, agent = collect_sac(spec, sac_steps(policy, "pets"), seed, max_steps, device="cpu", progress=progress)
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -206,9 +206,9 @@ def offline_job(job: Mapping[str, Any]) -> dict[str, Any]:
 
 def _offline_job(job: Mapping[str, Any]) -> dict[str, Any]:
     from pets.config import load_config
-    from pets.evaluate import evaluate, write_events
-    from pets.openloop import open_loop
-    from pets.train import train_offline
+    from pets.learning.evaluation import evaluate, write_events
+    from pets.learning.offline import train_offline
+    from pets.planning.openloop import open_loop
 
     run_dir, done = Path(job["run_dir"]), []
     if not (run_dir / "config.yaml").is_file():
@@ -238,7 +238,9 @@ def _offline_job(job: Mapping[str, Any]) -> dict[str, Any]:
         )
         result["request"] = request
         atomic_write_bytes(eval_path, (json.dumps(result) + "\n").encode())
-        if load_config(str(run_dir / "config.yaml")).tensorboard:  # per-horizon errors for TensorBoard (pets.tblog)
+        if load_config(
+            str(run_dir / "config.yaml")
+        ).tensorboard:  # per-horizon errors for TensorBoard (pets.runs.tblog)
             write_events(run_dir, job["test_data"], result)
         done.append("eval")
     for kind, planner in _planning_tasks(job):
@@ -323,8 +325,8 @@ def compare_offline(
     """
     import envs
     from pets.config import ConfigError, parse_overrides
-    from pets.protocols import get_protocol
-    from pets.train import offline_config
+    from pets.data.protocols import get_protocol
+    from pets.learning.offline import offline_config
 
     backend = backend or Backend()
 

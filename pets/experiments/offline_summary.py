@@ -9,7 +9,7 @@ CI over the seeds both have). Divergence is per horizon
 at that horizon, counted in ``n_diverged`` there, and enters P as error ``+inf`` there; at its other horizons
 it counts normally. The error averaged over the horizons counts only the runs that diverged at none of them. The
 metrics are the eval.json keys ending in ``_error`` that every run of the env has
-(``pets.evaluate.METRICS`` first, in that order, then the others alphabetically).
+(``pets.learning.evaluation.METRICS`` first, in that order, then the others alphabetically).
 
 Files:
 
@@ -54,7 +54,6 @@ from typing import Any
 
 import numpy as np
 
-from pets.evaluate import METRICS as EVALUATE_METRICS
 from pets.experiments.plots import plot_absolute, plot_ratio, plot_relative
 from pets.experiments.primary import (
     PAST_LEVEL_COLUMNS,
@@ -77,7 +76,8 @@ from pets.experiments.statistics import (
     paired_ratios,
     sign_flip_p,
 )
-from pets.fileio import atomic_write_bytes
+from pets.learning.evaluation import METRICS as EVALUATE_METRICS
+from pets.runs.fileio import atomic_write_bytes
 
 #: Metrics that get a table in prediction.md (rotation_error only where the env has rotations).
 TABLE_METRICS = ("mean_step_error", "standardized_error", "rotation_error")

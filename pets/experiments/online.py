@@ -40,7 +40,7 @@ from pets.experiments.rundirs import (
     run_name,
 )
 from pets.experiments.runner import online_job, open_backend
-from pets.rundir import stopped
+from pets.runs.rundir import stopped
 
 
 def online_plan(run_dir: Path, trials: int, stop_reward: float | None = None) -> str:

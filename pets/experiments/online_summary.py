@@ -49,7 +49,7 @@ from pets.experiments.statistics import (
     paired_differences,
     sign_flip_p,
 )
-from pets.fileio import atomic_write_bytes
+from pets.runs.fileio import atomic_write_bytes
 
 #: Reward thresholds of the time-to-threshold columns (``docs/performance.md``): InvertedPendulum's maximum
 #: (1000 = balanced for the whole 1000-step episode), Reacher -5 (near the target for most of the episode)
@@ -116,7 +116,7 @@ RUN_COLUMNS = [
 
 def online_rows(run_dir: Path) -> list[dict[str, float]]:
     """The metrics rows of a run directory (empty if it has none yet)."""
-    from pets import rundir
+    from pets.runs import rundir
 
     path = run_dir / rundir.METRICS_FILE
     return rundir.read_metrics(path) if path.is_file() else []

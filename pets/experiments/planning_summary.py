@@ -23,7 +23,7 @@ from pets.experiments.plots import model_colors, plot_openloop
 from pets.experiments.report import BOOT_SEED, fmt_ci, md_table, write_csv
 from pets.experiments.rundirs import json_matches, run_name
 from pets.experiments.statistics import BASELINE, bootstrap_ci, sign_flip_p, summarise
-from pets.fileio import atomic_write_bytes
+from pets.runs.fileio import atomic_write_bytes
 
 COLUMNS = [
     "env",

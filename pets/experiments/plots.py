@@ -12,7 +12,7 @@ import numpy as np
 
 from pets.experiments.report import BOOT_SEED
 from pets.experiments.statistics import REPS, bootstrap_band, iqm_ci
-from pets.fileio import atomic_write_bytes
+from pets.runs.fileio import atomic_write_bytes
 
 
 def model_colors(models: Sequence[str]) -> dict[str, Any]:

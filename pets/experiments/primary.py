@@ -2,8 +2,8 @@
 
 - **No-information level** ``L`` (:func:`no_information_level`): the ``standardized_error`` of a "model" that
   predicts a random training observation in place of every true one, measured on the data with the same
-  formula as :func:`pets.evaluate.step_errors` (about sqrt(2) = 1.41 when test and training observations share
-  their distribution). A prediction past ``L`` carries no information about the state.
+  formula as :func:`pets.learning.evaluation.step_errors` (about sqrt(2) = 1.41 when test and training observations
+  share their distribution). A prediction past ``L`` carries no information about the state.
 - **Tracking horizons** (:func:`tracking_horizons`): the horizons, from the shortest on, at which the baseline's
   median ``standardized_error`` over its runs is below ``L``; the first horizon at or past it ends them.
   Verdicts are read there; longer horizons describe how models fail (:func:`past_level_rows`).
@@ -74,7 +74,7 @@ def no_information_level(train: Mapping[str, np.ndarray], test: Mapping[str, np.
     (a fixed seed), standardized by the training data's per-entry std as :mod:`pets.evaluate` does."""
     import torch
 
-    from pets.evaluate import obs_std, step_errors
+    from pets.learning.evaluation import obs_std, step_errors
 
     def real(arrays: Mapping[str, np.ndarray]) -> np.ndarray:
         obs, lengths = np.asarray(arrays["obs"], dtype=np.float64), np.asarray(arrays["lengths"])
@@ -93,7 +93,7 @@ def env_level(data_dir: Path, env: str) -> tuple[float, str]:
     if not (train.is_file() and test.is_file()):
         return DEFAULT_LEVEL, DEFAULT_SOURCE
     import envs
-    from pets.datasets import load_dataset
+    from pets.data.datasets import load_dataset
 
     level = no_information_level(load_dataset(train), load_dataset(test), envs.get(env).layout)
     return level, f"data ({train.name} vs {test.name})"

@@ -9,7 +9,7 @@ from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from pets.fileio import atomic_write_bytes
+from pets.runs.fileio import atomic_write_bytes
 
 #: Seed of every bootstrap in the summaries and plots (the same numbers on every rerun).
 BOOT_SEED = 0

@@ -12,7 +12,7 @@ from pets.experiments.arguments import UsageError
 
 def check_out_writable(out: Path) -> None:
     """Create ``out`` if needed; UsageError unless files can be written in it (before any work)."""
-    from pets.fileio import writable_dir_error
+    from pets.runs.fileio import writable_dir_error
 
     out = Path(out)
     if out.exists() and not out.is_dir():
@@ -54,8 +54,8 @@ def _flatten(d: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
 NOT_COMPARED = ("trials", "threads")
 
 
-#: Keys whose ``auto`` (their default) is resolved by the machine that makes a run's config (``pets.hardware``): on a
-#: cluster of mixed CPU kinds the runs of one study may hold different concrete values for them.
+#: Keys whose ``auto`` (their default) is resolved by the machine that makes a run's config (``pets.runs.hardware``):
+#: on a cluster of mixed CPU kinds the runs of one study may hold different concrete values for them.
 PRECISION_KEYS = ("planner.precision", "model.precision")
 
 

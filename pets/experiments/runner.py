@@ -168,9 +168,9 @@ def run_logged(command: Sequence[str], log: Path, threads: int = 1) -> int:
 
 
 def wait_until_unlocked(run_dir: Path, timeout: float = 60.0) -> None:
-    """Wait (up to ``timeout`` s) until no process holds ``run_dir``'s lock (:func:`pets.fileio.locked`): a run
+    """Wait (up to ``timeout`` s) until no process holds ``run_dir``'s lock (:func:`pets.runs.fileio.locked`): a run
     killed with its worker releases it when the kernel has reaped it, which may be just after the retry starts."""
-    from pets.fileio import DirectoryInUse, locked
+    from pets.runs.fileio import DirectoryInUse, locked
 
     deadline = time.monotonic() + timeout
     while True:

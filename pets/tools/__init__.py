@@ -1,10 +1,15 @@
-"""The command-line tools that only diagnose, benchmark or draw: no library module imports them
+"""The command-line tools: argument parsing, checks of the input, exit statuses and printing around the library
+(``pets.data``, ``pets.learning``, ``pets.planning``, ...); no library module imports them
 (``tests/test_architecture.py``).
 
+- ``collect``, ``train``, ``evaluate``, ``openloop``: data sets, offline training, long-horizon prediction error,
+  open-loop planning (the library parts: :mod:`pets.data.collect`, :mod:`pets.learning.offline`,
+  :mod:`pets.learning.evaluation`, :mod:`pets.planning.openloop`);
 - ``onestep``: does training work? one-step error of a trained model vs the untrained network and "no change";
 - ``oracle``: MPC with the true simulator as the model (a planner's failure or the model's?);
 - ``visualize``: the paper's trajectory figure, rendered by MuJoCo;
-- ``bench``, ``bench_train``, ``bench_layers``: planning-step, model-training and bf16-layer benchmarks.
+- ``bench``, ``bench_train``, ``bench_layers``: planning-step, model-training and bf16-layer benchmarks;
+- ``cli``: what every command shares: one-line errors and the one table of exit statuses.
 
 Each also answers at its old path, ``python -m pets.X`` and ``import pets.X`` (:func:`forward`).
 """
@@ -15,7 +20,10 @@ import importlib
 import sys
 
 #: The tools here, each also at ``pets.<name>`` (a forwarding module).
-MOVED = ("onestep", "oracle", "visualize", "bench", "bench_train", "bench_layers")
+MOVED = (
+    *("collect", "train", "evaluate", "openloop", "onestep", "oracle", "visualize"),
+    *("bench", "bench_train", "bench_layers"),
+)
 
 
 def forward(name: str, tool: str) -> None:

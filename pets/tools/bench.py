@@ -15,7 +15,7 @@ none of these; where bf16 is emulated the bf16 rows are left out), the configure
 floor at the config's shapes (:func:`kernel_floor`: the model's GEMMs + bias alone, fp32 and bf16, and bf16
 with SiLU); the rows take turns within each repeat, so a change in machine load hits all of them alike.
 Use ``threads=1`` on a shared machine. The header names the CPU's bf16 ISA (AMX, AVX-512 BF16 or none;
-:mod:`pets.hardware`).
+:mod:`pets.runs.hardware`).
 
 Columns: wall and process-CPU seconds per step (CPU time is the steadier figure on a loaded
 machine; with one thread it is close to the compute time), model GFLOP per step (counted from the
@@ -53,11 +53,11 @@ from torch import Tensor
 
 import envs
 from pets import builder
-from pets.cli import OneLineParser, fail
 from pets.config import ConfigError, make_config, parse_overrides, validate
-from pets.hardware import EMULATED_BF16_SLOWDOWN, cpu_isa, native_bf16
+from pets.data.rollout import RandomPolicy, run_steps
 from pets.models import make_model
-from pets.rollout import RandomPolicy, run_steps
+from pets.runs.hardware import EMULATED_BF16_SLOWDOWN, cpu_isa, native_bf16
+from pets.tools.cli import OneLineParser, fail
 
 #: (label, planner overrides) of the ``--compare`` rows; the first is the precise reference.
 COMPARE_ROWS: list[tuple[str, dict[str, Any]]] = [
@@ -375,7 +375,7 @@ def benchmark(cfg: DictConfig, repeats: int = 5) -> dict[str, float]:
 
 def bf16_is_native(device: torch.device) -> bool:
     """Whether bf16 rows are worth timing on ``device``: CUDA, or a CPU with native bf16 matmul (elsewhere an
-    emulated bf16 GEMM is ~35x slower than fp32, :data:`pets.hardware.EMULATED_BF16_SLOWDOWN`: minutes a step)."""
+    emulated bf16 GEMM is ~35x slower than fp32, :data:`pets.runs.hardware.EMULATED_BF16_SLOWDOWN`: minutes a step)."""
     return device.type == "cuda" or native_bf16("cpu")
 
 

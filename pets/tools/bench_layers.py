@@ -18,9 +18,9 @@ import torch
 
 from dynamics import fused
 from dynamics.networks import GaussianEnsemble
-from pets.cli import OneLineParser, fail
-from pets.hardware import cpu_isa
-from pets.propagation import retain_freed_memory
+from pets.planning.propagation import retain_freed_memory
+from pets.runs.hardware import cpu_isa
+from pets.tools.cli import OneLineParser, fail
 
 
 def main(argv: list[str] | None = None) -> int:

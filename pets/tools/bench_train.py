@@ -26,12 +26,12 @@ from omegaconf import DictConfig
 
 import envs
 from pets import builder
-from pets.bench import collect_random
-from pets.cli import OneLineParser, fail
 from pets.config import ConfigError, make_config, parse_overrides
-from pets.hardware import cpu_isa
+from pets.learning.trainer import ModelTrainer
 from pets.models import make_model
-from pets.trainer import ModelTrainer
+from pets.runs.hardware import cpu_isa
+from pets.tools.bench import collect_random
+from pets.tools.cli import OneLineParser, fail
 
 
 @dataclass(frozen=True)

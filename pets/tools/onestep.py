@@ -26,8 +26,8 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from pets.cli import OneLineParser, fail
-from pets.fileio import atomic_write_bytes
+from pets.runs.fileio import atomic_write_bytes
+from pets.tools.cli import OneLineParser, fail
 
 PROG = "pets.onestep"
 TRAIN_POLICY = "smooth-random:0.9"
@@ -49,7 +49,7 @@ COLUMNS = (
 
 
 def _errors(pred: Any, obs: Any, next_obs: Any, scale: Any, predicted: Any, layout: Any) -> tuple[float, float]:
-    from pets.evaluate import step_errors
+    from pets.learning.evaluation import step_errors
 
     std = float((((pred - next_obs)[:, predicted] / scale) ** 2).mean())
     return std, float(step_errors(pred, next_obs, layout)["total"].mean())
@@ -70,11 +70,11 @@ def one_step_check(
 
     import envs
     from pets import builder
-    from pets.collect import collect
-    from pets.datasets import transitions
+    from pets.data.collect import collect
+    from pets.data.datasets import transitions
+    from pets.learning.offline import offline_config
+    from pets.learning.trainer import obs_change_scale
     from pets.models import make_model
-    from pets.train import offline_config
-    from pets.trainer import obs_change_scale
 
     spec = envs.get(env)
     train = [
@@ -133,8 +133,8 @@ def _write_csv(path: Path, rows: list[dict[str, Any]]) -> None:
 def main(argv: list[str] | None = None) -> int:
     import envs
     from pets.config import HEADS, ConfigError, parse_overrides
+    from pets.learning.offline import offline_config
     from pets.models import models_for
-    from pets.train import offline_config
 
     parser = OneLineParser(prog=PROG, description=__doc__.split("\n\n")[0])
     parser.add_argument("--envs", default="all", help="all, or a comma list of env names")

@@ -10,7 +10,7 @@ state (``qpos``, ``qvel``) and stepped through the sequence, summing the env's o
 a terminating step. So the planner sees the exact returns of its candidates over its horizon, with no model
 error and no sampling noise. If it still fails, the planner (its horizon, population, action
 parameterisation, the objective's ties) is the cause; if it succeeds where ``run_pets.py`` fails, the learned
-model or its data is. Episode ``i`` resets with ``pets.collect.episode_seeds(seed, i)[0]``; the planner draws
+model or its data is. Episode ``i`` resets with ``pets.data.collect.episode_seeds(seed, i)[0]``; the planner draws
 from one ``torch.Generator`` seeded with ``seed``.
 
 A diagnostic, not a hot path: candidates are simulated one at a time in Python (about ``population x
@@ -35,8 +35,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from pets.cli import OneLineParser, fail
-from pets.fileio import atomic_write_bytes, writable_dir_error
+from pets.runs.fileio import atomic_write_bytes, writable_dir_error
+from pets.tools.cli import OneLineParser, fail
 
 PROG = "pets.oracle"
 
@@ -47,8 +47,8 @@ class SimulatorEvaluator:
     Scores from the current state of ``env`` (a live gymnasium MuJoCo env; ``obs`` is ignored, the full
     simulator state is used): per candidate, a private copy of the env is set to that state and stepped through
     the actions, summing rewards until the horizon ends or the env terminates (the terminating step's reward
-    counts). The live env is not touched. With ``feedback`` (pets.feedback) a candidate is the gains of a feedback
-    law, rolled out in closed loop for ``feedback.horizon`` steps from ``obs``.
+    counts). The live env is not touched. With ``feedback`` (pets.planning.feedback) a candidate is the gains of a
+    feedback law, rolled out in closed loop for ``feedback.horizon`` steps from ``obs``.
     """
 
     def __init__(self, env: Any, make_env: Any, feedback: Any = None) -> None:
@@ -81,10 +81,10 @@ def run_episode(cfg: Any, spec: Any, seed: int, episode: int, steps: int | None 
     steps, reward, terminated, largest |cart x| (cart-pole envs), seconds."""
     from pets.agent import MPCAgent
     from pets.builder import make_feedback, make_planner
-    from pets.collect import episode_seeds
+    from pets.data.collect import episode_seeds
+    from pets.data.rollout import MPCPolicy, RandomPolicy, run_steps
+    from pets.data.rollout import run_episode as run_policy
     from pets.loop import SEED_PHASE, episode_reset_seed
-    from pets.rollout import MPCPolicy, RandomPolicy, run_steps
-    from pets.rollout import run_episode as run_policy
 
     limit = steps or spec.episode_length
     env = spec.make(max_episode_steps=limit)

@@ -6,7 +6,7 @@
 
 Rows: the truth, then one row per run (labelled); columns: the chosen steps k of one open-loop rollout.
 
-- Truth: the recorded observations ``obs[I, T + k]`` of the data set (:mod:`pets.datasets`), i.e. the
+- Truth: the recorded observations ``obs[I, T + k]`` of the data set (:mod:`pets.data.datasets`), i.e. the
   simulator's own states (every catalogue observation holds the whole ``qpos``: :mod:`envs.render`).
 - Models: from the same start ``obs[I, T]``, each run's model is rolled out open loop with the recorded actions
   ``act[I, T:T + K]`` (``DynamicsModel.rollout``, as ``pets.evaluate`` does; ``mean``: the elites' mean
@@ -28,8 +28,8 @@ from typing import Any
 
 import numpy as np
 
-from pets.cli import OneLineParser, fail
-from pets.fileio import atomic_write_bytes, writable_dir_error
+from pets.runs.fileio import atomic_write_bytes, writable_dir_error
+from pets.tools.cli import OneLineParser, fail
 
 PROG = "pets.visualize"
 DEFAULT_STEPS = (0, 15, 45)
@@ -214,7 +214,7 @@ def visualize(
     """
     import envs
     from pets.config import load_config
-    from pets.datasets import env_name, load_dataset
+    from pets.data.datasets import env_name, load_dataset
 
     arrays = load_dataset(data)
     data_env = env_name(arrays)

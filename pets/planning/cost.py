@@ -13,8 +13,8 @@ from __future__ import annotations
 from omegaconf import DictConfig
 
 from pets.config import PRESETS
-from pets.hardware import resolve_precision
-from pets.planners import PLANNER_CLASSES
+from pets.planning.planners import PLANNER_CLASSES
+from pets.runs.hardware import resolve_precision
 
 #: Steps before the measurement (the first planning step compiles when ``planner.compile``).
 WARMUP_STEPS = 2

@@ -29,8 +29,8 @@ dropped at the end) are arranged member-major, so the ensemble gets one ``(M, B 
 input per step (one batched GEMM per layer). For ``tsinf`` the layout is fixed for the whole
 rollout (no gather per step); for ``ts1`` rows are gathered into a fresh random permutation
 before the model and scattered back after. Each mode is a row layout and a noise, and each candidate kind
-(``CANDIDATES``: action sequences or feedback gains) a strategy, that the evaluator composes (``pets.particles``).
-The only Python loop is over the horizon and
+(``CANDIDATES``: action sequences or feedback gains) a strategy, that the evaluator composes
+(``pets.planning.particles``). The only Python loop is over the horizon and
 there is no host synchronisation inside it.
 
 Terminations and the non-finite guard: ``terminated_fn(obs, act, next_obs)`` marks a row
@@ -44,7 +44,7 @@ is still ranked by the finite rewards before it). The one exception: when the *f
 of every row (every particle of every candidate) is non-finite, the model predicts nothing finite
 from the current state (e.g. NaN weights), no return means anything, so every return is NaN
 (decided on the device, no synchronisation) and the planner raises
-``pets.planners.PlanningFailed`` rather than act at random.
+``pets.planning.planners.PlanningFailed`` rather than act at random.
 
 Speed options (both off by default; see docs/performance.md for measured figures):
 
@@ -77,14 +77,14 @@ from torch import Tensor
 
 from dynamics import fused
 from dynamics.model import DynamicsModel
-from pets.feedback import LinearFeedback
-from pets.hardware import CONCRETE_PRECISIONS as PRECISIONS
-from pets.particles import CANDIDATE_TABLE, PROPAGATION_TABLE, FeedbackGains, OpenLoop
+from pets.planning.feedback import LinearFeedback
+from pets.planning.particles import CANDIDATE_TABLE, PROPAGATION_TABLE, FeedbackGains, OpenLoop
+from pets.runs.hardware import CONCRETE_PRECISIONS as PRECISIONS
 
-#: ``planner.propagation``: how particles go through the ensemble (the module docstring; ``pets.particles``).
+#: ``planner.propagation``: how particles go through the ensemble (the module docstring; ``pets.planning.particles``).
 PROPAGATIONS = tuple(PROPAGATION_TABLE)
 #: ``planner.candidates``: what a planner's candidate is, an action sequence (PETS) or the gains of a linear
-#: feedback law (``pets.feedback``; ``pets.particles``).
+#: feedback law (``pets.planning.feedback``; ``pets.planning.particles``).
 CANDIDATES = tuple(CANDIDATE_TABLE)
 
 #: ``fn(obs, act, next_obs) -> (...,)`` batched torch reward / termination function.
@@ -136,8 +136,8 @@ class TrajectoryEvaluator:
     compile_backend: the ``torch.compile`` backend (``inductor`` generates fused C++/Triton kernels; the
       tests use ``aot_eager``, which traces the same graph without code generation).
     terminal_value: ``V(obs) -> (...)``, added to the return of every row that did not terminate, at its final
-      state (``pets.value``); None: the horizon rewards only.
-    feedback: a :class:`pets.feedback.LinearFeedback`: candidates are then gains (N, rows, act_dim), rolled out
+      state (``pets.planning.value``); None: the horizon rewards only.
+    feedback: a :class:`pets.planning.feedback.LinearFeedback`: candidates are then gains (N, rows, act_dim), rolled out
       for ``feedback.horizon`` steps with each particle's action computed from its own predicted state; None:
       candidates are action sequences (N, H, act_dim).
     """

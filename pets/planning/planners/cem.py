@@ -1,4 +1,4 @@
-"""CEM over action sequences, as PETS uses it (the algorithm: the ``pets.planners`` docstring)."""
+"""CEM over action sequences, as PETS uses it (the algorithm: the ``pets.planning.planners`` docstring)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from pets.planners.base import BoxPlanner, Objective, check_real, truncated_normal
+from pets.planning.planners.base import BoxPlanner, Objective, check_real, truncated_normal
 
 
 @dataclass
@@ -57,7 +57,7 @@ class CEMPlanner(BoxPlanner):
     def search(
         self, objective: Objective, mu: Tensor, init_mean: Tensor | None, generator: torch.Generator | None
     ) -> Tensor:
-        """CEM's iterations (the ``pets.planners`` docstring): the final mean, or the best sample seen."""
+        """CEM's iterations (the ``pets.planning.planners`` docstring): the final mean, or the best sample seen."""
         h, a = self.horizon, self.act_dim
         lb, ub = self.low, self.high
         if self.init_std is None:

@@ -19,11 +19,11 @@ observation, ``mean_d (pred_d - next_obs_d)^2 / var_d(next_obs - obs)`` over the
 model predicts (all but the layout's ``derived`` ones), ``var_d`` taken over the training data. It is
 unitless (velocities do not drown positions) and about 1 for the "no change" predictor.
 
-``compile=True`` (``model.compile``) runs every full minibatch as one compiled function (:class:`CompiledStep`:
-gradient by ``torch.func``, then the Adam update, in one ``torch.compile`` graph) on the epoch's batches gathered
-in one indexing op; the eager step above stays the reference (and runs the epoch's last, partial batch). Same
-data, batches, seeds and validation criterion; the numerics differ by float rounding (docs/performance.md,
-"Training at the fast preset").
+``compile=True`` (``model.compile``) runs every full minibatch as one compiled function
+(:class:`~pets.learning.compiled.CompiledStep`: gradient by ``torch.func``, then the Adam update, in one
+``torch.compile`` graph) on the epoch's batches gathered in one indexing op; the eager step above stays the reference
+(and runs the epoch's last, partial batch). Same data, batches, seeds and validation criterion; the numerics differ by
+float rounding (docs/performance.md, "Training at the fast preset").
 """
 
 from __future__ import annotations
@@ -35,11 +35,12 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 from tqdm.auto import tqdm
 
 from dynamics.model import DynamicsModel
 from dynamics.networks import column_mean_std
+from pets.learning.compiled import CompiledStep
 
 
 def obs_change_scale(obs: Tensor, next_obs: Tensor, indices: Tensor) -> Tensor:
@@ -94,102 +95,6 @@ def split_holdout(n: int, holdout_ratio: float, max_holdout: int, generator: tor
         n_hold = 0
     perm = torch.randperm(n, generator=generator, device=generator.device)
     return perm[n_hold:], perm[:n_hold]
-
-
-class _LossModule(nn.Module):
-    """``model.member_loss`` with the regularisers as a module, for ``torch.func.functional_call``."""
-
-    def __init__(self, model: DynamicsModel, logvar_bound_coef: float, bf16: bool) -> None:
-        super().__init__()
-        self.model = model
-        self.logvar_bound_coef = logvar_bound_coef
-        self.bf16 = bf16
-
-    def forward(self, x: Tensor, y: Tensor, obs: Tensor, next_obs: Tensor) -> tuple[Tensor, Tensor]:
-        member_loss = self.model.member_loss(x, y, obs, next_obs, bf16=self.bf16)
-        return self.model.add_regularisers(member_loss.sum(), self.logvar_bound_coef), member_loss.detach().mean()
-
-
-class CompiledStep:
-    """One training step (forward, loss, gradient, Adam update) as one ``torch.compile`` graph.
-
-    The gradient comes from ``torch.func.grad_and_value`` over the model's parameters, and the update is
-    ``torch.optim.Adam``'s (no weight decay, no amsgrad) applied in place to the parameters and to the
-    optimiser's own ``step``/``exp_avg``/``exp_avg_sq`` state, so checkpoints and the eager step keep working on
-    the same optimiser. Called with (E, B, .) batches; returns the detached mean member loss (no host sync).
-    Compiled lazily on the first call, once per trainer: the shapes are fixed, so later calls (and trials) reuse it.
-    """
-
-    def __init__(
-        self,
-        model: DynamicsModel,
-        optimizer: torch.optim.Adam,
-        logvar_bound_coef: float,
-        bf16: bool,
-        backend: str | Callable,
-    ) -> None:
-        group = optimizer.param_groups[0]
-        if len(optimizer.param_groups) != 1 or group["weight_decay"] or group["amsgrad"] or group["maximize"]:
-            raise ValueError("CompiledStep supports one Adam parameter group without weight decay, amsgrad, maximize")
-        self.optimizer = optimizer
-        self.loss = _LossModule(model, logvar_bound_coef, bf16)
-        self.names = [name for name, _ in self.loss.named_parameters()]
-        self.params = [p for _, p in self.loss.named_parameters()]
-        self._grad = torch.func.grad_and_value(
-            lambda params, *batch: torch.func.functional_call(self.loss, params, batch), has_aux=True
-        )
-        self.compiled = torch.compile(self._step, backend=backend, dynamic=False)
-        self._key: tuple | None = None  # hyperparameters and batch layout of the last call
-
-    def state(self) -> tuple[list[Tensor], list[Tensor], list[Tensor]]:
-        """The optimiser's per-parameter ``step``, ``exp_avg`` and ``exp_avg_sq`` (created as torch's Adam does)."""
-        for p in self.params:
-            st = self.optimizer.state[p]
-            if not st:
-                st["step"] = torch.tensor(0.0, dtype=torch.float32)
-                st["exp_avg"] = torch.zeros_like(p, memory_format=torch.preserve_format)
-                st["exp_avg_sq"] = torch.zeros_like(p, memory_format=torch.preserve_format)
-        states = [self.optimizer.state[p] for p in self.params]
-        return [s["step"] for s in states], [s["exp_avg"] for s in states], [s["exp_avg_sq"] for s in states]
-
-    def _step(
-        self,
-        params: list[Tensor],
-        steps: list[Tensor],
-        exp_avgs: list[Tensor],
-        exp_avg_sqs: list[Tensor],
-        lr: float,
-        beta1: float,
-        beta2: float,
-        eps: float,
-        x: Tensor,
-        y: Tensor,
-        obs: Tensor,
-        next_obs: Tensor,
-    ) -> Tensor:
-        grads, (_, mean_loss) = self._grad(dict(zip(self.names, params)), x, y, obs, next_obs)
-        with torch.no_grad():
-            for p, g, step, m, v in zip(params, grads.values(), steps, exp_avgs, exp_avg_sqs):
-                step.add_(1)
-                m.lerp_(g, 1 - beta1)
-                v.mul_(beta2).addcmul_(g, g, value=1 - beta2)
-                bias1, bias2 = 1 - beta1**step, 1 - beta2**step
-                p.addcdiv_(m, (v.sqrt() / bias2.sqrt() + eps) * (bias1 / lr), value=-1.0)
-        return mean_loss
-
-    def __call__(self, x: Tensor, y: Tensor, obs: Tensor, next_obs: Tensor) -> Tensor:
-        group = self.optimizer.param_groups[0]
-        hyper = (float(group["lr"]), *group["betas"], group["eps"])
-        args = (self.params, *self.state(), *hyper, x, y, obs, next_obs)
-        key = (hyper, *((t.shape, t.stride(), t.dtype, t.device) for t in (x, y, obs, next_obs)))
-        if key != self._key:  # a first call, or new hyperparameters or batch shapes: guards on (may compile)
-            out = self.compiled(*args)
-            self._key = key
-            return out
-        # The same function on inputs of the same shapes as the last call: dynamo's guards (~0.5-2 ms a call at
-        # these shapes, for ~50 tensors and the module) only re-check what ``key`` does.
-        with torch.compiler.set_stance(skip_guard_eval_unsafe=True):
-            return self.compiled(*args)
 
 
 class ModelTrainer:
@@ -389,6 +294,63 @@ class ModelTrainer:
             self._check_data(*validation)
         model = self.model
         ref = model.member_parameters()[0]  # device and dtype of the model
+        train, holdout = self._split(obs, act, next_obs, generator, validation)
+        x_tr = train[0]
+        has_holdout = holdout[0].shape[0] > 0
+        n_tr = x_tr.shape[0]
+        if self.bootstrap:
+            boot = bootstrap_indices(n_tr, model.ensemble_size, generator).to(ref.device)  # (E, n_tr)
+        else:  # every member on the same data, in the same order
+            boot = torch.arange(n_tr, device=ref.device).expand(model.ensemble_size, n_tr)
+        fixed = self.iterations > 0
+        bf16 = self.precision == "bf16"
+        max_epochs = math.ceil(self.iterations / math.ceil(n_tr / self.batch_size)) if fixed else self.max_epochs
+
+        params = model.member_parameters()
+        best = self.evaluate(*holdout) if has_holdout else None
+        initial = best
+        snapshot = [p.detach().clone() for p in params] if has_holdout and not fixed else None  # fixed: final weights
+        since_improved = 0
+        epochs = steps = 0
+        train_loss = float("nan")
+        bar = tqdm(range(max_epochs), disable=not progress, desc="model", leave=False)
+        for _ in bar:
+            # Per-member shuffle of the member's bootstrap resample (one argsort for all members).
+            rows = model.ensemble_size if self.bootstrap else 1
+            order = torch.argsort(torch.rand(rows, n_tr, generator=generator, device=generator.device), dim=1)
+            epoch_idx = torch.gather(boot, 1, order.to(ref.device).expand(model.ensemble_size, n_tr))
+            train_loss, steps = self._epoch(epoch_idx, train, bf16, fixed, steps)
+            epochs += 1
+            self._check_finite(train_loss, epochs)
+
+            if not has_holdout or fixed:
+                bar.set_postfix(loss=f"{train_loss:.4g}")
+                continue
+            score = self.evaluate(*holdout)
+            improved = (best - score) / best.abs().clamp_min(1e-12) > self.improvement_threshold  # (E,)
+            best = torch.where(improved, score, best)
+            mask = improved.to(ref.device).view(-1, 1, 1)
+            for snap, p in zip(snapshot, params):
+                snap.copy_(torch.where(mask, p.detach(), snap))
+            since_improved = 0 if bool(improved.any()) else since_improved + 1
+            bar.set_postfix(loss=f"{train_loss:.4g}", val=f"{float(best.mean()):.4g}")
+            if since_improved >= self.patience:
+                break
+        bar.close()
+        return self._finish(train, holdout, fixed, snapshot, best, initial, train_loss, epochs)
+
+    def _split(
+        self,
+        obs: Tensor,
+        act: Tensor,
+        next_obs: Tensor,
+        generator: torch.Generator,
+        validation: tuple[Tensor, Tensor, Tensor] | None,
+    ) -> tuple[tuple[Tensor, Tensor, Tensor, Tensor], tuple[Tensor, Tensor, Tensor]]:
+        """Refit the normalisers and the error scale on all the data, then split it: ``((x, y, obs, next_obs)`` to
+        train on, ``(x, obs, next_obs)`` held out``)``: a random holdout, or ``validation`` when given."""
+        model = self.model
+        ref = model.member_parameters()[0]  # device and dtype of the model
         obs, act, next_obs = (t.to(device=ref.device, dtype=ref.dtype) for t in (obs, act, next_obs))
         x, y = model.inputs(obs, act), model.targets(obs, next_obs)
         model.fit_normalisers(x, y)
@@ -403,85 +365,69 @@ class ModelTrainer:
             x_tr, y_tr, o_tr, no_tr = x, y, obs, next_obs
             o_ho, a_ho, no_ho = (t.to(device=ref.device, dtype=ref.dtype) for t in validation)
             x_ho = model.inputs(o_ho, a_ho)
-        has_holdout = x_ho.shape[0] > 0
+        return (x_tr, y_tr, o_tr, no_tr), (x_ho, o_ho, no_ho)
+
+    def _epoch(
+        self, epoch_idx: Tensor, train: tuple[Tensor, Tensor, Tensor, Tensor], bf16: bool, fixed: bool, steps: int
+    ) -> tuple[float, int]:
+        """One pass over the (E, n) per-member indices ``epoch_idx`` into ``train`` in minibatches (with ``fixed``,
+        up to ``iterations`` steps in all): the mean training loss and the steps done so far."""
+        model = self.model
+        x_tr, y_tr, o_tr, no_tr = train
         n_tr = x_tr.shape[0]
-        if self.bootstrap:
-            boot = bootstrap_indices(n_tr, model.ensemble_size, generator).to(ref.device)  # (E, n_tr)
-        else:  # every member on the same data, in the same order
-            boot = torch.arange(n_tr, device=ref.device).expand(model.ensemble_size, n_tr)
-        fixed = self.iterations > 0
-        bf16 = self.precision == "bf16"
-        max_epochs = math.ceil(self.iterations / math.ceil(n_tr / self.batch_size)) if fixed else self.max_epochs
-
-        params = model.member_parameters()
-        best = self.evaluate(x_ho, o_ho, no_ho) if has_holdout else None
-        initial = best
-        snapshot = [p.detach().clone() for p in params] if has_holdout and not fixed else None  # fixed: final weights
-        since_improved = 0
-        epochs = steps = 0
-        train_loss = float("nan")
-        bar = tqdm(range(max_epochs), disable=not progress, desc="model", leave=False)
-        for _ in bar:
-            # Per-member shuffle of the member's bootstrap resample (one argsort for all members).
-            rows = model.ensemble_size if self.bootstrap else 1
-            order = torch.argsort(torch.rand(rows, n_tr, generator=generator, device=generator.device), dim=1)
-            epoch_idx = torch.gather(boot, 1, order.to(ref.device).expand(model.ensemble_size, n_tr))
-            loss_sum, seen = x_tr.new_zeros(()), 0
-            gathered: list[Tensor] = []
-            for start in range(0, n_tr, self.batch_size):
-                if fixed and steps == self.iterations:
-                    break
-                idx = epoch_idx[:, start : start + self.batch_size]  # (E, B)
-                step = self._compiled_step(bf16) if idx.shape[1] == self.batch_size else None
-                if step is not None:  # full batches: gathered GATHER_BATCHES at a time, one indexing op per tensor
-                    k = (start // self.batch_size) % GATHER_BATCHES
-                    if k == 0:
-                        gathered = batch_gather(epoch_idx, start, self.batch_size, (x_tr, y_tr, o_tr, no_tr))
-                    mean_loss = self._run_compiled(step, *(t[k] for t in gathered))
-                else:
-                    mean_loss = None
-                if mean_loss is None:  # the reference step
-                    member_loss = model.member_loss(x_tr[idx], y_tr[idx], o_tr[idx], no_tr[idx], bf16=bf16)  # (E,)
-                    loss = model.add_regularisers(member_loss.sum(), self.logvar_bound_coef)
-                    self.optimizer.zero_grad(set_to_none=True)
-                    loss.backward()
-                    if self.grad_clip is not None:
-                        torch.nn.utils.clip_grad_norm_(model.parameters(), self.grad_clip)
-                    self.optimizer.step()
-                    mean_loss = member_loss.detach().mean()
-                loss_sum = loss_sum + mean_loss * idx.shape[1]
-                seen += idx.shape[1]
-                steps += 1
-            epochs += 1
-            train_loss = float(loss_sum) / seen
-            self._check_finite(train_loss, epochs)
-
-            if not has_holdout or fixed:
-                bar.set_postfix(loss=f"{train_loss:.4g}")
-                continue
-            score = self.evaluate(x_ho, o_ho, no_ho)
-            improved = (best - score) / best.abs().clamp_min(1e-12) > self.improvement_threshold  # (E,)
-            best = torch.where(improved, score, best)
-            mask = improved.to(ref.device).view(-1, 1, 1)
-            for snap, p in zip(snapshot, params):
-                snap.copy_(torch.where(mask, p.detach(), snap))
-            since_improved = 0 if bool(improved.any()) else since_improved + 1
-            bar.set_postfix(loss=f"{train_loss:.4g}", val=f"{float(best.mean()):.4g}")
-            if since_improved >= self.patience:
+        loss_sum, seen = x_tr.new_zeros(()), 0
+        gathered: list[Tensor] = []
+        for start in range(0, n_tr, self.batch_size):
+            if fixed and steps == self.iterations:
                 break
-        bar.close()
+            idx = epoch_idx[:, start : start + self.batch_size]  # (E, B)
+            step = self._compiled_step(bf16) if idx.shape[1] == self.batch_size else None
+            if step is not None:  # full batches: gathered GATHER_BATCHES at a time, one indexing op per tensor
+                k = (start // self.batch_size) % GATHER_BATCHES
+                if k == 0:
+                    gathered = batch_gather(epoch_idx, start, self.batch_size, train)
+                mean_loss = self._run_compiled(step, *(t[k] for t in gathered))
+            else:
+                mean_loss = None
+            if mean_loss is None:  # the reference step
+                member_loss = model.member_loss(x_tr[idx], y_tr[idx], o_tr[idx], no_tr[idx], bf16=bf16)  # (E,)
+                loss = model.add_regularisers(member_loss.sum(), self.logvar_bound_coef)
+                self.optimizer.zero_grad(set_to_none=True)
+                loss.backward()
+                if self.grad_clip is not None:
+                    torch.nn.utils.clip_grad_norm_(model.parameters(), self.grad_clip)
+                self.optimizer.step()
+                mean_loss = member_loss.detach().mean()
+            loss_sum = loss_sum + mean_loss * idx.shape[1]
+            seen += idx.shape[1]
+            steps += 1
+        return float(loss_sum) / seen, steps
 
+    def _finish(
+        self,
+        train: tuple[Tensor, Tensor, Tensor, Tensor],
+        holdout: tuple[Tensor, Tensor, Tensor],
+        fixed: bool,
+        snapshot: list[Tensor] | None,
+        best: Tensor | None,
+        initial: Tensor | None,
+        train_loss: float,
+        epochs: int,
+    ) -> TrainResult:
+        """Keep the final weights (``fixed``) or restore the snapshot, set the elites, and report."""
+        has_holdout = holdout[0].shape[0] > 0
         if has_holdout and fixed:  # the final weights are the model
-            scores = self.evaluate(x_ho, o_ho, no_ho)
+            scores = self.evaluate(*holdout)
         elif has_holdout:
             with torch.no_grad():
-                for snap, p in zip(snapshot, params):
+                for snap, p in zip(snapshot, self.model.member_parameters()):
                     p.copy_(snap)
             scores = best
         else:  # no holdout: rank members on their training-split error
+            x_tr, _, o_tr, no_tr = train
             scores = self.evaluate(x_tr, o_tr, no_tr)
         elites = torch.sort(torch.argsort(scores, stable=True)[: self.num_elites]).values
-        model.set_elites(elites)
+        self.model.set_elites(elites)
         if not has_holdout:
             return TrainResult(train_loss=train_loss, val_loss=float("nan"), epochs=epochs)
         return TrainResult(

@@ -9,9 +9,11 @@ from __future__ import annotations
 import csv
 import io
 import os
+import pickle
 import re
 import socket
 import time
+import types
 from pathlib import Path
 from typing import Any
 
@@ -19,7 +21,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from pets.config import ConfigError
-from pets.fileio import atomic_write_bytes
+from pets.runs.fileio import atomic_write_bytes
 
 CONFIG_FILE = "config.yaml"
 METRICS_FILE = "metrics.csv"
@@ -82,6 +84,24 @@ def read_metrics(path: Path) -> list[dict[str, float]]:
         return [{k: float(v) for k, v in row.items()} for row in csv.DictReader(f)]
 
 
+#: Modules that moved after checkpoints were written, old path -> new: a checkpoint pickles its ``last_train``
+#: (a ``TrainResult``) by its module path, ``pets.trainer`` before the library moved into subpackages (issue 33).
+MOVED_MODULES = {"pets.trainer": "pets.learning.trainer"}
+
+
+class _Unpickler(pickle.Unpickler):
+    """pickle's Unpickler that finds the classes of :data:`MOVED_MODULES` at their new paths."""
+
+    def find_class(self, module: str, name: str) -> Any:
+        return super().find_class(MOVED_MODULES.get(module, module), name)
+
+
+#: ``pickle`` with :class:`_Unpickler`, for ``torch.load(pickle_module=...)``.
+_CHECKPOINT_PICKLE = types.ModuleType("checkpoint_pickle")
+vars(_CHECKPOINT_PICKLE).update({k: v for k, v in vars(pickle).items() if not k.startswith("__")})
+_CHECKPOINT_PICKLE.Unpickler = _Unpickler
+
+
 def save_checkpoint(run_dir: Path, state: dict[str, Any]) -> None:
     buf = io.BytesIO()
     torch.save(state, buf)
@@ -94,7 +114,7 @@ def load_checkpoint(run_dir: Path) -> dict[str, Any] | None:
     if not path.exists():
         return None
     try:
-        state = torch.load(path, map_location="cpu", weights_only=False)
+        state = torch.load(path, map_location="cpu", weights_only=False, pickle_module=_CHECKPOINT_PICKLE)
     except Exception as err:  # truncated (full disk), empty or foreign file: pickle, zip and torch errors alike
         reason = _first_sentence(str(err))
         raise ConfigError(

@@ -22,7 +22,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from pets.planners import PLANNER_CLASSES
+from pets.planning.planners import PLANNER_CLASSES
 
 
 @dataclass
@@ -44,7 +44,7 @@ def check_feedback(p: Any) -> None:
     for key in ("gain_bound", "gain_std"):
         if not math.isfinite(f[key]) or f[key] <= 0:
             raise ValueError(f"planner.feedback.{key} must be a finite number > 0, got {f[key]}")
-    can = [  # the planners that search gains (pets.planners.BoxPlanner.gain_options)
+    can = [  # the planners that search gains (pets.planning.planners.BoxPlanner.gain_options)
         name for name, cls in PLANNER_CLASSES.items() if cls.gain_options(f.gain_bound, f.gain_std) is not None
     ]
     if p.name not in can:

@@ -11,7 +11,7 @@ a finite value. An iteration in which *no* candidate has a finite value has noth
 ``plan`` call raises :class:`PlanningFailed` (after its iterations; the check costs one host
 synchronisation per call) instead of returning what would be a random action. The trajectory
 evaluator returns all-NaN exactly when every particle of every candidate went non-finite, i.e. the
-model itself is broken (``pets.propagation``).
+model itself is broken (``pets.planning.propagation``).
 
 CEM (``CEMPlanner``, below).
 
@@ -45,10 +45,10 @@ weighted by a softmax of the normalised returns.
 
 from __future__ import annotations
 
-from pets.planners.base import BoxPlanner, Objective, Planner, PlanningFailed, shift_plan, truncated_normal
-from pets.planners.cem import CEMPlanner
-from pets.planners.icem import ICEMConfig, ICEMPlanner, colored_noise
-from pets.planners.mppi import MPPIConfig, MPPIPlanner, smoothing_matrix
+from pets.planning.planners.base import BoxPlanner, Objective, Planner, PlanningFailed, shift_plan, truncated_normal
+from pets.planning.planners.cem import CEMPlanner
+from pets.planning.planners.icem import ICEMConfig, ICEMPlanner, colored_noise
+from pets.planning.planners.mppi import MPPIConfig, MPPIPlanner, smoothing_matrix
 
 __all__ = [
     "PLANNER_CLASSES",

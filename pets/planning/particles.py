@@ -1,4 +1,4 @@
-"""The two choices of a trajectory evaluator as small strategy objects (``pets.propagation``).
+"""The two choices of a trajectory evaluator as small strategy objects (``pets.planning.propagation``).
 
 A propagation mode (``planner.propagation``, :data:`PROPAGATION_TABLE`) is a :class:`RowLayout` (how the rows of the
 particles are arranged for the ensemble, which member each row uses, how the members' predictions are combined)
@@ -11,7 +11,7 @@ with a :class:`Noise` (whether the next target is sampled from the predicted Gau
 
 A candidate kind (``planner.candidates``, :data:`CANDIDATE_TABLE`) says what a candidate is: :class:`OpenLoop`, an
 action sequence (N, H, act_dim); :class:`FeedbackGains`, the gains (N, rows, act_dim) of a
-:class:`pets.feedback.LinearFeedback` rolled out for its horizon. Both choices are vectorised over all rows: a
+:class:`pets.planning.feedback.LinearFeedback` rolled out for its horizon. Both choices are vectorised over all rows: a
 strategy adds no Python loop and no host synchronisation.
 """
 
@@ -23,7 +23,7 @@ import torch
 from torch import Tensor
 
 from dynamics.model import DynamicsModel
-from pets.feedback import LinearFeedback
+from pets.planning.feedback import LinearFeedback
 
 
 @dataclass(frozen=True)

@@ -1,5 +1,5 @@
 """Stable-Baselines3 agents as data sources: SAC trained while every transition it experiences is recorded,
-and a saved SB3 agent (any algorithm) rolled as a :class:`pets.rollout.Policy`.
+and a saved SB3 agent (any algorithm) rolled as a :class:`pets.data.rollout.Policy`.
 
 Needs the ``sac`` extra (``pip install -e ".[sac]"``); every import of stable-baselines3 happens inside a
 function, so the rest of the package works without it. docs/data.md lists SAC's wall time per env.
@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Any
 import gymnasium
 import numpy as np
 
-from pets.rollout import Episode
+from pets.data.rollout import Episode
 
 if TYPE_CHECKING:
     from envs import EnvSpec
@@ -151,7 +151,7 @@ def load_agent(path: str | Path, device: str = "auto") -> Any:
 
 
 class SB3Policy:
-    """A saved SB3 agent as a :class:`pets.rollout.Policy`: the agent's stochastic policy (seeded per episode
+    """A saved SB3 agent as a :class:`pets.data.rollout.Policy`: the agent's stochastic policy (seeded per episode
     from the episode's generator) or, with ``deterministic``, its mean action."""
 
     def __init__(self, path: str | Path, spec: EnvSpec, *, deterministic: bool = False, device: str = "auto") -> None:

@@ -202,10 +202,10 @@ class BoxPlanner:
     it ranks), where the samples live, and the opening and close of :meth:`plan`.
 
     A planner declares, as class attributes, what the rest of the code asks of it (one table entry in
-    ``pets.planners.PLANNER_CLASSES`` then makes it ``planner.name``): ``name``; ``Options``, the dataclass of its
-    own keyword arguments (defaults, and ``checked()``, its range checks; they become attributes of the planner);
+    ``pets.planning.planners.PLANNER_CLASSES`` then makes it ``planner.name``): ``name``; ``Options``, the dataclass of
+    its own keyword arguments (defaults, and ``checked()``, its range checks; they become attributes of the planner);
     ``section``, the dataclass of its config section ``planner.<name>.*`` (its fields are keyword arguments; None:
-    no section); ``uses_elites``; ``faster``, a faster setting the cost estimate may name (``pets.cost``); and
+    no section); ``uses_elites``; ``faster``, a faster setting the cost estimate may name (``pets.planning.cost``); and
     :meth:`gain_options`, how it searches the gains of feedback candidates. It implements :meth:`search`.
     """
 
@@ -214,7 +214,7 @@ class BoxPlanner:
     section: ClassVar[type | None] = None
     #: Whether the constructor takes ``elites`` (the config's ``planner.elites``).
     uses_elites: ClassVar[bool] = False
-    #: A setting that plans faster, with how much, for the cost estimate's line (``pets.cost``); None: none.
+    #: A setting that plans faster, with how much, for the cost estimate's line (``pets.planning.cost``); None: none.
     faster: ClassVar[str | None] = None
     #: Why the planner cannot search feedback gains (where :meth:`gain_options` is None).
     gains_note: ClassVar[str] = "it plans action sequences only"
@@ -268,7 +268,7 @@ class BoxPlanner:
     @classmethod
     def gain_options(cls, gain_bound: float, gain_std: float) -> dict[str, float] | None:
         """The arguments that make it sample feedback gains in a box of +-``gain_bound`` with std ``gain_std``
-        (``planner.candidates=feedback``, ``pets.feedback``); None: it cannot (:attr:`gains_note` says why)."""
+        (``planner.candidates=feedback``, ``pets.planning.feedback``); None: it cannot (:attr:`gains_note` says why)."""
         return None
 
     def reset(self) -> None:

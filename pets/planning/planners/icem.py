@@ -9,7 +9,7 @@ from dataclasses import dataclass, replace
 import torch
 from torch import Tensor
 
-from pets.planners.base import BoxPlanner, Objective, check_real
+from pets.planning.planners.base import BoxPlanner, Objective, check_real
 
 
 def colored_noise(

@@ -1,7 +1,7 @@
 """Offline training protocols (``--protocol`` of ``pets.train`` and ``pets.compare offline``).
 
 - ``pets``: PETS-style training of the config's model: per-member bootstrap resamples, a random holdout from the
-  training data, early stopping on it (``pets.trainer``); every transition of the data file is used.
+  training data, early stopping on it (``pets.learning.trainer``); every transition of the data file is used.
 - ``paper``: the GEM paper's (Appendix "Hyperparameters", "Ensemble Details"): 100k training and 10k validation
   samples (a random split of the data file's transitions, the same for every model and seed), Adam with lr 5e-4,
   batch 10, 10,000 iterations, no early stopping; the hidden layers searched over [100], [100, 100],

@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from pets.fileio import atomic_write_bytes
+from pets.runs.fileio import atomic_write_bytes
 
 REQUIRED_KEYS = ("obs", "act", "rew", "terminated", "lengths", "env")
 

@@ -8,7 +8,7 @@ from dataclasses import dataclass, replace
 import torch
 from torch import Tensor
 
-from pets.planners.base import BoxPlanner, Objective, check_positive_ints, check_real
+from pets.planning.planners.base import BoxPlanner, Objective, check_positive_ints, check_real
 
 
 def smoothing_matrix(

@@ -1,0 +1,152 @@
+"""The ``pets.collect`` command: trajectories from a catalogue env into an ``.npz`` data set.
+
+    python -m pets.collect --env ENV --policy random|smooth-random[:BETA]|run:RUN_DIR|sb3:AGENT.zip
+                           [--episodes N] [--seed S] [--max-steps T] [--device D] [--deterministic] [--quiet]
+                           --out FILE.npz
+    python -m pets.collect --env ENV --policy sac:STEPS [--seed S] [--max-steps T] [--save-agent SAC.zip]
+                           --out FILE.npz
+
+What it does, and what it writes: :mod:`pets.data.collect`.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from pets.data.collect import collect, collect_sac, make_policy, parse_policy, run_env_name
+from pets.data.datasets import save_dataset
+from pets.runs.fileio import atomic_write_bytes, writable_dir_error
+from pets.tools.cli import OneLineParser, fail, interruptible
+
+PROG = "pets.collect"
+
+
+def build_parser() -> OneLineParser:
+    p = OneLineParser(prog=PROG, description="Collect trajectories from a catalogue env into an .npz data set.")
+    p.add_argument("--env", help="environment (catalogue name or gymnasium id); optional with --policy run:DIR")
+    p.add_argument(
+        "--policy",
+        required=True,
+        help="random | smooth-random[:BETA] (BETA in [0,1), default 0.9) | run:RUN_DIR | sb3:AGENT.zip | "
+        "sac:STEPS (train SAC for STEPS env steps and write every transition it experienced)",
+    )
+    p.add_argument("--episodes", type=int, help="number of episodes (default 10; not with sac:STEPS)")
+    p.add_argument("--seed", type=int, default=0, help="seed of resets and policy (default 0)")
+    p.add_argument("--max-steps", type=int, help="steps per episode at most (default: the env's episode length)")
+    p.add_argument("--device", choices=("cpu", "cuda", "auto"), default="auto", help="device of a run/sb3/sac policy")
+    p.add_argument("--deterministic", action="store_true", help="sb3: policies take their mean action")
+    p.add_argument("--save-agent", type=Path, help="sac:STEPS only: save the trained agent here (SB3 .zip)")
+    p.add_argument("--threads", type=int, default=0, help="torch CPU threads (default 0: torch's default)")
+    p.add_argument("--out", type=Path, required=True, help="output .npz file (written atomically)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    return p
+
+
+@interruptible(PROG, "nothing was written (the data set is written only when the collection is complete)")
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        kind, arg = parse_policy(args.policy)
+    except ValueError as err:
+        fail(PROG, str(err))
+    if kind == "sac" and args.episodes is not None:
+        fail(PROG, "--episodes does not apply to sac:STEPS (it collects every step SAC trains on); drop it")
+    if kind != "sac" and args.save_agent is not None:
+        fail(PROG, "--save-agent applies only to --policy sac:STEPS")
+    if args.deterministic and kind != "sb3":
+        fail(PROG, "--deterministic applies only to --policy sb3:AGENT.zip")
+    episodes = 10 if args.episodes is None else args.episodes
+    if episodes < 1:
+        fail(PROG, f"--episodes must be >= 1, got {episodes}")
+    if args.max_steps is not None and args.max_steps < 1:
+        fail(PROG, f"--max-steps must be >= 1, got {args.max_steps}")
+    if args.seed < 0:
+        fail(PROG, f"--seed must be >= 0, got {args.seed}")
+    if args.threads < 0:
+        fail(PROG, f"--threads must be >= 0 (0: torch's default), got {args.threads}")
+    if kind == "run" and not arg.is_dir():
+        fail(PROG, f"run directory {arg} does not exist")
+    if kind == "sb3" and not arg.is_file():
+        fail(PROG, f"SB3 agent {arg} does not exist")
+    if kind != "run" and not args.env:
+        fail(PROG, "--env is required (except with --policy run:RUN_DIR, which uses the run's env)")
+    for option, path in (("--out", args.out), ("--save-agent", args.save_agent)):
+        if path is None:
+            continue
+        if path.is_dir():
+            fail(PROG, f"{option} {path} is a directory; give a file name")
+        problem = writable_dir_error(path.parent)  # before collecting, not after
+        if problem:
+            fail(PROG, f"cannot write {option} {path}: {problem}")
+    if kind in ("sac", "sb3"):
+        from pets.data.sb3 import INSTALL_HINT, require_sb3
+
+        try:
+            require_sb3()
+        except ImportError:
+            fail(PROG, INSTALL_HINT)
+
+    from omegaconf.errors import OmegaConfBaseException
+
+    import envs
+    from pets.config import ConfigError
+
+    if args.threads:
+        import torch
+
+        torch.set_num_threads(args.threads)
+    try:
+        name = args.env if args.env else run_env_name(arg)
+        spec = envs.get(name)
+        policy = None if kind == "sac" else make_policy(args.policy, spec, args.seed, args.device, args.deterministic)
+    except (ValueError, ConfigError, OmegaConfBaseException) as err:  # the last: a config.yaml off the schema
+        fail(PROG, str(err))
+    if kind == "sac":
+        start = time.perf_counter()
+        data, agent = collect_sac(spec, arg, args.seed, args.max_steps, device=args.device, progress=not args.quiet)
+        seconds = time.perf_counter() - start
+        if args.save_agent is not None:
+            from pets.data.sb3 import agent_bytes
+            from pets.tools.cli import write_failed
+
+            try:
+                atomic_write_bytes(args.save_agent, agent_bytes(agent))
+            except OSError as err:
+                write_failed(PROG, err, "no data set was written either; free space, then collect again")
+    else:
+        from pets.planning.planners import PlanningFailed
+        from pets.tools.cli import EXIT_FAILED
+
+        try:
+            data = collect(spec, policy, episodes, args.seed, args.max_steps, progress=not args.quiet)
+        except PlanningFailed as err:  # a run: policy whose model predicts non-finite states
+            fail(PROG, f"{policy.name}: {err}; nothing was written", EXIT_FAILED)
+    from pets.tools.cli import write_failed
+
+    try:
+        save_dataset(args.out, data)
+    except OSError as err:  # a full disk: the temporary file is removed, an older --out file stays as it was
+        write_failed(PROG, err, "nothing was written; free space or pick another --out, then collect again")
+    lengths = data["lengths"]
+    rewards = np.nansum(data["rew"], axis=1)
+    print(
+        f"{args.out}: {spec.name}, {len(lengths)} episodes, {int(lengths.sum())} transitions "
+        f"(lengths {int(lengths.min())}..{int(lengths.max())}), policy {data['policy']}, "
+        f"mean episode reward {float(rewards.mean()):.3f}"
+    )
+    if kind == "sac":
+        last = rewards[-min(10, len(rewards)) :]
+        print(
+            f"SAC: {arg} steps in {seconds:.1f} s ({arg / seconds:.0f} steps/s); mean reward of the last "
+            f"{len(last)} episodes {float(last.mean()):.3f}"
+            + (f"; agent saved to {args.save_agent}" if args.save_agent is not None else "")
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
