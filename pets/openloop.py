@@ -151,7 +151,7 @@ def _play(
     from tqdm.auto import tqdm
 
     from pets.collect import episode_seeds
-    from pets.experiments.statistics import bootstrap_band, summarise
+    from pets.experiments.bootstrap import bootstrap_band, summarise
     from pets.rollout import run_episode
 
     env = spec.make(max_episode_steps=steps)
