@@ -672,7 +672,7 @@ def learn(args: argparse.Namespace) -> int:
     import torch
 
     import envs
-    from pets.experiments.online_summary import THRESHOLDS, time_to_threshold
+    from pets.experiments.online_runs import THRESHOLDS, time_to_threshold
 
     torch.set_num_threads(args.threads)
     spec = envs.get(args.env)

@@ -30,7 +30,8 @@ from typing import Any
 
 from pets.experiments.arguments import PROG, UsageError, few_seeds_warning
 from pets.experiments.backend import Backend
-from pets.experiments.online_summary import THRESHOLDS, online_rows, summarise_online
+from pets.experiments.online_runs import THRESHOLDS, online_rows
+from pets.experiments.online_summary import summarise_online
 from pets.experiments.rundirs import (
     NOT_COMPARED,
     check_out_writable,
