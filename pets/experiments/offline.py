@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import sys
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -53,6 +54,27 @@ from pets.experiments.runner import open_backend
 
 #: Seed of the start points of the prediction-error evaluation (the same for every model and seed).
 EVAL_SEED = 0
+
+
+@dataclass(frozen=True)
+class _Sweep:
+    """The runs of one offline comparison and the settings they share."""
+
+    out: Path
+    env_names: Sequence[str]
+    models: Sequence[str]
+    seeds: Sequence[int]
+    data_seeds: Sequence[int]
+    arms: Mapping[str, tuple[str, Mapping[str, str]]]
+    extra: Mapping[str, str]
+    preset: str
+    protocol: str
+    device: str
+
+    def arm(self, model: str) -> tuple[str, dict[str, str]]:
+        """``(head, overrides)`` of a model or ``--arm`` label: its own overrides over the shared ones."""
+        head, own = self.arms.get(model, (model, {}))
+        return head, {**self.extra, **own}
 
 
 def compare_offline(
@@ -96,50 +118,30 @@ def compare_offline(
     Returns ``{"data": {file: collected|reused}, "todo": {run: [what was missing]}, "done": {run: [what was
     done]}, "failed": {run: message}, "summary"}``; runs absent from "todo" were reused as they were.
     """
-    from pets.protocols import get_protocol
-
     backend = backend or Backend()
-    try:
-        proto = get_protocol(protocol)
-    except ValueError as err:
-        raise UsageError(str(err)) from None
-    steps = sac_steps(policy, protocol)
-    if steps is not None:
-        policy = f"sac:{steps}"
+    proto, policy, steps = _protocol_and_policy(protocol, policy)
     _check_counts(episodes, test_episodes, starts, openloop_steps, openloop_episodes, closedloop_steps, max_steps)
     expected_policy_name(policy)
     extra = _shared_overrides(overrides, backend.threads)
     out = Path(out).resolve()
     data_seeds = _checked_data_seeds(data_seeds)
-    configs = _expected_configs(
-        env_names, models, seeds, data_seeds, arms, extra, out, preset, device, protocol, proto, configs_only
-    )
+    sweep = _Sweep(out, env_names, models, seeds, data_seeds, arms or {}, extra, preset, protocol, device)
+    configs = _expected_configs(sweep, proto, configs_only)
     if configs_only:
         return {"configs": configs}
     check_out_writable(out)  # after every argument is checked: bad input leaves no directory behind
     requests = _requests(horizons, starts, openloop_steps, openloop_episodes, closedloop_steps)
-    jobs, pending = _jobs(
-        out, env_names, models, seeds, data_seeds, arms, extra, preset, protocol, device, requests,
-        list(planners) if openloop else [], list(planners) if closedloop else [],
-    )  # fmt: skip
+    jobs, pending = _jobs(sweep, requests, list(planners) if openloop else [], list(planners) if closedloop else [])
     total = len(env_names) * len(models) * len(seeds) * len(data_seeds)
     alone = backend.kind == "local" and backend.workers == 1  # a job's own progress bar only when it runs here
     with open_backend(backend, out, needed=bool(jobs)) as run:  # Ray: connected and checked before any work
         data_actions, data_jobs = _data_sets(
-            out / "data", env_names, data_seeds, policy, steps, episodes, test_episodes, proto, max_steps,
-            progress and alone, backend.threads,
-        )  # fmt: skip
+            sweep, policy, steps, episodes, test_episodes, proto, max_steps, progress and alone, backend.threads
+        )
         data_failed = _run_data_jobs(run, data_jobs, data_actions, progress)
         if data_failed:  # the runs of a data set that could not be made fail with the reason; the others go on
             jobs = [job for job in jobs if (job[2][0]["env"], job[2][0]["data_seed"]) not in data_failed]
-        print(
-            f"{PROG}: {total} runs: {total - len(jobs)} reused, {len(jobs)} with work to do "
-            f"({backend.describe()}); data: " + ", ".join(f"{k} {v}" for k, v in data_actions.items()),
-            file=sys.stderr,
-        )
-        warning = few_seeds_warning(len(seeds))
-        if warning:
-            print(warning, file=sys.stderr)
+        _say_what_runs(total, len(jobs), backend, data_actions, len(seeds))
         results = run(jobs, processes=True, progress=progress, desc="offline runs")
     for (env, d), message in data_failed.items():
         for model in models:
@@ -153,6 +155,34 @@ def compare_offline(
     if closedloop:
         summarise_openloop(out, env_names, models, seeds, planners, requests["closedloop"], kind=CLOSED)
     return {"data": data_actions, "todo": pending, "done": done, "failed": failed, "summary": summary}
+
+
+def _protocol_and_policy(protocol: str, policy: str) -> tuple[Any, str, int | None]:
+    """``(the protocol, the policy, SAC's steps)``: a ``sac`` policy with its step budget made explicit
+    (``sac:STEPS``), steps None for other policies; UsageError for an unknown protocol or a SAC policy without a
+    budget."""
+    from pets.protocols import get_protocol
+
+    try:
+        proto = get_protocol(protocol)
+    except ValueError as err:
+        raise UsageError(str(err)) from None
+    steps = sac_steps(policy, protocol)
+    if steps is not None:
+        policy = f"sac:{steps}"
+    return proto, policy, steps
+
+
+def _say_what_runs(total: int, n_jobs: int, backend: Backend, data_actions: Mapping[str, str], n_seeds: int) -> None:
+    """The status line on stderr (runs reused, runs with work to do, the data files) and the few-seeds warning."""
+    print(
+        f"{PROG}: {total} runs: {total - n_jobs} reused, {n_jobs} with work to do "
+        f"({backend.describe()}); data: " + ", ".join(f"{k} {v}" for k, v in data_actions.items()),
+        file=sys.stderr,
+    )
+    warning = few_seeds_warning(n_seeds)
+    if warning:
+        print(warning, file=sys.stderr)
 
 
 def _test_episodes(env: str, test_episodes: int | None, proto: Any, max_steps: int | None) -> int:
@@ -214,42 +244,35 @@ def _checked_data_seeds(data_seeds: Sequence[int]) -> list[int]:
     return data_seeds
 
 
-def _expected_configs(
-    env_names: Sequence[str],
-    models: Sequence[str],
-    seeds: Sequence[int],
-    data_seeds: Sequence[int],
-    arms: Mapping[str, tuple[str, Mapping[str, str]]] | None,
-    extra: Mapping[str, str],
-    out: Path,
-    preset: str,
-    device: str,
-    protocol: str,
-    proto: Any,
-    configs_only: bool,
-) -> dict[str, Any]:
+def _expected_configs(sweep: _Sweep, proto: Any, configs_only: bool) -> dict[str, Any]:
     """{run name: the config it must have} of every (env, model, seed, data seed); UsageError for a bad config or
     (unless ``configs_only``) an existing run directory made with another config."""
     from pets.config import ConfigError
     from pets.train import offline_config
 
     configs = {}
-    for env in env_names:
-        for model in models:
-            head, own = (arms or {}).get(model, (model, {}))
-            for seed in seeds:
+    for env in sweep.env_names:
+        for model in sweep.models:
+            head, overrides = sweep.arm(model)
+            for seed in sweep.seeds:
                 try:
                     expected = offline_config(
-                        env, head, {**extra, **own}, preset=preset, seed=seed, device=device, protocol=protocol
+                        env,
+                        head,
+                        overrides,
+                        preset=sweep.preset,
+                        seed=seed,
+                        device=sweep.device,
+                        protocol=sweep.protocol,
                     )
                 except ConfigError as err:
                     raise UsageError(str(err)) from None
-                for d in data_seeds:
+                for d in sweep.data_seeds:
                     configs[run_name(env, model, seed, data_seed=d)] = expected
-                    run_dir = out / "runs" / run_name(env, model, seed, data_seed=d)
+                    run_dir = sweep.out / "runs" / run_name(env, model, seed, data_seed=d)
                     if not configs_only and (run_dir / "config.yaml").is_file():  # the searched architecture is the
                         searched = ("model.hidden_size", "model.num_layers") if proto.architectures(env) else ()
-                        ignore = (*NOT_COMPARED, *searched, *left_to_auto({**extra, **own}))  # run's own choice
+                        ignore = (*NOT_COMPARED, *searched, *left_to_auto(overrides))  # run's own choice
                         check_same_config(run_dir, expected, ignore=ignore)
     return configs
 
@@ -274,29 +297,14 @@ def _requests(
 
 
 def _jobs(
-    out: Path,
-    env_names: Sequence[str],
-    models: Sequence[str],
-    seeds: Sequence[int],
-    data_seeds: Sequence[int],
-    arms: Mapping[str, tuple[str, Mapping[str, str]]] | None,
-    extra: Mapping[str, str],
-    preset: str,
-    protocol: str,
-    device: str,
-    requests: Mapping[str, Mapping[str, Any]],
-    planners: list[str],
-    closed_planners: list[str],
+    sweep: _Sweep, requests: Mapping[str, Mapping[str, Any]], planners: list[str], closed_planners: list[str]
 ) -> tuple[list, dict[str, list[str]]]:
     """``(jobs, {run: what it lacks})`` of the runs with work to do (:func:`offline_todo`), data set by data set."""
     jobs, pending = [], {}
-    for env in env_names:
-        for model in models:
-            for seed, d in ((seed, d) for d in data_seeds for seed in seeds):
-                job = _run_job(
-                    out, env, model, seed, d, arms, extra, preset, protocol, device, requests, planners,
-                    closed_planners,
-                )  # fmt: skip
+    for env in sweep.env_names:
+        for model in sweep.models:
+            for seed, d in ((seed, d) for d in sweep.data_seeds for seed in sweep.seeds):
+                job = _run_job(sweep, env, model, seed, d, requests, planners, closed_planners)
                 todo = offline_todo(job)
                 if todo:
                     name = run_name(env, model, seed, data_seed=d)
@@ -306,35 +314,30 @@ def _jobs(
 
 
 def _run_job(
-    out: Path,
+    sweep: _Sweep,
     env: str,
     model: str,
     seed: int,
     d: int,
-    arms: Mapping[str, tuple[str, Mapping[str, str]]] | None,
-    extra: Mapping[str, str],
-    preset: str,
-    protocol: str,
-    device: str,
     requests: Mapping[str, Mapping[str, Any]],
     planners: list[str],
     closed_planners: list[str],
 ) -> dict[str, Any]:
     """The :func:`offline_job` of one (env, model, seed, data seed)."""
-    head, own = (arms or {}).get(model, (model, {}))
-    train_path, test_path = data_paths(out / "data", env, d)
+    head, overrides = sweep.arm(model)
+    train_path, test_path = data_paths(sweep.out / "data", env, d)
     return {
         "env": env,
         "model": head,
         "seed": seed,
         "data_seed": d,
-        "run_dir": str(out / "runs" / run_name(env, model, seed, data_seed=d)),
+        "run_dir": str(sweep.out / "runs" / run_name(env, model, seed, data_seed=d)),
         "train_data": str(train_path),
         "test_data": str(test_path),
-        "overrides": {**extra, **own},
-        "preset": preset,
-        "protocol": protocol,
-        "device": device,
+        "overrides": overrides,
+        "preset": sweep.preset,
+        "protocol": sweep.protocol,
+        "device": sweep.device,
         "eval_request": {**requests["eval"], "data": f"data/{test_path.name}"},
         "planners": planners,
         "openloop_request": requests["openloop"],
@@ -344,9 +347,7 @@ def _run_job(
 
 
 def _data_sets(
-    data_dir: Path,
-    env_names: Sequence[str],
-    data_seeds: Sequence[int],
+    sweep: _Sweep,
     policy: str,
     steps: int | None,
     episodes: int,
@@ -359,9 +360,9 @@ def _data_sets(
     """``({file: "reused"}, jobs)``: every existing data file checked here, a backend job per data set that lacks
     a file (:func:`collect_data`, named "ENV data D"). UsageError for a file made with other settings."""
     actions, jobs = {}, []
-    for env, d in ((env, d) for env in env_names for d in data_seeds):
+    for env, d in ((env, d) for env in sweep.env_names for d in sweep.data_seeds):
         missing = []
-        train_path, test_path = data_paths(data_dir, env, d)
+        train_path, test_path = data_paths(sweep.out / "data", env, d)
         (train_seed, test_seed), n_test = collect_seeds(d), _test_episodes(env, test_episodes, proto, max_steps)
         parts = (("train", train_path, train_seed, episodes), ("test", test_path, test_seed, n_test))
         for part, path, seed, n in parts:
