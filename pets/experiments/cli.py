@@ -210,10 +210,21 @@ def _run_mode(args: argparse.Namespace) -> tuple[dict[str, Any], Path]:
     seeds = parse_seeds(args.seeds)
     out = args.out or Path(".")  # not looked at with --print-config
     _check_device(args, overrides)
-    backend = make_backend(args)
+    shared = {
+        "env_names": env_names,
+        "models": models,
+        "seeds": seeds,
+        "out": out,
+        "backend": make_backend(args),
+        "preset": args.preset,
+        "overrides": overrides,
+        "progress": not args.quiet,
+        "arms": arms,
+        "configs_only": args.print_config,
+    }
     if args.mode == "online":
-        return _run_online(args, env_names, models, seeds, out, backend, overrides, arms), out / "summary.md"
-    return _run_offline(args, env_names, models, seeds, out, backend, overrides, arms), out / "prediction.md"
+        return _run_online(args, shared), out / "summary.md"
+    return _run_offline(args, shared), out / "prediction.md"
 
 
 def _parse_arms(texts: Sequence[str]) -> dict[str, tuple[str, dict[str, str]]]:
@@ -240,49 +251,21 @@ def _check_device(args: argparse.Namespace, overrides: Sequence[str]) -> None:
             raise UsageError("--device cuda was asked for but torch sees no CUDA device here; use --device cpu")
 
 
-def _run_online(
-    args: argparse.Namespace,
-    env_names: list[str],
-    models: list[str],
-    seeds: list[int],
-    out: Path,
-    backend: Backend,
-    overrides: list[str],
-    arms: Mapping[str, tuple[str, Mapping[str, str]]],
-) -> dict[str, Any]:
-    """``compare online`` with the checked arguments."""
+def _run_online(args: argparse.Namespace, shared: dict[str, Any]) -> dict[str, Any]:
+    """``compare online`` with the checked arguments (``shared``: those of both modes, as keywords)."""
     if args.device is not None:
-        overrides.append(f"device={args.device}")
-    planners = None if args.planners is None else parse_planners(args.planners)
+        shared["overrides"].append(f"device={args.device}")
     return compare_online(
-        env_names,
-        models,
-        seeds,
-        args.trials,
-        out,
-        backend=backend,
-        preset=args.preset,
-        overrides=overrides,
+        **shared,
+        trials=args.trials,
         final_window=args.final_window,
-        progress=not args.quiet,
-        planners=planners,
-        arms=arms,
+        planners=None if args.planners is None else parse_planners(args.planners),
         until_threshold=args.until_threshold,
-        configs_only=args.print_config,
     )
 
 
-def _run_offline(
-    args: argparse.Namespace,
-    env_names: list[str],
-    models: list[str],
-    seeds: list[int],
-    out: Path,
-    backend: Backend,
-    overrides: list[str],
-    arms: Mapping[str, tuple[str, Mapping[str, str]]],
-) -> dict[str, Any]:
-    """``compare offline`` with the checked arguments."""
+def _run_offline(args: argparse.Namespace, shared: dict[str, Any]) -> dict[str, Any]:
+    """``compare offline`` with the checked arguments (``shared``: those of both modes, as keywords)."""
     from pets.evaluate import parse_horizons
 
     try:
@@ -291,10 +274,7 @@ def _run_offline(
         raise UsageError(str(err)) from None
     planners = parse_planners(args.planners)
     return compare_offline(
-        env_names,
-        models,
-        seeds,
-        out,
+        **shared,
         episodes=args.episodes,
         test_episodes=args.test_episodes,
         max_steps=args.max_steps,
@@ -307,13 +287,7 @@ def _run_offline(
         openloop_episodes=args.openloop_episodes,
         closedloop=args.closedloop,
         closedloop_steps=args.closedloop_steps,
-        backend=backend,
-        preset=args.preset,
         device=args.device or "auto",
-        overrides=overrides,
         protocol=args.protocol,
-        progress=not args.quiet,
-        arms=arms,
-        configs_only=args.print_config,
         data_seeds=parse_seeds(args.data_seeds, "--data-seeds"),
     )
