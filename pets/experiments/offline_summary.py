@@ -150,8 +150,7 @@ def summarise_offline(
         included += [
             out / "runs" / run_name(env, m, e["seed"], data_seed=e["data_seed"]) for m in env_models for e in evals[m]
         ]
-        common = sorted(set.intersection(*[set(map(int, e["horizons"])) for e in runs]))
-        metrics = order_metrics(sorted(set.intersection(*[set(v) for e in runs for v in e["horizons"].values()])))
+        common, metrics = _shared_horizons_and_metrics(runs)
         if not common or not metrics:
             text += [f"## {env}", "", "No horizon or error metric that every run has: no statistics.", ""]
             continue
@@ -182,6 +181,13 @@ def summarise_offline(
     text += runs_sections(diverged_runs, _missing_runs(out, env_names, models, seeds, data_seeds, request), failed)
     atomic_write_bytes(out / "prediction.md", "\n".join(text).encode())
     return summary
+
+
+def _shared_horizons_and_metrics(runs: Sequence[Mapping[str, Any]]) -> tuple[list[int], list[str]]:
+    """The horizons and the error metrics (:func:`order_metrics`) that every run of an env has."""
+    common = sorted(set.intersection(*[set(map(int, e["horizons"])) for e in runs]))
+    metrics = order_metrics(sorted(set.intersection(*[set(v) for e in runs for v in e["horizons"].values()])))
+    return common, metrics
 
 
 def _mark_divergences(
