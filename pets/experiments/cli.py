@@ -33,8 +33,9 @@ overrides, preset, ...; the trial count aside) is an error (exit 2): results of 
 are never mixed. Bad lists, envs, models or keys exit 2 with one line; a failed run is reported,
 the others go on, the summary covers the finished runs, and the exit status is 1.
 
-The modes: :mod:`pets.experiments.online` and :mod:`pets.experiments.offline`; the files they write:
-:mod:`pets.experiments.online_summary` and :mod:`pets.experiments.offline_summary`.
+The options: :mod:`pets.experiments.options`. The modes: :mod:`pets.experiments.online` and
+:mod:`pets.experiments.offline`; the files they write: :mod:`pets.experiments.online_summary` and
+:mod:`pets.experiments.offline_summary`.
 """
 
 from __future__ import annotations
