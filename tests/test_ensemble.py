@@ -1,4 +1,4 @@
-"""Tests of the batched Gaussian ensemble (pets/ensemble.py)."""
+"""Tests of the batched Gaussian ensemble (dynamics/networks.py)."""
 
 from __future__ import annotations
 

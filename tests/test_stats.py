@@ -1,5 +1,6 @@
 """pets.experiments.statistics: the A/B statistics against rliable's own functions on fixed inputs and hand-computed
-cases; the mean bootstrap against exact small cases, scipy's bootstrap and trim_mean, and a normal-theory CI."""
+cases; pets.experiments.bootstrap: the mean bootstrap against exact small cases, scipy's bootstrap and trim_mean,
+and a normal-theory CI."""
 
 import math
 
@@ -8,15 +9,13 @@ import pytest
 import scipy.stats
 from rliable import library, metrics
 
+from pets.experiments.bootstrap import bootstrap_band, bootstrap_ci, iqm, summarise
 from pets.experiments.statistics import (
     DIVERGED_STANDARDIZED_ERROR,
     SIGN_FLIP_DRAWS,
-    bootstrap_band,
-    bootstrap_ci,
     divergence,
     divergences,
     holm,
-    iqm,
     iqm_ci,
     iqm_ci_finite,
     iqm_columns,
@@ -25,7 +24,6 @@ from pets.experiments.statistics import (
     paired_differences,
     paired_ratios,
     sign_flip_p,
-    summarise,
 )
 
 INF, NAN = math.inf, math.nan

@@ -33,8 +33,9 @@ overrides, preset, ...; the trial count aside) is an error (exit 2): results of 
 are never mixed. Bad lists, envs, models or keys exit 2 with one line; a failed run is reported,
 the others go on, the summary covers the finished runs, and the exit status is 1.
 
-The modes: :mod:`pets.experiments.online` and :mod:`pets.experiments.offline`; the files they write:
-:mod:`pets.experiments.online_summary` and :mod:`pets.experiments.offline_summary`.
+The options: :mod:`pets.experiments.options`. The modes: :mod:`pets.experiments.online` and
+:mod:`pets.experiments.offline`; the files they write: :mod:`pets.experiments.online_summary` and
+:mod:`pets.experiments.offline_summary`.
 """
 
 from __future__ import annotations
@@ -54,154 +55,11 @@ from pets.experiments.arguments import (
     parse_planners,
     parse_seeds,
 )
-from pets.experiments.backend import BACKENDS, Backend
+from pets.experiments.backend import Backend
 from pets.experiments.offline import compare_offline
 from pets.experiments.online import compare_online
-from pets.experiments.statistics import MIN_SEEDS
+from pets.experiments.options import build_parser
 from pets.tools.cli import EXIT_FAILED, EXIT_INTERRUPTED, OneLineParser, fail
-
-#: Seeds of a comparison unless ``--seeds`` says otherwise (the paper's 5).
-DEFAULT_SEEDS = ",".join(str(s) for s in range(MIN_SEEDS))
-
-
-def build_parser() -> OneLineParser:
-    """The ``compare`` parser: the modes ``online`` and ``offline`` with their options."""
-    p = OneLineParser(
-        prog=PROG,
-        description="A/B comparison of dynamics heads over envs and seeds, with statistics over seeds "
-        "(rliable: IQM, stratified-bootstrap CIs, probability of improvement) and plots (resumable).",
-    )
-    sub = p.add_subparsers(dest="mode", required=True, parser_class=OneLineParser)
-
-    def common(q: OneLineParser) -> None:
-        # --envs, --models, --out (and online's --trials) are required unless --config gives them (main checks)
-        q.add_argument("--envs", help="comma-separated envs (catalogue names, gymnasium ids or package.module:ATTR)")
-        q.add_argument("--models", help="comma-separated models (pets.config.HEADS)")
-        q.add_argument(
-            "--arm",
-            action="append",
-            default=[],
-            metavar="LABEL=MODEL[:key=value,...]",
-            help="one more compared arm: a model with its own overrides, under LABEL (repeatable), e.g. "
-            "delta-det-x1=delta-det:model.ensemble_size=1,model.num_elites=1",
-        )
-        q.add_argument(
-            "--seeds",
-            default=DEFAULT_SEEDS,
-            help=f"comma-separated seeds (default {DEFAULT_SEEDS}; fewer than {MIN_SEEDS} cannot carry a claim)",
-        )
-        q.add_argument("--out", type=Path, help="output directory (runs, data, summaries)")
-        q.add_argument(
-            "--backend",
-            choices=BACKENDS,
-            default="local",
-            help="local: a pool of --workers on this machine (default); ray: one Ray task per run (docs/cluster.md)",
-        )
-        q.add_argument("--workers", type=int, help="local backend: parallel runs (default 1)")
-        q.add_argument("--threads", type=int, default=1, help="CPU threads per run (Ray: CPUs per task; default 1)")
-        q.add_argument(
-            "--address",
-            help="ray backend: the cluster (auto, or ray://HOST:10001); default: a new Ray instance on this machine",
-        )
-        q.add_argument(
-            "--max-retries",
-            type=int,
-            default=3,
-            help="ray backend: retries of a run whose worker or node died (default 3; it resumes its checkpoint)",
-        )
-        q.add_argument("--preset", default="research", help="config preset: research (default) or fast")
-        q.add_argument("--device", choices=("cpu", "cuda", "auto"), default=None, help="device of every run")
-        q.add_argument("--quiet", action="store_true", help="no progress bar")
-        q.add_argument(
-            "--config",
-            type=Path,
-            metavar="FILE",
-            help="a YAML file of config keys for every run (any subset; --print-config writes one); its env, head "
-            "and trials stand for --envs, --models and --trials when those are not given; options and key=value "
-            "win over it",
-        )
-        q.add_argument(
-            "--print-config",
-            action="store_true",
-            help="print the settings every run shares, resolved, as YAML (valid as --config) and exit",
-        )
-        q.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides for every run")
-
-    on = sub.add_parser("online", prog=f"{PROG} online", help="online PETS runs (run_pets.py)")
-    common(on)
-    on.add_argument("--trials", type=int, help="trials per run (required unless --config gives trials)")
-    on.add_argument("--final-window", type=int, default=3, help="trials averaged for the final reward (default 3)")
-    on.add_argument(
-        "--until-threshold",
-        action="store_true",
-        help="stop each run at its first trial reaching the env's threshold (pets.experiments.online_summary."
-        "THRESHOLDS); --trials is then the most",
-    )
-    on.add_argument(
-        "--planners",
-        help="also compare these planners (comma-separated pets.config.PLANNERS); every model x planner pair is an arm",
-    )
-
-    off = sub.add_parser("offline", prog=f"{PROG} offline", help="offline training and prediction error")
-    common(off)
-    off.add_argument("--episodes", type=int, default=100, help="training episodes per env (default 100)")
-    off.add_argument(
-        "--test-episodes",
-        type=int,
-        help="test episodes per env (default 20; --protocol paper: 20k samples' worth, ceil(20000 / episode length))",
-    )
-    off.add_argument("--max-steps", type=int, help="steps per collected episode at most (default: env's length)")
-    off.add_argument(
-        "--data-seeds",
-        default="0",
-        help="data sets (comma-separated ints >= 0, default 0): each is collected anew (SAC too) with its own test "
-        "set, every model and seed runs on each, and the statistics pair by (data seed, seed), data sets as the "
-        "outer level of the bootstrap",
-    )
-    off.add_argument(
-        "--policy",
-        default="random",
-        help="data policy: random (default), smooth-random[:BETA], sac[:STEPS] (SAC's training transitions; "
-        "its agent rolls the test episodes; default STEPS: the protocol's train + validation samples), or "
-        "existing (use DIR/data/ENV-{train,test}.npz as they are)",
-    )
-    off.add_argument(
-        "--protocol",
-        choices=("pets", "paper"),
-        default="pets",
-        help="training protocol: pets (bootstrap ensemble, early stopping; default) or paper (the GEM paper's: "
-        "100k/10k split, Adam 5e-4, batch 10, 10k iterations, hidden-layer search; pets.data.protocols)",
-    )
-    off.add_argument("--horizons", default="1,5,10,25,50", help="prediction horizons (default 1,5,10,25,50)")
-    off.add_argument("--starts", type=int, default=1000, help="start points of the evaluation (default 1000)")
-    off.add_argument("--openloop", action="store_true", help="also plan open loop with every trained model")
-    off.add_argument("--planners", default="cem,mppi", help="open-loop planners (default cem,mppi)")
-    off.add_argument("--openloop-steps", type=int, default=50, help="open-loop plan length (default 50)")
-    off.add_argument("--openloop-episodes", type=int, default=5, help="open-loop episodes per run (default 5)")
-    off.add_argument(
-        "--closedloop",
-        action="store_true",
-        help="also drive MPC with every trained model, frozen (the run's planner per --planners, the open-loop "
-        "episodes' seeds; closedloop.csv, paired to delta)",
-    )
-    off.add_argument("--closedloop-steps", type=int, default=300, help="closed-loop steps per episode (default 300)")
-
-    head = sub.add_parser(
-        "headline",
-        prog=f"{PROG} headline",
-        help="the per-env answer (each model against delta) from summary.csv files of earlier comparisons",
-    )
-    head.add_argument("--offline", type=Path, nargs="*", default=[], help="offline summary.csv files")
-    head.add_argument("--online", type=Path, nargs="*", default=[], help="online summary.csv files")
-    head.add_argument(
-        "--relative", type=Path, nargs="*", default=[], help="offline relative_error.csv files (Fig. 2 across envs)"
-    )
-    head.add_argument("--horizon", type=int, default=50, help="offline horizon (default 50; else the longest below)")
-    head.add_argument("--model", default="gem", help="the model whose ratio to delta is plotted (default gem)")
-    head.add_argument("--caption", default="", help="a line under the figure, e.g. the machine the runs came from")
-    head.add_argument("--out", type=Path, required=True, help="output directory (headline.md, the CSVs)")
-    head.add_argument("--figures", type=Path, help="directory of the figures (default: --out)")
-    return p
 
 
 def make_backend(args: argparse.Namespace) -> Backend:
@@ -304,102 +162,11 @@ def headline_main(args: argparse.Namespace) -> int:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run ``compare`` with ``argv`` and print the report; 0, 1 (a run failed) or exit 2 (bad input)."""
-    parser = build_parser()
-    # key=value overrides anywhere on the line (as run_pets.py takes them), also after another option's value
-    args, extra = parser.parse_known_args(argv)
-    stray = [a for a in extra if a.startswith("-") or "=" not in a or not hasattr(args, "overrides")]
-    if stray:
-        parser.error(f"unrecognized arguments: {' '.join(stray)}")
-    if extra:
-        args.overrides = [*args.overrides, *extra]
+    args = _parse(build_parser(), argv)
     if args.mode == "headline":
         return headline_main(args)
-    from pets.config import PRESETS
-
     try:
-        if args.preset not in PRESETS:
-            raise UsageError(f"unknown preset {args.preset!r}; accepted: {', '.join(PRESETS)}")
-        overrides = overrides_from_line_and_file(args)
-        if args.out is None and not args.print_config:
-            raise UsageError("--out is required")
-        env_names = parse_envs(args.envs)
-        models = parse_models(args.models)
-        arms = {}
-        for text in args.arm:
-            label, head, own = parse_arm(text)
-            if label in arms:
-                raise UsageError(f"--arm {label} is given twice")
-            arms[label] = (head, own)
-        models += list(arms)
-        seeds = parse_seeds(args.seeds)
-        out = args.out or Path(".")  # not looked at with --print-config
-        if args.device is not None:
-            if any(o.startswith("device=") for o in overrides):
-                raise UsageError("give the device once: --device or device=, not both")
-        device = args.device or next((o.partition("=")[2] for o in overrides if o.startswith("device=")), None)
-        if device == "cuda" and args.backend == "local":
-            import torch
-
-            if not torch.cuda.is_available():
-                raise UsageError("--device cuda was asked for but torch sees no CUDA device here; use --device cpu")
-        backend = make_backend(args)
-        if args.mode == "online":
-            if args.device is not None:
-                overrides.append(f"device={args.device}")
-            planners = None if args.planners is None else parse_planners(args.planners)
-            result = compare_online(
-                env_names,
-                models,
-                seeds,
-                args.trials,
-                out,
-                backend=backend,
-                preset=args.preset,
-                overrides=overrides,
-                final_window=args.final_window,
-                progress=not args.quiet,
-                planners=planners,
-                arms=arms,
-                until_threshold=args.until_threshold,
-                configs_only=args.print_config,
-            )
-            report = out / "summary.md"
-        else:
-            from pets.learning.evaluation import parse_horizons
-
-            try:
-                horizons = parse_horizons(args.horizons)
-            except ValueError as err:
-                raise UsageError(str(err)) from None
-            planners = parse_planners(args.planners)
-            result = compare_offline(
-                env_names,
-                models,
-                seeds,
-                out,
-                episodes=args.episodes,
-                test_episodes=args.test_episodes,
-                max_steps=args.max_steps,
-                policy=args.policy,
-                horizons=horizons,
-                starts=args.starts,
-                openloop=args.openloop,
-                planners=planners,
-                openloop_steps=args.openloop_steps,
-                openloop_episodes=args.openloop_episodes,
-                closedloop=args.closedloop,
-                closedloop_steps=args.closedloop_steps,
-                backend=backend,
-                preset=args.preset,
-                device=args.device or "auto",
-                overrides=overrides,
-                protocol=args.protocol,
-                progress=not args.quiet,
-                arms=arms,
-                configs_only=args.print_config,
-                data_seeds=parse_seeds(args.data_seeds, "--data-seeds"),
-            )
-            report = out / "prediction.md"
+        result, report = _run_mode(args)
     except UsageError as err:
         fail(PROG, str(err))
     except KeyboardInterrupt:
@@ -413,3 +180,115 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"{PROG}: {len(result['failed'])} run(s) failed: {', '.join(sorted(result['failed']))}", file=sys.stderr)
         return EXIT_FAILED
     return 0
+
+
+def _parse(parser: OneLineParser, argv: Sequence[str] | None) -> argparse.Namespace:
+    """The parsed arguments, with ``key=value`` overrides anywhere on the line (as run_pets.py takes them), also after
+    another option's value; exit 2 for anything else the parser does not know."""
+    args, extra = parser.parse_known_args(argv)
+    stray = [a for a in extra if a.startswith("-") or "=" not in a or not hasattr(args, "overrides")]
+    if stray:
+        parser.error(f"unrecognized arguments: {' '.join(stray)}")
+    if extra:
+        args.overrides = [*args.overrides, *extra]
+    return args
+
+
+def _run_mode(args: argparse.Namespace) -> tuple[dict[str, Any], Path]:
+    """Check the arguments of a run mode and run it: ``(its result, the report it wrote)``; UsageError for bad
+    input."""
+    from pets.config import PRESETS
+
+    if args.preset not in PRESETS:
+        raise UsageError(f"unknown preset {args.preset!r}; accepted: {', '.join(PRESETS)}")
+    overrides = overrides_from_line_and_file(args)
+    if args.out is None and not args.print_config:
+        raise UsageError("--out is required")
+    env_names = parse_envs(args.envs)
+    models = parse_models(args.models)
+    arms = _parse_arms(args.arm)
+    models += list(arms)
+    seeds = parse_seeds(args.seeds)
+    out = args.out or Path(".")  # not looked at with --print-config
+    _check_device(args, overrides)
+    shared = {
+        "env_names": env_names,
+        "models": models,
+        "seeds": seeds,
+        "out": out,
+        "backend": make_backend(args),
+        "preset": args.preset,
+        "overrides": overrides,
+        "progress": not args.quiet,
+        "arms": arms,
+        "configs_only": args.print_config,
+    }
+    if args.mode == "online":
+        return _run_online(args, shared), out / "summary.md"
+    return _run_offline(args, shared), out / "prediction.md"
+
+
+def _parse_arms(texts: Sequence[str]) -> dict[str, tuple[str, dict[str, str]]]:
+    """``{label: (model, overrides)}`` of the ``--arm`` options; UsageError for a label given twice."""
+    arms = {}
+    for text in texts:
+        label, head, own = parse_arm(text)
+        if label in arms:
+            raise UsageError(f"--arm {label} is given twice")
+        arms[label] = (head, own)
+    return arms
+
+
+def _check_device(args: argparse.Namespace, overrides: Sequence[str]) -> None:
+    """UsageError for a device given twice, or CUDA asked for on a local backend where torch sees none."""
+    if args.device is not None:
+        if any(o.startswith("device=") for o in overrides):
+            raise UsageError("give the device once: --device or device=, not both")
+    device = args.device or next((o.partition("=")[2] for o in overrides if o.startswith("device=")), None)
+    if device == "cuda" and args.backend == "local":
+        import torch
+
+        if not torch.cuda.is_available():
+            raise UsageError("--device cuda was asked for but torch sees no CUDA device here; use --device cpu")
+
+
+def _run_online(args: argparse.Namespace, shared: dict[str, Any]) -> dict[str, Any]:
+    """``compare online`` with the checked arguments (``shared``: those of both modes, as keywords)."""
+    if args.device is not None:
+        shared["overrides"].append(f"device={args.device}")
+    return compare_online(
+        **shared,
+        trials=args.trials,
+        final_window=args.final_window,
+        planners=None if args.planners is None else parse_planners(args.planners),
+        until_threshold=args.until_threshold,
+    )
+
+
+def _run_offline(args: argparse.Namespace, shared: dict[str, Any]) -> dict[str, Any]:
+    """``compare offline`` with the checked arguments (``shared``: those of both modes, as keywords)."""
+    from pets.learning.evaluation import parse_horizons
+
+    try:
+        horizons = parse_horizons(args.horizons)
+    except ValueError as err:
+        raise UsageError(str(err)) from None
+    planners = parse_planners(args.planners)
+    return compare_offline(
+        **shared,
+        episodes=args.episodes,
+        test_episodes=args.test_episodes,
+        max_steps=args.max_steps,
+        policy=args.policy,
+        horizons=horizons,
+        starts=args.starts,
+        openloop=args.openloop,
+        planners=planners,
+        openloop_steps=args.openloop_steps,
+        openloop_episodes=args.openloop_episodes,
+        closedloop=args.closedloop,
+        closedloop_steps=args.closedloop_steps,
+        device=args.device or "auto",
+        protocol=args.protocol,
+        data_seeds=parse_seeds(args.data_seeds, "--data-seeds"),
+    )

@@ -30,7 +30,8 @@ from typing import Any
 
 from pets.experiments.arguments import PROG, UsageError, few_seeds_warning
 from pets.experiments.backend import Backend
-from pets.experiments.online_summary import THRESHOLDS, online_rows, summarise_online
+from pets.experiments.online_runs import THRESHOLDS, online_rows
+from pets.experiments.online_summary import summarise_online
 from pets.experiments.rundirs import (
     NOT_COMPARED,
     check_out_writable,
@@ -102,67 +103,16 @@ def compare_online(
     ``configs_only``: return ``{"configs": {run name: resolved config}}`` once the arguments are checked, without
     looking at ``out`` or running anything (``--print-config``).
     """
-    from pets.config import ConfigError, make_config, parse_overrides
-
     backend = backend or Backend()
     if trials < 1 or final_window < 1:
         raise UsageError(f"--trials and --final-window must be >= 1, got {trials}, {final_window}")
-    try:
-        extra = parse_overrides(list(overrides))
-    except ConfigError as err:
-        raise UsageError(str(err)) from None
-    extra.pop("threads", None)  # every run uses the backend's threads
-    for key in ("trials", "seed", "head", "env"):
-        if key in extra:
-            raise UsageError(
-                f"{key}= is set by the command itself (--{'models' if key == 'head' else key + 's'}); "
-                "do not pass it as an override"
-            )
-    if planners is not None and "planner.name" in extra:
-        raise UsageError("give the planner once: --planners or planner.name=, not both")
-    if "stop_reward" in extra:
-        raise UsageError(
-            "stop_reward= is set by --until-threshold (the env's threshold); do not pass it as an override"
-        )
-    unknown = [env for env in env_names if env not in THRESHOLDS] if until_threshold else []
-    if unknown:
-        raise UsageError(
-            f"--until-threshold: no threshold for {', '.join(unknown)}; thresholds exist for "
-            f"{', '.join(THRESHOLDS)} (pets.experiments.online_summary.THRESHOLDS)"
-        )
+    extra = _shared_overrides(overrides, planners)
+    _check_thresholds(env_names, until_threshold)
     out = Path(out).resolve()
-    jobs, actions, configs = [], {}, {}
-    for env in env_names:
-        stop = {"stop_reward": THRESHOLDS[env]} if until_threshold else {}
-        # Seed-major: every arm of the first seed, then of the next, so that a sweep cut short is still paired.
-        for seed, (model, planner) in itertools.product(seeds, online_arms(models, planners)):
-            head, own = (arms or {}).get(model, (model, {}))
-            arm_extra = {**extra, **own, **stop, **({} if planner is None else {"planner.name": planner})}
-            arm_list = [f"{k}={v}" for k, v in arm_extra.items()]
-            name = run_name(env, model, seed, planner)
-            run_dir = out / "runs" / name
-            try:
-                expected = make_config(
-                    env, head, preset, {**arm_extra, "seed": seed, "trials": trials, "threads": backend.threads}
-                )
-            except ConfigError as err:
-                raise UsageError(str(err)) from None
-            if configs_only:
-                configs[name] = expected
-                continue
-            action = online_plan(run_dir, trials, expected.stop_reward)
-            if action != "start":
-                check_same_config(run_dir, expected, ignore=(*NOT_COMPARED, *left_to_auto(arm_extra)))
-                if any(math.isnan(r["trial"]) for r in online_rows(run_dir)):
-                    raise UsageError(
-                        f"{run_dir} is an offline training run (pets.train), not an online run; "
-                        "use separate --out directories for online and offline comparisons"
-                    )
-            actions[name] = action
-            if action != "reuse":
-                args = start_arguments(run_dir, env, head, seed, trials, preset, arm_list, backend.threads)
-                log = str(out / "logs" / f"{name}.log")
-                jobs.append((name, online_job, (str(run_dir), args, trials, log, backend.threads)))
+    jobs, actions, configs = _plan_runs(
+        out, env_names, models, seeds, trials, planners, arms, extra, preset, backend.threads, until_threshold,
+        configs_only,
+    )  # fmt: skip
     if configs_only:
         return {"configs": configs}
     check_out_writable(out)  # after every argument is checked: bad input leaves no directory behind
@@ -182,3 +132,96 @@ def compare_online(
         out, env_names, models, seeds, trials, final_window, failed, planners, until_threshold=until_threshold
     )
     return {"actions": actions, "failed": failed, "summary": summary}
+
+
+def _shared_overrides(overrides: Sequence[str], planners: Sequence[str] | None) -> dict[str, str]:
+    """The ``key=value`` overrides of every run, without ``threads`` (the backend's); UsageError for a key the
+    command sets itself."""
+    from pets.config import ConfigError, parse_overrides
+
+    try:
+        extra = parse_overrides(list(overrides))
+    except ConfigError as err:
+        raise UsageError(str(err)) from None
+    extra.pop("threads", None)  # every run uses the backend's threads
+    for key in ("trials", "seed", "head", "env"):
+        if key in extra:
+            raise UsageError(
+                f"{key}= is set by the command itself (--{'models' if key == 'head' else key + 's'}); "
+                "do not pass it as an override"
+            )
+    if planners is not None and "planner.name" in extra:
+        raise UsageError("give the planner once: --planners or planner.name=, not both")
+    if "stop_reward" in extra:
+        raise UsageError(
+            "stop_reward= is set by --until-threshold (the env's threshold); do not pass it as an override"
+        )
+    return extra
+
+
+def _check_thresholds(env_names: Sequence[str], until_threshold: bool) -> None:
+    """UsageError if ``--until-threshold`` is asked for an env without a threshold."""
+    unknown = [env for env in env_names if env not in THRESHOLDS] if until_threshold else []
+    if unknown:
+        raise UsageError(
+            f"--until-threshold: no threshold for {', '.join(unknown)}; thresholds exist for "
+            f"{', '.join(THRESHOLDS)} (pets.experiments.online_summary.THRESHOLDS)"
+        )
+
+
+def _plan_runs(
+    out: Path,
+    env_names: Sequence[str],
+    models: Sequence[str],
+    seeds: Sequence[int],
+    trials: int,
+    planners: Sequence[str] | None,
+    arms: Mapping[str, tuple[str, Mapping[str, str]]] | None,
+    extra: Mapping[str, str],
+    preset: str,
+    threads: int,
+    until_threshold: bool,
+    configs_only: bool,
+) -> tuple[list, dict[str, str], dict[str, Any]]:
+    """``(jobs, {run: reuse|resume|start}, {run: config})`` of every (env, arm, seed), seed-major; with
+    ``configs_only`` only the configs. UsageError for a bad config or a run directory made with another one."""
+    from pets.config import ConfigError, make_config
+
+    jobs, actions, configs = [], {}, {}
+    for env in env_names:
+        stop = {"stop_reward": THRESHOLDS[env]} if until_threshold else {}
+        # Seed-major: every arm of the first seed, then of the next, so that a sweep cut short is still paired.
+        for seed, (model, planner) in itertools.product(seeds, online_arms(models, planners)):
+            head, own = (arms or {}).get(model, (model, {}))
+            arm_extra = {**extra, **own, **stop, **({} if planner is None else {"planner.name": planner})}
+            name = run_name(env, model, seed, planner)
+            run_dir = out / "runs" / name
+            try:
+                expected = make_config(
+                    env, head, preset, {**arm_extra, "seed": seed, "trials": trials, "threads": threads}
+                )
+            except ConfigError as err:
+                raise UsageError(str(err)) from None
+            if configs_only:
+                configs[name] = expected
+                continue
+            actions[name] = action = _checked_action(run_dir, trials, expected, arm_extra)
+            if action != "reuse":
+                arm_list = [f"{k}={v}" for k, v in arm_extra.items()]
+                args = start_arguments(run_dir, env, head, seed, trials, preset, arm_list, threads)
+                log = str(out / "logs" / f"{name}.log")
+                jobs.append((name, online_job, (str(run_dir), args, trials, log, threads)))
+    return jobs, actions, configs
+
+
+def _checked_action(run_dir: Path, trials: int, expected: Any, arm_extra: Mapping[str, str]) -> str:
+    """:func:`online_plan` of a run; UsageError if its directory holds another config or an offline run."""
+    action = online_plan(run_dir, trials, expected.stop_reward)
+    if action != "start":
+        check_same_config(run_dir, expected, ignore=(*NOT_COMPARED, *left_to_auto(arm_extra)))
+        if any(math.isnan(r["trial"]) for r in online_rows(run_dir)):
+            raise UsageError(
+                f"{run_dir} is an offline training run (pets.train), not an online run; "
+                "use separate --out directories for online and offline comparisons"
+            )
+    return action

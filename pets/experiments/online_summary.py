@@ -35,6 +35,7 @@ from typing import Any
 
 import numpy as np
 
+from pets.experiments.online_runs import COST_KEYS, THRESHOLD_KEYS, THRESHOLDS, online_rows, online_run_stats
 from pets.experiments.plots import arm_colors, model_colors, plot_online
 from pets.experiments.report import BOOT_SEED, fmt, fmt_interval, md_table, write_csv
 from pets.experiments.rundirs import arm_label, online_arms, precision_note, run_name
@@ -51,21 +52,6 @@ from pets.experiments.statistics import (
 )
 from pets.runs.fileio import atomic_write_bytes
 
-#: Reward thresholds of the time-to-threshold columns (``docs/performance.md``): InvertedPendulum's maximum
-#: (1000 = balanced for the whole 1000-step episode), Reacher -5 (near the target for most of the episode)
-#: and HalfCheetah 1000 at the fast preset (a steady forward gait; PETS' research config reaches ~10x that).
-THRESHOLDS: dict[str, float] = {
-    "invertedpendulum": 1000.0,
-    "inverteddoublependulum": 9000.0,  # issue 16's mark; a full 1000-step episode earns about 9,350
-    "reacher": -5.0,
-    "halfcheetah": 1000.0,
-    # The Ant study's mark (docs/results.md, fixed before its runs): 500 in a 300-step episode, about 1 m/s of
-    # forward speed on top of the healthy reward; the true-dynamics planner reaches ~2,300 there.
-    "ant": 500.0,
-}
-_THRESHOLD_KEYS = ("minutes_to_threshold", "steps_to_threshold")
-#: Cost columns of a run: their mean over the complete runs of an arm (``KEY_mean``).
-COST_KEYS = ("env_steps", "wall_time_s", "plan_seconds_per_step")
 _BASELINE_COLUMNS = [
     "p_improvement",
     "p_improvement_ci_low",
@@ -96,7 +82,7 @@ SUMMARY_COLUMNS = [
     "auc_ci_high",
     "threshold",
     "n_reached",
-    *[f"{k}_{stat}" for k in _THRESHOLD_KEYS for stat in ("iqm", "ci_low", "ci_high")],
+    *[f"{k}_{stat}" for k in THRESHOLD_KEYS for stat in ("iqm", "ci_low", "ci_high")],
     *[f"{k}_mean" for k in COST_KEYS],
     *_BASELINE_COLUMNS,
 ]
@@ -109,64 +95,9 @@ RUN_COLUMNS = [
     "diverged",
     "final_reward",
     "auc",
-    *_THRESHOLD_KEYS,
+    *THRESHOLD_KEYS,
     *COST_KEYS,
 ]
-
-
-def online_rows(run_dir: Path) -> list[dict[str, float]]:
-    """The metrics rows of a run directory (empty if it has none yet)."""
-    from pets.runs import rundir
-
-    path = run_dir / rundir.METRICS_FILE
-    return rundir.read_metrics(path) if path.is_file() else []
-
-
-def reward_divergence(rows: Sequence[Mapping[str, float]]) -> str | None:
-    """Why a run counts as diverged (its first non-finite episode reward), or None."""
-    for i, r in enumerate(rows):
-        v = float(r["episode_reward"])
-        if not math.isfinite(v):
-            return f"episode_reward {v} at trial {int(r.get('trial', i))}"
-    return None
-
-
-def time_to_threshold(rows: Sequence[Mapping[str, float]], threshold: float | None) -> tuple[float, float]:
-    """``(minutes, env steps)`` at the end of the first trial whose episode reward is >= ``threshold``
-    (``wall_time_s`` / 60 and ``env_steps`` of that row); NaN for both when no trial reaches it or there is no
-    threshold."""
-    if threshold is not None:
-        for r in rows:
-            if float(r["episode_reward"]) >= threshold:
-                return float(r["wall_time_s"]) / 60.0, float(r["env_steps"])
-    return math.nan, math.nan
-
-
-def online_run_stats(
-    rows: Sequence[Mapping[str, float]], trials: int, final_window: int, threshold: float | None = None
-) -> dict[str, Any]:
-    """Per-run numbers from the first ``trials`` metrics rows: diverged (:func:`reward_divergence`: None or
-    why), final (mean of the last ``final_window`` episode rewards), auc (mean episode reward over all
-    trials), minutes_to_threshold and steps_to_threshold (:func:`time_to_threshold`), env_steps,
-    wall_time_s (the run's wall-clock seconds: planning, simulation and model training) and
-    plan_seconds_per_step (median over the planned trials; 0 if every trial was random)."""
-    use = list(rows)[:trials]
-    minutes, steps = time_to_threshold(use, threshold)
-    rewards = np.array([r["episode_reward"] for r in use], dtype=np.float64)
-    w = min(final_window, len(use))
-    planned = [r["plan_seconds_per_step"] for r in use if r.get("plan_seconds_per_step", 0.0) > 0]
-    with np.errstate(invalid="ignore"):  # inf - inf in a diverged run: NaN, reported as such
-        final, auc = float(rewards[-w:].mean()), float(rewards.mean())
-    return {
-        "diverged": reward_divergence(use),
-        "final_reward": final,
-        "auc": auc,
-        "minutes_to_threshold": minutes,
-        "steps_to_threshold": steps,
-        "env_steps": float(use[-1]["env_steps"]),
-        "wall_time_s": float(use[-1]["wall_time_s"]),
-        "plan_seconds_per_step": float(np.median(planned)) if planned else 0.0,
-    }
 
 
 def _finite(x: float | None) -> float | None:
@@ -202,39 +133,55 @@ def arm_statistics(
         reached = [r for r in good[arm].values() if math.isfinite(r["minutes_to_threshold"])]
         s["n_reached"] = len(reached)
         if reached:  # the runs that never reached it are counted (n_reached of n_seeds), not averaged in
-            times = np.array([[r[k] for k in _THRESHOLD_KEYS] for r in reached])
+            times = np.array([[r[k] for k in THRESHOLD_KEYS] for r in reached])
             iqm, low, high = iqm_ci(times, reps=reps, seed=seed)
-            for j, key in enumerate(_THRESHOLD_KEYS):
+            for j, key in enumerate(THRESHOLD_KEYS):
                 s.update({f"{key}_iqm": iqm[j], f"{key}_ci_low": low[j], f"{key}_ci_high": high[j]})
         s.update({f"{k}_mean": float(np.mean([r[k] for r in rs])) for k in COST_KEYS})
         base = baselines.get(arm)
         if base is not None and base in runs:
-            # diverged runs enter P as NaN, i.e. the worst final reward
-            x = [math.nan if r["diverged"] else r["final_reward"] for r in rs]
-            y = [math.nan if r["diverged"] else r["final_reward"] for r in runs[base]]
-            (p,), (p_low,), (p_high,) = p_improvement_ci(x, y, higher_is_better=True, reps=reps, seed=seed)
-            s.update(p_improvement=p, p_improvement_ci_low=p_low, p_improvement_ci_high=p_high)
-            final = {k: r["final_reward"] for k, r in good[arm].items()}
-            pairs, diffs = paired_differences(final, {k: r["final_reward"] for k, r in good[base].items()})
-            s["n_pairs"] = len(pairs)
-            if pairs:
-                (d,), (d_low,), (d_high,) = iqm_ci(diffs, reps=reps, seed=seed)
-                s.update(diff_to_delta=d, diff_ci_low=d_low, diff_ci_high=d_high)
-            # The exact test counts a diverged run as the worst outcome: the lowest finite final reward of the env.
-            worst = min((r["final_reward"] for rs_ in good.values() for r in rs_.values()), default=math.nan)
-            worst_of = {
-                a: {r["seed"]: worst if r["diverged"] else r["final_reward"] for r in runs[a]} for a in (arm, base)
-            }
-            _, all_diffs = paired_differences(worst_of[arm], worst_of[base])
-            if all_diffs.size and np.isfinite(all_diffs).all():
-                s["diff_p_signflip"] = sign_flip_p(all_diffs[:, 0])
-            if threshold:  # steps as errors: never reached or diverged = NaN, the most steps
-                x = [math.nan if r["diverged"] else r["steps_to_threshold"] for r in rs]
-                y = [math.nan if r["diverged"] else r["steps_to_threshold"] for r in runs[base]]
-                (p,), (p_low,), (p_high,) = p_improvement_ci(x, y, reps=reps, seed=seed)
-                s.update(p_fewer_steps=p, p_fewer_steps_ci_low=p_low, p_fewer_steps_ci_high=p_high)
+            s.update(_against_baseline(runs, good, arm, base, reps=reps, seed=seed, threshold=threshold))
         out[arm] = {k: _finite(v) if isinstance(v, float) else v for k, v in s.items()}
     return out
+
+
+def _against_baseline(
+    runs: Mapping[str, Sequence[Mapping[str, Any]]],
+    good: Mapping[str, Mapping[Any, Mapping[str, Any]]],
+    arm: str,
+    base: str,
+    *,
+    reps: int,
+    seed: int,
+    threshold: bool,
+) -> dict[str, Any]:
+    """The baseline columns of ``arm`` against ``base``: P(final > baseline's), the paired differences, the exact
+    sign-flip p-value and, with a ``threshold``, P(fewer steps to it). ``runs`` and ``good`` ({arm: {seed: run}} of
+    the runs that did not diverge) as in :func:`arm_statistics`."""
+    s: dict[str, Any] = {}
+    # diverged runs enter P as NaN, i.e. the worst final reward
+    x = [math.nan if r["diverged"] else r["final_reward"] for r in runs[arm]]
+    y = [math.nan if r["diverged"] else r["final_reward"] for r in runs[base]]
+    (p,), (p_low,), (p_high,) = p_improvement_ci(x, y, higher_is_better=True, reps=reps, seed=seed)
+    s.update(p_improvement=p, p_improvement_ci_low=p_low, p_improvement_ci_high=p_high)
+    final = {k: r["final_reward"] for k, r in good[arm].items()}
+    pairs, diffs = paired_differences(final, {k: r["final_reward"] for k, r in good[base].items()})
+    s["n_pairs"] = len(pairs)
+    if pairs:
+        (d,), (d_low,), (d_high,) = iqm_ci(diffs, reps=reps, seed=seed)
+        s.update(diff_to_delta=d, diff_ci_low=d_low, diff_ci_high=d_high)
+    # The exact test counts a diverged run as the worst outcome: the lowest finite final reward of the env.
+    worst = min((r["final_reward"] for rs_ in good.values() for r in rs_.values()), default=math.nan)
+    worst_of = {a: {r["seed"]: worst if r["diverged"] else r["final_reward"] for r in runs[a]} for a in (arm, base)}
+    _, all_diffs = paired_differences(worst_of[arm], worst_of[base])
+    if all_diffs.size and np.isfinite(all_diffs).all():
+        s["diff_p_signflip"] = sign_flip_p(all_diffs[:, 0])
+    if threshold:  # steps as errors: never reached or diverged = NaN, the most steps
+        x = [math.nan if r["diverged"] else r["steps_to_threshold"] for r in runs[arm]]
+        y = [math.nan if r["diverged"] else r["steps_to_threshold"] for r in runs[base]]
+        (p,), (p_low,), (p_high,) = p_improvement_ci(x, y, reps=reps, seed=seed)
+        s.update(p_fewer_steps=p, p_fewer_steps_ci_low=p_low, p_fewer_steps_ci_high=p_high)
+    return s
 
 
 def summarise_online(
@@ -256,9 +203,9 @@ def summarise_online(
     per env of the time-to-threshold columns (an env without one gets none). ``until_threshold``: a run that
     reached its env's threshold is complete with fewer rows (``pets.compare online --until-threshold``)."""
     out = Path(out)
-    per_run, summary, missing, diverged_runs, text = [], [], [], [], []
+    found: dict[str, list] = {"per_run": [], "missing": [], "diverged": [], "included": []}
+    summary, text = [], []
     envs_done: list[tuple[str, list[dict[str, Any]]]] = []
-    included: list[Path] = []
     arms = online_arms(models, planners)
     labels = {arm: arm_label(*arm) for arm in arms}
     baselines = {
@@ -267,36 +214,9 @@ def summarise_online(
     compared = any(b is not None for b in baselines.values())
     w = min(final_window, trials)
     for env in env_names:
-        runs: dict[str, list[dict[str, Any]]] = {}
-        curves: dict[str, list[list[dict[str, float]]]] = {}
-        for model, planner in arms:
-            label = labels[(model, planner)]
-            for seed in seeds:
-                name = run_name(env, model, seed, planner)
-                rows = online_rows(out / "runs" / name)
-                reached = False
-                if until_threshold:  # a run to the threshold ends there (a longer run is cut at it)
-                    limit = thresholds.get(env, math.inf)
-                    hit = next((i for i, r in enumerate(rows) if r["episode_reward"] >= limit), None)
-                    reached = hit is not None
-                    rows = rows[: hit + 1] if reached else rows
-                if len(rows) < trials and not reached:
-                    missing.append(
-                        f"{name} ({len(rows)}/{trials} trials"
-                        f"{'; failed: ' + failed[name] if failed and name in failed else ''})"
-                    )
-                    continue
-                s = {"seed": seed, **online_run_stats(rows, trials, final_window, thresholds.get(env))}
-                per_run.append({"env": env, "model": model, "planner": planner or "", "trials": trials, **s})
-                per_run[-1]["diverged"] = s["diverged"] or ""
-                per_run[-1].update({k: "" for k in _THRESHOLD_KEYS if not math.isfinite(s[k])})  # never reached
-                runs.setdefault(label, []).append(s)
-                included.append(out / "runs" / name)
-                curves.setdefault(label, [])
-                if s["diverged"]:
-                    diverged_runs.append(f"{name}: {s['diverged']}")
-                else:
-                    curves[label].append(rows[:trials])
+        runs, curves = _env_runs(
+            out, env, arms, labels, seeds, trials, final_window, failed, thresholds, until_threshold, found
+        )
         if not runs:
             continue
         stats = arm_statistics(runs, baselines, reps=reps, threshold=env in thresholds)
@@ -308,10 +228,7 @@ def summarise_online(
                 rows_env.append({**row, **stats[label], "threshold": thresholds.get(env)})
         summary += rows_env
         envs_done.append((env, rows_env))
-        colors = model_colors(list(curves)) if planners is None else arm_colors(list(curves))
-        n_div = {label: stats[label]["n_diverged"] for label in curves}
-        plot_online(out / f"rewards_{env}.png", env, curves, colors, diverged=n_div, reps=reps)
-        plot_online(out / f"walltime_{env}.png", env, curves, colors, x_key="wall_time_s", diverged=n_div, reps=reps)
+        _plot_env(out, env, curves, stats, planners, reps)
     # Holm over the family of every arm-vs-baseline test of the primary endpoint in this summary (envs x arms).
     adjusted = holm([math.nan if r.get("diff_p_signflip") is None else r["diff_p_signflip"] for r in summary])
     for row, p_adj in zip(summary, adjusted):
@@ -319,14 +236,94 @@ def summarise_online(
     for env, rows_env in envs_done:
         text += _env_section(env, rows_env, planners is not None, compared, baselines)
     write_csv(out / "summary.csv", summary, SUMMARY_COLUMNS)
-    write_csv(out / "summary_runs.csv", per_run, RUN_COLUMNS)
-    base_name = BASELINE if planners is None else f"{BASELINE} with the same planner"
+    write_csv(out / "summary_runs.csv", found["per_run"], RUN_COLUMNS)
+    text = (
+        _header(trials, w, compared, planners is not None, until_threshold) + text + precision_note(found["included"])
+    )
+    text += _runs_sections(found["diverged"], found["missing"])
+    atomic_write_bytes(out / "summary.md", "\n".join(text).encode())
+    return summary
+
+
+def _env_runs(
+    out: Path,
+    env: str,
+    arms: Sequence[tuple[str, str | None]],
+    labels: Mapping[tuple[str, str | None], str],
+    seeds: Sequence[int],
+    trials: int,
+    final_window: int,
+    failed: Mapping[str, str] | None,
+    thresholds: Mapping[str, float],
+    until_threshold: bool,
+    found: Mapping[str, list],
+) -> tuple[dict[str, list[dict[str, Any]]], dict[str, list[list[dict[str, float]]]]]:
+    """``(runs, curves)`` of one env: {arm: :func:`online_run_stats` of each complete run} and {arm: the metrics rows
+    of each complete run that did not diverge}; adds to ``found``'s lists the per-run rows, the missing and the
+    diverged runs and the directories included."""
+    runs: dict[str, list[dict[str, Any]]] = {}
+    curves: dict[str, list[list[dict[str, float]]]] = {}
+    for model, planner in arms:
+        label = labels[(model, planner)]
+        for seed in seeds:
+            name = run_name(env, model, seed, planner)
+            rows, reached = _complete_rows(out / "runs" / name, thresholds.get(env, math.inf), until_threshold)
+            if len(rows) < trials and not reached:
+                found["missing"].append(
+                    f"{name} ({len(rows)}/{trials} trials"
+                    f"{'; failed: ' + failed[name] if failed and name in failed else ''})"
+                )
+                continue
+            s = {"seed": seed, **online_run_stats(rows, trials, final_window, thresholds.get(env))}
+            found["per_run"].append({"env": env, "model": model, "planner": planner or "", "trials": trials, **s})
+            found["per_run"][-1]["diverged"] = s["diverged"] or ""
+            found["per_run"][-1].update({k: "" for k in THRESHOLD_KEYS if not math.isfinite(s[k])})  # never reached
+            runs.setdefault(label, []).append(s)
+            found["included"].append(out / "runs" / name)
+            curves.setdefault(label, [])
+            if s["diverged"]:
+                found["diverged"].append(f"{name}: {s['diverged']}")
+            else:
+                curves[label].append(rows[:trials])
+    return runs, curves
+
+
+def _complete_rows(run_dir: Path, limit: float, until_threshold: bool) -> tuple[list[dict[str, float]], bool]:
+    """``(rows, reached)``: a run's metrics rows and, with ``until_threshold``, whether one reached ``limit`` (then the
+    rows end there: a run to the threshold ends there, a longer run is cut at it)."""
+    rows = online_rows(run_dir)
+    reached = False
+    if until_threshold:
+        hit = next((i for i, r in enumerate(rows) if r["episode_reward"] >= limit), None)
+        reached = hit is not None
+        rows = rows[: hit + 1] if reached else rows
+    return rows, reached
+
+
+def _plot_env(
+    out: Path,
+    env: str,
+    curves: Mapping[str, Sequence[Sequence[Mapping[str, float]]]],
+    stats: Mapping[str, Mapping[str, Any]],
+    planners: Sequence[str] | None,
+    reps: int,
+) -> None:
+    """rewards_ENV.png and walltime_ENV.png: reward vs env steps and vs wall-clock hours per arm."""
+    colors = model_colors(list(curves)) if planners is None else arm_colors(list(curves))
+    n_div = {label: stats[label]["n_diverged"] for label in curves}
+    plot_online(out / f"rewards_{env}.png", env, curves, colors, diverged=n_div, reps=reps)
+    plot_online(out / f"walltime_{env}.png", env, curves, colors, x_key="wall_time_s", diverged=n_div, reps=reps)
+
+
+def _header(trials: int, w: int, compared: bool, with_planner: bool, until_threshold: bool) -> list[str]:
+    """The top of summary.md: what the columns mean."""
+    base_name = BASELINE if not with_planner else f"{BASELINE} with the same planner"
     if until_threshold:
         runs_line = f"# Online comparison (runs to the threshold, at most {trials} trials each)"
         span = "the trials up to the one that reached the threshold (or all, if none did)"
     else:
         runs_line, span = f"# Online comparison ({trials} trials per run)", f"all {trials} trials"
-    header = [
+    return [
         runs_line,
         "",
         f"final = mean episode reward of the last {w} trial{'s' if w > 1 else ''} of each run; "
@@ -352,13 +349,16 @@ def summarise_online(
         "averaged in).",
         "",
     ]
-    text = header + text + precision_note(included)
+
+
+def _runs_sections(diverged_runs: Sequence[str], missing: Sequence[str]) -> list[str]:
+    """Markdown of the diverged runs and of the missing or incomplete ones."""
+    text = []
     if diverged_runs:
         text += ["## Diverged runs (counted, not in the IQMs)", ""] + [f"- {d}" for d in diverged_runs] + [""]
     if missing:
         text += ["## Missing or incomplete runs (not in the statistics)", ""] + [f"- {m}" for m in missing] + [""]
-    atomic_write_bytes(out / "summary.md", "\n".join(text).encode())
-    return summary
+    return text
 
 
 def _env_section(
@@ -394,7 +394,7 @@ def _env_section(
                 ]
         if threshold is not None:
             cells.append(f"{r['n_reached']}/{r['n_seeds']}")
-            for k in _THRESHOLD_KEYS:
+            for k in THRESHOLD_KEYS:
                 cells.append(fmt_interval(r[f"{k}_iqm"], r[f"{k}_ci_low"], r[f"{k}_ci_high"], "-"))
             if compared:
                 cells.append(

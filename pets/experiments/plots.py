@@ -10,8 +10,9 @@ from typing import Any
 
 import numpy as np
 
+from pets.experiments.bootstrap import bootstrap_band
 from pets.experiments.report import BOOT_SEED
-from pets.experiments.statistics import REPS, bootstrap_band, iqm_ci
+from pets.experiments.statistics import REPS, iqm_ci
 from pets.runs.fileio import atomic_write_bytes
 
 

@@ -1,0 +1,108 @@
+"""The offline protocol's run jobs: train, evaluate and plan one (env, model, seed) where it lacks that result.
+
+Per run: train offline (``pets.train.train_offline``) unless the run directory holds a trained model; evaluate on
+the test data (``pets.evaluate``) into ``eval.json`` unless it holds this evaluation already; open-loop plan per
+planner into ``openloop_PLANNER.json`` and MPC with the frozen model into ``closedloop_PLANNER.json`` where asked
+(:mod:`pets.experiments.offline`). A job killed part way is redone whole (``config.yaml`` is written last).
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from pets.experiments.rundirs import json_matches
+from pets.runs.fileio import atomic_write_bytes
+
+
+def offline_job(job: Mapping[str, Any]) -> dict[str, Any]:
+    """One (env, model, seed): train if needed, evaluate if needed, open-loop plan if asked and needed.
+
+    Runs in a worker process (or in this one); returns what it did, ``{"name", "done": [...]}``.
+    """
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(int(job["overrides"].get("threads", 1)))
+    try:
+        return _offline_job(job)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _offline_job(job: Mapping[str, Any]) -> dict[str, Any]:
+    from pets.config import load_config
+    from pets.learning.evaluation import evaluate, write_events
+    from pets.learning.offline import train_offline
+    from pets.planning.openloop import open_loop
+
+    run_dir, done = Path(job["run_dir"]), []
+    if not (run_dir / "config.yaml").is_file():
+        train_offline(
+            job["train_data"],
+            job["model"],
+            run_dir,
+            job["overrides"],
+            preset=job["preset"],
+            protocol=job["protocol"],
+            seed=job["seed"],
+            device=job["device"],
+        )
+        done.append("train")
+    eval_path, request = run_dir / "eval.json", job["eval_request"]
+    if "train" in done or not json_matches(eval_path, request):
+        result = evaluate(
+            run_dir,
+            job["test_data"],
+            request["horizons"],
+            request["starts"],
+            seed=request["seed"],
+            mode=request["mode"],
+            device=job["device"],
+            log=lambda message: None,
+            train_data=job["train_data"],
+        )
+        result["request"] = request
+        atomic_write_bytes(eval_path, (json.dumps(result) + "\n").encode())
+        if load_config(str(run_dir / "config.yaml")).tensorboard:  # per-horizon errors for TensorBoard (pets.tblog)
+            write_events(run_dir, job["test_data"], result)
+        done.append("eval")
+    for kind, planner in _planning_tasks(job):
+        path = run_dir / f"{kind}_{planner}.json"
+        request = {**job[f"{kind}_request"], "planner": planner}
+        if "train" in done or not json_matches(path, request):
+            r = request
+            result = open_loop(
+                run_dir, planner, r["steps"], r["episodes"], r["seed"], device=job["device"], closed=kind == CLOSED
+            )
+            result["request"] = request
+            atomic_write_bytes(path, (json.dumps(result) + "\n").encode())
+            done.append(f"{kind}_{planner}")
+    return {"name": run_dir.name, "done": done}
+
+
+#: The planning kinds of the offline mode: open-loop plans (``--openloop``) and MPC with the frozen model
+#: (``--closedloop``); a run's results are ``KIND_PLANNER.json``.
+OPEN, CLOSED = "openloop", "closedloop"
+
+
+def _planning_tasks(job: Mapping[str, Any]) -> list[tuple[str, str]]:
+    """(kind, planner) of every planning result ``job`` asks for."""
+    return [(OPEN, p) for p in job["planners"]] + [(CLOSED, p) for p in job.get("closed_planners", [])]
+
+
+def offline_todo(job: Mapping[str, Any]) -> list[str]:
+    """What :func:`offline_job` would do for ``job`` now: a subset of train, eval, openloop_PLANNER."""
+    run_dir = Path(job["run_dir"])
+    todo = [] if (run_dir / "config.yaml").is_file() else ["train"]
+    if todo or not json_matches(run_dir / "eval.json", job["eval_request"]):
+        todo.append("eval")
+    todo += [
+        f"{kind}_{p}"
+        for kind, p in _planning_tasks(job)
+        if todo[:1] == ["train"]
+        or not json_matches(run_dir / f"{kind}_{p}.json", {**job[f"{kind}_request"], "planner": p})
+    ]
+    return todo

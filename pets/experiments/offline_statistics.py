@@ -1,0 +1,132 @@
+"""The offline summary's statistics: the runs' evaluations and, per env, model, metric and horizon, the statistics
+over seeds (:mod:`pets.experiments.offline_summary` describes them and writes them out).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pets.experiments.report import BOOT_SEED
+from pets.experiments.rundirs import json_matches, run_name
+from pets.experiments.statistics import BASELINE, REPS, iqm_ci_finite, p_improvement_ci, paired_ratios, sign_flip_p
+from pets.learning.evaluation import METRICS as EVALUATE_METRICS
+
+#: The horizon label of the columns averaged over the horizons (relative_error.csv, Fig. 2).
+AVERAGE = "average"
+
+
+def test_label(env: str, data_seed: int) -> str:
+    """The ``data`` entry of an evaluation request on data set ``data_seed`` (pets.experiments.offline.data_paths)."""
+    return f"data/{env}-d{data_seed}-test.npz" if data_seed else f"data/{env}-test.npz"
+
+
+def load_evals(
+    out: Path,
+    env: str,
+    models: Sequence[str],
+    seeds: Sequence[int],
+    request: Mapping[str, Any],
+    data_seeds: Sequence[int] = (0,),
+) -> dict[str, list[dict[str, Any]]]:
+    """{model: [eval.json of each (data seed, seed) that has one for this request]}; each with ``seed``,
+    ``data_seed`` and ``pair`` (the key runs pair by: the seed alone with one data set, else (data seed, seed))."""
+    found: dict[str, list[dict[str, Any]]] = {}
+    for model in models:
+        for d in data_seeds:
+            for seed in seeds:
+                path = out / "runs" / run_name(env, model, seed, data_seed=d) / "eval.json"
+                if json_matches(path, {**request, "data": test_label(env, d)}):
+                    pair = seed if len(data_seeds) == 1 else (d, seed)
+                    e = {**json.loads(path.read_text()), "seed": seed, "data_seed": d, "pair": pair}
+                    found.setdefault(model, []).append(e)
+    return found
+
+
+def order_metrics(keys: Sequence[str]) -> list[str]:
+    """The ``*_error`` keys among ``keys``: :data:`EVALUATE_METRICS` first in their order, then the rest sorted."""
+    errors = {k for k in keys if k.endswith("_error")}
+    return [m for m in EVALUATE_METRICS if m in errors] + sorted(errors - set(EVALUATE_METRICS))
+
+
+def _finite(x: float | None) -> float | None:
+    """``x`` as a float, None if absent or not finite (an empty CSV cell, "n/a" in a table)."""
+    return None if x is None or not math.isfinite(x) else float(x)
+
+
+def _run_scores(e: Mapping[str, Any], metrics: Sequence[str], horizons: Sequence[int]) -> np.ndarray:
+    """One run's errors per column: each metric at each horizon, then each metric averaged over the horizons.
+    NaN where the run diverged (``e["diverged"]``: {horizon: why}): at that horizon, and in the average
+    when at any of ``horizons``, since an average over a diverged horizon means nothing."""
+    per_h = np.array([[float(e["horizons"][str(h)][m]) for h in horizons] for m in metrics])
+    per_h[:, [str(h) in e["diverged"] for h in horizons]] = np.nan
+    return np.concatenate([per_h.ravel(), per_h.mean(axis=1)])
+
+
+def env_statistics(
+    evals: Mapping[str, Sequence[Mapping[str, Any]]],
+    metrics: Sequence[str],
+    horizons: Sequence[int],
+    *,
+    reps: int = REPS,
+    seed: int = BOOT_SEED,
+) -> dict[str, dict[tuple[str, int | str], dict[str, Any]]]:
+    """{model: {(metric, horizon): statistics}} of one env; horizon :data:`AVERAGE` is the error averaged
+    over ``horizons`` per run. Each entry has the :data:`SUMMARY_COLUMNS` statistics (None where absent).
+
+    Divergence is per horizon (every run's ``"diverged"``, {horizon: why}, must be set): a run diverged at
+    h is left out of the IQM, CI and ratios at h, counted in ``n_diverged`` there and enters P as error
+    ``+inf`` there; at its other horizons it counts normally. The :data:`AVERAGE` column counts only the
+    runs that diverged at none of ``horizons``. The ratio to delta at h pairs the seeds where neither
+    model diverged at h (``n_pairs``).
+    """
+    columns = [(m, h) for m in metrics for h in horizons] + [(m, AVERAGE) for m in metrics]
+    scores = {model: {e["pair"]: _run_scores(e, metrics, horizons) for e in runs} for model, runs in evals.items()}
+    out: dict[str, dict[tuple[str, int | str], dict[str, Any]]] = {}
+    for model, runs in scores.items():
+        x = np.array(list(runs.values()))
+        iqm, low, high = iqm_ci_finite(x, reps=reps, seed=seed)
+        n_good = np.isfinite(x).sum(axis=0)
+        nan = np.full(len(columns), np.nan)
+        p = p_low = p_high = ratio = r_low = r_high = p_exact = nan
+        n_pairs = None
+        if model != BASELINE and BASELINE in scores:
+            base = scores[BASELINE]
+            # a diverged (NaN) error counts as +inf in P: worse than every run that did not diverge there
+            p, p_low, p_high = p_improvement_ci(x, np.array(list(base.values())), reps=reps, seed=seed)
+            pairs, ratios = paired_ratios(runs, base)  # NaN where either run diverged
+            n_pairs = np.zeros(len(columns), int)
+            if pairs:
+                n_pairs = np.sum([np.isfinite(runs[s]) & np.isfinite(base[s]) for s in pairs], axis=0)
+                ratio, r_low, r_high = iqm_ci_finite(ratios, reps=reps, seed=seed)
+                p_exact = np.array([_sign_flip_log(ratios[:, j]) for j in range(len(columns))])
+        out[model] = {
+            col: {
+                "iqm": _finite(iqm[j]),
+                "ci_low": _finite(low[j]),
+                "ci_high": _finite(high[j]),
+                "n_seeds": int(n_good[j]),
+                "n_diverged": len(x) - int(n_good[j]),
+                "p_improvement": _finite(p[j]),
+                "p_improvement_ci_low": _finite(p_low[j]),
+                "p_improvement_ci_high": _finite(p_high[j]),
+                "ratio_to_delta": _finite(ratio[j]),
+                "ratio_ci_low": _finite(r_low[j]),
+                "ratio_ci_high": _finite(r_high[j]),
+                "n_pairs": None if n_pairs is None else int(n_pairs[j]),
+                "p_value_exact": _finite(p_exact[j]),
+            }
+            for j, col in enumerate(columns)
+        }
+    return out
+
+
+def _sign_flip_log(ratios: np.ndarray) -> float:
+    """Exact sign-flip p-value of the mean log ratio over the finite pairs of one column (NaN without pairs)."""
+    r = ratios[np.isfinite(ratios) & (ratios > 0)]
+    return sign_flip_p(np.log(r)) if r.size else math.nan

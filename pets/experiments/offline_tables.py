@@ -1,0 +1,171 @@
+"""The offline summary's markdown, prediction.md: the header, a section per env, Fig. 2's table, the diverged and the
+missing runs (:mod:`pets.experiments.offline_summary` writes it).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+from pets.experiments.report import fmt_interval, md_table
+from pets.experiments.statistics import BASELINE, MIN_SEEDS, SMALL_SAMPLE_NOTE
+
+#: Metrics that get a table in prediction.md (rotation_error only where the env has rotations).
+TABLE_METRICS = ("mean_step_error", "standardized_error", "rotation_error")
+#: The metric of Fig. 2 and Fig. 3.
+FIGURE_METRIC = "mean_step_error"
+
+
+def divergence_text(diverged: Mapping[str, str]) -> str:
+    """A run's divergences ({horizon: why}) in one line, by horizon: "why at h=5; why at h=50"."""
+    return "; ".join(f"{why} at h={h}" for h, why in sorted(diverged.items(), key=lambda item: int(item[0])))
+
+
+def has_rotations(runs: Sequence[Mapping[str, Any]]) -> bool:
+    """Whether an env's runs report a rotation error (a finite value > 0: the env has rotation groups)."""
+    values = [v.get("rotation_error", 0.0) for e in runs for v in e["horizons"].values()]
+    return any(math.isfinite(float(v)) and float(v) > 0 for v in values)
+
+
+def _metric_tables(
+    metric: str, models: Sequence[str], stats: Mapping[str, Mapping[tuple[str, Any], Mapping[str, Any]]], hs: Sequence
+) -> list[str]:
+    """Markdown: the IQM [CI] table of one metric per model and horizon (with the runs diverged at each
+    horizon, :func:`_fmt_iqm`), then P of improvement over delta."""
+    rows = [
+        [model, str(runs_behind(stats[model][(metric, hs[0])]))] + [_fmt_iqm(stats[model][(metric, h)]) for h in hs]
+        for model in models
+    ]
+    text = [f"### {metric}", "", md_table(["model", "seeds"] + [f"h={h}" for h in hs], rows), ""]
+    others = [m for m in models if m != BASELINE]
+    if BASELINE in models and others:
+        text += [
+            f"P({metric} < {BASELINE}'s) [95 % CI]:",
+            "",
+            md_table(
+                ["model"] + [f"h={h}" for h in hs],
+                [[m] + [_fmt_p(stats[m][(metric, h)]) for h in hs] for m in others],
+            ),
+            "",
+        ]
+    return text
+
+
+def runs_behind(s: Mapping[str, Any]) -> int:
+    """The runs behind a statistic: the seeds in it and the seeds diverged there."""
+    return s["n_seeds"] + s["n_diverged"]
+
+
+def _fmt_iqm(s: Mapping[str, Any]) -> str:
+    """IQM [CI] of one column, then "(k diverged)" if k runs diverged there; "all diverged" if every run did."""
+    if s["n_seeds"] == 0:
+        return "all diverged"
+    return fmt_interval(s["iqm"], *_ci(s)) + (f" ({s['n_diverged']} diverged)" if s["n_diverged"] else "")
+
+
+def small_sample(s: Mapping[str, Any]) -> bool:
+    """Whether a statistic rests on fewer than :data:`MIN_SEEDS` seeds (and at least one)."""
+    return 0 < s["n_seeds"] < MIN_SEEDS
+
+
+def _ci(s: Mapping[str, Any], key: str = "ci") -> tuple[Any, Any]:
+    return s[f"{key}_low"], s[f"{key}_high"]
+
+
+def _fmt_p(s: Mapping[str, Any]) -> str:
+    return fmt_interval(s["p_improvement"], *_ci(s, "p_improvement_ci"), "n/a")
+
+
+def prediction_header() -> list[str]:
+    """The top of prediction.md: what the tables show."""
+    return [
+        "# Offline comparison: long-horizon prediction error",
+        "",
+        "Step-wise errors of pets.evaluate (ensemble-mean rollouts on the test data, the same start points for "
+        "every model and seed of an env) per horizon. Per model: the interquartile mean (IQM) over seeds with "
+        "its 95 % stratified-bootstrap CI in brackets (rliable). P: the probability that the model's error "
+        f"is lower than {BASELINE}'s (a random seed of each; ties count half) with its CI. A run is diverged at a "
+        "horizon when a value of its evaluation there is not finite, some predictions went non-finite, or its "
+        "standardized_error is at or past the env's no-information level (the error of predicting a random "
+        "training observation; primary.csv gives it): its prediction no longer tracks the state. At that "
+        "horizon it is counted ('(k diverged)' after the IQM; 'all diverged' when every run did), left out of the "
+        "IQM, CI and ratios, and counts as an infinite error in P; at its other horizons it counts normally. "
+        "seeds: the model's evaluated runs.",
+        "",
+    ]
+
+
+def env_section(
+    env: str,
+    asked: Sequence[int],
+    common: Sequence[int],
+    metrics: Sequence[str],
+    models: Sequence[str],
+    stats: Mapping[str, Mapping[tuple[str, Any], Mapping[str, Any]]],
+    runs: Sequence[Mapping[str, Any]],
+) -> list[str]:
+    """Markdown of one env: its horizons (and the ``asked`` ones it skipped), the small-sample note where needed, a
+    table per :data:`TABLE_METRICS` metric it has, its Fig. 3."""
+    skipped = sorted(set(asked) - set(common))
+    note = f"; skipped: {', '.join(map(str, skipped))} (longer than the test episodes)" if skipped else ""
+    env_small = any(small_sample(stats[m][(metrics[0], h)]) for m in models for h in common)
+    text = [f"## {env} (horizons {', '.join(map(str, common))}{note})", ""]
+    text += [SMALL_SAMPLE_NOTE, ""] if env_small else []
+    for metric in TABLE_METRICS:
+        if metric in metrics and (metric != "rotation_error" or has_rotations(runs)):
+            text += _metric_tables(metric, models, stats, common)
+    return text + [f"![absolute error](absolute_error_{env}.png)", ""]
+
+
+def fig2_section(fig2: Mapping[str, Mapping[str, Mapping[str, Any]]], has_ratio: bool) -> list[str]:
+    """Markdown of Fig. 2: per env and model the error averaged over the horizons, relative and as a ratio to delta."""
+    fig2_small = any(small_sample(r) for vals in fig2.values() for r in vals.values())
+    text = [
+        "## Fig. 2: error averaged over the horizons",
+        "",
+        f"Per seed the {FIGURE_METRIC} averaged over the env's horizons, then the IQM over seeds [95 % CI]. "
+        "relative: divided by the largest model's IQM in the env, as the paper normalises (the CI divided "
+        f"by the same number). ratio to {BASELINE}: IQM [CI] of the per-seed ratios over the seeds both "
+        "models have (paired: same seed, data and start points). A run diverged at any horizon is left out "
+        "of the average and counted under diverged.",
+        "",
+    ]
+    text += [SMALL_SAMPLE_NOTE, ""] if fig2_small else []
+    header = ["env", "model", "seeds", "diverged", "relative", f"ratio to {BASELINE}", "pairs"]
+    rows = [_fig2_row(env, m, r) for env, vals in fig2.items() for m, r in vals.items()]
+    return text + [
+        md_table([*header, f"P(error < {BASELINE}'s)"], rows),
+        "",
+        "![relative error](relative_error.png)" + (" ![ratio to delta](ratio_to_delta.png)" if has_ratio else ""),
+        "",
+    ]
+
+
+def _fig2_row(env: str, m: str, r: Mapping[str, Any]) -> list[str]:
+    """One row of Fig. 2's table."""
+    return [
+        env,
+        m,
+        str(r["n_seeds"]),
+        str(r["n_diverged"]),
+        fmt_interval(r["relative"], *_ci(r, "relative_ci"), "all diverged" if not r["n_seeds"] else "n/a"),
+        "-" if m == BASELINE else fmt_interval(r["ratio_to_delta"], *_ci(r, "ratio_ci")),
+        "-" if r["n_pairs"] is None else str(r["n_pairs"]),
+        "-" if m == BASELINE else _fmt_p(r),
+    ]
+
+
+def runs_sections(diverged_runs: Sequence[str], missing: Sequence[str], failed: Mapping[str, str] | None) -> list[str]:
+    """Markdown of the diverged runs (with their horizons) and the missing ones (with why, where they failed)."""
+    text = []
+    if diverged_runs:
+        text += (
+            ["## Diverged runs (counted, not in the IQMs at these horizons nor in the average)", ""]
+            + [f"- {d}" for d in diverged_runs]
+            + [""]
+        )
+    if missing:
+        text += ["## Missing runs (not in the statistics)", ""]
+        text += [f"- {m}{': ' + failed[m] if failed and m in failed else ''}" for m in missing] + [""]
+    return text
