@@ -56,6 +56,7 @@ def make_trainer(cfg: DictConfig, model: DynamicsModel) -> ModelTrainer:
         bootstrap=m.bootstrap,
         precision=m.precision,
         compile=m.compile,
+        curve_every=m.curve_every,
     )
 
 

@@ -76,6 +76,9 @@ class ModelConfig:
     # (pets.learning.compiled.CompiledStep; compiled once per run, eager fallback with a warning if it fails); false:
     # the eager step, the reference (docs/performance.md, "Training at the fast preset")
     compile: bool = False
+    # N > 0: record the holdout error every N gradient steps (TrainResult.curve; offline runs write
+    # learning_curve.csv): a learning curve to check convergence; 0: none
+    curve_every: int = 0
 
 
 @dataclass
@@ -337,6 +340,8 @@ def validate(cfg: DictConfig) -> None:
         )
     if cfg.model.iterations < 0:
         raise ConfigError(f"model.iterations must be >= 0 (0: epochs with early stopping), got {cfg.model.iterations}")
+    if cfg.model.curve_every < 0:
+        raise ConfigError(f"model.curve_every must be >= 0 (0: no learning curve), got {cfg.model.curve_every}")
     if cfg.threads < 0:
         raise ConfigError(f"threads must be >= 0 (0: torch default), got {cfg.threads}")
     if cfg.seed < 0 or cfg.seed_steps < 0 or cfg.train_every < 0:

@@ -67,6 +67,7 @@ def test_override_beats_preset_beats_env_default():
         ("planner.elites=0", "planner.elites must be a ratio"),
         ("planner.elites=1000", "planner.population=480], got 1000"),
         ("planner.elites=2.5", "planner.elites must be"),
+        ("model.curve_every=-1", "model.curve_every must be >= 0"),
     ],
 )
 def test_bad_values_raise_config_error(item, fragment):

@@ -218,15 +218,23 @@ def test_an_edited_setting_or_a_nan_in_the_buffer_is_one_line_on_resume_and_the_
     assert len(rows(ref)) == 2
 
 
-def _interrupt(argv: list[str], under_way, timeout: float = 120.0) -> subprocess.CompletedProcess:
-    """Run ``python -m ARGV``, send it SIGINT once ``under_way(pid)`` says its work has begun, return its result."""
+def _interrupt(argv: list[str], under_way, timeout: float = 600.0) -> subprocess.CompletedProcess:
+    """Run ``python -m ARGV``, send it SIGINT once ``under_way(pid)`` says its work has begun, return its result.
+    The child is killed on any failure, so a failing test never leaves it running (on a loaded machine its CPU
+    time grows slowly: the wait is long, and a child that never got under way fails the test, uninterrupted)."""
     proc = subprocess.Popen([sys.executable, "-m", *argv], cwd=ROOT, stderr=subprocess.PIPE, text=True)
-    deadline = time.monotonic() + timeout
-    while not under_way(proc.pid) and proc.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.1)
-    assert proc.poll() is None, "the command ended before it could be interrupted"
-    proc.send_signal(signal.SIGINT)
-    _, err = proc.communicate(timeout=60)
+    try:
+        deadline = time.monotonic() + timeout
+        while not under_way(proc.pid) and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert proc.poll() is None, "the command ended before it could be interrupted"
+        assert under_way(proc.pid), f"the command's work had not begun after {timeout:.0f} s"
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
     return subprocess.CompletedProcess(argv, proc.returncode, "", err)
 
 

@@ -79,101 +79,23 @@ def work(tmp_path_factory):
     w = tmp_path_factory.mktemp("offline")
     run_parallel(
         {
-            "ip": (
-                "pets.collect",
-                "--env",
-                "InvertedPendulum-v5",
-                "--policy",
-                "random",
-                "--episodes",
-                6,
-                "--seed",
-                1,
-                "--out",
-                w / "ip.npz",
-                "--quiet",
-            ),
-            "reacher": (
-                "pets.collect",
-                "--env",
-                "reacher",
-                "--policy",
-                "smooth-random",
-                "--episodes",
-                12,
-                "--seed",
-                2,
-                "--out",
-                w / "reacher.npz",
-                "--quiet",
-            ),
-            "online": (
-                "run_pets.py",
-                "--env",
-                "invertedpendulum",
-                "--trials",
-                1,
-                "--seed",
-                0,
-                "--out",
-                w / "online",
-                *TINY_RUN,
-            ),
+            "ip": ("pets.collect", *"--env InvertedPendulum-v5 --policy random --episodes 6 --seed 1".split(), "--out")
+            + (w / "ip.npz", "--quiet"),
+            "reacher": ("pets.collect", *"--env reacher --policy smooth-random --episodes 12 --seed 2".split())
+            + ("--out", w / "reacher.npz", "--quiet"),
+            "online": ("run_pets.py", *"--env invertedpendulum --trials 1 --seed 0".split(), "--out", w / "online")
+            + tuple(TINY_RUN),
         }
     )
-    w.joinpath("agent.stdout").write_text(
-        run_parallel(
-            {
-                "delta": (
-                    "pets.train",
-                    "--data",
-                    w / "reacher.npz",
-                    "--model",
-                    "delta",
-                    "--out",
-                    w / "delta",
-                    "--epochs",
-                    60,
-                    "--seed",
-                    0,
-                    "--device",
-                    "cpu",
-                    "--quiet",
-                    *TINY_MODEL,
-                    "model.hidden_size=64",
-                ),
-                "gem": (
-                    "pets.train",
-                    "--data",
-                    w / "reacher.npz",
-                    "--model",
-                    "gem",
-                    "--out",
-                    w / "gem",
-                    "--epochs",
-                    3,
-                    "--quiet",
-                    *TINY_MODEL,
-                ),
-                "agent": (
-                    "pets.collect",
-                    "--policy",
-                    f"run:{w / 'online'}",
-                    "--episodes",
-                    2,
-                    "--max-steps",
-                    8,
-                    "--seed",
-                    4,
-                    "--device",
-                    "cpu",
-                    "--out",
-                    w / "agent.npz",
-                    "--quiet",
-                ),
-            }
-        )["agent"]
-    )
+    reacher = ("pets.train", "--data", w / "reacher.npz")
+    jobs = {
+        "delta": (*reacher, "--model", "delta", "--out", w / "delta", *"--epochs 60 --seed 0 --device cpu".split())
+        + ("--quiet", *TINY_MODEL, "model.hidden_size=64"),
+        "gem": (*reacher, "--model", "gem", "--out", w / "gem", "--epochs", "3", "--quiet", *TINY_MODEL),
+        "agent": ("pets.collect", "--policy", f"run:{w / 'online'}", *"--episodes 2 --max-steps 8 --seed 4".split())
+        + ("--device", "cpu", "--out", w / "agent.npz", "--quiet"),
+    }
+    w.joinpath("agent.stdout").write_text(run_parallel(jobs)["agent"])
     return w
 
 

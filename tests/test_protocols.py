@@ -1,5 +1,8 @@
 """The offline protocols: the paper's split, config and hidden-size search, through pets.train."""
 
+import importlib.util
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -11,6 +14,8 @@ from pets.data.protocols import PROTOCOLS, get_protocol, split_samples
 from pets.learning.offline import offline_config, train_offline
 from pets.runs import rundir
 from tests.threads import one_thread
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_paper_split_sizes_ratio_and_disjointness():
@@ -68,3 +73,38 @@ def test_an_explicit_architecture_turns_the_search_off(tmp_path, reacher_arrays)
     cfg = load_config(str(out / "config.yaml"))
     assert (cfg.model.hidden_size, cfg.model.num_layers) == (16, 1)
     assert torch.isfinite(torch.tensor(rundir.read_metrics(out / "metrics.csv")[0]["model_val_loss"]))
+
+
+def test_the_learning_curve_of_the_paper_protocol_for_every_searched_architecture(tmp_path, reacher_arrays):
+    """model.curve_every=10 over 40 iterations: learning_curve.csv has steps 0, 10, ..., 40 for each of the 3
+    searched architectures; each curve's last point is that candidate's validation error (all 5 members are the
+    elites under the paper's protocol), and recording it changes nothing else (same weights, same metrics row)."""
+    with one_thread():
+        plain = train_offline(reacher_arrays, "gem", tmp_path / "plain", {"model.iterations": "40"}, protocol="paper")
+        overrides = {"model.iterations": "40", "model.curve_every": "10"}
+        out = train_offline(reacher_arrays, "gem", tmp_path / "curve", overrides, protocol="paper")
+    assert not (plain / "learning_curve.csv").exists()
+    rows = [line.split(",") for line in (out / "learning_curve.csv").read_text().splitlines()]
+    assert rows[0] == ["hidden_size", "num_layers", "step", "holdout_error"]
+    search = rundir.load_checkpoint(out)["offline"]["search"]
+    for candidate in search:
+        points = [
+            (int(r[2]), float(r[3])) for r in rows[1:] if (int(r[0]), int(r[1])) == (100, candidate["num_layers"])
+        ]
+        assert [step for step, _ in points] == [0, 10, 20, 30, 40]
+        assert points[-1][1] == pytest.approx(candidate["val_error"], rel=1e-6)
+        assert points[-1][1] < points[0][1]  # training lowers the validation error
+    assert "curve" not in search[0]  # the curve lives in the CSV, not in the checkpoint's metadata
+    metrics = [rundir.read_metrics(run / "metrics.csv")[0] for run in (plain, out)]
+    assert metrics[0]["model_val_loss"] == metrics[1]["model_val_loss"]
+    weights = [rundir.load_checkpoint(run)["model"] for run in (plain, out)]
+    assert all(torch.equal(weights[0][k], weights[1][k]) for k in weights[0])
+
+    script = importlib.util.spec_from_file_location("learning_curves", ROOT / "docs/scripts/learning_curves.py")
+    curves = importlib.util.module_from_spec(script)
+    script.loader.exec_module(curves)
+    assert curves.main([str(tmp_path), "--out", str(tmp_path / "curves.png"), "--csv", str(tmp_path / "c.csv")]) == 0
+    kept = (tmp_path / "c.csv").read_text().splitlines()
+    assert len(kept) == 1 + 5 and (tmp_path / "curves.png").stat().st_size > 0  # the selected architecture only
+    best = min(search, key=lambda c: c["val_error"])
+    assert float(kept[-1].split(",")[-1]) == pytest.approx(best["val_error"], rel=1e-6)

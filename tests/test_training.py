@@ -12,7 +12,8 @@ from dynamics.heads import DeltaHead, DynamicsHead
 from dynamics.model import DynamicsModel
 from dynamics.networks import GaussianEnsemble
 from envs.layout import ObsLayout
-from pets.learning.trainer import ModelTrainer, TrainResult, bootstrap_indices, split_holdout
+from pets.learning.sampling import bootstrap_indices, split_holdout
+from pets.learning.trainer import ModelTrainer, TrainResult
 
 LAYOUT_1D = ObsLayout(obs_dim=1, groups=(), velocities=(0,))
 
@@ -326,3 +327,30 @@ def test_a_checkpoint_of_the_old_module_path_still_loads(tmp_path, monkeypatch):
     assert "pets.trainer" not in sys.modules and TrainResult.__module__ == "pets.learning.trainer"
     state = rundir.load_checkpoint(tmp_path)
     assert state["last_train"] == result
+
+
+def test_the_learning_curve_under_early_stopping_ends_at_the_last_step_not_at_the_restored_weights() -> None:
+    """curve_every=7 with holdout early stopping: the curve starts at the initial holdout error (mean over all
+    members), has a point every 7 steps and one at the last step, evaluated before the best weights are restored
+    (so it can end above the result's val_loss); the training itself is bit for bit the one without a curve."""
+    x, act, y, _ = sine_data(400, seed=1)
+    results, states = [], []
+    for curve_every in (0, 7):
+        model = DynamicsModel(IdentityHead(), small_ensemble(seed=2))
+        trainer = ModelTrainer(model, batch_size=32, max_epochs=6, patience=50, curve_every=curve_every)
+        results.append(trainer.train(x, act, y, torch.Generator().manual_seed(0)))
+        states.append(model.state_dict())
+    plain, curved = results
+    assert plain.curve == () and (plain.train_loss, plain.val_loss) == (curved.train_loss, curved.val_loss)
+    assert all(torch.equal(states[0][k], states[1][k]) for k in states[0])
+    steps = [step for step, _ in curved.curve]
+    last = 6 * math.ceil(360 / 32)  # 6 epochs over the 360 training rows (40 held out)
+    assert steps == [*range(0, last, 7), last]
+    assert curved.curve[-1][1] >= curved.val_loss * (1 - 1e-9)  # the restored best is at most the last weights' error
+    assert curved.curve[-1][1] < curved.curve[0][1]
+
+
+def test_curve_every_is_checked() -> None:
+    model = DynamicsModel(IdentityHead(), small_ensemble())
+    with pytest.raises(ValueError, match="curve_every must be an int >= 0"):
+        ModelTrainer(model, curve_every=-1)

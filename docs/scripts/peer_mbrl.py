@@ -145,6 +145,22 @@ def _utc_now() -> str:
 
 
 # ---------------------------------------------------------------------------------------------- mbrl side
+def cem_config(*, population: int, iterations: int, elite_ratio: float, alpha: float) -> dict[str, Any]:
+    """mbrl-lib's action_optimizer/cem config with the given CEM settings (bounds filled in by its agent)."""
+    return {
+        "_target_": "mbrl.planning.CEMOptimizer",
+        "num_iterations": iterations,
+        "elite_ratio": elite_ratio,
+        "population_size": population,
+        "alpha": alpha,
+        "lower_bound": "???",
+        "upper_bound": "???",
+        "return_mean_elites": True,
+        "device": "cpu",
+        "clipped_normal": False,
+    }
+
+
 def mbrl_config(
     *,
     ensemble: int,
@@ -193,18 +209,7 @@ def mbrl_config(
         overrides["obs_process_fn"] = obs_process_fn
     if no_delta_list:
         overrides["no_delta_list"] = no_delta_list
-    cem = {
-        "_target_": "mbrl.planning.CEMOptimizer",
-        "num_iterations": iterations,
-        "elite_ratio": elite_ratio,
-        "population_size": population,
-        "alpha": alpha,
-        "lower_bound": "???",
-        "upper_bound": "???",
-        "return_mean_elites": True,
-        "device": "cpu",
-        "clipped_normal": False,
-    }
+    cem = cem_config(population=population, iterations=iterations, elite_ratio=elite_ratio, alpha=alpha)
     return omegaconf.OmegaConf.create(
         {
             "seed": seed,
@@ -668,6 +673,47 @@ def _child_env() -> dict[str, str]:
     return env
 
 
+def _mbrl_trials(
+    env: str, seed: int, trials: int, settings: dict[str, Any], work: Path
+) -> tuple[float, float, list[dict[str, Any]]]:
+    """One mbrl-lib run in a child process: its wall and CPU seconds and one row per trial."""
+    out = work / f"mbrl-s{seed}.json"
+    cmd = [sys.executable, str(Path(__file__).resolve()), "_mbrl-run", "--env", env, "--seed", str(seed)]
+    wall, cpu = _child([*cmd, "--json", str(out), *_setting_flags(settings)], work / f"mbrl-s{seed}.log")
+    eps = [e for e in json.loads(out.read_text()) if e["phase"] == "trial"]
+    keys = {"episode_reward": "reward", "episode_length": "length", "trial_wall_s": "wall_s", "trial_cpu_s": "cpu_s"}
+    return wall, cpu, [{**{k: e[v] for k, v in keys.items()}, "env_steps": e["env_steps"]} for e in eps]
+
+
+def _project_trials(
+    env: str, seed: int, trials: int, settings: dict[str, Any], work: Path
+) -> tuple[float, float, list[dict[str, Any]]]:
+    """One run of this project's run_pets.py (delta, the fast preset) in a child process, as :func:`_mbrl_trials`."""
+    run_dir = work / f"gem-pets-s{seed}"
+    cmd = [sys.executable, str(ROOT / "run_pets.py"), "--env", env, "--model", "delta", "--preset", "fast"]
+    cmd += ["--seed", str(seed), "--trials", str(trials), "--out", str(run_dir), "--quiet"]
+    if run_dir.exists():
+        raise SystemExit(f"{PROG}: {run_dir} exists; give a fresh --work-dir")
+    wall, cpu = _child([*cmd, *_project_overrides(settings)], work / f"gem-pets-s{seed}.log")
+    with open(run_dir / "metrics.csv", newline="") as f:
+        metrics = list(csv.DictReader(f))
+    prev = 0.0
+    trial_rows = []
+    for r in metrics:
+        cum = float(r["wall_time_s"])
+        trial_rows.append(
+            {
+                "episode_reward": float(r["episode_reward"]),
+                "episode_length": int(r["episode_length"]),
+                "trial_wall_s": cum - prev,
+                "trial_cpu_s": "",
+                "env_steps": int(r["env_steps"]),
+            }
+        )
+        prev = cum
+    return wall, cpu, trial_rows
+
+
 def learn(args: argparse.Namespace) -> int:
     require_mbrl()
     import torch
@@ -690,71 +736,8 @@ def learn(args: argparse.Namespace) -> int:
     for i, seed in enumerate(seeds):
         order = ("mbrl-lib", "gem-pets") if i % 2 == 0 else ("gem-pets", "mbrl-lib")
         for impl in order:
-            if impl == "mbrl-lib":
-                out = work / f"mbrl-s{seed}.json"
-                cmd = [
-                    sys.executable,
-                    str(Path(__file__).resolve()),
-                    "_mbrl-run",
-                    "--env",
-                    spec.name,
-                    "--seed",
-                    str(seed),
-                    "--json",
-                    str(out),
-                    *_setting_flags(settings),
-                ]
-                wall, cpu = _child(cmd, work / f"mbrl-s{seed}.log")
-                eps = [e for e in json.loads(out.read_text()) if e["phase"] == "trial"]
-                trial_rows = [
-                    {
-                        "episode_reward": e["reward"],
-                        "episode_length": e["length"],
-                        "trial_wall_s": e["wall_s"],
-                        "trial_cpu_s": e["cpu_s"],
-                        "env_steps": e["env_steps"],
-                    }
-                    for e in eps
-                ]
-            else:
-                run_dir = work / f"gem-pets-s{seed}"
-                cmd = [
-                    sys.executable,
-                    str(ROOT / "run_pets.py"),
-                    "--env",
-                    spec.name,
-                    "--model",
-                    "delta",
-                    "--preset",
-                    "fast",
-                    "--seed",
-                    str(seed),
-                    "--trials",
-                    str(args.trials),
-                    "--out",
-                    str(run_dir),
-                    "--quiet",
-                    *_project_overrides(settings),
-                ]
-                if run_dir.exists():
-                    raise SystemExit(f"{PROG}: {run_dir} exists; give a fresh --work-dir")
-                wall, cpu = _child(cmd, work / f"gem-pets-s{seed}.log")
-                with open(run_dir / "metrics.csv", newline="") as f:
-                    metrics = list(csv.DictReader(f))
-                prev = 0.0
-                trial_rows = []
-                for r in metrics:
-                    cum = float(r["wall_time_s"])
-                    trial_rows.append(
-                        {
-                            "episode_reward": float(r["episode_reward"]),
-                            "episode_length": int(r["episode_length"]),
-                            "trial_wall_s": cum - prev,
-                            "trial_cpu_s": "",
-                            "env_steps": int(r["env_steps"]),
-                        }
-                    )
-                    prev = cum
+            run = _mbrl_trials if impl == "mbrl-lib" else _project_trials
+            wall, cpu, trial_rows = run(spec.name, seed, args.trials, settings, work)
             run_rows = [
                 {**r, "wall_time_s": sum(t["trial_wall_s"] for t in trial_rows[: j + 1])}
                 for j, r in enumerate(trial_rows)

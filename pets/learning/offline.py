@@ -53,6 +53,12 @@ from pets.runs.fileio import locked
 OFFLINE_DEFAULTS: dict[str, Any] = {"model.max_epochs": 300, "model.patience": 20}
 
 
+#: The learning curve of an offline run with ``model.curve_every`` > 0: the holdout error (mean over the members)
+#: every ``curve_every`` gradient steps of every searched architecture.
+CURVE_FILE = "learning_curve.csv"
+CURVE_COLUMNS = ("hidden_size", "num_layers", "step", "holdout_error")
+
+
 def offline_config(
     env: str,
     head_name: str,
@@ -148,6 +154,7 @@ def train_offline(
         architectures = candidates or [(cfg.model.hidden_size, cfg.model.num_layers)]
         result, model, trainer, search = _search(cfg, spec, dev, architectures, train_set, validation, progress)
         wall = time.perf_counter() - start
+        curve = [(e["hidden_size"], e["num_layers"], step, error) for e in search for step, error in e.pop("curve")]
 
         meta = {
             "data": data_label,
@@ -161,7 +168,7 @@ def train_offline(
             "search": search if candidates else [],
         }
         state, row = _run_state(result, model, trainer, meta, wall)
-        _write_run(out, state, row, cfg)
+        _write_run(out, state, row, cfg, curve)
     return out
 
 
@@ -190,7 +197,9 @@ def _search(
         trainer = builder.make_trainer(cfg, model)
         generator = torch.Generator(device=dev).manual_seed(cfg.seed + 1)
         result = trainer.train(*train_set, generator, progress=progress, validation=validation)
-        search.append({"hidden_size": hidden, "num_layers": layers, "val_error": result.val_loss})
+        search.append(
+            {"hidden_size": hidden, "num_layers": layers, "val_error": result.val_loss, "curve": result.curve}
+        )
         if best is None or result.val_loss < best[0].val_loss:  # NaN (no holdout) keeps the first
             best = (result, model, trainer, hidden, layers)
     result, model, trainer, hidden, layers = best
@@ -228,19 +237,25 @@ def _run_state(
     return state, row
 
 
-def _write_run(out: Path, state: dict[str, Any], row: dict[str, Any], cfg: Any) -> None:
+def _write_run(out: Path, state: dict[str, Any], row: dict[str, Any], cfg: Any, curve: list[tuple]) -> None:
     """Write the run's files, config.yaml last (a directory with config.yaml is a complete run); if a write fails
-    (a full disk) the run's files are removed again and the OSError propagates (the caller holds the lock)."""
+    (a full disk) the run's files are removed again and the OSError propagates (the caller holds the lock).
+    ``curve``: the ``(hidden_size, num_layers, step, holdout_error)`` rows of :data:`CURVE_FILE`."""
     from pets.runs import rundir
+    from pets.runs.fileio import atomic_write_bytes
     from pets.runs.tblog import TRIAL_TAGS, ScalarLog
 
     try:
         rundir.save_checkpoint(out, state)
         rundir.write_metrics(out, [row])
+        if curve:
+            lines = [",".join(CURVE_COLUMNS)] + [f"{h},{n},{step},{error!r}" for h, n, step, error in curve]
+            atomic_write_bytes(out / CURVE_FILE, ("\n".join(lines) + "\n").encode())
         with ScalarLog(out, cfg.tensorboard, purge_step=0) as log:  # the training result at step 0 (pets.runs.tblog)
             log.scalars(row, 0, {k: v for k, v in TRIAL_TAGS.items() if k.startswith("model_") or k == "wall_time_s"})
         rundir.write_config(out, cfg)
     except OSError:
-        for path in [out / rundir.CHECKPOINT_FILE, out / rundir.METRICS_FILE, *out.glob("events.out.tfevents.*")]:
+        written = [out / rundir.CHECKPOINT_FILE, out / rundir.METRICS_FILE, out / CURVE_FILE]
+        for path in [*written, *out.glob("events.out.tfevents.*")]:
             path.unlink(missing_ok=True)
         raise

@@ -32,7 +32,7 @@ import copy
 import math
 import warnings
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 from torch import Tensor
@@ -41,6 +41,7 @@ from tqdm.auto import tqdm
 from dynamics.model import DynamicsModel
 from dynamics.networks import column_mean_std
 from pets.learning.compiled import CompiledStep
+from pets.learning.sampling import bootstrap_indices, split_holdout
 
 
 def obs_change_scale(obs: Tensor, next_obs: Tensor, indices: Tensor) -> Tensor:
@@ -64,6 +65,8 @@ class TrainResult:
     )
     epochs: int  # epochs actually run
     initial_val_loss: float = float("nan")  # the same for the weights this call started from (same members)
+    #: ``(step, holdout error)`` every ``curve_every`` steps, from step 0 to the last (mean over all members)
+    curve: tuple[tuple[int, float], ...] = ()
 
 
 #: Full minibatches gathered per indexing op on the compiled path (bounds the gathered copy's memory).
@@ -78,23 +81,6 @@ def batch_gather(epoch_idx: Tensor, start: int, batch_size: int, tensors: tuple[
     count = min(GATHER_BATCHES, (n - start) // batch_size)
     idx = epoch_idx[:, start : start + count * batch_size].reshape(e, count, batch_size).transpose(0, 1).contiguous()
     return [t[idx] for t in tensors]
-
-
-def bootstrap_indices(n: int, ensemble_size: int, generator: torch.Generator) -> Tensor:
-    """Per-member bootstrap resamples: (ensemble_size, n) indices drawn uniformly with replacement from [0, n)."""
-    if n < 1 or ensemble_size < 1:
-        raise ValueError(f"bootstrap needs n >= 1 and ensemble_size >= 1, got n={n}, ensemble_size={ensemble_size}")
-    return torch.randint(n, (ensemble_size, n), generator=generator, device=generator.device)
-
-
-def split_holdout(n: int, holdout_ratio: float, max_holdout: int, generator: torch.Generator) -> tuple[Tensor, Tensor]:
-    """Random (train, holdout) index split: holdout size min(int(n * ratio), max_holdout), empty if that is 0
-    or would leave no training sample."""
-    n_hold = min(int(n * holdout_ratio), max_holdout)
-    if n_hold < 1 or n - n_hold < 1:
-        n_hold = 0
-    perm = torch.randperm(n, generator=generator, device=generator.device)
-    return perm[n_hold:], perm[:n_hold]
 
 
 class ModelTrainer:
@@ -128,6 +114,7 @@ class ModelTrainer:
         precision: str = "fp32",
         compile: bool = False,
         compile_backend: str | Callable = "inductor",
+        curve_every: int = 0,
     ) -> None:
         if not (math.isfinite(lr) and lr >= 0):
             raise ValueError(f"lr must be a finite number >= 0, got {lr}")
@@ -138,6 +125,7 @@ class ModelTrainer:
             ("max_holdout", max_holdout, 0),
             ("eval_batch_size", eval_batch_size, 1),
             ("iterations", iterations, 0),
+            ("curve_every", curve_every, 0),
         ):
             if not isinstance(value, int) or isinstance(value, bool) or value < low:
                 raise ValueError(f"{name} must be an int >= {low}, got {value!r}")
@@ -169,6 +157,7 @@ class ModelTrainer:
         self.improvement_threshold = improvement_threshold
         self.eval_batch_size = eval_batch_size
         self.iterations = iterations
+        self.curve_every = curve_every
         self.bootstrap = bool(bootstrap)
         #: ``bf16``: training steps under bfloat16 autocast (fp32 weights, optimiser, loss and holdout error).
         self.precision = precision
@@ -313,13 +302,14 @@ class ModelTrainer:
         since_improved = 0
         epochs = steps = 0
         train_loss = float("nan")
+        curve = [(0, float(initial.mean()))] if self.curve_every and has_holdout else None
         bar = tqdm(range(max_epochs), disable=not progress, desc="model", leave=False)
         for _ in bar:
             # Per-member shuffle of the member's bootstrap resample (one argsort for all members).
             rows = model.ensemble_size if self.bootstrap else 1
             order = torch.argsort(torch.rand(rows, n_tr, generator=generator, device=generator.device), dim=1)
             epoch_idx = torch.gather(boot, 1, order.to(ref.device).expand(model.ensemble_size, n_tr))
-            train_loss, steps = self._epoch(epoch_idx, train, bf16, fixed, steps)
+            train_loss, steps = self._epoch(epoch_idx, train, bf16, fixed, steps, curve, holdout)
             epochs += 1
             self._check_finite(train_loss, epochs)
 
@@ -337,7 +327,10 @@ class ModelTrainer:
             if since_improved >= self.patience:
                 break
         bar.close()
-        return self._finish(train, holdout, fixed, snapshot, best, initial, train_loss, epochs)
+        if curve is not None and curve[-1][0] != steps:  # the last step, where the curve's stride missed it
+            curve.append((steps, float(self.evaluate(*holdout).mean())))
+        result = self._finish(train, holdout, fixed, snapshot, best, initial, train_loss, epochs)
+        return result if curve is None else replace(result, curve=tuple(curve))
 
     def _split(
         self,
@@ -368,10 +361,18 @@ class ModelTrainer:
         return (x_tr, y_tr, o_tr, no_tr), (x_ho, o_ho, no_ho)
 
     def _epoch(
-        self, epoch_idx: Tensor, train: tuple[Tensor, Tensor, Tensor, Tensor], bf16: bool, fixed: bool, steps: int
+        self,
+        epoch_idx: Tensor,
+        train: tuple[Tensor, Tensor, Tensor, Tensor],
+        bf16: bool,
+        fixed: bool,
+        steps: int,
+        curve: list[tuple[int, float]] | None = None,
+        holdout: tuple[Tensor, Tensor, Tensor] | None = None,
     ) -> tuple[float, int]:
         """One pass over the (E, n) per-member indices ``epoch_idx`` into ``train`` in minibatches (with ``fixed``,
-        up to ``iterations`` steps in all): the mean training loss and the steps done so far."""
+        up to ``iterations`` steps in all): the mean training loss and the steps done so far. ``curve``: appends
+        the holdout error every ``curve_every`` steps."""
         model = self.model
         x_tr, y_tr, o_tr, no_tr = train
         n_tr = x_tr.shape[0]
@@ -401,6 +402,8 @@ class ModelTrainer:
             loss_sum = loss_sum + mean_loss * idx.shape[1]
             seen += idx.shape[1]
             steps += 1
+            if curve is not None and steps % self.curve_every == 0:
+                curve.append((steps, float(self.evaluate(*holdout).mean())))
         return float(loss_sum) / seen, steps
 
     def _finish(
