@@ -34,3 +34,12 @@ def cpu_seconds(pid: int) -> float:
     except OSError:
         return 0.0
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def default_sigint() -> None:
+    """``preexec_fn`` of a child that a test interrupts: SIGINT back to its default, so the child's Python installs its
+    KeyboardInterrupt handler even where the test process ignores SIGINT (an ignored signal is inherited through
+    exec; libraries such as Ray change the test process's handlers)."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_DFL)

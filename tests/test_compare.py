@@ -36,7 +36,7 @@ from pets.experiments.online_summary import summarise_online
 from pets.experiments.report import fmt, fmt_interval
 from pets.experiments.statistics import REPS
 from pets.runs import rundir
-from tests.processes import alive
+from tests.processes import alive, default_sigint
 from tests.threads import one_thread
 from tests.tiny import TINY_MODEL, TINY_PLANNER
 
@@ -1187,7 +1187,11 @@ def test_a_stopped_sweep_starts_no_more_jobs_and_leaves_no_process_running(tmp_p
     (tmp_path / "sweep.py").write_text(_SWEEP)
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), str(runner.ROOT)])}
     proc = subprocess.Popen(
-        [sys.executable, str(tmp_path / "sweep.py"), kind, str(tmp_path)], stdout=subprocess.PIPE, text=True, env=env
+        [sys.executable, str(tmp_path / "sweep.py"), kind, str(tmp_path)],
+        stdout=subprocess.PIPE,
+        text=True,
+        env=env,
+        preexec_fn=default_sigint,
     )
     try:
         deadline = time.monotonic() + 120

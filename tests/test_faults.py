@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.processes import cpu_seconds
+from tests.processes import cpu_seconds, default_sigint
 from tests.test_cli import ROOT, TINY, cli, error_lines, rows
 
 #: The run the kill -9, full-disk and read-only tests interrupt: 6 short trials (a few seconds).
@@ -222,7 +222,9 @@ def _interrupt(argv: list[str], under_way, timeout: float = 600.0) -> subprocess
     """Run ``python -m ARGV``, send it SIGINT once ``under_way(pid)`` says its work has begun, return its result.
     The child is killed on any failure, so a failing test never leaves it running (on a loaded machine its CPU
     time grows slowly: the wait is long, and a child that never got under way fails the test, uninterrupted)."""
-    proc = subprocess.Popen([sys.executable, "-m", *argv], cwd=ROOT, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", *argv], cwd=ROOT, stderr=subprocess.PIPE, text=True, preexec_fn=default_sigint
+    )
     try:
         deadline = time.monotonic() + timeout
         while not under_way(proc.pid) and proc.poll() is None and time.monotonic() < deadline:
