@@ -19,9 +19,11 @@ from __future__ import annotations
 
 import argparse
 import functools
+import json
 import sys
 from collections.abc import Callable
-from typing import NoReturn
+from pathlib import Path
+from typing import Any, NoReturn
 
 #: Exit status of every command on bad input (as run_pets.py).
 EXIT_USAGE = 2
@@ -56,6 +58,17 @@ def fail(prog: str, message: str, code: int = EXIT_USAGE) -> NoReturn:
 def write_failed(prog: str, err: OSError, advice: str) -> NoReturn:
     """Exit :data:`EXIT_FAILED` with one line naming the file whose write failed, why, and ``advice``."""
     fail(prog, f"writing {err.filename or 'a file'} failed ({err.strerror or err}); {advice}", EXIT_FAILED)
+
+
+def write_json_result(prog: str, path: Path, result: Any) -> None:
+    """Write ``result`` as indented JSON to ``path`` atomically; a failed write (a full disk) exits with
+    :func:`write_failed`, saying that the results were printed."""
+    from pets.runs.fileio import atomic_write_bytes
+
+    try:
+        atomic_write_bytes(path, (json.dumps(result, indent=1) + "\n").encode())
+    except OSError as err:  # a full disk: the temporary file is removed
+        write_failed(prog, err, "the results are printed above; free space or pick another --json")
 
 
 def interruptible(prog: str, kept: str) -> Callable[[Callable[..., int]], Callable[..., int]]:

@@ -9,7 +9,6 @@ What it does, and what it writes: :mod:`pets.learning.evaluation`.
 
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 
@@ -24,8 +23,8 @@ from pets.learning.evaluation import (
     parse_horizons,
     write_events,
 )
-from pets.runs.fileio import atomic_write_bytes, writable_dir_error
-from pets.tools.cli import OneLineParser, fail
+from pets.runs.fileio import writable_dir_error
+from pets.tools.cli import OneLineParser, fail, write_json_result
 
 
 def build_parser() -> OneLineParser:
@@ -92,12 +91,7 @@ def main(argv: list[str] | None = None) -> int:
     result = evaluate_loaded(inputs, args.seed)
     print(format_table(result))
     if args.json is not None:
-        from pets.tools.cli import write_failed
-
-        try:
-            atomic_write_bytes(args.json, (json.dumps(result, indent=1) + "\n").encode())
-        except OSError as err:  # a full disk: the temporary file is removed
-            write_failed(PROG, err, "the results are printed above; free space or pick another --json")
+        write_json_result(PROG, args.json, result)
     if args.tensorboard:
         write_events(args.run, args.data, result)
     return 0

@@ -9,7 +9,6 @@ What it does, and what it writes: :mod:`pets.planning.openloop`.
 
 from __future__ import annotations
 
-import json
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -22,8 +21,8 @@ from pets.planning.openloop import (
     open_loop,
     planning_config,
 )
-from pets.runs.fileio import atomic_write_bytes, writable_dir_error
-from pets.tools.cli import EXIT_FAILED, OneLineParser, fail
+from pets.runs.fileio import writable_dir_error
+from pets.tools.cli import EXIT_FAILED, OneLineParser, fail, write_json_result
 
 PROG = "pets.openloop"
 
@@ -124,12 +123,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         fail(PROG, f"{args.run}: {err}", EXIT_FAILED)
     print(format_table(result))
     if args.json is not None:
-        from pets.tools.cli import write_failed
-
-        try:
-            atomic_write_bytes(args.json, (json.dumps(result, indent=1) + "\n").encode())
-        except OSError as err:  # a full disk: the temporary file is removed
-            write_failed(PROG, err, "the results are printed above; free space or pick another --json")
+        write_json_result(PROG, args.json, result)
     return 0
 
 
