@@ -11,6 +11,7 @@ from its start with the RNG states it began with, so a resumed run matches an un
 from __future__ import annotations
 
 import itertools
+import math
 import random
 import sys
 import time
@@ -106,6 +107,7 @@ class PETSRun:
         self.trials_done = 0
         self.env_steps = 0
         self.wall_time_s = 0.0
+        self.cpu_time_s = 0.0
         self.last_train: TrainResult | None = None
         self.recorder = EpisodeRecorder(self.spec, self.env) if cfg.video_every else None
         #: Set by :func:`run`: the one-line estimate of a long run from its first planning steps (pets.planning.cost).
@@ -114,6 +116,8 @@ class PETSRun:
     # --- state -----------------------------------------------------------------------------
     #: The run's progress, kept in the checkpoint as plain values (the parts below have state dicts).
     PROGRESS = ("trials_done", "env_steps", "wall_time_s", "rows")
+    #: Progress added later, with its value for a checkpoint written before it (NaN: not known).
+    LATER_PROGRESS = {"cpu_time_s": math.nan}
 
     def parts(self) -> dict[str, Stateful]:
         """Every stateful part of the run by its checkpoint key, in loading order (the model before the trainer,
@@ -139,7 +143,7 @@ class PETSRun:
 
     def state_dict(self) -> dict[str, Any]:
         """The checkpoint: the config, the progress and every part's state dict."""
-        progress = {key: getattr(self, key) for key in self.PROGRESS}
+        progress = {key: getattr(self, key) for key in (*self.PROGRESS, *self.LATER_PROGRESS)}
         parts = {key: part.state_dict() for key, part in self.parts().items()}
         return {"config": OmegaConf.to_container(self.cfg), **progress, **parts}
 
@@ -148,6 +152,8 @@ class PETSRun:
         the keys are the same); ConfigError for a checkpoint of an older format or a mismatched model."""
         for key in self.PROGRESS:  # a KeyError first: not a run's checkpoint at all
             setattr(self, key, state[key])
+        for key, unknown in self.LATER_PROGRESS.items():
+            setattr(self, key, state.get(key, unknown))
         if "model" not in state:
             rundir.load_model_state(self.model, state)  # a run's checkpoint of an older format: says so
         for key, part in self.parts().items():
@@ -202,7 +208,7 @@ class PETSRun:
 
     def run_trial(self, progress: bool = True) -> dict[str, Any]:
         """Collect one episode with the MPC agent, then train the model on all data so far."""
-        trial, start = self.trials_done, time.perf_counter()
+        trial, start, start_cpu = self.trials_done, time.perf_counter(), time.process_time()
         if trial == 0 and len(self.buffer) == 0:
             self.collect_seed_data()
         random_policy = len(self.buffer) == 0  # seed_steps=0: the first trial explores at random
@@ -250,6 +256,7 @@ class PETSRun:
         self.env_steps += length
         self.trials_done += 1
         self.wall_time_s += time.perf_counter() - start
+        self.cpu_time_s += time.process_time() - start_cpu
         lt = self.last_train
         row = {
             "trial": trial,
@@ -262,6 +269,7 @@ class PETSRun:
             "model_epochs": lt.epochs,
             "plan_seconds_per_step": 0.0 if random_policy else self.mpc_policy.seconds / length,
             "wall_time_s": round(self.wall_time_s, 3),
+            "cpu_time_s": round(self.cpu_time_s, 3),
         }
         self.rows.append(row)
         return row

@@ -63,8 +63,11 @@ def test_smoke_two_trials_invertedpendulum(tmp_path):
         "model_train_loss",
         "model_val_loss",
         "wall_time_s",
+        "cpu_time_s",
     ):
         assert col in metrics[0]
+    cpu = [float(r["cpu_time_s"]) for r in metrics]
+    assert 0 < cpu[0] < cpu[1]  # the process's CPU seconds, cumulative like wall_time_s
     seed_steps = 100
     assert int(metrics[0]["env_steps"]) == seed_steps + int(metrics[0]["episode_length"])
     assert int(metrics[1]["env_steps"]) == int(metrics[0]["env_steps"]) + int(metrics[1]["episode_length"])

@@ -255,12 +255,17 @@ def fake_rewards(model, seed, planner=None):
     return [10.0 * t + (1.0 + 0.5 * (model == "gem")) * seed + bonus for t in range(FAKE_TRIALS)]
 
 
-def fake_run(out, env, model, seed, rewards, planner=None):
-    """A run directory with only a metrics.csv of ``len(rewards)`` trials."""
+def fake_run(out, env, model, seed, rewards, planner=None, cpu=False):
+    """A run directory with only a metrics.csv of ``len(rewards)`` trials (``cpu``: with the ``cpu_time_s`` column,
+    5 (t + 1) + seed; without it, a run made before the column)."""
     run = out / "runs" / (f"{env}-{model}-s{seed}" if planner is None else f"{env}-{model}-{planner}-s{seed}")
     run.mkdir(parents=True)
-    lines = ["trial,env_steps,episode_reward,wall_time_s,plan_seconds_per_step"]
-    lines += [f"{t},{100 * (t + 1)},{r!r},{10.0 * (t + 1) + seed},{0.1 if t else 0.0}" for t, r in enumerate(rewards)]
+    lines = ["trial,env_steps,episode_reward,wall_time_s,plan_seconds_per_step" + (",cpu_time_s" if cpu else "")]
+    lines += [
+        f"{t},{100 * (t + 1)},{r!r},{10.0 * (t + 1) + seed},{0.1 if t else 0.0}"
+        + (f",{5 * (t + 1) + seed}" if cpu else "")
+        for t, r in enumerate(rewards)
+    ]
     (run / "metrics.csv").write_text("\n".join(lines) + "\n")
 
 
@@ -449,7 +454,7 @@ def test_online_time_to_threshold_counts_runs_that_never_reach_it(tmp_path):
     assert THRESHOLDS["invertedpendulum"] == 1000 and THRESHOLDS["reacher"] == -5 and "halfcheetah" in THRESHOLDS
     for model in ("delta", "gem"):
         for seed in range(5):
-            fake_run(tmp_path, "reacher", model, seed, fake_rewards(model, seed))
+            fake_run(tmp_path, "reacher", model, seed, fake_rewards(model, seed), cpu=True)
             fake_run(tmp_path, "hopper", model, seed, fake_rewards(model, seed))
     # delta: 10 t + seed reaches 22 in trial 2 for seeds 2-4, trial 3 for seeds 0-1; gem (23 + 1.5 seed) in trial 2
     summarise_online(
@@ -462,14 +467,20 @@ def test_online_time_to_threshold_counts_runs_that_never_reach_it(tmp_path):
         r = runs["reacher", "delta", str(s)]
         assert float(r["minutes_to_threshold"]) == (10.0 * (t + 1) + s) / 60
         assert float(r["steps_to_threshold"]) == 100 * (t + 1)
+        assert float(r["cpu_minutes_to_threshold"]) == (5.0 * (t + 1) + s) / 60
         assert runs["hopper", "delta", str(s)]["minutes_to_threshold"] == ""  # never reached: no number
+        assert runs["hopper", "delta", str(s)]["cpu_time_s"] == ""  # a run made before the CPU column
     r = online_row(tmp_path, "reacher", "delta")
     assert (r["threshold"], r["n_reached"]) == ("22.0", "5")
-    times = np.array([[(10.0 * (t + 1) + s) / 60, 100.0 * (t + 1)] for s, t in expected.items()])
+    times = np.array(
+        [[(10.0 * (t + 1) + s) / 60, 100.0 * (t + 1), (5.0 * (t + 1) + s) / 60] for s, t in expected.items()]
+    )
     np.random.seed(0)
     point, interval = library.get_interval_estimates({"x": times}, rliable_iqm_columns, reps=200)
-    assert [float(r[k]) for k in ("minutes_to_threshold_iqm", "steps_to_threshold_iqm")] == list(point["x"])
-    assert [float(r[k]) for k in ("minutes_to_threshold_ci_low", "steps_to_threshold_ci_low")] == list(interval["x"][0])
+    keys = ("minutes_to_threshold", "steps_to_threshold", "cpu_minutes_to_threshold")
+    assert [float(r[f"{k}_iqm"]) for k in keys] == list(point["x"])
+    assert [float(r[f"{k}_ci_low"]) for k in keys] == list(interval["x"][0])
+    assert float(r["cpu_time_s_mean"]) == np.mean([5.0 * FAKE_TRIALS + s for s in range(5)])
     r = online_row(tmp_path, "hopper", "gem")  # nobody reached 1000: counted, no IQM
     assert (r["n_seeds"], r["n_reached"], r["minutes_to_threshold_iqm"], r["steps_to_threshold_ci_high"]) == (
         "5",
@@ -487,16 +498,19 @@ def test_online_time_to_threshold_counts_runs_that_never_reach_it(tmp_path):
     assert expected_p > 0.5 and online_row(tmp_path, "reacher", "delta")["p_fewer_steps"] == ""
     assert float(online_row(tmp_path, "hopper", "gem")["p_fewer_steps"]) == 0.5  # neither reached it: ties
     md = (tmp_path / "summary.md").read_text()
-    assert "| reached 22 | minutes to it | env steps to it | P(fewer steps than delta) |" in md
-    assert "| 0/5 | - | - | 0.5 [" in md
+    assert "| reached 22 | minutes to it | env steps to it | CPU minutes to it | P(fewer steps than delta) |" in md
+    assert "| 0/5 | - | - | - | 0.5 [" in md
     assert "| 5/5 | " + fmt_interval(*(float(r2) for r2 in times_iqm(online_row(tmp_path, "reacher", "delta")))) in md
     # the function itself: the first trial at or above, NaN without one or without a threshold
     rewards = [1, 5, 3, 7]
     rows = [
-        {"episode_reward": v, "wall_time_s": 60.0 * (i + 1), "env_steps": 10 * (i + 1)} for i, v in enumerate(rewards)
+        {"episode_reward": v, "wall_time_s": 60.0 * (i + 1), "env_steps": 10 * (i + 1), "cpu_time_s": 30.0 * (i + 1)}
+        for i, v in enumerate(rewards)
     ]
-    assert time_to_threshold(rows, 5.0) == (2.0, 20.0)
-    assert all(math.isnan(x) for x in (*time_to_threshold(rows, 8.0), *time_to_threshold(rows, None)))
+    expected = {"minutes_to_threshold": 2.0, "steps_to_threshold": 20.0, "cpu_minutes_to_threshold": 1.0}
+    assert time_to_threshold(rows, 5.0) == expected
+    for never in (time_to_threshold(rows, 8.0), time_to_threshold(rows, None)):
+        assert list(never) == list(expected) and all(math.isnan(x) for x in never.values())
 
 
 def times_iqm(row):

@@ -4,6 +4,7 @@ checkpoints, two runs on one directory, unwritable and full output locations, ki
 Each test asserts the exit code, the one-line message and that no completed trial is lost."""
 
 import functools
+import math
 import os
 import random
 import shlex
@@ -17,13 +18,14 @@ from pathlib import Path
 
 import pytest
 
+from pets.runs import rundir
 from tests.processes import cpu_seconds, default_sigint
 from tests.test_cli import ROOT, TINY, cli, error_lines, rows
 
 #: The run the kill -9, full-disk and read-only tests interrupt: 6 short trials (a few seconds).
 RUN_ARGS = ["--env", "invertedpendulum", "--trials", "6", "--seed", "7", *TINY]
 #: Columns that measure time, not what the run computed.
-TIMING = ("wall_time_s", "plan_seconds_per_step")
+TIMING = rundir.TIMING_COLUMNS
 
 
 def computed(run_dir: Path) -> list[dict[str, str]]:
@@ -727,7 +729,8 @@ def test_the_checkpoint_keeps_the_keys_of_before_the_parts_protocol_and_round_tr
             return a.keys() == b.keys() and all(same(a[k], b[k]) for k in a)
         return bool((a == b).all()) if hasattr(a, "all") else a == b
 
-    keys = "config trials_done env_steps wall_time_s rows model trainer buffer train_gen plan_gen np_rng torch_rng"
+    keys = "config trials_done env_steps wall_time_s rows cpu_time_s model trainer buffer train_gen plan_gen np_rng"
+    keys += " torch_rng"
     keys = keys.split() + ["last_train"]
     for env, extra in (("invertedpendulum", ["value", "value_gen"]), ("inverteddoublependulum", ["feedback"])):
         cfg = make_config(env, preset="fast", overrides={"threads": 1, "model.hidden_size": 8})
@@ -739,3 +742,21 @@ def test_the_checkpoint_keeps_the_keys_of_before_the_parts_protocol_and_round_tr
         other = loop.PETSRun(cfg)
         other.load_state_dict(state)
         assert same(other.state_dict(), state) and other.rows == run.rows
+    del state["cpu_time_s"]  # a checkpoint written before the column: its CPU seconds are not known
+    other.load_state_dict(state)
+    assert math.isnan(other.cpu_time_s) and other.wall_time_s == run.wall_time_s
+
+
+def test_metrics_written_before_the_cpu_column_read_back_with_nan(tmp_path) -> None:
+    """A run resumed from a checkpoint of before ``cpu_time_s``: its old rows have no such key, written as nan (a
+    float the readers parse), and the online statistics give no CPU minutes for it instead of failing."""
+    from pets.experiments.online_runs import online_run_stats
+
+    old = {"trial": 0, "env_steps": 10, "episode_reward": 5.0, "episode_length": 10, "wall_time_s": 3.0}
+    new = {**old, "trial": 1, "env_steps": 20, "wall_time_s": 6.0, "cpu_time_s": math.nan}
+    rundir.write_metrics(tmp_path, [old, new])
+    read = rundir.read_metrics(tmp_path / rundir.METRICS_FILE)
+    assert [math.isnan(r["cpu_time_s"]) for r in read] == [True, True] and read[1]["wall_time_s"] == 6.0
+    stats = online_run_stats(read, 2, 1, threshold=4.0)
+    assert stats["minutes_to_threshold"] == 3.0 / 60 and math.isnan(stats["cpu_minutes_to_threshold"])
+    assert math.isnan(stats["cpu_time_s"])

@@ -28,7 +28,7 @@ from tests.processes import alive, children
 from tests.test_compare import OFFLINE_ARGS, TINY
 
 #: Wall-clock columns: the only ones that may differ between two runs with the same seed.
-CLOCK = {"plan_seconds_per_step", "wall_time_s"}
+CLOCK = set(rundir.TIMING_COLUMNS)
 ONLINE = ["online", "--envs", "invertedpendulum", "--models", "delta,gem", "--seeds", "0,1", "--trials", 2]
 ONLINE += ["--preset", "fast", "--quiet", *TINY]
 OFFLINE = [a for a in OFFLINE_ARGS if a not in ("--openloop",)]

@@ -14,6 +14,7 @@ import imageio.v3 as iio
 import pytest
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
+from pets.runs import rundir
 from pets.runs.tblog import TRIAL_TAGS
 from tests.test_cli import ROOT, TINY, cli, error_lines
 
@@ -40,7 +41,7 @@ def test_one_trial_with_video_1_writes_an_mp4_of_the_episode(tmp_path):
     assert frames.std() > 5 and abs(frames[0].astype(int) - frames[-1]).mean() > 1  # not blank; it moves
     assert "video_every: 1" in (out / "config.yaml").read_text()
     cli("--env", "halfcheetah", "--trials", 1, "--out", plain, *TINY)  # filming changes nothing in the run
-    timing = ("plan_seconds_per_step", "wall_time_s")
+    timing = rundir.TIMING_COLUMNS
     assert [{k: v for k, v in r.items() if k not in timing} for r in rows(out)] == [
         {k: v for k, v in r.items() if k not in timing} for r in rows(plain)
     ]

@@ -24,9 +24,9 @@ THRESHOLDS: dict[str, float] = {
     "ant": 500.0,
 }
 #: The time-to-threshold columns of a run (:func:`time_to_threshold`).
-THRESHOLD_KEYS = ("minutes_to_threshold", "steps_to_threshold")
+THRESHOLD_KEYS = ("minutes_to_threshold", "steps_to_threshold", "cpu_minutes_to_threshold")
 #: Cost columns of a run: their mean over the complete runs of an arm (``KEY_mean``).
-COST_KEYS = ("env_steps", "wall_time_s", "plan_seconds_per_step")
+COST_KEYS = ("env_steps", "wall_time_s", "cpu_time_s", "plan_seconds_per_step")
 
 
 def online_rows(run_dir: Path) -> list[dict[str, float]]:
@@ -46,15 +46,16 @@ def reward_divergence(rows: Sequence[Mapping[str, float]]) -> str | None:
     return None
 
 
-def time_to_threshold(rows: Sequence[Mapping[str, float]], threshold: float | None) -> tuple[float, float]:
-    """``(minutes, env steps)`` at the end of the first trial whose episode reward is >= ``threshold``
-    (``wall_time_s`` / 60 and ``env_steps`` of that row); NaN for both when no trial reaches it or there is no
-    threshold."""
+def time_to_threshold(rows: Sequence[Mapping[str, float]], threshold: float | None) -> dict[str, float]:
+    """{:data:`THRESHOLD_KEYS`: value} at the end of the first trial whose episode reward is >= ``threshold``:
+    ``wall_time_s`` / 60, ``env_steps`` and ``cpu_time_s`` / 60 of that row (NaN for a run without the CPU
+    column); NaN for all when no trial reaches it or there is no threshold."""
     if threshold is not None:
         for r in rows:
             if float(r["episode_reward"]) >= threshold:
-                return float(r["wall_time_s"]) / 60.0, float(r["env_steps"])
-    return math.nan, math.nan
+                cpu = float(r.get("cpu_time_s", math.nan))
+                return dict(zip(THRESHOLD_KEYS, (float(r["wall_time_s"]) / 60.0, float(r["env_steps"]), cpu / 60.0)))
+    return dict.fromkeys(THRESHOLD_KEYS, math.nan)
 
 
 def online_run_stats(
@@ -62,11 +63,12 @@ def online_run_stats(
 ) -> dict[str, Any]:
     """Per-run numbers from the first ``trials`` metrics rows: diverged (:func:`reward_divergence`: None or
     why), final (mean of the last ``final_window`` episode rewards), auc (mean episode reward over all
-    trials), minutes_to_threshold and steps_to_threshold (:func:`time_to_threshold`), env_steps,
-    wall_time_s (the run's wall-clock seconds: planning, simulation and model training) and
+    trials), the :data:`THRESHOLD_KEYS` (:func:`time_to_threshold`), env_steps, wall_time_s (the run's
+    wall-clock seconds: planning, simulation and model training), cpu_time_s (its process CPU seconds; NaN for a
+    run without the column) and
     plan_seconds_per_step (median over the planned trials; 0 if every trial was random)."""
     use = list(rows)[:trials]
-    minutes, steps = time_to_threshold(use, threshold)
+    to_threshold = time_to_threshold(use, threshold)
     rewards = np.array([r["episode_reward"] for r in use], dtype=np.float64)
     w = min(final_window, len(use))
     planned = [r["plan_seconds_per_step"] for r in use if r.get("plan_seconds_per_step", 0.0) > 0]
@@ -76,9 +78,9 @@ def online_run_stats(
         "diverged": reward_divergence(use),
         "final_reward": final,
         "auc": auc,
-        "minutes_to_threshold": minutes,
-        "steps_to_threshold": steps,
+        **to_threshold,
         "env_steps": float(use[-1]["env_steps"]),
         "wall_time_s": float(use[-1]["wall_time_s"]),
+        "cpu_time_s": float(use[-1].get("cpu_time_s", math.nan)),
         "plan_seconds_per_step": float(np.median(planned)) if planned else 0.0,
     }

@@ -12,11 +12,12 @@ Holm's adjustment of those p-values over every arm-vs-baseline test of the summa
 are counted (``n_diverged``), never averaged in; the cost columns are means over all complete runs.
 
 Time to threshold (:data:`THRESHOLDS`, per env): the wall-clock minutes (``wall_time_s`` of the first trial
-whose episode reward reaches the threshold, i.e. at the end of that trial, its model training included) and the
-env steps until then. Per arm over the runs that did not diverge: ``n_reached`` of ``n_seeds`` reached it
-(counted), and the IQM [CI] of minutes and env steps over the runs that reached it (never averaged with the
-ones that did not). Against the baseline, ``p_fewer_steps``: P(the arm needs fewer env steps to the threshold than
-the baseline) with its CI, a run that never reached it (or diverged) counting as the most steps.
+whose episode reward reaches the threshold, i.e. at the end of that trial, its model training included), the
+env steps and the process CPU minutes (``cpu_time_s``; empty for runs made before the column) until then. Per
+arm over the runs that did not diverge: ``n_reached`` of ``n_seeds`` reached it (counted), and the IQM [CI] of
+each over the runs that reached it (never averaged with the ones that did not). Against the baseline,
+``p_fewer_steps``: P(the arm needs fewer env steps to the threshold than the baseline) with its CI, a run that
+never reached it (or diverged) counting as the most steps.
 
 Files: ``summary.md``, ``summary.csv`` (per env and arm, :data:`SUMMARY_COLUMNS`; the baseline columns
 empty for the baseline itself and where it has no run), ``summary_runs.csv`` (per run, with
@@ -46,6 +47,7 @@ from pets.experiments.statistics import (
     SMALL_SAMPLE_NOTE,
     holm,
     iqm_ci,
+    iqm_ci_finite,
     p_improvement_ci,
     paired_differences,
     sign_flip_p,
@@ -134,7 +136,7 @@ def arm_statistics(
         s["n_reached"] = len(reached)
         if reached:  # the runs that never reached it are counted (n_reached of n_seeds), not averaged in
             times = np.array([[r[k] for k in THRESHOLD_KEYS] for r in reached])
-            iqm, low, high = iqm_ci(times, reps=reps, seed=seed)
+            iqm, low, high = iqm_ci_finite(times, reps=reps, seed=seed)  # CPU minutes: NaN in runs without them
             for j, key in enumerate(THRESHOLD_KEYS):
                 s.update({f"{key}_iqm": iqm[j], f"{key}_ci_low": low[j], f"{key}_ci_high": high[j]})
         s.update({f"{k}_mean": float(np.mean([r[k] for r in rs])) for k in COST_KEYS})
@@ -277,7 +279,8 @@ def _env_runs(
             s = {"seed": seed, **online_run_stats(rows, trials, final_window, thresholds.get(env))}
             found["per_run"].append({"env": env, "model": model, "planner": planner or "", "trials": trials, **s})
             found["per_run"][-1]["diverged"] = s["diverged"] or ""
-            found["per_run"][-1].update({k: "" for k in THRESHOLD_KEYS if not math.isfinite(s[k])})  # never reached
+            unknown = (*THRESHOLD_KEYS, "cpu_time_s")  # never reached; a run without the CPU column
+            found["per_run"][-1].update({k: "" for k in unknown if not math.isfinite(s[k])})
             runs.setdefault(label, []).append(s)
             found["included"].append(out / "runs" / name)
             curves.setdefault(label, [])
@@ -342,11 +345,12 @@ def _header(trials: int, w: int, compared: bool, with_planner: bool, until_thres
         )
         + " A run with a non-finite episode reward is diverged: counted, left out of the IQMs, CIs and "
         "differences, and the worst final reward in P. Plan s/step: median seconds per planning step of "
-        "a run; wall h: the run's wall-clock hours (planning, simulation, model training); both the mean "
-        "over the complete runs, diverged ones included. To threshold: how many of the runs that did not "
-        "diverge reached the env's reward threshold, and over those that did the IQM [CI] of the wall-clock "
-        "minutes and env steps until the end of the first trial that reached it (the others counted, not "
-        "averaged in).",
+        "a run; wall h: the run's wall-clock hours (planning, simulation, model training); CPU h: its process "
+        "CPU hours (what other jobs on the machine do not inflate; - for runs made before the column existed); "
+        "each the mean over the complete runs, diverged ones included. To threshold: how many of the runs that "
+        "did not diverge reached the env's reward threshold, and over those that did the IQM [CI] of the "
+        "wall-clock minutes, env steps and process CPU minutes until the end of the first trial that reached it "
+        "(the others counted, not averaged in).",
         "",
     ]
 
@@ -374,9 +378,9 @@ def _env_section(
         header += [f"P(final > {BASELINE}'s)", f"final - {BASELINE}", "pairs", "p (sign-flip)", "p (Holm)"]
     threshold = rows[0]["threshold"] if rows else None
     if threshold is not None:
-        header += [f"reached {threshold:g}", "minutes to it", "env steps to it"]
+        header += [f"reached {threshold:g}", "minutes to it", "env steps to it", "CPU minutes to it"]
         header += [f"P(fewer steps than {BASELINE})"] if compared else []
-    header += ["env steps", "plan s/step", "wall h"]
+    header += ["env steps", "plan s/step", "wall h", "CPU h"]
     table = []
     for r in rows:
         none = "all diverged" if r["n_seeds"] == 0 else "n/a"
@@ -404,6 +408,7 @@ def _env_section(
             f"{r['env_steps_mean']:.0f}",
             fmt(r["plan_seconds_per_step_mean"], 3),
             fmt(r["wall_time_s_mean"] / 3600, 3),
+            "-" if r["cpu_time_s_mean"] is None else fmt(r["cpu_time_s_mean"] / 3600, 3),
         ]
         table.append(cells)
     small = any(r["n_seeds"] < MIN_SEEDS for r in rows)

@@ -15,7 +15,7 @@ The run directory has the format of ``run_pets.py`` (:mod:`pets.runs.rundir`), s
   ``env_steps`` = 0, ``wall_time_s``, ``rows``, ``last_train`` (the ``TrainResult``) and ``offline``
   (data file, episodes, transitions, the data set's policy and seed);
 - ``metrics.csv``: one row with ``model_train_loss``, ``model_val_loss``, ``model_val_loss_initial``, ``model_epochs``,
-  ``wall_time_s`` and ``env_steps`` (= transitions trained on); NaN in the other columns;
+  ``wall_time_s``, ``cpu_time_s`` and ``env_steps`` (= transitions trained on); NaN in the other columns;
 - TensorBoard events (config key ``tensorboard``, :mod:`pets.runs.tblog`): the same ``model/*`` and ``time/wall_time_s``
   scalars at step 0.
 
@@ -150,10 +150,10 @@ def train_offline(
 
         train_set = tensors(train_idx)
         validation = tensors(val_idx) if len(val_idx) else None
-        start = time.perf_counter()
+        start, start_cpu = time.perf_counter(), time.process_time()
         architectures = candidates or [(cfg.model.hidden_size, cfg.model.num_layers)]
         result, model, trainer, search = _search(cfg, spec, dev, architectures, train_set, validation, progress)
-        wall = time.perf_counter() - start
+        wall, cpu = time.perf_counter() - start, time.process_time() - start_cpu
         curve = [(e["hidden_size"], e["num_layers"], step, error) for e in search for step, error in e.pop("curve")]
 
         meta = {
@@ -167,7 +167,7 @@ def train_offline(
             "validation_transitions": int(len(val_idx)),
             "search": search if candidates else [],
         }
-        state, row = _run_state(result, model, trainer, meta, wall)
+        state, row = _run_state(result, model, trainer, meta, wall, cpu)
         _write_run(out, state, row, cfg, curve)
     return out
 
@@ -208,7 +208,7 @@ def _search(
 
 
 def _run_state(
-    result: Any, model: Any, trainer: Any, meta: dict[str, Any], wall: float
+    result: Any, model: Any, trainer: Any, meta: dict[str, Any], wall: float, cpu: float
 ) -> tuple[dict[str, Any], dict[str, Any]]:
     """The checkpoint state of an offline run and its one metrics row (the online columns without a trial)."""
     nan = float("nan")
@@ -223,11 +223,13 @@ def _run_state(
         "model_epochs": result.epochs,
         "plan_seconds_per_step": nan,
         "wall_time_s": round(wall, 3),
+        "cpu_time_s": round(cpu, 3),
     }
     state = {
         "trials_done": 0,
         "env_steps": 0,
         "wall_time_s": round(wall, 3),
+        "cpu_time_s": round(cpu, 3),
         "rows": [row],
         "model": model.state_dict(),
         "trainer": trainer.state_dict(),

@@ -44,7 +44,13 @@ METRIC_COLUMNS = [
     "model_epochs",
     "plan_seconds_per_step",
     "wall_time_s",
+    "cpu_time_s",
 ]
+#: The columns of metrics.csv that measure time, not what the run did: a resumed or repeated run with the same seed
+#: repeats every other column. ``cpu_time_s``: the run's process CPU seconds (all its threads; not the compile
+#: workers inductor starts as other processes), cumulative like ``wall_time_s``; NaN for a run resumed from a
+#: checkpoint written before the column existed.
+TIMING_COLUMNS = ("plan_seconds_per_step", "wall_time_s", "cpu_time_s")
 
 
 def write_config(run_dir: Path, cfg: DictConfig) -> None:
@@ -54,7 +60,7 @@ def write_config(run_dir: Path, cfg: DictConfig) -> None:
 def write_metrics(run_dir: Path, rows: list[dict[str, Any]]) -> None:
     """Rewrite metrics.csv from the full list of rows (one per completed trial; never duplicates)."""
     buf = io.StringIO()
-    writer = csv.DictWriter(buf, fieldnames=METRIC_COLUMNS, extrasaction="ignore")
+    writer = csv.DictWriter(buf, fieldnames=METRIC_COLUMNS, extrasaction="ignore", restval="nan")  # a later column
     writer.writeheader()
     writer.writerows(rows)
     atomic_write_bytes(run_dir / METRICS_FILE, buf.getvalue().encode())
