@@ -194,3 +194,58 @@ def test_paper_protocol_trains_and_evaluates_on_the_sac_data(sac_run):
     assert all(np.isfinite(row[k]) for k in ("mean_step_error", "rotation_error", "standardized_error"))
     if name == "ant":  # the torso quaternion is a rotation group: a geodesic angle, never NaN
         assert row["rotation_error"] > 0
+
+
+def test_sac_collection_goes_on_from_its_checkpoint(tmp_path, threads1):
+    """A SAC collection writes a checkpoint (agent, replay buffer, episodes) every ``checkpoint_every`` steps; run
+    again with the same settings it goes on from there: the steps before it are the uninterrupted run's, SB3's
+    replay buffer still holds every recorded transition, the running episode ends at the checkpoint, and the data
+    set says where it was resumed. Other settings are refused in one line."""
+    from pets.data.collect import pack_episodes
+    from pets.data.sb3 import read_sac_checkpoint, train_sac
+
+    spec, ckpt = envs.get("invertedpendulum"), tmp_path / "ip-train.npz.sac-checkpoint"
+    whole, ref, resumed_at = train_sac(spec, 260, seed=2, max_steps=5, checkpoint=ckpt, checkpoint_every=150)
+    assert resumed_at == [] and ckpt.is_file()  # the one at step 150 (none at the end: the caller saves the data)
+    assert read_sac_checkpoint(ckpt, read_settings(ckpt))["steps_done"] == 150
+    data, agent = collect_sac(spec, 260, seed=2, max_steps=5, checkpoint=ckpt)
+    assert data["sac_resumed_at"].tolist() == [150]
+    obs, act, next_obs = transitions(data)
+    first = transitions(pack_episodes(spec, whole, "sac:260", 2))[0][:150]
+    np.testing.assert_array_equal(obs[:150], first)  # before the checkpoint: the uninterrupted run's steps
+    assert len(obs) == 260 and agent.num_timesteps == 260 and agent.replay_buffer.pos == 260
+    buf = agent.replay_buffer  # it holds every recorded transition, the ones before the checkpoint included
+    np.testing.assert_array_equal(buf.observations[:260, 0], obs.astype(buf.observations.dtype))
+    for key in ("observations", "next_observations", "rewards", "dones", "timeouts"):  # refilled as SB3 stores
+        np.testing.assert_array_equal(getattr(buf, key)[:150], getattr(ref.replay_buffer, key)[:150], err_msg=key)
+    np.testing.assert_allclose(buf.actions[:150], ref.replay_buffer.actions[:150], rtol=0, atol=1e-6)
+    assert ref.replay_buffer.dones[:150].any() and ref.replay_buffer.timeouts[:150].any()  # both kinds of end
+    ends = np.cumsum(data["lengths"])
+    assert 150 in ends  # the episode running at the checkpoint ends there (the env was reset)
+    again, _ = collect_sac(spec, 260, seed=2, max_steps=5, checkpoint=ckpt)  # the same checkpoint: the same data
+    for key in ("obs", "act", "rew", "lengths"):
+        np.testing.assert_array_equal(again[key], data[key])
+    with pytest.raises(ValueError, match=r"other settings \(seed: 2 != 3\); delete it"):
+        collect_sac(spec, 260, seed=3, max_steps=5, checkpoint=ckpt)
+    ckpt.write_bytes(b"not a checkpoint")
+    with pytest.raises(ValueError, match="cannot read the SAC checkpoint .* delete it to start over"):
+        collect_sac(spec, 260, seed=2, max_steps=5, checkpoint=ckpt)
+
+
+def read_settings(path):
+    import pickle
+
+    with open(path, "rb") as f:
+        return pickle.load(f)["settings"]
+
+
+def test_collect_cli_deletes_the_sac_checkpoint_once_the_data_are_written(tmp_path):
+    out = tmp_path / "ip.npz"
+    ckpt = out.with_name("ip.npz.sac-checkpoint")
+    ckpt.write_bytes(b"stale")  # an unreadable checkpoint: refused in one line, nothing written
+    bad = collect_cli("--env", "invertedpendulum", "--policy", "sac:120", "--max-steps", 30, "--out", out, check=False)
+    assert bad.returncode == 2 and "cannot read the SAC checkpoint" in bad.stderr and "Traceback" not in bad.stderr
+    assert not out.exists()
+    ckpt.unlink()
+    collect_cli("--env", "invertedpendulum", "--policy", "sac:120", "--max-steps", 30, "--out", out)
+    assert out.is_file() and not ckpt.exists() and "sac_resumed_at" not in load_dataset(out)

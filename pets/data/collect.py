@@ -260,11 +260,23 @@ def collect_sac(
     device: str = "auto",
     progress: bool = False,
     sac_kwargs: dict[str, Any] | None = None,
+    checkpoint: Path | None = None,
 ) -> tuple[dict[str, np.ndarray], Any]:
-    """Train SAC for ``steps`` env steps (:func:`pets.data.sb3.train_sac`); ``(data set arrays, agent)``."""
+    """Train SAC for ``steps`` env steps (:func:`pets.data.sb3.train_sac`, resumable from ``checkpoint``);
+    ``(data set arrays, agent)``. A collection that went on from a checkpoint records where in ``sac_resumed_at``."""
     from pets.data.sb3 import train_sac
 
-    episodes, agent = train_sac(
-        spec, steps, seed=seed, max_steps=max_steps, device=device, progress=progress, sac_kwargs=sac_kwargs
+    episodes, agent, resumed_at = train_sac(
+        spec,
+        steps,
+        seed=seed,
+        max_steps=max_steps,
+        device=device,
+        progress=progress,
+        sac_kwargs=sac_kwargs,
+        checkpoint=checkpoint,
     )
-    return pack_episodes(spec, episodes, f"sac:{steps}", seed), agent
+    data = pack_episodes(spec, episodes, f"sac:{steps}", seed)
+    if resumed_at:
+        data["sac_resumed_at"] = np.array(resumed_at, np.int64)
+    return data, agent

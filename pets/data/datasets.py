@@ -9,7 +9,8 @@ File format (written by ``python -m pets.collect``; every array is float64 unles
 - ``lengths`` (n,) int64: the number of real steps of each episode (1 <= lengths <= T);
 - ``env`` (0-d unicode array): the canonical env name (``envs.get(env).make()`` gives the
   observation convention);
-- optional metadata: ``policy`` (0-d string), ``seed`` (0-d int64), ``reset_seeds`` (n,) int64.
+- optional metadata: ``policy`` (0-d string), ``seed`` (0-d int64), ``reset_seeds`` (n,) int64,
+  ``sac_resumed_at`` (k,) int64 (the env steps at which a SAC collection went on from its checkpoint).
 
 T is the longest episode. Shorter episodes are padded: ``obs[i, lengths[i] + 1:]``,
 ``act[i, lengths[i]:]`` and ``rew[i, lengths[i]:]`` are NaN and ``terminated`` is False there,

@@ -8,6 +8,7 @@ function, so the rest of the package works without it. docs/data.md lists SAC's 
 from __future__ import annotations
 
 import io
+import pickle
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -74,6 +75,64 @@ class TransitionRecorder(gymnasium.Wrapper):
         """The recorded episodes in the order they happened (the running one last, cut where it stands)."""
         return self._finished + self._running()
 
+    def resume(self, episodes: list[Episode]) -> None:
+        """Go on after ``episodes`` (a checkpoint's): they count as finished, the running one included."""
+        self._finished, self._steps = list(episodes), []
+
+
+#: Env steps between the checkpoints of a SAC collection (:func:`train_sac` with ``checkpoint``).
+CHECKPOINT_EVERY = 10_000
+
+
+def sac_checkpoint_path(out: Path) -> Path:
+    """The checkpoint of the SAC collection that writes the data set ``out``: ``OUT.sac-checkpoint`` beside it."""
+    out = Path(out)
+    return out.with_name(out.name + ".sac-checkpoint")
+
+
+def _checkpoint_settings(spec: EnvSpec, steps: int, seed: int, max_steps: int | None, sac_kwargs: Any) -> dict:
+    """What a SAC checkpoint must have been written for to be resumed (compared on load)."""
+    return {"env": spec.name, "steps": steps, "seed": int(seed), "max_steps": max_steps, "sac_kwargs": sac_kwargs}
+
+
+def read_sac_checkpoint(path: Path, settings: dict[str, Any]) -> dict[str, Any] | None:
+    """The checkpoint at ``path`` (None if there is none); ValueError (one line) if it is unreadable or was
+    written for other settings."""
+    if not path.is_file():
+        return None
+    try:
+        with open(path, "rb") as f:
+            state = pickle.load(f)
+        got = state["settings"]
+    except Exception as err:  # a truncated or foreign file: say which and what to do
+        raise ValueError(
+            f"cannot read the SAC checkpoint {path} ({type(err).__name__}); delete it to start over"
+        ) from None
+    if got != settings:
+        diff = "; ".join(f"{k}: {got.get(k)!r} != {v!r}" for k, v in settings.items() if got.get(k) != v)
+        raise ValueError(f"the SAC checkpoint {path} was written for other settings ({diff}); delete it or pass them")
+    return state
+
+
+def refill_replay_buffer(agent: Any, episodes: list[Episode]) -> None:
+    """Put ``episodes`` into ``agent``'s (empty) replay buffer as SB3's off-policy learner stores transitions: the
+    observation, the true next observation, the action scaled to [-1, 1], the reward, done (terminated or
+    truncated) and the timeout flag. (SB3's own buffer file would hold all of its 1M rows, used or not.)"""
+    buf = agent.replay_buffer
+    for ep in episodes:
+        scaled = agent.policy.scale_action(ep.act)
+        for t in range(len(ep.act)):
+            done, timeout = bool(ep.terminated[t] or ep.truncated[t]), bool(ep.truncated[t] and not ep.terminated[t])
+            info = [{"TimeLimit.truncated": timeout}]
+            buf.add(
+                ep.obs[t][None],
+                ep.next_obs[t][None],
+                scaled[t][None],
+                np.array([ep.rewards[t]]),
+                np.array([done]),
+                info,
+            )
+
 
 def train_sac(
     spec: EnvSpec,
@@ -84,37 +143,72 @@ def train_sac(
     device: str = "auto",
     progress: bool = False,
     sac_kwargs: dict[str, Any] | None = None,
-) -> tuple[list[Episode], Any]:
+    checkpoint: Path | None = None,
+    checkpoint_every: int = CHECKPOINT_EVERY,
+) -> tuple[list[Episode], Any, list[int]]:
     """Train SB3's SAC (its default hyperparameters, ``sac_kwargs`` on top) for ``steps`` env steps on ``spec``.
 
-    Returns ``(episodes, agent)``: every transition SAC experienced, episode by episode as it happened (the
-    last one cut at ``steps``), and the trained agent. ``seed`` seeds SAC (torch, numpy, the env's first reset).
+    Returns ``(episodes, agent, resumed_at)``: every transition SAC experienced, episode by episode as it
+    happened (the last one cut at ``steps``), the trained agent, and the env steps at which this collection went
+    on from a checkpoint (empty when it ran in one go). ``seed`` seeds SAC (torch, numpy, the env's first reset).
+
+    ``checkpoint``: a file that holds the agent and the episodes so far (its replay buffer is refilled from them,
+    :func:`refill_replay_buffer`), written atomically every ``checkpoint_every`` steps; if it exists (written for
+    the same settings, else ValueError), training goes on from it. A resumed collection is a valid SAC data set
+    but not the uninterrupted one: the episode running at the checkpoint ends there (the env is reset, seeded with
+    ``seed`` + the steps done), and the gradient step of that env step is not taken. The file is the caller's to delete once the data are saved.
     """
     require_sb3()
     from stable_baselines3 import SAC
     from stable_baselines3.common.callbacks import BaseCallback
     from tqdm.auto import tqdm
 
+    from pets.runs.fileio import atomic_write_bytes
+
     if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
         raise ValueError(f"SAC steps must be a positive int, got {steps!r}")
+    if checkpoint_every < 1:
+        raise ValueError(f"checkpoint_every must be >= 1, got {checkpoint_every}")
+    settings = _checkpoint_settings(spec, steps, seed, max_steps, sac_kwargs)
+    state = read_sac_checkpoint(Path(checkpoint), settings) if checkpoint is not None else None
+    resumed_at = [*state["resumed_at"], state["steps_done"]] if state else []
+    env = TransitionRecorder(spec.make(max_episode_steps=max_steps or spec.episode_length))
 
     class StepBar(BaseCallback):
+        """The progress bar, and the checkpoint after every ``checkpoint_every``-th step's transition is stored."""
+
         def __init__(self) -> None:
             super().__init__()
-            self.bar = tqdm(total=steps, desc=f"SAC {spec.name}", unit="step", disable=not progress)
+            done = state["steps_done"] if state else 0
+            self.bar = tqdm(total=steps, initial=done, desc=f"SAC {spec.name}", unit="step", disable=not progress)
 
         def _on_step(self) -> bool:
             self.bar.update(1)
             return True
 
+        def _on_rollout_end(self) -> None:
+            done = self.model.num_timesteps
+            if checkpoint is None or done % checkpoint_every or done >= steps:
+                return
+            saved = {"settings": settings, "steps_done": done, "resumed_at": resumed_at, "episodes": env.episodes()}
+            saved["agent"] = agent_bytes(self.model)  # not its replay buffer: the episodes are its transitions
+            atomic_write_bytes(Path(checkpoint), pickle.dumps(saved, protocol=pickle.HIGHEST_PROTOCOL))
+
         def _on_training_end(self) -> None:
             self.bar.close()
 
-    env = TransitionRecorder(spec.make(max_episode_steps=max_steps or spec.episode_length))
     try:
-        agent = SAC("MlpPolicy", env, seed=int(seed), device=device, verbose=0, **(sac_kwargs or {}))
-        agent.learn(total_timesteps=steps, callback=StepBar())
-        return env.episodes(), agent
+        if state is None:
+            agent = SAC("MlpPolicy", env, seed=int(seed), device=device, verbose=0, **(sac_kwargs or {}))
+            agent.learn(total_timesteps=steps, callback=StepBar())
+        else:
+            agent = SAC.load(io.BytesIO(state["agent"]), env=env, device=device)
+            refill_replay_buffer(agent, state["episodes"])
+            agent.set_random_seed(int(seed) + state["steps_done"])
+            env.resume(state["episodes"])
+            remaining = steps - state["steps_done"]
+            agent.learn(total_timesteps=remaining, callback=StepBar(), reset_num_timesteps=False)
+        return env.episodes(), agent, resumed_at
     finally:
         env.close()
 

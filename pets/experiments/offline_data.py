@@ -125,13 +125,20 @@ def prepare_data(
     spec = envs.get(env)
     if policy.startswith("sac:"):
         from pets.data.collect import collect_sac
-        from pets.data.sb3 import agent_bytes
+        from pets.data.sb3 import agent_bytes, sac_checkpoint_path
         from pets.runs.fileio import atomic_write_bytes
 
-        data, agent = collect_sac(spec, sac_steps(policy, "pets"), seed, max_steps, device="cpu", progress=progress)
         path.parent.mkdir(parents=True, exist_ok=True)
+        checkpoint = sac_checkpoint_path(path)  # a stopped study goes on from it
+        try:
+            data, agent = collect_sac(
+                spec, sac_steps(policy, "pets"), seed, max_steps, device="cpu", progress=progress, checkpoint=checkpoint
+            )
+        except ValueError as err:
+            raise UsageError(str(err)) from None
         atomic_write_bytes(sac_agent_path(path), agent_bytes(agent))  # before the data: it needs it
         save_dataset(path, data)
+        checkpoint.unlink(missing_ok=True)
         return "collected"
     save_dataset(path, collect(spec, policy, episodes, seed, max_steps, progress=progress))
     return "collected"

@@ -11,9 +11,11 @@ What it does, and what it writes: :mod:`pets.data.collect`.
 
 from __future__ import annotations
 
+import argparse
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -46,7 +48,39 @@ def build_parser() -> OneLineParser:
     return p
 
 
-@interruptible(PROG, "nothing was written (the data set is written only when the collection is complete)")
+def _train_sac(args: argparse.Namespace, spec: Any, steps: int) -> tuple[dict[str, np.ndarray], float]:
+    """SAC's data set (going on from ``OUT.sac-checkpoint`` if there is one) and its seconds; the agent saved to
+    ``--save-agent`` if given."""
+    from pets.data.sb3 import agent_bytes, sac_checkpoint_path
+    from pets.tools.cli import write_failed
+
+    start = time.perf_counter()
+    try:
+        data, agent = collect_sac(
+            spec,
+            steps,
+            args.seed,
+            args.max_steps,
+            device=args.device,
+            progress=not args.quiet,
+            checkpoint=sac_checkpoint_path(args.out),
+        )
+    except ValueError as err:  # a checkpoint of other settings, or unreadable
+        fail(PROG, str(err))
+    seconds = time.perf_counter() - start
+    if args.save_agent is not None:
+        try:
+            atomic_write_bytes(args.save_agent, agent_bytes(agent))
+        except OSError as err:
+            write_failed(PROG, err, "no data set was written either; free space, then collect again")
+    return data, seconds
+
+
+@interruptible(
+    PROG,
+    "nothing was written (the data set is written only when the collection is complete; sac:STEPS goes on from "
+    "its checkpoint OUT.sac-checkpoint, written every 10,000 steps, when the same command runs again)",
+)
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
@@ -106,17 +140,7 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, ConfigError, OmegaConfBaseException) as err:  # the last: a config.yaml off the schema
         fail(PROG, str(err))
     if kind == "sac":
-        start = time.perf_counter()
-        data, agent = collect_sac(spec, arg, args.seed, args.max_steps, device=args.device, progress=not args.quiet)
-        seconds = time.perf_counter() - start
-        if args.save_agent is not None:
-            from pets.data.sb3 import agent_bytes
-            from pets.tools.cli import write_failed
-
-            try:
-                atomic_write_bytes(args.save_agent, agent_bytes(agent))
-            except OSError as err:
-                write_failed(PROG, err, "no data set was written either; free space, then collect again")
+        data, seconds = _train_sac(args, spec, arg)
     else:
         from pets.planning.planners import PlanningFailed
         from pets.tools.cli import EXIT_FAILED
@@ -131,6 +155,10 @@ def main(argv: list[str] | None = None) -> int:
         save_dataset(args.out, data)
     except OSError as err:  # a full disk: the temporary file is removed, an older --out file stays as it was
         write_failed(PROG, err, "nothing was written; free space or pick another --out, then collect again")
+    if kind == "sac":
+        from pets.data.sb3 import sac_checkpoint_path
+
+        sac_checkpoint_path(args.out).unlink(missing_ok=True)  # the data set is written: nothing left to resume
     lengths = data["lengths"]
     rewards = np.nansum(data["rew"], axis=1)
     print(
@@ -140,8 +168,11 @@ def main(argv: list[str] | None = None) -> int:
     )
     if kind == "sac":
         last = rewards[-min(10, len(rewards)) :]
+        at = data.get("sac_resumed_at")
+        resumed = f" (this session; went on from its checkpoint at step {int(at[-1])})" if at is not None else ""
+        resumed = resumed or f" ({arg / seconds:.0f} steps/s)"
         print(
-            f"SAC: {arg} steps in {seconds:.1f} s ({arg / seconds:.0f} steps/s); mean reward of the last "
+            f"SAC: {arg} steps in {seconds:.1f} s{resumed}; mean reward of the last "
             f"{len(last)} episodes {float(last.mean()):.3f}"
             + (f"; agent saved to {args.save_agent}" if args.save_agent is not None else "")
         )
