@@ -156,7 +156,8 @@ def train_sac(
     :func:`refill_replay_buffer`), written atomically every ``checkpoint_every`` steps; if it exists (written for
     the same settings, else ValueError), training goes on from it. A resumed collection is a valid SAC data set
     but not the uninterrupted one: the episode running at the checkpoint ends there (the env is reset, seeded with
-    ``seed`` + the steps done), and the gradient step of that env step is not taken. The file is the caller's to delete once the data are saved.
+    ``seed`` + the steps done), and the gradient step of that env step is not taken. The file is the caller's to
+    delete once the data are saved.
     """
     require_sb3()
     from stable_baselines3 import SAC
