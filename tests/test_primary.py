@@ -99,3 +99,47 @@ def test_no_test_without_a_tracking_horizon_and_past_level_counts():
     past = {(r["model"], r["horizon"]): r for r in past_level_rows(_rows("e", "gem", {0: [1.0, 2.0, math.nan, 1.0]}))}
     assert [past["gem", h]["n_past_level"] for h in HORIZONS] == [0, 1, 1, 0]
     assert past["gem", 10]["median_error"] == math.inf
+
+
+def test_versus_compares_two_arms_on_the_primary_endpoint_at_the_baselines_horizons():
+    """gem-se against gem: per seed the ratio of their primary endpoints (delta's tracking horizons, the level's
+    clipping), its IQM = scipy's 25 %-trimmed mean, the exact p = scipy's permutation test, no Holm."""
+    from pets.experiments.primary import versus_rows
+
+    delta = {s: [0.2, 0.4, 0.9, 1.2] for s in range(6)}  # tracking horizons 1, 5, 10 at level 1.0
+    gem = {s: [0.1 * (1 + s / 10), 0.2, 0.5, 5.0] for s in range(6)}
+    se = {s: [0.1, 0.2 * (1 - s / 20), 2.0, 0.1] for s in range(6)}  # clipped at h=10; h=25 not read
+    rows = _rows("e", "delta", delta) + _rows("e", "gem", gem) + _rows("e", "gem-se", se)
+    [row] = versus_rows(rows, [("gem-se", "gem"), ("gem", "absent")], {"e": (1.0, "given")})
+    ratios = np.array(
+        [np.mean([0.1, 0.2 * (1 - s / 20), 1.0]) / np.mean([0.1 * (1 + s / 10), 0.2, 0.5]) for s in range(6)]
+    )
+    assert (row["model"], row["versus"], row["tracking_horizons"], row["n_pairs"]) == ("gem-se", "gem", "1 5 10", 6)
+    assert row["ratio"] == pytest.approx(scipy.stats.trim_mean(ratios, 0.25))
+    exact = scipy.stats.permutation_test((np.log(ratios),), np.mean, permutation_type="samples", n_resamples=np.inf)
+    assert row["p_value_exact"] == pytest.approx(exact.pvalue) and row["n_lower"] == int((ratios < 1).sum())
+    assert row["ratio_ci_low"] <= row["ratio"] <= row["ratio_ci_high"]
+
+
+def test_offline_primary_script_writes_the_versus_table(tmp_path):
+    import csv
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    delta = {s: [0.2, 0.4, 0.9, 1.2] for s in range(5)}
+    gem = {s: [0.1, 0.2, 0.5, 0.6] for s in range(5)}
+    rows = _rows("e", "delta", delta) + _rows("e", "gem", gem) + _rows("e", "gem-se", delta)
+    runs = tmp_path / "runs.csv"
+    with open(runs, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    script = [sys.executable, str(root / "docs/scripts/offline_primary.py"), str(runs), "--out", str(tmp_path / "p")]
+    done = subprocess.run([*script, "--versus", "gem-se:gem"], capture_output=True, text=True, cwd=root)
+    assert done.returncode == 0, done.stderr
+    [row] = list(csv.DictReader(open(tmp_path / "p_versus.csv")))
+    assert (row["model"], row["versus"], row["n_pairs"], row["n_lower"]) == ("gem-se", "gem", "5", "0")
+    bad = subprocess.run([*script, "--versus", "gem-se"], capture_output=True, text=True, cwd=root)
+    assert bad.returncode == 2 and "--versus takes MODEL:OTHER" in bad.stderr

@@ -5,8 +5,9 @@
 Reads per-run rows (``prediction_runs.csv`` of ``pets.compare offline``, committed as
 ``docs/results/paper_ENV_runs.csv``) and writes ``OUT.csv`` (:data:`pets.experiments.primary.PRIMARY_COLUMNS`,
 Holm over every (env, arm) test of the call) and ``OUT_past_level.csv`` (how models fail, per horizon), and prints
-the table. The data sets are not in the repository, so the level is sqrt(2) (``level_source`` says so); a fresh
-``pets.compare offline`` computes it from its data.
+the table. ``--versus gem-se:gem`` adds ``OUT_versus.csv``: one arm against another on the same endpoint
+(``pets.experiments.primary.versus_rows``, secondary). The data sets are not in the repository, so the level is
+sqrt(2) (``level_source`` says so); a fresh ``pets.compare offline`` computes it from its data.
 """
 
 from __future__ import annotations
@@ -16,7 +17,14 @@ import csv
 import sys
 from pathlib import Path
 
-from pets.experiments.primary import PAST_LEVEL_COLUMNS, PRIMARY_COLUMNS, past_level_rows, primary_rows
+from pets.experiments.primary import (
+    PAST_LEVEL_COLUMNS,
+    PRIMARY_COLUMNS,
+    VERSUS_COLUMNS,
+    past_level_rows,
+    primary_rows,
+    versus_rows,
+)
 from pets.experiments.report import write_csv
 
 
@@ -25,7 +33,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("runs", nargs="+", type=Path, help="per-run CSVs (env, model, seed, horizon, standardized_error)")
     p.add_argument("--out", type=Path, required=True, help="output prefix: OUT.csv and OUT_past_level.csv")
     p.add_argument("--models", help="comma-separated models to keep (default: all; delta is always kept)")
+    p.add_argument(
+        "--versus",
+        action="append",
+        default=[],
+        metavar="MODEL:OTHER",
+        help="secondary: MODEL against OTHER on the primary endpoint (e.g. gem-se:gem), into OUT_versus.csv",
+    )
     args = p.parse_args(argv)
+    comparisons = [tuple(v.split(":")) for v in args.versus]
+    if any(len(c) != 2 or not all(c) for c in comparisons):
+        p.error(f"--versus takes MODEL:OTHER such as gem-se:gem, got {args.versus}")
     keep = None if args.models is None else {"delta", *args.models.split(",")}
     rows = []
     for path in args.runs:
@@ -35,6 +53,15 @@ def main(argv: list[str] | None = None) -> int:
     primary = primary_rows(rows)
     write_csv(Path(f"{args.out}.csv"), primary, PRIMARY_COLUMNS)
     write_csv(Path(f"{args.out}_past_level.csv"), past_level_rows(rows), PAST_LEVEL_COLUMNS)
+    if comparisons:
+        versus = versus_rows(rows, comparisons)
+        write_csv(Path(f"{args.out}_versus.csv"), versus, VERSUS_COLUMNS)
+        for r in versus:
+            print(
+                f"{r['env']:>18} {r['model']:>10} / {r['versus']:<10} ratio {r['ratio']:.3f} "
+                f"[{r['ratio_ci_low']:.3f}, {r['ratio_ci_high']:.3f}] n={r['n_pairs']} lower in {r['n_lower']} "
+                f"p={r['p_value_exact']:.4f} (secondary, no Holm)"
+            )
     for r in primary:
         if r["model"] != "delta":
             print(

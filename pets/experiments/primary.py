@@ -66,6 +66,19 @@ PRIMARY_COLUMNS = [
     "n_past_level",
     "verdict",
 ]
+#: :func:`versus_rows`: one arm against another on the primary endpoint (a secondary comparison).
+VERSUS_COLUMNS = [
+    "env",
+    "model",
+    "versus",
+    "tracking_horizons",
+    "n_pairs",
+    "ratio",
+    "ratio_ci_low",
+    "ratio_ci_high",
+    "p_value_exact",
+    "n_lower",
+]
 PAST_LEVEL_COLUMNS = ["env", "model", "horizon", "n_runs", "n_past_level", "fraction_past_level", "median_error"]
 
 
@@ -196,6 +209,51 @@ def primary_rows(
     for i, p in zip(tested, holm([out[i]["p_value_exact"] for i in tested])):
         out[i]["p_value_holm"] = p
         out[i]["verdict"] = _verdict(out[i]["ratio_to_delta"], p)
+    return out
+
+
+def versus_rows(
+    rows: Iterable[Mapping[str, Any]],
+    comparisons: Sequence[tuple[str, str]],
+    levels: Mapping[str, tuple[float, str]] | None = None,
+    *,
+    reps: int = REPS,
+    seed: int = 0,
+) -> list[dict[str, Any]]:
+    """Secondary: per env and (model, versus) of ``comparisons`` (e.g. ``("gem-se", "gem")``), the per-run ratio
+    model / versus of the primary endpoint, both at the baseline's tracking horizons and clipped at the same level
+    (so each is the primary endpoint's own value), paired by (data seed, seed): IQM [CI] (two-level with several
+    data sets), the exact sign-flip p of the mean log ratio (no Holm: not a primary test) and how many pairs the
+    model is lower in (:data:`VERSUS_COLUMNS`). Envs without both arms or without a tracking horizon are left out."""
+    levels = dict(levels or {})
+    out = []
+    for env, models in _errors(rows).items():
+        level = levels.get(env, (DEFAULT_LEVEL, DEFAULT_SOURCE))[0]
+        hs = tracking_horizons(models.get(BASELINE, {}), level) if BASELINE in models else []
+        for model, versus in comparisons:
+            if not hs or model not in models or versus not in models:
+                continue
+            e, ev = ({r: endpoint(v, hs, level) for r, v in models[m].items() if all(h in v for h in hs)}
+                     for m in (model, versus))  # fmt: skip
+            pairs = sorted(set(e) & set(ev))
+            ratios = np.array([e[r] / ev[r] for r in pairs])
+            if len({d for d, _ in pairs}) > 1:
+                by_data = {d: [x for (dd, _), x in zip(pairs, ratios) if dd == d] for d, _ in pairs}
+                ci = two_level_iqm_ci(by_data, reps=reps, seed=seed)
+            else:
+                ci = tuple(float(v[0]) for v in iqm_ci(ratios[:, None], reps=reps, seed=seed))
+            out.append(
+                {
+                    "env": env,
+                    "model": model,
+                    "versus": versus,
+                    "tracking_horizons": " ".join(map(str, hs)),
+                    "n_pairs": len(pairs),
+                    **dict(zip(("ratio", "ratio_ci_low", "ratio_ci_high"), ci)),
+                    "p_value_exact": sign_flip_p(np.log(ratios)),
+                    "n_lower": int((ratios < 1).sum()),
+                }
+            )
     return out
 
 
