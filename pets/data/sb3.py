@@ -171,7 +171,8 @@ def train_sac(
     if checkpoint_every < 1:
         raise ValueError(f"checkpoint_every must be >= 1, got {checkpoint_every}")
     settings = _checkpoint_settings(spec, steps, seed, max_steps, sac_kwargs)
-    state = read_sac_checkpoint(Path(checkpoint), settings) if checkpoint is not None else None
+    checkpoint = None if checkpoint is None else Path(checkpoint)
+    state = None if checkpoint is None else read_sac_checkpoint(checkpoint, settings)
     resumed_at = [*state["resumed_at"], state["steps_done"]] if state else []
     env = TransitionRecorder(spec.make(max_episode_steps=max_steps or spec.episode_length))
 
@@ -193,7 +194,7 @@ def train_sac(
                 return
             saved = {"settings": settings, "steps_done": done, "resumed_at": resumed_at, "episodes": env.episodes()}
             saved["agent"] = agent_bytes(self.model)  # not its replay buffer: the episodes are its transitions
-            atomic_write_bytes(Path(checkpoint), pickle.dumps(saved, protocol=pickle.HIGHEST_PROTOCOL))
+            atomic_write_bytes(checkpoint, pickle.dumps(saved, protocol=pickle.HIGHEST_PROTOCOL))
 
         def _on_training_end(self) -> None:
             self.bar.close()

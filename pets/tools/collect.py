@@ -169,8 +169,11 @@ def main(argv: list[str] | None = None) -> int:
     if kind == "sac":
         last = rewards[-min(10, len(rewards)) :]
         at = data.get("sac_resumed_at")
-        resumed = f" (this session; went on from its checkpoint at step {int(at[-1])})" if at is not None else ""
-        resumed = resumed or f" ({arg / seconds:.0f} steps/s)"
+        resumed = (
+            f" ({arg / seconds:.0f} steps/s)"
+            if at is None
+            else f" (this session; went on from its checkpoint at step {int(at[-1])})"
+        )
         print(
             f"SAC: {arg} steps in {seconds:.1f} s{resumed}; mean reward of the last "
             f"{len(last)} episodes {float(last.mean()):.3f}"
