@@ -28,7 +28,7 @@ from pets.config import load_config, make_config
 from pets.experiments import arguments, runner
 from pets.experiments import cli as cli_module
 from pets.experiments.cli import EXIT_FAILED, main
-from pets.experiments.headline import write_headline
+from pets.experiments.headline import HeadlineError, write_headline
 from pets.experiments.offline import compare_offline
 from pets.experiments.offline_summary import SUMMARY_COLUMNS, summarise_offline
 from pets.experiments.online_summary import SUMMARY_COLUMNS as ONLINE_COLUMNS
@@ -1418,6 +1418,8 @@ def test_headline_rejects_what_is_not_a_summary_in_one_line(fake_offline, tmp_pa
     assert code == 2 and "no such file" in err and "Traceback" not in err
     code, _, err = cli(capsys, "headline", "--online", off / "summary.csv", "--out", tmp_path / "h")
     assert code == 2 and "an offline summary given as --online" in err
+    code, _, err = cli(capsys, "headline", "--closedloop", off / "summary.csv", "--out", tmp_path / "h")
+    assert code == 2 and "not a pets.compare closedloop.csv" in err and "Traceback" not in err
     (tmp_path / "other.csv").write_text("a,b\n1,2\n")
     code, _, err = cli(capsys, "headline", "--offline", tmp_path / "other.csv", "--out", tmp_path / "h")
     assert code == 2 and "not a pets.compare summary.csv" in err
@@ -1693,3 +1695,15 @@ def test_offline_closedloop_plans_with_the_frozen_models_and_pairs_them(offline,
     exact = scipy.stats.permutation_test((np.array(d),), np.mean, permutation_type="samples", n_resamples=np.inf)
     assert float(row["p_value_exact"]) == pytest.approx(exact.pvalue)
     assert (out / "closedloop.md").is_file() and (out / "closedloop_invertedpendulum.png").stat().st_size > 1000
+    # the headline's planning column takes these numbers as the summary wrote them
+    text = write_headline([], [], tmp_path / "h", closedloop=[out / "closedloop.csv"])
+    (head,) = csv_rows(tmp_path / "h" / "headline_planning.csv")
+    delta = {x["model"]: x for x in csv_rows(out / "closedloop.csv")}["delta"]
+    assert (head["env"], head["loop"], head["planner"], head["model"]) == ("invertedpendulum", "closed", "cem", "gem")
+    for key in ("total_mean", "diff_to_delta", "diff_ci_low", "diff_ci_high", "p_value_exact", "n_pairs"):
+        assert float(head[key]) == float(row[key]), key
+    assert float(head["delta_total_mean"]) == float(delta["total_mean"])
+    assert "## Planning with a pre-trained model" in text
+    assert "| invertedpendulum | closed | cem | 10 | gem | 2 |" in text
+    with pytest.raises(HeadlineError, match="not a pets.compare openloop.csv"):
+        write_headline([], [], tmp_path / "h", openloop=[out / "summary.csv"])

@@ -12,6 +12,7 @@
                                    [--preset research|fast] [--device D] [--quiet] [ARMS] [BACKEND]
                                    [key=value ...]
     python -m pets.compare headline [--offline S1.csv ...] [--online S2.csv ...] [--relative R1.csv ...]
+                                   [--openloop O.csv ...] [--closedloop C.csv ...]
                                    --out DIR [--figures DIR] [--horizon 50] [--model gem] [--caption TEXT]
     ARMS:    [--arm LABEL=MODEL[:key=value,...]] ... (more compared arms: a model with its own overrides)
     BACKEND: [--backend local] [--workers K] [--threads T]
@@ -153,6 +154,8 @@ def headline_main(args: argparse.Namespace) -> int:
             caption=args.caption,
             relative=args.relative,
             figures=args.figures,
+            openloop=args.openloop,
+            closedloop=args.closedloop,
         )
     except HeadlineError as err:
         fail(PROG, str(err))

@@ -14,6 +14,9 @@ summary's, from rliable) and writes:
 - With ``--relative`` (the studies' relative_error.csv files): the paper's Fig. 2 across the envs, both
   normalisations: ``headline_relative.png`` (divided by the env's worst model) and ``headline_fig2_ratio.png``
   (paired ratio to delta), for the error averaged over the horizons (mean_step_error, as the paper).
+- With ``--openloop`` / ``--closedloop`` (the openloop.csv / closedloop.csv of ``pets.compare offline``):
+  ``headline_planning.csv``, planning with a pre-trained model: per env, planner and non-delta model, the total
+  reward against delta's and the paired difference with its CI and exact p, as the planning summary computed them.
 """
 
 from __future__ import annotations
@@ -73,6 +76,13 @@ ONLINE_COLUMNS = [
     *_FEWER_STEPS,
     "source",
 ]
+
+
+#: Planning with a pre-trained model (``--openloop``, ``--closedloop``): a planning summary's columns, as read.
+_PLANNING_READ = ("n_pairs", "diff_to_delta", "diff_ci_low", "diff_ci_high", "p_value_exact")
+PLANNING_COLUMNS = ["env", "loop", "planner", "model", "steps", "n_seeds", "total_mean", "total_ci_low",
+                    "total_ci_high", "delta_total_mean", *_PLANNING_READ, "source"]  # fmt: skip
+_PLANNING_NEEDED = {"env", "planner", "model", "steps", "total_mean", *_PLANNING_READ}
 
 
 class HeadlineError(ValueError):
@@ -165,6 +175,59 @@ def online_rows(rows: Sequence[Mapping[str, str]], source: str) -> list[dict[str
             }
         )
     return out
+
+
+def planning_rows(path: Path, loop: str) -> list[dict[str, Any]]:
+    """Per env, planner and non-delta model of a planning summary (openloop.csv or closedloop.csv, ``loop``
+    ``"open"`` or ``"closed"``): its total reward against delta's with the paired difference."""
+    if not path.is_file():
+        raise HeadlineError(f"{path}: no such file (give the {loop}loop.csv that pets.compare offline wrote)")
+    with path.open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    if not rows or not _PLANNING_NEEDED <= set(rows[0]):
+        raise HeadlineError(f"{path}: not a pets.compare {loop}loop.csv (needs {', '.join(sorted(_PLANNING_NEEDED))})")
+    base = {(r["env"], r["planner"]): r for r in rows if r["model"] == BASELINE}
+    out = []
+    for row in rows:
+        b = base.get((row["env"], row["planner"]))
+        if row["model"] == BASELINE or b is None:
+            continue
+        out.append(
+            {
+                "env": row["env"],
+                "loop": loop,
+                "planner": row["planner"],
+                "model": row["model"],
+                "steps": int(_number(row["steps"])),
+                "n_seeds": int(_number(row["n_seeds"])),
+                **{k: _number(row[k]) for k in ("total_mean", "total_ci_low", "total_ci_high")},
+                "delta_total_mean": _number(b["total_mean"]),
+                **{k: _number(row[k]) for k in _PLANNING_READ},
+                "source": str(path),
+            }
+        )
+    return out
+
+
+def planning_table(rows: Sequence[Mapping[str, Any]]) -> str:
+    """One line per env, loop, planner and model: total rewards and the paired difference to delta."""
+    header = ["env", "loop", "planner", "steps", "model", "pairs", "total reward", "delta's", "model - delta", "p"]
+    body = [
+        [
+            r["env"],
+            r["loop"],
+            r["planner"],
+            str(r["steps"]),
+            r["model"],
+            str(int(r["n_pairs"])) if math.isfinite(r["n_pairs"]) else "0",
+            fmt_interval(r["total_mean"], r["total_ci_low"], r["total_ci_high"]),
+            fmt(r["delta_total_mean"]),
+            fmt_interval(r["diff_to_delta"], r["diff_ci_low"], r["diff_ci_high"], missing="-"),
+            fmt(r["p_value_exact"]) if math.isfinite(r["p_value_exact"]) else "-",
+        ]
+        for r in rows
+    ]
+    return md_table(header, body)
 
 
 def _p(row: Mapping[str, Any], key: str = "p_improvement") -> str:
@@ -312,11 +375,15 @@ def write_headline(
     caption: str = "",
     relative: Sequence[Path] = (),
     figures: Path | None = None,
+    openloop: Sequence[Path] = (),
+    closedloop: Sequence[Path] = (),
 ) -> str:
     """Write the CSVs and headline.md to ``out`` and the figures (module docstring) to ``figures`` (default
     ``out``); returns the markdown, whose image links are relative to ``out``."""
-    if not offline and not online:
-        raise HeadlineError("give at least one summary.csv (--offline or --online)")
+    if not offline and not online and not openloop and not closedloop:
+        raise HeadlineError("give at least one summary (--offline, --online, --openloop or --closedloop)")
+    plan_rows = [r for loop, paths in (("open", openloop), ("closed", closedloop)) for p in paths
+                 for r in planning_rows(p, loop)]  # fmt: skip
     fig2: dict[str, dict[str, dict[str, Any]]] = {}
     for path in relative:
         fig2.update(relative_rows(path))
@@ -338,6 +405,8 @@ def write_headline(
     link = Path(os.path.relpath(figures, out))
     write_csv(out / "headline_offline.csv", _blank_nan(off_rows), OFFLINE_COLUMNS)
     write_csv(out / "headline_online.csv", _blank_nan(on_rows), ONLINE_COLUMNS)
+    if plan_rows:
+        write_csv(out / "headline_planning.csv", _blank_nan(plan_rows), PLANNING_COLUMNS)
     parts = ["# Headline: each model against delta, paired seeds\n"]
     if off_rows:
         parts += [
@@ -364,7 +433,16 @@ def write_headline(
             online_table(on_rows),
             "",
         ]
-    sources = sorted({str(p) for p in (*offline, *online, *relative)})
+    if plan_rows:
+        parts += [
+            "## Planning with a pre-trained model (the offline runs' frozen models)\n",
+            "Total reward per episode: mean [95 % CI] over seeds; model - delta: paired by seed, mean [CI] and the "
+            "exact sign-flip p (secondary: no correction). open: one plan executed without feedback (the paper's "
+            "Sec. 5.2); closed: MPC replanning with the frozen model.\n",
+            planning_table(plan_rows),
+            "",
+        ]
+    sources = sorted({str(p) for p in (*offline, *online, *relative, *openloop, *closedloop)})
     parts.append("Sources: " + ", ".join(f"`{s}`" for s in sources) + "\n")
     text = "\n".join(parts)
     atomic_write_bytes(out / "headline.md", text.encode())

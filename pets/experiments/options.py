@@ -163,6 +163,10 @@ def _add_headline(sub: Any) -> None:
     head.add_argument(
         "--relative", type=Path, nargs="*", default=[], help="offline relative_error.csv files (Fig. 2 across envs)"
     )
+    head.add_argument("--openloop", type=Path, nargs="*", default=[], help="offline openloop.csv files (planning)")
+    head.add_argument(
+        "--closedloop", type=Path, nargs="*", default=[], help="offline closedloop.csv files (planning, MPC)"
+    )
     head.add_argument("--horizon", type=int, default=50, help="offline horizon (default 50; else the longest below)")
     head.add_argument("--model", default="gem", help="the model whose ratio to delta is plotted (default gem)")
     head.add_argument("--caption", default="", help="a line under the figure, e.g. the machine the runs came from")
