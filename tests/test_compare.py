@@ -7,6 +7,7 @@ open-loop rewards.
 """
 
 import csv
+import importlib.util
 import json
 import math
 import os
@@ -33,12 +34,14 @@ from pets.experiments.offline import compare_offline
 from pets.experiments.offline_summary import SUMMARY_COLUMNS, summarise_offline
 from pets.experiments.online_summary import SUMMARY_COLUMNS as ONLINE_COLUMNS
 from pets.experiments.online_summary import summarise_online
-from pets.experiments.report import fmt, fmt_interval
+from pets.experiments.report import fmt, fmt_interval, write_csv
 from pets.experiments.statistics import REPS
 from pets.runs import rundir
 from tests.processes import alive, default_sigint
 from tests.threads import one_thread
 from tests.tiny import TINY_MODEL, TINY_PLANNER
+
+ROOT = Path(__file__).resolve().parents[1]
 
 TINY = [
     *TINY_PLANNER,
@@ -1658,6 +1661,29 @@ def test_offline_data_seeds_pair_by_data_set_and_seed(offline, tmp_path):
     exact = scipy.stats.permutation_test((np.log(ratios),), np.mean, permutation_type="samples", n_resamples=np.inf)
     assert float(row["p_value_exact"]) == pytest.approx(exact.pvalue)
     assert float(row["ratio_ci_low"]) <= float(row["ratio_to_delta"]) <= float(row["ratio_ci_high"])
+
+
+def test_trajectory_figures_of_a_study_add_the_horizon_where_delta_stops_tracking(offline, tmp_path, capsys):
+    """docs/scripts/trajectory_figures.py (issue 38): one figure per env from the study's seed-0 runs; a column at
+    the first evaluated horizon outside delta's tracking horizons (primary.csv) when it is earlier than the last."""
+    import shutil
+
+    spec = importlib.util.spec_from_file_location("trajectory_figures", ROOT / "docs/scripts/trajectory_figures.py")
+    figures = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(figures)
+    study = tmp_path / "study"
+    shutil.copytree(offline[0], study)
+    rows = csv_rows(study / "primary.csv")
+    for r in rows:
+        r["tracking_horizons"] = "1"  # delta tracks at h = 1 only: the figure gains t = 3
+    write_csv(study / "primary.csv", rows, list(rows[0]))
+    args = [str(study), "--envs", "invertedpendulum", "--steps", "0,4", "--start", "0", "--figures", str(tmp_path)]
+    assert figures.main(args) == 0
+    line = capsys.readouterr().out
+    assert "trajectories_invertedpendulum.png: invertedpendulum" in line and line.rstrip().endswith("t = 0, 3, 4")
+    assert (tmp_path / "trajectories_invertedpendulum.png").stat().st_size > 1000
+    with pytest.raises(SystemExit, match="no trained run"):
+        figures.main([*args, "--models", "delta,gem-se"])
 
 
 def test_offline_closedloop_plans_with_the_frozen_models_and_pairs_them(offline, tmp_path):
