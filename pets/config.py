@@ -290,7 +290,9 @@ def _renamed(key: str) -> str:
     return key
 
 
-def _set(cfg: DictConfig, key: str, value: Any) -> None:
+def set_value(cfg: DictConfig, key: str, value: Any) -> None:
+    """Set ``key`` of ``cfg`` to ``value`` as an override would (lists and null from their text, types checked);
+    ConfigError for an unknown key or a bad value."""
     key = _renamed(key)
     if key not in set(all_keys()):
         close = difflib.get_close_matches(key, all_keys(), n=1, cutoff=0.6)
@@ -315,7 +317,7 @@ def _merge_nested(cfg: DictConfig, values: dict[str, Any], prefix: str = "") -> 
         if isinstance(v, dict):
             _merge_nested(cfg, v, f"{prefix}{k}.")
         else:
-            _set(cfg, f"{prefix}{k}", v)
+            set_value(cfg, f"{prefix}{k}", v)
 
 
 def validate(cfg: DictConfig) -> None:
@@ -397,11 +399,11 @@ def make_config(
     _merge_nested(cfg, ENV_DEFAULTS.get(env, {}))
     _merge_nested(cfg, PRESETS[preset])
     _merge_nested(cfg, PRESET_ENV_DEFAULTS.get((preset, env), {}))
-    _set(cfg, "head", head)
+    set_value(cfg, "head", head)
     head = (overrides or {}).get("head", head)  # head=... given as an override picks its defaults too
     _merge_nested(cfg, HEAD_DEFAULTS.get(head if isinstance(head, str) else "", {}))
     for key, value in (overrides or {}).items():
-        _set(cfg, key, value)
+        set_value(cfg, key, value)
     validate(cfg)
     resolve_auto(cfg)
     return cfg

@@ -28,6 +28,7 @@ from pets import openloop
 from pets.config import load_config, make_config
 from pets.experiments import arguments, runner
 from pets.experiments import cli as cli_module
+from pets.experiments.arguments import UsageError
 from pets.experiments.cli import EXIT_FAILED, main
 from pets.experiments.headline import HeadlineError, write_headline
 from pets.experiments.offline import compare_offline
@@ -1675,12 +1676,15 @@ def test_trajectory_figures_of_a_study_add_the_horizon_where_delta_stops_trackin
     shutil.copytree(offline[0], study)
     rows = csv_rows(study / "primary.csv")
     for r in rows:
-        r["tracking_horizons"] = "1"  # delta tracks at h = 1 only: the figure gains t = 3
+        r["tracking_horizons"] = "1"  # delta tracks at h = 1 only: the figure gains the next evaluated horizon
     write_csv(study / "primary.csv", rows, list(rows[0]))
     args = [str(study), "--envs", "invertedpendulum", "--steps", "0,4", "--start", "0", "--figures", str(tmp_path)]
     assert figures.main(args) == 0
     line = capsys.readouterr().out
-    assert "trajectories_invertedpendulum.png: invertedpendulum" in line and line.rstrip().endswith("t = 0, 3, 4")
+    evaluated = sorted({int(r["horizon"]) for r in csv_rows(study / "summary.csv")})  # e.g. 1, 3, 5
+    columns = sorted({0, 4, *([evaluated[1]] if evaluated[1] < 4 else [])})
+    assert "trajectories_invertedpendulum.png: invertedpendulum" in line
+    assert line.rstrip().endswith("t = " + ", ".join(map(str, columns))) and evaluated[1] < 4
     assert (tmp_path / "trajectories_invertedpendulum.png").stat().st_size > 1000
     with pytest.raises(SystemExit, match="no trained run"):
         figures.main([*args, "--models", "delta,gem-se"])
@@ -1733,3 +1737,23 @@ def test_offline_closedloop_plans_with_the_frozen_models_and_pairs_them(offline,
     assert "| invertedpendulum | closed | cem | 10 | gem | 2 |" in text
     with pytest.raises(HeadlineError, match="not a pets.compare openloop.csv"):
         write_headline([], [], tmp_path / "h", openloop=[out / "summary.csv"])
+    # --planner-overrides: recorded in the request, so the runs plan anew with them (and only then)
+    again = dict(closedloop=True, closedloop_steps=10, planners=["cem"], openloop_episodes=2, **kwargs)
+    over = {"planner.population": "24", "planner.iterations": "1"}
+    result = compare_offline(["invertedpendulum"], ["delta", "gem"], [0, 1], out, overrides=TINY_OFFLINE,
+                             progress=False, planner_overrides=over, **again)  # fmt: skip
+    assert all(todo == ["closedloop_cem"] for todo in result["todo"].values()) and len(result["todo"]) == 4
+    planned = json.loads((out / "runs" / "invertedpendulum-gem-s1" / "closedloop_cem.json").read_text())
+    assert (planned["planner_config"]["population"], planned["planner_config"]["iterations"]) == (24, 1)
+    assert planned["request"]["overrides"] == over and r["planner_config"]["population"] != 24
+    assert "planner.population=24" in (out / "closedloop.md").read_text()
+    result = compare_offline(["invertedpendulum"], ["delta", "gem"], [0, 1], out, overrides=TINY_OFFLINE,
+                             progress=False, planner_overrides=over, **again)  # fmt: skip
+    assert result["todo"] == {}
+    bad = dict(overrides=TINY_OFFLINE, progress=False, planner_overrides={"planner.horizon": "5"}, openloop=True)
+    with pytest.raises(UsageError, match="--planner-overrides: .*planner.horizon"):
+        compare_offline(["invertedpendulum"], ["delta"], [0], out, planners=["cem"], **bad, **kwargs)
+    with pytest.raises(UsageError, match="planner.KEY=VALUE"):
+        arguments.parse_planner_overrides("population=5")
+    parsed = arguments.parse_planner_overrides("planner.population=5,planner.feedback.features=[0,2],planner.alpha=0.2")
+    assert parsed == {"planner.population": "5", "planner.feedback.features": "[0,2]", "planner.alpha": "0.2"}

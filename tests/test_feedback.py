@@ -268,6 +268,15 @@ def test_open_loop_replay_of_a_feedback_run_plans_action_sequences() -> None:
     assert agent.feedback is None and agent.planner.horizon == 25
     with pytest.raises(ConfigError, match="planner.candidates is set by open-loop planning itself"):
         planning_config(run_cfg, "cem", 25, {"planner.candidates": "feedback"})
+    # closed loop: a research-planner run given IDP's feedback planner as text overrides (lists included)
+    research = make_config("inverteddoublependulum", "gem", "research")
+    text = {"planner.candidates": "feedback", "planner.horizon": "60", "planner.feedback.features": "[0,1,2,5,6,7]",
+            "planner.feedback.scale": "[0.5,0.2,0.2,1.0,2.0,2.0]", "planner.propagation": "members"}  # fmt: skip
+    closed = planning_config(research, "cem", 300, text, closed=True)
+    assert closed.planner == make_config("inverteddoublependulum", "gem", "research", text).planner
+    assert list(closed.planner.feedback.features) == [0, 1, 2, 5, 6, 7] and closed.planner.horizon == 60
+    with pytest.raises(ConfigError, match="bad value for planner.feedback.features"):
+        planning_config(research, "cem", 300, {"planner.feedback.features": "[0, 1"}, closed=True)
 
 
 def test_the_benchmark_compares_the_planners_that_search_gains() -> None:

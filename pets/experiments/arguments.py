@@ -116,3 +116,13 @@ def parse_arm(text: str) -> tuple[str, str, dict[str, str]]:
     except config.ConfigError as err:
         raise UsageError(f"--arm {label}: {err}") from None
     return label, head, overrides
+
+
+def parse_planner_overrides(text: str) -> dict[str, str]:
+    """``planner.KEY=VALUE,...`` (``--planner-overrides``; a list value as ``[a,b]``) -> ``{key: value}``;
+    UsageError for another form or a key outside ``planner.*`` (values are checked against a run config by the
+    comparison)."""
+    items = [k for k in re.split(r",(?![^\[]*\])", str(text)) if k]  # commas inside [...] belong to a list
+    if any("=" not in k or not k.startswith("planner.") for k in items):
+        raise UsageError(f"--planner-overrides must be planner.KEY=VALUE[,planner.KEY=VALUE...], got {text!r}")
+    return dict(k.split("=", 1) for k in items)

@@ -8,7 +8,7 @@
                                    [--policy random|smooth-random[:BETA]|existing] [--horizons 1,5,10,25,50]
                                    [--starts K] [--data-seeds 0,1,2]
                                    [--openloop] [--planners cem,mppi] [--openloop-steps 50] [--openloop-episodes 5]
-                                   [--closedloop] [--closedloop-steps 300]
+                                   [--closedloop] [--closedloop-steps 300] [--planner-overrides KEY=VALUE,...]
                                    [--preset research|fast] [--device D] [--quiet] [ARMS] [BACKEND]
                                    [key=value ...]
     python -m pets.compare headline [--offline S1.csv ...] [--online S2.csv ...] [--relative R1.csv ...]
@@ -53,6 +53,7 @@ from pets.experiments.arguments import (
     parse_arm,
     parse_envs,
     parse_models,
+    parse_planner_overrides,
     parse_planners,
     parse_seeds,
 )
@@ -291,6 +292,7 @@ def _run_offline(args: argparse.Namespace, shared: dict[str, Any]) -> dict[str, 
         openloop_episodes=args.openloop_episodes,
         closedloop=args.closedloop,
         closedloop_steps=args.closedloop_steps,
+        planner_overrides=parse_planner_overrides(args.planner_overrides),
         device=args.device or "auto",
         protocol=args.protocol,
         data_seeds=parse_seeds(args.data_seeds, "--data-seeds"),

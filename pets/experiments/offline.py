@@ -95,6 +95,7 @@ def compare_offline(
     openloop_episodes: int = 5,
     closedloop: bool = False,
     closedloop_steps: int = 300,
+    planner_overrides: Mapping[str, str] | None = None,
     backend: Backend | None = None,
     preset: str = "research",
     device: str = "auto",
@@ -114,6 +115,8 @@ def compare_offline(
     looking at ``out`` or running anything (``--print-config``).
     ``data_seeds``: the data sets (``--data-seeds``): every model and seed is trained and evaluated on each
     (:func:`data_paths`, :func:`collect_seeds`); runs pair by (data seed, seed).
+    ``planner_overrides``: ``planner.*`` settings of the open- and closed-loop planning (``--planner-overrides``),
+    applied over each run's own planner config and recorded in the request, so that other settings plan anew.
 
     Returns ``{"data": {file: collected|reused}, "todo": {run: [what was missing]}, "done": {run: [what was
     done]}, "failed": {run: message}, "summary"}``; runs absent from "todo" were reused as they were.
@@ -127,10 +130,11 @@ def compare_offline(
     data_seeds = _checked_data_seeds(data_seeds)
     sweep = _Sweep(out, env_names, models, seeds, data_seeds, arms or {}, extra, preset, protocol, device)
     configs = _expected_configs(sweep, proto, configs_only)
+    _check_planner_overrides(next(iter(configs.values())), planners, planner_overrides, openloop, closedloop)
     if configs_only:
         return {"configs": configs}
     check_out_writable(out)  # after every argument is checked: bad input leaves no directory behind
-    requests = _requests(horizons, starts, openloop_steps, openloop_episodes, closedloop_steps)
+    requests = _requests(horizons, starts, openloop_steps, openloop_episodes, closedloop_steps, planner_overrides)
     jobs, pending = _jobs(sweep, requests, list(planners) if openloop else [], list(planners) if closedloop else [])
     total = len(env_names) * len(models) * len(seeds) * len(data_seeds)
     alone = backend.kind == "local" and backend.workers == 1  # a job's own progress bar only when it runs here
@@ -277,11 +281,36 @@ def _expected_configs(sweep: _Sweep, proto: Any, configs_only: bool) -> dict[str
     return configs
 
 
+def _check_planner_overrides(
+    cfg: Any, planners: Sequence[str], overrides: Mapping[str, str] | None, openloop: bool, closedloop: bool
+) -> None:
+    """UsageError unless ``overrides`` apply to every planning asked for (planner keys, valid values)."""
+    from pets.config import ConfigError
+    from pets.planning.openloop import planning_config
+
+    if not overrides:
+        return
+    if not (openloop or closedloop):
+        raise UsageError("--planner-overrides sets the planning of --openloop / --closedloop; give one of them")
+    for planner in planners:
+        for closed in [False] * openloop + [True] * closedloop:
+            try:
+                planning_config(cfg, planner, 50, overrides, closed=closed)
+            except ConfigError as err:
+                raise UsageError(f"--planner-overrides: {err}") from None
+
+
 def _requests(
-    horizons: Sequence[int], starts: int, openloop_steps: int, openloop_episodes: int, closedloop_steps: int
+    horizons: Sequence[int],
+    starts: int,
+    openloop_steps: int,
+    openloop_episodes: int,
+    closedloop_steps: int,
+    planner_overrides: Mapping[str, str] | None = None,
 ) -> dict[str, dict[str, Any]]:
     """What a run's eval.json, openloop_PLANNER.json and closedloop_PLANNER.json must have been made with:
-    ``{"eval", "openloop", "closedloop"}``."""
+    ``{"eval", "openloop", "closedloop"}`` (the planner overrides only where given, so that results made without
+    them still match)."""
     eval_request = {
         "horizons": sorted(set(int(h) for h in horizons)),
         "starts": starts,
@@ -291,8 +320,9 @@ def _requests(
         # this key was added standardized by the test data, without the per-part errors: they are redone)
         "standardized_by": "train data",
     }
-    openloop_request = {"steps": openloop_steps, "episodes": openloop_episodes, "seed": OPENLOOP_SEED}
-    closedloop_request = {"steps": closedloop_steps, "episodes": openloop_episodes, "seed": OPENLOOP_SEED}
+    planning = {"overrides": dict(planner_overrides)} if planner_overrides else {}
+    openloop_request = {"steps": openloop_steps, "episodes": openloop_episodes, "seed": OPENLOOP_SEED, **planning}
+    closedloop_request = {"steps": closedloop_steps, "episodes": openloop_episodes, "seed": OPENLOOP_SEED, **planning}
     return {"eval": eval_request, "openloop": openloop_request, "closedloop": closedloop_request}
 
 

@@ -75,7 +75,14 @@ def _offline_job(job: Mapping[str, Any]) -> dict[str, Any]:
         if "train" in done or not json_matches(path, request):
             r = request
             result = open_loop(
-                run_dir, planner, r["steps"], r["episodes"], r["seed"], device=job["device"], closed=kind == CLOSED
+                run_dir,
+                planner,
+                r["steps"],
+                r["episodes"],
+                r["seed"],
+                overrides=r.get("overrides"),
+                device=job["device"],
+                closed=kind == CLOSED,
             )
             result["request"] = request
             atomic_write_bytes(path, (json.dumps(result) + "\n").encode())

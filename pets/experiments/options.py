@@ -149,6 +149,13 @@ def _add_offline(sub: Any) -> None:
         "episodes' seeds; closedloop.csv, paired to delta)",
     )
     off.add_argument("--closedloop-steps", type=int, default=300, help="closed-loop steps per episode (default 300)")
+    off.add_argument(
+        "--planner-overrides",
+        default="",
+        metavar="KEY=VALUE,...",
+        help="planner.* settings of the open- and closed-loop planning, over each run's own planner (e.g. "
+        "planner.population=100,planner.particles=5); recorded, so other settings plan anew",
+    )
 
 
 def _add_headline(sub: Any) -> None:

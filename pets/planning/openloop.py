@@ -73,7 +73,7 @@ def planning_config(
     """
     from omegaconf import OmegaConf
 
-    from pets.config import ConfigError, all_keys, validate
+    from pets.config import ConfigError, all_keys, set_value, validate
 
     names = planner_names()
     if planner not in names:
@@ -88,10 +88,7 @@ def planning_config(
             raise ConfigError(f"open-loop overrides must be planner keys; got {key!r}; accepted: {accepted}")
         if key in _FIXED and (key == "planner.name" or not closed):
             raise ConfigError(f"{key} is set by open-loop planning itself ({_FIXED[key]}), not by an override")
-        try:
-            OmegaConf.update(cfg, key, value, merge=True)
-        except Exception as err:  # omegaconf's validation errors carry a multi-line message
-            raise ConfigError(f"bad value for {key}: {str(err).splitlines()[0]}") from None
+        set_value(cfg, key, value)
     cfg.planner.name = planner
     if closed:
         validate(cfg)
