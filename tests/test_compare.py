@@ -36,7 +36,7 @@ from pets.experiments.offline_summary import SUMMARY_COLUMNS, summarise_offline
 from pets.experiments.online_summary import SUMMARY_COLUMNS as ONLINE_COLUMNS
 from pets.experiments.online_summary import summarise_online
 from pets.experiments.report import fmt, fmt_interval, write_csv
-from pets.experiments.statistics import REPS
+from pets.experiments.statistics import REPS, holm
 from pets.runs import rundir
 from tests.processes import alive, default_sigint
 from tests.threads import one_thread
@@ -1735,6 +1735,15 @@ def test_offline_closedloop_plans_with_the_frozen_models_and_pairs_them(offline,
     assert float(head["delta_total_mean"]) == float(delta["total_mean"])
     assert "## Planning with a pre-trained model" in text
     assert "| invertedpendulum | closed | cem | 10 | gem | 2 |" in text
+    assert float(head["p_value_holm"]) == float(row["p_value_exact"])  # a family of one
+    # Holm over the envs given, for gem in closed loop: a second env's file (the same rows under another env name)
+    other = [{**x, "env": "reacher"} for x in csv_rows(out / "closedloop.csv")]
+    other = [{**x, "p_value_exact": "0.04"} if x["model"] == "gem" else x for x in other]
+    write_csv(tmp_path / "other.csv", other, list(other[0]))
+    write_headline([], [], tmp_path / "h2", closedloop=[out / "closedloop.csv", tmp_path / "other.csv"])
+    adjusted = {r["env"]: float(r["p_value_holm"]) for r in csv_rows(tmp_path / "h2" / "headline_planning.csv")}
+    expected = holm([float(row["p_value_exact"]), 0.04])
+    assert [adjusted["invertedpendulum"], adjusted["reacher"]] == pytest.approx(expected)
     with pytest.raises(HeadlineError, match="not a pets.compare openloop.csv"):
         write_headline([], [], tmp_path / "h", openloop=[out / "summary.csv"])
     # --planner-overrides: recorded in the request, so the runs plan anew with them (and only then)

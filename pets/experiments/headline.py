@@ -16,7 +16,8 @@ summary's, from rliable) and writes:
   (paired ratio to delta), for the error averaged over the horizons (mean_step_error, as the paper).
 - With ``--openloop`` / ``--closedloop`` (the openloop.csv / closedloop.csv of ``pets.compare offline``):
   ``headline_planning.csv``, planning with a pre-trained model: per env, planner and non-delta model, the total
-  reward against delta's and the paired difference with its CI and exact p, as the planning summary computed them.
+  reward against delta's and the paired difference with its CI and exact p, as the planning summary computed them;
+  for ``--model`` in closed loop (the pre-registered primary of planning) Holm's adjustment over the envs given.
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ from pathlib import Path
 from typing import Any
 
 from pets.experiments.report import fmt, fmt_interval, md_table, write_csv
-from pets.experiments.statistics import BASELINE
+from pets.experiments.statistics import BASELINE, holm
 from pets.runs.fileio import atomic_write_bytes
 
 #: Offline metrics of the headline, in order: the whole state, then the group coordinates (where GEM composes).
@@ -81,7 +82,7 @@ ONLINE_COLUMNS = [
 #: Planning with a pre-trained model (``--openloop``, ``--closedloop``): a planning summary's columns, as read.
 _PLANNING_READ = ("n_pairs", "diff_to_delta", "diff_ci_low", "diff_ci_high", "p_value_exact")
 PLANNING_COLUMNS = ["env", "loop", "planner", "model", "steps", "n_seeds", "total_mean", "total_ci_low",
-                    "total_ci_high", "delta_total_mean", *_PLANNING_READ, "source"]  # fmt: skip
+                    "total_ci_high", "delta_total_mean", *_PLANNING_READ, "p_value_holm", "source"]  # fmt: skip
 _PLANNING_NEEDED = {"env", "planner", "model", "steps", "total_mean", *_PLANNING_READ}
 
 
@@ -203,6 +204,7 @@ def planning_rows(path: Path, loop: str) -> list[dict[str, Any]]:
                 **{k: _number(row[k]) for k in ("total_mean", "total_ci_low", "total_ci_high")},
                 "delta_total_mean": _number(b["total_mean"]),
                 **{k: _number(row[k]) for k in _PLANNING_READ},
+                "p_value_holm": math.nan,  # set for the primary family by write_headline
                 "source": str(path),
             }
         )
@@ -212,6 +214,7 @@ def planning_rows(path: Path, loop: str) -> list[dict[str, Any]]:
 def planning_table(rows: Sequence[Mapping[str, Any]]) -> str:
     """One line per env, loop, planner and model: total rewards and the paired difference to delta."""
     header = ["env", "loop", "planner", "steps", "model", "pairs", "total reward", "delta's", "model - delta", "p"]
+    header.append("Holm p")
     body = [
         [
             r["env"],
@@ -224,6 +227,7 @@ def planning_table(rows: Sequence[Mapping[str, Any]]) -> str:
             fmt(r["delta_total_mean"]),
             fmt_interval(r["diff_to_delta"], r["diff_ci_low"], r["diff_ci_high"], missing="-"),
             fmt(r["p_value_exact"]) if math.isfinite(r["p_value_exact"]) else "-",
+            fmt(r["p_value_holm"]) if math.isfinite(r["p_value_holm"]) else "-",
         ]
         for r in rows
     ]
@@ -384,6 +388,9 @@ def write_headline(
         raise HeadlineError("give at least one summary (--offline, --online, --openloop or --closedloop)")
     plan_rows = [r for loop, paths in (("open", openloop), ("closed", closedloop)) for p in paths
                  for r in planning_rows(p, loop)]  # fmt: skip
+    primary = [r for r in plan_rows if r["loop"] == "closed" and r["model"] == model]
+    for r, adjusted in zip(primary, holm([r["p_value_exact"] for r in primary])):
+        r["p_value_holm"] = adjusted
     fig2: dict[str, dict[str, dict[str, Any]]] = {}
     for path in relative:
         fig2.update(relative_rows(path))
@@ -437,8 +444,9 @@ def write_headline(
         parts += [
             "## Planning with a pre-trained model (the offline runs' frozen models)\n",
             "Total reward per episode: mean [95 % CI] over seeds; model - delta: paired by seed, mean [CI] and the "
-            "exact sign-flip p (secondary: no correction). open: one plan executed without feedback (the paper's "
-            "Sec. 5.2); closed: MPC replanning with the frozen model.\n",
+            "exact sign-flip p; Holm p: over the envs, for the closed loop of "
+            f"{model} (the pre-registered primary; everything else secondary, uncorrected). open: one plan executed "
+            "without feedback (the paper's Sec. 5.2); closed: MPC replanning with the frozen model.\n",
             planning_table(plan_rows),
             "",
         ]
