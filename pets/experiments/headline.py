@@ -213,8 +213,8 @@ def planning_rows(path: Path, loop: str) -> list[dict[str, Any]]:
 
 def planning_table(rows: Sequence[Mapping[str, Any]]) -> str:
     """One line per env, loop, planner and model: total rewards and the paired difference to delta."""
-    header = ["env", "loop", "planner", "steps", "model", "pairs", "total reward", "delta's", "model - delta", "p"]
-    header.append("Holm p")
+    header = ["env", "loop", "planner", "steps", "model", "pairs", "total reward", "delta's", "model - delta"]
+    header += ["p", "Holm p"]
     body = [
         [
             r["env"],
