@@ -36,7 +36,7 @@ from pets.experiments.offline_summary import SUMMARY_COLUMNS, summarise_offline
 from pets.experiments.online_summary import SUMMARY_COLUMNS as ONLINE_COLUMNS
 from pets.experiments.online_summary import summarise_online
 from pets.experiments.report import fmt, fmt_interval, write_csv
-from pets.experiments.statistics import REPS, holm
+from pets.experiments.statistics import REPS, ci_exact_note, holm
 from pets.runs import rundir
 from tests.processes import alive, default_sigint
 from tests.threads import one_thread
@@ -424,6 +424,16 @@ def test_online_exact_paired_p_counts_diverged_runs_as_worst_and_holm_adjusts_ov
     ]
     np.testing.assert_allclose(got, adjusted, rtol=1e-12)
     assert online_row(out, "reacher", "delta")["diff_p_signflip"] == ""
+    # the note where the paired difference's bootstrap CI and the exact p disagree, in the CSV and in summary.md
+    notes = []
+    for model in ("gem", "gem2"):
+        r = online_row(out, "reacher", model)
+        low, high, p = float(r["diff_ci_low"]), float(r["diff_ci_high"]), float(r["diff_p_signflip"])
+        assert r["ci_exact_note"] == ci_exact_note(low, high, 0.0, p)
+        notes += [f"reacher / {model}: {r['ci_exact_note']}"] if r["ci_exact_note"] else []
+    assert notes  # 3 pairs: the exact p is at least 0.25, while a bootstrap CI of 3 pairs is their min-max
+    md = (out / "summary.md").read_text()
+    assert all(note in md for note in notes) and "Where the bootstrap CI and the exact test disagree" in md
 
 
 def test_online_summary_md_has_iqm_p_and_no_nan_or_inf(fake_online):

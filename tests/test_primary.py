@@ -13,6 +13,7 @@ from pets.experiments.primary import (
     DEFAULT_LEVEL,
     no_information_level,
     past_level_rows,
+    primary_markdown,
     primary_rows,
     tracking_horizons,
 )
@@ -72,6 +73,10 @@ def test_primary_ratio_exact_p_and_holm_across_envs():
     assert a["p_value_exact"] == b["p_value_exact"] == 2 / 32  # every seed one way: the smallest 5-pair p
     assert [a["p_value_holm"], b["p_value_holm"]] == holm([2 / 32, 2 / 32]) == [0.125, 0.125]
     assert a["verdict"] == b["verdict"] == "no difference shown"  # 5 pairs can never be significant
+    # the bootstrap CI of 5 identical ratios is [0.8, 0.8] (excludes 1), the exact p 0.0625: the summary says so
+    assert a["ci_exact_note"] == "the bootstrap CI excludes 1, the exact p is 0.0625: not significant at 0.05"
+    assert "Where the bootstrap CI and the exact test disagree" in "\n".join(primary_markdown(rows))
+    assert "a / gem: the bootstrap CI excludes 1" in "\n".join(primary_markdown(rows))
     # gem seed i (0.8 (i + 1)) beats delta seeds j > 0.8 (i + 1) - 1; gem s4 ties delta s3 (4.0): half
     assert a["p_improvement"] == pytest.approx(15.5 / 25)
 

@@ -13,6 +13,7 @@ from pets.experiments.bootstrap import bootstrap_band, bootstrap_ci, iqm, summar
 from pets.experiments.statistics import (
     DIVERGED_STANDARDIZED_ERROR,
     SIGN_FLIP_DRAWS,
+    ci_exact_note,
     divergence,
     divergences,
     holm,
@@ -194,6 +195,23 @@ def test_sign_flip_p_monte_carlo_above_16_pairs_is_within_its_error_of_scipys_ex
     assert abs(p - exact) < 4 * math.sqrt(exact * (1 - exact) / SIGN_FLIP_DRAWS) + 2 / SIGN_FLIP_DRAWS
     assert sign_flip_p(x - y, seed=seed) == p  # seeded
     assert sign_flip_p(np.ones(40)) == 1 / (1 + SIGN_FLIP_DRAWS)  # no random pattern is as extreme
+
+
+def test_ci_exact_note_flags_a_bootstrap_ci_that_a_5_pair_exact_test_does_not_back():
+    """Five paired differences all positive: rliable's stratified-bootstrap IQM CI excludes 0, scipy's exact
+    permutation test gives p = 0.0625: a note. Ten all positive: p = 0.002 and the CI excludes 0: they agree."""
+    for n, expected_note in ((5, True), (10, False)):
+        d = np.linspace(1.0, 2.0, n)
+        exact = scipy.stats.permutation_test((d,), np.mean, permutation_type="samples", n_resamples=np.inf).pvalue
+        (_,), (low,), (high,) = iqm_ci(d[:, None], reps=2000, seed=0)
+        assert low > 0 and sign_flip_p(d) == pytest.approx(exact)
+        note = ci_exact_note(low, high, 0.0, sign_flip_p(d))
+        assert bool(note) is expected_note
+    note = "the bootstrap CI excludes 1, the exact p is 0.0625: not significant at 0.05"
+    assert ci_exact_note(0.5, 0.9, 1.0, 0.0625) == note
+    assert ci_exact_note(-0.1, 0.3, 0.0, 0.01) == "the exact p is 0.01 but the bootstrap CI contains 0"
+    assert ci_exact_note(0.1, 0.3, 0.0, 0.01) == ci_exact_note(-0.1, 0.3, 0.0, 0.2) == ""  # agreement
+    assert ci_exact_note(None, 0.3, 0.0, 0.01) == ci_exact_note(0.1, 0.3, 0.0, NAN) == ""  # nothing to compare
 
 
 def test_holm_is_statsmodels_holm():

@@ -38,13 +38,14 @@ import numpy as np
 
 from pets.experiments.online_runs import COST_KEYS, THRESHOLD_KEYS, THRESHOLDS, online_rows, online_run_stats
 from pets.experiments.plots import arm_colors, model_colors, plot_online
-from pets.experiments.report import BOOT_SEED, fmt, fmt_interval, md_table, write_csv
+from pets.experiments.report import BOOT_SEED, disagreement_lines, fmt, fmt_interval, md_table, write_csv
 from pets.experiments.rundirs import arm_label, online_arms, precision_note, run_name
 from pets.experiments.statistics import (
     BASELINE,
     MIN_SEEDS,
     REPS,
     SMALL_SAMPLE_NOTE,
+    ci_exact_note,
     holm,
     iqm_ci,
     iqm_ci_finite,
@@ -64,6 +65,7 @@ _BASELINE_COLUMNS = [
     "n_pairs",
     "diff_p_signflip",
     "diff_p_holm",
+    "ci_exact_note",
     "p_fewer_steps",
     "p_fewer_steps_ci_low",
     "p_fewer_steps_ci_high",
@@ -178,6 +180,7 @@ def _against_baseline(
     _, all_diffs = paired_differences(worst_of[arm], worst_of[base])
     if all_diffs.size and np.isfinite(all_diffs).all():
         s["diff_p_signflip"] = sign_flip_p(all_diffs[:, 0])
+        s["ci_exact_note"] = ci_exact_note(s.get("diff_ci_low"), s.get("diff_ci_high"), 0.0, s["diff_p_signflip"])
     if threshold:  # steps as errors: never reached or diverged = NaN, the most steps
         x = [math.nan if r["diverged"] else r["steps_to_threshold"] for r in runs[arm]]
         y = [math.nan if r["diverged"] else r["steps_to_threshold"] for r in runs[base]]
@@ -418,6 +421,7 @@ def _env_section(
         *([SMALL_SAMPLE_NOTE, ""] if small else []),
         md_table(header, table),
         "",
+        *disagreement_lines(rows),
         f"![rewards](rewards_{env}.png) ![wall-clock](walltime_{env}.png)",
         "",
     ]

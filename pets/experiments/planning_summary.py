@@ -21,9 +21,9 @@ import numpy as np
 
 from pets.experiments.bootstrap import bootstrap_ci, summarise
 from pets.experiments.plots import model_colors, plot_openloop
-from pets.experiments.report import BOOT_SEED, fmt_ci, md_table, write_csv
+from pets.experiments.report import BOOT_SEED, disagreement_lines, fmt_ci, md_table, write_csv
 from pets.experiments.rundirs import json_matches, run_name
-from pets.experiments.statistics import BASELINE, sign_flip_p
+from pets.experiments.statistics import BASELINE, ci_exact_note, sign_flip_p
 from pets.runs.fileio import atomic_write_bytes
 
 COLUMNS = [
@@ -44,6 +44,7 @@ COLUMNS = [
     "diff_ci_low",
     "diff_ci_high",
     "p_value_exact",
+    "ci_exact_note",
 ]
 _TITLES = {
     "openloop": (
@@ -71,8 +72,9 @@ def _paired(results: Mapping[str, Mapping[int, Mapping[str, Any]]], model: str) 
     if not np.isfinite(d).all():
         return {"n_pairs": len(seeds)}
     low, high = bootstrap_ci(d, seed=BOOT_SEED)
+    p = sign_flip_p(d)
     return {"n_pairs": len(seeds), "diff_to_delta": float(d.mean()), "diff_ci_low": low, "diff_ci_high": high,
-            "p_value_exact": sign_flip_p(d)}  # fmt: skip
+            "p_value_exact": p, "ci_exact_note": ci_exact_note(low, high, 0.0, p)}  # fmt: skip
 
 
 def _fmt_diff(row: Mapping[str, Any]) -> str:
@@ -138,7 +140,8 @@ def summarise_openloop(
         if not table:
             continue
         headers = ["planner", "model", "seeds", "reward per step", "total reward", f"total - {BASELINE} (paired)"]
-        text += [f"## {env}", "", md_table(headers, table), "", f"![{kind}]({kind}_{env}.png)", ""]
+        notes = disagreement_lines([r for r in rows if r["env"] == env])
+        text += [f"## {env}", "", md_table(headers, table), "", *notes, f"![{kind}]({kind}_{env}.png)", ""]
         plot_openloop(out / f"{kind}_{env}.png", env, panels, colors, kind.replace("loop", "-loop"))
     write_csv(out / f"{kind}.csv", rows, COLUMNS)
     atomic_write_bytes(out / f"{kind}.md", "\n".join(text).encode())

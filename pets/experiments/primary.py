@@ -29,6 +29,7 @@ import numpy as np
 from pets.experiments.statistics import (
     BASELINE,
     REPS,
+    ci_exact_note,
     holm,
     iqm_ci,
     p_improvement_ci,
@@ -65,6 +66,7 @@ PRIMARY_COLUMNS = [
     "p_improvement_ci_high",
     "n_past_level",
     "verdict",
+    "ci_exact_note",
 ]
 #: :func:`versus_rows`: one arm against another on the primary endpoint (a secondary comparison).
 VERSUS_COLUMNS = [
@@ -207,8 +209,10 @@ def primary_rows(
             out.append(row)
     tested = [i for i, r in enumerate(out) if "p_value_exact" in r]
     for i, p in zip(tested, holm([out[i]["p_value_exact"] for i in tested])):
-        out[i]["p_value_holm"] = p
-        out[i]["verdict"] = _verdict(out[i]["ratio_to_delta"], p)
+        r = out[i]
+        r["p_value_holm"] = p
+        r["verdict"] = _verdict(r["ratio_to_delta"], p)
+        r["ci_exact_note"] = ci_exact_note(r["ratio_ci_low"], r["ratio_ci_high"], 1.0, r["p_value_exact"])
     return out
 
 
@@ -307,7 +311,7 @@ def primary_markdown(rows: Sequence[Mapping[str, Any]]) -> list[str]:
         ]
         for r in rows
     ]
-    from pets.experiments.report import md_table
+    from pets.experiments.report import disagreement_lines, md_table
 
     return [
         "## Primary endpoint (pre-registered, docs/experiments.md)",
@@ -335,4 +339,5 @@ def primary_markdown(rows: Sequence[Mapping[str, Any]]) -> list[str]:
             table,
         ),
         "",
+        *disagreement_lines(rows),
     ]

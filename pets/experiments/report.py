@@ -46,6 +46,20 @@ def fmt_interval(value: float | None, low: float | None, high: float | None, mis
     return f"{fmt(value)} [{fmt(low)}, {fmt(high)}]"
 
 
+def disagreement_lines(rows: Sequence[Mapping[str, Any]]) -> list[str]:
+    """Markdown lines naming the rows (env / model [/ planner]) whose bootstrap CI and exact test disagree, from
+    their ``ci_exact_note`` (:func:`pets.experiments.statistics.ci_exact_note`); no lines when none do."""
+    notes = [
+        " / ".join(str(r[k]) for k in ("env", "model", "planner") if r.get(k)) + f": {r['ci_exact_note']}"
+        for r in rows
+        if r.get("ci_exact_note")
+    ]
+    if not notes:
+        return []
+    text = "Where the bootstrap CI and the exact test disagree (the exact p carries a claim): "
+    return [text + "; ".join(notes) + ".", ""]
+
+
 def md_table(header: Sequence[str], rows: Iterable[Sequence[str]]) -> str:
     """A markdown table of ``rows`` (cells already formatted) under ``header``."""
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]

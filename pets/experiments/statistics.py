@@ -331,6 +331,24 @@ def two_level_iqm_ci(
     return float(iqm_columns(np.concatenate(samples)[:, None])[0]), float(low), float(high)
 
 
+def ci_exact_note(low: float | None, high: float | None, null: float, p: float | None, alpha: float = 0.05) -> str:
+    """Where the bootstrap CI and the exact test disagree at ``alpha``: the CI excludes ``null`` while the exact p is
+    at least ``alpha``, or the CI contains it while p is below; "" where they agree or a value is missing.
+
+    Percentile-bootstrap CIs of few pairs are narrower than the exact test (5 pairs all one way: the CI excludes the
+    null, but p cannot go below 0.0625); the exact p is the one that carries a claim.
+    """
+    values = (low, high, p)
+    if any(v is None or not math.isfinite(v) for v in values):
+        return ""
+    excludes = low > null or high < null
+    if excludes and p >= alpha:
+        return f"the bootstrap CI excludes {null:g}, the exact p is {p:.3g}: not significant at {alpha:g}"
+    if not excludes and p < alpha:
+        return f"the exact p is {p:.3g} but the bootstrap CI contains {null:g}"
+    return ""
+
+
 def holm(p_values: Sequence[float]) -> list[float]:
     """Holm's step-down adjusted p-values (family-wise error over the family given), in the input order.
 
