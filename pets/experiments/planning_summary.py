@@ -98,12 +98,16 @@ def summarise_openloop(
         raise ValueError(f"kind must be one of {', '.join(_TITLES)}, got {kind!r}")
     out = Path(out)
     title, intro = _TITLES[kind]
-    text = [f"# {title}", "", intro.format(**request) + " Per seed: the mean over episodes; then the mean over "
-            "seeds with the 95 % percentile-bootstrap CI; total - delta: paired by seed, mean [CI], exact sign-flip "
-            "p (no correction for the many cells).", ""]  # fmt: skip
+    intro = intro.format(**request) + (" Per seed: the mean over episodes; then the mean over seeds with the 95 % "
+             "percentile-bootstrap CI; total - delta: paired by seed, mean [CI], exact sign-flip p (no correction for "
+             "the many cells).")  # fmt: skip
     if request.get("overrides"):
-        settings = ", ".join(f"{k}={v}" for k, v in request["overrides"].items())
-        text[-2] += f" Planner settings over each run's own: {settings}."
+        intro += (
+            " Planner settings over each run's own: "
+            + ", ".join(f"{k}={v}" for k, v in request["overrides"].items())
+            + "."
+        )
+    text = [f"# {title}", "", intro, ""]
     rows: list[dict[str, Any]] = []
     colors = model_colors(list(models))
     for env in env_names:

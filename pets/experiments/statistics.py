@@ -338,8 +338,7 @@ def ci_exact_note(low: float | None, high: float | None, null: float, p: float |
     Percentile-bootstrap CIs of few pairs are narrower than the exact test (5 pairs all one way: the CI excludes the
     null, but p cannot go below 0.0625); the exact p is the one that carries a claim.
     """
-    values = (low, high, p)
-    if any(v is None or not math.isfinite(v) for v in values):
+    if any(v is None or not math.isfinite(v) for v in (low, high, p)):
         return ""
     excludes = low > null or high < null
     if excludes and p >= alpha:
