@@ -325,6 +325,7 @@ def test_online_summary_csv_columns(fake_online):
         "n_pairs",
         "diff_p_signflip",
         "diff_p_holm",
+        "ci_exact_note",
         "p_fewer_steps",
         "p_fewer_steps_ci_low",
         "p_fewer_steps_ci_high",
@@ -1403,6 +1404,7 @@ def test_headline_takes_each_comparison_from_the_summaries_at_the_longest_horizo
         s = summary_row(off, r["env"], r["model"], 5, r["metric"])
         for col in ("p_improvement", "p_improvement_ci_low", "p_improvement_ci_high", "n_diverged"):
             assert float(r[col]) == float(s[col]), (r, col)
+        assert r["p_value_exact"] == s["p_value_exact"] and r["ci_exact_note"] == s["ci_exact_note"]
         assert r["ratio_to_delta"] == s["ratio_to_delta"] or float(r["ratio_to_delta"]) == float(s["ratio_to_delta"])
         assert r["delta_n_diverged"] == summary_row(off, r["env"], "delta", 5, r["metric"])["n_diverged"]
     # invertedpendulum has no rotations: its rotation errors are 0, so there is nothing to compare
@@ -1415,6 +1417,10 @@ def test_headline_takes_each_comparison_from_the_summaries_at_the_longest_horizo
     assert float(online["reacher", "gem"]["delta_final_iqm"]) == float(delta["final_iqm"])
     assert float(online["reacher", "gem"]["p_improvement"]) == float(gem["p_improvement"])
     assert float(online["reacher", "gem"]["p_fewer_steps"]) == float(gem["p_fewer_steps"])
+    for col in ("diff_p_signflip", "diff_p_holm", "ci_exact_note"):
+        assert online["reacher", "gem"][col] == gem[col] != "", col
+    notes = [r for r in [*rows, *online.values()] if r["ci_exact_note"]]
+    assert notes and "Where the bootstrap CI and the exact test disagree" in text
     assert "| reacher | gem |" in text and "nan" not in text.lower().replace("n/a", "")
     for figure in ("headline_ratio.png", "headline_relative.png", "headline_fig2_ratio.png"):
         assert (tmp_path / figure).stat().st_size > 0

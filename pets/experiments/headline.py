@@ -29,8 +29,8 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from pets.experiments.report import fmt, fmt_interval, md_table, write_csv
-from pets.experiments.statistics import BASELINE, holm
+from pets.experiments.report import disagreement_lines, fmt, fmt_interval, md_table, write_csv
+from pets.experiments.statistics import BASELINE, ci_exact_note, holm
 from pets.runs.fileio import atomic_write_bytes
 
 #: Offline metrics of the headline, in order: the whole state, then the group coordinates (where GEM composes).
@@ -46,6 +46,8 @@ OFFLINE_COLUMNS = [
     "p_improvement",
     "p_improvement_ci_low",
     "p_improvement_ci_high",
+    "p_value_exact",
+    "ci_exact_note",
     "n_pairs",
     "n_diverged",
     "delta_n_diverged",
@@ -69,6 +71,9 @@ ONLINE_COLUMNS = [
     *_FINAL,
     *(f"delta_{k}" for k in _FINAL),
     *_P_AND_DIFF,
+    "diff_p_signflip",
+    "diff_p_holm",
+    "ci_exact_note",
     "threshold",
     "n_reached",
     "delta_n_reached",
@@ -132,6 +137,8 @@ def offline_rows(rows: Sequence[Mapping[str, str]], horizon: int, source: str) -
                     continue
                 if _number(row["iqm"]) == 0 and _number(base["iqm"]) == 0:  # the env has no such coordinates
                     continue
+                p = _number(row.get("p_value_exact"))  # summaries from before the exact test lack it
+                note = ci_exact_note(_number(row["ratio_ci_low"]), _number(row["ratio_ci_high"]), 1.0, p)
                 out.append(
                     {
                         "env": env,
@@ -139,6 +146,8 @@ def offline_rows(rows: Sequence[Mapping[str, str]], horizon: int, source: str) -
                         "metric": metric,
                         "horizon": h,
                         **{k: _number(row[k]) for k in OFFLINE_COLUMNS[4:10]},
+                        "p_value_exact": p,
+                        "ci_exact_note": note,
                         "n_pairs": int(_number(row["n_pairs"]) if row["n_pairs"] else 0),
                         "n_diverged": int(_number(row["n_diverged"])),
                         "delta_n_diverged": int(_number(base["n_diverged"])),
@@ -157,6 +166,7 @@ def online_rows(rows: Sequence[Mapping[str, str]], source: str) -> list[dict[str
         b = base.get((row["env"], row.get("planner", "")))
         if row["model"] == BASELINE or b is None:
             continue
+        p = _number(row.get("diff_p_signflip"))  # summaries from before the exact test lack it
         out.append(
             {
                 "env": row["env"],
@@ -166,6 +176,9 @@ def online_rows(rows: Sequence[Mapping[str, str]], source: str) -> list[dict[str
                 **{k: _number(row[k]) for k in _FINAL},
                 **{f"delta_{k}": _number(b[k]) for k in _FINAL},
                 **{k: _number(row[k]) for k in _P_AND_DIFF},
+                "diff_p_signflip": p,
+                "diff_p_holm": _number(row.get("diff_p_holm")),
+                "ci_exact_note": ci_exact_note(_number(row["diff_ci_low"]), _number(row["diff_ci_high"]), 0.0, p),
                 "threshold": _number(row.get("threshold")),
                 "n_reached": row.get("n_reached", ""),
                 "delta_n_reached": b.get("n_reached", ""),
@@ -250,10 +263,11 @@ def offline_table(rows: Sequence[Mapping[str, Any]]) -> str:
         key = (r["env"], r["model"])
         lines.setdefault(key, {"horizon": r["horizon"], "pairs": r["n_pairs"], "div": (0, 0)})
         ratio = fmt_interval(r["ratio_to_delta"], r["ratio_ci_low"], r["ratio_ci_high"])
-        lines[key][r["metric"]] = f"{ratio}; P {_p(r)}"
+        exact = f", p {fmt(r['p_value_exact'], 3)}" if math.isfinite(r["p_value_exact"]) else ""
+        lines[key][r["metric"]] = f"{ratio}{exact}; P {_p(r)}"
         div = lines[key]["div"]
         lines[key]["div"] = (max(div[0], r["n_diverged"]), max(div[1], r["delta_n_diverged"]))
-    header = ["env", "model", "h", "seed pairs", *(f"{m}: ratio to delta; P(lower)" for m in OFFLINE_METRICS)]
+    header = ["env", "model", "h", "seed pairs", *(f"{m}: ratio to delta, exact p; P(lower)" for m in OFFLINE_METRICS)]
     header.append("diverged (model, delta)")
     body = [
         [
@@ -272,6 +286,7 @@ def offline_table(rows: Sequence[Mapping[str, Any]]) -> str:
 def online_table(rows: Sequence[Mapping[str, Any]]) -> str:
     """One line per env and arm: final rewards, P(final > delta's), paired difference, steps to threshold."""
     header = ["env", "model", "seeds", "trials", "final", "delta's final", "P(final > delta's)", "paired diff"]
+    header += ["p (exact)", "p (Holm)"]
     header += ["reached (model, delta)", "env steps to threshold (model, delta)", "P(fewer steps)"]
     body = []
     for r in rows:
@@ -285,6 +300,7 @@ def online_table(rows: Sequence[Mapping[str, Any]]) -> str:
                 fmt_interval(r["delta_final_iqm"], r["delta_final_ci_low"], r["delta_final_ci_high"]),
                 _p(r),
                 fmt_interval(r["diff_to_delta"], r["diff_ci_low"], r["diff_ci_high"]),
+                *(fmt(r[k], 3) if math.isfinite(r[k]) else "-" for k in ("diff_p_signflip", "diff_p_holm")),
                 f"{r['n_reached']}, {r['delta_n_reached']}" if r["n_reached"] != "" else "-",
                 ", ".join(
                     fmt(v) if math.isfinite(v) else "-"
@@ -357,9 +373,8 @@ def relative_rows(path: Path, metric: str = "mean_step_error") -> dict[str, dict
     for r in rows:
         if r["metric"] != metric:
             continue
-        values = {
-            k: (None if v in ("", None) else float(v)) for k, v in r.items() if k not in ("env", "model", "metric")
-        }
+        text = ("env", "model", "metric", "ci_exact_note")
+        values = {k: (None if v in ("", None) else float(v)) for k, v in r.items() if k not in text}
         values.update(n_seeds=int(values["n_seeds"] or 0), n_diverged=int(values["n_diverged"] or 0))
         out.setdefault(r["env"], {})[r["model"]] = values
     return out
@@ -422,6 +437,7 @@ def write_headline(
             "model's error is lower than delta's, with its CI (bold: the CI excludes 0.5). From the summaries:\n",
             offline_table(off_rows),
             "",
+            *disagreement_lines(off_rows),
         ]
         if any(r["model"] == model for r in off_rows):
             plot_ratios(figures / "headline_ratio.png", curves, model, caption)
@@ -439,6 +455,7 @@ def write_headline(
             "IQM [95 % CI] over seeds; P: P(the model's final reward > delta's); paired diff: model - delta.\n",
             online_table(on_rows),
             "",
+            *disagreement_lines(on_rows),
         ]
     if plan_rows:
         parts += [

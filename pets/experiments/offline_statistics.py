@@ -14,7 +14,15 @@ import numpy as np
 
 from pets.experiments.report import BOOT_SEED
 from pets.experiments.rundirs import json_matches, run_name
-from pets.experiments.statistics import BASELINE, REPS, iqm_ci_finite, p_improvement_ci, paired_ratios, sign_flip_p
+from pets.experiments.statistics import (
+    BASELINE,
+    REPS,
+    ci_exact_note,
+    iqm_ci_finite,
+    p_improvement_ci,
+    paired_ratios,
+    sign_flip_p,
+)
 from pets.learning.evaluation import METRICS as EVALUATE_METRICS
 
 #: The horizon label of the columns averaged over the horizons (relative_error.csv, Fig. 2).
@@ -120,6 +128,7 @@ def env_statistics(
                 "ratio_ci_high": _finite(r_high[j]),
                 "n_pairs": None if n_pairs is None else int(n_pairs[j]),
                 "p_value_exact": _finite(p_exact[j]),
+                "ci_exact_note": ci_exact_note(_finite(r_low[j]), _finite(r_high[j]), 1.0, _finite(p_exact[j])),
             }
             for j, col in enumerate(columns)
         }

@@ -92,6 +92,7 @@ _DELTA_COLUMNS = [
     "ratio_ci_high",
     "n_pairs",
     "p_value_exact",
+    "ci_exact_note",
 ]
 SUMMARY_COLUMNS = [
     "env",

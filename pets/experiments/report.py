@@ -47,10 +47,13 @@ def fmt_interval(value: float | None, low: float | None, high: float | None, mis
 
 
 def disagreement_lines(rows: Sequence[Mapping[str, Any]]) -> list[str]:
-    """Markdown lines naming the rows (env / model [/ planner]) whose bootstrap CI and exact test disagree, from
-    their ``ci_exact_note`` (:func:`pets.experiments.statistics.ci_exact_note`); no lines when none do."""
+    """Markdown lines naming the rows (env / model [/ planner] [/ metric at h]) whose bootstrap CI and exact test
+    disagree, from their ``ci_exact_note`` (:func:`pets.experiments.statistics.ci_exact_note`); no lines when none
+    do."""
     notes = [
-        " / ".join(str(r[k]) for k in ("env", "model", "planner") if r.get(k)) + f": {r['ci_exact_note']}"
+        " / ".join(str(r[k]) for k in ("env", "model", "planner", "metric") if r.get(k))
+        + (f" at h={r['horizon']}" if r.get("horizon") else "")
+        + f": {r['ci_exact_note']}"
         for r in rows
         if r.get("ci_exact_note")
     ]
