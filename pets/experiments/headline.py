@@ -29,6 +29,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from pets.experiments.plots import plot_headline_ratios
 from pets.experiments.report import disagreement_lines, fmt, fmt_interval, md_table, write_csv
 from pets.experiments.statistics import BASELINE, ci_exact_note, holm
 from pets.runs.fileio import atomic_write_bytes
@@ -312,54 +313,6 @@ def online_table(rows: Sequence[Mapping[str, Any]]) -> str:
     return md_table(header, body)
 
 
-def plot_ratios(path: Path, offline: Mapping[str, Sequence[Mapping[str, str]]], model: str, caption: str = "") -> None:
-    """The paired ratio ``model`` / delta against the horizon, one line per env, one panel per metric; ``caption``
-    under the panels (say where the runs were made)."""
-    from pets.experiments.plots import _figure_bytes, _pyplot
-
-    plt = _pyplot()
-    from matplotlib.ticker import NullFormatter, ScalarFormatter
-
-    metrics = OFFLINE_METRICS[:2]
-    fig, axes = plt.subplots(1, len(metrics), figsize=(5.2 * len(metrics), 3.8), squeeze=False)
-    for ax, metric in zip(axes[0], metrics):
-        for rows in offline.values():
-            for env in dict.fromkeys(r["env"] for r in rows):
-                pts = sorted(
-                    (
-                        int(r["horizon"]),
-                        _number(r["ratio_to_delta"]),
-                        _number(r["ratio_ci_low"]),
-                        _number(r["ratio_ci_high"]),
-                    )
-                    for r in rows
-                    if r["env"] == env and r["model"] == model and r["metric"] == metric and r["ratio_to_delta"]
-                )
-                if not pts:
-                    continue
-                h, v, lo, hi = (list(x) for x in zip(*pts))
-                yerr = [[a - b for a, b in zip(v, lo)], [b - a for a, b in zip(v, hi)]]
-                ax.errorbar(h, v, yerr=yerr, marker="o", capsize=3, label=env)
-        ax.axhline(1.0, color="grey", lw=0.8, ls="--")
-        ax.set_xscale("log")
-        ax.set_yscale("log")
-        for axis in (ax.xaxis, ax.yaxis):
-            axis.set_major_formatter(ScalarFormatter())
-            axis.set_minor_formatter(NullFormatter())
-        low, high = ax.get_ylim()
-        ax.set_yticks([t for t in (0.1, 0.2, 0.3, 0.5, 0.7, 1, 1.5, 2, 3, 5, 10, 30, 100) if low <= t <= high])
-        ax.set_ylim(low, high)
-        ax.set_xticks(sorted({int(r["horizon"]) for rows in offline.values() for r in rows}))
-        ax.set_xlabel("horizon (steps)")
-        ax.set_ylabel(f"{model} / {BASELINE}, paired (IQM, 95 % CI)")
-        ax.set_title(metric)
-        ax.legend(fontsize=8)
-    if caption:
-        fig.text(0.01, 0.01, caption, fontsize=7, color="dimgrey")
-    fig.tight_layout(rect=(0, 0.04 if caption else 0, 1, 1))
-    atomic_write_bytes(path, _figure_bytes(fig))
-
-
 def relative_rows(path: Path, metric: str = "mean_step_error") -> dict[str, dict[str, dict[str, Any]]]:
     """``rows[env][model]`` of a relative_error.csv for ``metric``, as :func:`pets.experiments.plots.plot_relative`
     takes them (missing values None)."""
@@ -440,7 +393,7 @@ def write_headline(
             *disagreement_lines(off_rows),
         ]
         if any(r["model"] == model for r in off_rows):
-            plot_ratios(figures / "headline_ratio.png", curves, model, caption)
+            plot_headline_ratios(figures / "headline_ratio.png", curves, model, OFFLINE_METRICS[:2], caption)
             parts.append(f"![ratio to delta]({(link / 'headline_ratio.png').as_posix()})\n")
     if fig2:
         from pets.experiments.plots import plot_ratio, plot_relative

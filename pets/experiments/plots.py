@@ -12,7 +12,7 @@ import numpy as np
 
 from pets.experiments.bootstrap import bootstrap_band
 from pets.experiments.report import BOOT_SEED
-from pets.experiments.statistics import REPS, iqm_ci
+from pets.experiments.statistics import BASELINE, REPS, iqm_ci
 from pets.runs.fileio import atomic_write_bytes
 
 
@@ -277,4 +277,57 @@ def plot_openloop(
         ax.grid(alpha=0.3)
         ax.legend()
     fig.tight_layout()
+    atomic_write_bytes(path, _figure_bytes(fig))
+
+
+_RATIO_KEYS = ("ratio_to_delta", "ratio_ci_low", "ratio_ci_high")
+
+
+def plot_headline_ratios(
+    path: Path,
+    offline: Mapping[str, Sequence[Mapping[str, str]]],
+    model: str,
+    metrics: Sequence[str],
+    caption: str = "",
+) -> None:
+    """The paired ratio ``model`` / delta against the horizon, one line per env, one panel per metric of
+    ``metrics``, from offline summary.csv rows (``{source: rows}``); ``caption`` under the panels (say where the runs
+    were made)."""
+    plt = _pyplot()
+    from matplotlib.ticker import NullFormatter, ScalarFormatter
+
+    fig, axes = plt.subplots(1, len(metrics), figsize=(5.2 * len(metrics), 3.8), squeeze=False)
+    for ax, metric in zip(axes[0], metrics):
+        for rows in offline.values():
+            for env in dict.fromkeys(r["env"] for r in rows):
+                pts = sorted(
+                    (
+                        int(r["horizon"]),
+                        *(math.nan if r[k] in (None, "") else float(r[k]) for k in _RATIO_KEYS),
+                    )
+                    for r in rows
+                    if r["env"] == env and r["model"] == model and r["metric"] == metric and r["ratio_to_delta"]
+                )
+                if not pts:
+                    continue
+                h, v, lo, hi = (list(x) for x in zip(*pts))
+                yerr = [[a - b for a, b in zip(v, lo)], [b - a for a, b in zip(v, hi)]]
+                ax.errorbar(h, v, yerr=yerr, marker="o", capsize=3, label=env)
+        ax.axhline(1.0, color="grey", lw=0.8, ls="--")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        for axis in (ax.xaxis, ax.yaxis):
+            axis.set_major_formatter(ScalarFormatter())
+            axis.set_minor_formatter(NullFormatter())
+        low, high = ax.get_ylim()
+        ax.set_yticks([t for t in (0.1, 0.2, 0.3, 0.5, 0.7, 1, 1.5, 2, 3, 5, 10, 30, 100) if low <= t <= high])
+        ax.set_ylim(low, high)
+        ax.set_xticks(sorted({int(r["horizon"]) for rows in offline.values() for r in rows}))
+        ax.set_xlabel("horizon (steps)")
+        ax.set_ylabel(f"{model} / {BASELINE}, paired (IQM, 95 % CI)")
+        ax.set_title(metric)
+        ax.legend(fontsize=8)
+    if caption:
+        fig.text(0.01, 0.01, caption, fontsize=7, color="dimgrey")
+    fig.tight_layout(rect=(0, 0.04 if caption else 0, 1, 1))
     atomic_write_bytes(path, _figure_bytes(fig))
