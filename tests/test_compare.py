@@ -1782,3 +1782,5 @@ def test_offline_closedloop_plans_with_the_frozen_models_and_pairs_them(offline,
         arguments.parse_planner_overrides("population=5")
     parsed = arguments.parse_planner_overrides("planner.population=5,planner.feedback.features=[0,2],planner.alpha=0.2")
     assert parsed == {"planner.population": "5", "planner.feedback.features": "[0,2]", "planner.alpha": "0.2"}
+    label, head, arm = arguments.parse_arm("fb=gem:planner.feedback.features=[0,2],planner.alpha=0.2")  # the same split
+    assert (label, head, arm) == ("fb", "gem", {"planner.feedback.features": "[0,2]", "planner.alpha": "0.2"})

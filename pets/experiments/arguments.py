@@ -22,6 +22,16 @@ def split_list(text: str, what: str) -> list[str]:
     return list(dict.fromkeys(items))
 
 
+#: A comma between items, not one inside a list value ``[a,b]``.
+_ITEM_COMMA = re.compile(r",(?![^\[]*\])")
+
+
+def split_key_values(text: str) -> list[str]:
+    """``"k=v,k2=[a,b]"`` -> ``["k=v", "k2=[a,b]"]``: the items of a ``key=value`` list (``--arm``,
+    ``--planner-overrides``), commas inside ``[...]`` kept with their value, empty items dropped."""
+    return [item for item in _ITEM_COMMA.split(str(text)) if item]
+
+
 def parse_envs(text: str) -> list[str]:
     """Canonical env names of a comma-separated list (catalogue names or gymnasium ids)."""
     import envs
@@ -104,7 +114,7 @@ def parse_arm(text: str) -> tuple[str, str, dict[str, str]]:
         )
     if head not in config.HEADS:
         raise UsageError(f"unknown model {head!r} in --arm {label}; accepted: {', '.join(config.HEADS)}")
-    items = [k for k in keys.split(",") if k] if keys else []
+    items = split_key_values(keys)
     if any("=" not in k for k in items):
         raise UsageError(f"{form}, got {text!r}")
     overrides = dict(k.split("=", 1) for k in items)
@@ -122,7 +132,7 @@ def parse_planner_overrides(text: str) -> dict[str, str]:
     """``planner.KEY=VALUE,...`` (``--planner-overrides``; a list value as ``[a,b]``) -> ``{key: value}``;
     UsageError for another form or a key outside ``planner.*`` (values are checked against a run config by the
     comparison)."""
-    items = [k for k in re.split(r",(?![^\[]*\])", str(text)) if k]  # commas inside [...] belong to a list
+    items = split_key_values(text)
     if any("=" not in k or not k.startswith("planner.") for k in items):
         raise UsageError(f"--planner-overrides must be planner.KEY=VALUE[,planner.KEY=VALUE...], got {text!r}")
     return dict(k.split("=", 1) for k in items)
