@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any
 
 from pets.experiments.plots import plot_headline_ratios
-from pets.experiments.report import disagreement_lines, fmt, fmt_interval, md_table, write_csv
+from pets.experiments.report import csv_number, disagreement_lines, fmt, fmt_interval, md_table, write_csv
 from pets.experiments.statistics import BASELINE, ci_exact_note, holm
 from pets.runs.fileio import atomic_write_bytes
 
@@ -96,10 +96,6 @@ class HeadlineError(ValueError):
     """A summary file that cannot give the headline (missing, of neither kind, or without delta)."""
 
 
-def _number(text: str | None) -> float:
-    return float(text) if text not in (None, "") else math.nan
-
-
 def read_summary(path: Path) -> tuple[str, list[dict[str, str]]]:
     """(``"offline"`` or ``"online"``, rows) of a ``pets.compare`` summary.csv."""
     if not path.is_file():
@@ -134,24 +130,24 @@ def offline_rows(rows: Sequence[Mapping[str, str]], horizon: int, source: str) -
         for model in dict.fromkeys(r["model"] for r in rows if r["env"] == env and r["model"] != BASELINE):
             for metric in OFFLINE_METRICS:
                 row, base = by_key.get((env, model, h, metric)), by_key.get((env, BASELINE, h, metric))
-                if row is None or base is None or math.isnan(_number(row["p_improvement"])):
+                if row is None or base is None or math.isnan(csv_number(row["p_improvement"])):
                     continue
-                if _number(row["iqm"]) == 0 and _number(base["iqm"]) == 0:  # the env has no such coordinates
+                if csv_number(row["iqm"]) == 0 and csv_number(base["iqm"]) == 0:  # the env has no such coordinates
                     continue
-                p = _number(row.get("p_value_exact"))  # summaries from before the exact test lack it
-                note = ci_exact_note(_number(row["ratio_ci_low"]), _number(row["ratio_ci_high"]), 1.0, p)
+                p = csv_number(row.get("p_value_exact"))  # summaries from before the exact test lack it
+                note = ci_exact_note(csv_number(row["ratio_ci_low"]), csv_number(row["ratio_ci_high"]), 1.0, p)
                 out.append(
                     {
                         "env": env,
                         "model": model,
                         "metric": metric,
                         "horizon": h,
-                        **{k: _number(row[k]) for k in OFFLINE_COLUMNS[4:10]},
+                        **{k: csv_number(row[k]) for k in OFFLINE_COLUMNS[4:10]},
                         "p_value_exact": p,
                         "ci_exact_note": note,
-                        "n_pairs": int(_number(row["n_pairs"]) if row["n_pairs"] else 0),
-                        "n_diverged": int(_number(row["n_diverged"])),
-                        "delta_n_diverged": int(_number(base["n_diverged"])),
+                        "n_pairs": int(csv_number(row["n_pairs"]) if row["n_pairs"] else 0),
+                        "n_diverged": int(csv_number(row["n_diverged"])),
+                        "delta_n_diverged": int(csv_number(base["n_diverged"])),
                         "source": source,
                     }
                 )
@@ -167,25 +163,25 @@ def online_rows(rows: Sequence[Mapping[str, str]], source: str) -> list[dict[str
         b = base.get((row["env"], row.get("planner", "")))
         if row["model"] == BASELINE or b is None:
             continue
-        p = _number(row.get("diff_p_signflip"))  # summaries from before the exact test lack it
+        p = csv_number(row.get("diff_p_signflip"))  # summaries from before the exact test lack it
         out.append(
             {
                 "env": row["env"],
                 "model": row["model"] + (f"+{row['planner']}" if row.get("planner") else ""),
-                "n_seeds": int(_number(row["n_seeds"])),
-                "trials": int(_number(row["trials"])),
-                **{k: _number(row[k]) for k in _FINAL},
-                **{f"delta_{k}": _number(b[k]) for k in _FINAL},
-                **{k: _number(row[k]) for k in _P_AND_DIFF},
+                "n_seeds": int(csv_number(row["n_seeds"])),
+                "trials": int(csv_number(row["trials"])),
+                **{k: csv_number(row[k]) for k in _FINAL},
+                **{f"delta_{k}": csv_number(b[k]) for k in _FINAL},
+                **{k: csv_number(row[k]) for k in _P_AND_DIFF},
                 "diff_p_signflip": p,
-                "diff_p_holm": _number(row.get("diff_p_holm")),
-                "ci_exact_note": ci_exact_note(_number(row["diff_ci_low"]), _number(row["diff_ci_high"]), 0.0, p),
-                "threshold": _number(row.get("threshold")),
+                "diff_p_holm": csv_number(row.get("diff_p_holm")),
+                "ci_exact_note": ci_exact_note(csv_number(row["diff_ci_low"]), csv_number(row["diff_ci_high"]), 0.0, p),
+                "threshold": csv_number(row.get("threshold")),
                 "n_reached": row.get("n_reached", ""),
                 "delta_n_reached": b.get("n_reached", ""),
-                "steps_to_threshold_iqm": _number(row.get("steps_to_threshold_iqm")),
-                "delta_steps_to_threshold_iqm": _number(b.get("steps_to_threshold_iqm")),
-                **{k: _number(row.get(k)) for k in _FEWER_STEPS},
+                "steps_to_threshold_iqm": csv_number(row.get("steps_to_threshold_iqm")),
+                "delta_steps_to_threshold_iqm": csv_number(b.get("steps_to_threshold_iqm")),
+                **{k: csv_number(row.get(k)) for k in _FEWER_STEPS},
                 "source": source,
             }
         )
@@ -213,11 +209,11 @@ def planning_rows(path: Path, loop: str) -> list[dict[str, Any]]:
                 "loop": loop,
                 "planner": row["planner"],
                 "model": row["model"],
-                "steps": int(_number(row["steps"])),
-                "n_seeds": int(_number(row["n_seeds"])),
-                **{k: _number(row[k]) for k in ("total_mean", "total_ci_low", "total_ci_high")},
-                "delta_total_mean": _number(b["total_mean"]),
-                **{k: _number(row[k]) for k in _PLANNING_READ},
+                "steps": int(csv_number(row["steps"])),
+                "n_seeds": int(csv_number(row["n_seeds"])),
+                **{k: csv_number(row[k]) for k in ("total_mean", "total_ci_low", "total_ci_high")},
+                "delta_total_mean": csv_number(b["total_mean"]),
+                **{k: csv_number(row[k]) for k in _PLANNING_READ},
                 "p_value_holm": math.nan,  # set for the primary family by write_headline
                 "source": str(path),
             }

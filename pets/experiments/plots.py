@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from pets.experiments.bootstrap import bootstrap_band
-from pets.experiments.report import BOOT_SEED
+from pets.experiments.report import BOOT_SEED, csv_number
 from pets.experiments.statistics import BASELINE, REPS, iqm_ci
 from pets.runs.fileio import atomic_write_bytes
 
@@ -303,7 +303,7 @@ def plot_headline_ratios(
                 pts = sorted(
                     (
                         int(r["horizon"]),
-                        *(math.nan if r[k] in (None, "") else float(r[k]) for k in _RATIO_KEYS),
+                        *(csv_number(r[k]) for k in _RATIO_KEYS),
                     )
                     for r in rows
                     if r["env"] == env and r["model"] == model and r["metric"] == metric and r["ratio_to_delta"]

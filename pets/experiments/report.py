@@ -46,6 +46,11 @@ def fmt_interval(value: float | None, low: float | None, high: float | None, mis
     return f"{fmt(value)} [{fmt(low)}, {fmt(high)}]"
 
 
+def csv_number(text: str | None) -> float:
+    """A number read from a CSV cell: NaN for an empty cell (how the summaries write a missing value)."""
+    return float(text) if text not in (None, "") else math.nan
+
+
 def disagreement_lines(rows: Sequence[Mapping[str, Any]]) -> list[str]:
     """Markdown lines naming the rows (env / model [/ planner] [/ metric at h]) whose bootstrap CI and exact test
     disagree, from their ``ci_exact_note`` (:func:`pets.experiments.statistics.ci_exact_note`); no lines when none
