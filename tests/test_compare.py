@@ -1680,6 +1680,30 @@ def test_offline_data_seeds_pair_by_data_set_and_seed(offline, tmp_path):
     assert float(row["ratio_ci_low"]) <= float(row["ratio_to_delta"]) <= float(row["ratio_ci_high"])
 
 
+def test_partial_offline_snapshot_of_a_finished_study_is_its_own_summary(offline, tmp_path):
+    """docs/scripts/partial_offline_runs.py: one row per run and horizon from eval.json, and with --summary the
+    summary of the finished runs, written beside the study (nothing under it); for a finished study that is the
+    study's own summary.csv and primary.csv, value for value."""
+    spec = importlib.util.spec_from_file_location("partial_offline_runs", ROOT / "docs/scripts/partial_offline_runs.py")
+    partial = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(partial)
+    import shutil
+
+    study = tmp_path / "study"  # other tests reuse the module's study: summarise a copy, made current first
+    shutil.copytree(offline[0], study)
+    kwargs = dict(episodes=8, test_episodes=4, horizons=[1, 3, 5], starts=20, preset="fast", device="cpu")
+    compare_offline(["invertedpendulum"], ["delta", "gem"], [0, 1], study, overrides=TINY_OFFLINE, progress=False,
+                    **kwargs)  # fmt: skip
+    before = sorted(p.name for p in study.iterdir())
+    args = [str(study), str(tmp_path / "runs.csv"), "--summary", str(tmp_path / "snap"), "--envs", "invertedpendulum"]
+    assert partial.main([*args, "--models", "delta,gem", "--seeds", "0,1"]) == 0
+    rows = csv_rows(tmp_path / "runs.csv")
+    assert {(r["model"], r["seed"]) for r in rows} == {(m, s) for m in ("delta", "gem") for s in ("0", "1")}
+    assert sorted(p.name for p in study.iterdir()) == before
+    for name in ("summary.csv", "primary.csv"):
+        assert csv_rows(tmp_path / "snap" / name) == csv_rows(study / name), name
+
+
 def test_trajectory_figures_of_a_study_add_the_horizon_where_delta_stops_tracking(offline, tmp_path, capsys):
     """docs/scripts/trajectory_figures.py (issue 38): one figure per env from the study's seed-0 runs; a column at
     the first evaluated horizon outside delta's tracking horizons (primary.csv) when it is earlier than the last."""

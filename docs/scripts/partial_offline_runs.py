@@ -1,38 +1,78 @@
 """Snapshot of an offline study still running: one row per finished run and horizon, from each run's eval.json.
 
     python docs/scripts/partial_offline_runs.py OUT_DIR SNAPSHOT.csv
+    python docs/scripts/partial_offline_runs.py OUT_DIR SNAPSHOT.csv --summary DIR --envs E --models M --seeds S
 
-Not a summary (no statistics: a study's numbers are read only when it is complete); it keeps the finished runs'
-errors in the repository while the study runs. Columns: run, env, model, data (its test file name, which names
-the data set), seed, horizon and the eval.json errors of that horizon.
+Columns of SNAPSHOT.csv: run, env, model (the run's head; an arm's label is in the run name), data (its test file
+name, which names the data set), seed (the model's), horizon and
+the eval.json errors of that horizon. With ``--summary DIR``: also the study's summary of the finished runs
+(``pets.experiments.offline_summary.summarise_offline``: summary.csv, primary.csv, prediction.md, ...) written to
+DIR, which links to OUT_DIR's runs and data and is the only place written; runs not finished yet are simply
+absent, so a partial summary is labelled as such wherever it is quoted.
 """
 
 from __future__ import annotations
 
+import argparse
 import csv
 import json
 import sys
 from pathlib import Path
 
+from omegaconf import OmegaConf
+
 METRICS = ("standardized_error", "translation_error", "rotation_error", "velocity_error", "nonfinite_fraction")
 
 
-def main(argv: list[str]) -> int:
-    if len(argv) != 2:
-        print(__doc__.split("\n\n")[1].strip(), file=sys.stderr)
-        return 2
-    out, snapshot = Path(argv[0]), Path(argv[1])
-    rows = []
+def write_runs(out: Path, snapshot: Path) -> list[dict]:
+    """SNAPSHOT.csv from every finished run's eval.json; returns the eval.json contents."""
+    rows, evals = [], []
     for path in sorted((out / "runs").glob("*/eval.json")):
         e = json.loads(path.read_text())
+        evals.append(e)
+        seed = OmegaConf.load(path.parent / "config.yaml").seed  # the model's seed (eval.json's is the evaluation's)
         for h, errors in e["horizons"].items():
             base = {"run": path.parent.name, "env": e["env"], "model": e["model"], "data": Path(e["data"]).name}
-            rows.append({**base, "seed": e["seed"], "horizon": int(h), **{m: errors.get(m) for m in METRICS}})
+            rows.append({**base, "seed": seed, "horizon": int(h), **{m: errors.get(m) for m in METRICS}})
     with open(snapshot, "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=["run", "env", "model", "data", "seed", "horizon", *METRICS])
         writer.writeheader()
         writer.writerows(rows)
     print(f"{snapshot}: {len({r['run'] for r in rows})} finished runs")
+    return evals
+
+
+def write_summary(out: Path, summary: Path, evals: list[dict], envs: str, models: str, seeds: str) -> None:
+    """The study's summary of its finished runs in ``summary`` (links to OUT_DIR's runs and data)."""
+    from pets.experiments.offline_summary import summarise_offline
+
+    if not evals:
+        raise SystemExit(f"{out}: no finished run to summarise")
+    summary.mkdir(parents=True, exist_ok=True)
+    for part in ("runs", "data"):
+        link = summary / part
+        if not link.is_symlink():
+            link.symlink_to((out / part).resolve(), target_is_directory=True)
+    request = {k: v for k, v in evals[0]["request"].items() if k != "data"}  # the study's own evaluation request
+    seed_list = [int(s) for s in seeds.split(",")]
+    summarise_offline(summary, envs.split(","), models.split(","), seed_list, request)
+    print(f"{summary}: summary of the finished runs")
+
+
+def main(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("out", type=Path, help="output directory of the running pets.compare offline")
+    parser.add_argument("snapshot", type=Path, help="CSV to write: one row per finished run and horizon")
+    parser.add_argument("--summary", type=Path, help="also write the summary of the finished runs here")
+    parser.add_argument("--envs", help="with --summary: comma-separated envs")
+    parser.add_argument("--models", help="with --summary: comma-separated models (arms)")
+    parser.add_argument("--seeds", help="with --summary: comma-separated seeds")
+    args = parser.parse_args(argv)
+    if args.summary and not (args.envs and args.models and args.seeds):
+        parser.error("--summary needs --envs, --models and --seeds")
+    evals = write_runs(args.out, args.snapshot)
+    if args.summary:
+        write_summary(args.out, args.summary, evals, args.envs, args.models, args.seeds)
     return 0
 
 
