@@ -1784,6 +1784,14 @@ def test_offline_closedloop_plans_with_the_frozen_models_and_pairs_them(offline,
     adjusted = {r["env"]: float(r["p_value_holm"]) for r in csv_rows(tmp_path / "h2" / "headline_planning.csv")}
     expected = holm([float(row["p_value_exact"]), 0.04])
     assert [adjusted["invertedpendulum"], adjusted["reacher"]] == pytest.approx(expected)
+    # a CI that excludes 0 beside an exact p that does not carry it: the note, in the CSV and under the table
+    odd = [{**x, "diff_ci_low": "1", "diff_ci_high": "2", "p_value_exact": "0.5"} if x["model"] == "gem" else x
+           for x in other]  # fmt: skip
+    write_csv(tmp_path / "odd.csv", odd, list(odd[0]))
+    text = write_headline([], [], tmp_path / "h3", closedloop=[tmp_path / "odd.csv"])
+    (note,) = [r["ci_exact_note"] for r in csv_rows(tmp_path / "h3" / "headline_planning.csv")]
+    assert note == ci_exact_note(1.0, 2.0, 0.0, 0.5) != ""
+    assert f"disagree (the exact p carries a claim): reacher / gem / closed cem: {note}." in text
     with pytest.raises(HeadlineError, match="not a pets.compare openloop.csv"):
         write_headline([], [], tmp_path / "h", openloop=[out / "summary.csv"])
     # --planner-overrides: recorded in the request, so the runs plan anew with them (and only then)

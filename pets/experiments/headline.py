@@ -88,7 +88,8 @@ ONLINE_COLUMNS = [
 #: Planning with a pre-trained model (``--openloop``, ``--closedloop``): a planning summary's columns, as read.
 _PLANNING_READ = ("n_pairs", "diff_to_delta", "diff_ci_low", "diff_ci_high", "p_value_exact")
 PLANNING_COLUMNS = ["env", "loop", "planner", "model", "steps", "n_seeds", "total_mean", "total_ci_low",
-                    "total_ci_high", "delta_total_mean", *_PLANNING_READ, "p_value_holm", "source"]  # fmt: skip
+                    "total_ci_high", "delta_total_mean", *_PLANNING_READ, "p_value_holm", "ci_exact_note",
+                    "source"]  # fmt: skip
 _PLANNING_NEEDED = {"env", "planner", "model", "steps", "total_mean", *_PLANNING_READ}
 
 
@@ -215,10 +216,17 @@ def planning_rows(path: Path, loop: str) -> list[dict[str, Any]]:
                 "delta_total_mean": csv_number(b["total_mean"]),
                 **{k: csv_number(row[k]) for k in _PLANNING_READ},
                 "p_value_holm": math.nan,  # set for the primary family by write_headline
+                "ci_exact_note": _diff_note(row),
                 "source": str(path),
             }
         )
     return out
+
+
+def _diff_note(row: Mapping[str, str]) -> str:
+    """The CI-vs-exact-test note of a summary row's paired difference to delta."""
+    low, high, p = (csv_number(row[k]) for k in ("diff_ci_low", "diff_ci_high", "p_value_exact"))
+    return ci_exact_note(low, high, 0.0, p)
 
 
 def planning_table(rows: Sequence[Mapping[str, Any]]) -> str:
@@ -415,6 +423,7 @@ def write_headline(
             "without feedback (the paper's Sec. 5.2); closed: MPC replanning with the frozen model.\n",
             planning_table(plan_rows),
             "",
+            *disagreement_lines([{**r, "planner": f"{r['loop']} {r['planner']}"} for r in plan_rows]),
         ]
     sources = sorted({str(p) for p in (*offline, *online, *relative, *openloop, *closedloop)})
     parts.append("Sources: " + ", ".join(f"`{s}`" for s in sources) + "\n")
