@@ -41,6 +41,7 @@ DETERMINISTIC_HEADS = tuple(name for name, entry in MODELS.items() if entry.dete
 #: ``planner.name`` values: the names of the planner table (``pets.planning.planners.PLANNER_CLASSES``; a live view, so
 #: a planner registered later is accepted too).
 PLANNERS = PLANNER_CLASSES.keys()
+AUTO_BOOL_KEYS = ("model.compile",)  # their ``auto`` is null until resolve_auto makes it true or false
 PRECISIONS = ("auto", *CONCRETE_PRECISIONS)  # auto: resolved by make_config / load_config (pets.runs.hardware)
 DEVICES = ("auto", "cpu", "cuda")
 # The other choice lists are their owners': PROPAGATIONS and CANDIDATES (pets.planning.propagation), ACTIVATIONS
@@ -72,10 +73,8 @@ class ModelConfig:
     # auto | fp32 | bf16: the training forward/backward under bfloat16 autocast (fp32 weights, loss, optimiser
     # and holdout error); auto: bf16 where the hardware has native bf16 matmuls (pets.runs.hardware), else fp32
     precision: str = "auto"
-    # true: each full training minibatch (forward, loss, gradient, Adam update) as one torch.compile graph
-    # (pets.learning.compiled.CompiledStep; compiled once per run, eager fallback with a warning if it fails); false:
-    # the eager step, the reference (docs/performance.md, "Training at the fast preset")
-    compile: bool = False
+    # true: each training minibatch as one torch.compile graph (pets.learning.compiled); false: eager, the reference;
+    compile: bool | None = False  # auto (null; the fast preset's): where measured faster (docs/performance.md)
     # N > 0: record the holdout error every N gradient steps (TrainResult.curve; offline runs write
     # learning_curve.csv): a learning curve to check convergence; 0: none
     curve_every: int = 0
@@ -301,6 +300,10 @@ def set_value(cfg: DictConfig, key: str, value: Any) -> None:
     current = OmegaConf.select(cfg, key)
     if isinstance(value, str) and value.lower() in ("null", "none") and (current is None or OmegaConf.is_list(current)):
         value = None
+    elif key in AUTO_BOOL_KEYS and str(value).lower() not in ("true", "false"):  # auto: null until resolve_auto
+        if value not in ("auto", None):
+            raise ConfigError(f"bad value for {key}: {value!r}; accepted: true, false, auto")
+        value = None
     elif isinstance(value, str) and value.startswith("["):  # a list on the command line, e.g. [0, 1, 5]
         try:
             value = yaml.safe_load(value)
@@ -396,25 +399,24 @@ def make_config(
         raise ConfigError(f"unknown preset {preset!r}; accepted: {', '.join(PRESETS)}")
     cfg = schema()
     cfg.env = env
-    _merge_nested(cfg, ENV_DEFAULTS.get(env, {}))
-    _merge_nested(cfg, PRESETS[preset])
-    _merge_nested(cfg, PRESET_ENV_DEFAULTS.get((preset, env), {}))
+    for defaults in (ENV_DEFAULTS.get(env, {}), PRESETS[preset], PRESET_ENV_DEFAULTS.get((preset, env), {})):
+        _merge_nested(cfg, defaults)
     set_value(cfg, "head", head)
     head = (overrides or {}).get("head", head)  # head=... given as an override picks its defaults too
     _merge_nested(cfg, HEAD_DEFAULTS.get(head if isinstance(head, str) else "", {}))
     for key, value in (overrides or {}).items():
         set_value(cfg, key, value)
     validate(cfg)
-    resolve_auto(cfg)
-    return cfg
+    return resolve_auto(cfg)
 
 
 def resolve_auto(cfg: DictConfig) -> DictConfig:
-    """Replace ``auto`` precisions by the concrete one for ``cfg.device`` on this machine (in place; returns it)."""
-    from pets.runs.hardware import resolve_precision
+    """Replace the ``auto`` settings by the concrete ones for ``cfg.device`` on this machine (in place; returns it)."""
+    from pets.runs.hardware import resolve_model_compile, resolve_precision
 
     for key in ("planner.precision", "model.precision"):
         OmegaConf.update(cfg, key, resolve_precision(OmegaConf.select(cfg, key), cfg.device))
+    cfg.model.compile = resolve_model_compile(cfg.model.compile, cfg.model.precision, cfg.device, cfg.trials)
     return cfg
 
 

@@ -31,7 +31,7 @@ from pets.data.buffer import ReplayBuffer
 from pets.data.rollout import Episode, MPCPolicy, RandomPolicy, run_episode, run_steps
 from pets.learning.trainer import TrainingDiverged, TrainResult
 from pets.models import make_model
-from pets.planning.cost import CostEstimate
+from pets.planning.cost import CostEstimate, compile_line
 from pets.planning.planners import PlanningFailed
 from pets.planning.value import episode_ends, returns_to_go
 from pets.runs import rundir
@@ -310,6 +310,8 @@ def _run_locked(cfg: DictConfig, run_dir: Path, resume: bool, progress: bool) ->
         rundir.write_config(run_dir, cfg)
     rundir.append_history(run_dir, "resume" if resume else "start", pets_run.trials_done)
     pets_run.cost = CostEstimate(cfg, pets_run.episode_length, cfg.trials - pets_run.trials_done)
+    if pets_run.trials_done < cfg.trials and (line := compile_line(cfg)):
+        tqdm.write(line, file=sys.stderr)
     # Events past the last checkpoint (an interrupted trial's) are purged; each trial is written before its
     # checkpoint, so a resumed run neither loses nor repeats a scalar (pets.runs.tblog).
     events = ScalarLog(run_dir, cfg.tensorboard, purge_step=pets_run.env_steps + 1 if resume else None)

@@ -3,7 +3,11 @@ import os
 import pytest
 import torch
 
+from pets.runs import hardware
 from tests.threads import one_thread
+
+#: The real threshold of ``model.compile=auto`` (pets.runs.hardware), for the tests of auto itself.
+AUTO_COMPILE_MIN_TRIALS = hardware.AUTO_COMPILE_MIN_TRIALS
 
 
 def pytest_configure(config):
@@ -19,3 +23,20 @@ def single_thread():
     """Run the test with one torch thread (see tests/threads.py)."""
     with one_thread():
         yield
+
+
+@pytest.fixture(scope="session", autouse=True)
+def eager_training_for_auto():
+    """The fast preset's ``model.compile=auto`` compiles training (inductor) for runs of >= 10 trials on CPUs with
+    native bf16. The suite's runs are tiny: each would pay the compile and not get it back, so here ``auto`` trains
+    eagerly; tests that ask for ``model.compile=true`` still compile, and the tests of auto use
+    :func:`real_auto_compile`. (Session scope: the module fixtures' runs are made under it too.)"""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(hardware, "AUTO_COMPILE_MIN_TRIALS", 10**9)
+        yield
+
+
+@pytest.fixture
+def real_auto_compile(monkeypatch):
+    """``model.compile=auto`` with its real threshold (see :func:`eager_training_for_auto`)."""
+    monkeypatch.setattr(hardware, "AUTO_COMPILE_MIN_TRIALS", AUTO_COMPILE_MIN_TRIALS)

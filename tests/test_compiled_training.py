@@ -24,6 +24,7 @@ from pets.config import ConfigError, load_config, make_config
 from pets.learning import trainer as trainer_mod
 from pets.learning.trainer import ModelTrainer
 from pets.models import make_model
+from pets.runs.hardware import AUTO_COMPILE_MIN_TRIALS, resolve_model_compile
 
 pytestmark = pytest.mark.usefixtures("single_thread")
 
@@ -129,18 +130,46 @@ def test_checkpointed_optimizer_moves_between_paths(reacher_data) -> None:
     assert float(eager.optimizer.state[p]["step"]) == float(state["optimizer"]["state"][0]["step"]) + 20
 
 
-def test_model_compile_key() -> None:
-    """``model.compile``: off by default, a bool (anything else is a ConfigError), passed to the trainer, and a
-    config.yaml from before the key loads as off."""
-    assert make_config("reacher", "gem", "fast").model.compile is False
+def test_model_compile_key(real_auto_compile) -> None:
+    """``model.compile``: off at the research preset, ``auto`` at the fast preset (resolved to a bool when the config
+    is made), a bool or auto (anything else is a ConfigError), passed to the trainer."""
+    assert make_config("reacher", "gem").model.compile is False
     cfg = make_config("reacher", "gem", "fast", {"model.compile": "true"})
     assert cfg.model.compile is True
     model = make_model(cfg, envs.get("reacher"), torch.device("cpu"))
     assert builder.make_trainer(cfg, model).compile is True
+    for preset, overrides in (("fast", {}), ("research", {"model.compile": "auto"})):
+        auto = make_config("reacher", "gem", preset, overrides)
+        assert auto.model.compile is resolve_model_compile(None, auto.model.precision, auto.device, auto.trials)
+    assert make_config("reacher", "gem", "fast", {"trials": "9"}).model.compile is False  # a short run: eager
     with pytest.raises(ConfigError, match="model.compile"):
         make_config("reacher", "gem", "fast", {"model.compile": "maybe"})
     with pytest.raises(ValueError, match="compile must be a bool"):
         ModelTrainer(model, compile="yes")  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize(
+    ("flags", "precision", "device", "trials", "expected"),
+    [
+        ({"avx512_bf16"}, "bf16", "cpu", AUTO_COMPILE_MIN_TRIALS, True),  # measured ~2x (docs/performance.md)
+        ({"amx_bf16", "avx512_bf16"}, "bf16", "cpu", 300, True),
+        ({"avx512_bf16"}, "bf16", "cpu", AUTO_COMPILE_MIN_TRIALS - 1, False),  # too short to pay back
+        ({"avx512_bf16"}, "fp32", "cpu", 100, False),  # fp32 training: not measured to pay
+        (set(), "fp32", "cpu", 100, False),  # no native bf16
+        ({"avx512_bf16"}, "fp32", "cuda", 100, False),  # CUDA: not measured
+    ],
+)
+def test_auto_model_compile_where_measured(flags, precision, device, trials, expected, real_auto_compile) -> None:
+    assert resolve_model_compile(None, precision, device, trials, frozenset(flags)) is expected
+    for explicit in (True, False):
+        assert resolve_model_compile(explicit, precision, device, trials, frozenset(flags)) is explicit
+
+
+def test_a_resolved_config_yaml_stores_a_bool(tmp_path, real_auto_compile) -> None:
+    path = tmp_path / "config.yaml"
+    path.write_text(OmegaConf.to_yaml(make_config("reacher", "gem", "fast")))
+    assert OmegaConf.load(path).model.compile in (True, False)
+    assert load_config(str(path)).model.compile == make_config("reacher", "gem", "fast").model.compile
 
 
 def test_a_config_yaml_without_model_compile_loads_as_eager(tmp_path) -> None:

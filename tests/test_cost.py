@@ -52,3 +52,27 @@ def test_run_pets_prints_the_line_once_per_session(tmp_path, monkeypatch, capsys
     err = capsys.readouterr().err
     assert err.count("estimated time: about") == 1, err
     assert "for the 2 trials left" in err
+
+
+def test_the_compile_line_names_each_compiled_path():
+    cfg = make_config("reacher", "gem", "fast", {"model.compile": "true", "planner.compile": "false"})
+    line = cost.compile_line(cfg)
+    assert line is not None and "training step (6-15 CPU-s" in line and "rollout step" not in line
+    cfg.planner.compile = True
+    assert "rollout step" in cost.compile_line(cfg)
+    assert cost.compile_line(make_config("reacher", "gem", "research")) is None  # eager: no line
+
+
+def test_run_pets_states_the_compile_cost_at_the_start(tmp_path, monkeypatch, capsys):
+    """model.compile on (here with torch.compile replaced by the eager function: no inductor build in the tests):
+    one line on stderr at the start of the run, none on a resume that has nothing left to do."""
+    import run_pets
+    from pets.learning import compiled
+
+    monkeypatch.setattr(compiled.torch, "compile", lambda fn, **kwargs: fn)
+    out = tmp_path / "run"
+    args = ["--env", "invertedpendulum", "--trials", "1", "--out", str(out), *TINY, "model.compile=true"]
+    assert run_pets.main(args) == 0
+    assert capsys.readouterr().err.count("compiling once per run: the first training compiles") == 1
+    assert run_pets.main(["--resume", str(out)]) == 0
+    assert "compiling once per run" not in capsys.readouterr().err

@@ -81,6 +81,8 @@ def test_diverging_training_stops_the_run_with_one_line(tmp_path, holdout):
         "reacher",
         "--model",
         "gem",
+        "--trials",
+        "1",
         "--out",
         out,
         *TINY,

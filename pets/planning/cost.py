@@ -43,6 +43,21 @@ def faster_options(cfg: DictConfig) -> list[str]:
     return options
 
 
+def compile_line(cfg: DictConfig) -> str | None:
+    """The one-off cost of the run's compiled paths, for its start (None when it compiles nothing)."""
+    parts = []
+    if cfg.model.compile:
+        parts.append("the first training compiles the training step (6-15 CPU-s; 30-50 s wall, cold inductor cache)")
+    if cfg.planner.compile:
+        parts.append("the first planning step compiles the rollout step (5-30 s)")
+    if not parts:
+        return None
+    return (
+        f"compiling once per run: {'; '.join(parts)}; paid back by faster steps after (docs/performance.md); "
+        "model.compile=false planner.compile=false run eagerly"
+    )
+
+
 def format_duration(seconds: float) -> str:
     """``2 h 05 min``, ``3 d 4 h`` or ``12 min``."""
     minutes = int(round(seconds / 60))
