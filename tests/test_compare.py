@@ -28,6 +28,7 @@ from pets import openloop
 from pets.config import load_config, make_config
 from pets.experiments import arguments, runner
 from pets.experiments import cli as cli_module
+from pets.experiments import offline as offline_mod
 from pets.experiments.arguments import UsageError
 from pets.experiments.cli import EXIT_FAILED, main
 from pets.experiments.headline import HeadlineError, write_headline
@@ -1810,6 +1811,10 @@ def test_offline_closedloop_plans_with_the_frozen_models_and_pairs_them(offline,
     bad = dict(overrides=TINY_OFFLINE, progress=False, planner_overrides={"planner.horizon": "5"}, openloop=True)
     with pytest.raises(UsageError, match="--planner-overrides: .*planner.horizon"):
         compare_offline(["invertedpendulum"], ["delta"], [0], out, planners=["cem"], **bad, **kwargs)
+    # checked against every run's config, not the first one's: here a replanning period only one run's horizon allows
+    configs = {f"ip-h{h}": make_config("invertedpendulum", "delta", "fast", {"planner.horizon": h}) for h in (10, 4)}
+    with pytest.raises(UsageError, match=r"planner.replan_every \(6\) must be <= planner.horizon \(4\) \(run ip-h4\)"):
+        offline_mod._check_planner_overrides(configs, ["cem"], {"planner.replan_every": "6"}, False, True)
     with pytest.raises(UsageError, match="planner.KEY=VALUE"):
         arguments.parse_planner_overrides("population=5")
     parsed = arguments.parse_planner_overrides("planner.population=5,planner.feedback.features=[0,2],planner.alpha=0.2")

@@ -130,7 +130,7 @@ def compare_offline(
     data_seeds = _checked_data_seeds(data_seeds)
     sweep = _Sweep(out, env_names, models, seeds, data_seeds, arms or {}, extra, preset, protocol, device)
     configs = _expected_configs(sweep, proto, configs_only)
-    _check_planner_overrides(next(iter(configs.values())), planners, planner_overrides, openloop, closedloop)
+    _check_planner_overrides(configs, planners, planner_overrides, openloop, closedloop)
     if configs_only:
         return {"configs": configs}
     check_out_writable(out)  # after every argument is checked: bad input leaves no directory behind
@@ -282,9 +282,14 @@ def _expected_configs(sweep: _Sweep, proto: Any, configs_only: bool) -> dict[str
 
 
 def _check_planner_overrides(
-    cfg: Any, planners: Sequence[str], overrides: Mapping[str, str] | None, openloop: bool, closedloop: bool
+    configs: Mapping[str, Any],
+    planners: Sequence[str],
+    overrides: Mapping[str, str] | None,
+    openloop: bool,
+    closedloop: bool,
 ) -> None:
-    """UsageError unless ``overrides`` apply to every planning asked for (planner keys, valid values)."""
+    """UsageError unless ``overrides`` apply to every planning asked for, on every run's config (planner keys, valid
+    values: a horizon one env's preset makes invalid is refused naming that run)."""
     from pets.config import ConfigError
     from pets.planning.openloop import planning_config
 
@@ -292,12 +297,13 @@ def _check_planner_overrides(
         return
     if not (openloop or closedloop):
         raise UsageError("--planner-overrides sets the planning of --openloop / --closedloop; give one of them")
-    for planner in planners:
-        for closed in [False] * openloop + [True] * closedloop:
-            try:
-                planning_config(cfg, planner, 50, overrides, closed=closed)
-            except ConfigError as err:
-                raise UsageError(f"--planner-overrides: {err}") from None
+    for run, cfg in configs.items():
+        for planner in planners:
+            for closed in [False] * openloop + [True] * closedloop:
+                try:
+                    planning_config(cfg, planner, 50, overrides, closed=closed)
+                except ConfigError as err:
+                    raise UsageError(f"--planner-overrides: {err} (run {run})") from None
 
 
 def _requests(
