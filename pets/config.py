@@ -73,7 +73,7 @@ class ModelConfig:
     # auto | fp32 | bf16: the training forward/backward under bfloat16 autocast (fp32 weights, loss, optimiser
     # and holdout error); auto: bf16 where the hardware has native bf16 matmuls (pets.runs.hardware), else fp32
     precision: str = "auto"
-    # true: each training minibatch as one torch.compile graph (pets.learning.compiled); false: eager, the reference;
+    # true: each training minibatch as one torch.compile graph (pets.learning.compiled); false: eager, the reference
     compile: bool | None = False  # auto (null; the fast preset's): where measured faster (docs/performance.md)
     # N > 0: record the holdout error every N gradient steps (TrainResult.curve; offline runs write
     # learning_curve.csv): a learning curve to check convergence; 0: none

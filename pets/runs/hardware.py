@@ -1,4 +1,4 @@
-"""What the machine offers for bf16 matmuls, and ``precision=auto`` resolved against it.
+"""What the machine offers for bf16 matmuls, and ``precision=auto`` (and ``model.compile=auto``) resolved against it.
 
 ``auto`` means bfloat16 where the hardware multiplies bf16 natively and it was measured to pay: CPUs with AMX
 (``amx_bf16``) or AVX-512 BF16 (``avx512_bf16``) in ``/proc/cpuinfo`` (Linux x86); float32 everywhere else: older
