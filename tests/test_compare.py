@@ -33,7 +33,7 @@ from pets.experiments.arguments import UsageError
 from pets.experiments.cli import EXIT_FAILED, main
 from pets.experiments.headline import HeadlineError, write_headline
 from pets.experiments.offline import compare_offline
-from pets.experiments.offline_summary import SUMMARY_COLUMNS, summarise_offline
+from pets.experiments.offline_summary import SUMMARY_COLUMNS, summarise_offline, summary_from_runs
 from pets.experiments.online_summary import SUMMARY_COLUMNS as ONLINE_COLUMNS
 from pets.experiments.online_summary import summarise_online
 from pets.experiments.report import fmt, fmt_interval, write_csv
@@ -692,6 +692,31 @@ def offline(tmp_path_factory):
         progress=False,
     )
     return out, result
+
+
+def test_summary_from_the_runs_csv_equals_the_studys_own(offline, tmp_path):
+    """summary_from_runs (for committed studies whose run directories are gone) recomputes the study's summary.csv
+    and relative_error.csv, every cell, from its prediction_runs.csv at the study's no-information level; the
+    script around it writes them and counts what moved."""
+    import subprocess
+
+    out, _ = offline
+    level = float(csv_rows(out / "primary.csv")[0]["level"])
+    summary, relative = summary_from_runs(csv_rows(out / "prediction_runs.csv"), level)
+    write_csv(tmp_path / "summary.csv", summary, SUMMARY_COLUMNS)
+    assert csv_rows(tmp_path / "summary.csv") == csv_rows(out / "summary.csv")
+    rel_columns = list(csv_rows(out / "relative_error.csv")[0])
+    write_csv(tmp_path / "relative_error.csv", relative, rel_columns)
+    assert csv_rows(tmp_path / "relative_error.csv") == csv_rows(out / "relative_error.csv")
+    root = Path(__file__).resolve().parents[1]
+    (tmp_path / "s_summary.csv").write_bytes((out / "summary.csv").read_bytes())
+    script = [sys.executable, str(root / "docs/scripts/resummarise_offline.py"), str(out / "prediction_runs.csv")]
+    script += ["--out", str(tmp_path / "s"), "--level"]
+    done = subprocess.run([*script, repr(level)], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    assert "values changed against the file before: none" in done.stdout
+    done = subprocess.run([*script, "1e-9"], capture_output=True, text=True)
+    assert "n_diverged" in done.stdout  # every run past a level of ~0: the counts move, and the script says so
 
 
 def test_offline_writes_data_runs_and_summaries(offline):

@@ -157,11 +157,9 @@ def summarise_offline(
             continue
         diverged_runs += _mark_divergences(env, env_models, evals, level[0])
         per_run += _run_rows(env, env_models, evals, run_columns)
-        stats = env_statistics(evals, metrics, common, reps=reps)
-        env_summary, env_relative = _stat_rows(env, env_models, stats)
+        stats, env_summary, env_relative = env_summary_rows(env, env_models, evals, common, metrics, reps)
         summary += env_summary
         relative_rows += env_relative
-        _normalise(env_relative, metrics)
         for r in env_relative:
             if r["metric"] == FIGURE_METRIC:
                 fig2.setdefault(env, {})[r["model"]] = r
@@ -182,6 +180,50 @@ def summarise_offline(
     text += runs_sections(diverged_runs, _missing_runs(out, env_names, models, seeds, data_seeds, request), failed)
     atomic_write_bytes(out / "prediction.md", "\n".join(text).encode())
     return summary
+
+
+def env_summary_rows(
+    env: str,
+    models: Sequence[str],
+    evals: Mapping[str, Sequence[Mapping[str, Any]]],
+    horizons: Sequence[int],
+    metrics: Sequence[str],
+    reps: int = REPS,
+) -> tuple[dict[str, Any], list[dict[str, Any]], list[dict[str, Any]]]:
+    """(statistics, summary.csv rows, relative_error.csv rows) of one env's runs (``evals``: {model: [eval]}, each
+    with ``pair`` and ``diverged`` set)."""
+    stats = env_statistics(evals, metrics, horizons, reps=reps)
+    summary, relative = _stat_rows(env, models, stats)
+    _normalise(relative, metrics)
+    return stats, summary, relative
+
+
+def summary_from_runs(rows: Sequence[Mapping[str, str]], level: float, reps: int = REPS) -> tuple[list, list]:
+    """(summary.csv rows, relative_error.csv rows) recomputed from per-run rows (``prediction_runs.csv``, committed
+    as ``docs/results/paper_ENV_runs.csv``: env, model, seed, [data_seed,] horizon, starts, the error metrics) with
+    the divergence rule at the no-information ``level``: the statistics ``summarise_offline`` computes from eval.json
+    files, for studies whose run directories are gone."""
+    evals: dict[str, dict[str, dict[tuple, dict[str, Any]]]] = {}
+    for r in rows:
+        key = (int(r.get("data_seed") or 0), int(r["seed"]))
+        runs = evals.setdefault(r["env"], {}).setdefault(r["model"], {})
+        e = runs.setdefault(key, {"seed": key[1], "data_seed": key[0], "starts": r.get("starts"), "horizons": {}})
+        values = {k: v for k, v in r.items() if (k.endswith("_error") or k == "nonfinite_fraction") and v}
+        e["horizons"][str(int(r["horizon"]))] = {k: float(v) for k, v in values.items()}  # empty cell: absent
+    summary, relative = [], []
+    for env, by_model in evals.items():
+        data_seeds = {k[0] for runs in by_model.values() for k in runs}
+        env_evals = {
+            m: [{**e, "pair": e["seed"] if len(data_seeds) == 1 else k} for k, e in runs.items()]
+            for m, runs in by_model.items()
+        }
+        models = list(env_evals)
+        horizons, metrics = _shared_horizons_and_metrics([e for runs in env_evals.values() for e in runs])
+        _mark_divergences(env, models, env_evals, level)
+        _, env_summary, env_relative = env_summary_rows(env, models, env_evals, horizons, metrics, reps)
+        summary += env_summary
+        relative += env_relative
+    return summary, relative
 
 
 def _shared_horizons_and_metrics(runs: Sequence[Mapping[str, Any]]) -> tuple[list[int], list[str]]:
