@@ -198,6 +198,7 @@ def _grouped_points(
         else:
             ax.errorbar(xs, mids, yerr=errs, fmt="o", capsize=4, color=colors[model], label=label)
     ax.set_xticks(range(len(rows)), list(rows))
+    ax.set_xlim(-0.5, len(rows) - 0.5)  # every env's group inside the axes, notes ("all diverged") included
     return plotted
 
 
