@@ -176,7 +176,7 @@ def online_rows(rows: Sequence[Mapping[str, str]], source: str) -> list[dict[str
                 **{k: csv_number(row[k]) for k in _P_AND_DIFF},
                 "diff_p_signflip": p,
                 "diff_p_holm": csv_number(row.get("diff_p_holm")),
-                "ci_exact_note": ci_exact_note(csv_number(row["diff_ci_low"]), csv_number(row["diff_ci_high"]), 0.0, p),
+                "ci_exact_note": _diff_note(row, p),
                 "threshold": csv_number(row.get("threshold")),
                 "n_reached": row.get("n_reached", ""),
                 "delta_n_reached": b.get("n_reached", ""),
@@ -216,17 +216,16 @@ def planning_rows(path: Path, loop: str) -> list[dict[str, Any]]:
                 "delta_total_mean": csv_number(b["total_mean"]),
                 **{k: csv_number(row[k]) for k in _PLANNING_READ},
                 "p_value_holm": math.nan,  # set for the primary family by write_headline
-                "ci_exact_note": _diff_note(row),
+                "ci_exact_note": _diff_note(row, csv_number(row["p_value_exact"])),
                 "source": str(path),
             }
         )
     return out
 
 
-def _diff_note(row: Mapping[str, str]) -> str:
-    """The CI-vs-exact-test note of a summary row's paired difference to delta."""
-    low, high, p = (csv_number(row[k]) for k in ("diff_ci_low", "diff_ci_high", "p_value_exact"))
-    return ci_exact_note(low, high, 0.0, p)
+def _diff_note(row: Mapping[str, str], p: float) -> str:
+    """The CI-vs-exact-test note of a summary row's paired difference to delta, with its exact ``p``."""
+    return ci_exact_note(csv_number(row["diff_ci_low"]), csv_number(row["diff_ci_high"]), 0.0, p)
 
 
 def planning_table(rows: Sequence[Mapping[str, Any]]) -> str:

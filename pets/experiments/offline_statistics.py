@@ -34,6 +34,11 @@ def test_label(env: str, data_seed: int) -> str:
     return f"data/{env}-d{data_seed}-test.npz" if data_seed else f"data/{env}-test.npz"
 
 
+def pair_key(data_seed: int, seed: int, n_data_sets: int) -> int | tuple[int, int]:
+    """What runs pair by: the model seed alone with one data set, else (data seed, seed)."""
+    return seed if n_data_sets == 1 else (data_seed, seed)
+
+
 def load_evals(
     out: Path,
     env: str,
@@ -43,14 +48,14 @@ def load_evals(
     data_seeds: Sequence[int] = (0,),
 ) -> dict[str, list[dict[str, Any]]]:
     """{model: [eval.json of each (data seed, seed) that has one for this request]}; each with ``seed``,
-    ``data_seed`` and ``pair`` (the key runs pair by: the seed alone with one data set, else (data seed, seed))."""
+    ``data_seed`` and ``pair`` (:func:`pair_key`)."""
     found: dict[str, list[dict[str, Any]]] = {}
     for model in models:
         for d in data_seeds:
             for seed in seeds:
                 path = out / "runs" / run_name(env, model, seed, data_seed=d) / "eval.json"
                 if json_matches(path, {**request, "data": test_label(env, d)}):
-                    pair = seed if len(data_seeds) == 1 else (d, seed)
+                    pair = pair_key(d, seed, len(data_seeds))
                     e = {**json.loads(path.read_text()), "seed": seed, "data_seed": d, "pair": pair}
                     found.setdefault(model, []).append(e)
     return found

@@ -58,6 +58,7 @@ from pets.experiments.offline_statistics import (
     env_statistics,
     load_evals,
     order_metrics,
+    pair_key,
     test_label,
 )
 from pets.experiments.offline_tables import (
@@ -207,15 +208,14 @@ def summary_from_runs(rows: Sequence[Mapping[str, str]], level: float, reps: int
     for r in rows:
         key = (int(r.get("data_seed") or 0), int(r["seed"]))
         runs = evals.setdefault(r["env"], {}).setdefault(r["model"], {})
-        e = runs.setdefault(key, {"seed": key[1], "data_seed": key[0], "starts": r.get("starts"), "horizons": {}})
+        e = runs.setdefault(key, {"seed": key[1], "data_seed": key[0], "horizons": {}})
         values = {k: v for k, v in r.items() if (k.endswith("_error") or k == "nonfinite_fraction") and v}
         e["horizons"][str(int(r["horizon"]))] = {k: float(v) for k, v in values.items()}  # empty cell: absent
     summary, relative = [], []
     for env, by_model in evals.items():
         data_seeds = {k[0] for runs in by_model.values() for k in runs}
         env_evals = {
-            m: [{**e, "pair": e["seed"] if len(data_seeds) == 1 else k} for k, e in runs.items()]
-            for m, runs in by_model.items()
+            m: [{**e, "pair": pair_key(*k, len(data_seeds))} for k, e in runs.items()] for m, runs in by_model.items()
         }
         models = list(env_evals)
         horizons, metrics = _shared_horizons_and_metrics([e for runs in env_evals.values() for e in runs])
