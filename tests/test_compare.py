@@ -1667,6 +1667,14 @@ def test_compare_config_file_reaches_the_runs_and_bad_files_get_one_line(tmp_pat
     assert not (tmp_path / "o2").exists()
 
 
+def _script(name: str):
+    """docs/scripts/NAME.py imported as a module."""
+    spec = importlib.util.spec_from_file_location(name, ROOT / "docs" / "scripts" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 def test_offline_data_seeds_pair_by_data_set_and_seed(offline, tmp_path):
     """Issue 37: --data-seeds 0,1 reuses data set 0 and its runs, collects data set 1 with its own seeds, runs every
     model and seed on it, and pairs the primary endpoint by (data seed, seed)."""
@@ -1704,15 +1712,18 @@ def test_offline_data_seeds_pair_by_data_set_and_seed(offline, tmp_path):
     exact = scipy.stats.permutation_test((np.log(ratios),), np.mean, permutation_type="samples", n_resamples=np.inf)
     assert float(row["p_value_exact"]) == pytest.approx(exact.pvalue)
     assert float(row["ratio_ci_low"]) <= float(row["ratio_to_delta"]) <= float(row["ratio_ci_high"])
+    snapshot = _script("partial_offline_runs")  # its --data-seeds summary is the study's own, read-only on the runs
+    args = [str(out), str(tmp_path / "runs.csv"), "--summary", str(tmp_path / "snap"), "--envs", "invertedpendulum"]
+    assert snapshot.main([*args, "--models", "delta,gem", "--seeds", "0,1", "--data-seeds", "0,1"]) == 0
+    for name in ("summary.csv", "primary.csv"):
+        assert csv_rows(tmp_path / "snap" / name) == csv_rows(out / name), name
 
 
 def test_partial_offline_snapshot_of_a_finished_study_is_its_own_summary(offline, tmp_path):
     """docs/scripts/partial_offline_runs.py: one row per run and horizon from eval.json, and with --summary the
     summary of the finished runs, written beside the study (nothing under it); for a finished study that is the
     study's own summary.csv and primary.csv, value for value."""
-    spec = importlib.util.spec_from_file_location("partial_offline_runs", ROOT / "docs/scripts/partial_offline_runs.py")
-    partial = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(partial)
+    partial = _script("partial_offline_runs")
     import shutil
 
     study = tmp_path / "study"  # other tests reuse the module's study: summarise a copy, made current first
@@ -1735,9 +1746,7 @@ def test_trajectory_figures_of_a_study_add_the_horizon_where_delta_stops_trackin
     the first evaluated horizon outside delta's tracking horizons (primary.csv) when it is earlier than the last."""
     import shutil
 
-    spec = importlib.util.spec_from_file_location("trajectory_figures", ROOT / "docs/scripts/trajectory_figures.py")
-    figures = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(figures)
+    figures = _script("trajectory_figures")
     study = tmp_path / "study"
     shutil.copytree(offline[0], study)
     rows = csv_rows(study / "primary.csv")

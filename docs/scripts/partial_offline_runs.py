@@ -1,14 +1,16 @@
 """Snapshot of an offline study still running: one row per finished run and horizon, from each run's eval.json.
 
     python docs/scripts/partial_offline_runs.py OUT_DIR SNAPSHOT.csv
-    python docs/scripts/partial_offline_runs.py OUT_DIR SNAPSHOT.csv --summary DIR --envs E --models M --seeds S
+    python docs/scripts/partial_offline_runs.py OUT_DIR SNAPSHOT.csv --summary DIR --envs E --models M --seeds S \
+        [--data-seeds D]
 
 Columns of SNAPSHOT.csv: run, env, model (the run's head; an arm's label is in the run name), data (its test file
 name, which names the data set), seed (the model's), horizon and
 the eval.json errors of that horizon. With ``--summary DIR``: also the study's summary of the finished runs
 (``pets.experiments.offline_summary.summarise_offline``: summary.csv, primary.csv, prediction.md, ...) written to
 DIR, which links to OUT_DIR's runs and data and is the only place written; runs not finished yet are simply
-absent, so a partial summary is labelled as such wherever it is quoted.
+absent, so a partial summary is labelled as such wherever it is quoted. It reads the runs and never trains, so it
+also re-summarises a finished study with this checkout's code without risking its runs.
 """
 
 from __future__ import annotations
@@ -42,7 +44,9 @@ def write_runs(out: Path, snapshot: Path) -> list[dict]:
     return evals
 
 
-def write_summary(out: Path, summary: Path, evals: list[dict], envs: str, models: str, seeds: str) -> None:
+def write_summary(
+    out: Path, summary: Path, evals: list[dict], envs: str, models: str, seeds: str, data_seeds: str = "0"
+) -> None:
     """The study's summary of its finished runs in ``summary`` (links to OUT_DIR's runs and data)."""
     from pets.experiments.offline_summary import summarise_offline
 
@@ -55,7 +59,8 @@ def write_summary(out: Path, summary: Path, evals: list[dict], envs: str, models
             link.symlink_to((out / part).resolve(), target_is_directory=True)
     request = {k: v for k, v in evals[0]["request"].items() if k != "data"}  # the study's own evaluation request
     seed_list = [int(s) for s in seeds.split(",")]
-    summarise_offline(summary, envs.split(","), models.split(","), seed_list, request)
+    data_list = [int(d) for d in data_seeds.split(",")]
+    summarise_offline(summary, envs.split(","), models.split(","), seed_list, request, data_seeds=data_list)
     print(f"{summary}: summary of the finished runs")
 
 
@@ -67,12 +72,13 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--envs", help="with --summary: comma-separated envs")
     parser.add_argument("--models", help="with --summary: comma-separated models (arms)")
     parser.add_argument("--seeds", help="with --summary: comma-separated seeds")
+    parser.add_argument("--data-seeds", default="0", help="with --summary: comma-separated data seeds (default 0)")
     args = parser.parse_args(argv)
     if args.summary and not (args.envs and args.models and args.seeds):
         parser.error("--summary needs --envs, --models and --seeds")
     evals = write_runs(args.out, args.snapshot)
     if args.summary:
-        write_summary(args.out, args.summary, evals, args.envs, args.models, args.seeds)
+        write_summary(args.out, args.summary, evals, args.envs, args.models, args.seeds, args.data_seeds)
     return 0
 
 
