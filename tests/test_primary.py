@@ -148,3 +148,29 @@ def test_offline_primary_script_writes_the_versus_table(tmp_path):
     assert (row["model"], row["versus"], row["n_pairs"], row["n_lower"]) == ("gem-se", "gem", "5", "0")
     bad = subprocess.run([*script, "--versus", "gem-se"], capture_output=True, text=True, cwd=root)
     assert bad.returncode == 2 and "--versus takes MODEL:OTHER" in bad.stderr
+
+
+def test_fig2_averages_over_the_tracking_horizons_only() -> None:
+    """Issue 37: Fig. 2 (relative_error.csv) averages each run's error over delta's tracking horizons, the
+    primary endpoint's; a run past the level only at a later horizon stays in; with no delta run, every horizon."""
+    from pets.experiments.offline_summary import summary_from_runs
+
+    level = math.sqrt(2)
+    rng = np.random.default_rng(0)
+    rows, mean_step = [], {}
+    for model in ("delta", "gem"):
+        for seed in range(4):
+            for h, std in ((1, 0.2), (5, 0.9), (10, 3.0)):  # delta's median passes the level at h=10
+                mean_step[model, seed, h] = float(rng.uniform(1, 2))
+                err = {"standardized_error": std * (1 + 0.1 * seed), "mean_step_error": mean_step[model, seed, h]}
+                rows.append({"env": "reacher", "model": model, "seed": str(seed), "horizon": str(h), **err})
+    _, relative = summary_from_runs(rows, level)
+    gem = next(r for r in relative if r["model"] == "gem" and r["metric"] == "mean_step_error")
+    assert gem["horizons"] == "1 5" and (gem["n_seeds"], gem["n_diverged"]) == (4, 0)
+    averaged = [np.mean([mean_step["gem", s, h] for h in (1, 5)]) for s in range(4)]
+    assert gem["iqm"] == pytest.approx(scipy.stats.trim_mean(averaged, 0.25), rel=1e-12)
+    ratios = [a / np.mean([mean_step["delta", s, h] for h in (1, 5)]) for s, a in enumerate(averaged)]
+    assert gem["ratio_to_delta"] == pytest.approx(scipy.stats.trim_mean(ratios, 0.25), rel=1e-12)
+    _, no_delta = summary_from_runs([r for r in rows if r["model"] == "gem"], level)
+    assert {r["horizons"] for r in no_delta} == {"1 5 10"}
+    assert all(r["n_diverged"] == 4 for r in no_delta)  # every run is past the level at h=10: out of the average

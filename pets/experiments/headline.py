@@ -13,7 +13,8 @@ summary's, from rliable) and writes:
 - ``headline_ratio.png``: the paired ratio to delta per horizon and env (one panel per metric), CI bars.
 - With ``--relative`` (the studies' relative_error.csv files): the paper's Fig. 2 across the envs, both
   normalisations: ``headline_relative.png`` (divided by the env's worst model) and ``headline_fig2_ratio.png``
-  (paired ratio to delta), for the error averaged over the horizons (mean_step_error, as the paper).
+  (paired ratio to delta), for the error averaged over each env's tracking horizons (relative_error.csv's
+  ``horizons``; mean_step_error, as the paper).
 - With ``--openloop`` / ``--closedloop`` (the openloop.csv / closedloop.csv of ``pets.compare offline``):
   ``headline_planning.csv``, planning with a pre-trained model: per env, planner and non-delta model, the total
   reward against delta's and the paired difference with its CI and exact p, as the planning summary computed them;
@@ -329,7 +330,7 @@ def relative_rows(path: Path, metric: str = "mean_step_error") -> dict[str, dict
     for r in rows:
         if r["metric"] != metric:
             continue
-        text = ("env", "model", "metric", "ci_exact_note")
+        text = ("env", "model", "metric", "ci_exact_note", "horizons")
         values = {k: (None if v in ("", None) else float(v)) for k, v in r.items() if k not in text}
         values.update(n_seeds=int(values["n_seeds"] or 0), n_diverged=int(values["n_diverged"] or 0))
         out.setdefault(r["env"], {})[r["model"]] = values

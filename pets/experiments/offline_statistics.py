@@ -72,13 +72,18 @@ def _finite(x: float | None) -> float | None:
     return None if x is None or not math.isfinite(x) else float(x)
 
 
-def _run_scores(e: Mapping[str, Any], metrics: Sequence[str], horizons: Sequence[int]) -> np.ndarray:
-    """One run's errors per column: each metric at each horizon, then each metric averaged over the horizons.
-    NaN where the run diverged (``e["diverged"]``: {horizon: why}): at that horizon, and in the average
-    when at any of ``horizons``, since an average over a diverged horizon means nothing."""
+def _run_scores(
+    e: Mapping[str, Any], metrics: Sequence[str], horizons: Sequence[int], averaged: Sequence[int]
+) -> np.ndarray:
+    """One run's errors per column: each metric at each horizon, then each metric averaged over ``averaged`` (a
+    subset of ``horizons``). NaN where the run diverged (``e["diverged"]``: {horizon: why}): at that horizon, and
+    in the average when at any of ``averaged``, since an average over a diverged horizon means nothing; NaN in
+    the average when ``averaged`` is empty."""
     per_h = np.array([[float(e["horizons"][str(h)][m]) for h in horizons] for m in metrics])
     per_h[:, [str(h) in e["diverged"] for h in horizons]] = np.nan
-    return np.concatenate([per_h.ravel(), per_h.mean(axis=1)])
+    columns = [horizons.index(h) for h in averaged]
+    average = per_h[:, columns].mean(axis=1) if columns else np.full(len(metrics), np.nan)
+    return np.concatenate([per_h.ravel(), average])
 
 
 def env_statistics(
@@ -86,20 +91,26 @@ def env_statistics(
     metrics: Sequence[str],
     horizons: Sequence[int],
     *,
+    averaged: Sequence[int] | None = None,
     reps: int = REPS,
     seed: int = BOOT_SEED,
 ) -> dict[str, dict[tuple[str, int | str], dict[str, Any]]]:
     """{model: {(metric, horizon): statistics}} of one env; horizon :data:`AVERAGE` is the error averaged
-    over ``horizons`` per run. Each entry has the :data:`SUMMARY_COLUMNS` statistics (None where absent).
+    over ``averaged`` (default: all ``horizons``) per run. Each entry has the :data:`SUMMARY_COLUMNS`
+    statistics (None where absent).
 
     Divergence is per horizon (every run's ``"diverged"``, {horizon: why}, must be set): a run diverged at
     h is left out of the IQM, CI and ratios at h, counted in ``n_diverged`` there and enters P as error
     ``+inf`` there; at its other horizons it counts normally. The :data:`AVERAGE` column counts only the
-    runs that diverged at none of ``horizons``. The ratio to delta at h pairs the seeds where neither
+    runs that diverged at none of ``averaged``. The ratio to delta at h pairs the seeds where neither
     model diverged at h (``n_pairs``).
     """
+    horizons = list(horizons)
+    averaged = horizons if averaged is None else list(averaged)
     columns = [(m, h) for m in metrics for h in horizons] + [(m, AVERAGE) for m in metrics]
-    scores = {model: {e["pair"]: _run_scores(e, metrics, horizons) for e in runs} for model, runs in evals.items()}
+    scores = {
+        model: {e["pair"]: _run_scores(e, metrics, horizons, averaged) for e in runs} for model, runs in evals.items()
+    }
     out: dict[str, dict[tuple[str, int | str], dict[str, Any]]] = {}
     for model, runs in scores.items():
         x = np.array(list(runs.values()))

@@ -22,9 +22,10 @@ Files:
   The delta columns are empty for delta itself, where delta is not compared, and where a value
   does not exist (no run left, delta's error 0).
 - ``relative_error.csv``: the same per env, model and metric for the error averaged over the env's
-  horizons (per seed, then the statistics over the seeds that diverged at none of them), plus
-  ``relative`` (the IQM divided by the largest model's IQM in the env, as the paper normalises Fig. 2)
-  with its CI divided by the same number.
+  tracking horizons (``horizons``: delta's, as in ``primary.csv``; all horizons where the env has no delta run;
+  per seed, then the statistics over the seeds that diverged at none of them), plus ``relative`` (the IQM
+  divided by the largest model's IQM in the env, as the paper normalises Fig. 2) with its CI divided by the
+  same number.
 - ``primary.csv``: the pre-registered primary endpoint per env and arm (:mod:`pets.experiments.primary`: the
   no-information level, the tracking horizons, the paired ratio of the clipped standardized error averaged over
   them, its exact p-value and Holm's adjustment over the (env, arm) tests, the verdict), also at the top of
@@ -72,16 +73,18 @@ from pets.experiments.offline_tables import (
 )
 from pets.experiments.plots import plot_absolute, plot_ratio, plot_relative
 from pets.experiments.primary import (
+    METRIC,
     PAST_LEVEL_COLUMNS,
     PRIMARY_COLUMNS,
     env_level,
     past_level_rows,
     primary_markdown,
     primary_rows,
+    tracking_horizons,
 )
 from pets.experiments.report import write_csv
 from pets.experiments.rundirs import json_matches, precision_note, run_name
-from pets.experiments.statistics import REPS, divergences
+from pets.experiments.statistics import BASELINE, REPS, divergences
 from pets.runs.fileio import atomic_write_bytes
 
 _DELTA_COLUMNS = [
@@ -120,6 +123,7 @@ RELATIVE_COLUMNS = [
     "n_seeds",
     "n_diverged",
     *_DELTA_COLUMNS,
+    "horizons",
 ]
 
 
@@ -158,7 +162,7 @@ def summarise_offline(
             continue
         diverged_runs += _mark_divergences(env, env_models, evals, level[0])
         per_run += _run_rows(env, env_models, evals, run_columns)
-        stats, env_summary, env_relative = env_summary_rows(env, env_models, evals, common, metrics, reps)
+        stats, env_summary, env_relative = env_summary_rows(env, env_models, evals, common, metrics, level[0], reps)
         summary += env_summary
         relative_rows += env_relative
         for r in env_relative:
@@ -189,14 +193,29 @@ def env_summary_rows(
     evals: Mapping[str, Sequence[Mapping[str, Any]]],
     horizons: Sequence[int],
     metrics: Sequence[str],
+    level: float,
     reps: int = REPS,
 ) -> tuple[dict[str, Any], list[dict[str, Any]], list[dict[str, Any]]]:
     """(statistics, summary.csv rows, relative_error.csv rows) of one env's runs (``evals``: {model: [eval]}, each
-    with ``pair`` and ``diverged`` set)."""
-    stats = env_statistics(evals, metrics, horizons, reps=reps)
+    with ``pair`` and ``diverged`` set); the relative rows average over :func:`figure_horizons`."""
+    averaged = figure_horizons(evals, horizons, level)
+    stats = env_statistics(evals, metrics, horizons, averaged=averaged, reps=reps)
     summary, relative = _stat_rows(env, models, stats)
+    for r in relative:
+        r["horizons"] = " ".join(map(str, averaged))
     _normalise(relative, metrics)
     return stats, summary, relative
+
+
+def figure_horizons(evals: Mapping[str, Sequence[Mapping[str, Any]]], horizons: Sequence[int], level: float) -> list:
+    """Fig. 2's horizons: delta's tracking horizons (:func:`pets.experiments.primary.tracking_horizons` of its
+    standardized error at the no-information ``level``); all ``horizons`` where the env has no delta run or no
+    standardized error."""
+    base = evals.get(BASELINE, [])
+    if not base or any(METRIC not in e["horizons"][str(h)] for e in base for h in horizons):
+        return list(horizons)
+    runs = {e["pair"]: {h: float(e["horizons"][str(h)][METRIC]) for h in horizons} for e in base}
+    return tracking_horizons(runs, level)
 
 
 def summary_from_runs(rows: Sequence[Mapping[str, str]], level: float, reps: int = REPS) -> tuple[list, list]:
@@ -220,7 +239,7 @@ def summary_from_runs(rows: Sequence[Mapping[str, str]], level: float, reps: int
         models = list(env_evals)
         horizons, metrics = _shared_horizons_and_metrics([e for runs in env_evals.values() for e in runs])
         _mark_divergences(env, models, env_evals, level)
-        _, env_summary, env_relative = env_summary_rows(env, models, env_evals, horizons, metrics, reps)
+        _, env_summary, env_relative = env_summary_rows(env, models, env_evals, horizons, metrics, level, reps)
         summary += env_summary
         relative += env_relative
     return summary, relative

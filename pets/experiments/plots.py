@@ -213,8 +213,8 @@ def _legend_outside(ax: Any) -> None:
 
 def plot_relative(path: Path, rows: Mapping[str, Mapping[str, Mapping[str, Any]]]) -> None:
     """Fig. 2 as the paper normalises it: per env one bar per model, the IQM over seeds of the error averaged
-    over the horizons divided by the env's largest model IQM (``rows[env][model]``: relative_error.csv rows),
-    with the CI divided alike; diverged seeds are left out and counted above the bar."""
+    over the env's tracking horizons divided by the env's largest model IQM (``rows[env][model]``:
+    relative_error.csv rows), with the CI divided alike; diverged seeds are left out and counted above the bar."""
     plt = _pyplot()
     models = list(dict.fromkeys(m for vals in rows.values() for m in vals))
     fig, ax = plt.subplots(figsize=_group_figsize(len(rows), len(models)))
@@ -222,7 +222,7 @@ def plot_relative(path: Path, rows: Mapping[str, Mapping[str, Mapping[str, Any]]
     ax.axhline(1.0, color="grey", lw=0.8, ls="--")
     ax.set_ylabel("error / largest model's error")
     ax.set_title(
-        "Prediction error averaged over horizons, relative to the worst model\n"
+        "Prediction error averaged over the tracking horizons, relative to the worst model\n"
         "(IQM over seeds, 95 % CI; diverged seeds left out and counted)",
         fontsize=10,
     )
@@ -233,8 +233,8 @@ def plot_relative(path: Path, rows: Mapping[str, Mapping[str, Mapping[str, Any]]
 
 def plot_ratio(path: Path, rows: Mapping[str, Mapping[str, Mapping[str, Any]]], baseline: str = "delta") -> None:
     """Fig. 2 as a paired ratio: per env and model (``baseline`` aside) the IQM over seeds of the per-seed ratio
-    of the error averaged over the horizons to ``baseline``'s, with its CI; a line at 1 (log y if the values
-    span a factor >= 4)."""
+    of the error averaged over the env's tracking horizons to ``baseline``'s, with its CI; a line at 1 (log y if
+    the values span a factor >= 4)."""
     plt = _pyplot()
     models = [m for m in dict.fromkeys(m for vals in rows.values() for m in vals) if m != baseline]
     fig, ax = plt.subplots(figsize=_group_figsize(len(rows), len(models)))
@@ -245,7 +245,7 @@ def plot_ratio(path: Path, rows: Mapping[str, Mapping[str, Mapping[str, Any]]], 
         ax.set_yscale("log")
     ax.set_ylabel(f"error / {baseline}'s error (paired by seed)")
     ax.set_title(
-        f"Prediction error averaged over horizons, ratio to {baseline}\n"
+        f"Prediction error averaged over the tracking horizons, ratio to {baseline}\n"
         "(IQM over seeds of the per-seed ratio, 95 % CI; below 1: lower error)",
         fontsize=10,
     )
