@@ -1450,6 +1450,14 @@ def test_headline_takes_each_comparison_from_the_summaries_at_the_longest_horizo
     assert "| reacher | gem |" in text and "nan" not in text.lower().replace("n/a", "")
     for figure in ("headline_ratio.png", "headline_relative.png", "headline_fig2_ratio.png"):
         assert (tmp_path / figure).stat().st_size > 0
+    relative = csv_rows(off / "relative_error.csv")  # reacher's delta tracks the state at h = 1 only
+    assert {r["horizons"] for r in relative} == {"1 5"}
+    for r in relative:
+        r["horizons"] = "1" if r["env"] == "reacher" else r["horizons"]
+    write_csv(tmp_path / "relative_error.csv", relative, list(relative[0]))
+    text = write_headline([off / "summary.csv"], [], tmp_path / "t", relative=[tmp_path / "relative_error.csv"])
+    by_env = {r["env"]: r["horizon"] for r in csv_rows(tmp_path / "t" / "headline_offline.csv")}
+    assert by_env == {"reacher": "1", "invertedpendulum": "5", "hopper": "5"} and "among its tracking horizons" in text
 
 
 def write_dir(tmp_path, off, horizon):

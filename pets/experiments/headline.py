@@ -119,13 +119,17 @@ def read_summary(path: Path) -> tuple[str, list[dict[str, str]]]:
     return kind, rows
 
 
-def offline_rows(rows: Sequence[Mapping[str, str]], horizon: int, source: str) -> list[dict[str, Any]]:
+def offline_rows(
+    rows: Sequence[Mapping[str, str]], horizon: int, source: str, tracking: Mapping[str, set[int]] | None = None
+) -> list[dict[str, Any]]:
     """Per env, non-delta model and headline metric: the summary's comparison at ``horizon`` (or the longest
-    horizon below it that the env has)."""
+    horizon below it that the env has and, where ``tracking`` names the env's tracking horizons, at which delta
+    still tracks the state)."""
     out = []
+    tracking = tracking or {}
     by_key = {(r["env"], r["model"], int(r["horizon"]), r["metric"]): r for r in rows}
     for env in dict.fromkeys(r["env"] for r in rows):
-        horizons = sorted({h for (e, _, h, _) in by_key if e == env and h <= horizon})
+        horizons = sorted({h for (e, _, h, _) in by_key if e == env and h <= horizon and h in tracking.get(env, [h])})
         if not horizons:
             continue
         h = horizons[-1]
@@ -332,6 +336,7 @@ def relative_rows(path: Path, metric: str = "mean_step_error") -> dict[str, dict
             continue
         text = ("env", "model", "metric", "ci_exact_note", "horizons")
         values = {k: (None if v in ("", None) else float(v)) for k, v in r.items() if k not in text}
+        values["horizons"] = r.get("horizons") or ""  # the tracking horizons it averages (older files: none)
         values.update(n_seeds=int(values["n_seeds"] or 0), n_diverged=int(values["n_diverged"] or 0))
         out.setdefault(r["env"], {})[r["model"]] = values
     return out
@@ -366,6 +371,10 @@ def write_headline(
     fig2: dict[str, dict[str, dict[str, Any]]] = {}
     for path in relative:
         fig2.update(relative_rows(path))
+    tracking: dict[str, set[int]] = {}  # each env's tracking horizons, where its relative_error.csv names them
+    for env, models in fig2.items():
+        if named := next(iter(models.values()))["horizons"]:
+            tracking[env] = {int(h) for h in named.split()}
     off_rows: list[dict[str, Any]] = []
     on_rows: list[dict[str, Any]] = []
     curves: dict[str, list[dict[str, str]]] = {}
@@ -374,7 +383,7 @@ def write_headline(
         if kind != expected:
             raise HeadlineError(f"{path}: an {kind} summary given as --{expected}")
         if kind == "offline":
-            off_rows += offline_rows(rows, horizon, str(path))
+            off_rows += offline_rows(rows, horizon, str(path), tracking)
             curves[str(path)] = rows
         else:
             on_rows += online_rows(rows, str(path))
@@ -389,7 +398,13 @@ def write_headline(
     parts = ["# Headline: each model against delta, paired seeds\n"]
     if off_rows:
         parts += [
-            f"## Offline prediction error at horizon {horizon} (or the env's longest below it)\n",
+            f"## Offline prediction error at horizon {horizon} (or the env's longest below it"
+            + (
+                ", among its tracking horizons (relative_error.csv's horizons: delta still tracks the state)"
+                if tracking
+                else ""
+            )
+            + ")\n",
             "Ratio: IQM of the per-seed ratio model / delta with its 95 % CI; P(lower): the probability that the "
             "model's error is lower than delta's, with its CI (bold: the CI excludes 0.5). From the summaries:\n",
             offline_table(off_rows),
