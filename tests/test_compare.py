@@ -792,6 +792,8 @@ def test_offline_summary_csv_equals_the_runs_evaluations(offline):
         assert float(relative[m]["relative"]) == pytest.approx(averaged[m] / top, rel=1e-12)
     md = (out / "prediction.md").read_text()
     assert re.search(r"^\| invertedpendulum \| 1 3 5 \| gem \| 2 \| 0 \| ", md, re.M)  # tracked at every horizon
+    primary = {r["model"]: r for r in csv_rows(out / "primary.csv")}  # Fig. 2 averages over the primary's horizons
+    assert {r["horizons"] for r in csv_rows(out / "relative_error.csv")} == {primary["delta"]["tracking_horizons"]}
     assert "Fewer than 5 seeds cannot carry a claim" in md
 
 

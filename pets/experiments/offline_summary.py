@@ -207,7 +207,9 @@ def env_summary_rows(
     return stats, summary, relative
 
 
-def figure_horizons(evals: Mapping[str, Sequence[Mapping[str, Any]]], horizons: Sequence[int], level: float) -> list:
+def figure_horizons(
+    evals: Mapping[str, Sequence[Mapping[str, Any]]], horizons: Sequence[int], level: float
+) -> list[int]:
     """Fig. 2's horizons: delta's tracking horizons (:func:`pets.experiments.primary.tracking_horizons` of its
     standardized error at the no-information ``level``); all ``horizons`` where the env has no delta run or no
     standardized error."""
