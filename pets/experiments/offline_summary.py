@@ -7,8 +7,8 @@ CI over the seeds both have). Divergence is per horizon
 (:func:`pets.experiments.statistics.divergences` at the env's no-information level,
 :func:`pets.experiments.primary.env_level`): a run diverged at a horizon is left out of the IQM, CI and ratios
 at that horizon, counted in ``n_diverged`` there, and enters P as error ``+inf`` there; at its other horizons
-it counts normally. The error averaged over the horizons counts only the runs that diverged at none of them. The
-metrics are the eval.json keys ending in ``_error`` that every run of the env has
+it counts normally. The error averaged over the tracking horizons (Fig. 2) counts only the runs that diverged at
+none of them. The metrics are the eval.json keys ending in ``_error`` that every run of the env has
 (``pets.evaluate.METRICS`` first, in that order, then the others alphabetically).
 
 Files:
