@@ -1486,6 +1486,21 @@ def test_headline_rejects_what_is_not_a_summary_in_one_line(fake_offline, tmp_pa
     code, out, _ = cli(capsys, "headline", *args)
     assert code == 0 and out.startswith("# Headline") and (tmp_path / "h" / "headline.md").read_text() in out
     assert "](../figs/headline_ratio.png)" in out and (tmp_path / "figs" / "headline_ratio.png").is_file()
+    code, _, err = cli(capsys, "headline", "--primary", off / "summary.csv", "--out", tmp_path / "h")
+    assert code == 2 and "not a primary.csv" in err and "Traceback" not in err
+
+
+def test_headline_gives_the_primary_endpoint_as_the_files_do(fake_offline, tmp_path):
+    """Issue 37: --primary puts the pre-registered endpoint first, every number as its primary.csv has it."""
+    off, _ = fake_offline
+    text = write_headline([off / "summary.csv"], [], tmp_path, primary=[off / "primary.csv"])
+    assert text.index("## Primary endpoint") < text.index("## Offline prediction error")
+    compared = [r for r in csv_rows(off / "primary.csv") if r["model"] != "delta" and r["p_value_holm"]]
+    assert compared
+    for r in compared:
+        line = next(x for x in text.splitlines() if x.startswith(f"| {r['env']} | {r['model']} |"))
+        assert f"| {float(r['p_value_holm']):.3g} |" in line and r["verdict"] in line
+        assert f"| {r['tracking_horizons']} |" in line
 
 
 def test_table_numbers_are_readable():

@@ -157,6 +157,7 @@ def headline_main(args: argparse.Namespace) -> int:
             figures=args.figures,
             openloop=args.openloop,
             closedloop=args.closedloop,
+            primary=args.primary,
         )
     except HeadlineError as err:
         fail(PROG, str(err))

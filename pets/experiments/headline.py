@@ -19,6 +19,7 @@ summary's, from rliable) and writes:
   ``headline_planning.csv``, planning with a pre-trained model: per env, planner and non-delta model, the total
   reward against delta's and the paired difference with its CI and exact p, as the planning summary computed them;
   for ``--model`` in closed loop (the pre-registered primary of planning) Holm's adjustment over the envs given.
+- With ``--primary`` (primary.csv files): the pre-registered offline primary endpoint first, as the files give it.
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ from pathlib import Path
 from typing import Any
 
 from pets.experiments.plots import plot_headline_ratios
+from pets.experiments.primary import primary_markdown, read_primary
 from pets.experiments.report import csv_number, disagreement_lines, fmt, fmt_interval, md_table, write_csv
 from pets.experiments.statistics import BASELINE, ci_exact_note, holm
 from pets.runs.fileio import atomic_write_bytes
@@ -358,11 +360,16 @@ def write_headline(
     figures: Path | None = None,
     openloop: Sequence[Path] = (),
     closedloop: Sequence[Path] = (),
+    primary: Sequence[Path] = (),
 ) -> str:
     """Write the CSVs and headline.md to ``out`` and the figures (module docstring) to ``figures`` (default
     ``out``); returns the markdown, whose image links are relative to ``out``."""
-    if not offline and not online and not openloop and not closedloop:
-        raise HeadlineError("give at least one summary (--offline, --online, --openloop or --closedloop)")
+    if not offline and not online and not openloop and not closedloop and not primary:
+        raise HeadlineError("give at least one summary (--offline, --online, --openloop, --closedloop or --primary)")
+    try:
+        primary_rows = [r for path in primary for r in read_primary(path)]
+    except ValueError as err:
+        raise HeadlineError(str(err)) from None
     plan_rows = [r for loop, paths in (("open", openloop), ("closed", closedloop)) for p in paths
                  for r in planning_rows(p, loop)]  # fmt: skip
     primary = [r for r in plan_rows if r["loop"] == "closed" and r["model"] == model]
@@ -395,16 +402,11 @@ def write_headline(
     write_csv(out / "headline_online.csv", _blank_nan(on_rows), ONLINE_COLUMNS)
     if plan_rows:
         write_csv(out / "headline_planning.csv", _blank_nan(plan_rows), PLANNING_COLUMNS)
-    parts = ["# Headline: each model against delta, paired seeds\n"]
+    parts = ["# Headline: each model against delta, paired seeds\n", *primary_markdown(primary_rows)]
+    within = ", among its tracking horizons: delta still tracks the state there" if tracking else ""
     if off_rows:
         parts += [
-            f"## Offline prediction error at horizon {horizon} (or the env's longest below it"
-            + (
-                ", among its tracking horizons (relative_error.csv's horizons: delta still tracks the state)"
-                if tracking
-                else ""
-            )
-            + ")\n",
+            f"## Offline prediction error at horizon {horizon} (or the env's longest below it{within})\n",
             "Ratio: IQM of the per-seed ratio model / delta with its 95 % CI; P(lower): the probability that the "
             "model's error is lower than delta's, with its CI (bold: the CI excludes 0.5). From the summaries:\n",
             offline_table(off_rows),

@@ -174,6 +174,9 @@ def _add_headline(sub: Any) -> None:
     head.add_argument(
         "--closedloop", type=Path, nargs="*", default=[], help="offline closedloop.csv files (planning, MPC)"
     )
+    head.add_argument(
+        "--primary", type=Path, nargs="*", default=[], help="primary.csv files (the pre-registered offline endpoint)"
+    )
     head.add_argument("--horizon", type=int, default=50, help="offline horizon (default 50; else the longest below)")
     head.add_argument("--model", default="gem", help="the model whose ratio to delta is plotted (default gem)")
     head.add_argument("--caption", default="", help="a line under the figure, e.g. the machine the runs came from")

@@ -290,6 +290,25 @@ def _fmt(x: Any, digits: int = 3) -> str:
     return "-" if x is None or (isinstance(x, float) and not math.isfinite(x)) else f"{x:.{digits}g}"
 
 
+def read_primary(path: Path) -> list[dict[str, Any]]:
+    """The rows of a ``primary.csv`` (a study's, or ``docs/scripts/offline_primary.py``'s) with numbers as floats
+    (empty: None), as :func:`primary_markdown` takes them; ValueError (what is wrong) if it is not one."""
+    import csv
+
+    if not path.is_file():
+        raise ValueError(f"{path}: no such file (give a primary.csv of pets.compare offline or offline_primary.py)")
+    with path.open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    if not rows or not {"env", "model", "level", "tracking_horizons", "p_value_holm", "verdict"} <= set(rows[0]):
+        raise ValueError(f"{path}: not a primary.csv (env, model, level, tracking_horizons, ..., verdict)")
+    text = {"env", "model", "level_source", "tracking_horizons", "verdict", "ci_exact_note"}
+
+    def number(key: str, value: str) -> float | int | None:
+        return None if value in ("", None) else int(float(value)) if key.startswith("n_") else float(value)
+
+    return [{k: v if k in text else number(k, v) for k, v in r.items()} for r in rows]
+
+
 def primary_markdown(rows: Sequence[Mapping[str, Any]]) -> list[str]:
     """prediction.md's first section: the primary endpoint table of :func:`primary_rows`."""
     if not rows:
