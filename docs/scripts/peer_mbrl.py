@@ -4,9 +4,9 @@
 mbrl-lib is no dependency of this package: it lives in a venv of its own, which sees torch and this project
 through ``--system-site-packages``::
 
-    python docs/scripts/peer_mbrl.py setup /work/venv-mbrl          # makes the venv, installs the pins below
-    /work/venv-mbrl/bin/python docs/scripts/peer_mbrl.py plan        # -> docs/results/peer_planning_step.csv
-    /work/venv-mbrl/bin/python docs/scripts/peer_mbrl.py learn --env invertedpendulum   # -> peer_learning_ENV.csv
+    python docs/scripts/peer_mbrl.py setup venv-mbrl          # makes the venv, installs the pins below
+    venv-mbrl/bin/python docs/scripts/peer_mbrl.py plan        # -> docs/results/peer_planning_step.csv
+    venv-mbrl/bin/python docs/scripts/peer_mbrl.py learn --env invertedpendulum   # -> peer_learning_ENV.csv
 
 Run from the repository root (the script puts it first on ``sys.path``). Without mbrl-lib importable every
 command but ``setup`` refuses in one line (exit 2) saying how to install it.
