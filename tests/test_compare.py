@@ -694,12 +694,10 @@ def offline(tmp_path_factory):
     return out, result
 
 
-def test_summary_from_the_runs_csv_equals_the_studys_own(offline, tmp_path):
+def test_summary_from_the_runs_csv_equals_the_studys_own(offline, tmp_path, capsys):
     """summary_from_runs (for committed studies whose run directories are gone) recomputes the study's summary.csv
     and relative_error.csv, every cell, from its prediction_runs.csv at the study's no-information level; the
     script around it writes them and counts what moved."""
-    import subprocess
-
     out, _ = offline
     level = float(csv_rows(out / "primary.csv")[0]["level"])
     summary, relative = summary_from_runs(csv_rows(out / "prediction_runs.csv"), level)
@@ -708,15 +706,13 @@ def test_summary_from_the_runs_csv_equals_the_studys_own(offline, tmp_path):
     rel_columns = list(csv_rows(out / "relative_error.csv")[0])
     write_csv(tmp_path / "relative_error.csv", relative, rel_columns)
     assert csv_rows(tmp_path / "relative_error.csv") == csv_rows(out / "relative_error.csv")
-    root = Path(__file__).resolve().parents[1]
     (tmp_path / "s_summary.csv").write_bytes((out / "summary.csv").read_bytes())
-    script = [sys.executable, str(root / "docs/scripts/resummarise_offline.py"), str(out / "prediction_runs.csv")]
-    script += ["--out", str(tmp_path / "s"), "--level"]
-    done = subprocess.run([*script, repr(level)], capture_output=True, text=True)
-    assert done.returncode == 0, done.stderr
-    assert "values changed against the file before: none" in done.stdout
-    done = subprocess.run([*script, "1e-9"], capture_output=True, text=True)
-    assert "n_diverged" in done.stdout  # every run past a level of ~0: the counts move, and the script says so
+    script = _script("resummarise_offline")
+    args = [str(out / "prediction_runs.csv"), "--out", str(tmp_path / "s"), "--level"]
+    assert script.main([*args, repr(level)]) == 0
+    assert "values changed against the file before: none" in capsys.readouterr().out
+    assert script.main([*args, "1e-9"]) == 0
+    assert "n_diverged" in capsys.readouterr().out  # every run past a level of ~0: the counts move, and it says so
 
 
 def test_offline_writes_data_runs_and_summaries(offline):

@@ -42,6 +42,11 @@ def changed_columns(old: list[dict[str, str]], new: list[dict[str, str]]) -> dic
     return counts
 
 
+def read_rows(path: Path) -> list[dict[str, str]]:
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("runs", type=Path, help="per-run CSV (env, model, seed, horizon, starts, the error metrics)")
@@ -50,13 +55,12 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if not args.runs.is_file():
         p.error(f"{args.runs} does not exist")
-    rows = list(csv.DictReader(open(args.runs, newline="")))
-    summary, relative = summary_from_runs(rows, args.level)
+    summary, relative = summary_from_runs(read_rows(args.runs), args.level)
     target = Path(f"{args.out}_summary.csv")
-    old = list(csv.DictReader(open(target, newline=""))) if target.is_file() else []
+    old = read_rows(target) if target.is_file() else []
     write_csv(target, summary, SUMMARY_COLUMNS)
     write_csv(Path(f"{args.out}_relative_error.csv"), relative, RELATIVE_COLUMNS)
-    new = list(csv.DictReader(open(target, newline="")))
+    new = read_rows(target)
     if old:
         moved = {c: n for c, n in sorted(changed_columns(old, new).items()) if n}
         print(f"{target}: {len(new)} rows; values changed against the file before: {moved or 'none'}")

@@ -372,8 +372,8 @@ def write_headline(
         raise HeadlineError(str(err)) from None
     plan_rows = [r for loop, paths in (("open", openloop), ("closed", closedloop)) for p in paths
                  for r in planning_rows(p, loop)]  # fmt: skip
-    primary = [r for r in plan_rows if r["loop"] == "closed" and r["model"] == model]
-    for r, adjusted in zip(primary, holm([r["p_value_exact"] for r in primary])):
+    family = [r for r in plan_rows if r["loop"] == "closed" and r["model"] == model]  # planning's primary
+    for r, adjusted in zip(family, holm([r["p_value_exact"] for r in family])):
         r["p_value_holm"] = adjusted
     fig2: dict[str, dict[str, dict[str, Any]]] = {}
     for path in relative:
@@ -442,7 +442,7 @@ def write_headline(
             "",
             *disagreement_lines([{**r, "planner": f"{r['loop']} {r['planner']}"} for r in plan_rows]),
         ]
-    sources = sorted({str(p) for p in (*offline, *online, *relative, *openloop, *closedloop)})
+    sources = sorted({str(p) for p in (*primary, *offline, *online, *relative, *openloop, *closedloop)})
     parts.append("Sources: " + ", ".join(f"`{s}`" for s in sources) + "\n")
     text = "\n".join(parts)
     atomic_write_bytes(out / "headline.md", text.encode())

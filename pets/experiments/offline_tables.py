@@ -130,7 +130,7 @@ def fig2_section(fig2: Mapping[str, Mapping[str, Mapping[str, Any]]], has_ratio:
         f"there is no {BASELINE} run), then the IQM over seeds [95 % CI]. "
         "relative: divided by the largest model's IQM in the env, as the paper normalises (the CI divided "
         f"by the same number). ratio to {BASELINE}: IQM [CI] of the per-seed ratios over the seeds both "
-        "models have (paired: same seed, data and start points). A run diverged at any horizon is left out "
+        "models have (paired: same seed, data and start points). A run diverged at any of those horizons is left out "
         "of the average and counted under diverged.",
         "",
     ]

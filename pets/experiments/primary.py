@@ -19,6 +19,7 @@
 
 from __future__ import annotations
 
+import csv
 import math
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
@@ -293,8 +294,6 @@ def _fmt(x: Any, digits: int = 3) -> str:
 def read_primary(path: Path) -> list[dict[str, Any]]:
     """The rows of a ``primary.csv`` (a study's, or ``docs/scripts/offline_primary.py``'s) with numbers as floats
     (empty: None), as :func:`primary_markdown` takes them; ValueError (what is wrong) if it is not one."""
-    import csv
-
     if not path.is_file():
         raise ValueError(f"{path}: no such file (give a primary.csv of pets.compare offline or offline_primary.py)")
     with path.open(newline="") as f:
