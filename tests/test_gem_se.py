@@ -17,6 +17,7 @@ from gem_head.se_root import GemSEHead
 from pets.bench import collect_random
 
 ROOTED = ["hopper", "walker2d", "halfcheetah", "ant", "humanoid"]
+DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 
 
 def transitions(env: str, n: int = 300) -> tuple[envs.EnvSpec, torch.Tensor, torch.Tensor]:
@@ -49,6 +50,23 @@ def test_targets_decode_back_to_the_real_next_observation(env: str) -> None:
     gem = GemHead(spec.layout, spec.act_dim).targets(obs, nxt)
     changed = torch.nonzero((head.targets(obs, nxt) - gem).abs().amax(0) > 1e-12).flatten().tolist()
     assert changed == list(head.target_slots_of(spec.layout.root[0]))
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("env", ROOTED)
+def test_inputs_targets_and_decoding_agree_across_devices(env: str, device: str) -> None:
+    """The head on the data's device (CUDA where present) gives the CPU's float64 inputs and targets, and decodes
+    back to the real next observation."""
+    spec, obs, nxt = transitions(env, 100)
+    head = GemSEHead(spec.layout, spec.act_dim)
+    act = torch.rand(len(obs), spec.act_dim, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    want_targets, want_inputs = head.targets(obs, nxt), head.inputs(obs, act)
+    o, n, a = obs.to(device), nxt.to(device), act.to(device)
+    targets = head.targets(o, n)
+    assert targets.device.type == device
+    torch.testing.assert_close(targets.cpu(), want_targets, rtol=0, atol=1e-12)
+    torch.testing.assert_close(head.inputs(o, a).cpu(), want_inputs, rtol=0, atol=1e-12)
+    assert_same_state(spec, head.next_obs(o, targets).cpu(), nxt)
 
 
 @pytest.mark.parametrize("env", ["halfcheetah", "hopper"])
