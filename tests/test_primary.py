@@ -150,6 +150,27 @@ def test_offline_primary_script_writes_the_versus_table(tmp_path):
     assert bad.returncode == 2 and "--versus takes MODEL:OTHER" in bad.stderr
 
 
+def test_offline_primary_script_with_the_studies_levels_reproduces_their_primary_files(tmp_path):
+    """``--levels PRIMARY.csv``: the committed 3-data-set study's runs with its own levels give its primary.csv
+    (written by pets.compare offline from the data) value for value; a file that is not a primary.csv is refused."""
+    import csv
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    results = root / "docs/results"
+    script = [sys.executable, str(root / "docs/scripts/offline_primary.py"), str(results / "paper_data3_runs.csv")]
+    levels = ["--levels", str(results / "paper_data3_primary.csv")]
+    done = subprocess.run([*script, *levels, "--out", str(tmp_path / "p")], capture_output=True, text=True, cwd=root)
+    assert done.returncode == 0, done.stderr
+    got, want = (list(csv.DictReader(open(f))) for f in (tmp_path / "p.csv", results / "paper_data3_primary.csv"))
+    assert got == want and any(float(r["level"]) != math.sqrt(2) for r in got)
+    bad = subprocess.run([*script, "--levels", str(results / "paper_data3_runs.csv"), "--out", str(tmp_path / "q")],
+                         capture_output=True, text=True, cwd=root)  # fmt: skip
+    assert bad.returncode == 2 and "not a primary.csv" in bad.stderr
+
+
 def test_fig2_averages_over_the_tracking_horizons_only() -> None:
     """Issue 37: Fig. 2 (relative_error.csv) averages each run's error over delta's tracking horizons, the
     primary endpoint's; a run past the level only at a later horizon stays in; with no delta run, every horizon."""

@@ -7,7 +7,9 @@ Reads per-run rows (``prediction_runs.csv`` of ``pets.compare offline``, committ
 Holm over every (env, arm) test of the call) and ``OUT_past_level.csv`` (how models fail, per horizon), and prints
 the table. ``--versus gem-se:gem`` adds ``OUT_versus.csv``: one arm against another on the same endpoint
 (``pets.experiments.primary.versus_rows``, secondary). The data sets are not in the repository, so the level is
-sqrt(2) (``level_source`` says so); a fresh ``pets.compare offline`` computes it from its data.
+sqrt(2) (``level_source`` says so); a fresh ``pets.compare offline`` computes it from its data, and
+``--levels PRIMARY.csv ...`` takes each env's level from such a study's own ``primary.csv`` (its delta row), so
+that runs of studies summarised apart get one Holm step with the levels their studies computed.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from pets.experiments.primary import (
     VERSUS_COLUMNS,
     past_level_rows,
     primary_rows,
+    read_primary,
     versus_rows,
 )
 from pets.experiments.report import write_csv
@@ -40,6 +43,14 @@ def main(argv: list[str] | None = None) -> int:
         metavar="MODEL:OTHER",
         help="secondary: MODEL against OTHER on the primary endpoint (e.g. gem-se:gem), into OUT_versus.csv",
     )
+    p.add_argument(
+        "--levels",
+        nargs="+",
+        type=Path,
+        default=[],
+        metavar="PRIMARY.csv",
+        help="primary.csv files whose delta rows give each env's no-information level (default: sqrt(2))",
+    )
     args = p.parse_args(argv)
     comparisons = [tuple(v.split(":")) for v in args.versus]
     if any(len(c) != 2 or not all(c) for c in comparisons):
@@ -50,9 +61,18 @@ def main(argv: list[str] | None = None) -> int:
         if not path.is_file():
             p.error(f"{path} does not exist")
         rows += [r for r in csv.DictReader(open(path)) if keep is None or r["model"] in keep]
-    primary = primary_rows(rows)
+    levels = {}
+    for path in args.levels:
+        try:
+            primary_file = read_primary(path)
+        except ValueError as e:
+            p.error(str(e))
+        for r in primary_file:
+            if r["model"] == "delta":
+                levels[r["env"]] = (r["level"], r["level_source"])
+    primary = primary_rows(rows, levels)
     write_csv(Path(f"{args.out}.csv"), primary, PRIMARY_COLUMNS)
-    write_csv(Path(f"{args.out}_past_level.csv"), past_level_rows(rows), PAST_LEVEL_COLUMNS)
+    write_csv(Path(f"{args.out}_past_level.csv"), past_level_rows(rows, levels), PAST_LEVEL_COLUMNS)
     if comparisons:
         versus = versus_rows(rows, comparisons)
         write_csv(Path(f"{args.out}_versus.csv"), versus, VERSUS_COLUMNS)
