@@ -92,30 +92,54 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+def start_head(env: dict[str, str], log: Path, attempts: int = 3, wait_s: float = 240) -> subprocess.Popen:
+    """``ray start --head --block``, returned once it prints that the runtime started. Ray gives its raylet a fixed
+    30 s to register with the GCS; on 2 shared cores under the other test worker's load that start itself timed out
+    once (CI, 2026-11-26: "Timed out while waiting for GCS", the head exited), so a head that exits during its
+    start is started again, on fresh ports, up to ``attempts`` times; every attempt's output stays in ``log``."""
+    for attempt in range(1, attempts + 1):
+        ports = [f"--port={free_port()}", f"--ray-client-server-port={free_port()}"]
+        offset = log.stat().st_size if log.exists() else 0
+        with open(log, "a") as f:
+            f.write(f"--- ray start, attempt {attempt}\n")
+            f.flush()
+            head = subprocess.Popen(
+                ["ray", "start", "--head", "--block", *ports, "--num-cpus=2", "--include-dashboard=false",
+                 "--disable-usage-stats"],
+                env=env, stdout=f, stderr=subprocess.STDOUT, start_new_session=True,
+            )  # fmt: skip
+        deadline = time.monotonic() + wait_s
+        while time.monotonic() < deadline and head.poll() is None:
+            if "Ray runtime started" in log.read_text()[offset:]:
+                return head
+            time.sleep(1)
+        stop_head(head)
+    raise AssertionError(f"ray start --head did not start in {attempts} attempts:\n" + log.read_text()[-3000:])
+
+
+def stop_head(head: subprocess.Popen) -> None:
+    if head.poll() is None:
+        os.killpg(head.pid, signal.SIGTERM)
+    try:
+        head.wait(timeout=60)
+    except subprocess.TimeoutExpired:
+        os.killpg(head.pid, signal.SIGKILL)
+        head.wait()
+
+
 def test_sweep_on_a_cluster_started_with_ray_start_gives_the_local_backends_metrics(online, tmp_path):
     """docs/cluster.md's path: ``ray start --head`` (in a shell with no Ray settings: Ray's own default auth mode,
     token auth since Ray 2.59), then ``pets.compare --address auto`` from another process on the head node."""
     env = {k: v for k, v in os.environ.items() if not k.startswith("RAY_")}
-    ports = [f"--port={free_port()}", f"--ray-client-server-port={free_port()}"]
     log = tmp_path / "ray-start.log"
-    with open(log, "w") as f:
-        head = subprocess.Popen(
-            ["ray", "start", "--head", "--block", *ports, "--num-cpus=2", "--include-dashboard=false",
-             "--disable-usage-stats"],
-            env=env, stdout=f, stderr=subprocess.STDOUT, start_new_session=True,
-        )  # fmt: skip
+    head = start_head(env, log)
     try:
         out = tmp_path / "cluster"
         cmd = [sys.executable, "-m", "pets.compare", *argv(ONLINE, out, "--backend", "ray", "--address", "auto")]
         # a hang (e.g. `auto` finding another cluster on this machine) fails here instead of stalling the suite
         done = subprocess.run(cmd, env=env, cwd=ROOT, capture_output=True, text=True, timeout=600)
     finally:
-        os.killpg(head.pid, signal.SIGTERM)
-        try:
-            head.wait(timeout=60)
-        except subprocess.TimeoutExpired:
-            os.killpg(head.pid, signal.SIGKILL)
-            head.wait()
+        stop_head(head)
     assert done.returncode == 0, done.stderr[-1500:] + "\nray start: " + log.read_text()[-1500:]
     for name in sorted(p.name for p in (online / "local" / "runs").iterdir()):
         assert metrics(online / "local" / "runs" / name) == metrics(out / "runs" / name), name
