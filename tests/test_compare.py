@@ -1499,6 +1499,28 @@ def test_headline_gives_the_primary_endpoint_as_the_files_do(fake_offline, tmp_p
         assert f"| {r['tracking_horizons']} |" in line
 
 
+def test_headline_keeps_each_primary_files_family_apart(fake_offline, tmp_path):
+    """Issue 32: two studies' primary.csv files (e.g. the gem-se study beside issue 37's) give two tables, each
+    headed by its file, every row in its own file's table, not one table with two Holm families mixed."""
+    off, _ = fake_offline
+    other = tmp_path / "other_primary.csv"
+    rows = csv_rows(off / "primary.csv")
+    with other.open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows({**r, "p_value_holm": "0.5" if r["p_value_holm"] else ""} for r in rows)
+    text = write_headline([], [], tmp_path / "h", primary=[off / "primary.csv", other])
+    first, second = (text.index(f"## Primary endpoint (pre-registered, docs/experiments.md): `{p}`")
+                     for p in (off / "primary.csv", other))  # fmt: skip
+    assert first < second
+    compared = [r for r in rows if r["p_value_holm"]]
+    for r in compared:
+        lines = [i for i, x in enumerate(text.splitlines()) if x.startswith(f"| {r['env']} | {r['model']} |")]
+        assert len(lines) == 2
+        own = [text.splitlines()[i] for i in lines]
+        assert f"| {float(r['p_value_holm']):.3g} |" in own[0] and "| 0.5 |" in own[1]
+
+
 def test_table_numbers_are_readable():
     """Four significant digits, large counts written out (env steps), non-finite values spelt out."""
     assert fmt(0.59374) == "0.5937"

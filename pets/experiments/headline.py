@@ -19,7 +19,8 @@ summary's, from rliable) and writes:
   ``headline_planning.csv``, planning with a pre-trained model: per env, planner and non-delta model, the total
   reward against delta's and the paired difference with its CI and exact p, as the planning summary computed them;
   for ``--model`` in closed loop (the pre-registered primary of planning) Holm's adjustment over the envs given.
-- With ``--primary`` (primary.csv files): the pre-registered offline primary endpoint first, as the files give it.
+- With ``--primary`` (primary.csv files): the pre-registered offline primary endpoint first, as the files give it;
+  one table per file (each file is one study's family, with its own Holm step).
 """
 
 from __future__ import annotations
@@ -367,7 +368,7 @@ def write_headline(
     if not offline and not online and not openloop and not closedloop and not primary:
         raise HeadlineError("give at least one summary (--offline, --online, --openloop, --closedloop or --primary)")
     try:
-        primary_rows = [r for path in primary for r in read_primary(path)]
+        primary_rows = {path: read_primary(path) for path in primary}
     except ValueError as err:
         raise HeadlineError(str(err)) from None
     plan_rows = [r for loop, paths in (("open", openloop), ("closed", closedloop)) for p in paths
@@ -402,7 +403,9 @@ def write_headline(
     write_csv(out / "headline_online.csv", _blank_nan(on_rows), ONLINE_COLUMNS)
     if plan_rows:
         write_csv(out / "headline_planning.csv", _blank_nan(plan_rows), PLANNING_COLUMNS)
-    parts = ["# Headline: each model against delta, paired seeds\n", *primary_markdown(primary_rows)]
+    parts = ["# Headline: each model against delta, paired seeds\n"]
+    for path, rows in primary_rows.items():  # one table per file: each is its own family (its own Holm step)
+        parts += primary_markdown(rows, str(path) if len(primary) > 1 else None)
     within = ", among its tracking horizons: delta still tracks the state there" if tracking else ""
     if off_rows:
         parts += [

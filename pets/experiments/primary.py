@@ -308,8 +308,9 @@ def read_primary(path: Path) -> list[dict[str, Any]]:
     return [{k: v if k in text else number(k, v) for k, v in r.items()} for r in rows]
 
 
-def primary_markdown(rows: Sequence[Mapping[str, Any]]) -> list[str]:
-    """prediction.md's first section: the primary endpoint table of :func:`primary_rows`."""
+def primary_markdown(rows: Sequence[Mapping[str, Any]], source: str | None = None) -> list[str]:
+    """prediction.md's first section: the primary endpoint table of :func:`primary_rows`; ``source`` (the file the
+    rows come from) goes into the heading, so that the families of several studies stay apart."""
     if not rows:
         return []
     table = [
@@ -332,7 +333,7 @@ def primary_markdown(rows: Sequence[Mapping[str, Any]]) -> list[str]:
     from pets.experiments.report import disagreement_lines, md_table
 
     return [
-        "## Primary endpoint (pre-registered, docs/experiments.md)",
+        "## Primary endpoint (pre-registered, docs/experiments.md)" + (f": `{source}`" if source else ""),
         "",
         "Per run: the standardized error averaged over the tracking horizons (those at which the baseline's median "
         "is below the no-information level, the error of predicting a random training observation), each value "
