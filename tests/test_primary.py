@@ -171,6 +171,25 @@ def test_offline_primary_script_with_the_studies_levels_reproduces_their_primary
     assert bad.returncode == 2 and "not a primary.csv" in bad.stderr
 
 
+def test_gem_se_studys_committed_primary_and_versus_files_are_what_the_documented_command_gives(tmp_path):
+    """docs/results.md's command for the gem-se study (issue 32) regenerates its committed primary, past-level and
+    versus (gem-se / gem) files from its committed runs, byte for byte."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    results = root / "docs/results"
+    command = [sys.executable, str(root / "docs/scripts/offline_primary.py"), str(results / "paper_gemse_runs.csv"),
+               "--levels", str(results / "paper_gemse_primary.csv"), "--versus", "gem-se:gem", "--out",
+               str(tmp_path / "p")]  # fmt: skip
+    done = subprocess.run(command, capture_output=True, text=True, cwd=root)
+    assert done.returncode == 0, done.stderr
+    for suffix in ("", "_past_level", "_versus"):
+        got = (tmp_path / f"p{suffix}.csv").read_bytes()
+        assert got == (results / f"paper_gemse_primary{suffix}.csv").read_bytes(), suffix
+
+
 def test_fig2_averages_over_the_tracking_horizons_only() -> None:
     """Issue 37: Fig. 2 (relative_error.csv) averages each run's error over delta's tracking horizons, the
     primary endpoint's; a run past the level only at a later horizon stays in; with no delta run, every horizon."""
