@@ -19,8 +19,7 @@ summary's, from rliable) and writes:
   ``headline_planning.csv``, planning with a pre-trained model: per env, planner and non-delta model, the total
   reward against delta's and the paired difference with its CI and exact p, as the planning summary computed them;
   for ``--model`` in closed loop (the pre-registered primary of planning) Holm's adjustment over the envs given.
-- With ``--primary`` (primary.csv files): the pre-registered offline primary endpoint first, as the files give it;
-  one table per file (each file is one study's family, with its own Holm step).
+- With ``--primary`` (primary.csv files): the pre-registered offline primary endpoint first, one table per file.
 """
 
 from __future__ import annotations
@@ -403,9 +402,8 @@ def write_headline(
     write_csv(out / "headline_online.csv", _blank_nan(on_rows), ONLINE_COLUMNS)
     if plan_rows:
         write_csv(out / "headline_planning.csv", _blank_nan(plan_rows), PLANNING_COLUMNS)
-    parts = ["# Headline: each model against delta, paired seeds\n"]
-    for path, rows in primary_rows.items():  # one table per file: each is its own family (its own Holm step)
-        parts += primary_markdown(rows, str(path) if len(primary) > 1 else None)
+    parts = ["# Headline: each model against delta, paired seeds\n"]  # one primary table per file: its own family
+    parts += [x for p, r in primary_rows.items() for x in primary_markdown(r, str(p) if len(primary) > 1 else None)]
     within = ", among its tracking horizons: delta still tracks the state there" if tracking else ""
     if off_rows:
         parts += [
