@@ -1513,12 +1513,10 @@ def test_headline_keeps_each_primary_files_family_apart(fake_offline, tmp_path):
     first, second = (text.index(f"## Primary endpoint (pre-registered, docs/experiments.md): `{p}`")
                      for p in (off / "primary.csv", other))  # fmt: skip
     assert first < second
-    compared = [r for r in rows if r["p_value_holm"]]
-    for r in compared:
-        lines = [i for i, x in enumerate(text.splitlines()) if x.startswith(f"| {r['env']} | {r['model']} |")]
+    for r in (r for r in rows if r["p_value_holm"]):
+        lines = [x for x in text.splitlines() if x.startswith(f"| {r['env']} | {r['model']} |")]
         assert len(lines) == 2
-        own = [text.splitlines()[i] for i in lines]
-        assert f"| {float(r['p_value_holm']):.3g} |" in own[0] and "| 0.5 |" in own[1]
+        assert f"| {float(r['p_value_holm']):.3g} |" in lines[0] and "| 0.5 |" in lines[1]
 
 
 def test_table_numbers_are_readable():

@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import csv
 import math
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,6 +22,16 @@ from pets.experiments.primary import (
     tracking_horizons,
 )
 from pets.experiments.statistics import holm
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "docs/results"
+
+
+def _offline_primary(*args: object) -> subprocess.CompletedProcess:
+    """``docs/scripts/offline_primary.py`` with ``args``, run from the project root."""
+    command = [sys.executable, str(ROOT / "docs/scripts/offline_primary.py"), *map(str, args)]
+    return subprocess.run(command, capture_output=True, text=True, cwd=ROOT)
+
 
 HORIZONS = (1, 5, 10, 25)
 
@@ -127,12 +141,6 @@ def test_versus_compares_two_arms_on_the_primary_endpoint_at_the_baselines_horiz
 
 
 def test_offline_primary_script_writes_the_versus_table(tmp_path):
-    import csv
-    import subprocess
-    import sys
-    from pathlib import Path
-
-    root = Path(__file__).resolve().parents[1]
     delta = {s: [0.2, 0.4, 0.9, 1.2] for s in range(5)}
     gem = {s: [0.1, 0.2, 0.5, 0.6] for s in range(5)}
     rows = _rows("e", "delta", delta) + _rows("e", "gem", gem) + _rows("e", "gem-se", delta)
@@ -141,53 +149,35 @@ def test_offline_primary_script_writes_the_versus_table(tmp_path):
         w = csv.DictWriter(f, fieldnames=list(rows[0]))
         w.writeheader()
         w.writerows(rows)
-    script = [sys.executable, str(root / "docs/scripts/offline_primary.py"), str(runs), "--out", str(tmp_path / "p")]
-    done = subprocess.run([*script, "--versus", "gem-se:gem"], capture_output=True, text=True, cwd=root)
+    done = _offline_primary(runs, "--out", tmp_path / "p", "--versus", "gem-se:gem")
     assert done.returncode == 0, done.stderr
     [row] = list(csv.DictReader(open(tmp_path / "p_versus.csv")))
     assert (row["model"], row["versus"], row["n_pairs"], row["n_lower"]) == ("gem-se", "gem", "5", "0")
-    bad = subprocess.run([*script, "--versus", "gem-se"], capture_output=True, text=True, cwd=root)
+    bad = _offline_primary(runs, "--out", tmp_path / "p", "--versus", "gem-se")
     assert bad.returncode == 2 and "--versus takes MODEL:OTHER" in bad.stderr
 
 
 def test_offline_primary_script_with_the_studies_levels_reproduces_their_primary_files(tmp_path):
     """``--levels PRIMARY.csv``: the committed 3-data-set study's runs with its own levels give its primary.csv
     (written by pets.compare offline from the data) value for value; a file that is not a primary.csv is refused."""
-    import csv
-    import subprocess
-    import sys
-    from pathlib import Path
-
-    root = Path(__file__).resolve().parents[1]
-    results = root / "docs/results"
-    script = [sys.executable, str(root / "docs/scripts/offline_primary.py"), str(results / "paper_data3_runs.csv")]
-    levels = ["--levels", str(results / "paper_data3_primary.csv")]
-    done = subprocess.run([*script, *levels, "--out", str(tmp_path / "p")], capture_output=True, text=True, cwd=root)
+    runs, primary = RESULTS / "paper_data3_runs.csv", RESULTS / "paper_data3_primary.csv"
+    done = _offline_primary(runs, "--levels", primary, "--out", tmp_path / "p")
     assert done.returncode == 0, done.stderr
-    got, want = (list(csv.DictReader(open(f))) for f in (tmp_path / "p.csv", results / "paper_data3_primary.csv"))
+    got, want = (list(csv.DictReader(open(f))) for f in (tmp_path / "p.csv", primary))
     assert got == want and any(float(r["level"]) != math.sqrt(2) for r in got)
-    bad = subprocess.run([*script, "--levels", str(results / "paper_data3_runs.csv"), "--out", str(tmp_path / "q")],
-                         capture_output=True, text=True, cwd=root)  # fmt: skip
+    bad = _offline_primary(runs, "--levels", runs, "--out", tmp_path / "q")
     assert bad.returncode == 2 and "not a primary.csv" in bad.stderr
 
 
 def test_gem_se_studys_committed_primary_and_versus_files_are_what_the_documented_command_gives(tmp_path):
     """docs/results.md's command for the gem-se study (issue 32) regenerates its committed primary, past-level and
     versus (gem-se / gem) files from its committed runs, byte for byte."""
-    import subprocess
-    import sys
-    from pathlib import Path
-
-    root = Path(__file__).resolve().parents[1]
-    results = root / "docs/results"
-    command = [sys.executable, str(root / "docs/scripts/offline_primary.py"), str(results / "paper_gemse_runs.csv"),
-               "--levels", str(results / "paper_gemse_primary.csv"), "--versus", "gem-se:gem", "--out",
-               str(tmp_path / "p")]  # fmt: skip
-    done = subprocess.run(command, capture_output=True, text=True, cwd=root)
+    done = _offline_primary(RESULTS / "paper_gemse_runs.csv", "--levels", RESULTS / "paper_gemse_primary.csv",
+                            "--versus", "gem-se:gem", "--out", tmp_path / "p")  # fmt: skip
     assert done.returncode == 0, done.stderr
     for suffix in ("", "_past_level", "_versus"):
         got = (tmp_path / f"p{suffix}.csv").read_bytes()
-        assert got == (results / f"paper_gemse_primary{suffix}.csv").read_bytes(), suffix
+        assert got == (RESULTS / f"paper_gemse_primary{suffix}.csv").read_bytes(), suffix
 
 
 def test_fig2_averages_over_the_tracking_horizons_only() -> None:
