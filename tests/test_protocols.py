@@ -1,6 +1,7 @@
 """The offline protocols: the paper's split, config and hidden-size search, through pets.train."""
 
 import importlib.util
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -108,3 +109,10 @@ def test_the_learning_curve_of_the_paper_protocol_for_every_searched_architectur
     assert len(kept) == 1 + 5 and (tmp_path / "curves.png").stat().st_size > 0  # the selected architecture only
     best = min(search, key=lambda c: c["val_error"])
     assert float(kept[-1].split(",")[-1]) == pytest.approx(best["val_error"], rel=1e-6)
+    other = tmp_path / "other"  # a second study's runs/ directory: both studies' curves in one figure
+    shutil.copytree(out, other / out.name)
+    assert (
+        curves.main([str(tmp_path), str(other), "--out", str(tmp_path / "both.png"), "--csv", str(tmp_path / "b.csv")])
+        == 0
+    )
+    assert len((tmp_path / "b.csv").read_text().splitlines()) == 1 + 2 * 5

@@ -1,6 +1,6 @@
 """Learning curves of offline runs: the holdout error against gradient steps, one panel per env.
 
-    python docs/scripts/learning_curves.py STUDY_DIR/runs --out FIGURE.png [--csv CURVES.csv]
+    python docs/scripts/learning_curves.py STUDY_DIR/runs [MORE_DIR/runs ...] --out FIGURE.png [--csv CURVES.csv]
 
 Reads every ``RUN/learning_curve.csv`` (offline runs trained with ``model.curve_every=N``) and keeps, per run,
 the curve of the architecture the run selected (its ``config.yaml``). Plots one line per run, coloured by model;
@@ -31,10 +31,10 @@ def run_curve(run: Path) -> list[tuple[int, float]]:
     return [(int(r["step"]), float(r["holdout_error"])) for r in rows]
 
 
-def collect(runs_dir: Path) -> list[dict]:
+def collect(runs_dirs: list[Path]) -> list[dict]:
     """One entry per run with a learning curve: env, model (the config's head), run name, points."""
     found = []
-    for run in sorted(p.parent for p in runs_dir.glob(f"*/{CURVE_FILE}")):
+    for run in sorted(p.parent for runs_dir in runs_dirs for p in runs_dir.glob(f"*/{CURVE_FILE}")):
         cfg = OmegaConf.load(run / "config.yaml")
         found.append({"env": str(cfg.env), "model": str(cfg.head), "run": run.name, "points": run_curve(run)})
     return found
@@ -56,8 +56,12 @@ def plot(curves: list[dict], out: Path) -> None:
     env_names = sorted({c["env"] for c in curves})
     models = sorted({c["model"] for c in curves})
     colours = {m: matplotlib.colormaps["tab10"](i) for i, m in enumerate(models)}
-    fig, axes = plt.subplots(1, len(env_names), figsize=(4.5 * len(env_names), 3.6), squeeze=False)
-    for ax, env in zip(axes[0], env_names):
+    ncols = min(4, len(env_names))  # rows of at most 4 panels
+    nrows = -(-len(env_names) // ncols)
+    fig, axes = plt.subplots(nrows, ncols, figsize=(4.5 * ncols, 3.6 * nrows), squeeze=False)
+    for ax in axes.flat[len(env_names) :]:
+        ax.set_visible(False)
+    for ax, env in zip(axes.flat, env_names):
         for c in (c for c in curves if c["env"] == env):
             steps, errors = zip(*c["points"])
             ax.plot(steps, errors, color=colours[c["model"]], alpha=0.7, lw=1)
@@ -70,13 +74,14 @@ def plot(curves: list[dict], out: Path) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("runs", type=Path, help="a study's runs/ directory")
+    p.add_argument("runs", type=Path, nargs="+", help="one or more studies' runs/ directories")
     p.add_argument("--out", type=Path, required=True, help="the figure (PNG)")
     p.add_argument("--csv", type=Path, help="also write the points kept")
     args = p.parse_args(argv)
     curves = collect(args.runs)
     if not curves:
-        print(f"learning_curves: no {CURVE_FILE} under {args.runs} (train with model.curve_every=N)", file=sys.stderr)
+        where = ", ".join(map(str, args.runs))
+        print(f"learning_curves: no {CURVE_FILE} under {where} (train with model.curve_every=N)", file=sys.stderr)
         return 2
     plot(curves, args.out)
     if args.csv:
