@@ -17,14 +17,13 @@ import statistics
 import sys
 from pathlib import Path
 
-from omegaconf import OmegaConf
+from omegaconf import DictConfig, OmegaConf
 
 CURVE_FILE = "learning_curve.csv"
 
 
-def run_curve(run: Path) -> list[tuple[int, float]]:
-    """The selected architecture's ``(step, holdout_error)`` points of one run."""
-    cfg = OmegaConf.load(run / "config.yaml")
+def run_curve(run: Path, cfg: DictConfig) -> list[tuple[int, float]]:
+    """The ``(step, holdout_error)`` points of one run, of the architecture its config ``cfg`` selected."""
     arch = (int(cfg.model.hidden_size), int(cfg.model.num_layers))
     with open(run / CURVE_FILE) as f:
         rows = [r for r in csv.DictReader(f) if (int(r["hidden_size"]), int(r["num_layers"])) == arch]
@@ -36,7 +35,7 @@ def collect(runs_dirs: list[Path]) -> list[dict]:
     found = []
     for run in sorted(p.parent for runs_dir in runs_dirs for p in runs_dir.glob(f"*/{CURVE_FILE}")):
         cfg = OmegaConf.load(run / "config.yaml")
-        found.append({"env": str(cfg.env), "model": str(cfg.head), "run": run.name, "points": run_curve(run)})
+        found.append({"env": str(cfg.env), "model": str(cfg.head), "run": run.name, "points": run_curve(run, cfg)})
     return found
 
 
