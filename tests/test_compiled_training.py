@@ -19,8 +19,8 @@ from torch._dynamo.testing import CompileCounterWithBackend
 
 import envs
 from pets import builder
-from pets.bench import collect_random
 from pets.config import ConfigError, load_config, make_config
+from pets.data.rollout import collect_random
 from pets.learning import trainer as trainer_mod
 from pets.learning.trainer import ModelTrainer
 from pets.models import make_model

@@ -19,7 +19,7 @@ from gem_head.codecs import CODECS, GroupCodec, SO2Codec, put, register_codec, s
 from gem_head.head import GemHead
 from gem_head.lie import wrap_angle
 from gem_head.se_root import GemSEHead
-from pets.bench import collect_random
+from pets.data.rollout import collect_random
 
 DEG = 180.0 / math.pi
 

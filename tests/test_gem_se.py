@@ -14,7 +14,7 @@ import envs
 from gem_head.head import GemHead
 from gem_head.lie import SE2, SE3, SO3
 from gem_head.se_root import GemSEHead
-from pets.bench import collect_random
+from pets.data.rollout import collect_random
 
 ROOTED = ["hopper", "walker2d", "halfcheetah", "ant", "humanoid"]
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])

@@ -98,8 +98,8 @@ def test_the_config_default_is_auto_resolved_once_and_recorded(tmp_path, monkeyp
 
 def _train(precision: str, epochs: int = 8):
     import envs
-    from pets.bench import collect_random
     from pets.builder import make_trainer
+    from pets.data.rollout import collect_random
     from pets.models import make_model
 
     spec = envs.get("halfcheetah")

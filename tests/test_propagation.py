@@ -509,7 +509,7 @@ def cheetah_model():
     """A Gaussian ensemble (PETS architecture: 5 x 4 x 200) trained briefly on real HalfCheetah random transitions."""
     import envs
     from dynamics.networks import GaussianEnsemble
-    from pets.bench import collect_random
+    from pets.data.rollout import collect_random
     from pets.learning.trainer import ModelTrainer
 
     spec = envs.get("halfcheetah")

@@ -22,7 +22,7 @@ from gem_head.ablation import GroupFeatureDeltaHead
 from gem_head.head import GemHead
 from gem_head.se_root import GemSEHead
 from gem_head.two_stage import TwoStageGemHead
-from pets.bench import collect_random
+from pets.data.rollout import collect_random
 
 torch.set_num_threads(1)
 STEPS = {"humanoid": 60, "ant": 120}

@@ -24,8 +24,8 @@ from torch.profiler import ProfilerActivity, profile, record_function
 
 import envs
 from pets import builder
-from pets.bench import collect_random
 from pets.config import make_config, parse_overrides
+from pets.data.rollout import collect_random
 from pets.learning.compiled import CompiledStep
 from pets.models import make_model
 

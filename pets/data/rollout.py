@@ -1,17 +1,20 @@
 """One episode in a real env: the policy protocol, the random and MPC policies, and :func:`run_episode`.
 
 Every loop that steps an env (the PETS loop's seed steps and trials, ``pets.collect``, open-loop
-replay, the benchmark's random data) is "make a policy, run episodes" with these.
+replay, the benchmarks' random data: :func:`collect_random`) is "make a policy, run episodes" with these.
 """
 
 from __future__ import annotations
 
+import itertools
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Any, Protocol
 
 import numpy as np
+
+from envs import EnvSpec
 
 
 class Policy(Protocol):
@@ -152,3 +155,15 @@ def run_steps(
         episodes.append(episode)
         done += len(episode)
     return episodes
+
+
+def collect_random(spec: EnvSpec, steps: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``steps`` uniformly random transitions (float32 obs, act, next obs) over as many episodes as needed;
+    the first reset is seeded with ``seed``, the actions come from ``default_rng(seed)``."""
+    env, policy = spec.make(), RandomPolicy(spec.action_low, spec.action_high)
+    seeds = itertools.chain([seed], itertools.repeat(None))
+    episodes = run_steps(env, policy, steps, max_steps=steps, reset_seeds=seeds, rng=np.random.default_rng(seed))
+    env.close()
+    return tuple(
+        np.concatenate([getattr(ep, k) for ep in episodes]).astype(np.float32) for k in ("obs", "act", "next_obs")
+    )

@@ -27,10 +27,10 @@ from omegaconf import DictConfig
 import envs
 from pets import builder
 from pets.config import ConfigError, make_config, parse_overrides
+from pets.data.rollout import collect_random
 from pets.learning.trainer import ModelTrainer
 from pets.models import make_model
 from pets.runs.hardware import cpu_isa
-from pets.tools.bench import collect_random
 from pets.tools.cli import OneLineParser, fail
 
 
