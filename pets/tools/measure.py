@@ -1,6 +1,7 @@
 """Measuring primitives of the benchmarks: median wall seconds, GEMM peaks, the model-kernel floor, peak memory.
 
-:mod:`pets.tools.bench` builds its rows from these; they know nothing about planners or runs.
+:mod:`pets.tools.bench` builds its rows from these; nothing here builds a model, a planner or a run
+(:func:`kernel_floor` only reads the config's shapes).
 """
 
 from __future__ import annotations
