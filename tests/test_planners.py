@@ -571,10 +571,11 @@ class RandomShooting(BoxPlanner):
     section = ShootingOptions
 
     def search(self, objective, mu, init_mean, generator):
-        best, best_value = mu, torch.tensor(-math.inf)
+        best, best_value = mu, torch.tensor(-math.inf, device=mu.device)
         half = self.spread * 0.5 * (self.high - self.low)
         for _ in range(self.iterations):
-            u = torch.rand((self.population, self.horizon, self.act_dim), generator=generator) * 2 - 1
+            shape = (self.population, self.horizon, self.act_dim)
+            u = torch.rand(shape, generator=generator, device=mu.device, dtype=mu.dtype) * 2 - 1
             samples = self.clip(mu + half * u)
             values = torch.nan_to_num(objective(samples), nan=-math.inf)
             top = int(values.argmax())
