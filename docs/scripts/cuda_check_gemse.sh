@@ -2,16 +2,7 @@
 # CUDA check of gem-se (issue 32): the gem-se and codec tests on every device, training and evaluation on DEV and
 # on the CPU, and two short online runs on DEV. DEV=cuda (default) or cpu for a dry run. On a machine without the
 # project installed, wheels in .whl/ are installed into /tmp/site first (docs/performance.md, "gem-se on CUDA").
-set -o pipefail
-DEV=${DEV:-cuda}
-OUT=${OUT:-/tmp/gpu_out}; mkdir -p $OUT
-export PYTHONUNBUFFERED=1
-if [ -d .whl ] && [ "$DEV" = cuda ]; then
-  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl >/dev/null 2>&1 || exit 1
-  export PYTHONPATH=/tmp/site:$PWD
-fi
-nvidia-smi -L 2>/dev/null; lscpu | grep "Model name"
-python3 -c "import torch;print('torch', torch.__version__, 'cuda', torch.cuda.is_available())"
+source "$(dirname "$0")/cuda_check_setup.sh"
 echo "== pytest (gem-se, codecs: every device; propagation -k cuda)"
 timeout 200 python3 -m pytest -q -p no:cacheprovider tests/test_gem_se.py tests/test_gem_codecs.py 2>&1 | tail -4
 timeout 100 python3 -m pytest -q -p no:cacheprovider tests/test_propagation.py -k "cuda or real_gaussian" 2>&1 | tail -2

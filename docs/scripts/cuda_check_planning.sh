@@ -3,18 +3,9 @@
 # closed-loop planning with frozen models trained on a CPU (RUNS: run directories with checkpoint.pt and
 # config.yaml), on DEV and on the CPU, the same seed. DEV=cuda (default) or cpu for a dry run. On a machine without
 # the project installed, wheels in .whl/ are installed into /tmp/site first (docs/performance.md).
-set -o pipefail
-DEV=${DEV:-cuda}
-OUT=${OUT:-/tmp/gpu_out}; mkdir -p "$OUT"
+source "$(dirname "$0")/cuda_check_setup.sh"
 RUNS=${RUNS:-results/gpucheck}
 FAST="planner.population=100 planner.particles=5 planner.horizon=15 planner.iterations=3 planner.elites=0.1"
-export PYTHONUNBUFFERED=1
-if [ -d .whl ] && [ "$DEV" = cuda ]; then
-  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl >/dev/null 2>&1 || exit 1
-  export PYTHONPATH=/tmp/site:$PWD
-fi
-nvidia-smi -L 2>/dev/null; lscpu | grep "Model name"
-python3 -c "import torch;print('torch', torch.__version__, 'cuda', torch.cuda.is_available())"
 echo "== pytest (planners on every device; propagation -k cuda)"
 timeout 240 python3 -m pytest -q -p no:cacheprovider tests/test_planners.py 2>&1 | tail -15
 timeout 100 python3 -m pytest -q -p no:cacheprovider tests/test_propagation.py -k "cuda" 2>&1 | tail -2
