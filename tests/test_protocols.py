@@ -116,3 +116,9 @@ def test_the_learning_curve_of_the_paper_protocol_for_every_searched_architectur
         == 0
     )
     assert len((tmp_path / "b.csv").read_text().splitlines()) == 1 + 2 * 5
+    # the kept points of runs whose directories are gone: an earlier --csv output read back gives the same points
+    assert (
+        curves.main([str(tmp_path / "c.csv"), "--out", str(tmp_path / "again.png"), "--csv", str(tmp_path / "d.csv")])
+        == 0
+    )
+    assert (tmp_path / "d.csv").read_text() == (tmp_path / "c.csv").read_text()

@@ -1,9 +1,11 @@
 """Learning curves of offline runs: the holdout error against gradient steps, one panel per env.
 
-    python docs/scripts/learning_curves.py STUDY_DIR/runs [MORE_DIR/runs ...] --out FIGURE.png [--csv CURVES.csv]
+    python docs/scripts/learning_curves.py STUDY_DIR/runs [MORE_DIR/runs ... CURVES.csv ...] --out FIGURE.png \
+        [--csv CURVES.csv]
 
 Reads every ``RUN/learning_curve.csv`` (offline runs trained with ``model.curve_every=N``) and keeps, per run,
-the curve of the architecture the run selected (its ``config.yaml``). Plots one line per run, coloured by model;
+the curve of the architecture the run selected (its ``config.yaml``); a ``.csv`` input is an earlier ``--csv``
+output (the kept points of runs whose directories are gone), taken as it is. Plots one line per run, coloured by model;
 ``--csv`` writes the kept points (env, model, run, step, holdout_error) and prints, per env and model, the median
 over runs of the last point's error relative to the error at 80 % of the steps: a value near 1 means the
 validation error had stopped falling by the end of training.
@@ -30,13 +32,25 @@ def run_curve(run: Path, cfg: DictConfig) -> list[tuple[int, float]]:
     return [(int(r["step"]), float(r["holdout_error"])) for r in rows]
 
 
-def collect(runs_dirs: list[Path]) -> list[dict]:
-    """One entry per run with a learning curve: env, model (the config's head), run name, points."""
-    found = []
+def collect(sources: list[Path]) -> list[dict]:
+    """One entry per run with a learning curve: env, model (the config's head), run name, points; from runs/
+    directories and from earlier ``--csv`` outputs (``.csv`` files)."""
+    found = [c for src in sources if src.suffix == ".csv" for c in read_kept(src)]
+    runs_dirs = [src for src in sources if src.suffix != ".csv"]
     for run in sorted(p.parent for runs_dir in runs_dirs for p in runs_dir.glob(f"*/{CURVE_FILE}")):
         cfg = OmegaConf.load(run / "config.yaml")
         found.append({"env": str(cfg.env), "model": str(cfg.head), "run": run.name, "points": run_curve(run, cfg)})
     return found
+
+
+def read_kept(path: Path) -> list[dict]:
+    """The curves of an earlier ``--csv`` output (env, model, run, step, holdout_error), one entry per run."""
+    curves: dict[str, dict] = {}
+    with open(path) as f:
+        for r in csv.DictReader(f):
+            c = curves.setdefault(r["run"], {"env": r["env"], "model": r["model"], "run": r["run"], "points": []})
+            c["points"].append((int(r["step"]), float(r["holdout_error"])))
+    return list(curves.values())
 
 
 def late_ratio(points: list[tuple[int, float]]) -> float:
@@ -73,7 +87,7 @@ def plot(curves: list[dict], out: Path) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("runs", type=Path, nargs="+", help="one or more studies' runs/ directories")
+    p.add_argument("runs", type=Path, nargs="+", help="studies' runs/ directories or earlier --csv outputs")
     p.add_argument("--out", type=Path, required=True, help="the figure (PNG)")
     p.add_argument("--csv", type=Path, help="also write the points kept")
     args = p.parse_args(argv)
