@@ -3,6 +3,7 @@ import os
 import pytest
 import torch
 
+import envs.custom
 from pets.runs import hardware
 from tests.threads import one_thread
 
@@ -16,6 +17,16 @@ def pytest_configure(config):
     workers = os.environ.get("PYTEST_XDIST_WORKER_COUNT")
     if workers:
         torch.set_num_threads(max(1, (os.cpu_count() or 1) // int(workers)))
+
+
+@pytest.fixture(autouse=True)
+def env_names_end_with_their_test():
+    """Env names a test registers (``envs.register``, docs/api.md's examples, ``module:ATTR`` paths) are gone after
+    it, so that no test sees another's: a name such as "pendulum" stays unknown to the tests that expect it so."""
+    before = dict(envs.custom._REGISTRY)
+    yield
+    envs.custom._REGISTRY.clear()
+    envs.custom._REGISTRY.update(before)
 
 
 @pytest.fixture
