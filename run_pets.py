@@ -42,7 +42,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--trials", type=int, help="number of trials (episodes)")
     p.add_argument("--seed", type=int, help="seed for every random source")
     p.add_argument("--device", choices=("cpu", "cuda", "auto"), help="where the model and planner run")
-    p.add_argument("--preset", choices=tuple(PRESETS), default="research", help="research (default) or fast (CPU)")
+    p.add_argument(
+        "--preset",
+        choices=tuple(PRESETS),
+        default="research",
+        help="research (default), fast (CPU) or locomotion (a 100k env-step budget; docs/studies/locomotion_gate.md)",
+    )
     p.add_argument("--out", type=Path, help="run directory (default: runs/ENV-MODEL-sSEED-TIME)")
     p.add_argument("--resume", type=Path, metavar="DIR", help="continue the run in DIR from its last trial")
     p.add_argument(

@@ -128,6 +128,12 @@ class Config:
     # None: always `trials` trials. pets.compare online --until-threshold sets it per env.
     stop_reward: float | None = None
     train_every: int = 0  # 0: train after every trial; N > 0: also every N env steps
+    # false (with train_every=N): train only every N env steps, across episode ends (a schedule set by env steps,
+    # not by episodes: a body that falls after 20 steps is not retrained every 20 steps); true: also after a trial
+    train_after_trial: bool = True
+    # The run's budget of env steps, the seed data included: the loop stops there and the last episode is cut at
+    # it; None: `trials` trials only (the preset that sets it sets `trials` as a mere upper bound)
+    max_env_steps: int | None = None
     video_every: int = 0  # N > 0: an MP4 of the real episode of every N-th trial (RUN/videos/trial-NNNN.mp4); 0: none
     tensorboard: bool = True  # TensorBoard event files in the run directory (when the tensorboard package is there)
     model: ModelConfig = field(default_factory=ModelConfig)
@@ -373,6 +379,12 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError(f"episode_length must be >= 1 or null, got {cfg.episode_length}")
     if cfg.stop_reward is not None and not math.isfinite(cfg.stop_reward):
         raise ConfigError(f"stop_reward must be a finite number or null, got {cfg.stop_reward}")
+    if not cfg.train_after_trial and cfg.train_every < 1:
+        raise ConfigError("train_after_trial=false needs train_every=N > 0 (train every N env steps), got 0")
+    if cfg.max_env_steps is not None and cfg.max_env_steps <= cfg.seed_steps:
+        raise ConfigError(
+            f"max_env_steps must be null or more than seed_steps ({cfg.seed_steps}), got {cfg.max_env_steps}"
+        )
 
 
 def _check_planner(cfg: DictConfig) -> None:

@@ -159,6 +159,11 @@ class PETSRun:
         for key, part in self.parts().items():
             part.load_state_dict(state[key])
 
+    def finished(self) -> bool:
+        """All ``trials`` done, a trial's reward at ``stop_reward``, or the env-step budget ``max_env_steps`` spent."""
+        cfg = self.cfg
+        return self.trials_done >= cfg.trials or rundir.stopped(self.rows, cfg.stop_reward, cfg.max_env_steps)
+
     # --- one trial ---------------------------------------------------------------------------
     def _train(self, when: str | None = None) -> None:
         """Train on all data so far; TrainingDiverged names where (``when``, default: the current trial)."""
@@ -188,6 +193,11 @@ class PETSRun:
     def _add(self, episode: Episode, start: int = 0) -> None:
         """Put the transitions ``start:`` of ``episode`` into the replay buffer."""
         self.buffer.add_episode(episode.obs[start:], episode.act[start:], episode.next_obs[start:])
+
+    def max_steps(self) -> int:
+        """The next episode's most steps: the episode length, cut at the budget ``max_env_steps`` if one is set."""
+        budget = self.cfg.max_env_steps
+        return self.episode_length if budget is None else min(self.episode_length, budget - self.env_steps)
 
     def collect_seed_data(self) -> None:
         """``seed_steps`` uniformly random steps over as many episodes as needed, then the first training."""
@@ -231,8 +241,9 @@ class PETSRun:
                 line = self.cost.step(steps, self.mpc_policy.seconds)
                 if line:
                     tqdm.write(line, file=sys.stderr)
-            every = self.cfg.train_every
-            if every and not random_policy and not so_far.done and (self.env_steps + len(so_far)) % every == 0:
+            every, after_trial = self.cfg.train_every, self.cfg.train_after_trial
+            due = every and (self.env_steps + len(so_far)) % every == 0
+            if due and not random_policy and not (so_far.done and after_trial):  # after a trial: trained below
                 self._add(so_far, added)
                 added = len(so_far)
                 self._train()
@@ -241,7 +252,7 @@ class PETSRun:
             episode = run_episode(
                 self.env,
                 policy,
-                max_steps=self.episode_length,
+                max_steps=self.max_steps(),
                 reset_seed=self._episode_seed(trial),
                 rng=self.np_rng,
                 on_step=after_step,
@@ -252,7 +263,8 @@ class PETSRun:
             bar.close()
         self._add(episode, added)
         length = len(episode)
-        self._train()
+        if self.cfg.train_after_trial or random_policy:
+            self._train()
         self.env_steps += length
         self.trials_done += 1
         self.wall_time_s += time.perf_counter() - start
@@ -263,6 +275,7 @@ class PETSRun:
             "env_steps": self.env_steps,
             "episode_reward": episode.total_reward,
             "episode_length": length,
+            "terminated": int(bool(episode.terminated[-1])),
             "model_train_loss": lt.train_loss,
             "model_val_loss": lt.val_loss,
             "model_val_loss_initial": lt.initial_val_loss,
@@ -319,7 +332,7 @@ def _run_locked(cfg: DictConfig, run_dir: Path, resume: bool, progress: bool) ->
         total=cfg.trials, initial=pets_run.trials_done, desc=f"{cfg.env}-{cfg.head}", unit="trial", disable=not progress
     )
     try:
-        while pets_run.trials_done < cfg.trials and not rundir.stopped(pets_run.rows, cfg.stop_reward):
+        while not pets_run.finished():
             row = pets_run.run_trial(progress=progress)
             if pets_run.recorder is not None and pets_run.recorder.recording:
                 pets_run.recorder.save(trial_video_path(run_dir, int(row["trial"])))

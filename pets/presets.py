@@ -40,6 +40,27 @@ PRESETS: dict[str, dict[str, Any]] = {
         "model": {"ensemble_size": 5, "num_elites": 5, "batch_size": 32, "compile": None},
         "planner": {"population": 100, "particles": 5, "horizon": 15, "iterations": 3, "elites": 0.1},
     },
+    # PETS that learns locomotion within a 100k env-step budget on a 2-core CPU (issue 56; docs/studies/
+    # locomotion_gate.md): the fast planner (its settings checked with the true dynamics, pets.oracle), a learned
+    # terminal value on every env, and a fixed training schedule by env steps (warm-started, a fixed number of
+    # gradient steps every 1,000 env steps: the cost of training does not grow with the data or the falls).
+    "locomotion": {
+        "trials": 100_000,  # an upper bound: the budget ends the run
+        "max_env_steps": 100_000,
+        "seed_steps": 1000,
+        "train_every": 1000,
+        "train_after_trial": False,
+        "model": {"ensemble_size": 5, "num_elites": 5, "batch_size": 256, "iterations": 1000, "compile": None},
+        "planner": {
+            "name": "icem",
+            "population": 100,
+            "particles": 5,
+            "horizon": 15,
+            "iterations": 3,
+            "elites": 0.1,
+        },
+        "value": {"enabled": True},
+    },
 }
 
 # InvertedDoublePendulum: open-loop sequences that keep it up for the horizon are too rare to sample, even with

@@ -44,13 +44,13 @@ from pets.experiments.runner import online_job, open_backend
 from pets.runs.rundir import stopped
 
 
-def online_plan(run_dir: Path, trials: int, stop_reward: float | None = None) -> str:
-    """``reuse`` (>= trials rows, or a trial at ``stop_reward``), ``resume`` (a run with fewer rows) or ``start``
-    (no run yet)."""
+def online_plan(run_dir: Path, trials: int, stop_reward: float | None = None, max_env_steps: int | None = None) -> str:
+    """``reuse`` (>= trials rows, a trial at ``stop_reward`` or the budget ``max_env_steps`` reached), ``resume``
+    (a run with fewer rows) or ``start`` (no run yet)."""
     if not (run_dir / "config.yaml").is_file():
         return "start"
     rows = online_rows(run_dir)
-    return "reuse" if len(rows) >= trials or stopped(rows, stop_reward) else "resume"
+    return "reuse" if len(rows) >= trials or stopped(rows, stop_reward, max_env_steps) else "resume"
 
 
 def start_arguments(
@@ -216,7 +216,7 @@ def _plan_runs(
 
 def _checked_action(run_dir: Path, trials: int, expected: Any, arm_extra: Mapping[str, str]) -> str:
     """:func:`online_plan` of a run; UsageError if its directory holds another config or an offline run."""
-    action = online_plan(run_dir, trials, expected.stop_reward)
+    action = online_plan(run_dir, trials, expected.stop_reward, expected.max_env_steps)
     if action != "start":
         check_same_config(run_dir, expected, ignore=(*NOT_COMPARED, *left_to_auto(arm_extra)))
         if any(math.isnan(r["trial"]) for r in online_rows(run_dir)):

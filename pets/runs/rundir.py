@@ -38,6 +38,7 @@ METRIC_COLUMNS = [
     "env_steps",
     "episode_reward",
     "episode_length",
+    "terminated",
     "model_train_loss",
     "model_val_loss",
     "model_val_loss_initial",
@@ -229,6 +230,9 @@ def plot_rewards(run_dir: Path, rows: list[dict[str, Any]], title: str) -> None:
     atomic_write_bytes(run_dir / PLOT_FILE, buf.getvalue())
 
 
-def stopped(rows: list[dict[str, Any]], stop_reward: float | None) -> bool:
-    """Whether a run to a threshold is done: some trial's episode reward reached ``stop_reward`` (None: never)."""
-    return stop_reward is not None and any(float(r["episode_reward"]) >= stop_reward for r in rows)
+def stopped(rows: list[dict[str, Any]], stop_reward: float | None, max_env_steps: int | None = None) -> bool:
+    """Whether a run is done before its ``trials``: some trial's episode reward reached ``stop_reward``, or the env
+    steps reached the budget ``max_env_steps`` (either None: never)."""
+    if stop_reward is not None and any(float(r["episode_reward"]) >= stop_reward for r in rows):
+        return True
+    return max_env_steps is not None and bool(rows) and int(rows[-1]["env_steps"]) >= max_env_steps
