@@ -281,6 +281,7 @@ class PETSRun:
             "model_val_loss_initial": lt.initial_val_loss,
             "model_epochs": lt.epochs,
             "plan_seconds_per_step": 0.0 if random_policy else self.mpc_policy.seconds / length,
+            "plan_cpu_s": 0.0 if random_policy else round(self.mpc_policy.cpu_seconds, 3),
             "wall_time_s": round(self.wall_time_s, 3),
             "cpu_time_s": round(self.cpu_time_s, 3),
         }
@@ -322,7 +323,8 @@ def _run_locked(cfg: DictConfig, run_dir: Path, resume: bool, progress: bool) ->
     else:
         rundir.write_config(run_dir, cfg)
     rundir.append_history(run_dir, "resume" if resume else "start", pets_run.trials_done)
-    pets_run.cost = CostEstimate(cfg, pets_run.episode_length, cfg.trials - pets_run.trials_done)
+    budget_left = None if cfg.max_env_steps is None else cfg.max_env_steps - pets_run.env_steps
+    pets_run.cost = CostEstimate(cfg, pets_run.episode_length, cfg.trials - pets_run.trials_done, budget_left)
     if pets_run.trials_done < cfg.trials and (line := compile_line(cfg)):
         tqdm.write(line, file=sys.stderr)
     # Events past the last checkpoint (an interrupted trial's) are purged; each trial is written before its

@@ -27,6 +27,14 @@ def test_a_short_run_gets_no_line_and_used_options_are_not_offered():
     assert "--preset fast" not in line and "icem" not in line and "compile" not in line
 
 
+def test_a_run_with_an_env_step_budget_is_estimated_for_the_budget_not_its_trials():
+    """The locomotion preset's trials are a mere upper bound (100,000); its budget of env steps ends the run."""
+    cfg = make_config("halfcheetah", "delta", "locomotion")
+    line = cost.long_run_line(cfg, 0.12, 1000, 100_000, steps_left=99_000)  # 0.12 s x 99,000 steps = 3 h 18 min
+    assert line is not None and "about 3 h 18 min of planning for the 99000 env steps left of the budget" in line
+    assert cost.long_run_line(cfg, 0.1, 1000, 100_000, steps_left=99_000) is None  # 2 h 45 min: no line
+
+
 def test_feedback_candidates_are_not_offered_settings_they_cannot_use():
     """IDP's fast preset plans feedback gains with CEM over a 60-step closed loop: iCEM does not search gains and
     the fast preset is what it already is, so neither is offered."""

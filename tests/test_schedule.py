@@ -3,9 +3,19 @@
 
 from __future__ import annotations
 
+import csv
+import subprocess
+import sys
+
 import pytest
 
-from tests.test_cli import TINY, cli, error_lines, rows
+from tests.test_cli import ROOT, TINY, cli, error_lines, rows
+
+
+def rows_of(path):
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
 
 MODEL_COLUMNS = ("model_train_loss", "model_val_loss", "model_val_loss_initial")
 
@@ -21,6 +31,17 @@ def test_a_run_stops_at_its_env_step_budget_with_the_last_episode_cut_there(tmp_
         assert r["terminated"] == "1" or r["episode_length"] == "30", r
     again = cli("--resume", out, "--quiet")  # a finished run resumed: nothing more to do
     assert again.returncode == 0 and rows(out) == metrics
+    # the gate's per-run row of it (pets.experiments.gate), as a user runs it
+    proc = subprocess.run(
+        [sys.executable, "-m", "pets.experiments.gate", str(out), "--out", str(tmp_path / "gate")],
+        cwd=ROOT, capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    (row,) = rows_of(tmp_path / "gate_runs.csv")
+    falls = sum(r["terminated"] == "1" for r in metrics)
+    assert row["env"] == "hopper" and row["env_steps"] == "175" and row["episodes"] == str(len(metrics))
+    assert float(row["fall_fraction"]) == pytest.approx(falls / len(metrics), abs=1e-4)
+    assert row["status"] == "complete" and row["reward_100k"] == ""  # a budget of 175 steps: no 100k endpoint
 
 
 def test_training_every_n_env_steps_crosses_episodes_and_skips_trials_in_between(tmp_path):

@@ -43,21 +43,23 @@ class RandomPolicy:
 
 
 class MPCPolicy:
-    """An MPC agent (``reset()``, ``act(obs)``) as a policy; ``seconds``: its planning time in this episode."""
+    """An MPC agent (``reset()``, ``act(obs)``) as a policy; ``seconds`` and ``cpu_seconds``: its planning time
+    in this episode, wall-clock and the process's CPU (all its threads)."""
 
     def __init__(self, agent: Any, name: str = "mpc") -> None:
         self.agent = agent
         self.name = name
-        self.seconds = 0.0
+        self.seconds = self.cpu_seconds = 0.0
 
     def reset(self, rng: np.random.Generator) -> None:
         self.agent.reset()
-        self.seconds = 0.0
+        self.seconds = self.cpu_seconds = 0.0
 
     def act(self, obs: np.ndarray) -> np.ndarray:
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         action = self.agent.act(obs)
         self.seconds += time.perf_counter() - t0
+        self.cpu_seconds += time.process_time() - c0
         return action
 
 

@@ -68,14 +68,20 @@ def format_duration(seconds: float) -> str:
     return f"{minutes} min"
 
 
-def long_run_line(cfg: DictConfig, seconds_per_step: float, steps_per_trial: int, trials_left: int) -> str | None:
-    """The one line for a run whose planning is estimated above :data:`LONG_RUN_HOURS`, else None."""
-    estimate = seconds_per_step * steps_per_trial * trials_left
+def long_run_line(
+    cfg: DictConfig, seconds_per_step: float, steps_per_trial: int, trials_left: int, steps_left: int | None = None
+) -> str | None:
+    """The one line for a run whose planning is estimated above :data:`LONG_RUN_HOURS`, else None; ``steps_left``:
+    the env steps left of the run's budget (``max_env_steps``), which caps the trials' steps."""
+    if steps_left is not None and steps_left < steps_per_trial * trials_left:
+        estimate, left = seconds_per_step * steps_left, f"{steps_left} env steps left of the budget"
+    else:
+        estimate, left = seconds_per_step * steps_per_trial * trials_left, f"{trials_left} trials left"
     if estimate <= LONG_RUN_HOURS * 3600:
         return None
     options = faster_options(cfg)
     return (
-        f"estimated time: about {format_duration(estimate)} of planning for the {trials_left} trials left "
+        f"estimated time: about {format_duration(estimate)} of planning for the {left} "
         f"({seconds_per_step:.2f} s per planning step x up to {steps_per_trial} steps per trial; model training "
         "not counted)" + (f"; faster: {', '.join(options)}" if options else "")
     )
@@ -84,10 +90,11 @@ def long_run_line(cfg: DictConfig, seconds_per_step: float, steps_per_trial: int
 class CostEstimate:
     """Feeds on the cumulative planning seconds after each step of the first planned trial of a session."""
 
-    def __init__(self, cfg: DictConfig, steps_per_trial: int, trials_left: int) -> None:
+    def __init__(self, cfg: DictConfig, steps_per_trial: int, trials_left: int, steps_left: int | None = None) -> None:
         self.cfg = cfg
         self.steps_per_trial = steps_per_trial
         self.trials_left = trials_left
+        self.steps_left = steps_left
         self.done = False
         self._start = 0.0
 
@@ -100,5 +107,5 @@ class CostEstimate:
         elif steps == WARMUP_STEPS + MEASURED_STEPS:
             self.done = True
             per_step = (plan_seconds - self._start) / MEASURED_STEPS
-            return long_run_line(self.cfg, per_step, self.steps_per_trial, self.trials_left)
+            return long_run_line(self.cfg, per_step, self.steps_per_trial, self.trials_left, self.steps_left)
         return None

@@ -1,0 +1,253 @@
+"""The locomotion gate (docs/studies/locomotion_gate.md): does PETS at ``--preset locomotion`` learn to run and
+walk within 100k env steps? The endpoint of one online run, the per-run and summary rows, the verdict.
+
+    python -m pets.experiments.gate RUN_DIR [RUN_DIR ...] --out docs/results/locomotion_gate [--figure FILE]
+    python -m pets.experiments.gate --pilots RUN_DIR [RUN_DIR ...] --out docs/results/locomotion_pilots
+
+The endpoint of a run at ``n`` env steps: the mean return of the last :data:`WINDOW` complete episodes (ended by
+a fall or by the episode's step limit, not by the budget) whose last step is at or before ``n`` (the seed data's
+random episodes are not trials and do not count). Reads each run directory's ``config.yaml`` and ``metrics.csv``.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import sys
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+#: The pre-registered thresholds (Wang et al. 2019, PETS-CEM at 200k env steps), per catalogue env.
+THRESHOLDS = {"halfcheetah": 2800.0, "ant": 1170.0, "hopper": 1130.0}
+BUDGET = 100_000
+CHECKPOINTS = (25_000, 50_000, 100_000)
+WINDOW = 5
+RUN_COLUMNS = [
+    "env",
+    "agent",
+    "seed",
+    "env_steps",
+    *[f"reward_{n // 1000}k" for n in CHECKPOINTS],
+    "episodes",
+    "fall_fraction",
+    "cpu_hours",
+    "plan_cpu_hours",
+    "status",
+]
+SUMMARY_COLUMNS = ["env", "agent", "n_runs", "mean", "iqm", "ci_low", "ci_high", "threshold", "verdict"]
+
+
+def complete(row: Mapping[str, Any], full_length: int) -> bool:
+    """Whether a metrics row's episode ended by itself: a fall (``terminated``) or the episode's step limit."""
+    return int(float(row["terminated"])) == 1 or int(float(row["episode_length"])) >= full_length
+
+
+def endpoint(rows: Sequence[Mapping[str, Any]], at: int, full_length: int, window: int = WINDOW) -> float:
+    """Mean return of the last ``window`` complete episodes ending at or before ``at`` env steps; NaN if fewer
+    than ``window`` exist by then (the run has not got there)."""
+    done = [r for r in rows if int(float(r["env_steps"])) <= at and complete(r, full_length)]
+    if len(done) < window:
+        return math.nan
+    return float(np.mean([float(r["episode_reward"]) for r in done[-window:]]))
+
+
+def curve(rows: Sequence[Mapping[str, Any]], full_length: int, window: int = WINDOW) -> tuple[np.ndarray, np.ndarray]:
+    """``(env_steps, endpoint)`` after every complete episode from the ``window``-th on: the run's learning curve."""
+    steps, values, done = [], [], []
+    for r in rows:
+        if complete(r, full_length):
+            done.append(float(r["episode_reward"]))
+            if len(done) >= window:
+                steps.append(int(float(r["env_steps"])))
+                values.append(float(np.mean(done[-window:])))
+    return np.array(steps, dtype=np.int64), np.array(values)
+
+
+def _read(run_dir: Path) -> tuple[dict[str, Any], list[dict[str, str]]]:
+    import yaml
+
+    cfg = yaml.safe_load((run_dir / "config.yaml").read_text())
+    metrics = run_dir / "metrics.csv"
+    rows = list(csv.DictReader(open(metrics, newline=""))) if metrics.is_file() else []
+    return cfg, rows
+
+
+def full_length(cfg: Mapping[str, Any]) -> int:
+    """The episode step limit of a run's config (its ``episode_length``, else the env's own)."""
+    if cfg.get("episode_length"):
+        return int(cfg["episode_length"])
+    import envs
+
+    return envs.get(cfg["env"]).episode_length
+
+
+def run_row(run_dir: Path, agent: str | None = None) -> dict[str, Any]:
+    """The :data:`RUN_COLUMNS` row of one run directory (``agent``: default the run's head)."""
+    cfg, rows = _read(run_dir)
+    length = full_length(cfg)
+    budget = cfg.get("max_env_steps") or BUDGET
+    steps = int(float(rows[-1]["env_steps"])) if rows else 0
+    falls = [int(float(r["terminated"])) for r in rows]
+    row = {
+        "env": cfg["env"],
+        "agent": agent or cfg["head"],
+        "seed": int(cfg["seed"]),
+        "env_steps": steps,
+        "episodes": len(rows),
+        "fall_fraction": round(float(np.mean(falls)), 4) if falls else math.nan,
+        "cpu_hours": round(float(rows[-1]["cpu_time_s"]) / 3600, 4) if rows else 0.0,
+        "plan_cpu_hours": round(sum(float(r.get("plan_cpu_s", "nan")) for r in rows) / 3600, 4),
+        "status": "complete" if steps >= budget else "partial",
+    }
+    for n in CHECKPOINTS:
+        row[f"reward_{n // 1000}k"] = endpoint(rows, n, length) if steps >= n else math.nan
+    return row
+
+
+def summary_rows(runs: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
+    """Per (env, agent): the endpoint at the budget over its runs (mean, IQM with a bootstrap CI) and, for the gate's
+    agent ``delta``, the verdict by the pre-registered rule (the mean over the seeds reaches the threshold; a run
+    with no endpoint counts as 0, the worst outcome). ``partial`` while a run is short of the budget."""
+    from pets.experiments.statistics import iqm_ci
+
+    out = []
+    for env, agent in dict.fromkeys((r["env"], r["agent"]) for r in runs):
+        mine = [r for r in runs if r["env"] == env and r["agent"] == agent]
+        final = np.array([r[f"reward_{BUDGET // 1000}k"] for r in mine], dtype=np.float64)
+        partial = any(r["status"] != "complete" for r in mine)
+        scores = np.where(np.isfinite(final), final, 0.0)  # a complete run without an endpoint: the worst
+        point, low, high = iqm_ci(scores[:, None]) if not partial else ([math.nan],) * 3
+        threshold = THRESHOLDS.get(env, math.nan)
+        if partial:
+            verdict = "partial"
+        elif agent != "delta" or math.isnan(threshold):
+            verdict = ""
+        else:
+            verdict = "passed" if scores.mean() >= threshold else "not passed"
+        out.append(
+            {
+                "env": env,
+                "agent": agent,
+                "n_runs": len(mine),
+                "mean": float(scores.mean()) if not partial else math.nan,
+                "iqm": float(point[0]),
+                "ci_low": float(low[0]),
+                "ci_high": float(high[0]),
+                "threshold": threshold,
+                "verdict": verdict,
+            }
+        )
+    return out
+
+
+def pilot_row(run_dir: Path) -> dict[str, Any]:
+    """A pilot's row: its name, the keys where its config differs from the locomotion preset's (at the pilot's own
+    env and head), the endpoint at the env steps it reached and at each checkpoint, its CPU-hours."""
+    from pets.config import all_keys, make_config
+
+    cfg, rows = _read(run_dir)
+    preset = make_config(cfg["env"], cfg["head"], "locomotion")
+    differs = []
+    for key in all_keys(preset):
+        if key in ("seed", "threads", "device") or key.endswith("precision") or key.endswith("compile"):
+            continue
+        mine: Any = cfg
+        for part in key.split("."):
+            mine = mine.get(part) if isinstance(mine, dict) else None
+        theirs = preset
+        for part in key.split("."):
+            theirs = theirs[part]
+        if mine != theirs and not (mine is None and theirs is None):
+            differs.append(f"{key}={mine}")
+    base = run_row(run_dir)
+    steps = base["env_steps"]
+    return {
+        "run": run_dir.name,
+        "env": base["env"],
+        "head": base["agent"],
+        "seed": base["seed"],
+        "overrides": " ".join(differs),
+        "env_steps": steps,
+        "reward_last5": endpoint(rows, steps, full_length(cfg)) if rows else math.nan,
+        **{k: base[k] for k in RUN_COLUMNS if k.startswith("reward_")},
+        "fall_fraction": base["fall_fraction"],
+        "cpu_hours": base["cpu_hours"],
+        "plan_cpu_hours": base["plan_cpu_hours"],
+    }
+
+
+def write_csv(path: Path, rows: Sequence[Mapping[str, Any]], columns: Sequence[str]) -> None:
+    from pets.runs.fileio import atomic_write_bytes
+
+    lines = [",".join(columns)]
+    for r in rows:
+        lines.append(",".join(_cell(r[c]) for c in columns))
+    atomic_write_bytes(path, ("\n".join(lines) + "\n").encode())
+
+
+def _cell(v: Any) -> str:
+    if isinstance(v, float):
+        return "" if math.isnan(v) else f"{v:.6g}"
+    text = str(v)
+    return f'"{text}"' if "," in text else text
+
+
+def plot(run_dirs: Sequence[Path], path: Path, references: Mapping[str, float] | None = None) -> None:
+    """Reward (the endpoint's moving window) against env steps, one panel per env, one line per run; the gate's
+    threshold (and ``references``: env -> a level, e.g. the true-dynamics ceiling) as horizontal lines."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    runs = [(d, *_read(d)) for d in run_dirs]
+    env_names = list(dict.fromkeys(cfg["env"] for _, cfg, _ in runs))
+    fig, axes = plt.subplots(1, len(env_names), figsize=(5 * len(env_names), 3.6), squeeze=False)
+    for ax, env in zip(axes[0], env_names):
+        for run_dir, cfg, rows in runs:
+            if cfg["env"] == env:
+                x, y = curve(rows, full_length(cfg))
+                ax.plot(x / 1000, y, label=run_dir.name, lw=1.2)
+        if env in THRESHOLDS:
+            ax.axhline(THRESHOLDS[env], color="k", ls="--", lw=1, label="gate threshold")
+        if references and env in references:
+            ax.axhline(references[env], color="tab:gray", ls=":", lw=1, label="true-dynamics MPC")
+        ax.set(title=env, xlabel="env steps (thousands)", ylabel=f"return, mean of last {WINDOW} episodes")
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    from pets.tools.cli import OneLineParser
+
+    p = OneLineParser(prog="pets.experiments.gate", description=__doc__.splitlines()[0])
+    p.add_argument("run_dirs", nargs="+", type=Path, help="online run directories (run_pets.py --out)")
+    p.add_argument("--out", type=Path, required=True, help="output prefix: OUT_runs.csv, OUT_summary.csv")
+    p.add_argument("--pilots", action="store_true", help="pilot runs: one OUT.csv row per run with its overrides")
+    p.add_argument("--figure", type=Path, help="also plot the runs' curves to this PNG")
+    args = p.parse_args(argv)
+    missing = [str(d) for d in args.run_dirs if not (d / "config.yaml").is_file()]
+    if missing:
+        p.error(f"not run directories (no config.yaml): {', '.join(missing)}")
+    if args.pilots:
+        rows = [pilot_row(d) for d in args.run_dirs]
+        write_csv(args.out.with_suffix(".csv"), rows, list(rows[0]))
+    else:
+        runs = [run_row(d) for d in args.run_dirs]
+        write_csv(Path(f"{args.out}_runs.csv"), runs, RUN_COLUMNS)
+        write_csv(Path(f"{args.out}_summary.csv"), summary_rows(runs), SUMMARY_COLUMNS)
+        rows = runs
+    for r in rows:
+        print("  ".join(f"{k}={_cell(v)}" for k, v in r.items()), file=sys.stdout)
+    if args.figure:
+        plot(args.run_dirs, args.figure)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

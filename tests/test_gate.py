@@ -1,0 +1,42 @@
+"""The locomotion gate's endpoint and verdict (pets.experiments.gate; docs/studies/locomotion_gate.md)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from pets.experiments import gate
+
+
+def episode(steps: int, reward: float, length: int, terminated: bool = False) -> dict[str, str]:
+    return {"env_steps": str(steps), "episode_reward": str(reward), "episode_length": str(length),
+            "terminated": str(int(terminated))}  # fmt: skip
+
+
+def test_the_endpoint_is_the_last_five_complete_episodes_and_skips_one_cut_by_the_budget():
+    rows, steps = [], 1000  # 1,000 seed steps before the first trial
+    for i, (length, fell) in enumerate([(1000, False), (200, True), (1000, False), (50, True), (1000, False),
+                                         (1000, False), (300, True)]):  # fmt: skip
+        steps += length
+        rows.append(episode(steps, 100.0 * (i + 1), length, fell))
+    rows.append(episode(steps + 400, 9999.0, 400))  # the budget cut it: not complete
+    assert gate.endpoint(rows, steps + 400, full_length=1000) == pytest.approx((300 + 400 + 500 + 600 + 700) / 5)
+    assert gate.endpoint(rows, 1000 + 1000 + 200 + 1000 + 50 + 1000, full_length=1000) == pytest.approx(300.0)
+    assert math.isnan(gate.endpoint(rows, 3000, full_length=1000))  # fewer than 5 complete episodes by then
+    x, y = gate.curve(rows, full_length=1000)
+    assert x.tolist() == [int(r["env_steps"]) for r in rows[4:7]] and y[-1] == pytest.approx(500.0)
+
+
+def run(seed: int, final: float, status: str = "complete") -> dict:
+    return {"env": "halfcheetah", "agent": "delta", "seed": seed, "reward_100k": final, "status": status}
+
+
+def test_the_verdict_is_the_mean_over_seeds_against_the_threshold_with_a_run_without_endpoint_as_zero():
+    (passed,) = gate.summary_rows([run(0, 3000.0), run(1, 2700.0), run(2, 2800.0)])
+    assert passed["verdict"] == "passed" and passed["mean"] == pytest.approx(2833.33, abs=0.01)
+    assert passed["ci_low"] <= passed["iqm"] <= passed["ci_high"]
+    (failed,) = gate.summary_rows([run(0, 4000.0), run(1, 4000.0), run(2, math.nan)])  # 8,000 / 3 < 2,800
+    assert failed["verdict"] == "not passed" and failed["mean"] == pytest.approx(8000 / 3)
+    (partial,) = gate.summary_rows([run(0, 3000.0), run(1, math.nan, "partial")])
+    assert partial["verdict"] == "partial" and math.isnan(partial["mean"])
