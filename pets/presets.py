@@ -51,8 +51,8 @@ PRESETS: dict[str, dict[str, Any]] = {
         "train_every": 1000,
         "train_after_trial": False,
         "model": {"ensemble_size": 5, "num_elites": 5, "batch_size": 256, "iterations": 1000, "compile": None},
-        "planner": {
-            "name": "icem",
+        "planner": {  # CEM, not iCEM: chosen with the true dynamics (docs/studies/locomotion_gate.md, pilots)
+            "name": "cem",
             "population": 100,
             "particles": 5,
             "horizon": 15,
