@@ -249,3 +249,15 @@ def test_collect_cli_deletes_the_sac_checkpoint_once_the_data_are_written(tmp_pa
     ckpt.unlink()
     collect_cli("--env", "invertedpendulum", "--policy", "sac:120", "--max-steps", 30, "--out", out)
     assert out.is_file() and not ckpt.exists() and "sac_resumed_at" not in load_dataset(out)
+
+
+def test_the_locomotion_gate_reads_sac_episodes_from_a_sac_collection(sac_run):
+    """SAC's reference row of the gate (pets.experiments.gate.sac_row) is the episodes SAC trained on, in order."""
+    from pets.experiments.gate import sac_row
+
+    name, work, _, _ = sac_run
+    data = load_dataset(work / "train.npz")
+    row = sac_row(work / "train.npz")
+    assert row["env"] == name and row["agent"] == "sac" and row["env_steps"] == STEPS
+    assert row["episodes"] == len(data["lengths"]) and row["status"] == "partial"  # 300 of 100k steps
+    assert row["fall_fraction"] == pytest.approx(float(data["terminated"].any(axis=1).mean()), abs=1e-4)

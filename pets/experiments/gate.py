@@ -87,24 +87,57 @@ def full_length(cfg: Mapping[str, Any]) -> int:
 def run_row(run_dir: Path, agent: str | None = None) -> dict[str, Any]:
     """The :data:`RUN_COLUMNS` row of one run directory (``agent``: default the run's head)."""
     cfg, rows = _read(run_dir)
-    length = full_length(cfg)
+    cpu = float(rows[-1]["cpu_time_s"]) if rows else 0.0
+    plan = sum(float(r.get("plan_cpu_s", "nan")) for r in rows)
     budget = cfg.get("max_env_steps") or BUDGET
+    return episodes_row(cfg["env"], agent or cfg["head"], int(cfg["seed"]), rows, full_length(cfg), budget, cpu, plan)
+
+
+def episodes_row(
+    env: str,
+    agent: str,
+    seed: int,
+    rows: Sequence[Mapping[str, Any]],
+    length: int,
+    budget: int,
+    cpu_s: float,
+    plan_cpu_s: float,
+) -> dict[str, Any]:
+    """The :data:`RUN_COLUMNS` row of one run's episodes (metrics rows: ``env_steps`` cumulative,
+    ``episode_reward``, ``episode_length``, ``terminated``)."""
     steps = int(float(rows[-1]["env_steps"])) if rows else 0
     falls = [int(float(r["terminated"])) for r in rows]
     row = {
-        "env": cfg["env"],
-        "agent": agent or cfg["head"],
-        "seed": int(cfg["seed"]),
+        "env": env,
+        "agent": agent,
+        "seed": seed,
         "env_steps": steps,
         "episodes": len(rows),
         "fall_fraction": round(float(np.mean(falls)), 4) if falls else math.nan,
-        "cpu_hours": round(float(rows[-1]["cpu_time_s"]) / 3600, 4) if rows else 0.0,
-        "plan_cpu_hours": round(sum(float(r.get("plan_cpu_s", "nan")) for r in rows) / 3600, 4),
+        "cpu_hours": round(cpu_s / 3600, 4),
+        "plan_cpu_hours": round(plan_cpu_s / 3600, 4),
         "status": "complete" if steps >= budget else "partial",
     }
     for n in CHECKPOINTS:
         row[f"reward_{n // 1000}k"] = endpoint(rows, n, length) if steps >= n else math.nan
     return row
+
+
+def sac_row(path: Path, cpu_s: float = math.nan) -> dict[str, Any]:
+    """The :data:`RUN_COLUMNS` row of a SAC collection (``python -m pets.collect --policy sac:STEPS``, a data set
+    holding every episode SAC trained on, in order; the last one cut at STEPS): agent ``sac``."""
+    import envs
+    from pets.data.datasets import load_dataset
+
+    data = load_dataset(path)
+    env = str(data["env"])
+    rows, steps = [], 0
+    for rew, term, n in zip(data["rew"], data["terminated"], data["lengths"]):
+        steps += int(n)
+        rows.append({"env_steps": steps, "episode_reward": float(np.nansum(rew[:n])), "episode_length": int(n),
+                     "terminated": int(bool(term[:n].any()))})  # fmt: skip
+    seed = int(data["seed"]) if "seed" in data else -1
+    return episodes_row(env, "sac", seed, rows, envs.get(env).episode_length, BUDGET, cpu_s, 0.0)
 
 
 def summary_rows(runs: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
@@ -227,18 +260,20 @@ def main(argv: list[str] | None = None) -> int:
 
     p = OneLineParser(prog="pets.experiments.gate", description=__doc__.splitlines()[0])
     p.add_argument("run_dirs", nargs="+", type=Path, help="online run directories (run_pets.py --out)")
+    p.add_argument("--sac", nargs="*", type=Path, default=[], help="SAC data sets (pets.collect --policy sac:STEPS)")
     p.add_argument("--out", type=Path, required=True, help="output prefix: OUT_runs.csv, OUT_summary.csv")
     p.add_argument("--pilots", action="store_true", help="pilot runs: one OUT.csv row per run with its overrides")
     p.add_argument("--figure", type=Path, help="also plot the runs' curves to this PNG")
     args = p.parse_args(argv)
     missing = [str(d) for d in args.run_dirs if not (d / "config.yaml").is_file()]
+    missing += [str(path) for path in args.sac if not path.is_file()]
     if missing:
-        p.error(f"not run directories (no config.yaml): {', '.join(missing)}")
+        p.error(f"not run directories (no config.yaml) or data sets: {', '.join(missing)}")
     if args.pilots:
         rows = [pilot_row(d) for d in args.run_dirs]
         write_csv(args.out.with_suffix(".csv"), rows, list(rows[0]))
     else:
-        runs = [run_row(d) for d in args.run_dirs]
+        runs = [run_row(d) for d in args.run_dirs] + [sac_row(path) for path in args.sac]
         write_csv(Path(f"{args.out}_runs.csv"), runs, RUN_COLUMNS)
         write_csv(Path(f"{args.out}_summary.csv"), summary_rows(runs), SUMMARY_COLUMNS)
         rows = runs
