@@ -40,3 +40,18 @@ def test_the_verdict_is_the_mean_over_seeds_against_the_threshold_with_a_run_wit
     assert failed["verdict"] == "not passed" and failed["mean"] == pytest.approx(8000 / 3)
     (partial,) = gate.summary_rows([run(0, 3000.0), run(1, math.nan, "partial")])
     assert partial["verdict"] == "partial" and math.isnan(partial["mean"])
+
+
+def test_oracle_files_become_rows_and_no_input_is_one_line_exit_2(tmp_path):
+    import json
+    import subprocess
+    import sys
+
+    episodes = [{"steps": 139, "reward": 376.0, "terminated": True, "seconds": 1.0}]
+    planner = {"name": "cem", "population": 100, "horizon": 15, "iterations": 3}
+    (tmp_path / "hopper_cem.json").write_text(json.dumps({"planner": planner, "episodes": episodes}))
+    (row,) = gate.oracle_rows(tmp_path / "hopper_cem.json")
+    assert row["env"] == "hopper" and row["steps"] == 139 and row["fell"] == 1 and row["reward"] == 376.0
+    proc = subprocess.run([sys.executable, "-m", "pets.experiments.gate", "--out", str(tmp_path / "x")],
+                          capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert proc.returncode == 2 and "give run directories" in proc.stderr and len(proc.stderr.splitlines()) == 1

@@ -212,6 +212,44 @@ def pilot_row(run_dir: Path) -> dict[str, Any]:
     }
 
 
+ORACLE_COLUMNS = [
+    "env",
+    "source",
+    "planner",
+    "population",
+    "horizon",
+    "iterations",
+    "episode",
+    "steps",
+    "reward",
+    "fell",
+]
+
+
+def oracle_rows(path: Path) -> list[dict[str, Any]]:
+    """The episodes of one ``pets.oracle --json`` file (MPC with the true simulator): the gate's ceiling and the
+    evidence its planner settings were chosen on. The env is in the file's name (``ENV_...json``)."""
+    import json
+
+    data = json.loads(path.read_text())
+    p = data["planner"]
+    return [
+        {
+            "env": path.stem.split("_")[0],
+            "source": path.stem,
+            "planner": p["name"],
+            "population": p["population"],
+            "horizon": p["horizon"],
+            "iterations": p["iterations"],
+            "episode": i,
+            "steps": e["steps"],
+            "reward": float(e["reward"]),
+            "fell": int(bool(e["terminated"])),
+        }
+        for i, e in enumerate(data["episodes"])
+    ]
+
+
 def write_csv(path: Path, rows: Sequence[Mapping[str, Any]], columns: Sequence[str]) -> None:
     from pets.runs.fileio import atomic_write_bytes
 
@@ -259,17 +297,25 @@ def main(argv: list[str] | None = None) -> int:
     from pets.tools.cli import OneLineParser
 
     p = OneLineParser(prog="pets.experiments.gate", description=__doc__.splitlines()[0])
-    p.add_argument("run_dirs", nargs="+", type=Path, help="online run directories (run_pets.py --out)")
+    p.add_argument("run_dirs", nargs="*", type=Path, help="online run directories (run_pets.py --out)")
     p.add_argument("--sac", nargs="*", type=Path, default=[], help="SAC data sets (pets.collect --policy sac:STEPS)")
     p.add_argument("--out", type=Path, required=True, help="output prefix: OUT_runs.csv, OUT_summary.csv")
+    p.add_argument("--oracle", nargs="*", type=Path, default=[], help="pets.oracle --json files: OUT_oracle.csv")
     p.add_argument("--pilots", action="store_true", help="pilot runs: one OUT.csv row per run with its overrides")
     p.add_argument("--figure", type=Path, help="also plot the runs' curves to this PNG")
     args = p.parse_args(argv)
+    if not (args.run_dirs or args.sac or args.oracle):
+        p.error("give run directories, --sac data sets or --oracle files")
     missing = [str(d) for d in args.run_dirs if not (d / "config.yaml").is_file()]
-    missing += [str(path) for path in args.sac if not path.is_file()]
+    missing += [str(path) for path in [*args.sac, *args.oracle] if not path.is_file()]
     if missing:
-        p.error(f"not run directories (no config.yaml) or data sets: {', '.join(missing)}")
-    if args.pilots:
+        p.error(f"not run directories (no config.yaml) or files: {', '.join(missing)}")
+    if args.oracle:
+        oracle = [row for path in args.oracle for row in oracle_rows(path)]
+        write_csv(Path(f"{args.out}_oracle.csv"), oracle, ORACLE_COLUMNS)
+    if not (args.run_dirs or args.sac):
+        rows = []
+    elif args.pilots:
         rows = [pilot_row(d) for d in args.run_dirs]
         write_csv(args.out.with_suffix(".csv"), rows, list(rows[0]))
     else:
