@@ -35,6 +35,8 @@ from pets.experiments.plots import plot_headline_ratios
 from pets.experiments.primary import primary_markdown, read_primary
 from pets.experiments.report import csv_number, disagreement_lines, fmt, fmt_interval, md_table, write_csv
 from pets.experiments.statistics import BASELINE, ci_exact_note, holm
+from pets.experiments.studies.base import headline_columns, headline_row
+from pets.experiments.studies.online import STUDY as ONLINE_STUDY
 from pets.runs.fileio import atomic_write_bytes
 
 #: Offline metrics of the headline, in order: the whole state, then the group coordinates (where GEM composes).
@@ -57,35 +59,8 @@ OFFLINE_COLUMNS = [
     "delta_n_diverged",
     "source",
 ]
-_FINAL = ("final_iqm", "final_ci_low", "final_ci_high")
-_P_AND_DIFF = (
-    "p_improvement",
-    "p_improvement_ci_low",
-    "p_improvement_ci_high",
-    "diff_to_delta",
-    "diff_ci_low",
-    "diff_ci_high",
-)
-_FEWER_STEPS = ("p_fewer_steps", "p_fewer_steps_ci_low", "p_fewer_steps_ci_high")
-ONLINE_COLUMNS = [
-    "env",
-    "model",
-    "n_seeds",
-    "trials",
-    *_FINAL,
-    *(f"delta_{k}" for k in _FINAL),
-    *_P_AND_DIFF,
-    "diff_p_signflip",
-    "diff_p_holm",
-    "ci_exact_note",
-    "threshold",
-    "n_reached",
-    "delta_n_reached",
-    "steps_to_threshold_iqm",
-    "delta_steps_to_threshold_iqm",
-    *_FEWER_STEPS,
-    "source",
-]
+#: Online: the columns the online study's metric table flags for the headline (:mod:`pets.experiments.studies`).
+ONLINE_COLUMNS = headline_columns(ONLINE_STUDY)
 
 
 #: Planning with a pre-trained model (``--openloop``, ``--closedloop``): a planning summary's columns, as read.
@@ -163,7 +138,7 @@ def offline_rows(
 
 
 def online_rows(rows: Sequence[Mapping[str, str]], source: str) -> list[dict[str, Any]]:
-    """Per env and non-delta arm of an online summary: its final reward and steps to threshold against delta's
+    """Per env and non-delta arm of an online summary: the metrics its study flags for the headline against delta's
     (delta with the same planner where planners were compared)."""
     out = []
     base = {(r["env"], r.get("planner", "")): r for r in rows if r["model"] == BASELINE}
@@ -171,28 +146,8 @@ def online_rows(rows: Sequence[Mapping[str, str]], source: str) -> list[dict[str
         b = base.get((row["env"], row.get("planner", "")))
         if row["model"] == BASELINE or b is None:
             continue
-        p = csv_number(row.get("diff_p_signflip"))  # summaries from before the exact test lack it
-        out.append(
-            {
-                "env": row["env"],
-                "model": row["model"] + (f"+{row['planner']}" if row.get("planner") else ""),
-                "n_seeds": int(csv_number(row["n_seeds"])),
-                "trials": int(csv_number(row["trials"])),
-                **{k: csv_number(row[k]) for k in _FINAL},
-                **{f"delta_{k}": csv_number(b[k]) for k in _FINAL},
-                **{k: csv_number(row[k]) for k in _P_AND_DIFF},
-                "diff_p_signflip": p,
-                "diff_p_holm": csv_number(row.get("diff_p_holm")),
-                "ci_exact_note": _diff_note(row, p),
-                "threshold": csv_number(row.get("threshold")),
-                "n_reached": row.get("n_reached", ""),
-                "delta_n_reached": b.get("n_reached", ""),
-                "steps_to_threshold_iqm": csv_number(row.get("steps_to_threshold_iqm")),
-                "delta_steps_to_threshold_iqm": csv_number(b.get("steps_to_threshold_iqm")),
-                **{k: csv_number(row.get(k)) for k in _FEWER_STEPS},
-                "source": source,
-            }
-        )
+        model = row["model"] + (f"+{row['planner']}" if row.get("planner") else "")
+        out.append({"env": row["env"], "model": model, **headline_row(ONLINE_STUDY, row, b), "source": source})
     return out
 
 

@@ -36,7 +36,7 @@ from typing import Any
 
 from pets.experiments.online_runs import THRESHOLD_KEYS, THRESHOLDS, online_rows, online_run_stats
 from pets.experiments.plots import arm_colors, model_colors, plot_online
-from pets.experiments.report import disagreement_lines, fmt, fmt_interval, md_table, write_csv
+from pets.experiments.report import disagreement_lines, md_table, write_csv
 from pets.experiments.rundirs import arm_label, online_arms, precision_note, run_name
 from pets.experiments.statistics import (
     BASELINE,
@@ -44,8 +44,10 @@ from pets.experiments.statistics import (
     REPS,
     SMALL_SAMPLE_NOTE,
 )
+from pets.experiments.studies.base import table_cells, table_header
 from pets.experiments.studies.online import (
     RUN_COLUMNS,
+    STUDY,
     SUMMARY_COLUMNS,
     arm_baselines,
     env_summary_rows,
@@ -92,7 +94,7 @@ def summarise_online(
         summary += rows_env
         envs_done.append((env, rows_env))
         _plot_env(out, env, curves, stats, planners, reps)
-    holm_over_summary(summary)
+    holm_over_summary(STUDY, summary)
     for env, rows_env in envs_done:
         text += _env_section(env, rows_env, planners is not None, compared, baselines)
     write_csv(out / "summary.csv", summary, SUMMARY_COLUMNS)
@@ -230,45 +232,16 @@ def _env_section(
     compared: bool,
     baselines: Mapping[str, str | None],
 ) -> list[str]:
-    """Markdown of one env: the small-sample note where needed, the table of its arms, its two figures."""
-    header = ["model", *(["planner"] if with_planner else []), "seeds", "diverged", "final reward", "AUC"]
-    if compared:
-        header += [f"P(final > {BASELINE}'s)", f"final - {BASELINE}", "pairs", "p (sign-flip)", "p (Holm)"]
+    """Markdown of one env: the small-sample note where needed, the table of its arms (its metric columns from
+    the study's metric table), its two figures."""
     threshold = rows[0]["threshold"] if rows else None
-    if threshold is not None:
-        header += [f"reached {threshold:g}", "minutes to it", "env steps to it", "CPU minutes to it"]
-        header += [f"P(fewer steps than {BASELINE})"] if compared else []
-    header += ["env steps", "plan s/step", "wall h", "CPU h"]
+    header = ["model", *(["planner"] if with_planner else []), "seeds", "diverged"]
+    header += table_header(STUDY, compared, threshold)
     table = []
     for r in rows:
-        none = "all diverged" if r["n_seeds"] == 0 else "n/a"
         cells = [r["model"], *([r["planner"]] if with_planner else []), str(r["n_seeds"]), str(r["n_diverged"])]
-        cells += [fmt_interval(r[f"{k}_iqm"], r[f"{k}_ci_low"], r[f"{k}_ci_high"], none) for k in ("final", "auc")]
-        if compared:
-            if baselines[arm_label(r["model"], r["planner"] or None)] is None:
-                cells += ["-"] * 5
-            else:
-                cells += [
-                    fmt_interval(r["p_improvement"], r["p_improvement_ci_low"], r["p_improvement_ci_high"]),
-                    fmt_interval(r["diff_to_delta"], r["diff_ci_low"], r["diff_ci_high"]),
-                    "-" if r["n_pairs"] is None else str(r["n_pairs"]),
-                    *("-" if r[k] is None else fmt(r[k], 3) for k in ("diff_p_signflip", "diff_p_holm")),
-                ]
-        if threshold is not None:
-            cells.append(f"{r['n_reached']}/{r['n_seeds']}")
-            for k in THRESHOLD_KEYS:
-                cells.append(fmt_interval(r[f"{k}_iqm"], r[f"{k}_ci_low"], r[f"{k}_ci_high"], "-"))
-            if compared:
-                cells.append(
-                    fmt_interval(r["p_fewer_steps"], r["p_fewer_steps_ci_low"], r["p_fewer_steps_ci_high"], "-")
-                )
-        cells += [
-            f"{r['env_steps_mean']:.0f}",
-            fmt(r["plan_seconds_per_step_mean"], 3),
-            fmt(r["wall_time_s_mean"] / 3600, 3),
-            "-" if r["cpu_time_s_mean"] is None else fmt(r["cpu_time_s_mean"] / 3600, 3),
-        ]
-        table.append(cells)
+        is_baseline = baselines[arm_label(r["model"], r["planner"] or None)] is None
+        table.append(cells + table_cells(STUDY, r, compared, is_baseline))
     small = any(r["n_seeds"] < MIN_SEEDS for r in rows)
     return [
         f"## {env}",

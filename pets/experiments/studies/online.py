@@ -1,6 +1,6 @@
-"""The online study's record and statistics: what one run records (:data:`RUN_COLUMNS`), the statistics over seeds
-per env and arm (:func:`arm_statistics`, :data:`SUMMARY_COLUMNS`), and the summary rows made either from the runs'
-metrics (:mod:`pets.experiments.online_summary`) or from the committed per-run rows (:func:`summary_from_runs`, for
+"""The online study: its metric table (:data:`STUDY`; what one run records, :data:`RUN_COLUMNS`, and the summary
+columns, :data:`SUMMARY_COLUMNS`, follow from it) and its summary rows, made either from the runs' metrics
+(:mod:`pets.experiments.online_summary`) or from the committed per-run rows (:func:`summary_from_runs`, for
 ``pets.compare report``). The statistics are described in :mod:`pets.experiments.online_summary`.
 """
 
@@ -10,155 +10,34 @@ import math
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-import numpy as np
-
 from pets.experiments.online_runs import COST_KEYS, THRESHOLD_KEYS, THRESHOLDS
-from pets.experiments.report import BOOT_SEED
 from pets.experiments.rundirs import arm_label
-from pets.experiments.statistics import (
-    BASELINE,
-    REPS,
-    ci_exact_note,
-    holm,
-    iqm_ci,
-    iqm_ci_finite,
-    p_improvement_ci,
-    paired_differences,
-    sign_flip_p,
-)
+from pets.experiments.statistics import BASELINE, REPS
+from pets.experiments.studies.base import HIGHER, LOWER, Group, Metric, Study, arm_statistics, holm_over_summary
 
-_BASELINE_COLUMNS = [
-    "p_improvement",
-    "p_improvement_ci_low",
-    "p_improvement_ci_high",
-    "diff_to_delta",
-    "diff_ci_low",
-    "diff_ci_high",
-    "n_pairs",
-    "diff_p_signflip",
-    "diff_p_holm",
-    "ci_exact_note",
-    "p_fewer_steps",
-    "p_fewer_steps_ci_low",
-    "p_fewer_steps_ci_high",
-]
-SUMMARY_COLUMNS = [
-    "env",
-    "model",
-    "planner",
-    "n_seeds",
-    "n_diverged",
-    "trials",
-    "final_window",
-    "final_iqm",
-    "final_ci_low",
-    "final_ci_high",
-    "auc_iqm",
-    "auc_ci_low",
-    "auc_ci_high",
-    "threshold",
-    "n_reached",
-    *[f"{k}_{stat}" for k in THRESHOLD_KEYS for stat in ("iqm", "ci_low", "ci_high")],
-    *[f"{k}_mean" for k in COST_KEYS],
-    *_BASELINE_COLUMNS,
-]
-RUN_COLUMNS = [
-    "env",
-    "model",
-    "planner",
-    "seed",
-    "trials",
-    "diverged",
-    "final_reward",
-    "auc",
-    *THRESHOLD_KEYS,
-    *COST_KEYS,
-]
-
-
-def _finite(x: float | None) -> float | None:
-    """``x`` as a float, None if absent or not finite (an empty CSV cell, "n/a" in a table)."""
-    return None if x is None or not math.isfinite(x) else float(x)
-
-
-def arm_statistics(
-    runs: Mapping[str, Sequence[Mapping[str, Any]]],
-    baselines: Mapping[str, str | None],
-    *,
-    reps: int = REPS,
-    seed: int = BOOT_SEED,
-    threshold: bool = False,
-) -> dict[str, dict[str, Any]]:
-    """{arm: statistics} of one env: ``n_seeds``, ``n_diverged`` and the :data:`SUMMARY_COLUMNS` from
-    ``final_iqm`` on (None where absent or not finite).
-
-    ``runs``: {arm: the :func:`online_run_stats` of its complete runs, each with its ``"seed"``};
-    ``baselines``: {arm: the arm it is compared with, None for the baseline itself or when there is none};
-    ``threshold``: whether the env has a threshold (then ``p_fewer_steps`` against the baseline).
-    """
-    good = {arm: {r["seed"]: r for r in rs if not r["diverged"]} for arm, rs in runs.items()}
-    out: dict[str, dict[str, Any]] = {}
-    for arm, rs in runs.items():
-        s: dict[str, Any] = dict.fromkeys(SUMMARY_COLUMNS[SUMMARY_COLUMNS.index("final_iqm") :])
-        s.update(n_seeds=len(good[arm]), n_diverged=len(rs) - len(good[arm]))
-        if good[arm]:
-            scores = np.array([[r["final_reward"], r["auc"]] for r in good[arm].values()])
-            iqm, low, high = iqm_ci(scores, reps=reps, seed=seed)
-            for j, key in enumerate(("final", "auc")):
-                s.update({f"{key}_iqm": iqm[j], f"{key}_ci_low": low[j], f"{key}_ci_high": high[j]})
-        reached = [r for r in good[arm].values() if math.isfinite(r["minutes_to_threshold"])]
-        s["n_reached"] = len(reached)
-        if reached:  # the runs that never reached it are counted (n_reached of n_seeds), not averaged in
-            times = np.array([[r[k] for k in THRESHOLD_KEYS] for r in reached])
-            iqm, low, high = iqm_ci_finite(times, reps=reps, seed=seed)  # CPU minutes: NaN in runs without them
-            for j, key in enumerate(THRESHOLD_KEYS):
-                s.update({f"{key}_iqm": iqm[j], f"{key}_ci_low": low[j], f"{key}_ci_high": high[j]})
-        s.update({f"{k}_mean": float(np.mean([r[k] for r in rs])) for k in COST_KEYS})
-        base = baselines.get(arm)
-        if base is not None and base in runs:
-            s.update(_against_baseline(runs, good, arm, base, reps=reps, seed=seed, threshold=threshold))
-        out[arm] = {k: _finite(v) if isinstance(v, float) else v for k, v in s.items()}
-    return out
-
-
-def _against_baseline(
-    runs: Mapping[str, Sequence[Mapping[str, Any]]],
-    good: Mapping[str, Mapping[Any, Mapping[str, Any]]],
-    arm: str,
-    base: str,
-    *,
-    reps: int,
-    seed: int,
-    threshold: bool,
-) -> dict[str, Any]:
-    """The baseline columns of ``arm`` against ``base``: P(final > baseline's), the paired differences, the exact
-    sign-flip p-value and, with a ``threshold``, P(fewer steps to it). ``runs`` and ``good`` ({arm: {seed: run}} of
-    the runs that did not diverge) as in :func:`arm_statistics`."""
-    s: dict[str, Any] = {}
-    # diverged runs enter P as NaN, i.e. the worst final reward
-    x = [math.nan if r["diverged"] else r["final_reward"] for r in runs[arm]]
-    y = [math.nan if r["diverged"] else r["final_reward"] for r in runs[base]]
-    (p,), (p_low,), (p_high,) = p_improvement_ci(x, y, higher_is_better=True, reps=reps, seed=seed)
-    s.update(p_improvement=p, p_improvement_ci_low=p_low, p_improvement_ci_high=p_high)
-    final = {k: r["final_reward"] for k, r in good[arm].items()}
-    pairs, diffs = paired_differences(final, {k: r["final_reward"] for k, r in good[base].items()})
-    s["n_pairs"] = len(pairs)
-    if pairs:
-        (d,), (d_low,), (d_high,) = iqm_ci(diffs, reps=reps, seed=seed)
-        s.update(diff_to_delta=d, diff_ci_low=d_low, diff_ci_high=d_high)
-    # The exact test counts a diverged run as the worst outcome: the lowest finite final reward of the env.
-    worst = min((r["final_reward"] for rs_ in good.values() for r in rs_.values()), default=math.nan)
-    worst_of = {a: {r["seed"]: worst if r["diverged"] else r["final_reward"] for r in runs[a]} for a in (arm, base)}
-    _, all_diffs = paired_differences(worst_of[arm], worst_of[base])
-    if all_diffs.size and np.isfinite(all_diffs).all():
-        s["diff_p_signflip"] = sign_flip_p(all_diffs[:, 0])
-        s["ci_exact_note"] = ci_exact_note(s.get("diff_ci_low"), s.get("diff_ci_high"), 0.0, s["diff_p_signflip"])
-    if threshold:  # steps as errors: never reached or diverged = NaN, the most steps
-        x = [math.nan if r["diverged"] else r["steps_to_threshold"] for r in runs[arm]]
-        y = [math.nan if r["diverged"] else r["steps_to_threshold"] for r in runs[base]]
-        (p,), (p_low,), (p_high,) = p_improvement_ci(x, y, reps=reps, seed=seed)
-        s.update(p_fewer_steps=p, p_fewer_steps_ci_low=p_low, p_fewer_steps_ci_high=p_high)
-    return s
+#: The online study's metric table (:mod:`pets.experiments.studies.base`): one line per metric.
+OUTCOME = Group("outcome")
+REACHED = Group("reached", reached=True, missing="-")
+STUDY = Study(
+    name="online",
+    keys=("env", "model", "planner"),
+    context=("trials", "final_window"),
+    metrics=(
+        Metric("final_reward", "final", HIGHER, OUTCOME, "p_improvement", f"P(final > {BASELINE}'s)", "diff",
+               "final reward", headline="interval"),
+        Metric("auc", "auc", HIGHER, OUTCOME, label="AUC"),
+        Metric("minutes_to_threshold", "minutes_to_threshold", LOWER, REACHED, label="minutes to it"),
+        Metric("steps_to_threshold", "steps_to_threshold", LOWER, REACHED, "p_fewer_steps",
+               f"P(fewer steps than {BASELINE})", label="env steps to it", headline="iqm"),
+        Metric("cpu_minutes_to_threshold", "cpu_minutes_to_threshold", LOWER, REACHED, label="CPU minutes to it"),
+        Metric("env_steps", "env_steps", label="env steps", digits=0),
+        Metric("wall_time_s", "wall_time_s", label="wall h", scale=1 / 3600),
+        Metric("cpu_time_s", "cpu_time_s", label="CPU h", scale=1 / 3600),
+        Metric("plan_seconds_per_step", "plan_seconds_per_step", label="plan s/step"),
+    ),
+)  # fmt: skip
+SUMMARY_COLUMNS = STUDY.summary_columns()
+RUN_COLUMNS = STUDY.run_columns()
 
 
 def arm_baselines(
@@ -186,7 +65,7 @@ def env_summary_rows(
     """``(summary.csv rows, {label: statistics})`` of one env from ``runs`` ({label: the :func:`online_run_stats`
     of its complete runs, each with its ``"seed"``}); ``final_window``: the one used (at most ``trials``)."""
     labels, baselines = arm_baselines(arms)
-    stats = arm_statistics(runs, baselines, reps=reps, threshold=env in thresholds)
+    stats = arm_statistics(STUDY, runs, baselines, reps=reps, threshold=env in thresholds)
     rows = []
     for model, planner in arms:
         label = labels[(model, planner)]
@@ -194,14 +73,6 @@ def env_summary_rows(
             row = {"env": env, "model": model, "planner": planner or "", "trials": trials, "final_window": final_window}
             rows.append({**row, **stats[label], "threshold": thresholds.get(env)})
     return rows, stats
-
-
-def holm_over_summary(summary: Sequence[dict[str, Any]]) -> None:
-    """Set ``diff_p_holm``: Holm over the family of every arm-vs-baseline test of the primary endpoint in the
-    summary (envs x arms)."""
-    adjusted = holm([math.nan if r.get("diff_p_signflip") is None else r["diff_p_signflip"] for r in summary])
-    for row, p_adj in zip(summary, adjusted):
-        row["diff_p_holm"] = _finite(p_adj)
 
 
 def _number(text: str | None) -> float:
@@ -230,5 +101,5 @@ def summary_from_runs(
             runs.setdefault(labels[(r["model"], r["planner"] or None)], []).append(run)
         trials = int(mine[0]["trials"])
         summary += env_summary_rows(env, runs, arms, trials, min(final_window, trials), thresholds, reps=reps)[0]
-    holm_over_summary(summary)
+    holm_over_summary(STUDY, summary)
     return summary
