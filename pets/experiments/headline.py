@@ -31,6 +31,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from pets.experiments.offline_statistics import N_PAIRS, NOTE, P_EXACT, P_LOWER, RATIO
 from pets.experiments.plots import plot_headline_ratios
 from pets.experiments.primary import primary_markdown, read_primary
 from pets.experiments.report import csv_number, disagreement_lines, fmt, fmt_interval, md_table, write_csv
@@ -41,24 +42,8 @@ from pets.runs.fileio import atomic_write_bytes
 
 #: Offline metrics of the headline, in order: the whole state, then the group coordinates (where GEM composes).
 OFFLINE_METRICS = ("standardized_error", "rotation_error", "mean_step_error")
-OFFLINE_COLUMNS = [
-    "env",
-    "model",
-    "metric",
-    "horizon",
-    "ratio_to_delta",
-    "ratio_ci_low",
-    "ratio_ci_high",
-    "p_improvement",
-    "p_improvement_ci_low",
-    "p_improvement_ci_high",
-    "p_value_exact",
-    "ci_exact_note",
-    "n_pairs",
-    "n_diverged",
-    "delta_n_diverged",
-    "source",
-]
+OFFLINE_COLUMNS = ["env", "model", "metric", "horizon", *RATIO, *P_LOWER, P_EXACT, NOTE, N_PAIRS, "n_diverged",
+                   f"{BASELINE}_n_diverged", "source"]  # fmt: skip
 #: Online: the columns the online study's metric table flags for the headline (:mod:`pets.experiments.studies`).
 ONLINE_COLUMNS = headline_columns(ONLINE_STUDY)
 
@@ -117,20 +102,20 @@ def offline_rows(
                     continue
                 if csv_number(row["iqm"]) == 0 and csv_number(base["iqm"]) == 0:  # the env has no such coordinates
                     continue
-                p = csv_number(row.get("p_value_exact"))  # summaries from before the exact test lack it
-                note = ci_exact_note(csv_number(row["ratio_ci_low"]), csv_number(row["ratio_ci_high"]), 1.0, p)
+                p = csv_number(row.get(P_EXACT))  # summaries from before the exact test lack it
+                note = ci_exact_note(csv_number(row[RATIO[1]]), csv_number(row[RATIO[2]]), 1.0, p)
                 out.append(
                     {
                         "env": env,
                         "model": model,
                         "metric": metric,
                         "horizon": h,
-                        **{k: csv_number(row[k]) for k in OFFLINE_COLUMNS[4:10]},
-                        "p_value_exact": p,
-                        "ci_exact_note": note,
-                        "n_pairs": int(csv_number(row["n_pairs"]) if row["n_pairs"] else 0),
+                        **{k: csv_number(row[k]) for k in (*RATIO, *P_LOWER)},
+                        P_EXACT: p,
+                        NOTE: note,
+                        N_PAIRS: int(csv_number(row[N_PAIRS]) if row[N_PAIRS] else 0),
                         "n_diverged": int(csv_number(row["n_diverged"])),
-                        "delta_n_diverged": int(csv_number(base["n_diverged"])),
+                        f"{BASELINE}_n_diverged": int(csv_number(base["n_diverged"])),
                         "source": source,
                     }
                 )
