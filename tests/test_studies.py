@@ -16,6 +16,7 @@ from pets.experiments.studies.base import (
     arm_statistics,
     headline_columns,
     headline_row,
+    headline_table,
     holm_over_summary,
     table_cells,
     table_header,
@@ -46,7 +47,7 @@ def _runs(metric_names: list[str]) -> dict[str, list[dict[str, float]]]:
 def test_a_new_metric_is_one_line_and_reaches_the_csv_the_table_and_the_headline(tmp_path) -> None:
     study = replace(
         STUDY,
-        metrics=(*STUDY.metrics, Metric("best_reward", "best", HIGHER, OUTCOME, label="best reward", headline="iqm")),
+        metrics=(*STUDY.metrics, Metric("best_reward", "best", HIGHER, OUTCOME, label="best reward", headline="best")),
     )
     runs = _runs([m.name for m in study.metrics if m.name not in REACHED])
     stats = arm_statistics(study, runs, {"delta": None, "gem": "delta"}, reps=200)
@@ -71,11 +72,18 @@ def test_a_new_metric_is_one_line_and_reaches_the_csv_the_table_and_the_headline
     best = [float(written[1][c]) for c in ("best_iqm", "best_ci_low", "best_ci_high")]
     assert cells[header.index("best reward")] == fmt_interval(*best)
 
-    columns = headline_columns(study)  # the headline row, with delta's value beside
-    assert columns[columns.index("best_iqm") + 1] == "delta_best_iqm"
+    columns = headline_columns(study)  # the headline row and table, with delta's value beside
+    assert columns[columns.index("best_ci_high") + 1 :][:3] == [
+        "delta_best_iqm",
+        "delta_best_ci_low",
+        "delta_best_ci_high",
+    ]
     line = headline_row(study, written[1], written[0])
     assert line["best_iqm"] == float(written[1]["best_iqm"]) and line["delta_best_iqm"] == float(written[0]["best_iqm"])
     assert set(line) | {"env", "model", "source"} == set(columns)
+    header, (cells,) = headline_table(study, [{"env": "reacher", "model": "gem", **line}], lambda r, k: "P")
+    assert "best" in header and "delta's best" in header and len(cells) == len(header)
+    assert cells[header.index("best")] == fmt_interval(*best)
 
 
 def test_the_online_table_follows_the_metric_table() -> None:

@@ -36,7 +36,7 @@ from pets.experiments.plots import plot_headline_ratios
 from pets.experiments.primary import primary_markdown, read_primary
 from pets.experiments.report import csv_number, disagreement_lines, fmt, fmt_interval, md_table, write_csv
 from pets.experiments.statistics import BASELINE, ci_exact_note, holm
-from pets.experiments.studies.base import headline_columns, headline_row
+from pets.experiments.studies.base import headline_columns, headline_row, headline_table
 from pets.experiments.studies.online import STUDY as ONLINE_STUDY
 from pets.runs.fileio import atomic_write_bytes
 
@@ -235,32 +235,9 @@ def offline_table(rows: Sequence[Mapping[str, Any]]) -> str:
 
 
 def online_table(rows: Sequence[Mapping[str, Any]]) -> str:
-    """One line per env and arm: final rewards, P(final > delta's), paired difference, steps to threshold."""
-    header = ["env", "model", "seeds", "trials", "final", "delta's final", "P(final > delta's)", "paired diff"]
-    header += ["p (exact)", "p (Holm)"]
-    header += ["reached (model, delta)", "env steps to threshold (model, delta)", "P(fewer steps)"]
-    body = []
-    for r in rows:
-        body.append(
-            [
-                r["env"],
-                r["model"],
-                str(r["n_seeds"]),
-                str(r["trials"]),
-                fmt_interval(r["final_iqm"], r["final_ci_low"], r["final_ci_high"]),
-                fmt_interval(r["delta_final_iqm"], r["delta_final_ci_low"], r["delta_final_ci_high"]),
-                _p(r),
-                fmt_interval(r["diff_to_delta"], r["diff_ci_low"], r["diff_ci_high"]),
-                *(fmt(r[k], 3) if math.isfinite(r[k]) else "-" for k in ("diff_p_signflip", "diff_p_holm")),
-                f"{r['n_reached']}, {r['delta_n_reached']}" if r["n_reached"] != "" else "-",
-                ", ".join(
-                    fmt(v) if math.isfinite(v) else "-"
-                    for v in (r["steps_to_threshold_iqm"], r["delta_steps_to_threshold_iqm"])
-                ),
-                _p(r, "p_fewer_steps"),
-            ]
-        )
-    return md_table(header, body)
+    """One line per env and arm: the metrics the online study flags for the headline (final reward, P(final >
+    delta's), paired difference, steps to threshold), each beside delta's."""
+    return md_table(*headline_table(ONLINE_STUDY, rows, _p))
 
 
 def relative_rows(path: Path, metric: str = "mean_step_error") -> dict[str, dict[str, dict[str, Any]]]:

@@ -11,7 +11,7 @@ made here from the metric's ``column`` prefix and nowhere typed again.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -53,8 +53,9 @@ class Metric:
     """One line of a study's metric table (module docstring). ``name``: the per-run value; ``column``: the prefix of
     its summary columns (``COLUMN_iqm`` ... or ``COLUMN_mean``); ``group``: None for the mean over every complete
     run; ``versus``: the prefix of its P(better than the baseline) columns; ``paired``: the prefix of its paired
-    difference (one per study); ``label``, ``scale``, ``digits``: its table cell; ``headline``: "interval" or "iqm"
-    (with the baseline's beside it), "" for none."""
+    difference (one per study); ``label``, ``scale``, ``digits``: its table cell; ``headline``: its label in the
+    headline ("" for none: the IQM [CI], or over the runs that reached a threshold the IQM alone, each beside the
+    baseline's), ``headline_versus``: the label of its P there."""
 
     name: str
     column: str
@@ -67,6 +68,11 @@ class Metric:
     scale: float = 1.0
     digits: int = 3
     headline: str = ""
+    headline_versus: str = ""
+
+    def headline_own(self) -> list[str]:
+        """Its columns in the headline (the baseline's beside each)."""
+        return self.columns()[:1] if self.group and self.group.reached else self.columns()
 
     def columns(self) -> list[str]:
         """Its own statistic's summary columns."""
@@ -258,7 +264,7 @@ def headline_columns(study: Study) -> list[str]:
         metrics = _headline_metrics(study, g)
         cols += ["threshold", "n_reached", f"{BASELINE}_n_reached"] if g.reached and metrics else []
         for m in metrics:
-            own = m.columns() if m.headline == "interval" else m.columns()[:1]
+            own = m.headline_own()
             cols += own + [f"{BASELINE}_{c}" for c in own]
             cols += [c for c in m.baseline_columns() if c != "n_pairs"]
     return cols + ["source"]
@@ -278,7 +284,7 @@ def headline_row(study: Study, row: Mapping[str, str], base: Mapping[str, str]) 
             out.update(threshold=csv_number(row.get("threshold")), n_reached=row.get("n_reached", ""))
             out[f"{BASELINE}_n_reached"] = base.get("n_reached", "")
         for m in metrics:
-            for c in m.columns() if m.headline == "interval" else m.columns()[:1]:
+            for c in m.headline_own():
                 out.update({c: csv_number(row.get(c)), f"{BASELINE}_{c}": csv_number(base.get(c))})
             note = m.baseline_columns()[-1] if m.paired else None  # text: recomputed from the CI and p
             out.update({c: csv_number(row.get(c)) for c in m.baseline_columns() if c not in ("n_pairs", note)})
@@ -286,3 +292,42 @@ def headline_row(study: Study, row: Mapping[str, str], base: Mapping[str, str]) 
                 _, low, high, _, p, _, _ = m.baseline_columns()[-len(PAIRED) :]
                 out[note] = ci_exact_note(out[low], out[high], 0.0, out[p])
     return out
+
+
+def headline_table(
+    study: Study, rows: Sequence[Mapping[str, Any]], p_cell: Callable[[Mapping[str, Any], str], str]
+) -> tuple[list[str], list[list[str]]]:
+    """``(header, body)`` of the headline's table of a study: per :func:`headline_row` row, each headline metric
+    beside the baseline's, its P (``p_cell(row, column)``), the paired difference with its exact and Holm p."""
+    header = ["env", "model", "seeds", study.context[0]]
+    body = [[r["env"], r["model"], str(r["n_seeds"]), str(r[study.context[0]])] for r in rows]
+
+    def number(v: float) -> str:
+        return fmt(v) if math.isfinite(v) else "-"
+
+    for g in study.groups():
+        metrics = _headline_metrics(study, g)
+        if g.reached and metrics:
+            header.append(f"reached (model, {BASELINE})")
+            for r, cells in zip(rows, body):
+                cells.append(f"{r['n_reached']}, {r[f'{BASELINE}_n_reached']}" if r["n_reached"] != "" else "-")
+        for m in metrics:
+            own = m.headline_own()
+            base = [f"{BASELINE}_{c}" for c in own]
+            if g.reached:
+                header.append(f"{m.headline} (model, {BASELINE})")
+            else:
+                header += [m.headline, f"{BASELINE}'s {m.headline}"]
+            header += [m.headline_versus] if m.versus else []
+            header += ["paired diff", "p (exact)", "p (Holm)"] if m.paired else []
+            for r, cells in zip(rows, body):
+                if g.reached:
+                    cells.append(", ".join(number(r[c]) for c in (*own, *base)))
+                else:
+                    cells += [fmt_interval(*(r[c] for c in own)), fmt_interval(*(r[c] for c in base))]
+                cells += [p_cell(r, m.versus)] if m.versus else []
+                if m.paired:
+                    d, low, high, _, p, p_holm, _ = m.baseline_columns()[-len(PAIRED) :]
+                    cells += [fmt_interval(r[d], r[low], r[high])]
+                    cells += [fmt(r[k], 3) if math.isfinite(r[k]) else "-" for k in (p, p_holm)]
+    return header, body
