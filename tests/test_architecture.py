@@ -219,3 +219,31 @@ def test_no_function_is_too_long() -> None:
         if (n := node.end_lineno - node.lineno + 1) > MAX_FUNCTION_LINES
     }
     assert not long, long
+
+
+def _names_a_kind(node: ast.AST) -> bool:
+    """A string constant, or a tuple/list/set of them: a kind name typed in a comparison."""
+    if isinstance(node, (ast.Tuple, ast.List, ast.Set)):
+        return any(_names_a_kind(e) for e in node.elts)
+    return isinstance(node, ast.Constant) and isinstance(node.value, str)
+
+
+def test_group_kinds_dispatch_through_their_tables() -> None:
+    """The rotation error, the per-entry differences and the parts of an observation come from each kind's codec
+    (``gem_head.codecs``), its MuJoCo qpos from the kind table (``envs.layout.KIND_QPOS``): no chain of comparisons
+    of ``.kind`` with kind names there (``_total_squared`` keeps its fixed summation order, and its kind names)."""
+    where = {
+        "pets/learning/evaluation.py": ("rotation_angles", "entry_differences", "layout_parts"),
+        "envs/render.py": ("qpos_from_obs",),
+    }
+    chains = [
+        f"{path}:{node.name}"
+        for path, names in where.items()
+        for node in ast.walk(ast.parse((ROOT / path).read_text()))
+        if isinstance(node, ast.FunctionDef) and node.name in names
+        for cmp in ast.walk(node)
+        if isinstance(cmp, ast.Compare)
+        and any(isinstance(s, ast.Attribute) and s.attr == "kind" for s in (cmp.left, *cmp.comparators))
+        and any(_names_a_kind(s) for s in (cmp.left, *cmp.comparators))
+    ]
+    assert not chains, chains
