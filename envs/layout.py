@@ -8,14 +8,34 @@ to decode predicted group elements back into an observation.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Any, Literal
 
 GroupKind = Literal["Rn", "SO2_angle", "SO2_cossin", "SO3_quat"]
 
 #: Number of observation entries each group kind occupies (None: any n >= 1); ``gem_head.codecs.register_codec``
 #: adds the kinds of new codecs.
 KIND_WIDTH: dict[str, int | None] = {"Rn": None, "SO2_angle": 1, "SO2_cossin": 2, "SO3_quat": 4}
+
+
+def _cossin_qpos(x: Any) -> Any:
+    """The hinge angle ``atan2(sin, cos)`` of ``(..., 2)`` cos/sin entries, as ``(..., 1)``."""
+    import numpy as np
+
+    return np.arctan2(x[..., 1], x[..., 0])[..., None]
+
+
+def _quat_qpos(q: Any) -> Any:
+    """The quaternion ``(..., 4)`` normalised (MuJoCo's free and ball joints expect unit quaternions)."""
+    import numpy as np
+
+    return q / np.maximum(np.linalg.norm(q, axis=-1, keepdims=True), 1e-12)
+
+
+#: How a group kind's observation entries give MuJoCo ``qpos`` coordinates (numpy), where they are not the entries
+#: themselves (Rn coordinates, SO2_angle radians): the one place of that conversion (``envs.render``).
+KIND_QPOS: dict[str, Callable[[Any], Any]] = {"SO2_cossin": _cossin_qpos, "SO3_quat": _quat_qpos}
 
 
 @dataclass(frozen=True)

@@ -52,21 +52,18 @@ def select_gl_backend(environ: MutableMapping[str, str] | None = None) -> str | 
 
 
 def qpos_from_obs(spec: EnvSpec, obs: np.ndarray, nq: int) -> np.ndarray:
-    """The MuJoCo ``qpos`` ``(..., nq)`` of observations ``(..., obs_dim)``: the layout's groups in order
-    (``SO2_cossin`` -> ``atan2(sin, cos)``, ``SO3_quat`` normalised), the first ``nq`` coordinates."""
+    """The MuJoCo ``qpos`` ``(..., nq)`` of observations ``(..., obs_dim)``: the layout's groups in order, each by
+    its kind's conversion (``envs.layout.KIND_QPOS``: ``SO2_cossin`` -> ``atan2(sin, cos)``, ``SO3_quat``
+    normalised), the first ``nq`` coordinates."""
     obs = np.asarray(obs, dtype=np.float64)
     if obs.shape[-1] != spec.obs_dim:
         raise ValueError(f"{spec.name}: observations must end in obs_dim={spec.obs_dim}, got {obs.shape}")
+    from envs.layout import KIND_QPOS
+
     parts = []
-    for group in spec.layout.groups:
-        ix = list(group.indices)
-        if group.kind == "SO2_cossin":
-            parts.append(np.arctan2(obs[..., ix[1]], obs[..., ix[0]])[..., None])
-        elif group.kind == "SO3_quat":
-            q = obs[..., ix]
-            parts.append(q / np.maximum(np.linalg.norm(q, axis=-1, keepdims=True), 1e-12))
-        else:  # Rn coordinates, SO2_angle radians
-            parts.append(obs[..., ix])
+    for group in spec.layout.groups:  # each kind's conversion (envs.layout.KIND_QPOS), else the entries themselves
+        entries = obs[..., list(group.indices)]
+        parts.append(KIND_QPOS[group.kind](entries) if group.kind in KIND_QPOS else entries)
     qpos = np.concatenate(parts, axis=-1)
     if qpos.shape[-1] < nq:
         raise ValueError(f"{spec.name}: the layout gives {qpos.shape[-1]} coordinates, the model has nq={nq}")

@@ -105,6 +105,19 @@ class GroupCodec:
     plain_delta: ClassVar[bool] = False
     #: Side of the matrices ``matrices`` returns (None: no matrices).
     matrix_size: ClassVar[int | None] = None
+    #: A rotation: its entries get the rotation error (:meth:`rotation_angle`), not the translation error.
+    is_rotation: ClassVar[bool] = False
+
+    @classmethod
+    def rotation_angle(cls, pred: Tensor, true: Tensor) -> Tensor:
+        """Geodesic angle in [0, pi] between the predicted and true entries ``(..., width)`` of one group of a
+        rotation kind (:attr:`is_rotation`): ``(...)``."""
+        raise NotImplementedError(f"{cls.kind} is not a rotation kind")
+
+    @classmethod
+    def entry_difference(cls, pred: Tensor, true: Tensor) -> Tensor:
+        """Group-aware ``pred - true`` of one group's entries ``(..., width)`` (plain unless the kind says)."""
+        return pred - true
 
     def __init__(self, obs: list[int], slots: list[int], layout: ObsLayout, compose: str) -> None:
         self.obs, self.slots, self.layout = list(obs), list(slots), layout
@@ -225,7 +238,17 @@ class SO2AngleCodec(SO2Codec):
     (-pi, pi]; decoding theta' = theta + alpha, never wrapped (MuJoCo hinge positions are unbounded).
     """
 
-    kind, width, additive = "SO2_angle", 1, True
+    kind, width, additive, is_rotation = "SO2_angle", 1, True, True
+
+    @classmethod
+    def rotation_angle(cls, pred: Tensor, true: Tensor) -> Tensor:
+        """``|wrap(a - a')|``."""
+        return wrap_angle(pred[..., 0] - true[..., 0]).abs()
+
+    @classmethod
+    def entry_difference(cls, pred: Tensor, true: Tensor) -> Tensor:
+        """The angle difference wrapped to (-pi, pi]."""
+        return wrap_angle(pred - true)
 
     def __init__(self, obs: list[int], slots: list[int], layout: ObsLayout, compose: str) -> None:
         super().__init__(obs, slots, layout, compose)
@@ -253,7 +276,12 @@ class SO2CosSinCodec(SO2Codec):
     theta' = atan2(s, c) + alpha: (c', s') = (cos theta', sin theta').
     """
 
-    kind, width = "SO2_cossin", 2
+    kind, width, is_rotation = "SO2_cossin", 2, True
+
+    @classmethod
+    def rotation_angle(cls, pred: Tensor, true: Tensor) -> Tensor:
+        """``|wrap(a - a')|`` with ``a = atan2(sin, cos)`` (this normalises the pair); the difference stays plain."""
+        return wrap_angle(torch.atan2(pred[..., 1], pred[..., 0]) - torch.atan2(true[..., 1], true[..., 0])).abs()
 
     def __init__(self, obs: list[int], slots: list[int], layout: ObsLayout, compose: str) -> None:
         super().__init__(obs, slots, layout, compose)
@@ -280,6 +308,16 @@ class SO2CosSinCodec(SO2Codec):
         return take(obs, self.c), take(obs, self.s)
 
 
+def unit_quat(q: Tensor) -> Tensor:
+    """Quaternions ``(..., 4)`` divided by their norm (a zero quaternion stays zero; inf/NaN give NaN)."""
+    return q / q.norm(dim=-1, keepdim=True).clamp_min(torch.finfo(q.dtype).tiny)
+
+
+def aligned_quat(q: Tensor, q_true: Tensor) -> Tensor:
+    """``q`` or ``-q`` (the same rotation), whichever is on ``q_true``'s half of the quaternion sphere."""
+    return torch.where((q * q_true).sum(-1, keepdim=True) < 0, -q, q)
+
+
 def quat_conj(q: Tensor) -> Tensor:
     """q^* = (w, -x, -y, -z): the inverse of a unit quaternion."""
     return torch.cat([q[..., :1], -q[..., 1:]], dim=-1)
@@ -297,7 +335,21 @@ class SO3QuatCodec(GroupCodec):
     sum_k ||exp(alpha_hat_k) o R_t - R_{t+1}||_F^2 / mean(scale_k^2) (o: this composition).
     """
 
-    kind, width, tangent_dim, matrix_size = "SO3_quat", 4, 3, 3
+    kind, width, tangent_dim, matrix_size, is_rotation = "SO3_quat", 4, 3, 3, True
+
+    @classmethod
+    def rotation_angle(cls, pred: Tensor, true: Tensor) -> Tensor:
+        """``2 acos |<q, q'>|`` of the normalised quaternions, as ``4 atan2(|q - s q'|, |q + s q'|)`` with
+        ``s = sign <q, q'>``, exact near 0 where acos loses half the digits (a zero quaternion: pi)."""
+        q_true = unit_quat(true)
+        q = aligned_quat(unit_quat(pred), q_true)
+        return 4 * torch.atan2((q - q_true).norm(dim=-1), (q + q_true).norm(dim=-1))
+
+    @classmethod
+    def entry_difference(cls, pred: Tensor, true: Tensor) -> Tensor:
+        """``s q/|q| - q'/|q'|`` with ``s = sign <q, q'>`` (``q`` and ``-q`` are the same rotation)."""
+        q_true = unit_quat(true)
+        return aligned_quat(unit_quat(pred), q_true) - q_true
 
     def __init__(self, obs: list[int], slots: list[int], layout: ObsLayout, compose: str) -> None:
         super().__init__(obs, slots, layout, compose)

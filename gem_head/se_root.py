@@ -35,7 +35,7 @@ from gem_head.codecs import GroupCodec, register_codec
 from gem_head.head import GemHead
 from gem_head.lie import SE2, SE3, SO3, LieGroup
 
-__all__ = ["GemSEHead", "SE2RootCodec", "SE3RootCodec"]
+__all__ = ["GemSEHead", "SE2RootCodec", "SE3RootCodec", "check_gem_se"]
 
 
 class _RootCodec(GroupCodec):
@@ -108,6 +108,23 @@ class SE3RootCodec(_RootCodec):
         return target[..., self._w_tgt]
 
 
+def check_gem_se(layout: ObsLayout, compose: str, env: str = "this env's layout") -> None:
+    """The one check of what gem-se needs (the model, the config and the API all call it): a layout with a floating
+    ``root`` and the body-frame composition; a one-line ValueError otherwise, naming ``env``."""
+    if layout.root is None:
+        import envs
+
+        with_root = [name for name in envs.names() if envs.get(name).layout.root is not None]
+        raise ValueError(
+            f"--model gem-se composes a floating root on SE(2)/SE(3) and {env} has none; it applies to "
+            f"{', '.join(with_root)} (use gem elsewhere)"
+        )
+    if compose != "right":
+        raise ValueError(
+            f"--model gem-se composes the root in the body frame: gem.compose must be right, got {compose!r}"
+        )
+
+
 class GemSEHead(GemHead):
     """GEM with the layout's ``root`` as one SE(2) / SE(3) element composed in the body frame (module docstring).
 
@@ -126,13 +143,8 @@ class GemSEHead(GemHead):
         loss: str = "nll",
         frobenius_weight: float = 1.0,
     ) -> None:
-        if isinstance(layout, ObsLayout) and layout.root is None:
-            raise ValueError(
-                "gem-se composes a floating root on SE(2) / SE(3): this env's layout has none (a root exists on "
-                "hopper, walker2d, halfcheetah, ant and humanoid); use gem"
-            )
-        if compose != "right":
-            raise ValueError(f"gem-se composes the root in the body frame only (gem.compose=right), got {compose!r}")
+        if isinstance(layout, ObsLayout):
+            check_gem_se(layout, compose)
         super().__init__(layout, act_dim, compose=compose, loss=loss, frobenius_weight=frobenius_weight)
         self.root_codec: _RootCodec = self.codecs[-1]
         self.planar = isinstance(self.root_codec, SE2RootCodec)

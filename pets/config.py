@@ -23,6 +23,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from dynamics.networks import ACTIVATIONS
 from gem_head.head import COMPOSE_MODES, LOSSES
+from pets.errors import ConfigError
 from pets.models import MODELS, check_root
 from pets.planning.feedback import FeedbackConfig, check_feedback
 from pets.planning.planners import PLANNER_CLASSES, ICEMConfig, MPPIConfig
@@ -32,7 +33,7 @@ from pets.planning.value import ValueConfig
 from pets.presets import ENV_DEFAULTS, HEAD_DEFAULTS, PRESET_ENV_DEFAULTS, PRESETS
 from pets.runs.hardware import CONCRETE_PRECISIONS
 
-__all__ = ["FeedbackConfig", "ICEMConfig", "MPPIConfig", "ValueConfig"]  # sections defined by their owners
+__all__ = ["ConfigError", "FeedbackConfig", "ICEMConfig", "MPPIConfig", "ValueConfig"]  # defined by their owners
 
 #: ``--model`` values (config key ``head``): the names of ``pets.models.MODELS``.
 HEADS = tuple(MODELS)
@@ -46,10 +47,6 @@ PRECISIONS = ("auto", *CONCRETE_PRECISIONS)  # auto: resolved by make_config / l
 DEVICES = ("auto", "cpu", "cuda")
 # The other choice lists are their owners': PROPAGATIONS and CANDIDATES (pets.planning.propagation), ACTIVATIONS
 # (dynamics.networks), COMPOSE_MODES and LOSSES (gem_head.head), PLANNERS (the planner table), PRESETS (pets.presets).
-
-
-class ConfigError(ValueError):
-    """A configuration value or key the user gave is not accepted; the message says what is."""
 
 
 @dataclass

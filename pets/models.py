@@ -114,24 +114,19 @@ MODELS: dict[str, ModelEntry] = {
 
 
 def check_root(head: str, env: str, compose: str) -> None:
-    """A model that composes the floating root (``gem-se``) needs an env with one, and the body-frame composition;
-    a ValueError in one line otherwise (an unknown env or model is reported where it is built or validated)."""
+    """A model that composes the floating root (``gem-se``) needs an env with one, and the body-frame composition
+    (:func:`gem_head.se_root.check_gem_se`, the one place of that rule); a one-line ValueError otherwise (an unknown
+    env or model is reported where it is built or validated)."""
     import envs
+    from gem_head.se_root import check_gem_se
 
     if head not in MODELS or not MODELS[head].needs_root:
         return
     try:
-        root = envs.get(env).layout.root
+        layout = envs.get(env).layout
     except ValueError:
         return
-    if root is None:
-        with_root = [name for name in envs.names() if envs.get(name).layout.root is not None]
-        raise ValueError(
-            f"--model {head} composes a floating root on SE(2)/SE(3) and {env} has none; it applies to "
-            f"{', '.join(with_root)}"
-        )
-    if compose != "right":
-        raise ValueError(f"--model {head} composes the root in the body frame: gem.compose must be right")
+    check_gem_se(layout, compose, env)
 
 
 def models_for(spec: EnvSpec) -> list[str]:

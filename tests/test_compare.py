@@ -38,6 +38,7 @@ from pets.experiments.online_summary import SUMMARY_COLUMNS as ONLINE_COLUMNS
 from pets.experiments.online_summary import summarise_online
 from pets.experiments.report import fmt, fmt_interval, write_csv
 from pets.experiments.statistics import REPS, ci_exact_note, holm
+from pets.experiments.studies.online import STUDY as ONLINE_STUDY
 from pets.runs import rundir
 from tests.processes import alive, default_sigint
 from tests.threads import one_thread
@@ -312,25 +313,15 @@ def test_online_summary_csv_columns(fake_online):
     with open(out / "summary.csv") as f:
         header = f.readline().strip().split(",")
     assert header == ONLINE_COLUMNS
-    assert header[:13] == (
-        "env model planner n_seeds n_diverged trials final_window final_iqm final_ci_low final_ci_high "
-        "auc_iqm auc_ci_low auc_ci_high".split()
-    )
-    assert ONLINE_BASELINE_COLUMNS == [
-        "p_improvement",
-        "p_improvement_ci_low",
-        "p_improvement_ci_high",
-        "diff_to_delta",
-        "diff_ci_low",
-        "diff_ci_high",
-        "n_pairs",
-        "diff_p_signflip",
-        "diff_p_holm",
-        "ci_exact_note",
-        "p_fewer_steps",
-        "p_fewer_steps_ci_low",
-        "p_fewer_steps_ci_high",
+    assert header[:7] == [*ONLINE_STUDY.keys, "n_seeds", "n_diverged", *ONLINE_STUDY.context]
+    for m in ONLINE_STUDY.metrics:  # each metric's columns together, in the order of the metric table
+        assert header[header.index(m.columns()[0]) :][: len(m.columns())] == m.columns()
+    # against delta: P(final > delta's) and the paired difference (the primary), P(fewer steps to the threshold)
+    assert [(m.name, bool(m.versus), bool(m.paired)) for m in ONLINE_STUDY.metrics if m.versus or m.paired] == [
+        ("final_reward", True, True),
+        ("steps_to_threshold", True, False),
     ]
+    assert ONLINE_BASELINE_COLUMNS == [c for m in ONLINE_STUDY.metrics for c in m.baseline_columns()]
     assert not any(c.endswith("_mean") and c.startswith(("final", "auc")) for c in header)  # no mean of rewards
     assert [(r["env"], r["model"]) for r in rows] == [
         ("reacher", "delta"),

@@ -1,5 +1,5 @@
 """pets.experiments.statistics: the A/B statistics against rliable's own functions on fixed inputs and hand-computed
-cases; pets.experiments.bootstrap: the mean bootstrap against exact small cases, scipy's bootstrap and trim_mean,
+cases; pets.stats.bootstrap: the mean bootstrap against exact small cases, scipy's bootstrap and trim_mean,
 and a normal-theory CI."""
 
 import math
@@ -9,7 +9,6 @@ import pytest
 import scipy.stats
 from rliable import library, metrics
 
-from pets.experiments.bootstrap import bootstrap_band, bootstrap_ci, iqm, summarise
 from pets.experiments.statistics import (
     DIVERGED_STANDARDIZED_ERROR,
     SIGN_FLIP_DRAWS,
@@ -26,6 +25,7 @@ from pets.experiments.statistics import (
     paired_ratios,
     sign_flip_p,
 )
+from pets.stats.bootstrap import bootstrap_band, bootstrap_ci, iqm, summarise
 
 INF, NAN = math.inf, math.nan
 

@@ -19,16 +19,7 @@ import csv
 import sys
 from pathlib import Path
 
-from pets.experiments.primary import (
-    PAST_LEVEL_COLUMNS,
-    PRIMARY_COLUMNS,
-    VERSUS_COLUMNS,
-    past_level_rows,
-    primary_rows,
-    read_primary,
-    versus_rows,
-)
-from pets.experiments.report import write_csv
+from pets.experiments.primary import read_primary, write_primary_files
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -70,12 +61,8 @@ def main(argv: list[str] | None = None) -> int:
         for r in primary_file:
             if r["model"] == "delta":
                 levels[r["env"]] = (r["level"], r["level_source"])
-    primary = primary_rows(rows, levels)
-    write_csv(Path(f"{args.out}.csv"), primary, PRIMARY_COLUMNS)
-    write_csv(Path(f"{args.out}_past_level.csv"), past_level_rows(rows, levels), PAST_LEVEL_COLUMNS)
+    primary, versus = write_primary_files(rows, args.out, levels, comparisons)
     if comparisons:
-        versus = versus_rows(rows, comparisons)
-        write_csv(Path(f"{args.out}_versus.csv"), versus, VERSUS_COLUMNS)
         for r in versus:
             print(
                 f"{r['env']:>18} {r['model']:>10} / {r['versus']:<10} ratio {r['ratio']:.3f} "

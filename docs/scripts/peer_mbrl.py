@@ -821,15 +821,15 @@ def _project_overrides(s: dict[str, Any]) -> list[str]:
 
 def learning_summary(rows: list[dict[str, Any]], trials: int) -> list[dict[str, Any]]:
     """Per metric: each arm's mean, and the paired difference gem-pets - mbrl-lib over the seeds both have, its
-    mean, 95 % percentile-bootstrap CI (pets.experiments.bootstrap.bootstrap_ci) and the exact sign-flip
+    mean, 95 % percentile-bootstrap CI (pets.stats.bootstrap.bootstrap_ci) and the exact sign-flip
     p-value (sign_flip_p). Metrics: final reward (mean of the last 3 trials), mean reward over all trials, env
     steps taken (seed phase included), reached the threshold (1/0), env steps to the threshold (seeds where both
     reached it), wall seconds per trial (all trials), CPU seconds per trial and per env step (the run's CPU from
     rusage, process start-up and seed phase included, / trials or / env steps), the run's CPU seconds."""
     import numpy as np
 
-    from pets.experiments.bootstrap import bootstrap_ci
     from pets.experiments.statistics import paired_differences, sign_flip_p
+    from pets.stats.bootstrap import bootstrap_ci
 
     per: dict[str, dict[str, dict[int, float]]] = {}
     for impl in ("gem-pets", "mbrl-lib"):

@@ -170,6 +170,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = _parse(build_parser(), argv)
     if args.mode == "headline":
         return headline_main(args)
+    if args.mode == "report":
+        from pets.experiments.regenerate import report_main
+
+        return report_main(args)
     try:
         result, report = _run_mode(args)
     except UsageError as err:

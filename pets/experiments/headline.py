@@ -31,61 +31,21 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from pets.experiments.offline_statistics import N_PAIRS, NOTE, P_EXACT, P_LOWER, RATIO
 from pets.experiments.plots import plot_headline_ratios
 from pets.experiments.primary import primary_markdown, read_primary
 from pets.experiments.report import csv_number, disagreement_lines, fmt, fmt_interval, md_table, write_csv
 from pets.experiments.statistics import BASELINE, ci_exact_note, holm
+from pets.experiments.studies.base import headline_columns, headline_row, headline_table
+from pets.experiments.studies.online import STUDY as ONLINE_STUDY
 from pets.runs.fileio import atomic_write_bytes
 
 #: Offline metrics of the headline, in order: the whole state, then the group coordinates (where GEM composes).
 OFFLINE_METRICS = ("standardized_error", "rotation_error", "mean_step_error")
-OFFLINE_COLUMNS = [
-    "env",
-    "model",
-    "metric",
-    "horizon",
-    "ratio_to_delta",
-    "ratio_ci_low",
-    "ratio_ci_high",
-    "p_improvement",
-    "p_improvement_ci_low",
-    "p_improvement_ci_high",
-    "p_value_exact",
-    "ci_exact_note",
-    "n_pairs",
-    "n_diverged",
-    "delta_n_diverged",
-    "source",
-]
-_FINAL = ("final_iqm", "final_ci_low", "final_ci_high")
-_P_AND_DIFF = (
-    "p_improvement",
-    "p_improvement_ci_low",
-    "p_improvement_ci_high",
-    "diff_to_delta",
-    "diff_ci_low",
-    "diff_ci_high",
-)
-_FEWER_STEPS = ("p_fewer_steps", "p_fewer_steps_ci_low", "p_fewer_steps_ci_high")
-ONLINE_COLUMNS = [
-    "env",
-    "model",
-    "n_seeds",
-    "trials",
-    *_FINAL,
-    *(f"delta_{k}" for k in _FINAL),
-    *_P_AND_DIFF,
-    "diff_p_signflip",
-    "diff_p_holm",
-    "ci_exact_note",
-    "threshold",
-    "n_reached",
-    "delta_n_reached",
-    "steps_to_threshold_iqm",
-    "delta_steps_to_threshold_iqm",
-    *_FEWER_STEPS,
-    "source",
-]
+OFFLINE_COLUMNS = ["env", "model", "metric", "horizon", *RATIO, *P_LOWER, P_EXACT, NOTE, N_PAIRS, "n_diverged",
+                   f"{BASELINE}_n_diverged", "source"]  # fmt: skip
+#: Online: the columns the online study's metric table flags for the headline (:mod:`pets.experiments.studies`).
+ONLINE_COLUMNS = headline_columns(ONLINE_STUDY)
 
 
 #: Planning with a pre-trained model (``--openloop``, ``--closedloop``): a planning summary's columns, as read.
@@ -142,20 +102,20 @@ def offline_rows(
                     continue
                 if csv_number(row["iqm"]) == 0 and csv_number(base["iqm"]) == 0:  # the env has no such coordinates
                     continue
-                p = csv_number(row.get("p_value_exact"))  # summaries from before the exact test lack it
-                note = ci_exact_note(csv_number(row["ratio_ci_low"]), csv_number(row["ratio_ci_high"]), 1.0, p)
+                p = csv_number(row.get(P_EXACT))  # summaries from before the exact test lack it
+                note = ci_exact_note(csv_number(row[RATIO[1]]), csv_number(row[RATIO[2]]), 1.0, p)
                 out.append(
                     {
                         "env": env,
                         "model": model,
                         "metric": metric,
                         "horizon": h,
-                        **{k: csv_number(row[k]) for k in OFFLINE_COLUMNS[4:10]},
-                        "p_value_exact": p,
-                        "ci_exact_note": note,
-                        "n_pairs": int(csv_number(row["n_pairs"]) if row["n_pairs"] else 0),
+                        **{k: csv_number(row[k]) for k in (*RATIO, *P_LOWER)},
+                        P_EXACT: p,
+                        NOTE: note,
+                        N_PAIRS: int(csv_number(row[N_PAIRS]) if row[N_PAIRS] else 0),
                         "n_diverged": int(csv_number(row["n_diverged"])),
-                        "delta_n_diverged": int(csv_number(base["n_diverged"])),
+                        f"{BASELINE}_n_diverged": int(csv_number(base["n_diverged"])),
                         "source": source,
                     }
                 )
@@ -163,7 +123,7 @@ def offline_rows(
 
 
 def online_rows(rows: Sequence[Mapping[str, str]], source: str) -> list[dict[str, Any]]:
-    """Per env and non-delta arm of an online summary: its final reward and steps to threshold against delta's
+    """Per env and non-delta arm of an online summary: the metrics its study flags for the headline against delta's
     (delta with the same planner where planners were compared)."""
     out = []
     base = {(r["env"], r.get("planner", "")): r for r in rows if r["model"] == BASELINE}
@@ -171,28 +131,8 @@ def online_rows(rows: Sequence[Mapping[str, str]], source: str) -> list[dict[str
         b = base.get((row["env"], row.get("planner", "")))
         if row["model"] == BASELINE or b is None:
             continue
-        p = csv_number(row.get("diff_p_signflip"))  # summaries from before the exact test lack it
-        out.append(
-            {
-                "env": row["env"],
-                "model": row["model"] + (f"+{row['planner']}" if row.get("planner") else ""),
-                "n_seeds": int(csv_number(row["n_seeds"])),
-                "trials": int(csv_number(row["trials"])),
-                **{k: csv_number(row[k]) for k in _FINAL},
-                **{f"delta_{k}": csv_number(b[k]) for k in _FINAL},
-                **{k: csv_number(row[k]) for k in _P_AND_DIFF},
-                "diff_p_signflip": p,
-                "diff_p_holm": csv_number(row.get("diff_p_holm")),
-                "ci_exact_note": _diff_note(row, p),
-                "threshold": csv_number(row.get("threshold")),
-                "n_reached": row.get("n_reached", ""),
-                "delta_n_reached": b.get("n_reached", ""),
-                "steps_to_threshold_iqm": csv_number(row.get("steps_to_threshold_iqm")),
-                "delta_steps_to_threshold_iqm": csv_number(b.get("steps_to_threshold_iqm")),
-                **{k: csv_number(row.get(k)) for k in _FEWER_STEPS},
-                "source": source,
-            }
-        )
+        model = row["model"] + (f"+{row['planner']}" if row.get("planner") else "")
+        out.append({"env": row["env"], "model": model, **headline_row(ONLINE_STUDY, row, b), "source": source})
     return out
 
 
@@ -295,32 +235,9 @@ def offline_table(rows: Sequence[Mapping[str, Any]]) -> str:
 
 
 def online_table(rows: Sequence[Mapping[str, Any]]) -> str:
-    """One line per env and arm: final rewards, P(final > delta's), paired difference, steps to threshold."""
-    header = ["env", "model", "seeds", "trials", "final", "delta's final", "P(final > delta's)", "paired diff"]
-    header += ["p (exact)", "p (Holm)"]
-    header += ["reached (model, delta)", "env steps to threshold (model, delta)", "P(fewer steps)"]
-    body = []
-    for r in rows:
-        body.append(
-            [
-                r["env"],
-                r["model"],
-                str(r["n_seeds"]),
-                str(r["trials"]),
-                fmt_interval(r["final_iqm"], r["final_ci_low"], r["final_ci_high"]),
-                fmt_interval(r["delta_final_iqm"], r["delta_final_ci_low"], r["delta_final_ci_high"]),
-                _p(r),
-                fmt_interval(r["diff_to_delta"], r["diff_ci_low"], r["diff_ci_high"]),
-                *(fmt(r[k], 3) if math.isfinite(r[k]) else "-" for k in ("diff_p_signflip", "diff_p_holm")),
-                f"{r['n_reached']}, {r['delta_n_reached']}" if r["n_reached"] != "" else "-",
-                ", ".join(
-                    fmt(v) if math.isfinite(v) else "-"
-                    for v in (r["steps_to_threshold_iqm"], r["delta_steps_to_threshold_iqm"])
-                ),
-                _p(r, "p_fewer_steps"),
-            ]
-        )
-    return md_table(header, body)
+    """One line per env and arm: the metrics the online study flags for the headline (final reward, P(final >
+    delta's), paired difference, steps to threshold), each beside delta's."""
+    return md_table(*headline_table(ONLINE_STUDY, rows, _p))
 
 
 def relative_rows(path: Path, metric: str = "mean_step_error") -> dict[str, dict[str, dict[str, Any]]]:

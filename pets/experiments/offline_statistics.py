@@ -27,6 +27,14 @@ from pets.learning.evaluation import METRICS as EVALUATE_METRICS
 
 #: The horizon label of the columns averaged over the horizons (relative_error.csv, Fig. 2).
 AVERAGE = "average"
+#: The offline study's comparison with delta per (metric, horizon), its columns named here once (the summary, the
+#: relative-error table and the headline compose theirs from these): P(lower error than delta's) with its CI, the
+#: IQM of the per-pair ratios with its CI, and the exact sign-flip test of the mean log ratio.
+P_LOWER = ("p_improvement", "p_improvement_ci_low", "p_improvement_ci_high")
+RATIO = ("ratio_to_delta", "ratio_ci_low", "ratio_ci_high")
+N_PAIRS, P_EXACT, NOTE = EXACT = ("n_pairs", "p_value_exact", "ci_exact_note")
+#: The statistics of one model and column: its IQM [CI] and counts.
+OWN = ("iqm", "ci_low", "ci_high", "n_seeds", "n_diverged")
 
 
 def test_label(env: str, data_seed: int) -> str:
@@ -131,20 +139,17 @@ def env_statistics(
                 p_exact = np.array([_sign_flip_log(ratios[:, j]) for j in range(len(columns))])
         out[model] = {
             col: {
-                "iqm": _finite(iqm[j]),
-                "ci_low": _finite(low[j]),
-                "ci_high": _finite(high[j]),
-                "n_seeds": int(n_good[j]),
-                "n_diverged": len(x) - int(n_good[j]),
-                "p_improvement": _finite(p[j]),
-                "p_improvement_ci_low": _finite(p_low[j]),
-                "p_improvement_ci_high": _finite(p_high[j]),
-                "ratio_to_delta": _finite(ratio[j]),
-                "ratio_ci_low": _finite(r_low[j]),
-                "ratio_ci_high": _finite(r_high[j]),
-                "n_pairs": None if n_pairs is None else int(n_pairs[j]),
-                "p_value_exact": _finite(p_exact[j]),
-                "ci_exact_note": ci_exact_note(_finite(r_low[j]), _finite(r_high[j]), 1.0, _finite(p_exact[j])),
+                **dict(
+                    zip(
+                        OWN,
+                        (_finite(iqm[j]), _finite(low[j]), _finite(high[j]), int(n_good[j]), len(x) - int(n_good[j])),
+                    )
+                ),
+                **dict(zip(P_LOWER, (_finite(p[j]), _finite(p_low[j]), _finite(p_high[j])))),
+                **dict(zip(RATIO, (_finite(ratio[j]), _finite(r_low[j]), _finite(r_high[j])))),
+                N_PAIRS: None if n_pairs is None else int(n_pairs[j]),
+                P_EXACT: _finite(p_exact[j]),
+                NOTE: ci_exact_note(_finite(r_low[j]), _finite(r_high[j]), 1.0, _finite(p_exact[j])),
             }
             for j, col in enumerate(columns)
         }

@@ -56,6 +56,10 @@ from typing import Any
 
 from pets.experiments.offline_statistics import (
     AVERAGE,
+    EXACT,
+    OWN,
+    P_LOWER,
+    RATIO,
     env_statistics,
     load_evals,
     order_metrics,
@@ -87,41 +91,24 @@ from pets.experiments.rundirs import json_matches, precision_note, run_name
 from pets.experiments.statistics import BASELINE, REPS, divergences
 from pets.runs.fileio import atomic_write_bytes
 
-_DELTA_COLUMNS = [
-    "p_improvement",
-    "p_improvement_ci_low",
-    "p_improvement_ci_high",
-    "ratio_to_delta",
-    "ratio_ci_low",
-    "ratio_ci_high",
-    "n_pairs",
-    "p_value_exact",
-    "ci_exact_note",
-]
+_DELTA_COLUMNS = [*P_LOWER, *RATIO, *EXACT]
 SUMMARY_COLUMNS = [
     "env",
     "model",
     "horizon",
     "metric",
-    "iqm",
-    "ci_low",
-    "ci_high",
-    "n_seeds",
-    "n_diverged",
+    *OWN,
     *_DELTA_COLUMNS,
 ]
 RELATIVE_COLUMNS = [
     "env",
     "model",
     "metric",
-    "iqm",
-    "ci_low",
-    "ci_high",
+    *OWN[:3],
     "relative",
     "relative_ci_low",
     "relative_ci_high",
-    "n_seeds",
-    "n_diverged",
+    *OWN[3:],
     *_DELTA_COLUMNS,
     "horizons",
 ]

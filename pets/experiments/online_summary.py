@@ -34,159 +34,28 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
-from pets.experiments.online_runs import COST_KEYS, THRESHOLD_KEYS, THRESHOLDS, online_rows, online_run_stats
+from pets.experiments.online_runs import THRESHOLD_KEYS, THRESHOLDS, online_rows, online_run_stats
 from pets.experiments.plots import arm_colors, model_colors, plot_online
-from pets.experiments.report import BOOT_SEED, disagreement_lines, fmt, fmt_interval, md_table, write_csv
+from pets.experiments.report import disagreement_lines, md_table, write_csv
 from pets.experiments.rundirs import arm_label, online_arms, precision_note, run_name
 from pets.experiments.statistics import (
     BASELINE,
     MIN_SEEDS,
     REPS,
     SMALL_SAMPLE_NOTE,
-    ci_exact_note,
-    holm,
-    iqm_ci,
-    iqm_ci_finite,
-    p_improvement_ci,
-    paired_differences,
-    sign_flip_p,
+)
+from pets.experiments.studies.base import table_cells, table_header
+from pets.experiments.studies.online import (
+    RUN_COLUMNS,
+    STUDY,
+    SUMMARY_COLUMNS,
+    arm_baselines,
+    env_summary_rows,
+    holm_over_summary,
 )
 from pets.runs.fileio import atomic_write_bytes
 
-_BASELINE_COLUMNS = [
-    "p_improvement",
-    "p_improvement_ci_low",
-    "p_improvement_ci_high",
-    "diff_to_delta",
-    "diff_ci_low",
-    "diff_ci_high",
-    "n_pairs",
-    "diff_p_signflip",
-    "diff_p_holm",
-    "ci_exact_note",
-    "p_fewer_steps",
-    "p_fewer_steps_ci_low",
-    "p_fewer_steps_ci_high",
-]
-SUMMARY_COLUMNS = [
-    "env",
-    "model",
-    "planner",
-    "n_seeds",
-    "n_diverged",
-    "trials",
-    "final_window",
-    "final_iqm",
-    "final_ci_low",
-    "final_ci_high",
-    "auc_iqm",
-    "auc_ci_low",
-    "auc_ci_high",
-    "threshold",
-    "n_reached",
-    *[f"{k}_{stat}" for k in THRESHOLD_KEYS for stat in ("iqm", "ci_low", "ci_high")],
-    *[f"{k}_mean" for k in COST_KEYS],
-    *_BASELINE_COLUMNS,
-]
-RUN_COLUMNS = [
-    "env",
-    "model",
-    "planner",
-    "seed",
-    "trials",
-    "diverged",
-    "final_reward",
-    "auc",
-    *THRESHOLD_KEYS,
-    *COST_KEYS,
-]
-
-
-def _finite(x: float | None) -> float | None:
-    """``x`` as a float, None if absent or not finite (an empty CSV cell, "n/a" in a table)."""
-    return None if x is None or not math.isfinite(x) else float(x)
-
-
-def arm_statistics(
-    runs: Mapping[str, Sequence[Mapping[str, Any]]],
-    baselines: Mapping[str, str | None],
-    *,
-    reps: int = REPS,
-    seed: int = BOOT_SEED,
-    threshold: bool = False,
-) -> dict[str, dict[str, Any]]:
-    """{arm: statistics} of one env: ``n_seeds``, ``n_diverged`` and the :data:`SUMMARY_COLUMNS` from
-    ``final_iqm`` on (None where absent or not finite).
-
-    ``runs``: {arm: the :func:`online_run_stats` of its complete runs, each with its ``"seed"``};
-    ``baselines``: {arm: the arm it is compared with, None for the baseline itself or when there is none};
-    ``threshold``: whether the env has a threshold (then ``p_fewer_steps`` against the baseline).
-    """
-    good = {arm: {r["seed"]: r for r in rs if not r["diverged"]} for arm, rs in runs.items()}
-    out: dict[str, dict[str, Any]] = {}
-    for arm, rs in runs.items():
-        s: dict[str, Any] = dict.fromkeys(SUMMARY_COLUMNS[SUMMARY_COLUMNS.index("final_iqm") :])
-        s.update(n_seeds=len(good[arm]), n_diverged=len(rs) - len(good[arm]))
-        if good[arm]:
-            scores = np.array([[r["final_reward"], r["auc"]] for r in good[arm].values()])
-            iqm, low, high = iqm_ci(scores, reps=reps, seed=seed)
-            for j, key in enumerate(("final", "auc")):
-                s.update({f"{key}_iqm": iqm[j], f"{key}_ci_low": low[j], f"{key}_ci_high": high[j]})
-        reached = [r for r in good[arm].values() if math.isfinite(r["minutes_to_threshold"])]
-        s["n_reached"] = len(reached)
-        if reached:  # the runs that never reached it are counted (n_reached of n_seeds), not averaged in
-            times = np.array([[r[k] for k in THRESHOLD_KEYS] for r in reached])
-            iqm, low, high = iqm_ci_finite(times, reps=reps, seed=seed)  # CPU minutes: NaN in runs without them
-            for j, key in enumerate(THRESHOLD_KEYS):
-                s.update({f"{key}_iqm": iqm[j], f"{key}_ci_low": low[j], f"{key}_ci_high": high[j]})
-        s.update({f"{k}_mean": float(np.mean([r[k] for r in rs])) for k in COST_KEYS})
-        base = baselines.get(arm)
-        if base is not None and base in runs:
-            s.update(_against_baseline(runs, good, arm, base, reps=reps, seed=seed, threshold=threshold))
-        out[arm] = {k: _finite(v) if isinstance(v, float) else v for k, v in s.items()}
-    return out
-
-
-def _against_baseline(
-    runs: Mapping[str, Sequence[Mapping[str, Any]]],
-    good: Mapping[str, Mapping[Any, Mapping[str, Any]]],
-    arm: str,
-    base: str,
-    *,
-    reps: int,
-    seed: int,
-    threshold: bool,
-) -> dict[str, Any]:
-    """The baseline columns of ``arm`` against ``base``: P(final > baseline's), the paired differences, the exact
-    sign-flip p-value and, with a ``threshold``, P(fewer steps to it). ``runs`` and ``good`` ({arm: {seed: run}} of
-    the runs that did not diverge) as in :func:`arm_statistics`."""
-    s: dict[str, Any] = {}
-    # diverged runs enter P as NaN, i.e. the worst final reward
-    x = [math.nan if r["diverged"] else r["final_reward"] for r in runs[arm]]
-    y = [math.nan if r["diverged"] else r["final_reward"] for r in runs[base]]
-    (p,), (p_low,), (p_high,) = p_improvement_ci(x, y, higher_is_better=True, reps=reps, seed=seed)
-    s.update(p_improvement=p, p_improvement_ci_low=p_low, p_improvement_ci_high=p_high)
-    final = {k: r["final_reward"] for k, r in good[arm].items()}
-    pairs, diffs = paired_differences(final, {k: r["final_reward"] for k, r in good[base].items()})
-    s["n_pairs"] = len(pairs)
-    if pairs:
-        (d,), (d_low,), (d_high,) = iqm_ci(diffs, reps=reps, seed=seed)
-        s.update(diff_to_delta=d, diff_ci_low=d_low, diff_ci_high=d_high)
-    # The exact test counts a diverged run as the worst outcome: the lowest finite final reward of the env.
-    worst = min((r["final_reward"] for rs_ in good.values() for r in rs_.values()), default=math.nan)
-    worst_of = {a: {r["seed"]: worst if r["diverged"] else r["final_reward"] for r in runs[a]} for a in (arm, base)}
-    _, all_diffs = paired_differences(worst_of[arm], worst_of[base])
-    if all_diffs.size and np.isfinite(all_diffs).all():
-        s["diff_p_signflip"] = sign_flip_p(all_diffs[:, 0])
-        s["ci_exact_note"] = ci_exact_note(s.get("diff_ci_low"), s.get("diff_ci_high"), 0.0, s["diff_p_signflip"])
-    if threshold:  # steps as errors: never reached or diverged = NaN, the most steps
-        x = [math.nan if r["diverged"] else r["steps_to_threshold"] for r in runs[arm]]
-        y = [math.nan if r["diverged"] else r["steps_to_threshold"] for r in runs[base]]
-        (p,), (p_low,), (p_high,) = p_improvement_ci(x, y, reps=reps, seed=seed)
-        s.update(p_fewer_steps=p, p_fewer_steps_ci_low=p_low, p_fewer_steps_ci_high=p_high)
-    return s
+__all__ = ["RUN_COLUMNS", "SUMMARY_COLUMNS", "summarise_online"]
 
 
 def summarise_online(
@@ -212,10 +81,7 @@ def summarise_online(
     summary, text = [], []
     envs_done: list[tuple[str, list[dict[str, Any]]]] = []
     arms = online_arms(models, planners)
-    labels = {arm: arm_label(*arm) for arm in arms}
-    baselines = {
-        labels[(m, p)]: labels[(BASELINE, p)] if m != BASELINE and (BASELINE, p) in labels else None for m, p in arms
-    }
+    labels, baselines = arm_baselines(arms)
     compared = any(b is not None for b in baselines.values())
     w = min(final_window, trials)
     for env in env_names:
@@ -224,20 +90,11 @@ def summarise_online(
         )
         if not runs:
             continue
-        stats = arm_statistics(runs, baselines, reps=reps, threshold=env in thresholds)
-        rows_env = []
-        for model, planner in arms:
-            label = labels[(model, planner)]
-            if label in stats:
-                row = {"env": env, "model": model, "planner": planner or "", "trials": trials, "final_window": w}
-                rows_env.append({**row, **stats[label], "threshold": thresholds.get(env)})
+        rows_env, stats = env_summary_rows(env, runs, arms, trials, w, thresholds, reps=reps)
         summary += rows_env
         envs_done.append((env, rows_env))
         _plot_env(out, env, curves, stats, planners, reps)
-    # Holm over the family of every arm-vs-baseline test of the primary endpoint in this summary (envs x arms).
-    adjusted = holm([math.nan if r.get("diff_p_signflip") is None else r["diff_p_signflip"] for r in summary])
-    for row, p_adj in zip(summary, adjusted):
-        row["diff_p_holm"] = _finite(p_adj)
+    holm_over_summary(STUDY, summary)
     for env, rows_env in envs_done:
         text += _env_section(env, rows_env, planners is not None, compared, baselines)
     write_csv(out / "summary.csv", summary, SUMMARY_COLUMNS)
@@ -375,45 +232,16 @@ def _env_section(
     compared: bool,
     baselines: Mapping[str, str | None],
 ) -> list[str]:
-    """Markdown of one env: the small-sample note where needed, the table of its arms, its two figures."""
-    header = ["model", *(["planner"] if with_planner else []), "seeds", "diverged", "final reward", "AUC"]
-    if compared:
-        header += [f"P(final > {BASELINE}'s)", f"final - {BASELINE}", "pairs", "p (sign-flip)", "p (Holm)"]
+    """Markdown of one env: the small-sample note where needed, the table of its arms (its metric columns from
+    the study's metric table), its two figures."""
     threshold = rows[0]["threshold"] if rows else None
-    if threshold is not None:
-        header += [f"reached {threshold:g}", "minutes to it", "env steps to it", "CPU minutes to it"]
-        header += [f"P(fewer steps than {BASELINE})"] if compared else []
-    header += ["env steps", "plan s/step", "wall h", "CPU h"]
+    header = ["model", *(["planner"] if with_planner else []), "seeds", "diverged"]
+    header += table_header(STUDY, compared, threshold)
     table = []
     for r in rows:
-        none = "all diverged" if r["n_seeds"] == 0 else "n/a"
         cells = [r["model"], *([r["planner"]] if with_planner else []), str(r["n_seeds"]), str(r["n_diverged"])]
-        cells += [fmt_interval(r[f"{k}_iqm"], r[f"{k}_ci_low"], r[f"{k}_ci_high"], none) for k in ("final", "auc")]
-        if compared:
-            if baselines[arm_label(r["model"], r["planner"] or None)] is None:
-                cells += ["-"] * 5
-            else:
-                cells += [
-                    fmt_interval(r["p_improvement"], r["p_improvement_ci_low"], r["p_improvement_ci_high"]),
-                    fmt_interval(r["diff_to_delta"], r["diff_ci_low"], r["diff_ci_high"]),
-                    "-" if r["n_pairs"] is None else str(r["n_pairs"]),
-                    *("-" if r[k] is None else fmt(r[k], 3) for k in ("diff_p_signflip", "diff_p_holm")),
-                ]
-        if threshold is not None:
-            cells.append(f"{r['n_reached']}/{r['n_seeds']}")
-            for k in THRESHOLD_KEYS:
-                cells.append(fmt_interval(r[f"{k}_iqm"], r[f"{k}_ci_low"], r[f"{k}_ci_high"], "-"))
-            if compared:
-                cells.append(
-                    fmt_interval(r["p_fewer_steps"], r["p_fewer_steps_ci_low"], r["p_fewer_steps_ci_high"], "-")
-                )
-        cells += [
-            f"{r['env_steps_mean']:.0f}",
-            fmt(r["plan_seconds_per_step_mean"], 3),
-            fmt(r["wall_time_s_mean"] / 3600, 3),
-            "-" if r["cpu_time_s_mean"] is None else fmt(r["cpu_time_s_mean"] / 3600, 3),
-        ]
-        table.append(cells)
+        is_baseline = baselines[arm_label(r["model"], r["planner"] or None)] is None
+        table.append(cells + table_cells(STUDY, r, compared, is_baseline))
     small = any(r["n_seeds"] < MIN_SEEDS for r in rows)
     return [
         f"## {env}",

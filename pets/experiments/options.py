@@ -27,6 +27,7 @@ def build_parser() -> OneLineParser:
     _add_online(sub)
     _add_offline(sub)
     _add_headline(sub)
+    _add_report(sub)
     return p
 
 
@@ -182,3 +183,14 @@ def _add_headline(sub: Any) -> None:
     head.add_argument("--caption", default="", help="a line under the figure, e.g. the machine the runs came from")
     head.add_argument("--out", type=Path, required=True, help="output directory (headline.md, the CSVs)")
     head.add_argument("--figures", type=Path, help="directory of the figures (default: --out)")
+
+
+def _add_report(sub: Any) -> None:
+    """The ``report`` mode: published tables from committed per-seed rows (:mod:`pets.experiments.regenerate`)."""
+    rep = sub.add_parser(
+        "report",
+        prog=f"{PROG} report",
+        help="regenerate docs/results' summaries and the docs' generated blocks from the committed per-seed rows",
+    )
+    rep.add_argument("--check", action="store_true", help="write nothing; exit 1 if any committed file differs")
+    rep.add_argument("--root", type=Path, default=Path("."), help="the repository root (default: .)")

@@ -2,7 +2,7 @@
 model (``--closedloop``), per env, planner and model, with paired statistics against delta.
 
 Per run the mean over its episodes of the total reward (and of the reward per step); then per env, planner and
-model the mean over seeds with the 95 % percentile-bootstrap CI (:func:`pets.experiments.bootstrap.summarise`)
+model the mean over seeds with the 95 % percentile-bootstrap CI (:func:`pets.stats.bootstrap.summarise`)
 and, paired by seed (same data, same episodes' reset seeds), the difference model - delta of the total reward:
 its mean with the bootstrap CI and the exact sign-flip p-value (secondary: no multiplicity correction).
 
@@ -19,12 +19,12 @@ from typing import Any
 
 import numpy as np
 
-from pets.experiments.bootstrap import bootstrap_ci, summarise
 from pets.experiments.plots import model_colors, plot_openloop
 from pets.experiments.report import BOOT_SEED, disagreement_lines, fmt_ci, md_table, write_csv
 from pets.experiments.rundirs import json_matches, run_name
 from pets.experiments.statistics import BASELINE, ci_exact_note, sign_flip_p
 from pets.runs.fileio import atomic_write_bytes
+from pets.stats.bootstrap import bootstrap_ci, summarise
 
 COLUMNS = [
     "env",

@@ -10,10 +10,10 @@ from typing import Any
 
 import numpy as np
 
-from pets.experiments.bootstrap import bootstrap_band
 from pets.experiments.report import BOOT_SEED, csv_number
 from pets.experiments.statistics import BASELINE, REPS, iqm_ci
 from pets.runs.fileio import atomic_write_bytes
+from pets.stats.bootstrap import bootstrap_band
 
 
 def model_colors(models: Sequence[str]) -> dict[str, Any]:

@@ -287,6 +287,29 @@ def past_level_rows(rows: Iterable[Mapping[str, Any]], levels: Mapping[str, tupl
     return out
 
 
+def write_primary_files(
+    rows: Sequence[Mapping[str, Any]],
+    out: str | Path,
+    levels: Mapping[str, tuple[float, str]] | None = None,
+    comparisons: Sequence[tuple[str, str]] = (),
+    past_level: str | Path | None = None,
+    versus: str | Path | None = None,
+) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """Write ``OUT.csv`` (:func:`primary_rows`), the past-level file (:func:`past_level_rows`; default
+    ``OUT_past_level.csv``) and, with ``comparisons`` (MODEL, OTHER), the versus file (:func:`versus_rows`, at the
+    default level as ``docs/scripts/offline_primary.py`` has always computed it; default ``OUT_versus.csv``).
+    Returns ``(primary rows, versus rows)``. What ``offline_primary.py`` and ``pets.compare report`` both call."""
+    from pets.experiments.report import write_csv
+
+    primary = primary_rows(rows, levels)
+    write_csv(Path(f"{out}.csv"), primary, PRIMARY_COLUMNS)
+    write_csv(Path(past_level or f"{out}_past_level.csv"), past_level_rows(rows, levels), PAST_LEVEL_COLUMNS)
+    versus_out = versus_rows(rows, comparisons) if comparisons else []
+    if comparisons:
+        write_csv(Path(versus or f"{out}_versus.csv"), versus_out, VERSUS_COLUMNS)
+    return primary, versus_out
+
+
 def _fmt(x: Any, digits: int = 3) -> str:
     return "-" if x is None or (isinstance(x, float) and not math.isfinite(x)) else f"{x:.{digits}g}"
 

@@ -35,7 +35,7 @@ def fmt(x: float, digits: int = 4) -> str:
 
 
 def fmt_ci(s: Mapping[str, float]) -> str:
-    """``mean [ci_low, ci_high]`` of a :func:`pets.experiments.bootstrap.summarise` result."""
+    """``mean [ci_low, ci_high]`` of a :func:`pets.stats.bootstrap.summarise` result."""
     return f"{fmt(s['mean'])} [{fmt(s['ci_low'])}, {fmt(s['ci_high'])}]"
 
 

@@ -1,5 +1,5 @@
 """Statistics over seeds: the A/B statistics of both comparisons (rliable); the mean bootstrap of the open-loop
-statistics is :mod:`pets.experiments.bootstrap`.
+statistics is :mod:`pets.stats.bootstrap`.
 
 **A/B statistics** (:mod:`pets.experiments.offline_summary` and :mod:`pets.experiments.online_summary`),
 a thin layer over rliable (Agarwal et al. 2021, "Deep RL at the edge of the statistical precipice"):
@@ -59,6 +59,8 @@ from typing import Any
 
 import numpy as np
 
+from pets.stats.bootstrap import check_confidence, iqm_columns
+
 #: The model every other model (arm) of a comparison is compared with: P of improvement, ratios, differences.
 BASELINE = "delta"
 #: Seeds a comparison needs before it can carry a claim (``pets.compare`` warns below it).
@@ -98,27 +100,11 @@ def _check_reps(reps: int) -> None:
         raise ValueError(f"reps must be a positive int, got {reps!r}")
 
 
-def check_confidence(confidence: float, n_boot: int) -> None:
-    """ValueError unless ``confidence`` is in (0, 1) and ``n_boot`` (replications) a positive int."""
-    if not (isinstance(confidence, (int, float)) and 0.0 < confidence < 1.0):
-        raise ValueError(f"confidence must be a number in (0, 1), got {confidence!r}")
-    if isinstance(n_boot, bool) or not isinstance(n_boot, (int, np.integer)) or n_boot < 1:
-        raise ValueError(f"n_boot must be a positive int, got {n_boot!r}")
-
-
 def _score_matrix(scores: Any, name: str) -> np.ndarray:
     x = np.asarray(scores, dtype=np.float64)
     if x.ndim != 2 or x.shape[0] < 1 or x.shape[1] < 1:
         raise ValueError(f"{name} must have shape (runs >= 1, columns >= 1), got {x.shape}")
     return x
-
-
-def iqm_columns(scores: np.ndarray) -> np.ndarray:
-    """IQM of every column of ``scores`` (runs, columns): ``rliable.metrics.aggregate_iqm`` of each column
-    (scipy's ``trim_mean(x, 0.25)``: the same partition and average, vectorised over the columns)."""
-    n = scores.shape[0]
-    cut = int(0.25 * n)
-    return np.partition(scores, (cut, n - cut - 1), axis=0)[cut : n - cut].mean(axis=0)
 
 
 def iqm_ci(

@@ -86,11 +86,14 @@ def wrap_angle(d: Tensor) -> Tensor:
 
 def layout_parts(layout: ObsLayout) -> dict[str, tuple[int, ...]]:
     """The observation indices of each part of :data:`PARTS`: ``translation`` (Rn group coordinates),
-    ``rotation`` (the entries of the SO2_angle, SO2_cossin and SO3_quat groups), ``velocity``, ``other`` and
-    ``derived`` (the layout's lists). Every index is in exactly one part, as a layout covers each index once."""
+    ``rotation`` (the entries of the groups whose codec is a rotation: SO2_angle, SO2_cossin, SO3_quat),
+    ``velocity``, ``other`` and ``derived`` (the layout's lists). Every index is in exactly one part, as a layout
+    covers each index once."""
+    from gem_head.codecs import CODECS
+
     return {
-        "translation": tuple(i for g in layout.groups if g.kind == "Rn" for i in g.indices),
-        "rotation": tuple(i for g in layout.groups if g.kind != "Rn" for i in g.indices),
+        "translation": tuple(i for g in layout.groups if not CODECS[g.kind].is_rotation for i in g.indices),
+        "rotation": tuple(i for g in layout.groups if CODECS[g.kind].is_rotation for i in g.indices),
         "velocity": tuple(layout.velocities),
         "other": tuple(layout.other),
         "derived": tuple(layout.derived),
@@ -103,20 +106,6 @@ def _check_shapes(pred: Tensor, true: Tensor, layout: ObsLayout) -> None:
             f"pred and true must have the same shape (..., obs_dim={layout.obs_dim}), "
             f"got {tuple(pred.shape)} and {tuple(true.shape)}"
         )
-
-
-def _unit(q: Tensor) -> Tensor:
-    """Quaternions ``(..., 4)`` divided by their norm (a zero quaternion stays zero; inf/NaN give NaN)."""
-    import torch
-
-    return q / q.norm(dim=-1, keepdim=True).clamp_min(torch.finfo(q.dtype).tiny)
-
-
-def _aligned(q: Tensor, q_true: Tensor) -> Tensor:
-    """``q`` or ``-q`` (the same rotation), whichever is on ``q_true``'s half of the quaternion sphere."""
-    import torch
-
-    return torch.where((q * q_true).sum(-1, keepdim=True) < 0, -q, q)
 
 
 def _total_squared(pred: Tensor, true: Tensor, layout: ObsLayout) -> Tensor:
@@ -155,47 +144,38 @@ def _total_squared(pred: Tensor, true: Tensor, layout: ObsLayout) -> Tensor:
 
 def rotation_angles(pred: Tensor, true: Tensor, layout: ObsLayout) -> Tensor:
     """Geodesic angle in [0, pi] between predicted and true orientation, one per rotation group of the layout
-    (in layout order): ``(..., n_rotation_groups)`` for ``(..., obs_dim)`` inputs.
-
-    SO2_angle ``|wrap(a - a')|``; SO2_cossin the same with ``a = atan2(sin, cos)`` (this normalises the pair);
-    SO3_quat ``2 acos |<q, q'>|`` of the normalised quaternions, computed as ``4 atan2(|q - s q'|, |q + s q'|)``
-    with ``s = sign <q, q'>``, which is exact near 0 where acos loses half the digits (a zero quaternion: pi).
+    (in layout order): ``(..., n_rotation_groups)`` for ``(..., obs_dim)`` inputs, each its codec's
+    ``rotation_angle`` (gem_head.codecs: SO2_angle ``|wrap(a - a')|``; SO2_cossin the same with ``a = atan2(sin,
+    cos)``; SO3_quat ``2 acos |<q, q'>|`` of the normalised quaternions, exact near 0).
     A group with a non-finite entry gives NaN (atan2 would turn an infinity into a finite angle).
     """
     import torch
 
+    from gem_head.codecs import CODECS
+
     _check_shapes(pred, true, layout)
     angles = []
     for g in layout.groups:
-        ix = list(g.indices)
-        if g.kind == "SO2_angle":
-            angle = wrap_angle(pred[..., ix[0]] - true[..., ix[0]]).abs()
-        elif g.kind == "SO2_cossin":
-            (c, s) = ix
-            angle = wrap_angle(torch.atan2(pred[..., s], pred[..., c]) - torch.atan2(true[..., s], true[..., c])).abs()
-        elif g.kind == "SO3_quat":
-            q_true = _unit(true[..., ix])
-            q = _aligned(_unit(pred[..., ix]), q_true)
-            angle = 4 * torch.atan2((q - q_true).norm(dim=-1), (q + q_true).norm(dim=-1))
-        else:
+        ix, codec = list(g.indices), CODECS[g.kind]
+        if not codec.is_rotation:
             continue
+        angle = codec.rotation_angle(pred[..., ix], true[..., ix])
         finite = torch.isfinite(pred[..., ix]).all(-1) & torch.isfinite(true[..., ix]).all(-1)
         angles.append(torch.where(finite, angle, torch.full_like(angle, float("nan"))))
     return torch.stack(angles, dim=-1) if angles else pred.new_zeros((*pred.shape[:-1], 0))
 
 
 def entry_differences(pred: Tensor, true: Tensor, layout: ObsLayout) -> Tensor:
-    """Group-aware per-entry differences ``d = pred - true`` ``(..., obs_dim)``: wrapped to (-pi, pi] for
-    SO2_angle; for SO3_quat ``s q/|q| - q'/|q'|`` with ``s = sign <q, q'>``; plain elsewhere (SO2_cossin too)."""
+    """Group-aware per-entry differences ``d = pred - true`` ``(..., obs_dim)``, each group's its codec's
+    ``entry_difference`` (wrapped to (-pi, pi] for SO2_angle; for SO3_quat ``s q/|q| - q'/|q'|`` with
+    ``s = sign <q, q'>``; plain elsewhere, SO2_cossin too)."""
+    from gem_head.codecs import CODECS
+
     _check_shapes(pred, true, layout)
     d = pred - true
-    angles = [g.indices[0] for g in layout.groups_of("SO2_angle")]
-    if angles:
-        d[..., angles] = wrap_angle(d[..., angles])
-    for g in layout.groups_of("SO3_quat"):
+    for g in layout.groups:  # each kind's own difference (its codec's)
         ix = list(g.indices)
-        q_true = _unit(true[..., ix])
-        d[..., ix] = _aligned(_unit(pred[..., ix]), q_true) - q_true
+        d[..., ix] = CODECS[g.kind].entry_difference(pred[..., ix], true[..., ix])
     return d
 
 

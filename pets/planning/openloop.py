@@ -141,7 +141,7 @@ def _play(
 
     from pets.data.collect import episode_seeds
     from pets.data.rollout import run_episode
-    from pets.experiments.bootstrap import bootstrap_band, summarise
+    from pets.stats.bootstrap import bootstrap_band, summarise
 
     env = spec.make(max_episode_steps=steps)
     recorder = None

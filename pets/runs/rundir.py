@@ -20,7 +20,7 @@ from typing import Any
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from pets.config import ConfigError
+from pets.errors import ConfigError
 from pets.runs.fileio import atomic_write_bytes
 
 CONFIG_FILE = "config.yaml"

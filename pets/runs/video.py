@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from pets.config import ConfigError
+from pets.errors import ConfigError
 
 WIDTH, HEIGHT = 320, 240
 VIDEO_DIR = "videos"

@@ -1,4 +1,5 @@
-"""Mean bootstrap over seeds (the open-loop tables and curves and :mod:`pets.openloop`'s per-episode statistics).
+"""Mean bootstrap over seeds (the open-loop tables and curves and :mod:`pets.openloop`'s per-episode statistics),
+and the IQM of columns that :mod:`pets.experiments.statistics` bootstraps.
 
 :func:`bootstrap_ci` is the percentile bootstrap of the mean (Efron 1979):
 ``n_boot`` resamples of the ``n`` values with replacement, the ``(1 - c) / 2`` and ``(1 + c) / 2``
@@ -17,8 +18,6 @@ from typing import Any
 
 import numpy as np
 
-from pets.experiments.statistics import check_confidence, iqm_columns
-
 #: Bootstrap resample means computed per block: keeps the (block, n) index array near 16 MB.
 _BLOCK_ELEMENTS = 2_000_000
 
@@ -30,6 +29,22 @@ def _as_sample(values: Any, name: str = "values") -> np.ndarray:
     if x.size == 0:
         raise ValueError(f"{name} is empty; a statistic needs at least one value")
     return x
+
+
+def check_confidence(confidence: float, n_boot: int) -> None:
+    """ValueError unless ``confidence`` is in (0, 1) and ``n_boot`` (replications) a positive int."""
+    if not (isinstance(confidence, (int, float)) and 0.0 < confidence < 1.0):
+        raise ValueError(f"confidence must be a number in (0, 1), got {confidence!r}")
+    if isinstance(n_boot, bool) or not isinstance(n_boot, (int, np.integer)) or n_boot < 1:
+        raise ValueError(f"n_boot must be a positive int, got {n_boot!r}")
+
+
+def iqm_columns(scores: np.ndarray) -> np.ndarray:
+    """IQM of every column of ``scores`` (runs, columns): ``rliable.metrics.aggregate_iqm`` of each column
+    (scipy's ``trim_mean(x, 0.25)``: the same partition and average, vectorised over the columns)."""
+    n = scores.shape[0]
+    cut = int(0.25 * n)
+    return np.partition(scores, (cut, n - cut - 1), axis=0)[cut : n - cut].mean(axis=0)
 
 
 def bootstrap_means(samples: np.ndarray, n_boot: int, rng: np.random.Generator) -> np.ndarray:

@@ -1,0 +1,141 @@
+"""The one-screen answer (the ``answer`` block of README.md and docs/results.md): per env, gem against delta in the
+three primary comparisons, each cell rendered from a generated or committed file, never typed:
+
+- offline: the pre-registered endpoint's ratio gem / delta (``offline_primary_gem.csv``, Holm over its 8 envs);
+- planning with a frozen pre-trained model, closed loop: the total-reward difference (``headline_planning.csv``,
+  Holm over the 8 envs);
+- online: the final-reward difference of the env's online study, recomputed from its committed per-run rows
+  (:func:`pets.experiments.studies.online.summary_from_runs`, Holm over that study's arms).
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from pets.experiments.published import NOT_GENERATED, ONLINE, PRODUCTS, RAW, RESULTS
+from pets.experiments.report import csv_number, fmt, md_table
+
+MODEL = "gem"
+ALPHA = 0.05
+#: The online study of each env the answer reads (the first of :data:`pets.experiments.published.ONLINE`'s).
+ONLINE_STUDIES = ONLINE[:5]
+
+
+def _rows(path: Path) -> list[dict[str, str]]:
+    with path.open(newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def _p(x: float) -> str:
+    return "n/a" if not math.isfinite(x) else fmt(x, 3)
+
+
+def _cell(value: float, low: float, high: float, n: Any, p: float, holm: float, verdict: str, unit: str) -> str:
+    """``value [low, high], N unit, p P, Holm H: verdict`` (3 significant digits)."""
+    ci = f"{fmt(value, 3)} [{fmt(low, 3)}, {fmt(high, 3)}]"
+    n_text = f"{int(float(n))} {unit}" if n not in (None, "") else "n/a"
+    return f"{ci}, {n_text}, p {_p(p)}, Holm {_p(holm)}: {verdict}"
+
+
+def _difference_verdict(diff: float, holm: float) -> str:
+    """Higher reward is better: a win or loss where Holm's p is below :data:`ALPHA`."""
+    if not math.isfinite(holm) or holm >= ALPHA:
+        return "no difference shown"
+    return "**win**" if diff > 0 else "**loss**"
+
+
+def _primary_cell(r: Mapping[str, str]) -> str:
+    """The cell of a ``primary.csv`` row: its ratio to delta, pairs, exact and Holm p and verdict."""
+    num = [csv_number(r[k]) for k in ("ratio_to_delta", "ratio_ci_low", "ratio_ci_high")]
+    p, holm = csv_number(r["p_value_exact"]), csv_number(r["p_value_holm"])
+    verdict = r["verdict"].replace("(win)", "(**win**)").replace("(loss)", "(**loss**)")
+    return _cell(*num, r["n_pairs"], p, holm, verdict, "pairs")
+
+
+def _offline(tree: Path) -> dict[str, str]:
+    rows = _rows(tree / RESULTS / "offline_primary_gem.csv")
+    return {r["env"]: _primary_cell(r) for r in rows if r["model"] == MODEL}
+
+
+def _planning(tree: Path) -> dict[str, str]:
+    cells = {}
+    for r in _rows(tree / RESULTS / "headline" / "headline_planning.csv"):
+        if r["loop"] == "closed" and r["model"] == MODEL:
+            diff, holm = csv_number(r["diff_to_delta"]), csv_number(r["p_value_holm"])
+            num = (diff, csv_number(r["diff_ci_low"]), csv_number(r["diff_ci_high"]))
+            verdict = _difference_verdict(diff, holm)
+            cells[r["env"]] = _cell(*num, r["n_pairs"], csv_number(r["p_value_exact"]), holm, verdict, "pairs")
+    return cells
+
+
+def _online(tree: Path) -> dict[str, str]:
+    from pets.experiments.studies.online import summary_from_runs
+
+    cells = {}
+    for study in ONLINE_STUDIES:
+        for r in summary_from_runs(_rows(tree / RESULTS / f"{study}_runs.csv")):
+            if r["model"] == MODEL and not r["planner"]:
+                v: Mapping[str, Any] = {k: math.nan if r.get(k) is None else r[k] for k in r}
+                diff, holm = v["diff_to_delta"], v["diff_p_holm"]
+                num = (diff, v["diff_ci_low"], v["diff_ci_high"])
+                text = _cell(*num, r["n_pairs"], v["diff_p_signflip"], holm, _difference_verdict(diff, holm), "pairs")
+                cells[r["env"]] = f"{text} ({study})"
+    return cells
+
+
+def answer_table(tree: Path) -> str:
+    """The answer table (module docstring) from the files under ``tree``."""
+    offline, planning, online = _offline(tree), _planning(tree), _online(tree)
+    header = [
+        "env",
+        "offline: error gem / delta [95 % CI]",
+        "planning, closed loop: total reward gem - delta [95 % CI]",
+        "online: final reward gem - delta [95 % CI]",
+    ]
+    rows = [[env, offline[env], planning.get(env, "not run"), online.get(env, "not run")] for env in offline]
+    return md_table(header, rows) + "\n\n" + LEGEND
+
+
+#: What a cell says (the legend under the answer table).
+LEGEND = (
+    "Each cell: value [95 % CI], pairs (same seed, same data), the exact paired sign-flip p and Holm's adjustment over "
+    "the family (offline and planning: the 8 envs; online: the arms of that study), then the verdict at family-wise "
+    f"{ALPHA}. Offline: IQM of the per-pair ratios of the pre-registered endpoint (the standardized error averaged "
+    "over the tracking horizons; below 1: gem predicts better); planning: mean paired difference of the total reward "
+    "of 300 MPC steps with the frozen model; online: IQM of the paired differences of the final reward."
+)
+#: The later offline studies (new data sets, more seeds) whose primary endpoint the second table shows.
+LATER_STUDIES = ("paper_data3_primary", "paper_gemse_primary", "paper_50k_primary")
+
+
+def later_offline_table(tree: Path) -> str:
+    """The primary endpoint of the later offline studies (:data:`LATER_STUDIES`), every arm against delta, Holm
+    over each study's own tests."""
+    rows = [
+        [r["env"], r["model"], study.removesuffix("_primary"), _primary_cell(r)]
+        for study in LATER_STUDIES
+        for r in _rows(tree / RESULTS / f"{study}.csv")
+        if r["model"] != "delta"
+    ]
+    return md_table(["env", "arm", "study", "offline: error arm / delta [95 % CI]"], rows)
+
+
+def coverage_table(tree: Path) -> str:
+    """What ``pets.compare report`` makes (each product, its outputs and inputs) and the committed summaries it does
+    not make, with why: docs/experiments.md's "What report covers", rendered from the declarations (``tree`` unused:
+    the declarations are the source)."""
+    made = md_table(
+        ["product", "generated (compared by --check)", "from"],
+        [[p.name, ", ".join(Path(o).name for o in p.outputs), f"{len(p.inputs)} committed file(s)"] for p in PRODUCTS],
+    )
+    reasons: dict[str, list[str]] = {}
+    for path, why in NOT_GENERATED.items():
+        reasons.setdefault(why, []).append(Path(path).name)
+    header = ["not generated (excluded from --check)", "why"]
+    excluded = md_table(header, [[", ".join(names), why] for why, names in reasons.items()])
+    raw = f"Per-seed or per-trial data, the inputs (nothing to regenerate): {len(RAW)} files and folders of {RESULTS}."
+    return f"{made}\n\n{excluded}\n\n{raw}"

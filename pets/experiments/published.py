@@ -1,0 +1,269 @@
+"""What ``pets.compare report`` publishes: every generated file under docs/ with the committed per-seed rows it is
+made from and the code that makes it (:data:`PRODUCTS`), the committed per-seed data (:data:`RAW`), and the
+committed summaries it does not make, each with its reason (:data:`NOT_GENERATED`). Paths are relative to the
+repository root; the products run with that root (or a copy of its docs/results) as the working directory.
+
+The code is the code that made the committed files: :func:`pets.experiments.offline_summary.summary_from_runs`
+(``docs/scripts/resummarise_offline.py``), :func:`pets.experiments.primary.write_primary_files`
+(``docs/scripts/offline_primary.py``), :func:`pets.experiments.studies.online.summary_from_runs` (the statistics of
+``pets.compare online``) and :func:`pets.experiments.headline.write_headline` (``pets.compare headline``).
+"""
+
+from __future__ import annotations
+
+import csv
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from pets.experiments.primary import DEFAULT_LEVEL, DEFAULT_SOURCE
+
+RESULTS = "docs/results"
+#: The no-information level of each env's data set, computed from the data sets (not in the repository) by the
+#: studies that made them anew (``primary.csv``'s ``level``; InvertedPendulum's also for its original study).
+DATA_LEVELS = {
+    "ant": 1.2823407726495033,
+    "reacher": 1.3067071711948632,
+    "inverteddoublependulum": 0.876485780322665,
+    "invertedpendulum": 1.126818220138612,
+    "halfcheetah": 1.3950981719691522,
+    "hopper": 1.4547009136555746,
+    "walker2d": 1.3986959520628426,
+    "humanoid": 1.3946240754991805,
+}
+#: The original offline studies (one data set each), in the order of the headline's command.
+ORIGINAL = ("reacher", "ant", "idp", "halfcheetah", "hopper", "walker2d", "humanoid", "ip")
+#: The same in the order of the primary endpoint's command (docs/results.md), which is its rows' order.
+PRIMARY_ORDER = ("idp", "reacher", "ant", "halfcheetah", "hopper", "walker2d", "humanoid", "ip")
+#: The online studies whose summary report makes from their committed per-run rows.
+ONLINE = (
+    "online_ip_fast_10seeds",
+    "online_reacher_fast_5seeds",
+    "online_idp_fast_5seeds",
+    "online_halfcheetah_fast_5seeds",
+    "online_ant_fast",
+    "activation_reacher_fast_5seeds",
+    "time_to_solve_halfcheetah",
+    "time_to_solve_halfcheetah_compiled",
+    "time_to_solve_ip_compiled",
+    "time_to_solve_reacher_compiled",
+)
+#: The planning study's envs (its committed summaries: ``openloop_ENV`` and ``planning_ENV``).
+PLANNING_ENVS = (
+    "invertedpendulum",
+    "ant",
+    "inverteddoublependulum",
+    "reacher",
+    "hopper",
+    "walker2d",
+    "halfcheetah",
+    "humanoid",
+)
+
+
+@dataclass(frozen=True)
+class Product:
+    """Files ``outputs`` that ``make()`` writes (relative to the working directory) from committed ``inputs``."""
+
+    name: str
+    outputs: tuple[str, ...]
+    inputs: tuple[str, ...]
+    make: Callable[[], None]
+
+
+def _path(name: str) -> str:
+    return f"{RESULTS}/{name}"
+
+
+def _rows(path: str) -> list[dict[str, str]]:
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def _levels(envs: Sequence[str], data: bool) -> dict[str, tuple[float, str]]:
+    """{env: (level, source)}: the data sets' levels (``data``) or sqrt(2) where the data are not at hand."""
+    if not data:
+        return dict.fromkeys(envs, (DEFAULT_LEVEL, DEFAULT_SOURCE))
+    return {e: (DATA_LEVELS[e], f"data ({e}-train.npz vs {e}-test.npz)") for e in envs}
+
+
+def _offline_summary(study: str, data_levels: bool, relative: bool = True) -> Product:
+    """``paper_STUDY_summary.csv`` (and ``_relative_error.csv``) from ``paper_STUDY_runs.csv``, env by env at its
+    level (``docs/scripts/resummarise_offline.py``)."""
+    runs = _path(f"paper_{study}_runs.csv")
+    names = ("summary", "relative_error") if relative else ("summary",)
+    outputs = tuple(_path(f"paper_{study}_{name}.csv") for name in names)
+
+    def make() -> None:
+        from pets.experiments.offline_summary import RELATIVE_COLUMNS, SUMMARY_COLUMNS, summary_from_runs
+        from pets.experiments.report import write_csv
+
+        rows = _rows(runs)
+        envs = list(dict.fromkeys(r["env"] for r in rows))
+        levels = _levels(envs, data_levels or study == "ip")
+        summary, rel = [], []
+        for env in envs:
+            s, r = summary_from_runs([x for x in rows if x["env"] == env], levels[env][0])
+            summary, rel = summary + s, rel + r
+        write_csv(Path(outputs[0]), summary, SUMMARY_COLUMNS)
+        if relative:
+            write_csv(Path(outputs[1]), rel, RELATIVE_COLUMNS)
+
+    return Product(f"offline summary {study}", outputs, (runs,), make)
+
+
+def _primary(
+    out: str, studies: Sequence[str], *, data_levels: bool, models: set[str] | None = None, **files: str
+) -> Product:
+    """The primary endpoint of ``paper_STUDY_runs.csv`` files (``docs/scripts/offline_primary.py``): ``OUT.csv`` and
+    the past-level file, the versus file with ``versus=`` (file names as committed: ``past_level=``, ``versus=``;
+    ``past_level=""``: the study never committed one; ``primary=""``: ``OUT.csv`` is made but not published)."""
+    inputs = tuple(_path(f"paper_{s}_runs.csv") for s in studies)
+    past = _path(files.get("past_level") or f"{out}_past_level.csv")
+    versus = _path(files["versus"]) if "versus" in files else None
+    published = () if files.get("past_level") == "" else (past,)  # "": made, never committed, so not an output
+    primary = () if files.get("primary") == "" else (_path(f"{out}.csv"),)  # "": made, excluded (NOT_GENERATED)
+    outputs = (*primary, *published, *((versus,) if versus else ()))
+
+    def make() -> None:
+        from pets.experiments.primary import write_primary_files
+
+        keep = None if models is None else {"delta", *models}
+        rows = [r for path in inputs for r in _rows(path) if keep is None or r["model"] in keep]
+        envs = list(dict.fromkeys(r["env"] for r in rows))
+        levels = _levels(envs, True) if data_levels else {}
+        comparisons = [("gem-se", "gem")] if versus else []
+        write_primary_files(rows, _path(out), levels, comparisons, past_level=past, versus=versus)
+
+    return Product(f"primary {out}", outputs, inputs, make)
+
+
+def _committed_columns(path: str, default: Sequence[str]) -> list[str]:
+    """The header of the committed file (older studies keep the columns of their date), else ``default``."""
+    if not Path(path).is_file():
+        return list(default)
+    with open(path, newline="") as f:
+        return next(csv.reader(f))
+
+
+def _online_summary(study: str) -> Product:
+    """``STUDY_summary.csv`` from ``STUDY_runs.csv`` (the statistics of ``pets.compare online``), with the columns
+    the committed file has (columns added since, such as the exact p of older studies, are not written)."""
+    runs, out = _path(f"{study}_runs.csv"), _path(f"{study}_summary.csv")
+
+    def make() -> None:
+        from pets.experiments.report import write_csv
+        from pets.experiments.studies.online import SUMMARY_COLUMNS, summary_from_runs
+
+        write_csv(Path(out), summary_from_runs(_rows(runs)), _committed_columns(out, SUMMARY_COLUMNS))
+
+    return Product(f"online summary {study}", (out,), (runs,), make)
+
+
+def _headline() -> Product:
+    """docs/results/headline (``pets.compare headline`` with docs/results.md's command) and its figures."""
+    offline = [_path(f"paper_{e}_summary.csv") for e in ORIGINAL]
+    relative = [_path(f"paper_{e}_relative_error.csv") for e in ORIGINAL]
+    online = [_path(f"{s}_summary.csv") for s in ONLINE[:4]]
+    openloop = [_path(f"openloop_{e}_summary.csv") for e in PLANNING_ENVS]
+    closedloop = [_path(f"planning_{e}_summary.csv") for e in PLANNING_ENVS]
+    primary = [_path("offline_primary_gem.csv"), _path("paper_gemse_primary.csv")]
+    names = ("headline.md", "headline_offline.csv", "headline_online.csv", "headline_planning.csv")
+    figures = ("headline_ratio.png", "headline_relative.png", "headline_fig2_ratio.png")
+    outputs = (*(_path(f"headline/{n}") for n in names), *(f"docs/figures/{n}" for n in figures))
+
+    def make() -> None:
+        from pets.experiments.headline import write_headline
+
+        write_headline(
+            *([Path(p) for p in paths] for paths in (offline, online)),
+            Path(_path("headline")),
+            caption="runs: AMD EPYC Zen 4, one thread per run",
+            relative=[Path(p) for p in relative],
+            figures=Path("docs/figures"),
+            openloop=[Path(p) for p in openloop],
+            closedloop=[Path(p) for p in closedloop],
+            primary=[Path(p) for p in primary],
+        )
+
+    inputs = (*offline, *relative, *online, *openloop, *closedloop, *primary)
+    return Product("headline", outputs, inputs, make)
+
+
+#: Every generated file, in the order they are made (a product's inputs are made before it).
+PRODUCTS: tuple[Product, ...] = (
+    *(_offline_summary(e, data_levels=False) for e in ORIGINAL),
+    _offline_summary("data3", data_levels=True),
+    _offline_summary("50k", data_levels=True),
+    _offline_summary("gemse_partial", data_levels=True, relative=False),
+    _primary("offline_primary_gem", PRIMARY_ORDER, data_levels=False, models={"gem"}),
+    _primary("offline_primary_all_arms", PRIMARY_ORDER, data_levels=False),
+    _primary("paper_data3_primary", ["data3"], data_levels=True, past_level="paper_data3_past_level.csv"),
+    _primary("paper_50k_primary", ["50k"], data_levels=True, past_level="paper_50k_past_level.csv"),
+    _primary("paper_gemse_primary", ["gemse"], data_levels=True, versus="paper_gemse_primary_versus.csv"),
+    _primary("paper_ip_primary", ["ip"], data_levels=True, primary="", past_level="paper_ip_past_level.csv"),
+    _primary(
+        "paper_gemse_partial_primary",
+        ["gemse_partial"],
+        data_levels=True,
+        past_level="",
+        versus="paper_gemse_partial_versus.csv",
+    ),
+    *(_online_summary(s) for s in ONLINE),
+    _headline(),
+)
+
+_CRLF = "written with CRLF line ends by the CSV writer of its date; today's code gives the same values with LF ends"
+_PLANNING = (
+    "the planning study's per-seed results (open and closed loop) are not committed, only its summaries, so they "
+    "cannot be regenerated (and its p-values not recomputed) from docs/results"
+)
+#: Committed summaries report does not make, each with why (``report --check`` names them, never skips silently).
+NOT_GENERATED: dict[str, str] = {
+    **{
+        _path(f"{kind}_{e}{ext}"): _PLANNING
+        for kind in ("openloop", "planning")
+        for e in PLANNING_ENVS
+        for ext in (".md", "_summary.csv")
+    },  # fmt: skip
+    _path("planning_walker2d_cem.md"): _PLANNING,
+    _path("planning_walker2d_cem_summary.csv"): _PLANNING,
+    _path("paper_gemse_summary.csv"): _CRLF,
+    _path("online_idp_replan5_summary.csv"): _CRLF,
+    _path("online_reacher_replan5_summary.csv"): _CRLF,
+    _path("paper_ip_primary.csv"): (
+        "written by pets.compare offline before the ci_exact_note column; today's code gives the same values and "
+        "that column (its past-level file is generated)"
+    ),
+    _path("paper_idp_h50_per_horizon.csv"): (
+        "per-horizon statistics in an older column set (p_ci_low, no n_diverged or exact p) by a command not kept "
+        "in the repository; its per-run rows (paper_idp_h50_runs.csv) are committed"
+    ),
+    _path("onestep_before_issue18.csv"): "one-step errors per dimension of trained models that are not committed",
+    _path("onestep_after_issue18.csv"): "one-step errors per dimension of trained models that are not committed",
+    **{
+        _path(f"peer_learning_{e}_summary.csv"): "docs/scripts/peer_mbrl.py summarise (CRLF line ends); not in report"
+        for e in ("invertedpendulum", "reacher")
+    },
+}
+#: Committed per-seed (or per-trial) data: what summaries are made from, nothing to regenerate.
+RAW: tuple[str, ...] = (
+    *(_path(f"paper_{s}_runs.csv") for s in (*ORIGINAL, "data3", "50k", "gemse", "gemse_partial", "idp_h50")),
+    *(_path(f"{s}_runs.csv") for s in (*ONLINE, "online_idp_replan5", "online_reacher_replan5")),
+    *(_path(f"{s}_runs.csv") for s in ("time_to_solve_ip", "time_to_solve_reacher")),
+    *(_path(f"{s}_runs.csv") for s in ("ip_fast_5seeds", "ip_fast_ablation", "ip_fast_diagnosis", "ip_fast_value")),
+    *(_path(f"{s}_runs.csv") for s in ("idp_feedback_ablation", "idp_feedback_fast")),
+    _path("online_ant_metrics"),
+    _path("online_replan5_metrics"),
+    _path("time_to_solve_halfcheetah_compiled_metrics"),
+    _path("learning_curves_50k.csv"),
+    _path("learning_curves_paper.csv"),
+    _path("peer_learning_invertedpendulum.csv"),
+    _path("peer_learning_reacher.csv"),
+    _path("peer_planning_step.csv"),
+)
+
+
+def outputs() -> list[str]:
+    """Every file the products make, in order."""
+    return [path for product in PRODUCTS for path in product.outputs]

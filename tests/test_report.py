@@ -1,0 +1,118 @@
+"""``pets.compare report``: the published summaries and the docs' generated blocks are what the generators make
+from the committed per-seed rows (``--check`` on the committed tree), a drifted file is named with its first
+differing line, blocks are rewritten between their markers only, and every committed file under docs/results is
+generated, per-seed data, or excluded with a reason."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from pets.experiments import published, regenerate
+from pets.experiments.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_report_check_passes_on_the_committed_tree() -> None:
+    """The CI gate: every generated file and block equals what is committed, byte for byte."""
+    proc = subprocess.run(
+        [sys.executable, "-m", "pets.compare", "report", "--check"],
+        cwd=ROOT,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert "up to date" in proc.stdout
+
+
+def _small_tree(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, names: set[str]) -> Path:
+    """A root holding a copy of docs/results, with the products limited to ``names`` and no block files."""
+    shutil.copytree(ROOT / published.RESULTS, tmp_path / published.RESULTS)
+    monkeypatch.setattr(published, "PRODUCTS", tuple(p for p in published.PRODUCTS if p.name in names))
+    monkeypatch.setattr(regenerate, "BLOCK_FILES", ())
+    return tmp_path
+
+
+def test_check_names_the_first_differing_line_and_report_restores_it(tmp_path, monkeypatch, capsys) -> None:
+    root = _small_tree(tmp_path, monkeypatch, {"offline summary ant", "online summary online_ip_fast_10seeds"})
+    target = root / published.RESULTS / "paper_ant_summary.csv"
+    committed = target.read_bytes()
+    lines = committed.decode().split("\n")
+    lines[2] = lines[2].replace(",10,0,", ",9,0,", 1)  # a drifted n_seeds on line 3
+    assert lines[2] != committed.decode().split("\n")[2]
+    target.write_text("\n".join(lines))
+    assert regenerate.check(root) == [
+        f"{published.RESULTS}/paper_ant_summary.csv: line 3: committed {lines[2][:80]!r}, "
+        f"generated {committed.decode().split(chr(10))[2][:80]!r}"
+    ]
+    assert main(["report", "--check", "--root", str(root)]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "paper_ant_summary.csv: line 3" in err[0] and "1 file(s) differ" in err[0], err
+    assert main(["report", "--root", str(root)]) == 0
+    assert target.read_bytes() == committed
+    assert main(["report", "--check", "--root", str(root)]) == 0
+
+
+def test_a_missing_output_is_named(tmp_path, monkeypatch) -> None:
+    root = _small_tree(tmp_path, monkeypatch, {"online summary online_ip_fast_10seeds"})
+    (root / published.RESULTS / "online_ip_fast_10seeds_summary.csv").unlink()
+    assert regenerate.check(root) == [f"{published.RESULTS}/online_ip_fast_10seeds_summary.csv: not committed"]
+
+
+def test_blocks_are_rendered_between_their_markers_only(tmp_path, monkeypatch) -> None:
+    monkeypatch.setitem(regenerate.BLOCKS, "demo", lambda tree: "| a |\n|---|\n| 1 |\n")
+    text = "before 0.031\n<!-- report:demo -->\nold 0.039\n<!-- /report:demo -->\nafter 0.082\n"
+    rendered = regenerate.render_blocks(text, tmp_path)
+    assert rendered == "before 0.031\n<!-- report:demo -->\n| a |\n|---|\n| 1 |\n<!-- /report:demo -->\nafter 0.082\n"
+    assert regenerate.render_blocks(rendered, tmp_path) == rendered
+    with pytest.raises(regenerate.ReportError, match="unknown generated block 'nope'"):
+        regenerate.render_blocks("<!-- report:nope -->\n<!-- /report:nope -->\n", tmp_path)
+    with pytest.raises(regenerate.ReportError, match="unmatched report markers"):
+        regenerate.render_blocks("<!-- report:demo -->\nx\n", tmp_path)
+
+
+def test_the_docs_hold_the_generated_answer_and_coverage() -> None:
+    results = (ROOT / "docs" / "results.md").read_text()
+    assert "<!-- report:answer -->\n| env | offline: error gem / delta" in results
+    assert "<!-- report:coverage -->" in (ROOT / "docs" / "experiments.md").read_text()
+
+
+def _committed_results() -> set[str]:
+    """Every file of docs/results (a folder of per-run files counts as one entry)."""
+    base = ROOT / published.RESULTS
+    found = set()
+    for path in base.iterdir():
+        if path.is_dir() and path.name != "headline":
+            found.add(f"{published.RESULTS}/{path.name}")
+        elif path.is_dir():
+            found |= {f"{published.RESULTS}/headline/{p.name}" for p in path.iterdir()}
+        else:
+            found.add(f"{published.RESULTS}/{path.name}")
+    return found
+
+
+def test_every_committed_result_is_generated_raw_or_excluded_with_its_reason() -> None:
+    outputs = set(published.outputs())
+    excluded = set(published.NOT_GENERATED)
+    raw = set(published.RAW)
+    assert not outputs & excluded and not outputs & raw and not excluded & raw
+    assert all(reason.strip() for reason in published.NOT_GENERATED.values())
+    unclassified = _committed_results() - outputs - excluded - raw
+    assert not unclassified, f"neither generated, per-seed data nor excluded with a reason: {sorted(unclassified)}"
+    declared = outputs | excluded | raw | {p for product in published.PRODUCTS for p in product.inputs}
+    assert all((ROOT / p).exists() for p in declared), sorted(p for p in declared if not (ROOT / p).exists())
+
+
+def test_report_refuses_a_root_without_results(tmp_path, capsys) -> None:
+    with pytest.raises(SystemExit) as exc:
+        main(["report", "--check", "--root", str(tmp_path)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert exc.value.code == 2 and len(err) == 1 and "no docs/results here" in err[0], err
