@@ -15,9 +15,12 @@ import argparse
 import sys
 import time
 from pathlib import Path
-from typing import NoReturn
+from typing import TYPE_CHECKING, NoReturn
 
 from pets.tools.cli import EXIT_FAILED, EXIT_INTERRUPTED, OneLineParser, fail, write_failed
+
+if TYPE_CHECKING:
+    from omegaconf import DictConfig
 
 PROG = "run_pets.py"
 
@@ -42,7 +45,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--trials", type=int, help="number of trials (episodes)")
     p.add_argument("--seed", type=int, help="seed for every random source")
     p.add_argument("--device", choices=("cpu", "cuda", "auto"), help="where the model and planner run")
-    p.add_argument("--preset", choices=tuple(PRESETS), default="research", help="research (default) or fast (CPU)")
+    p.add_argument("--preset", choices=tuple(PRESETS), help="research (default) or fast (CPU); not with --resume")
     p.add_argument("--out", type=Path, help="run directory (default: runs/ENV-MODEL-sSEED-TIME)")
     p.add_argument("--resume", type=Path, metavar="DIR", help="continue the run in DIR from its last trial")
     p.add_argument(
@@ -61,6 +64,31 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides")
     return p
+
+
+def resume_settings(cfg: DictConfig, overrides: dict[str, str], run_dir: Path) -> None:
+    """Apply what a resume may change to the run's config (in place): ``--trials N`` (run longer; not fewer than the
+    trials done) and ``threads=N`` (CPU threads, which change no result); ConfigError (one line) for anything else."""
+    from pets.config import ConfigError, set_value
+    from pets.runs import rundir
+
+    given = dict(overrides)
+    for key in rundir.RESUMABLE_KEYS:
+        if key in given:
+            set_value(cfg, key, given.pop(key))
+    if given:
+        raise ConfigError(
+            f"--resume changes only --trials and threads=N of the run's config, got {', '.join(sorted(given))}; "
+            "start a new run for other settings"
+        )
+    if cfg.trials < 1 or cfg.threads < 0:
+        raise ConfigError(f"--resume needs --trials >= 1 and threads >= 0, got {cfg.trials} and {cfg.threads}")
+    done = rundir.recorded_trials(run_dir)
+    if "trials" in overrides and cfg.trials < done:
+        raise ConfigError(
+            f"--trials {cfg.trials} is fewer than the {done} trials {run_dir} has done; a resume runs longer, "
+            f"never shorter: give --trials > {done}, or none to finish the run's own count"
+        )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -98,11 +126,10 @@ def main(argv: list[str] | None = None) -> int:
             path = args.resume / rundir.CONFIG_FILE
             if not path.exists():
                 _fail(f"{args.resume} is not a run directory (no {rundir.CONFIG_FILE})")
+            if args.preset is not None:
+                _fail(f"--resume DIR takes the run's own config; --preset {args.preset} is refused with it")
             cfg = load_config(str(path))
-            if "trials" in overrides:  # the only thing a resume may change: run longer
-                cfg.trials = int(overrides.pop("trials"))
-            if overrides:
-                _fail(f"--resume accepts only --trials besides the run directory, got {sorted(overrides)}")
+            resume_settings(cfg, overrides, args.resume)
             run_dir = args.resume
         else:
             env_arg = args.env or from_file.get("env")
@@ -112,7 +139,9 @@ def main(argv: list[str] | None = None) -> int:
                 env_name = envs.get(env_arg).name
             except ValueError as err:
                 _fail(str(err))
-            cfg = make_config(env_name, args.model or from_file.get("head") or "delta", args.preset, overrides)
+            cfg = make_config(
+                env_name, args.model or from_file.get("head") or "delta", args.preset or "research", overrides
+            )
         if args.print_config:  # the resolved config, valid as a --config file; nothing is run or written
             print(config_yaml(cfg), end="")
             return 0
