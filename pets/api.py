@@ -50,7 +50,8 @@ class PETS:
             name = envs.get(env).name
         except ValueError as err:
             raise ConfigError(str(err)) from None
-        cfg = make_config(name, model, preset, {"seed": seed, "device": device, **overrides})
+        settings = {"seed": seed, "device": device, **overrides}
+        cfg = make_config(name, model, preset, {key: plain_value(value) for key, value in settings.items()})
         self._start(cfg, progress)
 
     def _start(self, cfg: Any, progress: bool) -> None:
@@ -173,6 +174,16 @@ class PETS:
     def __repr__(self) -> str:
         c = self.config
         return f"PETS(env={c.env!r}, model={c.head!r}, trials_done={self.trials_done}, seed={c.seed})"
+
+
+def plain_value(value: Any) -> Any:
+    """``value`` with numpy scalars and arrays as the Python numbers and lists they hold (``np.int64(50)`` is 50,
+    as computed settings often are); anything else unchanged (the config checks its type)."""
+    if isinstance(value, np.generic | np.ndarray):
+        return value.tolist()
+    if isinstance(value, list | tuple):
+        return [plain_value(v) for v in value]
+    return value
 
 
 def load_model(path: str | Path, device: str = "cpu") -> DynamicsModel:

@@ -18,7 +18,6 @@ from functools import cache
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import yaml
 from omegaconf import DictConfig, OmegaConf
 
@@ -290,21 +289,10 @@ def _renamed(key: str) -> str:
     return key
 
 
-def plain_value(value: Any) -> Any:
-    """``value`` with numpy scalars and arrays as the Python numbers and lists they hold (``np.int64(50)`` is 50), as
-    the Python API's keywords may give them; anything else unchanged (its type is checked where it is set)."""
-    if isinstance(value, np.generic | np.ndarray):
-        return value.tolist()
-    if isinstance(value, list | tuple):
-        return [plain_value(v) for v in value]
-    return value
-
-
 def set_value(cfg: DictConfig, key: str, value: Any) -> None:
-    """Set ``key`` of ``cfg`` to ``value`` as an override would (lists and null from their text, numpy numbers as
-    Python's, types checked); ConfigError for an unknown key or a bad value."""
+    """Set ``key`` of ``cfg`` to ``value`` as an override would (lists and null from their text, types checked);
+    ConfigError for an unknown key or a bad value."""
     key = _renamed(key)
-    value = plain_value(value)
     if key not in set(all_keys()):
         close = difflib.get_close_matches(key, all_keys(), n=1, cutoff=0.6)
         hint = f"did you mean {close[0]}? " if close else ""
