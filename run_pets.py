@@ -130,6 +130,10 @@ def main(argv: list[str] | None = None) -> int:
                 _fail(f"--resume DIR takes the run's own config; --preset {args.preset} is refused with it")
             cfg = load_config(str(path))
             resume_settings(cfg, overrides, args.resume)
+            try:  # your own env by its import path: importable from here?
+                envs.get(cfg.env)
+            except ValueError as err:
+                _fail(f"{err}; {args.resume} was started with it")
             run_dir = args.resume
         else:
             env_arg = args.env or from_file.get("env")
@@ -149,7 +153,10 @@ def main(argv: list[str] | None = None) -> int:
             from pets.builder import resolve_device
 
             resolve_device(cfg.device)  # a device this machine lacks: refused before the run directory is made
-            run_dir = args.out or Path("runs") / f"{env_name}-{cfg.head}-s{cfg.seed}-{time.strftime('%Y%m%d-%H%M%S')}"
+            run_dir = (
+                args.out
+                or Path("runs") / f"{envs.file_name(env_name)}-{cfg.head}-s{cfg.seed}-{time.strftime('%Y%m%d-%H%M%S')}"
+            )
             # a run directory that holds a run is refused by loop.run under the lock: "in use" while it runs
     except ConfigError as err:
         _fail(str(err))

@@ -105,7 +105,9 @@ def no_information_level(train: Mapping[str, np.ndarray], test: Mapping[str, np.
 def env_level(data_dir: Path, env: str) -> tuple[float, str]:
     """``(level, source)`` of an env: :func:`no_information_level` of ``DATA_DIR/ENV-train.npz`` and
     ``ENV-test.npz`` where both exist, else :data:`DEFAULT_LEVEL`."""
-    train, test = Path(data_dir) / f"{env}-train.npz", Path(data_dir) / f"{env}-test.npz"
+    from pets.experiments.offline_data import data_paths
+
+    train, test = data_paths(Path(data_dir), env)
     if not (train.is_file() and test.is_file()):
         return DEFAULT_LEVEL, DEFAULT_SOURCE
     import envs
