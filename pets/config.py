@@ -23,6 +23,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from dynamics.networks import ACTIVATIONS
 from gem_head.head import COMPOSE_MODES, LOSSES
+from pets.limits import size_problem
 from pets.models import MODELS, check_root
 from pets.planning.feedback import FeedbackConfig, check_feedback
 from pets.planning.planners import PLANNER_CLASSES, ICEMConfig, MPPIConfig
@@ -325,9 +326,8 @@ def _merge_nested(cfg: DictConfig, values: dict[str, Any], prefix: str = "") -> 
 
 def validate(cfg: DictConfig) -> None:
     """Range and choice checks that the types alone do not express."""
-    for key in _POSITIVE_INTS:
-        if OmegaConf.select(cfg, key) < 1:
-            raise ConfigError(f"{key} must be >= 1, got {OmegaConf.select(cfg, key)}")
+    if problem := size_problem(cfg, _POSITIVE_INTS):  # >= 1, and at most pets.limits.SIZE_BOUNDS
+        raise ConfigError(problem)
     for key, choices in _CHOICES.items():
         if OmegaConf.select(cfg, key) not in choices:
             raise ConfigError(f"{key} must be one of {', '.join(choices)}, got {OmegaConf.select(cfg, key)!r}")

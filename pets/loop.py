@@ -87,6 +87,7 @@ class PETSRun:
         self.cfg = cfg
         self.spec = envs.get(cfg.env)
         self.device = builder.resolve_device(cfg.device)
+        builder.check_memory(cfg, self.spec)  # a config this machine cannot hold: one line, before any allocation
         if cfg.threads:
             torch.set_num_threads(cfg.threads)
         seed_everything(cfg.seed)
