@@ -100,7 +100,7 @@ def main(argv: list[str] | None = None) -> int:
     from pets.learning.trainer import TrainingDiverged
     from pets.planning.planners import PlanningFailed
     from pets.runs import rundir
-    from pets.runs.fileio import DirectoryInUse, writable_dir_error
+    from pets.runs.fileio import DirectoryInUse, remove_if_unused, writable_dir_error
 
     try:
         overrides = parse_overrides(args.overrides)
@@ -160,6 +160,7 @@ def main(argv: list[str] | None = None) -> int:
             # a run directory that holds a run is refused by loop.run under the lock: "in use" while it runs
     except ConfigError as err:
         _fail(str(err))
+    created = not Path(run_dir).exists()
     problem = writable_dir_error(Path(run_dir))
     if problem:
         advice = "copy the run somewhere writable and resume the copy" if args.resume else "pick another --out"
@@ -168,6 +169,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         rows = loop.run(cfg, Path(run_dir), resume=args.resume is not None, progress=not args.quiet)
     except (ConfigError, RenderingUnavailable) as err:  # the second: --video on a machine without headless GL
+        remove_if_unused(Path(run_dir), created)
         _fail(str(err))
     except OSError as err:  # a write failed during the run (a full disk): the completed trials are kept
         if (Path(run_dir) / rundir.CONFIG_FILE).exists():
