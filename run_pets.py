@@ -17,7 +17,15 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING, NoReturn
 
-from pets.tools.cli import EXIT_FAILED, EXIT_INTERRUPTED, OneLineParser, fail, write_failed
+from pets.tools.cli import (
+    EXIT_FAILED,
+    EXIT_INTERRUPTED,
+    OneLineParser,
+    fail,
+    interrupts_deferred,
+    run_command,
+    write_failed,
+)
 
 if TYPE_CHECKING:
     from omegaconf import DictConfig
@@ -93,14 +101,17 @@ def resume_settings(cfg: DictConfig, overrides: dict[str, str], run_dir: Path) -
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_intermixed_args(argv)
-    import envs
-    from envs.render import RenderingUnavailable
-    from pets import loop
-    from pets.config import ConfigError, config_yaml, load_config, make_config, overrides_with_file, parse_overrides
-    from pets.learning.trainer import TrainingDiverged
-    from pets.planning.planners import PlanningFailed
-    from pets.runs import rundir
-    from pets.runs.fileio import DirectoryInUse, remove_if_unused, writable_dir_error
+    with interrupts_deferred():  # Ctrl-C waits for the imports: a module half-imported breaks the run's next import
+        import torch._dynamo  # noqa: F401  (the optimiser imports it when the run is built)
+
+        import envs
+        from envs.render import RenderingUnavailable
+        from pets import loop
+        from pets.config import ConfigError, config_yaml, load_config, make_config, overrides_with_file, parse_overrides
+        from pets.learning.trainer import TrainingDiverged
+        from pets.planning.planners import PlanningFailed
+        from pets.runs import rundir
+        from pets.runs.fileio import DirectoryInUse, remove_if_unused, writable_dir_error
 
     try:
         overrides = parse_overrides(args.overrides)
@@ -183,7 +194,11 @@ def main(argv: list[str] | None = None) -> int:
             kept = "no trial was completed"
         fail(PROG, f"{err}; {kept}", EXIT_FAILED)
     except KeyboardInterrupt:
-        print(f"\ninterrupted; continue with: python run_pets.py --resume {run_dir}", file=sys.stderr)
+        if not (Path(run_dir) / rundir.CONFIG_FILE).exists():  # before the run began: nothing to resume
+            remove_if_unused(Path(run_dir), created)
+            print(f"\n{PROG}: interrupted before the run began; nothing was written", file=sys.stderr)
+        else:
+            print(f"\ninterrupted; continue with: python run_pets.py --resume {run_dir}", file=sys.stderr)
         return EXIT_INTERRUPTED
     if rows:
         last = rows[-1]
@@ -195,4 +210,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run_command(PROG, main)
