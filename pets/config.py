@@ -204,7 +204,7 @@ def read_config_file(path: str | Path) -> dict[str, Any]:
     path = Path(path)
     try:
         data = yaml.safe_load(path.read_text())
-    except (OSError, yaml.YAMLError) as err:
+    except (OSError, yaml.YAMLError, UnicodeDecodeError) as err:  # the last: a binary file
         raise ConfigError(f"--config {path}: not a readable YAML file ({str(err).splitlines()[0]})") from None
     if data is None:
         return {}
