@@ -15,7 +15,7 @@ import argparse
 import sys
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING, NoReturn
+from typing import TYPE_CHECKING, Any, NoReturn
 
 from pets.tools.cli import (
     EXIT_FAILED,
@@ -49,7 +49,10 @@ def build_parser() -> argparse.ArgumentParser:
         "a full disk; completed trials are kept, --resume continues); 130 interrupted.",
     )
     p.add_argument("--model", choices=HEADS, help="dynamics model (default: delta); see docs/models.md")
-    p.add_argument("--env", help="environment: one of the catalogue names or a gymnasium id")
+    p.add_argument(
+        "--env",
+        help="environment: a catalogue name, a gymnasium id, or your own as package.module:ATTR (docs/api.md)",
+    )
     p.add_argument("--trials", type=int, help="number of trials (episodes)")
     p.add_argument("--seed", type=int, help="seed for every random source")
     p.add_argument("--device", choices=("cpu", "cuda", "auto"), help="where the model and planner run")
@@ -69,6 +72,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="a YAML file of config keys (any subset; --print-config writes one); flags and key=value win over it",
     )
     p.add_argument("--print-config", action="store_true", help="print the resolved config as YAML and exit")
+    p.add_argument("--threads", type=int, help="torch CPU threads (config key threads; 0: torch's default)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides")
     return p
@@ -99,6 +103,54 @@ def resume_settings(cfg: DictConfig, overrides: dict[str, str], run_dir: Path) -
         )
 
 
+#: The one precedence rule of a new run's settings (README, "Command line"), later wins.
+PRECEDENCE = "env defaults < --preset < --config file < flags and key=value"
+
+
+def config_file_notes(args: argparse.Namespace, from_file: dict[str, Any], env: str, head: str) -> list[str]:
+    """What a ``--config`` file takes over from the other options, one line each (:data:`PRECEDENCE`): the values
+    of an explicit ``--preset`` that the file replaces, and the env the file was written for when ``--env`` names
+    another (its settings then apply to that env)."""
+    if args.config is None:
+        return []
+    from omegaconf import OmegaConf
+
+    from pets.config import flatten, make_config, read_config_file
+
+    in_file = read_config_file(args.config)
+    notes = []
+    if args.preset is not None:
+        preset = flatten(OmegaConf.to_container(make_config(env, head, args.preset)))
+        taken = sorted(k for k, v in in_file.items() if k in preset and preset[k] != v and k not in ("env", "head"))
+        if taken:
+            shown = ", ".join(taken[:3]) + (f" and {len(taken) - 3} more" if len(taken) > 3 else "")
+            notes.append(
+                f"--config {args.config} replaces {len(taken)} value(s) of --preset {args.preset} ({shown}): "
+                f"the file wins ({PRECEDENCE})"
+            )
+    written_for = from_file.get("env")
+    if args.env and written_for and str(written_for) != env:
+        notes.append(
+            f"--config {args.config} was written for env {written_for}; its {len(in_file)} settings are used "
+            f"with --env {args.env} ({PRECEDENCE})"
+        )
+    return notes
+
+
+def start_line(run_dir: Path, args: argparse.Namespace, cfg: DictConfig) -> str:
+    """The line a run starts with: its directory, preset and device (a research run on a CPU is told how long)."""
+    from pets.builder import resolve_device
+
+    device = resolve_device(cfg.device).type
+    if args.resume is not None:
+        return f"run directory: {run_dir} (resumed with its own config, on {device})"
+    preset = args.preset or "research"
+    hint = ""
+    if preset == "research" and device == "cpu":
+        hint = "; the PETS papers' planner, slow on a CPU: --preset fast is ~20x cheaper per step"
+    return f"run directory: {run_dir} (preset {preset} on {device}{hint})"
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_intermixed_args(argv)
     with interrupts_deferred():  # Ctrl-C waits for the imports: a module half-imported breaks the run's next import
@@ -107,7 +159,15 @@ def main(argv: list[str] | None = None) -> int:
         import envs
         from envs.render import RenderingUnavailable
         from pets import loop
-        from pets.config import ConfigError, config_yaml, load_config, make_config, overrides_with_file, parse_overrides
+        from pets.config import (
+            HEADS,
+            ConfigError,
+            config_yaml,
+            load_config,
+            make_config,
+            overrides_with_file,
+            parse_overrides,
+        )
         from pets.learning.trainer import TrainingDiverged
         from pets.planning.planners import PlanningFailed
         from pets.runs import rundir
@@ -115,12 +175,19 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         overrides = parse_overrides(args.overrides)
+        if "model" in overrides:  # pets.compare's spelling, model=NAME, for --model NAME (model.* is the network)
+            if args.model is not None:
+                _fail(f"give the model once: --model {args.model} or model={overrides['model']}, not both")
+            if overrides["model"] not in HEADS:
+                _fail(f"model={overrides['model']}: accepted models: {', '.join(HEADS)} (model.* keys set the network)")
+            args.model = overrides.pop("model")
         for flag, key in (
             ("model", "head"),
             ("trials", "trials"),
             ("seed", "seed"),
             ("device", "device"),
             ("video", "video_every"),
+            ("threads", "threads"),
         ):
             if getattr(args, flag) is None:
                 continue
@@ -154,9 +221,10 @@ def main(argv: list[str] | None = None) -> int:
                 env_name = envs.get(env_arg).name
             except ValueError as err:
                 _fail(str(err))
-            cfg = make_config(
-                env_name, args.model or from_file.get("head") or "delta", args.preset or "research", overrides
-            )
+            head = args.model or from_file.get("head") or "delta"
+            cfg = make_config(env_name, head, args.preset or "research", overrides)
+            for note in config_file_notes(args, from_file, env_name, head):
+                print(f"{PROG}: note: {note}", file=sys.stderr)
         if args.print_config:  # the resolved config, valid as a --config file; nothing is run or written
             print(config_yaml(cfg), end="")
             return 0
@@ -176,7 +244,7 @@ def main(argv: list[str] | None = None) -> int:
     if problem:
         advice = "copy the run somewhere writable and resume the copy" if args.resume else "pick another --out"
         _fail(f"{problem}; {advice}")
-    print(f"run directory: {run_dir}", file=sys.stderr)
+    print(start_line(run_dir, args, cfg), file=sys.stderr)
     try:
         rows = loop.run(cfg, Path(run_dir), resume=args.resume is not None, progress=not args.quiet)
     except (ConfigError, RenderingUnavailable) as err:  # the second: --video on a machine without headless GL
