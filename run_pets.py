@@ -152,6 +152,15 @@ def start_line(run_dir: Path, args: argparse.Namespace, cfg: DictConfig) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """The command (also the ``run-pets`` console script): a Ctrl-C before the run began is one line and 130 too."""
+    try:
+        return _main(argv)
+    except KeyboardInterrupt:
+        print(f"\n{PROG}: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+
+
+def _main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_intermixed_args(argv)
     with interrupts_deferred():  # Ctrl-C waits for the imports: a module half-imported breaks the run's next import
         import torch._dynamo  # noqa: F401  (the optimiser imports it when the run is built)

@@ -95,7 +95,13 @@ def interruptible(prog: str, kept: str) -> Callable[[Callable[..., int]], Callab
 def interrupts_deferred() -> Iterator[None]:
     """Hold a Ctrl-C that comes inside the block until the block ends, then raise KeyboardInterrupt: imports and
     setup are never cut half-way (a module left half-imported breaks the next import of it, e.g. with a
-    RecursionError, and libraries that catch too much can swallow the interrupt). Main thread only."""
+    RecursionError, and libraries that catch too much can swallow the interrupt). Outside the main thread, where
+    signals cannot be handled, it does nothing."""
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
     caught: list[int] = []
     previous = signal.signal(signal.SIGINT, lambda signum, frame: caught.append(signum))
     try:
