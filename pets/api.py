@@ -130,6 +130,11 @@ class PETS:
                         f"{path} already holds a run; save to another directory, or continue that run with "
                         f"pets.PETS.load({str(path)!r})"
                     )
+                if rundir.recorded_trials(path) > self.trials_done:  # resumed elsewhere since: newer than this
+                    raise ConfigError(
+                        f"{path} has gone on to {rundir.recorded_trials(path)} trials since this object saved or "
+                        f"loaded it ({self.trials_done}); save to another directory, or load it again"
+                    )
                 rundir.write_config(path, self.config)
                 rundir.save_checkpoint(path, self._run.state_dict())
                 rundir.write_metrics(path, self._run.rows)

@@ -90,6 +90,11 @@ def test_save_again_where_it_saved_or_was_loaded_from_is_allowed(tmp_path, train
     again = pets.PETS.load(run)
     again.save(run)
     assert pets.PETS.load(run).trials_done == 1
+    with one_thread():
+        again.learn(trials=1)
+    again.save(run)  # it went on: saved
+    with pytest.raises(ConfigError, match="has gone on to 2 trials since this object saved or loaded it"):
+        trained.save(run)  # the older object would undo that trial
 
 
 def test_load_refuses_a_checkpoint_with_nan_in_its_buffer_and_a_missing_checkpoint(tmp_path, trained):
