@@ -5,8 +5,11 @@ finishes in minutes, saying its preset and device; the research config is the de
 
 from __future__ import annotations
 
+import os
 import re
 import shlex
+import subprocess
+import sys
 
 import numpy as np
 
@@ -72,3 +75,18 @@ def test_the_readmes_python_block_runs_as_written(tmp_path, monkeypatch):
 def test_the_readmes_metrics_columns_are_the_files():
     listed = re.search(r"`metrics.csv`: one row per trial: `([^`]*)`", README).group(1)
     assert [c.strip() for c in listed.replace("\n", " ").split(",")] == rundir.METRIC_COLUMNS
+
+
+def test_pets_compare_takes_run_pets_spellings_env_model_seed_and_threads(tmp_path):
+    args = ["--env", "invertedpendulum", "--model", "delta", "--seed", "0", "--trials", "1", "threads=2"]
+    proc = subprocess.run(
+        [sys.executable, "-m", "pets.compare", "online", *args, "--out", str(tmp_path), "--quiet", *TINY[:-2]],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+    )
+    assert proc.returncode == 0, proc.stderr
+    config = (tmp_path / "runs" / "invertedpendulum-delta-s0" / "config.yaml").read_text()
+    assert "head: delta" in config and "threads: 2" in config
