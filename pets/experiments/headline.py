@@ -24,7 +24,6 @@ summary's, from rliable) and writes:
 
 from __future__ import annotations
 
-import csv
 import math
 import os
 from collections.abc import Mapping, Sequence
@@ -32,7 +31,7 @@ from pathlib import Path
 from typing import Any
 
 from pets.experiments.plots import plot_headline_ratios
-from pets.experiments.primary import primary_markdown, read_primary
+from pets.experiments.primary import primary_markdown, read_csv_rows, read_primary  # read_csv_rows: report's
 from pets.experiments.report import csv_number, disagreement_lines, fmt, fmt_interval, md_table, write_csv
 from pets.experiments.statistics import BASELINE, ci_exact_note, holm
 from pets.runs.fileio import atomic_write_bytes
@@ -100,20 +99,11 @@ class HeadlineError(ValueError):
     """A summary file that cannot give the headline (missing, of neither kind, or without delta)."""
 
 
-def csv_rows(path: Path) -> list[dict[str, str]]:
-    """The rows of a CSV file; HeadlineError (one line naming it) for a file that is not text (a binary file)."""
-    try:
-        with path.open(newline="") as f:
-            return list(csv.DictReader(f))
-    except (UnicodeDecodeError, csv.Error) as err:
-        raise HeadlineError(f"{path}: not a text CSV file ({type(err).__name__}: {str(err)[:80]})") from None
-
-
 def read_summary(path: Path) -> tuple[str, list[dict[str, str]]]:
     """(``"offline"`` or ``"online"``, rows) of a ``pets.compare`` summary.csv."""
     if not path.is_file():
         raise HeadlineError(f"{path}: no such file (give the summary.csv that pets.compare wrote)")
-    rows = csv_rows(path)
+    rows = read_csv_rows(path, HeadlineError)
     columns = set(rows[0]) if rows else set()
     if {"env", "model", "horizon", "metric", "ratio_to_delta"} <= columns:
         kind = "offline"
@@ -209,7 +199,7 @@ def planning_rows(path: Path, loop: str) -> list[dict[str, Any]]:
     ``"open"`` or ``"closed"``): its total reward against delta's with the paired difference."""
     if not path.is_file():
         raise HeadlineError(f"{path}: no such file (give the {loop}loop.csv that pets.compare offline wrote)")
-    rows = csv_rows(path)
+    rows = read_csv_rows(path, HeadlineError)
     if not rows or not _PLANNING_NEEDED <= set(rows[0]):
         raise HeadlineError(f"{path}: not a pets.compare {loop}loop.csv (needs {', '.join(sorted(_PLANNING_NEEDED))})")
     base = {(r["env"], r["planner"]): r for r in rows if r["model"] == BASELINE}
@@ -335,7 +325,7 @@ def relative_rows(path: Path, metric: str = "mean_step_error") -> dict[str, dict
     takes them (missing values None)."""
     if not path.is_file():
         raise HeadlineError(f"{path}: no such file (give the relative_error.csv that pets.compare offline wrote)")
-    rows = csv_rows(path)
+    rows = read_csv_rows(path, HeadlineError)
     if not rows or not {"env", "model", "metric", "relative", "ratio_to_delta"} <= set(rows[0]):
         raise HeadlineError(f"{path}: not a pets.compare relative_error.csv (env, model, metric, relative, ...)")
     out: dict[str, dict[str, dict[str, Any]]] = {}

@@ -19,7 +19,6 @@
 
 from __future__ import annotations
 
-import csv
 import math
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
@@ -27,6 +26,7 @@ from typing import Any
 
 import numpy as np
 
+from pets.experiments.report import read_csv_rows
 from pets.experiments.statistics import (
     BASELINE,
     REPS,
@@ -298,11 +298,7 @@ def read_primary(path: Path) -> list[dict[str, Any]]:
     (empty: None), as :func:`primary_markdown` takes them; ValueError (what is wrong) if it is not one."""
     if not path.is_file():
         raise ValueError(f"{path}: no such file (give a primary.csv of pets.compare offline or offline_primary.py)")
-    try:
-        with path.open(newline="") as f:
-            rows = list(csv.DictReader(f))
-    except (UnicodeDecodeError, csv.Error) as err:  # a binary file
-        raise ValueError(f"{path}: not a text CSV file ({type(err).__name__}: {str(err)[:80]})") from None
+    rows = read_csv_rows(path)  # ValueError for a binary file
     if not rows or not {"env", "model", "level", "tracking_horizons", "p_value_holm", "verdict"} <= set(rows[0]):
         raise ValueError(f"{path}: not a primary.csv (env, model, level, tracking_horizons, ..., verdict)")
     text = {"env", "model", "level_source", "tracking_horizons", "verdict", "ci_exact_note"}
