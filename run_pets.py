@@ -15,9 +15,20 @@ import argparse
 import sys
 import time
 from pathlib import Path
-from typing import NoReturn
+from typing import TYPE_CHECKING, Any, NoReturn
 
-from pets.tools.cli import EXIT_FAILED, EXIT_INTERRUPTED, OneLineParser, fail, write_failed
+from pets.tools.cli import (
+    EXIT_FAILED,
+    EXIT_INTERRUPTED,
+    OneLineParser,
+    fail,
+    interrupts_deferred,
+    run_command,
+    write_failed,
+)
+
+if TYPE_CHECKING:
+    from omegaconf import DictConfig
 
 PROG = "run_pets.py"
 
@@ -38,15 +49,18 @@ def build_parser() -> argparse.ArgumentParser:
         "a full disk; completed trials are kept, --resume continues); 130 interrupted.",
     )
     p.add_argument("--model", choices=HEADS, help="dynamics model (default: delta); see docs/models.md")
-    p.add_argument("--env", help="environment: one of the catalogue names or a gymnasium id")
+    p.add_argument(
+        "--env",
+        help="environment: a catalogue name, a gymnasium id, or your own as package.module:ATTR (docs/api.md)",
+    )
     p.add_argument("--trials", type=int, help="number of trials (episodes)")
     p.add_argument("--seed", type=int, help="seed for every random source")
     p.add_argument("--device", choices=("cpu", "cuda", "auto"), help="where the model and planner run")
     p.add_argument(
         "--preset",
         choices=tuple(PRESETS),
-        default="research",
-        help="research (default), fast (CPU) or locomotion (a 100k env-step budget; docs/studies/locomotion_gate.md)",
+        help="research (default), fast (CPU) or locomotion (a 100k env-step budget; docs/studies/locomotion_gate.md); "
+        "not with --resume",
     )
     p.add_argument("--out", type=Path, help="run directory (default: runs/ENV-MODEL-sSEED-TIME)")
     p.add_argument("--resume", type=Path, metavar="DIR", help="continue the run in DIR from its last trial")
@@ -63,30 +77,131 @@ def build_parser() -> argparse.ArgumentParser:
         help="a YAML file of config keys (any subset; --print-config writes one); flags and key=value win over it",
     )
     p.add_argument("--print-config", action="store_true", help="print the resolved config as YAML and exit")
+    p.add_argument("--threads", type=int, help="torch CPU threads (config key threads; 0: torch's default)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides")
     return p
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_intermixed_args(argv)
-    import envs
-    from envs.render import RenderingUnavailable
-    from pets import loop
-    from pets.config import ConfigError, config_yaml, load_config, make_config, overrides_with_file, parse_overrides
-    from pets.learning.trainer import TrainingDiverged
-    from pets.planning.planners import PlanningFailed
+def resume_settings(cfg: DictConfig, overrides: dict[str, str], run_dir: Path) -> None:
+    """Apply what a resume may change to the run's config (in place): ``--trials N`` (run longer; not fewer than the
+    trials done) and ``threads=N`` (CPU threads, which change no result); ConfigError (one line) for anything else."""
+    from pets.config import ConfigError, set_value
     from pets.runs import rundir
-    from pets.runs.fileio import DirectoryInUse, writable_dir_error
+
+    given = dict(overrides)
+    for key in rundir.RESUMABLE_KEYS:
+        if key in given:
+            set_value(cfg, key, given.pop(key))
+    if given:
+        raise ConfigError(
+            f"--resume changes only --trials and threads=N of the run's config, got {', '.join(sorted(given))}; "
+            "start a new run for other settings"
+        )
+    if cfg.trials < 1 or cfg.threads < 0:
+        raise ConfigError(f"--resume needs --trials >= 1 and threads >= 0, got {cfg.trials} and {cfg.threads}")
+    done = rundir.recorded_trials(run_dir)
+    if "trials" in overrides and cfg.trials < done:
+        raise ConfigError(
+            f"--trials {cfg.trials} is fewer than the {done} trials {run_dir} has done; a resume runs longer, "
+            f"never shorter: give --trials > {done}, or none to finish the run's own count"
+        )
+
+
+#: The one precedence rule of a new run's settings (README, "Command line"), later wins.
+PRECEDENCE = "env defaults < --preset < --config file < flags and key=value"
+
+
+def config_file_notes(args: argparse.Namespace, from_file: dict[str, Any], env: str, head: str) -> list[str]:
+    """What a ``--config`` file takes over from the other options, one line each (:data:`PRECEDENCE`): the values
+    of an explicit ``--preset`` that the file replaces, and the env the file was written for when ``--env`` names
+    another (its settings then apply to that env)."""
+    if args.config is None:
+        return []
+    from omegaconf import OmegaConf
+
+    from pets.config import flatten, make_config, read_config_file
+
+    in_file = read_config_file(args.config)
+    notes = []
+    if args.preset is not None:
+        preset = flatten(OmegaConf.to_container(make_config(env, head, args.preset)))
+        taken = sorted(k for k, v in in_file.items() if k in preset and preset[k] != v and k not in ("env", "head"))
+        if taken:
+            shown = ", ".join(taken[:3]) + (f" and {len(taken) - 3} more" if len(taken) > 3 else "")
+            notes.append(
+                f"--config {args.config} replaces {len(taken)} value(s) of --preset {args.preset} ({shown}): "
+                f"the file wins ({PRECEDENCE})"
+            )
+    written_for = from_file.get("env")
+    if args.env and written_for and str(written_for) != env:
+        notes.append(
+            f"--config {args.config} was written for env {written_for}; its {len(in_file)} settings are used "
+            f"with --env {args.env} ({PRECEDENCE})"
+        )
+    return notes
+
+
+def start_line(run_dir: Path, args: argparse.Namespace, cfg: DictConfig) -> str:
+    """The line a run starts with: its directory, preset and device (a research run on a CPU is told how long)."""
+    from pets.builder import resolve_device
+
+    device = resolve_device(cfg.device).type
+    if args.resume is not None:
+        return f"run directory: {run_dir} (resumed with its own config, on {device})"
+    preset = args.preset or "research"
+    hint = ""
+    if preset == "research" and device == "cpu":
+        hint = "; the PETS papers' planner, slow on a CPU: --preset fast is ~20x cheaper per step"
+    return f"run directory: {run_dir} (preset {preset} on {device}{hint})"
+
+
+def main(argv: list[str] | None = None) -> int:
+    """The command (also the ``run-pets`` console script): a Ctrl-C before the run began is one line and 130 too."""
+    try:
+        return _main(argv)
+    except KeyboardInterrupt:
+        print(f"\n{PROG}: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+
+
+def _main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_intermixed_args(argv)
+    with interrupts_deferred():  # Ctrl-C waits for the imports: a module half-imported breaks the run's next import
+        import torch._dynamo  # noqa: F401  (the optimiser imports it when the run is built)
+
+        import envs
+        from envs.render import RenderingUnavailable
+        from pets import loop
+        from pets.config import (
+            HEADS,
+            ConfigError,
+            config_yaml,
+            load_config,
+            make_config,
+            overrides_with_file,
+            parse_overrides,
+        )
+        from pets.learning.trainer import TrainingDiverged
+        from pets.planning.planners import PlanningFailed
+        from pets.runs import rundir
+        from pets.runs.fileio import DirectoryInUse, remove_if_unused, writable_dir_error
 
     try:
         overrides = parse_overrides(args.overrides)
+        if "model" in overrides:  # pets.compare's spelling, model=NAME, for --model NAME (model.* is the network)
+            if args.model is not None:
+                _fail(f"give the model once: --model {args.model} or model={overrides['model']}, not both")
+            if overrides["model"] not in HEADS:
+                _fail(f"model={overrides['model']}: accepted models: {', '.join(HEADS)} (model.* keys set the network)")
+            args.model = overrides.pop("model")
         for flag, key in (
             ("model", "head"),
             ("trials", "trials"),
             ("seed", "seed"),
             ("device", "device"),
             ("video", "video_every"),
+            ("threads", "threads"),
         ):
             if getattr(args, flag) is None:
                 continue
@@ -103,11 +218,14 @@ def main(argv: list[str] | None = None) -> int:
             path = args.resume / rundir.CONFIG_FILE
             if not path.exists():
                 _fail(f"{args.resume} is not a run directory (no {rundir.CONFIG_FILE})")
+            if args.preset is not None:
+                _fail(f"--resume DIR takes the run's own config; --preset {args.preset} is refused with it")
             cfg = load_config(str(path))
-            if "trials" in overrides:  # the only thing a resume may change: run longer
-                cfg.trials = int(overrides.pop("trials"))
-            if overrides:
-                _fail(f"--resume accepts only --trials besides the run directory, got {sorted(overrides)}")
+            resume_settings(cfg, overrides, args.resume)
+            try:  # your own env by its import path: importable from here?
+                envs.get(cfg.env)
+            except ValueError as err:
+                _fail(f"{err}; {args.resume} was started with it")
             run_dir = args.resume
         else:
             env_arg = args.env or from_file.get("env")
@@ -117,7 +235,10 @@ def main(argv: list[str] | None = None) -> int:
                 env_name = envs.get(env_arg).name
             except ValueError as err:
                 _fail(str(err))
-            cfg = make_config(env_name, args.model or from_file.get("head") or "delta", args.preset, overrides)
+            head = args.model or from_file.get("head") or "delta"
+            cfg = make_config(env_name, head, args.preset or "research", overrides)
+            for note in config_file_notes(args, from_file, env_name, head):
+                print(f"{PROG}: note: {note}", file=sys.stderr)
         if args.print_config:  # the resolved config, valid as a --config file; nothing is run or written
             print(config_yaml(cfg), end="")
             return 0
@@ -125,18 +246,23 @@ def main(argv: list[str] | None = None) -> int:
             from pets.builder import resolve_device
 
             resolve_device(cfg.device)  # a device this machine lacks: refused before the run directory is made
-            run_dir = args.out or Path("runs") / f"{env_name}-{cfg.head}-s{cfg.seed}-{time.strftime('%Y%m%d-%H%M%S')}"
+            run_dir = (
+                args.out
+                or Path("runs") / f"{envs.file_name(env_name)}-{cfg.head}-s{cfg.seed}-{time.strftime('%Y%m%d-%H%M%S')}"
+            )
             # a run directory that holds a run is refused by loop.run under the lock: "in use" while it runs
     except ConfigError as err:
         _fail(str(err))
+    created = not Path(run_dir).exists()
     problem = writable_dir_error(Path(run_dir))
     if problem:
         advice = "copy the run somewhere writable and resume the copy" if args.resume else "pick another --out"
         _fail(f"{problem}; {advice}")
-    print(f"run directory: {run_dir}", file=sys.stderr)
+    print(start_line(run_dir, args, cfg), file=sys.stderr)
     try:
         rows = loop.run(cfg, Path(run_dir), resume=args.resume is not None, progress=not args.quiet)
     except (ConfigError, RenderingUnavailable) as err:  # the second: --video on a machine without headless GL
+        remove_if_unused(Path(run_dir), created)
         _fail(str(err))
     except OSError as err:  # a write failed during the run (a full disk): the completed trials are kept
         if (Path(run_dir) / rundir.CONFIG_FILE).exists():
@@ -150,7 +276,11 @@ def main(argv: list[str] | None = None) -> int:
             kept = "no trial was completed"
         fail(PROG, f"{err}; {kept}", EXIT_FAILED)
     except KeyboardInterrupt:
-        print(f"\ninterrupted; continue with: python run_pets.py --resume {run_dir}", file=sys.stderr)
+        if not (Path(run_dir) / rundir.CONFIG_FILE).exists():  # before the run began: nothing to resume
+            remove_if_unused(Path(run_dir), created)
+            print(f"\n{PROG}: interrupted before the run began; nothing was written", file=sys.stderr)
+        else:
+            print(f"\ninterrupted; continue with: python run_pets.py --resume {run_dir}", file=sys.stderr)
         return EXIT_INTERRUPTED
     if rows:
         last = rows[-1]
@@ -162,4 +292,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run_command(PROG, main)

@@ -93,10 +93,20 @@ class DynamicsModel(nn.Module):
         the members or (M, B, in)); M is ``ensemble_size`` or ``len(members)``."""
         return self.network(x, members)
 
-    def _as_model_tensor(self, x: Any) -> Tensor:
-        """``x`` (numpy, torch or a nested list) as a tensor on the model's device and dtype."""
+    def _as_model_tensor(self, x: Any, what: str = "input") -> Tensor:
+        """``x`` (numpy, torch or a nested list of numbers) as a tensor on the model's device and dtype; ValueError
+        (one line) for anything that is not an array of numbers (a string, a ragged list, objects)."""
         ref = self.member_parameters()[0]
-        x = x if isinstance(x, (Tensor, np.ndarray)) else np.asarray(x)
+        if not isinstance(x, Tensor):
+            given = type(x).__name__
+            try:
+                x = np.asarray(x)
+            except ValueError as err:  # a ragged nested list
+                raise ValueError(f"{what} must be an array of numbers, got a ragged {given} ({err})") from None
+            if x.dtype.kind not in "biuf":
+                raise ValueError(f"{what} must be an array of numbers, got a {given} of {x.dtype} values")
+        elif x.is_complex():
+            raise ValueError(f"{what} must be an array of real numbers, got {x.dtype}")
         return torch.as_tensor(x, device=ref.device).to(ref.dtype)
 
     @torch.no_grad()
@@ -105,8 +115,10 @@ class DynamicsModel(nn.Module):
     ) -> np.ndarray | Tensor:
         """Next observations (..., obs_dim) of observations (..., obs_dim) and actions (..., act_dim), batched over
         any leading dims: numpy in, numpy out; torch in, torch out. ``mode`` as in :meth:`rollout`."""
-        actions = act[..., None, :] if isinstance(act, (Tensor, np.ndarray)) else np.asarray(act)[..., None, :]
-        return self.rollout(obs, actions, mode, generator)[..., 0, :]
+        act = act if isinstance(act, Tensor) else self._as_model_tensor(act, "actions").cpu().numpy()
+        if act.ndim == 0:
+            raise ValueError(f"expected actions (..., {self.act_dim}), got a single number")
+        return self.rollout(obs, act[..., None, :], mode, generator)[..., 0, :]
 
     #: Open-loop rollout modes of :meth:`rollout`.
     ROLLOUT_MODES = ("mean", "sample")
@@ -126,7 +138,7 @@ class DynamicsModel(nn.Module):
         if mode not in self.ROLLOUT_MODES:
             raise ValueError(f"mode must be one of {self.ROLLOUT_MODES}, got {mode!r}")
         numpy_in = not isinstance(obs0, Tensor)
-        obs0, actions = self._as_model_tensor(obs0), self._as_model_tensor(actions)
+        obs0, actions = self._as_model_tensor(obs0, "observations"), self._as_model_tensor(actions, "actions")
         if obs0.shape[-1] != self.obs_dim or actions.shape[-1] != self.act_dim or actions.dim() < 2:
             raise ValueError(
                 f"expected observations (..., {self.obs_dim}) and actions (..., H, {self.act_dim}), got "
@@ -134,6 +146,8 @@ class DynamicsModel(nn.Module):
             )
         if obs0.shape[:-1] != actions.shape[:-2]:
             raise ValueError(f"observations {tuple(obs0.shape)} and actions {tuple(actions.shape)}: batch dims differ")
+        if actions.shape[-2] == 0:
+            raise ValueError(f"actions {tuple(actions.shape)} have no steps: a rollout needs a horizon H >= 1")
         batch = obs0.shape[:-1]
         obs0, actions = obs0.reshape(-1, self.obs_dim), actions.reshape(-1, *actions.shape[-2:])
         out = self._rollout(obs0, actions, mode, generator).reshape(*batch, actions.shape[1], self.obs_dim)

@@ -15,7 +15,7 @@ from functools import cache
 from typing import Any
 
 from envs.catalogue import GYM_IDS, build
-from envs.custom import custom_spec, register, registered
+from envs.custom import custom_spec, file_name, register, registered
 from envs.layout import Group, ObsLayout
 from envs.render import select_gl_backend
 from envs.spec import AppendObservation, EnvSpec
@@ -28,6 +28,7 @@ __all__ = [
     "canonical_name",
     "register",
     "custom_spec",
+    "file_name",
     "EnvSpec",
     "ObsLayout",
     "Group",

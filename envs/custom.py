@@ -13,6 +13,9 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
+import os
+import re
+import sys
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -24,6 +27,8 @@ from envs.layout import ObsLayout
 from envs.spec import EnvSpec, RewardFn, gymnasium_make
 
 _REGISTRY: dict[str, EnvSpec] = {}
+#: The spec's own name of each import path in the registry (its name in file names: :func:`file_name`).
+_OWN_NAMES: dict[str, str] = {}
 
 
 def _never(obs: Tensor, act: Tensor, next_obs: Tensor) -> Tensor:
@@ -40,15 +45,21 @@ def custom_spec(
     env_kwargs: Mapping[str, Any] | None = None,
     params: Mapping[str, Any] | None = None,
     episode_length: int | None = None,
+    reward_differs: bool = False,
 ) -> EnvSpec:
     """An :class:`envs.EnvSpec` for the gymnasium env ``gym_id`` (built once here, to read its action bounds, time
-    step and episode length, and to check the layout and the functions on a real transition).
+    step and episode length, and to check the layout and the functions on real transitions).
 
     reward_fn, terminated_fn: batched ``(obs, act, next_obs) -> (...)`` torch functions (float reward, bool
-    termination; ``None``: never terminates), for any leading dims. ValueError (one line) for a layout that does not
-    cover the observation or functions of the wrong shape.
+    termination; ``None``: never terminates), for any leading dims. ValueError (one line) for a gym id gymnasium
+    cannot make, a layout that does not cover the observation, functions of the wrong shape (on a small, a large
+    and a 3-d batch) or that raise, and a reward that is not the env's on the real transitions (a layout with
+    entries swapped, a wrong formula): ``reward_differs=True`` accepts a reward that differs on purpose (shaped).
     """
-    env = gymnasium_make(gym_id, **dict(env_kwargs or {}))
+    try:
+        env = gymnasium_make(gym_id, **dict(env_kwargs or {}))
+    except Exception as err:  # gymnasium's NameNotFound, DeprecatedEnv, a constructor's TypeError, ...
+        raise ValueError(f"{name}: gymnasium cannot make {gym_id!r} ({type(err).__name__}: {_line(err)})") from None
     obs_space, act_space = env.observation_space, env.action_space
     if len(obs_space.shape) != 1 or len(act_space.shape) != 1:
         raise ValueError(f"{name}: only flat Box observations and actions are supported, got {obs_space}, {act_space}")
@@ -58,21 +69,12 @@ def custom_spec(
         )
     dt = float(getattr(env.unwrapped, "dt", 0.0) or 0.0)
     length = episode_length or (env.spec.max_episode_steps if env.spec and env.spec.max_episode_steps else 1000)
-    obs, _ = env.reset(seed=0)
-    act = act_space.sample()
-    nxt, *_ = env.step(act)
+    transitions = _real_transitions(env, act_space)
     env.close()
     terminated_fn = terminated_fn or _never
-    o, a, n = (torch.as_tensor(np.stack([x, x]), dtype=torch.float32) for x in (obs, act, nxt))
-    for what, fn, kind in (("reward_fn", reward_fn, "float"), ("terminated_fn", terminated_fn, "bool")):
-        out = fn(o, a, n)
-        if not isinstance(out, Tensor) or out.shape != (2,):
-            shape = tuple(out.shape) if isinstance(out, Tensor) else type(out).__name__
-            raise ValueError(
-                f"{name}: {what} must return a tensor of shape (batch,) for (batch, dim) inputs, got {shape}"
-            )
-        if kind == "bool" and out.dtype != torch.bool:
-            raise ValueError(f"{name}: terminated_fn must return a bool tensor, got {out.dtype}")
+    check_functions(name, reward_fn, terminated_fn, transitions)
+    if not reward_differs:
+        check_reward(name, gym_id, reward_fn, transitions)
     return EnvSpec(
         name=name,
         gym_id=gym_id,
@@ -90,6 +92,105 @@ def custom_spec(
     )
 
 
+#: Real transitions custom_spec steps to check a spec's functions (from reset seed 0, uniformly random actions).
+CHECK_STEPS = 5
+#: Batch sizes (leading dims) the functions are checked on: a small, a large (as the planner's particles x
+#: candidates) and a 3-d batch.
+CHECK_BATCHES = ((2,), (10_000,), (2, 3))
+
+
+def _line(err: BaseException) -> str:
+    """The first line of an error's message."""
+    text = str(err).strip()
+    return text.splitlines()[0] if text else "no message"
+
+
+def _real_transitions(env: Any, act_space: Any) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, float]]:
+    """:data:`CHECK_STEPS` real transitions ``(obs, act, next_obs, reward)`` of ``env`` (fewer if it ends)."""
+    act_space.seed(0)
+    obs, _ = env.reset(seed=0)
+    out = []
+    for _ in range(CHECK_STEPS):
+        act = act_space.sample()
+        nxt, reward, terminated, truncated, _ = env.step(act)
+        out.append((obs, act, nxt, float(reward)))
+        if terminated or truncated:
+            break
+        obs = nxt
+    return out
+
+
+def check_functions(name: str, reward_fn: RewardFn, terminated_fn: RewardFn, transitions: list[tuple]) -> None:
+    """ValueError (one line) for a reward or termination function that raises, or returns anything but a float
+    (reward) or bool (termination) tensor of the inputs' leading dims, on each batch of :data:`CHECK_BATCHES`."""
+    obs, act, nxt, _ = transitions[0]
+    for batch in CHECK_BATCHES:
+        o, a, n = (torch.as_tensor(x, dtype=torch.float32).expand(*batch, len(x)).contiguous() for x in (obs, act, nxt))
+        for what, fn, kind in (("reward_fn", reward_fn, "float"), ("terminated_fn", terminated_fn, "bool")):
+            try:
+                out = fn(o, a, n)
+            except Exception as err:
+                raise ValueError(
+                    f"{name}: {what} raised {type(err).__name__} on inputs of shape {tuple(o.shape)}: {_line(err)}"
+                ) from None
+            if not isinstance(out, Tensor) or out.shape != batch:
+                shape = tuple(out.shape) if isinstance(out, Tensor) else type(out).__name__
+                raise ValueError(
+                    f"{name}: {what} must return a tensor of shape (batch,) for (batch, dim) inputs (any leading "
+                    f"dims), got {shape} for inputs of shape {tuple(o.shape)}"
+                )
+            if kind == "bool" and out.dtype != torch.bool:
+                raise ValueError(f"{name}: terminated_fn must return a bool tensor, got {out.dtype}")
+            if kind == "float" and not out.is_floating_point():
+                raise ValueError(f"{name}: reward_fn must return a float tensor, got {out.dtype}")
+
+
+def check_reward(name: str, gym_id: str, reward_fn: RewardFn, transitions: list[tuple]) -> None:
+    """ValueError (one line) where ``reward_fn`` is not the env's reward on the real ``transitions`` (to 1e-3
+    relative and absolute, the observations being float32)."""
+    for step, (obs, act, nxt, want) in enumerate(transitions):
+        o, a, n = (torch.as_tensor(x, dtype=torch.float64)[None] for x in (obs, act, nxt))
+        got = float(reward_fn(o, a, n)[0])
+        if not abs(got - want) <= 1e-3 * (1.0 + abs(want)):
+            raise ValueError(
+                f"{name}: reward_fn gives {got:.6g} where {gym_id} gave {want:.6g} on a real transition (step {step} "
+                "from reset seed 0): check the layout (entries swapped?) and the formula, or pass "
+                "reward_differs=True for a reward that differs from the env's on purpose"
+            )
+
+
+def check_dims(spec: EnvSpec) -> None:
+    """ValueError (one line) where a spec's observation or action size is not its gymnasium env's (a hand-built
+    ``EnvSpec``; ``custom_spec`` reads them from the env)."""
+    try:
+        env = spec.make()
+    except Exception as err:
+        raise ValueError(
+            f"{spec.name}: gymnasium cannot make {spec.gym_id!r} ({type(err).__name__}: {_line(err)})"
+        ) from None
+    obs_shape, act_shape = env.observation_space.shape, env.action_space.shape
+    env.close()
+    if obs_shape != (spec.obs_dim,) or act_shape != (spec.act_dim,):
+        raise ValueError(
+            f"{spec.name}: the spec says obs_dim {spec.obs_dim} and act_dim {spec.act_dim}, {spec.gym_id} has "
+            f"observations {obs_shape} and actions {act_shape}; build it with envs.custom_spec, which reads them"
+        )
+
+
+def file_name(name: str) -> str:
+    """The name of env ``name`` in file and directory names: an import path ``module:ATTR`` (whose colon breaks
+    scp, rsync, Windows and TensorBoard's ``name:path``) by its spec's own name, other names as they are."""
+    if ":" not in name:
+        return name
+    if name not in _OWN_NAMES:
+        try:
+            registered(name)
+        except ValueError:  # not importable here: the attribute's name
+            pass
+    own = _OWN_NAMES.get(name) or name.partition(":")[2]
+    return re.sub(r"[^A-Za-z0-9._+-]", "-", own) or "env"
+
+
 def register(spec: EnvSpec) -> EnvSpec:
     """Make ``spec`` an env name (``spec.name``) in this process; returns it. A catalogue name cannot be taken."""
     from envs.catalogue import GYM_IDS
@@ -98,6 +199,7 @@ def register(spec: EnvSpec) -> EnvSpec:
         raise ValueError(f"register takes an envs.EnvSpec, got {type(spec).__name__}")
     if spec.name in GYM_IDS:
         raise ValueError(f"{spec.name!r} is a catalogue env; register yours under another name")
+    check_dims(spec)
     _REGISTRY[spec.name] = spec
     return spec
 
@@ -110,15 +212,47 @@ def registered(name: str) -> EnvSpec | None:
     if ":" not in name:
         return None
     module, _, attr = name.partition(":")
+    user_folder_importable()
     try:
         found: Any = getattr(importlib.import_module(module), attr)
-    except (ImportError, AttributeError) as err:
-        raise ValueError(f"--env {name}: cannot import {attr!r} from {module!r} ({err})") from None
-    spec = found() if isinstance(found, Callable) and not isinstance(found, EnvSpec) else found
-    if not isinstance(spec, EnvSpec):
+    except ModuleNotFoundError as err:
         raise ValueError(
-            f"--env {name}: {attr} is a {type(spec).__name__}, not an envs.EnvSpec (or a function of none)"
-        )
+            f"env {name}: cannot import {attr!r} from {module!r} ({err}); run the command from the folder that holds "
+            f"{module.split('.')[0]}.py (or put that folder on PYTHONPATH)"
+        ) from None
+    except (ImportError, AttributeError) as err:
+        raise ValueError(f"env {name}: cannot import {attr!r} from {module!r} ({_line(err)})") from None
+    except Exception as err:  # the module raised on import: a RuntimeError, a SyntaxError, a failed custom_spec
+        raise ValueError(f"env {name}: importing {module!r} failed ({type(err).__name__}: {_line(err)})") from None
+    if isinstance(found, Callable) and not isinstance(found, EnvSpec):
+        try:
+            spec = found()
+        except Exception as err:
+            raise ValueError(f"env {name}: {attr}() raised {type(err).__name__}: {_line(err)}") from None
+    else:
+        spec = found
+    if not isinstance(spec, EnvSpec):
+        raise ValueError(f"env {name}: {attr} is a {type(spec).__name__}, not an envs.EnvSpec (or a function of none)")
+    check_dims(spec)
+    _OWN_NAMES[name] = spec.name
     spec = dataclasses.replace(spec, name=name)  # the path is the name a run directory records
     _REGISTRY[name] = spec
     return spec
+
+
+def user_folder_importable() -> None:
+    """Put the current folder on ``sys.path`` (last) if it is not there, so that ``--env mymodule:SPEC`` imports
+    ``mymodule.py`` from where the user runs any command, as ``python -m`` would (``python run_pets.py`` and console
+    scripts put only their own folder there); child processes get it through :func:`child_environment`."""
+    cwd = os.getcwd()
+    if "" not in sys.path and cwd not in sys.path:
+        sys.path.append(cwd)
+
+
+def child_environment(env: Mapping[str, str] | None = None) -> dict[str, str]:
+    """``env`` (default: this process's environment) with the current folder added to PYTHONPATH, for a child
+    process that starts elsewhere (pets.compare's runs start in the repository) and imports the user's env."""
+    env = dict(os.environ if env is None else env)
+    parts = [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p]
+    env["PYTHONPATH"] = os.pathsep.join([*parts, os.getcwd()] if os.getcwd() not in parts else parts)
+    return env

@@ -50,7 +50,8 @@ class PETS:
             name = envs.get(env).name
         except ValueError as err:
             raise ConfigError(str(err)) from None
-        cfg = make_config(name, model, preset, {"seed": seed, "device": device, **overrides})
+        settings = {"seed": seed, "device": device, **overrides}
+        cfg = make_config(name, model, preset, {key: plain_value(value) for key, value in settings.items()})
         self._start(cfg, progress)
 
     def _start(self, cfg: Any, progress: bool) -> None:
@@ -60,6 +61,8 @@ class PETS:
         resolve_device(cfg.device)
         self._run = PETSRun(cfg)
         self.progress = progress
+        #: The run directories this object was loaded from or saved to: ``save`` may write there again.
+        self._dirs: set[Path] = set()
 
     # ------------------------------------------------------------------ what it holds
     @property
@@ -86,8 +89,12 @@ class PETS:
         """Run ``trials`` more trials (default: up to the config's ``trials``), each one real episode with the MPC
         agent followed by training on all data; the first is preceded by ``seed_steps`` random steps.
         ``callback(row)`` gets every trial's row; returning ``False`` stops. Returns ``self``."""
+        if isinstance(trials, np.integer):
+            trials = int(trials)
         if trials is not None and (isinstance(trials, bool) or not isinstance(trials, int) or trials < 1):
             raise ValueError(f"trials must be a positive int or None, got {trials!r}")
+        if callback is not None and not callable(callback):
+            raise ValueError(f"callback must be a function of a trial's row (or None), got {type(callback).__name__}")
         target = self.config.trials if trials is None else self._run.trials_done + trials
         while self._run.trials_done < target:
             row = self._run.run_trial(progress=self.progress)
@@ -106,14 +113,36 @@ class PETS:
 
     # ------------------------------------------------------------------ persistence
     def save(self, path: str | Path) -> Path:
-        """Write the run directory (config.yaml, checkpoint.pt, metrics.csv) to ``path``; returns it."""
+        """Write the run directory (config.yaml, checkpoint.pt, metrics.csv) to ``path``; returns it.
+
+        As ``run_pets.py``, it never writes over another run: ``path`` must be new (or hold no run), or the directory
+        this object was loaded from or saved to before. ConfigError (one line) for a directory that holds another
+        run; ``DirectoryInUse`` while a command runs in it (its lock is taken for the write)."""
         import pets.runs.rundir as rundir
+        from pets.config import ConfigError
+        from pets.runs.fileio import DirectoryInUse, locked
 
         path = Path(path)
-        path.mkdir(parents=True, exist_ok=True)
-        rundir.write_config(path, self.config)
-        rundir.save_checkpoint(path, self._run.state_dict())
-        rundir.write_metrics(path, self._run.rows)
+        try:
+            with locked(path):
+                if (path / rundir.CONFIG_FILE).exists() and path.resolve() not in self._dirs:
+                    raise ConfigError(
+                        f"{path} already holds a run; save to another directory, or continue that run with "
+                        f"pets.PETS.load({str(path)!r})"
+                    )
+                if rundir.recorded_trials(path) > self.trials_done:  # resumed elsewhere since: newer than this
+                    raise ConfigError(
+                        f"{path} has gone on to {rundir.recorded_trials(path)} trials since this object saved or "
+                        f"loaded it ({self.trials_done}); save to another directory, or load it again"
+                    )
+                rundir.write_config(path, self.config)
+                rundir.save_checkpoint(path, self._run.state_dict())
+                rundir.write_metrics(path, self._run.rows)
+        except DirectoryInUse as err:
+            raise DirectoryInUse(
+                f"{err}; nothing was saved: save to another directory, or when it has finished"
+            ) from None
+        self._dirs.add(path.resolve())
         return path
 
     @classmethod
@@ -134,12 +163,32 @@ class PETS:
             if "offline" in state:
                 raise ConfigError(f"{path} is an offline training run (pets.train); use pets.load_model for its model")
             rundir.check_resumed_config(path, state, cfg)
-            obj._run.load_state_dict(state)
+            try:
+                obj._run.load_state_dict(state)
+            except (KeyError, TypeError) as err:  # a readable file that is not a whole run's state
+                raise ConfigError(
+                    f"{path / rundir.CHECKPOINT_FILE} is not a complete run checkpoint (missing {err}); "
+                    "restore it from a copy"
+                ) from None
+            rundir.check_finite_buffer(path, obj._run.buffer.state_dict())  # as run_pets.py --resume refuses it
+        elif rundir.recorded_trials(path):
+            raise ConfigError(rundir.missing_checkpoint_message(path))
+        obj._dirs.add(path.resolve())
         return obj
 
     def __repr__(self) -> str:
         c = self.config
         return f"PETS(env={c.env!r}, model={c.head!r}, trials_done={self.trials_done}, seed={c.seed})"
+
+
+def plain_value(value: Any) -> Any:
+    """``value`` with numpy scalars and arrays as the Python numbers and lists they hold (``np.int64(50)`` is 50,
+    as computed settings often are); anything else unchanged (the config checks its type)."""
+    if isinstance(value, np.generic | np.ndarray):
+        return value.tolist()
+    if isinstance(value, list | tuple):
+        return [plain_value(v) for v in value]
+    return value
 
 
 def load_model(path: str | Path, device: str = "cpu") -> DynamicsModel:

@@ -33,6 +33,17 @@ def resolve_device(name: str) -> torch.device:
     return torch.device(name)
 
 
+def check_memory(cfg: DictConfig, spec: EnvSpec, steps: int | None = None) -> None:
+    """ConfigError (one line) where the config's estimated memory exceeds what this machine can still allocate
+    (:func:`pets.limits.memory_problem`), before anything is allocated."""
+    from pets.limits import memory_problem
+
+    device = str(resolve_device(cfg.device))
+    problem = memory_problem(cfg, spec.obs_dim, spec.act_dim, spec.episode_length, device, steps)
+    if problem:
+        raise ConfigError(problem)
+
+
 def warn_if_emulated(key: str, precision: str, device: str | torch.device) -> None:
     """RuntimeWarning where ``precision`` is bf16 on a CPU without native bf16 (emulated there, ~35x slower)."""
     message = emulated_bf16_warning(key, precision, str(device))

@@ -2,11 +2,19 @@
 
 from __future__ import annotations
 
-import sys
-
-from pets.experiments.cli import main
-
 __all__ = ["main"]
 
+
+def main(argv: list[str] | None = None) -> int:
+    """pets.experiments.cli's main (imported here on first use)."""
+    from pets.tools.cli import interrupts_deferred
+
+    with interrupts_deferred():  # never a module half-imported
+        from pets.experiments.cli import main as compare
+    return compare(argv)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    from pets.tools.cli import run_command
+
+    run_command("pets.compare", main)

@@ -24,6 +24,7 @@ from omegaconf import DictConfig, OmegaConf
 from dynamics.networks import ACTIVATIONS
 from gem_head.head import COMPOSE_MODES, LOSSES
 from pets.errors import ConfigError
+from pets.limits import schedule_problem, size_problem
 from pets.models import MODELS, check_root
 from pets.planning.feedback import FeedbackConfig, check_feedback
 from pets.planning.planners import PLANNER_CLASSES, ICEMConfig, MPPIConfig
@@ -125,12 +126,8 @@ class Config:
     # None: always `trials` trials. pets.compare online --until-threshold sets it per env.
     stop_reward: float | None = None
     train_every: int = 0  # 0: train after every trial; N > 0: also every N env steps
-    # false (with train_every=N): train only every N env steps, across episode ends (a schedule set by env steps,
-    # not by episodes: a body that falls after 20 steps is not retrained every 20 steps); true: also after a trial
-    train_after_trial: bool = True
-    # The run's budget of env steps, the seed data included: the loop stops there and the last episode is cut at
-    # it; None: `trials` trials only (the preset that sets it sets `trials` as a mere upper bound)
-    max_env_steps: int | None = None
+    train_after_trial: bool = True  # false (with train_every=N): train only every N env steps, across episodes
+    max_env_steps: int | None = None  # the run's env-step budget, seed data included; the last episode is cut at it
     video_every: int = 0  # N > 0: an MP4 of the real episode of every N-th trial (RUN/videos/trial-NNNN.mp4); 0: none
     tensorboard: bool = True  # TensorBoard event files in the run directory (when the tensorboard package is there)
     model: ModelConfig = field(default_factory=ModelConfig)
@@ -206,7 +203,7 @@ def read_config_file(path: str | Path) -> dict[str, Any]:
     path = Path(path)
     try:
         data = yaml.safe_load(path.read_text())
-    except (OSError, yaml.YAMLError) as err:
+    except (OSError, yaml.YAMLError, UnicodeDecodeError) as err:  # the last: a binary file
         raise ConfigError(f"--config {path}: not a readable YAML file ({str(err).splitlines()[0]})") from None
     if data is None:
         return {}
@@ -328,9 +325,8 @@ def _merge_nested(cfg: DictConfig, values: dict[str, Any], prefix: str = "") -> 
 
 def validate(cfg: DictConfig) -> None:
     """Range and choice checks that the types alone do not express."""
-    for key in _POSITIVE_INTS:
-        if OmegaConf.select(cfg, key) < 1:
-            raise ConfigError(f"{key} must be >= 1, got {OmegaConf.select(cfg, key)}")
+    if problem := size_problem(cfg, _POSITIVE_INTS):  # >= 1, and at most pets.limits.SIZE_BOUNDS
+        raise ConfigError(problem)
     for key, choices in _CHOICES.items():
         if OmegaConf.select(cfg, key) not in choices:
             raise ConfigError(f"{key} must be one of {', '.join(choices)}, got {OmegaConf.select(cfg, key)!r}")
@@ -352,8 +348,6 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError(f"model.curve_every must be >= 0 (0: no learning curve), got {cfg.model.curve_every}")
     if cfg.threads < 0:
         raise ConfigError(f"threads must be >= 0 (0: torch default), got {cfg.threads}")
-    if cfg.seed < 0 or cfg.seed_steps < 0 or cfg.train_every < 0:
-        raise ConfigError("seed, seed_steps and train_every must be >= 0")
     if cfg.video_every < 0:
         raise ConfigError(f"video_every must be >= 0 (0: no videos; N: every N-th trial), got {cfg.video_every}")
     try:  # the checks of the model table and the planner table, each in its owner
@@ -372,16 +366,8 @@ def validate(cfg: DictConfig) -> None:
             raise ConfigError(str(err)) from None
     if not 0 < cfg.value.discount < 1:
         raise ConfigError(f"value.discount must be in (0, 1), got {cfg.value.discount}")
-    if cfg.episode_length is not None and cfg.episode_length < 1:
-        raise ConfigError(f"episode_length must be >= 1 or null, got {cfg.episode_length}")
-    if cfg.stop_reward is not None and not math.isfinite(cfg.stop_reward):
-        raise ConfigError(f"stop_reward must be a finite number or null, got {cfg.stop_reward}")
-    if not cfg.train_after_trial and cfg.train_every < 1:
-        raise ConfigError("train_after_trial=false needs train_every=N > 0 (train every N env steps), got 0")
-    if cfg.max_env_steps is not None and cfg.max_env_steps <= cfg.seed_steps:
-        raise ConfigError(
-            f"max_env_steps must be null or more than seed_steps ({cfg.seed_steps}), got {cfg.max_env_steps}"
-        )
+    if problem := schedule_problem(cfg):  # the run's length and when it trains
+        raise ConfigError(problem)
 
 
 def _check_planner(cfg: DictConfig) -> None:

@@ -87,6 +87,7 @@ class PETSRun:
         self.cfg = cfg
         self.spec = envs.get(cfg.env)
         self.device = builder.resolve_device(cfg.device)
+        builder.check_memory(cfg, self.spec)  # a config this machine cannot hold: one line, before any allocation
         if cfg.threads:
             torch.set_num_threads(cfg.threads)
         seed_everything(cfg.seed)
@@ -317,6 +318,8 @@ def _run_locked(cfg: DictConfig, run_dir: Path, resume: bool, progress: bool) ->
                     "restore it from a copy, or delete it to start the run over"
                 ) from None
             rundir.check_finite_buffer(run_dir, pets_run.buffer.state_dict())
+        elif rundir.recorded_trials(run_dir):
+            raise ConfigError(rundir.missing_checkpoint_message(run_dir))
         rundir.write_metrics(run_dir, pets_run.rows)  # the checkpoint is the source of truth for the rows
         if pets_run.rows:  # a run killed right after its checkpoint, or resumed when finished, gets its plot
             rundir.plot_rewards(run_dir, pets_run.rows, title)

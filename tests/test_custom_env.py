@@ -70,7 +70,7 @@ def test_pets_compare_offline_takes_the_import_path(tmp_path):
         overrides=["model.hidden_size=32", "model.max_epochs=3"],
         progress=False,
     )
-    assert not result["failed"] and set(result["done"]) == {f"{PATH}-delta-s0", f"{PATH}-gem-s0"}
+    assert not result["failed"] and set(result["done"]) == {"pendulum-delta-s0", "pendulum-gem-s0"}  # no colon
 
 
 def test_a_registered_spec_through_the_python_api():

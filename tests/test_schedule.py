@@ -58,7 +58,7 @@ def test_training_every_n_env_steps_crosses_episodes_and_skips_trials_in_between
     "overrides, says",
     [
         (["train_after_trial=false"], "train_after_trial=false needs train_every"),
-        (["max_env_steps=100"], "max_env_steps must be null or more than seed_steps (100)"),
+        (["max_env_steps=100"], "max_env_steps must be null or above seed_steps (100)"),
     ],
 )
 def test_a_schedule_that_cannot_run_is_one_line_exit_2(tmp_path, overrides, says):

@@ -42,7 +42,25 @@ def parse_envs(text: str) -> list[str]:
             out.append(envs.canonical_name(name))
         except ValueError as err:
             raise UsageError(str(err)) from None
-    return list(dict.fromkeys(out))
+    out = list(dict.fromkeys(out))
+    _check_stems(out)
+    return out
+
+
+def _check_stems(names: list[str]) -> None:
+    """UsageError where two envs would share file and directory names (two import paths whose specs have one name,
+    or a spec named as a catalogue env): their runs would take each other's directories."""
+    from envs import file_name
+
+    seen: dict[str, str] = {}
+    for name in names:
+        stem = file_name(name)
+        if stem in seen:
+            raise UsageError(
+                f"--envs {seen[stem]} and {name} both go by the name {stem!r} in run directories and files; give "
+                "your specs names of their own"
+            )
+        seen[stem] = name
 
 
 def _parse_choices(text: str, what: str, accepted: tuple[str, ...]) -> list[str]:

@@ -200,6 +200,16 @@ def _parse(parser: OneLineParser, argv: Sequence[str] | None) -> argparse.Namesp
         parser.error(f"unrecognized arguments: {' '.join(stray)}")
     if extra:
         args.overrides = [*args.overrides, *extra]
+    given = [a for a in getattr(args, "overrides", []) if a.partition("=")[0].strip() == "threads"]
+    if given and hasattr(args, "threads"):  # run_pets.py's spelling, threads=N, for --threads N
+        line = list(sys.argv[1:] if argv is None else argv)
+        value = given[-1].partition("=")[2].strip()
+        if any(a == "--threads" or a.startswith("--threads=") for a in line) or len(given) > 1:
+            parser.error(f"give the threads once: --threads N or threads=N, not both, got {' '.join(given)}")
+        if not value.isdigit() or int(value) < 1:
+            parser.error(f"threads must be a positive int (CPU threads per run), got {value!r}")
+        args.threads = int(value)
+        args.overrides = [a for a in args.overrides if a not in given]
     return args
 
 

@@ -24,7 +24,6 @@ summary's, from rliable) and writes:
 
 from __future__ import annotations
 
-import csv
 import math
 import os
 from collections.abc import Mapping, Sequence
@@ -33,7 +32,7 @@ from typing import Any
 
 from pets.experiments.offline_statistics import N_PAIRS, NOTE, P_EXACT, P_LOWER, RATIO
 from pets.experiments.plots import plot_headline_ratios
-from pets.experiments.primary import primary_markdown, read_primary
+from pets.experiments.primary import primary_markdown, read_csv_rows, read_primary  # read_csv_rows: report's
 from pets.experiments.report import csv_number, disagreement_lines, fmt, fmt_interval, md_table, write_csv
 from pets.experiments.statistics import BASELINE, ci_exact_note, holm
 from pets.experiments.studies.base import headline_columns, headline_row, headline_table
@@ -64,8 +63,7 @@ def read_summary(path: Path) -> tuple[str, list[dict[str, str]]]:
     """(``"offline"`` or ``"online"``, rows) of a ``pets.compare`` summary.csv."""
     if not path.is_file():
         raise HeadlineError(f"{path}: no such file (give the summary.csv that pets.compare wrote)")
-    with path.open(newline="") as f:
-        rows = list(csv.DictReader(f))
+    rows = read_csv_rows(path, HeadlineError)
     columns = set(rows[0]) if rows else set()
     if {"env", "model", "horizon", "metric", "ratio_to_delta"} <= columns:
         kind = "offline"
@@ -141,8 +139,7 @@ def planning_rows(path: Path, loop: str) -> list[dict[str, Any]]:
     ``"open"`` or ``"closed"``): its total reward against delta's with the paired difference."""
     if not path.is_file():
         raise HeadlineError(f"{path}: no such file (give the {loop}loop.csv that pets.compare offline wrote)")
-    with path.open(newline="") as f:
-        rows = list(csv.DictReader(f))
+    rows = read_csv_rows(path, HeadlineError)
     if not rows or not _PLANNING_NEEDED <= set(rows[0]):
         raise HeadlineError(f"{path}: not a pets.compare {loop}loop.csv (needs {', '.join(sorted(_PLANNING_NEEDED))})")
     base = {(r["env"], r["planner"]): r for r in rows if r["model"] == BASELINE}
@@ -245,8 +242,7 @@ def relative_rows(path: Path, metric: str = "mean_step_error") -> dict[str, dict
     takes them (missing values None)."""
     if not path.is_file():
         raise HeadlineError(f"{path}: no such file (give the relative_error.csv that pets.compare offline wrote)")
-    with path.open(newline="") as f:
-        rows = list(csv.DictReader(f))
+    rows = read_csv_rows(path, HeadlineError)
     if not rows or not {"env", "model", "metric", "relative", "ratio_to_delta"} <= set(rows[0]):
         raise HeadlineError(f"{path}: not a pets.compare relative_error.csv (env, model, metric, relative, ...)")
     out: dict[str, dict[str, dict[str, Any]]] = {}

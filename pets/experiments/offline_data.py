@@ -27,7 +27,9 @@ EXISTING = "existing"
 def data_paths(data_dir: Path, env: str, data_seed: int = 0) -> tuple[Path, Path]:
     """The training and test files of one data set: ``ENV-{train,test}.npz`` (data set 0), else
     ``ENV-dD-{train,test}.npz``."""
-    stem = f"{env}-d{data_seed}" if data_seed else env
+    from pets.experiments.rundirs import env_stem
+
+    stem = f"{env_stem(env)}-d{data_seed}" if data_seed else env_stem(env)
     return data_dir / f"{stem}-train.npz", data_dir / f"{stem}-test.npz"
 
 

@@ -87,7 +87,7 @@ from pets.experiments.primary import (
     tracking_horizons,
 )
 from pets.experiments.report import write_csv
-from pets.experiments.rundirs import json_matches, precision_note, run_name
+from pets.experiments.rundirs import env_stem, json_matches, precision_note, run_name
 from pets.experiments.statistics import BASELINE, REPS, divergences
 from pets.runs.fileio import atomic_write_bytes
 
@@ -320,7 +320,7 @@ def _plot_absolute(
 ) -> None:
     """Fig. 3 of one env: absolute_error_ENV.png."""
     plot_absolute(
-        out / f"absolute_error_{env}.png",
+        out / f"absolute_error_{env_stem(env)}.png",
         env,
         {
             m: {

@@ -9,6 +9,7 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 from pets.experiments.report import fmt_interval, md_table
+from pets.experiments.rundirs import env_stem
 from pets.experiments.statistics import BASELINE, MIN_SEEDS, SMALL_SAMPLE_NOTE
 
 #: Metrics that get a table in prediction.md (rotation_error only where the env has rotations).
@@ -115,7 +116,7 @@ def env_section(
     for metric in TABLE_METRICS:
         if metric in metrics and (metric != "rotation_error" or has_rotations(runs)):
             text += _metric_tables(metric, models, stats, common)
-    return text + [f"![absolute error](absolute_error_{env}.png)", ""]
+    return text + [f"![absolute error](absolute_error_{env_stem(env)}.png)", ""]
 
 
 def fig2_section(fig2: Mapping[str, Mapping[str, Mapping[str, Any]]], has_ratio: bool) -> list[str]:

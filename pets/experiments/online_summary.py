@@ -37,7 +37,7 @@ from typing import Any
 from pets.experiments.online_runs import THRESHOLD_KEYS, THRESHOLDS, online_rows, online_run_stats
 from pets.experiments.plots import arm_colors, model_colors, plot_online
 from pets.experiments.report import disagreement_lines, md_table, write_csv
-from pets.experiments.rundirs import arm_label, online_arms, precision_note, run_name
+from pets.experiments.rundirs import arm_label, env_stem, online_arms, precision_note, run_name
 from pets.experiments.statistics import (
     BASELINE,
     MIN_SEEDS,
@@ -174,8 +174,10 @@ def _plot_env(
     """rewards_ENV.png and walltime_ENV.png: reward vs env steps and vs wall-clock hours per arm."""
     colors = model_colors(list(curves)) if planners is None else arm_colors(list(curves))
     n_div = {label: stats[label]["n_diverged"] for label in curves}
-    plot_online(out / f"rewards_{env}.png", env, curves, colors, diverged=n_div, reps=reps)
-    plot_online(out / f"walltime_{env}.png", env, curves, colors, x_key="wall_time_s", diverged=n_div, reps=reps)
+    plot_online(out / f"rewards_{env_stem(env)}.png", env, curves, colors, diverged=n_div, reps=reps)
+    plot_online(
+        out / f"walltime_{env_stem(env)}.png", env, curves, colors, x_key="wall_time_s", diverged=n_div, reps=reps
+    )
 
 
 def _header(trials: int, w: int, compared: bool, with_planner: bool, until_threshold: bool) -> list[str]:
@@ -250,6 +252,6 @@ def _env_section(
         md_table(header, table),
         "",
         *disagreement_lines(rows),
-        f"![rewards](rewards_{env}.png) ![wall-clock](walltime_{env}.png)",
+        f"![rewards](rewards_{env_stem(env)}.png) ![wall-clock](walltime_{env_stem(env)}.png)",
         "",
     ]

@@ -21,7 +21,7 @@ import numpy as np
 
 from pets.experiments.plots import model_colors, plot_openloop
 from pets.experiments.report import BOOT_SEED, disagreement_lines, fmt_ci, md_table, write_csv
-from pets.experiments.rundirs import json_matches, run_name
+from pets.experiments.rundirs import env_stem, json_matches, run_name
 from pets.experiments.statistics import BASELINE, ci_exact_note, sign_flip_p
 from pets.runs.fileio import atomic_write_bytes
 from pets.stats.bootstrap import bootstrap_ci, summarise
@@ -145,8 +145,8 @@ def summarise_openloop(
             continue
         headers = ["planner", "model", "seeds", "reward per step", "total reward", f"total - {BASELINE} (paired)"]
         notes = disagreement_lines([r for r in rows if r["env"] == env])
-        text += [f"## {env}", "", md_table(headers, table), "", *notes, f"![{kind}]({kind}_{env}.png)", ""]
-        plot_openloop(out / f"{kind}_{env}.png", env, panels, colors, kind.replace("loop", "-loop"))
+        text += [f"## {env}", "", md_table(headers, table), "", *notes, f"![{kind}]({kind}_{env_stem(env)}.png)", ""]
+        plot_openloop(out / f"{kind}_{env_stem(env)}.png", env, panels, colors, kind.replace("loop", "-loop"))
     write_csv(out / f"{kind}.csv", rows, COLUMNS)
     atomic_write_bytes(out / f"{kind}.md", "\n".join(text).encode())
     return rows

@@ -19,7 +19,6 @@
 
 from __future__ import annotations
 
-import csv
 import math
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
@@ -27,6 +26,7 @@ from typing import Any
 
 import numpy as np
 
+from pets.experiments.report import read_csv_rows
 from pets.experiments.statistics import (
     BASELINE,
     REPS,
@@ -105,7 +105,9 @@ def no_information_level(train: Mapping[str, np.ndarray], test: Mapping[str, np.
 def env_level(data_dir: Path, env: str) -> tuple[float, str]:
     """``(level, source)`` of an env: :func:`no_information_level` of ``DATA_DIR/ENV-train.npz`` and
     ``ENV-test.npz`` where both exist, else :data:`DEFAULT_LEVEL`."""
-    train, test = Path(data_dir) / f"{env}-train.npz", Path(data_dir) / f"{env}-test.npz"
+    from pets.experiments.offline_data import data_paths
+
+    train, test = data_paths(Path(data_dir), env)
     if not (train.is_file() and test.is_file()):
         return DEFAULT_LEVEL, DEFAULT_SOURCE
     import envs
@@ -319,8 +321,7 @@ def read_primary(path: Path) -> list[dict[str, Any]]:
     (empty: None), as :func:`primary_markdown` takes them; ValueError (what is wrong) if it is not one."""
     if not path.is_file():
         raise ValueError(f"{path}: no such file (give a primary.csv of pets.compare offline or offline_primary.py)")
-    with path.open(newline="") as f:
-        rows = list(csv.DictReader(f))
+    rows = read_csv_rows(path)  # ValueError for a binary file
     if not rows or not {"env", "model", "level", "tracking_horizons", "p_value_holm", "verdict"} <= set(rows[0]):
         raise ValueError(f"{path}: not a primary.csv (env, model, level, tracking_horizons, ..., verdict)")
     text = {"env", "model", "level_source", "tracking_horizons", "verdict", "ci_exact_note"}

@@ -73,3 +73,12 @@ def md_table(header: Sequence[str], rows: Iterable[Sequence[str]]) -> str:
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     lines += ["| " + " | ".join(r) + " |" for r in rows]
     return "\n".join(lines)
+
+
+def read_csv_rows(path: Path, error: type[Exception] = ValueError) -> list[dict[str, str]]:
+    """The rows of a CSV file; ``error`` (one line naming the file) for a file that is not text (a binary file)."""
+    try:
+        with Path(path).open(newline="") as f:
+            return list(csv.DictReader(f))
+    except (UnicodeDecodeError, csv.Error) as err:
+        raise error(f"{path}: not a text CSV file ({type(err).__name__}: {str(err)[:80]})") from None

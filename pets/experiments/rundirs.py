@@ -22,10 +22,21 @@ def check_out_writable(out: Path) -> None:
         raise UsageError(f"--out: {problem}; pick another --out")
 
 
+def env_stem(env: str) -> str:
+    """An env's name in file and directory names: an import path ``module:ATTR`` by its spec's name (a colon breaks
+    scp, rsync, Windows and TensorBoard; ``envs.file_name``), a catalogue name as it is."""
+    if ":" not in env:
+        return env
+    from envs import file_name
+
+    return file_name(env)
+
+
 def run_name(env: str, model: str, seed: int, planner: str | None = None, data_seed: int = 0) -> str:
     """The run directory's name: ``ENV-MODEL-sSEED``, ``ENV-MODEL-PLANNER-sSEED`` when planners are compared, and
     ``ENV-MODEL-dDATA-sSEED`` for offline runs on data set DATA > 0 (data set 0 keeps the plain name)."""
     data = f"-d{data_seed}" if data_seed else ""
+    env = env_stem(env)
     return f"{env}-{model}{data}-s{seed}" if planner is None else f"{env}-{model}-{planner}{data}-s{seed}"
 
 

@@ -138,7 +138,10 @@ def _die_with_parent() -> None:  # pragma: no cover - runs in the child or pool 
 
 
 def run_logged(command: Sequence[str], log: Path, threads: int = 1) -> int:
-    """Run ``command`` with ``threads`` CPU threads, appending its output to ``log``; raise if it fails."""
+    """Run ``command`` with ``threads`` CPU threads, appending its output to ``log``; raise if it fails. It starts in
+    the repository with the current folder on PYTHONPATH (a user's env ``--envs mymodule:SPEC`` imports there)."""
+    from envs.custom import child_environment
+
     log.parent.mkdir(parents=True, exist_ok=True)
     with open(log, "a") as f:
         with _children_lock:  # registered before an interrupt can miss it; none starts (nor is logged) after one
@@ -152,7 +155,7 @@ def run_logged(command: Sequence[str], log: Path, threads: int = 1) -> int:
                 stdout=f,
                 stderr=subprocess.STDOUT,
                 cwd=ROOT,
-                env={**os.environ, **thread_env(threads)},
+                env=child_environment({**os.environ, **thread_env(threads)}),  # your env imports from your folder
                 preexec_fn=_die_with_parent if sys.platform == "linux" else None,
             )
             _children.add(proc)

@@ -241,7 +241,8 @@ def _run_state(
 
 def _write_run(out: Path, state: dict[str, Any], row: dict[str, Any], cfg: Any, curve: list[tuple]) -> None:
     """Write the run's files, config.yaml last (a directory with config.yaml is a complete run); if a write fails
-    (a full disk) the run's files are removed again and the OSError propagates (the caller holds the lock).
+    (a full disk) or Ctrl-C comes, the run's files are removed again and the error propagates (the caller holds the
+    lock).
     ``curve``: the ``(hidden_size, num_layers, step, holdout_error)`` rows of :data:`CURVE_FILE`."""
     from pets.runs import rundir
     from pets.runs.fileio import atomic_write_bytes
@@ -256,7 +257,7 @@ def _write_run(out: Path, state: dict[str, Any], row: dict[str, Any], cfg: Any, 
         with ScalarLog(out, cfg.tensorboard, purge_step=0) as log:  # the training result at step 0 (pets.runs.tblog)
             log.scalars(row, 0, {k: v for k, v in TRIAL_TAGS.items() if k.startswith("model_") or k == "wall_time_s"})
         rundir.write_config(out, cfg)
-    except OSError:
+    except BaseException:  # a full disk (OSError) or Ctrl-C: no half-written run is left
         written = [out / rundir.CHECKPOINT_FILE, out / rundir.METRICS_FILE, out / CURVE_FILE]
         for path in [*written, *out.glob("events.out.tfevents.*")]:
             path.unlink(missing_ok=True)

@@ -110,3 +110,17 @@ def remove_temporaries(directory: Path) -> list[Path]:
             path.unlink(missing_ok=True)
             removed.append(path)
     return removed
+
+
+def remove_if_unused(directory: Path, created: bool) -> None:
+    """After a run that failed before writing anything: remove the lock file of ``directory`` if it is the only thing
+    there, and the directory itself if this command ``created`` it (no folder holding only ``.lock`` is left)."""
+    directory = Path(directory)
+    try:
+        if [p.name for p in directory.iterdir()] != [LOCK_FILE]:
+            return
+        (directory / LOCK_FILE).unlink()
+        if created:
+            directory.rmdir()
+    except OSError:  # gone, or another process put something there meanwhile: leave it
+        pass

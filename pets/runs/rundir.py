@@ -163,8 +163,9 @@ def load_model_state(model: torch.nn.Module, state: dict[str, Any]) -> None:
         ) from None
 
 
-#: Keys a resume may change: how many trials the run goes to (``--resume DIR --trials N``).
-RESUMABLE_KEYS = ("trials",)
+#: Keys a resume may change: how many trials the run goes to (``--resume DIR --trials N``) and the CPU threads
+#: (``threads=1`` on a shared machine), which change no result.
+RESUMABLE_KEYS = ("trials", "threads")
 
 
 def _flat(d: Any, prefix: str = "") -> dict[str, Any]:
@@ -203,6 +204,32 @@ def check_finite_buffer(run_dir: Path, buffer: dict[str, Any]) -> None:
             f"{run_dir / CHECKPOINT_FILE} holds non-finite values (NaN or inf) in its replay buffer "
             f"({', '.join(bad)}): the file is damaged; restore it from a copy, or delete it to start the run over"
         )
+
+
+def recorded_trials(run_dir: Path) -> int:
+    """How many completed trials the run directory's metrics.csv and history.csv record (0 when they record none,
+    are missing or unreadable): a run that has them has had a checkpoint."""
+    count = 0
+    try:
+        with open(run_dir / METRICS_FILE, newline="", errors="replace") as f:
+            count = sum(1 for _ in csv.DictReader(f))
+    except (OSError, csv.Error):
+        pass
+    try:
+        done = [int(row.get("trials_done") or 0) for row in read_history(run_dir)]
+    except (OSError, csv.Error, UnicodeDecodeError, ValueError):
+        done = []
+    return max([count, *done])
+
+
+def missing_checkpoint_message(run_dir: Path) -> str:
+    """The one line that refuses to resume a run whose checkpoint.pt is gone although it completed trials (it would
+    start over from trial 0 and rewrite metrics.csv)."""
+    return (
+        f"{run_dir / CHECKPOINT_FILE} is missing although the run records {recorded_trials(run_dir)} completed "
+        f"trial(s) (metrics.csv, history.csv): resuming would start over from trial 0 and rewrite them; restore "
+        "checkpoint.pt from a copy, or start a new run in another directory"
+    )
 
 
 def _first_sentence(text: str, limit: int = 160) -> str:

@@ -30,7 +30,13 @@ def forward(name: str, tool: str) -> None:
     """Make the module ``name`` (an old path, ``pets.<tool>``) the tool ``pets.tools.<tool>``: run its ``main`` when
     ``name`` is ``__main__`` (``python -m pets.<tool>``), else alias it in ``sys.modules`` (so ``import pets.<tool>``
     and patches of its attributes reach the tool itself)."""
-    module = importlib.import_module(f"{__name__}.{tool}")
-    if name == "__main__":
-        sys.exit(module.main())
-    sys.modules[name] = module
+    if name == "__main__":  # a command: Ctrl-C while it imports is one line and exit 130 too
+        from pets.tools.cli import interrupts_deferred, run_command
+
+        def main() -> int:
+            with interrupts_deferred():  # never a module half-imported
+                module = importlib.import_module(f"{__name__}.{tool}")
+            return module.main()
+
+        run_command(f"pets.{tool}", main)
+    sys.modules[name] = importlib.import_module(f"{__name__}.{tool}")

@@ -20,8 +20,10 @@ from __future__ import annotations
 import argparse
 import functools
 import json
+import signal
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, NoReturn
 
@@ -87,3 +89,44 @@ def interruptible(prog: str, kept: str) -> Callable[[Callable[..., int]], Callab
         return wrapped
 
     return wrap
+
+
+@contextmanager
+def interrupts_deferred() -> Iterator[None]:
+    """Hold a Ctrl-C that comes inside the block until the block ends, then raise KeyboardInterrupt: imports and
+    setup are never cut half-way (a module left half-imported breaks the next import of it, e.g. with a
+    RecursionError, and libraries that catch too much can swallow the interrupt). Outside the main thread, where
+    signals cannot be handled, it does nothing."""
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    caught: list[int] = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: caught.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if caught:
+        raise KeyboardInterrupt
+
+
+def run_command(prog: str, main: Callable[[], int | None], kept: str = "") -> NoReturn:
+    """Run a command's ``main`` as the process and exit with its status. Ctrl-C at any moment, the command's
+    imports included (``main`` imports the command's module), is one stderr line ``PROG: interrupted; KEPT`` and exit
+    130, never a traceback; a Ctrl-C once ``main`` has returned (the process ending) is ignored: the process exits
+    with the command's status, never by the signal (-2)."""
+    try:
+        code = main()
+    except KeyboardInterrupt:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        print(f"\n{prog}: interrupted" + (f"; {kept}" if kept else ""), file=sys.stderr)
+        code = EXIT_INTERRUPTED
+    except SystemExit as done:  # fail(): its line is printed
+        code = done.code
+    # The work is over: a Ctrl-C while the process ends (pools, threads, files closing) is ignored. A Python handler
+    # would not do: the interpreter's finalisation puts SIGINT back to its default, and the process would end by the
+    # signal (-2), while an ignored signal stays ignored to the end.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    sys.exit(code)

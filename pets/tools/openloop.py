@@ -13,6 +13,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from pets.limits import SIZE_BOUNDS
 from pets.planning.openloop import (
     DEFAULT_CLOSED_STEPS,
     DEFAULT_EPISODES,
@@ -25,6 +26,10 @@ from pets.runs.fileio import writable_dir_error
 from pets.tools.cli import EXIT_FAILED, OneLineParser, fail, write_json_result
 
 PROG = "pets.openloop"
+
+
+#: The most --steps: the planner's horizon bound.
+STEPS_BOUND = SIZE_BOUNDS["planner.horizon"]
 
 
 def build_parser() -> OneLineParser:
@@ -64,6 +69,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         args.steps = DEFAULT_CLOSED_STEPS if args.closed_loop else DEFAULT_STEPS
     if args.steps < 1:
         fail(PROG, f"--steps must be >= 1, got {args.steps}")
+    if args.steps > STEPS_BOUND:
+        fail(PROG, f"--steps must be <= {STEPS_BOUND:,}, got {args.steps:,}")
     if args.episodes < 1:
         fail(PROG, f"--episodes must be >= 1, got {args.episodes}")
     if args.seed < 0:
@@ -79,6 +86,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         fail(PROG, f"cannot write --json {args.json}: {problem}")
     from omegaconf.errors import OmegaConfBaseException
 
+    import envs
+    from pets.builder import check_memory
     from pets.config import ConfigError, load_config, parse_overrides
 
     if args.video is not None:
@@ -92,7 +101,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             require_video()
         overrides = parse_overrides(args.overrides)
         cfg = load_config(str(args.run / "config.yaml"))
-        planning_config(cfg, args.planner, args.steps, overrides, closed=args.closed_loop)
+        planned = planning_config(cfg, args.planner, args.steps, overrides, closed=args.closed_loop)
+        check_memory(planned, envs.get(planned.env), steps=0)  # the planner this machine cannot hold: one line
         if not (args.run / "checkpoint.pt").is_file():
             raise ConfigError(f"{args.run} has no checkpoint.pt yet (no trained model)")
     except (ValueError, OmegaConfBaseException) as err:  # ConfigError is a ValueError

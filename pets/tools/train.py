@@ -14,7 +14,7 @@ from pathlib import Path
 from pets.data.datasets import env_name, load_dataset
 from pets.learning.offline import OFFLINE_DEFAULTS, offline_config, train_offline
 from pets.runs.fileio import writable_dir_error
-from pets.tools.cli import EXIT_FAILED, OneLineParser, fail, interruptible, write_failed
+from pets.tools.cli import EXIT_FAILED, EXIT_INTERRUPTED, OneLineParser, fail, interruptible, write_failed
 
 PROG = "pets.train"
 
@@ -99,6 +99,7 @@ def main(argv: list[str] | None = None) -> int:
     from pets.learning.trainer import TrainingDiverged
     from pets.runs.fileio import DirectoryInUse
 
+    created = not args.out.exists()
     problem = writable_dir_error(args.out)  # before training, not after
     if problem:
         fail(PROG, f"{problem}; pick another --out")
@@ -124,17 +125,41 @@ def main(argv: list[str] | None = None) -> int:
         fail(PROG, str(err))
     except OSError as err:  # a full disk: the files written before it are removed, no run is left half-written
         write_failed(PROG, err, "no run was written; free space or pick another --out, then train again")
+    except KeyboardInterrupt:
+        return _interrupted(args.out, created)
+    try:
+        _report(out, args.model)
+    except KeyboardInterrupt:
+        return _interrupted(args.out, created)
+    return 0
+
+
+def _interrupted(out: Path, created: bool) -> int:
+    """Ctrl-C during training or its report: one line saying whether the run in ``out`` is complete (written before
+    the interrupt) or was not written (nothing of it is left; a folder this command made is removed)."""
+    from pets.runs import rundir
+    from pets.runs.fileio import remove_if_unused
+
+    if (out / rundir.CONFIG_FILE).exists():
+        print(f"\n{PROG}: interrupted; the run in {out} was complete before it", file=sys.stderr)
+    else:
+        remove_if_unused(out, created)
+        print(f"\n{PROG}: interrupted; no run was written (a run is written only when complete)", file=sys.stderr)
+    return EXIT_INTERRUPTED
+
+
+def _report(out: Path, model: str) -> None:
+    """Print the trained run's architecture search and result."""
     from pets.runs import rundir
 
     row = rundir.read_metrics(out / rundir.METRICS_FILE)[0]
     for c in rundir.load_checkpoint(out)["offline"]["search"]:
         print(f"  hidden layers {c['num_layers']} x {c['hidden_size']}: validation error {c['val_error']:.4g}")
     print(
-        f"{out}: {args.model} model trained on {int(row['env_steps'])} transitions, {int(row['model_epochs'])} "
+        f"{out}: {model} model trained on {int(row['env_steps'])} transitions, {int(row['model_epochs'])} "
         f"epochs, train loss {row['model_train_loss']:.4g}, "
         f"holdout error {row['model_val_loss']:.4g} (standardised; no change ~ 1)"
     )
-    return 0
 
 
 if __name__ == "__main__":

@@ -1,0 +1,51 @@
+"""Binary files where text is expected (issue 55): a --config file and the CSV files of pets.compare headline are one
+line naming the file and exit 2, never a UnicodeDecodeError traceback."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import pytest
+
+from tests.test_cli import ROOT, cli, error_lines
+
+BINARY = bytes(range(128, 256)) * 20
+
+
+@pytest.fixture
+def binary(tmp_path):
+    path = tmp_path / "file.bin"
+    path.write_bytes(BINARY)
+    return path
+
+
+def _compare(*args: object) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "pets.compare", *map(str, args)],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+    )
+
+
+def _one_line(proc: subprocess.CompletedProcess, fragment: str) -> None:
+    lines = error_lines(proc.stderr)
+    assert proc.returncode == 2 and len(lines) == 1 and fragment in lines[0], proc.stderr
+    assert "Traceback" not in proc.stderr
+
+
+def test_a_binary_config_file_is_one_line(binary, tmp_path):
+    proc = cli("--env", "reacher", "--config", binary, "--out", tmp_path / "run", check=False)
+    _one_line(proc, "not a readable YAML")
+    _one_line(_compare("online", "--envs", "reacher", "--trials", 1, "--config", binary), "not a readable YAML")
+
+
+@pytest.mark.parametrize("option", ["--offline", "--relative", "--primary"])
+def test_a_binary_csv_given_to_headline_is_one_line(binary, tmp_path, option):
+    summary = ROOT / "docs" / "results" / "paper_ip_summary.csv"  # a good --offline file beside the binary one
+    args = [option, binary] if option == "--offline" else ["--offline", summary, option, binary]
+    _one_line(_compare("headline", *args, "--out", tmp_path / "h"), "not a text CSV file")

@@ -1,0 +1,86 @@
+"""Limits before memory (issue 55): every size key is bounded and the memory a config needs is estimated before
+anything is allocated; what this machine cannot hold is one line and exit 2 within seconds, in run_pets.py,
+pets.openloop and the Python API, and a run refused that way leaves no directory behind."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+
+import pytest
+
+import pets
+from pets.config import ConfigError
+from pets.limits import SIZE_BOUNDS
+from tests.test_cli import ROOT, TINY, cli, error_lines
+
+#: (env, override, what the one line says): the values of issue 55 and two the estimate refuses (terabytes).
+TOO_BIG = [
+    ("halfcheetah", "planner.population=1000000000000", "planner.population must be <= 10,000,000"),
+    ("halfcheetah", "episode_length=100000000000000000000", "episode_length must be <= 10,000,000"),
+    ("halfcheetah", "model.hidden_size=100000000", "model.hidden_size must be <= 1,000,000"),
+    ("halfcheetah", "planner.horizon=1000000000", "planner.horizon must be <= 100,000"),
+    ("halfcheetah", "seed_steps=10000000000000", "seed_steps must be <= 1,000,000,000"),
+    ("halfcheetah", "model.hidden_size=100000", "lower model.hidden_size, model.num_layers or model.ensemble_size"),
+    ("humanoid", "seed_steps=999999999", "lower seed_steps, trials or episode_length"),
+]
+
+
+@pytest.mark.parametrize(("env", "override", "fragment"), TOO_BIG)
+def test_a_config_too_big_is_one_line_within_seconds_and_leaves_no_directory(tmp_path, env, override, fragment):
+    start = time.monotonic()
+    proc = cli("--env", env, "--model", "gem", "--out", tmp_path / "run", override, check=False, timeout=120)
+    lines = error_lines(proc.stderr)
+    assert proc.returncode == 2 and len(lines) == 1 and fragment in lines[0], proc.stderr
+    assert time.monotonic() - start < 60 and not (tmp_path / "run").exists()
+
+
+def test_an_error_found_when_the_run_is_built_leaves_no_directory_holding_only_the_lock(tmp_path):
+    feedback = ["planner.candidates=feedback", "planner.feedback.features=[0,99]", "planner.replan_every=1"]
+    proc = cli("--env", "halfcheetah", "--out", tmp_path / "run", "--preset", "fast", *feedback, check=False)
+    lines = error_lines(proc.stderr)
+    assert proc.returncode == 2 and len(lines) == 1 and "features must be distinct" in lines[0], proc.stderr
+    assert not (tmp_path / "run").exists()
+    mine = tmp_path / "mine"  # a folder of the user's: kept, only the lock goes
+    mine.mkdir()
+    cli("--env", "halfcheetah", "--out", mine, "--preset", "fast", *feedback, check=False)
+    assert mine.is_dir() and list(mine.iterdir()) == []
+
+
+def test_pets_openloop_refuses_a_planner_too_big_in_one_line(tmp_path):
+    run = tmp_path / "run"
+    cli("--env", "invertedpendulum", "--trials", 1, "--out", run, *TINY)
+    for args, fragment in (
+        (["--steps", "100000000000000000000"], "--steps must be <= 100,000"),
+        (["planner.population=100000000000"], "planner.population must be <= 10,000,000"),
+        (["planner.population=5000000", "planner.particles=1000"], "lower planner.population, planner.particles"),
+    ):
+        proc = subprocess.run(
+            [sys.executable, "-m", "pets.openloop", "--run", str(run), "--quiet", *args],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+        lines = [line for line in proc.stderr.splitlines() if line.strip()]
+        assert proc.returncode == 2 and len(lines) == 1 and fragment in lines[0], proc.stderr
+
+
+def test_the_api_refuses_a_config_too_big_before_allocating():
+    with pytest.raises(ConfigError, match="needs about .* GB of host memory"):
+        pets.PETS("halfcheetah", model="gem", **{"model.hidden_size": 100_000})
+    with pytest.raises(ConfigError, match="planner.population must be <= "):
+        pets.PETS("halfcheetah", **{"planner.population": 10**12})
+
+
+def test_every_bound_is_above_what_the_presets_use():
+    from pets.config import make_config
+
+    for preset in ("research", "fast"):
+        cfg = make_config("humanoid", "gem", preset)
+        for key, most in SIZE_BOUNDS.items():
+            value = cfg
+            for part in key.split("."):
+                value = value[part]
+            assert value is None or value <= most // 100, (key, value)

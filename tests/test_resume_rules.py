@@ -1,0 +1,60 @@
+"""What ``run_pets.py --resume DIR`` may change and what it refuses in one line (issue 55): a missing checkpoint of a
+run that completed trials, ``--preset``, ``--trials`` below the trials done; ``threads=N`` is allowed (speed only)."""
+
+from __future__ import annotations
+
+import pytest
+
+from tests.test_cli import TINY, cli, error_lines, rows
+
+METRIC_KEYS = ("trial", "env_steps", "episode_reward", "episode_length", "model_train_loss", "model_val_loss")
+
+
+@pytest.fixture(scope="module")
+def finished(tmp_path_factory):
+    run = tmp_path_factory.mktemp("resume") / "run"
+    cli("--env", "invertedpendulum", "--model", "delta", "--trials", 2, "--out", run, *TINY)
+    return run
+
+
+def _refused(*args: object) -> str:
+    proc = cli(*args, check=False)
+    lines = error_lines(proc.stderr)
+    assert proc.returncode == 2 and len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
+    return lines[0]
+
+
+def test_a_missing_checkpoint_of_a_run_with_trials_is_refused_and_its_metrics_kept(finished, tmp_path):
+    run = tmp_path / "copy"
+    run.mkdir()
+    for name in ("config.yaml", "metrics.csv", "history.csv"):
+        (run / name).write_bytes((finished / name).read_bytes())
+    before = (run / "metrics.csv").read_bytes()
+    line = _refused("--resume", run)
+    assert "checkpoint.pt is missing although the run records 2 completed trial(s)" in line
+    assert (run / "metrics.csv").read_bytes() == before
+
+
+def test_preset_with_resume_is_refused(finished):
+    assert "--preset research is refused" in _refused("--resume", finished, "--preset", "research")
+
+
+def test_fewer_trials_than_done_is_refused(finished):
+    assert "--trials 1 is fewer than the 2 trials" in _refused("--resume", finished, "--trials", 1)
+
+
+def test_other_settings_on_resume_are_refused_naming_them(finished):
+    assert "got planner.horizon" in _refused("--resume", finished, "planner.horizon=7")
+
+
+def test_threads_on_resume_is_allowed_and_changes_no_result(finished, tmp_path):
+    longer = tmp_path / "longer"
+    cli("--env", "invertedpendulum", "--model", "delta", "--trials", 3, "--out", longer, *TINY)
+    run = tmp_path / "moved"
+    run.mkdir()
+    for path in finished.iterdir():
+        if path.is_file():
+            (run / path.name).write_bytes(path.read_bytes())
+    cli("--resume", run, "--trials", 3, "threads=2", "--quiet")
+    got, want = rows(run), rows(longer)
+    assert [[r[k] for k in METRIC_KEYS] for r in got] == [[r[k] for k in METRIC_KEYS] for r in want]
