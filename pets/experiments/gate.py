@@ -250,6 +250,20 @@ def oracle_rows(path: Path) -> list[dict[str, Any]]:
     ]
 
 
+def ceiling(rows: Sequence[Mapping[str, Any]]) -> dict[str, float]:
+    """Per env, the mean reward of the true-dynamics episodes run with the locomotion preset's planner settings."""
+    from pets.config import make_config
+
+    out: dict[str, list[float]] = {}
+    for r in rows:
+        p = make_config(r["env"], "delta", "locomotion").planner
+        if (r["planner"], r["population"], r["horizon"], r["iterations"]) == (
+            p.name, p.population, p.horizon, p.iterations
+        ):  # fmt: skip
+            out.setdefault(r["env"], []).append(float(r["reward"]))
+    return {env: float(np.mean(values)) for env, values in out.items()}
+
+
 def write_csv(path: Path, rows: Sequence[Mapping[str, Any]], columns: Sequence[str]) -> None:
     from pets.runs.fileio import atomic_write_bytes
 
@@ -285,7 +299,7 @@ def plot(run_dirs: Sequence[Path], path: Path, references: Mapping[str, float] |
         if env in THRESHOLDS:
             ax.axhline(THRESHOLDS[env], color="k", ls="--", lw=1, label="gate threshold")
         if references and env in references:
-            ax.axhline(references[env], color="tab:gray", ls=":", lw=1, label="true-dynamics MPC")
+            ax.axhline(references[env], color="tab:gray", ls=":", lw=1, label="true-dynamics MPC (no value)")
         ax.set(title=env, xlabel="env steps (thousands)", ylabel=f"return, mean of last {WINDOW} episodes")
         ax.legend(fontsize=7)
     fig.tight_layout()
@@ -326,7 +340,7 @@ def main(argv: list[str] | None = None) -> int:
     for r in rows:
         print("  ".join(f"{k}={_cell(v)}" for k, v in r.items()), file=sys.stdout)
     if args.figure:
-        plot(args.run_dirs, args.figure)
+        plot(args.run_dirs, args.figure, ceiling([row for path in args.oracle for row in oracle_rows(path)]))
     return 0
 
 

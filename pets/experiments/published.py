@@ -261,6 +261,9 @@ RAW: tuple[str, ...] = (
     _path("peer_learning_invertedpendulum.csv"),
     _path("peer_learning_reacher.csv"),
     _path("peer_planning_step.csv"),
+    # the locomotion gate (pets.experiments.gate): pilot runs, one row each, and the true-dynamics episodes
+    _path("locomotion_pilots.csv"),
+    _path("locomotion_oracle.csv"),
 )
 
 
