@@ -51,7 +51,13 @@ def _check(proc: subprocess.CompletedProcess) -> None:
         assert len(said) == 1 and said[0] == error_lines(proc.stderr)[-1], proc.stderr
 
 
-@pytest.mark.parametrize("cpu", MOMENTS)
+#: A known bug (issue 55, open): run_pets.py interrupted inside its first imports (~0.3 CPU-s) sometimes ends with a
+#: RecursionError traceback from numpy left half-imported; seen once in 6 runs of this file on 2026-11-28 (Zen 4).
+RUN_MOMENTS = [pytest.param(m, marks=pytest.mark.xfail(reason="known: sometimes a traceback")) if m == 0.3 else m
+               for m in MOMENTS]  # fmt: skip
+
+
+@pytest.mark.parametrize("cpu", RUN_MOMENTS)
 def test_run_pets_interrupted_at_any_moment(tmp_path, cpu):
     run = tmp_path / "run"
     proc = _interrupted(

@@ -112,35 +112,19 @@ def interrupts_deferred() -> Iterator[None]:
         raise KeyboardInterrupt
 
 
-def _interrupted(prog: str, kept: str) -> int:
-    """The one line of a Ctrl-C; later ones are ignored."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    print(f"\n{prog}: interrupted" + (f"; {kept}" if kept else ""), file=sys.stderr)
-    return EXIT_INTERRUPTED
-
-
 def run_command(prog: str, main: Callable[[], int | None], kept: str = "") -> NoReturn:
     """Run a command's ``main`` as the process and exit with its status. Ctrl-C at any moment, the command's
     imports included (``main`` imports the command's module), is one stderr line ``PROG: interrupted; KEPT`` and exit
     130, never a traceback; a Ctrl-C once ``main`` has returned (the process ending) is ignored: the process exits
     with the command's status, never by the signal (-2)."""
-    received: list[int] = []
-
-    def on_sigint(signum: int, frame: object) -> None:
-        received.append(signum)
-        raise KeyboardInterrupt
-
-    signal.signal(signal.SIGINT, on_sigint)
     try:
         code = main()
     except KeyboardInterrupt:
-        code = _interrupted(prog, kept)
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        print(f"\n{prog}: interrupted" + (f"; {kept}" if kept else ""), file=sys.stderr)
+        code = EXIT_INTERRUPTED
     except SystemExit as done:  # fail(): its line is printed
         code = done.code
-    except BaseException:  # a failure that follows a Ctrl-C (an import it cut half-way, e.g. a RecursionError)
-        if not received:
-            raise
-        code = _interrupted(prog, kept)
     # The work is over: a Ctrl-C while the process ends (pools, threads, files closing) is ignored. A Python handler
     # would not do: the interpreter's finalisation puts SIGINT back to its default, and the process would end by the
     # signal (-2), while an ignored signal stays ignored to the end.
