@@ -265,19 +265,16 @@ def ceiling(rows: Sequence[Mapping[str, Any]]) -> dict[str, float]:
 
 
 def write_csv(path: Path, rows: Sequence[Mapping[str, Any]], columns: Sequence[str]) -> None:
-    from pets.runs.fileio import atomic_write_bytes
+    """The rows with their cells as :func:`_cell` shows them, written by the experiments' CSV writer."""
+    from pets.experiments.report import write_csv as write_rows
 
-    lines = [",".join(columns)]
-    for r in rows:
-        lines.append(",".join(_cell(r[c]) for c in columns))
-    atomic_write_bytes(path, ("\n".join(lines) + "\n").encode())
+    write_rows(path, [{c: _cell(r[c]) for c in columns} for r in rows], columns)
 
 
 def _cell(v: Any) -> str:
     if isinstance(v, float):
         return "" if math.isnan(v) else f"{v:.6g}"
-    text = str(v)
-    return f'"{text}"' if "," in text else text
+    return str(v)
 
 
 def plot(run_dirs: Sequence[Path], path: Path, references: Mapping[str, float] | None = None) -> None:
