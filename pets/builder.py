@@ -94,6 +94,7 @@ def make_agent(
         precision=p.precision,
         compile=p.compile,
         terminal_value=value,
+        termination_penalty=p.termination_penalty,
         feedback=feedback,
     )
     planner = make_planner(cfg, spec, device, feedback)

@@ -94,6 +94,7 @@ class PlannerConfig:
     particles: int = 20
     propagation: str = "tsinf"
     replan_every: int = 1
+    termination_penalty: float = 0.0  # subtracted from a candidate's return where it terminates (a fall) in the horizon
     # The settings of one planner only, planner.<name>.* (used when planner.name is that planner), are added by
     # schema() from the planner table (pets.planning.planners.PLANNER_CLASSES: each class's `section`)
     feedback: FeedbackConfig = field(default_factory=FeedbackConfig)
@@ -330,7 +331,8 @@ def validate(cfg: DictConfig) -> None:
     for key, choices in _CHOICES.items():
         if OmegaConf.select(cfg, key) not in choices:
             raise ConfigError(f"{key} must be one of {', '.join(choices)}, got {OmegaConf.select(cfg, key)!r}")
-    for key in ("model.lr", "planner.elites", "planner.alpha", "model.holdout_ratio", "gem.frobenius_weight"):
+    nonnegative = ("model.lr", "planner.elites", "planner.alpha", "model.holdout_ratio", "gem.frobenius_weight")
+    for key in (*nonnegative, "planner.termination_penalty"):
         v = OmegaConf.select(cfg, key)
         if not math.isfinite(v) or v < 0:
             raise ConfigError(f"{key} must be a finite number >= 0, got {v}")

@@ -45,6 +45,29 @@ def test_returns_equal_the_real_env_stepped_through_each_sequence_and_leave_it_u
     assert returns.dtype == torch.float64 and len(set(returns.tolist())) == 4
 
 
+def test_termination_penalty_is_subtracted_where_the_real_env_terminates() -> None:
+    """Hopper for 60 steps, half the sequences idle, half full random torques: those that fall lose the penalty."""
+    spec = envs.get("hopper")
+    env = spec.make()
+    env.reset(seed=3)
+    scale = np.array([0.0] * 4 + [1.0] * 4).reshape(8, 1, 1)
+    actions = torch.as_tensor(scale * np.random.default_rng(1).uniform(-1, 1, size=(8, 60, spec.act_dim)))
+    plain = oracle.SimulatorEvaluator(env, spec.make)(torch.zeros(spec.obs_dim), actions)
+    penalised = oracle.SimulatorEvaluator(env, spec.make, termination_penalty=100.0)(torch.zeros(spec.obs_dim), actions)
+    fell = []
+    for sequence in actions.numpy():
+        real = spec.make()
+        real.reset(seed=3)
+        terminated = False
+        for action in sequence:
+            terminated = real.step(action)[2]
+            if terminated:
+                break
+        fell.append(terminated)
+    assert 0 < sum(fell) < len(fell)  # both kinds among the sequences
+    np.testing.assert_allclose((plain - penalised).numpy(), [100.0 if f else 0.0 for f in fell], atol=1e-9)
+
+
 def test_mpc_with_the_true_dynamics_balances_the_pendulum(tmp_path) -> None:
     """InvertedPendulum at the fast preset's planner: the pole stays up for the whole (shortened) episode."""
     out = tmp_path / "oracle.json"

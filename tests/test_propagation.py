@@ -273,6 +273,30 @@ def test_termination_is_absorbing(prop: str) -> None:
     assert torch.equal(rew[i, :, i + 1 :], torch.zeros_like(rew[i, :, i + 1 :]))
 
 
+@pytest.mark.parametrize("prop", PROPAGATIONS)
+def test_termination_penalty_is_subtracted_from_terminated_rows_only(prop: str) -> None:
+    """Candidate i terminates at step i (as above): its return drops by exactly the penalty; the survivor's not."""
+    ens = FakeEnsemble(torch.zeros(3, OBS_DIM))
+    h, penalty = 6, 37.5
+
+    def unit_reward(obs: Tensor, act: Tensor, nxt: Tensor) -> Tensor:
+        return torch.ones(obs.shape[:-1], dtype=obs.dtype, device=obs.device)
+
+    def term(obs: Tensor, act: Tensor, nxt: Tensor) -> Tensor:
+        return act[..., 0] > 0.5
+
+    actions = torch.zeros(h + 1, h, ACT_DIM)
+    for i in range(h):
+        actions[i, i, 0] = 1.0
+    model = DynamicsModel(make_head(), ens)
+    ev = TrajectoryEvaluator(model, unit_reward, term, particles=4, propagation=prop, termination_penalty=penalty)
+    ret = ev(torch.zeros(OBS_DIM), actions, torch.Generator().manual_seed(0))
+    expected = torch.tensor([i + 1 - penalty for i in range(h)] + [float(h)])
+    torch.testing.assert_close(ret, expected)
+    with pytest.raises(ValueError, match="termination_penalty must be a finite number >= 0"):
+        TrajectoryEvaluator(model, unit_reward, term, termination_penalty=-1.0)
+
+
 def test_termination_from_state_with_analytic_return() -> None:
     """A state-based termination (coordinate 0 above 0.25) against the loop ground truth."""
     c = torch.tensor([0.05, 0.0, -0.03])

@@ -68,6 +68,7 @@ refilled in place) remove the per-step strided action reads and noise allocation
 from __future__ import annotations
 
 import ctypes
+import math
 import sys
 import warnings
 from collections.abc import Callable
@@ -137,6 +138,9 @@ class TrajectoryEvaluator:
       tests use ``aot_eager``, which traces the same graph without code generation).
     terminal_value: ``V(obs) -> (...)``, added to the return of every row that did not terminate, at its final
       state (``pets.planning.value``); None: the horizon rewards only.
+    termination_penalty: subtracted from the return of every row that terminated within the horizon (>= 0; 0:
+      a termination only ends the rewards, as in PETS). It ranks a candidate predicted to fall below one that
+      does not, however much faster it moves before the fall.
     feedback: a :class:`pets.planning.feedback.LinearFeedback`: candidates are then gains (N, rows, act_dim), rolled out
       for ``feedback.horizon`` steps with each particle's action computed from its own predicted state; None:
       candidates are action sequences (N, H, act_dim).
@@ -156,6 +160,7 @@ class TrajectoryEvaluator:
         compile: bool = False,
         compile_backend: str = "inductor",
         terminal_value: Callable[[Tensor], Tensor] | None = None,
+        termination_penalty: float = 0.0,
         feedback: LinearFeedback | None = None,
     ) -> None:
         if propagation not in PROPAGATIONS:
@@ -181,6 +186,9 @@ class TrajectoryEvaluator:
         self.compile = compile
         self.compile_backend = compile_backend
         self.terminal_value = terminal_value
+        if not math.isfinite(termination_penalty) or termination_penalty < 0:
+            raise ValueError(f"termination_penalty must be a finite number >= 0, got {termination_penalty!r}")
+        self.termination_penalty = float(termination_penalty)
         self.feedback = feedback
         self._propagation = PROPAGATION_TABLE[propagation]
         self._candidates = OpenLoop() if feedback is None else FeedbackGains(feedback)
@@ -351,6 +359,8 @@ class TrajectoryEvaluator:
 
         if self.terminal_value is not None:
             total = total + torch.where(done, torch.zeros_like(total), self.terminal_value(obs).to(total.dtype))
+        if self.termination_penalty:
+            total = total - done.to(total.dtype) * self.termination_penalty
         n_rows = n_cand * p_eff
         total = layout.natural(rows, total, n_rows)
         diverged = layout.natural(rows, diverged, n_rows)  # the real rows only, not the padding

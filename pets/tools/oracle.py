@@ -47,13 +47,15 @@ class SimulatorEvaluator:
     Scores from the current state of ``env`` (a live gymnasium MuJoCo env; ``obs`` is ignored, the full
     simulator state is used): per candidate, a private copy of the env is set to that state and stepped through
     the actions, summing rewards until the horizon ends or the env terminates (the terminating step's reward
-    counts). The live env is not touched. With ``feedback`` (pets.planning.feedback) a candidate is the gains of a
+    counts; ``termination_penalty`` is then subtracted, as in the learned model's evaluator). The live env is not
+    touched. With ``feedback`` (pets.planning.feedback) a candidate is the gains of a
     feedback law, rolled out in closed loop for ``feedback.horizon`` steps from ``obs``.
     """
 
-    def __init__(self, env: Any, make_env: Any, feedback: Any = None) -> None:
+    def __init__(self, env: Any, make_env: Any, feedback: Any = None, termination_penalty: float = 0.0) -> None:
         self.env = env.unwrapped
         self.feedback = feedback
+        self.termination_penalty = termination_penalty
         self.sim = make_env().unwrapped
         self.sim.reset(seed=0)  # gymnasium requires a reset before step; the state is overwritten per candidate
 
@@ -70,6 +72,7 @@ class SimulatorEvaluator:
                 next_obs, reward, terminated, _, _ = self.sim.step(action.numpy().astype(np.float64))
                 returns[i] += reward
                 if terminated:
+                    returns[i] -= self.termination_penalty
                     break
                 if fb is not None:
                     state = torch.as_tensor(next_obs, dtype=torch.float32).reshape(1, -1)
@@ -102,7 +105,7 @@ def run_episode(cfg: Any, spec: Any, seed: int, episode: int, steps: int | None 
         feedback.fit_scale(torch.as_tensor(np.concatenate([e.obs for e in random_steps]), dtype=torch.float32))
     agent = MPCAgent(
         make_planner(cfg, spec, device, feedback),
-        SimulatorEvaluator(env, spec.make, feedback),
+        SimulatorEvaluator(env, spec.make, feedback, cfg.planner.termination_penalty),
         replan_every=cfg.planner.replan_every,
         action_low=spec.action_low,
         action_high=spec.action_high,
