@@ -1,5 +1,8 @@
-"""Process states from Linux's /proc, for the tests that check that no process outlives its run."""
+"""Process states from Linux's /proc, for the tests that check that no process outlives its run; and the small
+random data set that the subprocess tests train on."""
 
+import subprocess
+import sys
 from pathlib import Path
 
 
@@ -43,3 +46,12 @@ def default_sigint() -> None:
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+def collect_random(out: Path, episodes: int) -> Path:
+    """``out``: an InvertedPendulum data set of ``episodes`` random episodes, written by ``pets.collect`` itself."""
+    argv = ["-m", "pets.collect", "--env", "invertedpendulum", "--policy", "random", "--episodes", str(episodes)]
+    root = Path(__file__).resolve().parents[1]
+    cmd = [sys.executable, *argv, "--threads", "1", "--out", str(out), "--quiet"]
+    subprocess.run(cmd, cwd=root, check=True, capture_output=True, timeout=300)
+    return out

@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 
 from pets.runs import rundir
-from tests.processes import cpu_seconds, default_sigint
+from tests.processes import collect_random, cpu_seconds, default_sigint
 from tests.test_cli import ROOT, TINY, cli, error_lines, rows
 
 #: The run the kill -9, full-disk and read-only tests interrupt: 6 short trials (a few seconds).
@@ -46,30 +46,7 @@ def reference(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def invertedpendulum_data(tmp_path_factory) -> Path:
     """A small invertedpendulum data set (3 random episodes)."""
-    out = tmp_path_factory.mktemp("data") / "ip.npz"
-    subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "pets.collect",
-            "--env",
-            "invertedpendulum",
-            "--policy",
-            "random",
-            "--episodes",
-            "3",
-            "--threads",
-            "1",
-            "--out",
-            str(out),
-            "--quiet",
-        ],
-        cwd=ROOT,
-        check=True,
-        capture_output=True,
-        timeout=120,
-    )
-    return out
+    return collect_random(tmp_path_factory.mktemp("data") / "ip.npz", 3)
 
 
 @pytest.mark.parametrize("holdout", ["0.1", "0"])

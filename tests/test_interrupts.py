@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.processes import alive, cpu_seconds, default_sigint
+from tests.processes import alive, collect_random, cpu_seconds, default_sigint
 from tests.test_cli import ROOT, TINY, error_lines
 
 #: The process CPU seconds at which SIGINT is sent: in the imports (torch takes ~1-2 s), then later.
@@ -138,25 +138,4 @@ def test_pets_compare_offline_interrupted_at_any_moment_ends_with_130_not_by_the
 
 @pytest.fixture(scope="module")
 def data_set(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("data") / "ip.npz"
-    subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "pets.collect",
-            "--env",
-            "invertedpendulum",
-            "--policy",
-            "random",
-            "--episodes",
-            "20",
-            "--out",
-            str(out),
-            "--quiet",
-        ],
-        cwd=ROOT,
-        check=True,
-        capture_output=True,
-        timeout=300,
-    )
-    return out
+    return collect_random(tmp_path_factory.mktemp("data") / "ip.npz", 20)
