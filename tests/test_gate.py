@@ -52,6 +52,12 @@ def test_oracle_files_become_rows_and_no_input_is_one_line_exit_2(tmp_path):
     (tmp_path / "hopper_cem.json").write_text(json.dumps({"planner": planner, "episodes": episodes}))
     (row,) = gate.oracle_rows(tmp_path / "hopper_cem.json")
     assert row["env"] == "hopper" and row["steps"] == 139 and row["fell"] == 1 and row["reward"] == 376.0
+    assert row["termination_penalty"] == 0.0  # a file from before the setting: the default
+    assert gate.ceiling([row]) == {"hopper": 376.0}  # the locomotion preset's planner
+    penalised = dict(planner, termination_penalty=100.0)
+    (tmp_path / "hopper_pen.json").write_text(json.dumps({"planner": penalised, "episodes": episodes}))
+    (row,) = gate.oracle_rows(tmp_path / "hopper_pen.json")
+    assert row["termination_penalty"] == 100.0 and gate.ceiling([row]) == {}  # not the preset's setting
     proc = subprocess.run([sys.executable, "-m", "pets.experiments.gate", "--out", str(tmp_path / "x")],
                           capture_output=True, text=True, timeout=60)  # fmt: skip
     assert proc.returncode == 2 and "give run directories" in proc.stderr and len(proc.stderr.splitlines()) == 1

@@ -219,6 +219,7 @@ ORACLE_COLUMNS = [
     "population",
     "horizon",
     "iterations",
+    "termination_penalty",
     "episode",
     "steps",
     "reward",
@@ -241,6 +242,7 @@ def oracle_rows(path: Path) -> list[dict[str, Any]]:
             "population": p["population"],
             "horizon": p["horizon"],
             "iterations": p["iterations"],
+            "termination_penalty": float(p.get("termination_penalty", 0.0)),  # absent: written before the setting
             "episode": i,
             "steps": e["steps"],
             "reward": float(e["reward"]),
@@ -251,14 +253,15 @@ def oracle_rows(path: Path) -> list[dict[str, Any]]:
 
 
 def ceiling(rows: Sequence[Mapping[str, Any]]) -> dict[str, float]:
-    """Per env, the mean reward of the true-dynamics episodes run with the locomotion preset's planner settings."""
+    """Per env, the mean reward of the true-dynamics episodes run with the locomotion preset's planner settings
+    (the env's own entries of the preset included), termination penalty included."""
     from pets.config import make_config
 
     out: dict[str, list[float]] = {}
     for r in rows:
         p = make_config(r["env"], "delta", "locomotion").planner
-        if (r["planner"], r["population"], r["horizon"], r["iterations"]) == (
-            p.name, p.population, p.horizon, p.iterations
+        if (r["planner"], r["population"], r["horizon"], r["iterations"], r["termination_penalty"]) == (
+            p.name, p.population, p.horizon, p.iterations, p.termination_penalty
         ):  # fmt: skip
             out.setdefault(r["env"], []).append(float(r["reward"]))
     return {env: float(np.mean(values)) for env, values in out.items()}
