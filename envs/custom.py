@@ -69,10 +69,11 @@ def custom_spec(
         )
     dt = float(getattr(env.unwrapped, "dt", 0.0) or 0.0)
     length = episode_length or (env.spec.max_episode_steps if env.spec and env.spec.max_episode_steps else 1000)
-    transitions = _real_transitions(env, act_space)
+    transitions, positions = _real_transitions(env, act_space)
     env.close()
     terminated_fn = terminated_fn or _never
     check_functions(name, reward_fn, terminated_fn, transitions)
+    check_angles(name, layout, transitions, positions)
     if not reward_differs:
         check_reward(name, gym_id, reward_fn, transitions)
     return EnvSpec(
@@ -105,19 +106,33 @@ def _line(err: BaseException) -> str:
     return text.splitlines()[0] if text else "no message"
 
 
-def _real_transitions(env: Any, act_space: Any) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, float]]:
-    """:data:`CHECK_STEPS` real transitions ``(obs, act, next_obs, reward)`` of ``env`` (fewer if it ends)."""
+def _real_transitions(env: Any, act_space: Any) -> tuple[list[tuple], list[np.ndarray | None]]:
+    """:data:`CHECK_STEPS` real transitions ``(obs, act, next_obs, reward)`` of ``env`` (fewer if it ends), and the
+    simulator's positions after each (:func:`_positions`)."""
     act_space.seed(0)
     obs, _ = env.reset(seed=0)
-    out = []
+    out, positions = [], []
     for _ in range(CHECK_STEPS):
         act = act_space.sample()
         nxt, reward, terminated, truncated, _ = env.step(act)
         out.append((obs, act, nxt, float(reward)))
+        positions.append(_positions(env))
         if terminated or truncated:
             break
         obs = nxt
-    return out
+    return out, positions
+
+
+def _positions(env: Any) -> np.ndarray | None:
+    """The simulator's generalised positions: MuJoCo's ``qpos``, a classic-control env's ``state`` (Pendulum's
+    ``[theta, theta_dot]``: the angle is among them), else None."""
+    inner = env.unwrapped
+    data = getattr(inner, "data", None)
+    state = data.qpos if data is not None and hasattr(data, "qpos") else getattr(inner, "state", None)
+    try:
+        return None if state is None else np.array(state, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        return None
 
 
 def check_functions(name: str, reward_fn: RewardFn, terminated_fn: RewardFn, transitions: list[tuple]) -> None:
@@ -143,6 +158,44 @@ def check_functions(name: str, reward_fn: RewardFn, terminated_fn: RewardFn, tra
                 raise ValueError(f"{name}: terminated_fn must return a bool tensor, got {out.dtype}")
             if kind == "float" and not out.is_floating_point():
                 raise ValueError(f"{name}: reward_fn must return a float tensor, got {out.dtype}")
+
+
+def check_angles(name: str, layout: ObsLayout, transitions: list[tuple], positions: list[np.ndarray | None]) -> None:
+    """ValueError (one line) where an ``SO2_cossin`` group's entries are not a cosine and a sine (``cos^2 + sin^2``
+    off 1), or are swapped, on the real ``transitions``.
+
+    A swap keeps ``cos^2 + sin^2 = 1`` and any reward that reads the observation directly, but decodes the angle
+    ``atan2(cos, sin) = pi/2 - theta``. Checked against the simulator's own positions after each transition
+    (``positions``: MuJoCo's ``qpos``): refused where the swapped reading equals one of them (mod 2 pi) on every
+    transition and the stated reading equals none. Where the env exposes no positions, or neither reading matches
+    (an angle the simulator does not hold as a coordinate), nothing is decided.
+    """
+    nxt = np.array([t[2] for t in transitions], dtype=np.float64)
+    for group in layout.groups_of("SO2_cossin"):
+        c, s = group.indices
+        norm = np.hypot(nxt[:, c], nxt[:, s])
+        if not np.allclose(norm, 1.0, atol=1e-3):
+            raise ValueError(
+                f"{name}: group {group.name!r} (SO2_cossin, entries {c}, {s}) is not a cosine and a sine on real "
+                f"observations (cos^2 + sin^2 = {float(norm.min() ** 2):.3g}..{float(norm.max() ** 2):.3g}, not 1)"
+            )
+        if any(p is None or len(p) != len(positions[0]) for p in positions):
+            continue
+        q = np.stack(positions)  # (steps, nq)
+        if _is_a_position(q, np.arctan2(nxt[:, c], nxt[:, s])) and not _is_a_position(
+            q, np.arctan2(nxt[:, s], nxt[:, c])
+        ):
+            raise ValueError(
+                f"{name}: group {group.name!r} (SO2_cossin) reads its angle the wrong way round: the simulator's "
+                f"angle is atan2(obs[{c}], obs[{s}]), so its indices (cos_index, sin_index) are ({s}, {c}), "
+                f"not ({c}, {s})"
+            )
+
+
+def _is_a_position(positions: np.ndarray, angle: np.ndarray) -> bool:
+    """Whether ``angle`` (steps,) equals one column of ``positions`` (steps, nq) mod 2 pi on every step (to 1e-3)."""
+    gap = np.abs(np.angle(np.exp(1j * (positions - angle[:, None]))))  # wrapped to [0, pi]
+    return bool((gap < 1e-3).all(axis=0).any())
 
 
 def check_reward(name: str, gym_id: str, reward_fn: RewardFn, transitions: list[tuple]) -> None:
