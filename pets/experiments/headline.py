@@ -30,19 +30,21 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from pets.experiments.offline_statistics import N_PAIRS, NOTE, P_EXACT, P_LOWER, RATIO
 from pets.experiments.plots import plot_headline_ratios
 from pets.experiments.primary import primary_markdown, read_csv_rows, read_primary  # read_csv_rows: report's
 from pets.experiments.report import csv_number, disagreement_lines, fmt, fmt_interval, md_table, write_csv
 from pets.experiments.statistics import BASELINE, ci_exact_note, holm
 from pets.experiments.studies.base import headline_columns, headline_row, headline_table
+from pets.experiments.studies.offline import IQM, N_DIVERGED, N_PAIRS, NOTE, P_EXACT, P_LOWER, RATIO
+from pets.experiments.studies.offline import STUDY as OFFLINE_STUDY
 from pets.experiments.studies.online import STUDY as ONLINE_STUDY
 from pets.runs.fileio import atomic_write_bytes
 
-#: Offline metrics of the headline, in order: the whole state, then the group coordinates (where GEM composes).
-OFFLINE_METRICS = ("standardized_error", "rotation_error", "mean_step_error")
-OFFLINE_COLUMNS = ["env", "model", "metric", "horizon", *RATIO, *P_LOWER, P_EXACT, NOTE, N_PAIRS, "n_diverged",
-                   f"{BASELINE}_n_diverged", "source"]  # fmt: skip
+#: Offline metrics of the headline, in order (the offline study's metric table flags them): the whole state, then
+#: the group coordinates (where GEM composes).
+OFFLINE_METRICS = OFFLINE_STUDY.headline_metrics()
+OFFLINE_COLUMNS = ["env", "model", "metric", "horizon", *RATIO, *P_LOWER, P_EXACT, NOTE, N_PAIRS, N_DIVERGED,
+                   f"{BASELINE}_{N_DIVERGED}", "source"]  # fmt: skip
 #: Online: the columns the online study's metric table flags for the headline (:mod:`pets.experiments.studies`).
 ONLINE_COLUMNS = headline_columns(ONLINE_STUDY)
 
@@ -65,7 +67,7 @@ def read_summary(path: Path) -> tuple[str, list[dict[str, str]]]:
         raise HeadlineError(f"{path}: no such file (give the summary.csv that pets.compare wrote)")
     rows = read_csv_rows(path, HeadlineError)
     columns = set(rows[0]) if rows else set()
-    if {"env", "model", "horizon", "metric", "ratio_to_delta"} <= columns:
+    if {*OFFLINE_STUDY.keys, RATIO[0]} <= columns:
         kind = "offline"
     elif {"env", "model", "final_iqm", "p_improvement"} <= columns:
         kind = "online"
@@ -96,9 +98,9 @@ def offline_rows(
         for model in dict.fromkeys(r["model"] for r in rows if r["env"] == env and r["model"] != BASELINE):
             for metric in OFFLINE_METRICS:
                 row, base = by_key.get((env, model, h, metric)), by_key.get((env, BASELINE, h, metric))
-                if row is None or base is None or math.isnan(csv_number(row["p_improvement"])):
+                if row is None or base is None or math.isnan(csv_number(row[P_LOWER[0]])):
                     continue
-                if csv_number(row["iqm"]) == 0 and csv_number(base["iqm"]) == 0:  # the env has no such coordinates
+                if csv_number(row[IQM]) == 0 and csv_number(base[IQM]) == 0:  # the env has no such coordinates
                     continue
                 p = csv_number(row.get(P_EXACT))  # summaries from before the exact test lack it
                 note = ci_exact_note(csv_number(row[RATIO[1]]), csv_number(row[RATIO[2]]), 1.0, p)
@@ -112,8 +114,8 @@ def offline_rows(
                         P_EXACT: p,
                         NOTE: note,
                         N_PAIRS: int(csv_number(row[N_PAIRS]) if row[N_PAIRS] else 0),
-                        "n_diverged": int(csv_number(row["n_diverged"])),
-                        f"{BASELINE}_n_diverged": int(csv_number(base["n_diverged"])),
+                        N_DIVERGED: int(csv_number(row[N_DIVERGED])),
+                        f"{BASELINE}_{N_DIVERGED}": int(csv_number(base[N_DIVERGED])),
                         "source": source,
                     }
                 )
