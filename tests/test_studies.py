@@ -1,6 +1,7 @@
 """A study is its metric table (pets.experiments.studies): a new metric is one line of it and appears in the summary
 CSV, the markdown table and the headline row, with no column name typed anywhere else (the offline study: a new error
-metric the runs record is in its CSV, and one line of its table gives it its table in prediction.md)."""
+metric the runs record is in its CSV, and one line of its table gives it its table in prediction.md; the planning
+study: a new per-run value is one line and reaches its CSV and its table)."""
 
 from __future__ import annotations
 
@@ -9,10 +10,11 @@ import math
 from dataclasses import replace
 
 import numpy as np
+import pytest
 
 from pets.experiments.offline_tables import env_section
-from pets.experiments.report import fmt_interval, write_csv
-from pets.experiments.studies import offline
+from pets.experiments.report import BOOT_SEED, fmt_ci, fmt_interval, write_csv
+from pets.experiments.studies import offline, planning
 from pets.experiments.studies.base import (
     HIGHER,
     Metric,
@@ -25,6 +27,8 @@ from pets.experiments.studies.base import (
     table_header,
 )
 from pets.experiments.studies.online import OUTCOME, STUDY
+from pets.experiments.studies.planning import summary_row
+from pets.stats.bootstrap import summarise
 
 #: The metrics over the runs that reached the env's threshold: none did here.
 REACHED = [m.name for m in STUDY.metrics if m.group and m.group.reached]
@@ -172,3 +176,41 @@ def test_the_offline_columns_follow_the_study() -> None:
     ]
     assert study.figure_metric() == "mean_step_error"
     assert study.headline_metrics() == ("standardized_error", "rotation_error", "mean_step_error")
+
+
+def test_a_new_planning_metric_is_one_line_and_reaches_the_csv_and_the_table(tmp_path) -> None:
+    """The planning study's metric table: a new per-run value is one line, with its mean [CI] over seeds in the
+    summary CSV and its column in the markdown table; the paired difference stays with the paired metric."""
+    study = replace(
+        planning.STUDY, metrics=(*planning.STUDY.metrics, planning.RewardMetric("best_step", "best_step", "best step"))
+    )
+    rng = np.random.default_rng(0)
+    results = {
+        model: {
+            seed: {
+                name: {"mean": float(rng.normal()) + shift} for name in ("mean_reward_per_step", "total", "best_step")
+            }
+            for seed in range(5)
+        }
+        for shift, model in enumerate(("delta", "gem"))
+    }
+    rows, table = zip(*(summary_row(results, ("reacher", "cem", m), 20, study) for m in results))
+
+    write_csv(tmp_path / "closedloop.csv", rows, study.columns())  # the CSV
+    with open(tmp_path / "closedloop.csv", newline="") as f:
+        written = list(csv.DictReader(f))
+    assert list(written[0])[-len(planning.PAIRED) - 3 :][:3] == [
+        "best_step_mean",
+        "best_step_ci_low",
+        "best_step_ci_high",
+    ]
+    best = [r["best_step"]["mean"] for r in results["gem"].values()]
+    assert float(written[1]["best_step_mean"]) == pytest.approx(np.mean(best), rel=1e-12)
+    totals = [results["gem"][s]["total"]["mean"] - results["delta"][s]["total"]["mean"] for s in range(5)]
+    assert float(written[1]["diff_to_delta"]) == pytest.approx(np.mean(totals), rel=1e-12)
+    assert written[0]["diff_to_delta"] == "" and written[1]["n_pairs"] == "5"
+
+    header = study.table_header()  # the markdown table
+    assert header[-2:] == ["best step", "total - delta (paired)"] and len(table[1]) == len(header)
+    assert table[1][header.index("best step")] == fmt_ci(summarise(best, seed=BOOT_SEED))
+    assert table[0][-1] == "-" and table[1][-1].endswith(f"p {float(written[1]['p_value_exact']):.3g}")
