@@ -33,11 +33,12 @@ from pets.experiments.arguments import UsageError
 from pets.experiments.cli import EXIT_FAILED, main
 from pets.experiments.headline import HeadlineError, write_headline
 from pets.experiments.offline import compare_offline
-from pets.experiments.offline_summary import SUMMARY_COLUMNS, summarise_offline, summary_from_runs
+from pets.experiments.offline_summary import summarise_offline
 from pets.experiments.online_summary import SUMMARY_COLUMNS as ONLINE_COLUMNS
 from pets.experiments.online_summary import summarise_online
 from pets.experiments.report import fmt, fmt_interval, write_csv
 from pets.experiments.statistics import REPS, ci_exact_note, holm
+from pets.experiments.studies.offline import SUMMARY_COLUMNS, summary_from_runs
 from pets.experiments.studies.online import STUDY as ONLINE_STUDY
 from pets.runs import rundir
 from tests.processes import alive, default_sigint

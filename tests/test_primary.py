@@ -183,7 +183,7 @@ def test_gem_se_studys_committed_primary_and_versus_files_are_what_the_documente
 def test_fig2_averages_over_the_tracking_horizons_only() -> None:
     """Issue 37: Fig. 2 (relative_error.csv) averages each run's error over delta's tracking horizons, the
     primary endpoint's; a run past the level only at a later horizon stays in; with no delta run, every horizon."""
-    from pets.experiments.offline_summary import summary_from_runs
+    from pets.experiments.studies.offline import summary_from_runs
 
     level = math.sqrt(2)
     rng = np.random.default_rng(0)

@@ -5,7 +5,7 @@
 
 Writes ``OUT_summary.csv`` and ``OUT_relative_error.csv`` with today's columns (the exact sign-flip p and the note
 where the bootstrap CI and the exact test disagree among them) by
-``pets.experiments.offline_summary.summary_from_runs``, the statistics ``pets.compare offline`` computes from the
+``pets.experiments.studies.offline.summary_from_runs``, the statistics ``pets.compare offline`` computes from the
 runs' eval.json files. The data sets are not in the repository, so the divergence rule's no-information level is
 sqrt(2) unless given (a fresh ``pets.compare offline`` computes it from its data). Prints, per column both files
 have, how many values changed against an existing ``OUT_summary.csv`` (the check that nothing else moved).
@@ -19,8 +19,8 @@ import math
 import sys
 from pathlib import Path
 
-from pets.experiments.offline_summary import RELATIVE_COLUMNS, SUMMARY_COLUMNS, summary_from_runs
 from pets.experiments.report import write_csv
+from pets.experiments.studies.offline import RELATIVE_COLUMNS, SUMMARY_COLUMNS, summary_from_runs
 
 
 def changed_columns(old: list[dict[str, str]], new: list[dict[str, str]]) -> dict[str, int]:

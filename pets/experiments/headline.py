@@ -30,29 +30,34 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from pets.experiments.offline_statistics import N_PAIRS, NOTE, P_EXACT, P_LOWER, RATIO
 from pets.experiments.plots import plot_headline_ratios
 from pets.experiments.primary import primary_markdown, read_csv_rows, read_primary  # read_csv_rows: report's
 from pets.experiments.report import csv_number, disagreement_lines, fmt, fmt_interval, md_table, write_csv
 from pets.experiments.statistics import BASELINE, ci_exact_note, holm
+from pets.experiments.studies import planning
 from pets.experiments.studies.base import headline_columns, headline_row, headline_table
+from pets.experiments.studies.offline import IQM, N_DIVERGED, N_PAIRS, NOTE, P_EXACT, P_LOWER, RATIO
+from pets.experiments.studies.offline import STUDY as OFFLINE_STUDY
 from pets.experiments.studies.online import STUDY as ONLINE_STUDY
 from pets.runs.fileio import atomic_write_bytes
 
-#: Offline metrics of the headline, in order: the whole state, then the group coordinates (where GEM composes).
-OFFLINE_METRICS = ("standardized_error", "rotation_error", "mean_step_error")
-OFFLINE_COLUMNS = ["env", "model", "metric", "horizon", *RATIO, *P_LOWER, P_EXACT, NOTE, N_PAIRS, "n_diverged",
-                   f"{BASELINE}_n_diverged", "source"]  # fmt: skip
+#: Offline metrics of the headline, in order (the offline study's metric table flags them): the whole state, then
+#: the group coordinates (where GEM composes).
+OFFLINE_METRICS = OFFLINE_STUDY.headline_metrics()
+OFFLINE_COLUMNS = ["env", "model", "metric", "horizon", *RATIO, *P_LOWER, P_EXACT, NOTE, N_PAIRS, N_DIVERGED,
+                   f"{BASELINE}_{N_DIVERGED}", "source"]  # fmt: skip
 #: Online: the columns the online study's metric table flags for the headline (:mod:`pets.experiments.studies`).
 ONLINE_COLUMNS = headline_columns(ONLINE_STUDY)
 
 
-#: Planning with a pre-trained model (``--openloop``, ``--closedloop``): a planning summary's columns, as read.
-_PLANNING_READ = ("n_pairs", "diff_to_delta", "diff_ci_low", "diff_ci_high", "p_value_exact")
-PLANNING_COLUMNS = ["env", "loop", "planner", "model", "steps", "n_seeds", "total_mean", "total_ci_low",
-                    "total_ci_high", "delta_total_mean", *_PLANNING_READ, "p_value_holm", "ci_exact_note",
+#: Planning with a pre-trained model (``--openloop``, ``--closedloop``): the planning study's paired metric (its
+#: mean [CI] beside delta's mean) and its difference to delta, as read from a planning summary.
+_PLANNING_OWN = planning.STUDY.paired().columns()[:3]
+_PLANNING_READ = planning.PAIRED[:-1]  # the note is recomputed from the CI and p
+PLANNING_COLUMNS = ["env", "loop", "planner", "model", "steps", "n_seeds", *_PLANNING_OWN,
+                    f"{BASELINE}_{_PLANNING_OWN[0]}", *_PLANNING_READ, "p_value_holm", planning.NOTE,
                     "source"]  # fmt: skip
-_PLANNING_NEEDED = {"env", "planner", "model", "steps", "total_mean", *_PLANNING_READ}
+_PLANNING_NEEDED = {*planning.STUDY.keys, "steps", _PLANNING_OWN[0], *_PLANNING_READ}
 
 
 class HeadlineError(ValueError):
@@ -65,7 +70,7 @@ def read_summary(path: Path) -> tuple[str, list[dict[str, str]]]:
         raise HeadlineError(f"{path}: no such file (give the summary.csv that pets.compare wrote)")
     rows = read_csv_rows(path, HeadlineError)
     columns = set(rows[0]) if rows else set()
-    if {"env", "model", "horizon", "metric", "ratio_to_delta"} <= columns:
+    if {*OFFLINE_STUDY.keys, RATIO[0]} <= columns:
         kind = "offline"
     elif {"env", "model", "final_iqm", "p_improvement"} <= columns:
         kind = "online"
@@ -96,9 +101,9 @@ def offline_rows(
         for model in dict.fromkeys(r["model"] for r in rows if r["env"] == env and r["model"] != BASELINE):
             for metric in OFFLINE_METRICS:
                 row, base = by_key.get((env, model, h, metric)), by_key.get((env, BASELINE, h, metric))
-                if row is None or base is None or math.isnan(csv_number(row["p_improvement"])):
+                if row is None or base is None or math.isnan(csv_number(row[P_LOWER[0]])):
                     continue
-                if csv_number(row["iqm"]) == 0 and csv_number(base["iqm"]) == 0:  # the env has no such coordinates
+                if csv_number(row[IQM]) == 0 and csv_number(base[IQM]) == 0:  # the env has no such coordinates
                     continue
                 p = csv_number(row.get(P_EXACT))  # summaries from before the exact test lack it
                 note = ci_exact_note(csv_number(row[RATIO[1]]), csv_number(row[RATIO[2]]), 1.0, p)
@@ -112,8 +117,8 @@ def offline_rows(
                         P_EXACT: p,
                         NOTE: note,
                         N_PAIRS: int(csv_number(row[N_PAIRS]) if row[N_PAIRS] else 0),
-                        "n_diverged": int(csv_number(row["n_diverged"])),
-                        f"{BASELINE}_n_diverged": int(csv_number(base["n_diverged"])),
+                        N_DIVERGED: int(csv_number(row[N_DIVERGED])),
+                        f"{BASELINE}_{N_DIVERGED}": int(csv_number(base[N_DIVERGED])),
                         "source": source,
                     }
                 )
@@ -156,11 +161,11 @@ def planning_rows(path: Path, loop: str) -> list[dict[str, Any]]:
                 "model": row["model"],
                 "steps": int(csv_number(row["steps"])),
                 "n_seeds": int(csv_number(row["n_seeds"])),
-                **{k: csv_number(row[k]) for k in ("total_mean", "total_ci_low", "total_ci_high")},
-                "delta_total_mean": csv_number(b["total_mean"]),
+                **{k: csv_number(row[k]) for k in _PLANNING_OWN},
+                f"{BASELINE}_{_PLANNING_OWN[0]}": csv_number(b[_PLANNING_OWN[0]]),
                 **{k: csv_number(row[k]) for k in _PLANNING_READ},
                 "p_value_holm": math.nan,  # set for the primary family by write_headline
-                "ci_exact_note": _diff_note(row, csv_number(row["p_value_exact"])),
+                planning.NOTE: _diff_note(row, csv_number(row[planning.P_EXACT])),
                 "source": str(path),
             }
         )
@@ -169,7 +174,7 @@ def planning_rows(path: Path, loop: str) -> list[dict[str, Any]]:
 
 def _diff_note(row: Mapping[str, str], p: float) -> str:
     """The CI-vs-exact-test note of a summary row's paired difference to delta, with its exact ``p``."""
-    return ci_exact_note(csv_number(row["diff_ci_low"]), csv_number(row["diff_ci_high"]), 0.0, p)
+    return ci_exact_note(csv_number(row[planning.DIFF_LOW]), csv_number(row[planning.DIFF_HIGH]), 0.0, p)
 
 
 def planning_table(rows: Sequence[Mapping[str, Any]]) -> str:
@@ -183,11 +188,11 @@ def planning_table(rows: Sequence[Mapping[str, Any]]) -> str:
             r["planner"],
             str(r["steps"]),
             r["model"],
-            str(int(r["n_pairs"])) if math.isfinite(r["n_pairs"]) else "0",
-            fmt_interval(r["total_mean"], r["total_ci_low"], r["total_ci_high"]),
-            fmt(r["delta_total_mean"]),
-            fmt_interval(r["diff_to_delta"], r["diff_ci_low"], r["diff_ci_high"], missing="-"),
-            fmt(r["p_value_exact"]) if math.isfinite(r["p_value_exact"]) else "-",
+            str(int(r[planning.N_PAIRS])) if math.isfinite(r[planning.N_PAIRS]) else "0",
+            fmt_interval(*(r[c] for c in _PLANNING_OWN)),
+            fmt(r[f"{BASELINE}_{_PLANNING_OWN[0]}"]),
+            fmt_interval(*(r[c] for c in (planning.DIFF, planning.DIFF_LOW, planning.DIFF_HIGH)), missing="-"),
+            fmt(r[planning.P_EXACT]) if math.isfinite(r[planning.P_EXACT]) else "-",
             fmt(r["p_value_holm"]) if math.isfinite(r["p_value_holm"]) else "-",
         ]
         for r in rows
@@ -286,7 +291,7 @@ def write_headline(
     plan_rows = [r for loop, paths in (("open", openloop), ("closed", closedloop)) for p in paths
                  for r in planning_rows(p, loop)]  # fmt: skip
     family = [r for r in plan_rows if r["loop"] == "closed" and r["model"] == model]  # planning's primary
-    for r, adjusted in zip(family, holm([r["p_value_exact"] for r in family])):
+    for r, adjusted in zip(family, holm([r[planning.P_EXACT] for r in family])):
         r["p_value_holm"] = adjusted
     fig2: dict[str, dict[str, dict[str, Any]]] = {}
     for path in relative:

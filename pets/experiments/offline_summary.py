@@ -44,31 +44,19 @@ With ``--openloop``: ``openloop.md``, ``openloop.csv`` (per env, planner and mod
 per step and the total reward of the open-loop plans, mean and CI over seeds) and ``openloop_ENV.png``
 (reward vs step per model, one panel per planner).
 
-The statistics: :mod:`pets.experiments.offline_statistics`; the text of prediction.md:
+The study's metric table and statistics: :mod:`pets.experiments.studies.offline`; the text of prediction.md:
 :mod:`pets.experiments.offline_tables`.
 """
 
 from __future__ import annotations
 
+import json
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from pets.experiments.offline_statistics import (
-    AVERAGE,
-    EXACT,
-    OWN,
-    P_LOWER,
-    RATIO,
-    env_statistics,
-    load_evals,
-    order_metrics,
-    pair_key,
-    test_label,
-)
 from pets.experiments.offline_tables import (
     FIGURE_METRIC,
-    divergence_text,
     env_section,
     fig2_section,
     prediction_header,
@@ -77,41 +65,56 @@ from pets.experiments.offline_tables import (
 )
 from pets.experiments.plots import plot_absolute, plot_ratio, plot_relative
 from pets.experiments.primary import (
-    METRIC,
     PAST_LEVEL_COLUMNS,
     PRIMARY_COLUMNS,
     env_level,
     past_level_rows,
     primary_markdown,
     primary_rows,
-    tracking_horizons,
 )
 from pets.experiments.report import write_csv
 from pets.experiments.rundirs import env_stem, json_matches, precision_note, run_name
-from pets.experiments.statistics import BASELINE, REPS, divergences
+from pets.experiments.statistics import REPS
+from pets.experiments.studies.offline import (
+    INTERVAL,
+    N_DIVERGED,
+    RATIO,
+    RELATIVE_COLUMNS,
+    STUDY,
+    SUMMARY_COLUMNS,
+    env_summary_rows,
+    mark_divergences,
+    pair_key,
+    shared_horizons_and_metrics,
+)
 from pets.runs.fileio import atomic_write_bytes
 
-_DELTA_COLUMNS = [*P_LOWER, *RATIO, *EXACT]
-SUMMARY_COLUMNS = [
-    "env",
-    "model",
-    "horizon",
-    "metric",
-    *OWN,
-    *_DELTA_COLUMNS,
-]
-RELATIVE_COLUMNS = [
-    "env",
-    "model",
-    "metric",
-    *OWN[:3],
-    "relative",
-    "relative_ci_low",
-    "relative_ci_high",
-    *OWN[3:],
-    *_DELTA_COLUMNS,
-    "horizons",
-]
+
+def test_label(env: str, data_seed: int) -> str:
+    """The ``data`` entry of an evaluation request on data set ``data_seed`` (pets.experiments.offline.data_paths)."""
+    return f"data/{env}-d{data_seed}-test.npz" if data_seed else f"data/{env}-test.npz"
+
+
+def load_evals(
+    out: Path,
+    env: str,
+    models: Sequence[str],
+    seeds: Sequence[int],
+    request: Mapping[str, Any],
+    data_seeds: Sequence[int] = (0,),
+) -> dict[str, list[dict[str, Any]]]:
+    """{model: [eval.json of each (data seed, seed) that has one for this request]}; each with ``seed``,
+    ``data_seed`` and ``pair`` (:func:`pets.experiments.studies.offline.pair_key`)."""
+    found: dict[str, list[dict[str, Any]]] = {}
+    for model in models:
+        for d in data_seeds:
+            for seed in seeds:
+                path = out / "runs" / run_name(env, model, seed, data_seed=d) / "eval.json"
+                if json_matches(path, {**request, "data": test_label(env, d)}):
+                    pair = pair_key(d, seed, len(data_seeds))
+                    e = {**json.loads(path.read_text()), "seed": seed, "data_seed": d, "pair": pair}
+                    found.setdefault(model, []).append(e)
+    return found
 
 
 def summarise_offline(
@@ -143,11 +146,11 @@ def summarise_offline(
         included += [
             out / "runs" / run_name(env, m, e["seed"], data_seed=e["data_seed"]) for m in env_models for e in evals[m]
         ]
-        common, metrics = _shared_horizons_and_metrics(runs)
+        common, metrics = shared_horizons_and_metrics(runs)
         if not common or not metrics:
             text += [f"## {env}", "", "No horizon or error metric that every run has: no statistics.", ""]
             continue
-        diverged_runs += _mark_divergences(env, env_models, evals, level[0])
+        diverged_runs += mark_divergences(env, env_models, evals, level[0])
         per_run += _run_rows(env, env_models, evals, run_columns)
         stats, env_summary, env_relative = env_summary_rows(env, env_models, evals, common, metrics, level[0], reps)
         summary += env_summary
@@ -164,7 +167,7 @@ def summarise_offline(
     text = prediction_header() + primary_markdown(primary) + text
     if fig2:
         plot_relative(out / "relative_error.png", fig2)
-        has_ratio = any(r["ratio_to_delta"] is not None for vals in fig2.values() for r in vals.values())
+        has_ratio = any(r[RATIO[0]] is not None for vals in fig2.values() for r in vals.values())
         if has_ratio:
             plot_ratio(out / "ratio_to_delta.png", fig2)
         text += fig2_section(fig2, has_ratio)
@@ -172,88 +175,6 @@ def summarise_offline(
     text += runs_sections(diverged_runs, _missing_runs(out, env_names, models, seeds, data_seeds, request), failed)
     atomic_write_bytes(out / "prediction.md", "\n".join(text).encode())
     return summary
-
-
-def env_summary_rows(
-    env: str,
-    models: Sequence[str],
-    evals: Mapping[str, Sequence[Mapping[str, Any]]],
-    horizons: Sequence[int],
-    metrics: Sequence[str],
-    level: float,
-    reps: int = REPS,
-) -> tuple[dict[str, Any], list[dict[str, Any]], list[dict[str, Any]]]:
-    """(statistics, summary.csv rows, relative_error.csv rows) of one env's runs (``evals``: {model: [eval]}, each
-    with ``pair`` and ``diverged`` set); the relative rows average over :func:`figure_horizons`."""
-    averaged = figure_horizons(evals, horizons, level)
-    stats = env_statistics(evals, metrics, horizons, averaged=averaged, reps=reps)
-    summary, relative = _stat_rows(env, models, stats)
-    for r in relative:
-        r["horizons"] = " ".join(map(str, averaged))
-    _normalise(relative, metrics)
-    return stats, summary, relative
-
-
-def figure_horizons(
-    evals: Mapping[str, Sequence[Mapping[str, Any]]], horizons: Sequence[int], level: float
-) -> list[int]:
-    """Fig. 2's horizons: delta's tracking horizons (:func:`pets.experiments.primary.tracking_horizons` of its
-    standardized error at the no-information ``level``); all ``horizons`` where the env has no delta run or no
-    standardized error."""
-    base = evals.get(BASELINE, [])
-    if not base or any(METRIC not in e["horizons"][str(h)] for e in base for h in horizons):
-        return list(horizons)
-    runs = {e["pair"]: {h: float(e["horizons"][str(h)][METRIC]) for h in horizons} for e in base}
-    return tracking_horizons(runs, level)
-
-
-def summary_from_runs(rows: Sequence[Mapping[str, str]], level: float, reps: int = REPS) -> tuple[list, list]:
-    """(summary.csv rows, relative_error.csv rows) recomputed from per-run rows (``prediction_runs.csv``, committed
-    as ``docs/results/paper_ENV_runs.csv``: env, model, seed, [data_seed,] horizon, starts, the error metrics) with
-    the divergence rule at the no-information ``level``: the statistics ``summarise_offline`` computes from eval.json
-    files, for studies whose run directories are gone."""
-    evals: dict[str, dict[str, dict[tuple, dict[str, Any]]]] = {}
-    for r in rows:
-        key = (int(r.get("data_seed") or 0), int(r["seed"]))
-        runs = evals.setdefault(r["env"], {}).setdefault(r["model"], {})
-        e = runs.setdefault(key, {"seed": key[1], "data_seed": key[0], "horizons": {}})
-        values = {k: v for k, v in r.items() if (k.endswith("_error") or k == "nonfinite_fraction") and v}
-        e["horizons"][str(int(r["horizon"]))] = {k: float(v) for k, v in values.items()}  # empty cell: absent
-    summary, relative = [], []
-    for env, by_model in evals.items():
-        data_seeds = {k[0] for runs in by_model.values() for k in runs}
-        env_evals = {
-            m: [{**e, "pair": pair_key(*k, len(data_seeds))} for k, e in runs.items()] for m, runs in by_model.items()
-        }
-        models = list(env_evals)
-        horizons, metrics = _shared_horizons_and_metrics([e for runs in env_evals.values() for e in runs])
-        _mark_divergences(env, models, env_evals, level)
-        _, env_summary, env_relative = env_summary_rows(env, models, env_evals, horizons, metrics, level, reps)
-        summary += env_summary
-        relative += env_relative
-    return summary, relative
-
-
-def _shared_horizons_and_metrics(runs: Sequence[Mapping[str, Any]]) -> tuple[list[int], list[str]]:
-    """The horizons and the error metrics (:func:`order_metrics`) that every run of an env has."""
-    common = sorted(set.intersection(*[set(map(int, e["horizons"])) for e in runs]))
-    metrics = order_metrics(sorted(set.intersection(*[set(v) for e in runs for v in e["horizons"].values()])))
-    return common, metrics
-
-
-def _mark_divergences(
-    env: str, models: Sequence[str], evals: Mapping[str, Sequence[dict[str, Any]]], level: float
-) -> list[str]:
-    """Set every run's ``"diverged"`` ({horizon: why}) at the env's no-information ``level``; a line per diverged
-    run."""
-    lines = []
-    for model in models:
-        for e in evals[model]:
-            e["diverged"] = divergences(e["horizons"], level)
-            if e["diverged"]:
-                name = run_name(env, model, e["seed"], data_seed=e["data_seed"])
-                lines.append(f"{name}: {divergence_text(e['diverged'])}")
-    return lines
 
 
 def _run_rows(
@@ -265,50 +186,10 @@ def _run_rows(
     for model in models:
         for e in evals[model]:
             for h, m in e["horizons"].items():
-                rows.append(
-                    {
-                        "env": env,
-                        "model": model,
-                        "seed": e["seed"],
-                        "data_seed": e["data_seed"],
-                        "horizon": int(h),
-                        "starts": e["starts"],
-                        "diverged": e["diverged"].get(h, ""),
-                        **m,
-                    }
-                )
+                keys = (env, model, e["seed"], e["data_seed"], int(h), e["starts"], e["diverged"].get(h, ""))
+                rows.append({**dict(zip(STUDY.run_keys, keys, strict=True)), **m})
                 run_columns += [k for k in m if k not in run_columns]
     return rows
-
-
-def _stat_rows(
-    env: str, models: Sequence[str], stats: Mapping[str, Mapping[tuple[str, int | str], Mapping[str, Any]]]
-) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
-    """(summary.csv rows, relative_error.csv rows) of one env's statistics."""
-    summary, relative = [], []
-    for model in models:
-        for (metric, h), s in stats[model].items():
-            row = {"env": env, "model": model, "metric": metric, **s}
-            if h == AVERAGE:
-                relative.append(row)
-            else:
-                summary.append({**row, "horizon": h})
-    return summary, relative
-
-
-def _normalise(relative: Sequence[dict[str, Any]], metrics: Sequence[str]) -> None:
-    """Fig. 2 as the paper normalises: set ``relative`` (with its CI) of one env's rows, the IQM divided by the
-    largest model's IQM of that metric in the env."""
-    for metric in metrics:
-        rows = [r for r in relative if r["metric"] == metric]
-        top = max([r["iqm"] for r in rows if r["iqm"] is not None], default=None)
-        for r in rows:
-            for key, value in (
-                ("relative", r["iqm"]),
-                ("relative_ci_low", r["ci_low"]),
-                ("relative_ci_high", r["ci_high"]),
-            ):
-                r[key] = value / top if value is not None and top else None
 
 
 def _plot_absolute(
@@ -325,11 +206,9 @@ def _plot_absolute(
         {
             m: {
                 "horizons": common,
-                "iqm": [stats[m][(FIGURE_METRIC, h)]["iqm"] for h in common],
-                "ci_low": [stats[m][(FIGURE_METRIC, h)]["ci_low"] for h in common],
-                "ci_high": [stats[m][(FIGURE_METRIC, h)]["ci_high"] for h in common],
+                **{k: [stats[m][(FIGURE_METRIC, h)][k] for h in common] for k in INTERVAL},
                 "n_runs": runs_behind(stats[m][(FIGURE_METRIC, common[0])]),
-                "n_diverged": [stats[m][(FIGURE_METRIC, h)]["n_diverged"] for h in common],
+                "n_diverged": [stats[m][(FIGURE_METRIC, h)][N_DIVERGED] for h in common],
             }
             for m in models
         },
@@ -346,13 +225,7 @@ def _write_csvs(
     """summary.csv, relative_error.csv and prediction_runs.csv (the error metrics first, then the other keys)."""
     write_csv(out / "summary.csv", summary, SUMMARY_COLUMNS)
     write_csv(out / "relative_error.csv", relative_rows, RELATIVE_COLUMNS)
-    errors = order_metrics(run_columns)
-    write_csv(
-        out / "prediction_runs.csv",
-        per_run,
-        ["env", "model", "seed", "data_seed", "horizon", "starts", "diverged", *errors]
-        + [k for k in run_columns if k not in errors],
-    )
+    write_csv(out / "prediction_runs.csv", per_run, STUDY.run_columns(run_columns))
 
 
 def _missing_runs(

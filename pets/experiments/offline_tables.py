@@ -4,29 +4,26 @@ missing runs (:mod:`pets.experiments.offline_summary` writes it).
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping, Sequence
 from typing import Any
 
 from pets.experiments.report import fmt_interval, md_table
 from pets.experiments.rundirs import env_stem
 from pets.experiments.statistics import BASELINE, MIN_SEEDS, SMALL_SAMPLE_NOTE
+from pets.experiments.studies.offline import (
+    INTERVAL,
+    N_DIVERGED,
+    N_PAIRS,
+    N_SEEDS,
+    P_LOWER,
+    RATIO,
+    RELATIVE,
+    STUDY,
+    OfflineStudy,
+)
 
-#: Metrics that get a table in prediction.md (rotation_error only where the env has rotations).
-TABLE_METRICS = ("mean_step_error", "standardized_error", "rotation_error")
-#: The metric of Fig. 2 and Fig. 3.
-FIGURE_METRIC = "mean_step_error"
-
-
-def divergence_text(diverged: Mapping[str, str]) -> str:
-    """A run's divergences ({horizon: why}) in one line, by horizon: "why at h=5; why at h=50"."""
-    return "; ".join(f"{why} at h={h}" for h, why in sorted(diverged.items(), key=lambda item: int(item[0])))
-
-
-def has_rotations(runs: Sequence[Mapping[str, Any]]) -> bool:
-    """Whether an env's runs report a rotation error (a finite value > 0: the env has rotation groups)."""
-    values = [v.get("rotation_error", 0.0) for e in runs for v in e["horizons"].values()]
-    return any(math.isfinite(float(v)) and float(v) > 0 for v in values)
+#: The metric of Fig. 2 and Fig. 3 (the study's metric table).
+FIGURE_METRIC = STUDY.figure_metric()
 
 
 def _metric_tables(
@@ -55,27 +52,27 @@ def _metric_tables(
 
 def runs_behind(s: Mapping[str, Any]) -> int:
     """The runs behind a statistic: the seeds in it and the seeds diverged there."""
-    return s["n_seeds"] + s["n_diverged"]
+    return s[N_SEEDS] + s[N_DIVERGED]
 
 
 def _fmt_iqm(s: Mapping[str, Any]) -> str:
     """IQM [CI] of one column, then "(k diverged)" if k runs diverged there; "all diverged" if every run did."""
-    if s["n_seeds"] == 0:
+    if s[N_SEEDS] == 0:
         return "all diverged"
-    return fmt_interval(s["iqm"], *_ci(s)) + (f" ({s['n_diverged']} diverged)" if s["n_diverged"] else "")
+    return fmt_interval(*_values(s, INTERVAL)) + (f" ({s[N_DIVERGED]} diverged)" if s[N_DIVERGED] else "")
 
 
 def small_sample(s: Mapping[str, Any]) -> bool:
     """Whether a statistic rests on fewer than :data:`MIN_SEEDS` seeds (and at least one)."""
-    return 0 < s["n_seeds"] < MIN_SEEDS
+    return 0 < s[N_SEEDS] < MIN_SEEDS
 
 
-def _ci(s: Mapping[str, Any], key: str = "ci") -> tuple[Any, Any]:
-    return s[f"{key}_low"], s[f"{key}_high"]
+def _values(s: Mapping[str, Any], columns: Sequence[str]) -> list[Any]:
+    return [s[c] for c in columns]
 
 
 def _fmt_p(s: Mapping[str, Any]) -> str:
-    return fmt_interval(s["p_improvement"], *_ci(s, "p_improvement_ci"), "n/a")
+    return fmt_interval(*_values(s, P_LOWER), "n/a")
 
 
 def prediction_header() -> list[str]:
@@ -105,17 +102,18 @@ def env_section(
     models: Sequence[str],
     stats: Mapping[str, Mapping[tuple[str, Any], Mapping[str, Any]]],
     runs: Sequence[Mapping[str, Any]],
+    study: OfflineStudy = STUDY,
 ) -> list[str]:
     """Markdown of one env: its horizons (and the ``asked`` ones it skipped), the small-sample note where needed, a
-    table per :data:`TABLE_METRICS` metric it has, its Fig. 3."""
+    table per metric of the ``study``'s metric table flagged ``table`` that it has (and shows), its Fig. 3."""
     skipped = sorted(set(asked) - set(common))
     note = f"; skipped: {', '.join(map(str, skipped))} (longer than the test episodes)" if skipped else ""
     env_small = any(small_sample(stats[m][(metrics[0], h)]) for m in models for h in common)
     text = [f"## {env} (horizons {', '.join(map(str, common))}{note})", ""]
     text += [SMALL_SAMPLE_NOTE, ""] if env_small else []
-    for metric in TABLE_METRICS:
-        if metric in metrics and (metric != "rotation_error" or has_rotations(runs)):
-            text += _metric_tables(metric, models, stats, common)
+    for metric in study.table_metrics():
+        if metric.name in metrics and metric.shown(runs):
+            text += _metric_tables(metric.name, models, stats, common)
     return text + [f"![absolute error](absolute_error_{env_stem(env)}.png)", ""]
 
 
@@ -152,11 +150,11 @@ def _fig2_row(env: str, m: str, r: Mapping[str, Any]) -> list[str]:
         env,
         r.get("horizons") or "none",
         m,
-        str(r["n_seeds"]),
-        str(r["n_diverged"]),
-        fmt_interval(r["relative"], *_ci(r, "relative_ci"), "all diverged" if not r["n_seeds"] else "n/a"),
-        "-" if m == BASELINE else fmt_interval(r["ratio_to_delta"], *_ci(r, "ratio_ci")),
-        "-" if r["n_pairs"] is None else str(r["n_pairs"]),
+        str(r[N_SEEDS]),
+        str(r[N_DIVERGED]),
+        fmt_interval(*_values(r, RELATIVE), "all diverged" if not r[N_SEEDS] else "n/a"),
+        "-" if m == BASELINE else fmt_interval(*_values(r, RATIO)),
+        "-" if r[N_PAIRS] is None else str(r[N_PAIRS]),
         "-" if m == BASELINE else _fmt_p(r),
     ]
 

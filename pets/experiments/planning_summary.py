@@ -6,7 +6,8 @@ model the mean over seeds with the 95 % percentile-bootstrap CI (:func:`pets.sta
 and, paired by seed (same data, same episodes' reset seeds), the difference model - delta of the total reward:
 its mean with the bootstrap CI and the exact sign-flip p-value (secondary: no multiplicity correction).
 
-Files: ``KIND.csv`` (:data:`COLUMNS`), ``KIND.md`` and ``KIND_ENV.png`` (reward vs step per model, a panel per
+The study's metric table and statistics: :mod:`pets.experiments.studies.planning`. Files: ``KIND.csv``
+(:data:`COLUMNS`), ``KIND.md`` and ``KIND_ENV.png`` (reward vs step per model, a panel per
 planner), KIND ``openloop`` or ``closedloop``.
 """
 
@@ -20,32 +21,11 @@ from typing import Any
 import numpy as np
 
 from pets.experiments.plots import model_colors, plot_openloop
-from pets.experiments.report import BOOT_SEED, disagreement_lines, fmt_ci, md_table, write_csv
+from pets.experiments.report import disagreement_lines, md_table, write_csv
 from pets.experiments.rundirs import env_stem, json_matches, run_name
-from pets.experiments.statistics import BASELINE, ci_exact_note, sign_flip_p
+from pets.experiments.studies.planning import COLUMNS, STUDY, summary_row
 from pets.runs.fileio import atomic_write_bytes
-from pets.stats.bootstrap import bootstrap_ci, summarise
 
-COLUMNS = [
-    "env",
-    "planner",
-    "model",
-    "n_seeds",
-    "steps",
-    "reward_per_step_mean",
-    "reward_per_step_ci_low",
-    "reward_per_step_ci_high",
-    "reward_per_step_iqm",
-    "total_mean",
-    "total_ci_low",
-    "total_ci_high",
-    "n_pairs",
-    "diff_to_delta",
-    "diff_ci_low",
-    "diff_ci_high",
-    "p_value_exact",
-    "ci_exact_note",
-]
 _TITLES = {
     "openloop": (
         "Open-loop planning (GEM paper section 5.2)",
@@ -59,29 +39,6 @@ _TITLES = {
         "termination count as 0).",
     ),
 }
-
-
-def _paired(results: Mapping[str, Mapping[int, Mapping[str, Any]]], model: str) -> dict[str, Any]:
-    """Per-seed difference model - delta of the mean total reward, its mean, CI and exact p."""
-    if model == BASELINE or BASELINE not in results:
-        return {}
-    seeds = sorted(set(results[model]) & set(results[BASELINE]))
-    if not seeds:
-        return {"n_pairs": 0}
-    d = np.array([results[model][s]["total"]["mean"] - results[BASELINE][s]["total"]["mean"] for s in seeds])
-    if not np.isfinite(d).all():
-        return {"n_pairs": len(seeds)}
-    low, high = bootstrap_ci(d, seed=BOOT_SEED)
-    p = sign_flip_p(d)
-    return {"n_pairs": len(seeds), "diff_to_delta": float(d.mean()), "diff_ci_low": low, "diff_ci_high": high,
-            "p_value_exact": p, "ci_exact_note": ci_exact_note(low, high, 0.0, p)}  # fmt: skip
-
-
-def _fmt_diff(row: Mapping[str, Any]) -> str:
-    if row.get("diff_to_delta") is None:
-        return "-"
-    ci = f"[{row['diff_ci_low']:.4g}, {row['diff_ci_high']:.4g}]"
-    return f"{row['diff_to_delta']:.4g} {ci}, p {row['p_value_exact']:.3g}"
 
 
 def summarise_openloop(
@@ -120,32 +77,16 @@ def summarise_openloop(
                     if json_matches(path, {**request, "planner": planner}):
                         results.setdefault(model, {})[seed] = json.loads(path.read_text())
             for model, by_seed in results.items():
-                per_step = summarise([r["mean_reward_per_step"]["mean"] for r in by_seed.values()], seed=BOOT_SEED)
-                total = summarise([r["total"]["mean"] for r in by_seed.values()], seed=BOOT_SEED)
-                row = {
-                    "env": env,
-                    "planner": planner,
-                    "model": model,
-                    "n_seeds": per_step["n"],
-                    "steps": request["steps"],
-                    "reward_per_step_mean": per_step["mean"],
-                    "reward_per_step_ci_low": per_step["ci_low"],
-                    "reward_per_step_ci_high": per_step["ci_high"],
-                    "reward_per_step_iqm": per_step["iqm"],
-                    "total_mean": total["mean"],
-                    "total_ci_low": total["ci_low"],
-                    "total_ci_high": total["ci_high"],
-                    **_paired(results, model),
-                }
+                row, cells = summary_row(results, (env, planner, model), request["steps"])
                 rows.append(row)
-                table.append([planner, model, str(per_step["n"]), fmt_ci(per_step), fmt_ci(total), _fmt_diff(row)])
+                table.append(cells)
                 curves = [r["reward_per_step"]["mean"] for r in by_seed.values()]
                 panels.setdefault(planner, {})[model] = np.array(curves)
         if not table:
             continue
-        headers = ["planner", "model", "seeds", "reward per step", "total reward", f"total - {BASELINE} (paired)"]
         notes = disagreement_lines([r for r in rows if r["env"] == env])
-        text += [f"## {env}", "", md_table(headers, table), "", *notes, f"![{kind}]({kind}_{env_stem(env)}.png)", ""]
+        table_md = md_table(STUDY.table_header(), table)
+        text += [f"## {env}", "", table_md, "", *notes, f"![{kind}]({kind}_{env_stem(env)}.png)", ""]
         plot_openloop(out / f"{kind}_{env_stem(env)}.png", env, panels, colors, kind.replace("loop", "-loop"))
     write_csv(out / f"{kind}.csv", rows, COLUMNS)
     atomic_write_bytes(out / f"{kind}.md", "\n".join(text).encode())

@@ -3,7 +3,7 @@ made from and the code that makes it (:data:`PRODUCTS`), the committed per-seed 
 committed summaries it does not make, each with its reason (:data:`NOT_GENERATED`). Paths are relative to the
 repository root; the products run with that root (or a copy of its docs/results) as the working directory.
 
-The code is the code that made the committed files: :func:`pets.experiments.offline_summary.summary_from_runs`
+The code is the code that made the committed files: :func:`pets.experiments.studies.offline.summary_from_runs`
 (``docs/scripts/resummarise_offline.py``), :func:`pets.experiments.primary.write_primary_files`
 (``docs/scripts/offline_primary.py``), :func:`pets.experiments.studies.online.summary_from_runs` (the statistics of
 ``pets.compare online``) and :func:`pets.experiments.headline.write_headline` (``pets.compare headline``).
@@ -95,8 +95,8 @@ def _offline_summary(study: str, data_levels: bool, relative: bool = True) -> Pr
     outputs = tuple(_path(f"paper_{study}_{name}.csv") for name in names)
 
     def make() -> None:
-        from pets.experiments.offline_summary import RELATIVE_COLUMNS, SUMMARY_COLUMNS, summary_from_runs
         from pets.experiments.report import write_csv
+        from pets.experiments.studies.offline import RELATIVE_COLUMNS, SUMMARY_COLUMNS, summary_from_runs
 
         rows = _rows(runs)
         envs = list(dict.fromkeys(r["env"] for r in rows))
