@@ -267,6 +267,33 @@ def ceiling(rows: Sequence[Mapping[str, Any]]) -> dict[str, float]:
     return {env: float(np.mean(values)) for env, values in out.items()}
 
 
+def _table(path: Path, columns: Mapping[str, str]) -> str:
+    """The committed CSV ``path`` as a markdown table of ``columns`` (CSV column -> header), numbers to 4 digits."""
+    from pets.experiments.report import csv_number, fmt, md_table, read_csv_rows
+
+    def cell(text: str) -> str:
+        try:
+            return fmt(csv_number(text)) if text else ""
+        except ValueError:
+            return text
+
+    return md_table(list(columns.values()), ([cell(r[c]) for c in columns] for r in read_csv_rows(path)))
+
+
+def oracle_table(tree: Path) -> str:
+    """The ``locomotion-oracle`` block: every true-dynamics episode of ``locomotion_oracle.csv``."""
+    columns = {"source": "file", "population": "population", "horizon": "horizon", "iterations": "iterations"}
+    columns |= {"termination_penalty": "termination penalty", "steps": "steps", "reward": "reward", "fell": "fell"}
+    return _table(tree / "docs" / "results" / "locomotion_oracle.csv", columns)
+
+
+def pilots_table(tree: Path) -> str:
+    """The ``locomotion-pilots`` block: one row per pilot run of ``locomotion_pilots.csv``."""
+    columns = {"run": "run", "overrides": "overrides", "env_steps": "env steps", "reward_last5": "last-5 mean"}
+    columns |= {"fall_fraction": "episodes that fell", "cpu_hours": "CPU-hours"}
+    return _table(tree / "docs" / "results" / "locomotion_pilots.csv", columns)
+
+
 def write_csv(path: Path, rows: Sequence[Mapping[str, Any]], columns: Sequence[str]) -> None:
     """The rows with their cells as :func:`_cell` shows them, written by the experiments' CSV writer."""
     from pets.experiments.report import write_csv as write_rows

@@ -21,16 +21,19 @@ from pathlib import Path
 from pets.experiments import published
 from pets.experiments.answer import answer_table, coverage_table, later_offline_table
 from pets.experiments.arguments import PROG
+from pets.experiments.gate import oracle_table, pilots_table
 from pets.runs.fileio import atomic_write_bytes
 from pets.tools.cli import fail
 
 #: The docs that may hold generated blocks.
-BLOCK_FILES = ("README.md", "docs/results.md", "docs/experiments.md")
+BLOCK_FILES = ("README.md", "docs/results.md", "docs/experiments.md", "docs/studies/locomotion_gate.md")
 #: Block name -> its content, rendered from a tree (the repository or its generated copy).
 BLOCKS: dict[str, Callable[[Path], str]] = {
     "answer": answer_table,
     "later-offline": later_offline_table,
     "coverage": coverage_table,
+    "locomotion-oracle": oracle_table,
+    "locomotion-pilots": pilots_table,
 }
 _BLOCK = re.compile(r"(<!-- report:(?P<name>[\w-]+) -->\n)(?P<body>.*?)(<!-- /report:(?P=name) -->)", re.DOTALL)
 
