@@ -232,3 +232,21 @@ def test_a_run_that_fails_by_itself_is_reported_with_its_reason_not_retried(tmp_
     assert "retried" not in err
     assert len(Path(tmp_path / "logs" / "invertedpendulum-delta-s9.log").read_text().split("--resume")) == 2  # once
     assert "failed: RuntimeError: exit 2" in (tmp_path / "summary.md").read_text()
+
+
+def test_a_users_own_env_module_imports_in_the_ray_workers(tmp_path):
+    """``pets.compare online --envs mypend:SPEC --backend ray`` from the folder holding mypend.py (issue 55): the
+    workers start elsewhere and still import it, as the local backend's child processes do."""
+    from tests.test_own_env import SPEC_MODULE, _command
+
+    me = tmp_path / "me"
+    me.mkdir()
+    (me / "mypend.py").write_text(SPEC_MODULE)
+    (me / "tests").symlink_to(ROOT / "tests")  # the module builds on tests/custom_envs.py
+    args = ["pets.compare", "online", "--envs", "mypend:SPEC", "--models", "delta", "--seeds", "0", "--trials", "1"]
+    proc = _command(
+        [*args, "--preset", "fast", "--quiet", *TINY, "--backend", "ray", "--out", "sweep"], me, module=True
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    (run,) = (me / "sweep" / "runs").iterdir()
+    assert run.name.startswith("pendulum-delta-s0") and len(metrics(run)) == 1

@@ -261,9 +261,11 @@ RAW: tuple[str, ...] = (
     _path("peer_learning_invertedpendulum.csv"),
     _path("peer_learning_reacher.csv"),
     _path("peer_planning_step.csv"),
-    # the locomotion gate (pets.experiments.gate): pilot runs, one row each, and the true-dynamics episodes
+    # the locomotion gate (pets.experiments.gate): pilot runs, one row each, the true-dynamics episodes, and how
+    # the Ant pilots' episodes ended (docs/scripts/episode_ends.py)
     _path("locomotion_pilots.csv"),
     _path("locomotion_oracle.csv"),
+    _path("locomotion_episode_ends.csv"),
 )
 
 

@@ -43,9 +43,15 @@ def connect(backend: Backend) -> Any:
         return ray
     if backend.address is None:  # a private instance for one sweep; a cluster's own auth mode and token are kept
         os.environ.setdefault("RAY_AUTH_MODE", "disabled")
+    from envs.custom import child_environment
+
+    # Every worker imports from the folder the command runs in, as a local run does (--envs mymodule:SPEC): the
+    # driver's PYTHONPATH and its current folder (on a cluster, a folder on the shared storage: docs/cluster.md)
+    runtime_env = {"env_vars": {"PYTHONPATH": child_environment()["PYTHONPATH"]}}
     try:
         ray.init(
             address="local" if backend.address is None else backend.address,
+            runtime_env=runtime_env,
             include_dashboard=False,
             log_to_driver=False,
             logging_level=logging.ERROR,
