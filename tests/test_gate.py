@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import math
 
 import pytest
@@ -61,3 +62,26 @@ def test_oracle_files_become_rows_and_no_input_is_one_line_exit_2(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "pets.experiments.gate", "--out", str(tmp_path / "x")],
                           capture_output=True, text=True, timeout=60)  # fmt: skip
     assert proc.returncode == 2 and "give run directories" in proc.stderr and len(proc.stderr.splitlines()) == 1
+
+
+def test_the_summary_and_the_docs_block_are_made_from_the_committed_runs_csv(tmp_path, monkeypatch):
+    """pets.compare report's product: the verdict from locomotion_gate_runs.csv alone (the rule: the mean over the
+    seeds against the threshold), and the block that shows both files."""
+    from pets.experiments import published
+    from pets.experiments.report import write_csv
+
+    results = tmp_path / "docs" / "results"
+    results.mkdir(parents=True)
+    runs = [
+        dict.fromkeys(gate.RUN_COLUMNS, "") | {"env": "halfcheetah", "agent": "delta", "seed": s, "reward_100k": r}
+        for s, r in ((0, "3000"), (1, "2900"), (2, "2400"))
+    ]
+    write_csv(results / "locomotion_gate_runs.csv", [r | {"status": "complete"} for r in runs], gate.RUN_COLUMNS)
+    monkeypatch.chdir(tmp_path)
+    (product,) = [p for p in published.PRODUCTS if p.name == "locomotion gate summary"]
+    product.make()
+    (row,) = list(csv.DictReader((results / "locomotion_gate_summary.csv").open()))
+    assert row["verdict"] == "not passed" and float(row["mean"]) == pytest.approx(8300 / 3, rel=1e-5)
+    assert float(row["threshold"]) == 2800 and row["n_runs"] == "3"
+    text = gate.gate_table(tmp_path)
+    assert "| halfcheetah | delta | 2 |" in text and "not passed" in text

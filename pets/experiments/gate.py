@@ -294,6 +294,17 @@ def pilots_table(tree: Path) -> str:
     return _table(tree / "docs" / "results" / "locomotion_pilots.csv", columns)
 
 
+def gate_table(tree: Path) -> str:
+    """The ``locomotion-gate`` block: every run of ``locomotion_gate_runs.csv``, then the verdict per env."""
+    runs = {"env": "env", "agent": "agent", "seed": "seed", "env_steps": "env steps", "reward_25k": "25k"}
+    runs |= {"reward_50k": "50k", "reward_100k": "100k (endpoint)", "fall_fraction": "fell", "cpu_hours": "CPU-h"}
+    runs |= {"status": "status"}
+    summary = {"env": "env", "agent": "agent", "n_runs": "runs", "mean": "mean", "iqm": "IQM", "ci_low": "CI low"}
+    summary |= {"ci_high": "CI high", "threshold": "threshold", "verdict": "verdict"}
+    path = tree / "docs" / "results" / "locomotion_gate"
+    return f"{_table(Path(f'{path}_runs.csv'), runs)}\n\n{_table(Path(f'{path}_summary.csv'), summary)}"
+
+
 def episode_ends_table(tree: Path) -> str:
     """The ``locomotion-episode-ends`` block: per Ant run of ``locomotion_episode_ends.csv`` (docs/scripts/
     episode_ends.py; its replay buffer's episodes, the seed data's included), how its episodes ended."""

@@ -160,6 +160,22 @@ def _online_summary(study: str) -> Product:
     return Product(f"online summary {study}", (out,), (runs,), make)
 
 
+def _gate_summary() -> Product:
+    """``locomotion_gate_summary.csv`` (the verdict per env) from ``locomotion_gate_runs.csv`` (one row per run,
+    ``python -m pets.experiments.gate RUN_DIR ... --out docs/results/locomotion_gate``)."""
+    runs, out = _path("locomotion_gate_runs.csv"), _path("locomotion_gate_summary.csv")
+
+    def make() -> None:
+        from pets.experiments import gate
+        from pets.experiments.report import csv_number
+
+        key = f"reward_{gate.BUDGET // 1000}k"
+        rows = [dict(r, **{key: csv_number(r[key])}) for r in _rows(runs)]
+        gate.write_csv(Path(out), gate.summary_rows(rows), gate.SUMMARY_COLUMNS)
+
+    return Product("locomotion gate summary", (out,), (runs,), make)
+
+
 def _headline() -> Product:
     """docs/results/headline (``pets.compare headline`` with docs/results.md's command) and its figures."""
     offline = [_path(f"paper_{e}_summary.csv") for e in ORIGINAL]
@@ -211,6 +227,7 @@ PRODUCTS: tuple[Product, ...] = (
     ),
     *(_online_summary(s) for s in ONLINE),
     _headline(),
+    _gate_summary(),
 )
 
 _CRLF = "written with CRLF line ends by the CSV writer of its date; today's code gives the same values with LF ends"
@@ -266,6 +283,7 @@ RAW: tuple[str, ...] = (
     _path("locomotion_pilots.csv"),
     _path("locomotion_oracle.csv"),
     _path("locomotion_episode_ends.csv"),
+    _path("locomotion_gate_runs.csv"),
 )
 
 
