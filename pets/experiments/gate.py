@@ -176,6 +176,9 @@ def summary_rows(runs: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
     return out
 
 
+_ABSENT = object()
+
+
 def pilot_row(run_dir: Path) -> dict[str, Any]:
     """A pilot's row: its name, the keys where its config differs from the locomotion preset's (at the pilot's own
     env and head), the endpoint at the env steps it reached and at each checkpoint, its CPU-hours."""
@@ -189,11 +192,11 @@ def pilot_row(run_dir: Path) -> dict[str, Any]:
             continue
         mine: Any = cfg
         for part in key.split("."):
-            mine = mine.get(part) if isinstance(mine, dict) else None
+            mine = mine.get(part, _ABSENT) if isinstance(mine, dict) else _ABSENT
         theirs = preset
         for part in key.split("."):
             theirs = theirs[part]
-        if mine != theirs and not (mine is None and theirs is None):
+        if mine is not _ABSENT and mine != theirs:  # absent: a key added to the code after the run (its default)
             differs.append(f"{key}={mine}")
     base = run_row(run_dir)
     steps = base["env_steps"]
