@@ -245,21 +245,29 @@ def test_elites_only(prop: str) -> None:
         assert _member_per_step(obs.double(), m).unique().tolist() == list(range(m))
 
 
+def unit_reward(obs: Tensor, act: Tensor, nxt: Tensor) -> Tensor:
+    return torch.ones(obs.shape[:-1], dtype=obs.dtype, device=obs.device)
+
+
+def first_action_terminates(obs: Tensor, act: Tensor, nxt: Tensor) -> Tensor:
+    return act[..., 0] > 0.5
+
+
+def terminating_candidates(h: int) -> Tensor:
+    """(h + 1, h, ACT_DIM) actions: candidate i terminates (:func:`first_action_terminates`) at step i; candidate h
+    never."""
+    actions = torch.zeros(h + 1, h, ACT_DIM)
+    for i in range(h):
+        actions[i, i, 0] = 1.0
+    return actions
+
+
 @pytest.mark.parametrize("prop", PROPAGATIONS)
 def test_termination_is_absorbing(prop: str) -> None:
     """Terminated when the action's first entry exceeds 0.5 (true at one step only): rewards stop after it."""
     ens = FakeEnsemble(torch.zeros(3, OBS_DIM))
-    h = 8
-
-    def unit_reward(obs: Tensor, act: Tensor, nxt: Tensor) -> Tensor:
-        return torch.ones(obs.shape[:-1], dtype=obs.dtype, device=obs.device)
-
-    def term(obs: Tensor, act: Tensor, nxt: Tensor) -> Tensor:
-        return act[..., 0] > 0.5
-
-    actions = torch.zeros(h + 1, h, ACT_DIM)
-    for i in range(h):
-        actions[i, i, 0] = 1.0  # candidate i terminates at step i; candidate h never
+    h, term = 8, first_action_terminates
+    actions = terminating_candidates(h)
     ev = TrajectoryEvaluator(DynamicsModel(make_head(), ens), unit_reward, term, particles=4, propagation=prop)
     ret = ev(torch.zeros(OBS_DIM), actions, torch.Generator().manual_seed(0))
     expected = torch.tensor([float(i + 1) for i in range(h)] + [float(h)])
@@ -277,17 +285,8 @@ def test_termination_is_absorbing(prop: str) -> None:
 def test_termination_penalty_is_subtracted_from_terminated_rows_only(prop: str) -> None:
     """Candidate i terminates at step i (as above): its return drops by exactly the penalty; the survivor's not."""
     ens = FakeEnsemble(torch.zeros(3, OBS_DIM))
-    h, penalty = 6, 37.5
-
-    def unit_reward(obs: Tensor, act: Tensor, nxt: Tensor) -> Tensor:
-        return torch.ones(obs.shape[:-1], dtype=obs.dtype, device=obs.device)
-
-    def term(obs: Tensor, act: Tensor, nxt: Tensor) -> Tensor:
-        return act[..., 0] > 0.5
-
-    actions = torch.zeros(h + 1, h, ACT_DIM)
-    for i in range(h):
-        actions[i, i, 0] = 1.0
+    h, penalty, term = 6, 37.5, first_action_terminates
+    actions = terminating_candidates(h)
     model = DynamicsModel(make_head(), ens)
     ev = TrajectoryEvaluator(model, unit_reward, term, particles=4, propagation=prop, termination_penalty=penalty)
     ret = ev(torch.zeros(OBS_DIM), actions, torch.Generator().manual_seed(0))
