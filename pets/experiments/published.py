@@ -256,6 +256,10 @@ NOT_GENERATED: dict[str, str] = {
         "per-horizon statistics in an older column set (p_ci_low, no n_diverged or exact p) by a command not kept "
         "in the repository; its per-run rows (paper_idp_h50_runs.csv) are committed"
     ),
+    _path("composition_summary_partial.csv"): (
+        "a snapshot of the composition study while it runs (docs/scripts/partial_offline_runs.py --summary, from its "
+        "run directories' eval.json, not committed); its per-run rows are composition_runs_partial.csv"
+    ),
     _path("onestep_before_issue18.csv"): "one-step errors per dimension of trained models that are not committed",
     _path("onestep_after_issue18.csv"): "one-step errors per dimension of trained models that are not committed",
     **{
@@ -284,6 +288,8 @@ RAW: tuple[str, ...] = (
     _path("locomotion_oracle.csv"),
     _path("locomotion_episode_ends.csv"),
     _path("locomotion_gate_runs.csv"),
+    # the composition study (docs/studies/composition.md) while it runs: one row per finished run and horizon
+    _path("composition_runs_partial.csv"),
 )
 
 
