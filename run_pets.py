@@ -166,8 +166,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_intermixed_args(argv)
     with interrupts_deferred():  # Ctrl-C waits for the imports: a module half-imported breaks the run's next import
+        args = build_parser().parse_intermixed_args(argv)  # imports pets.config, and with it torch
         import torch._dynamo  # noqa: F401  (the optimiser imports it when the run is built)
 
         import envs

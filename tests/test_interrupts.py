@@ -51,13 +51,10 @@ def _check(proc: subprocess.CompletedProcess) -> None:
         assert len(said) == 1 and said[0] == error_lines(proc.stderr)[-1], proc.stderr
 
 
-#: A known bug (issue 55, open): run_pets.py interrupted inside its first imports (~0.3 CPU-s) sometimes ends with a
-#: RecursionError traceback from numpy left half-imported; seen once in 6 runs of this file on 2026-11-28 (Zen 4).
-RUN_MOMENTS = [pytest.param(m, marks=pytest.mark.xfail(reason="known: sometimes a traceback")) if m == 0.3 else m
-               for m in MOMENTS]  # fmt: skip
-
-
-@pytest.mark.parametrize("cpu", RUN_MOMENTS)
+# run_pets.py interrupted inside its first imports (~0.3 CPU-s) once ended with a RecursionError traceback: numpy,
+# imported while the arguments were parsed, was left half-imported (seen in 5 of 12 tries on 2026-11-28, Zen 4).
+# The arguments are now parsed with Ctrl-C deferred, and numpy is imported before any command runs.
+@pytest.mark.parametrize("cpu", MOMENTS)
 def test_run_pets_interrupted_at_any_moment(tmp_path, cpu):
     run = tmp_path / "run"
     proc = _interrupted(
@@ -68,13 +65,11 @@ def test_run_pets_interrupted_at_any_moment(tmp_path, cpu):
         assert (run / "config.yaml").is_file(), sorted(p.name for p in run.iterdir())
 
 
-#: A known bug (issue 55, open): pets.train interrupted about 1 CPU-s in sometimes prints its one line and then ends
-#: by the signal (-2) instead of 130; seen in 2 of 5 runs of this file on 2026-11-28 (Zen 4). Not a pass: xfail.
-TRAIN_MOMENTS = [pytest.param(m, marks=pytest.mark.xfail(reason="known: sometimes -2")) if m == 1.0 else m
-                 for m in MOMENTS]  # fmt: skip
-
-
-@pytest.mark.parametrize("cpu", TRAIN_MOMENTS)
+# pets.train interrupted about 1 CPU-s in once printed its one line and then ended by the signal (-2): the interrupt
+# came inside mujoco's import, whose extension runs Python code through PyRun_String, and CPython then ends the
+# process by SIGINT even though the command caught it (3 of 15 tries on 2026-11-28, Zen 4). mujoco is now imported
+# with Ctrl-C deferred before any command runs (pets.tools.cli.UNCUTTABLE_IMPORTS).
+@pytest.mark.parametrize("cpu", MOMENTS)
 def test_pets_train_interrupted_at_any_moment(tmp_path, cpu, data_set):
     run = tmp_path / "run"
     args = [

@@ -112,12 +112,26 @@ def interrupts_deferred() -> Iterator[None]:
         raise KeyboardInterrupt
 
 
+#: Libraries a Ctrl-C must never cut while they import, imported by :func:`run_command` before the command runs.
+#: numpy: an interrupt inside its import can be swallowed and leave it half-imported, and the next ``np.linalg``
+#: recurses until RecursionError. mujoco: its extension runs Python code through ``PyRun_String`` while it imports,
+#: and a KeyboardInterrupt raised there marks the interpreter as ended by Ctrl-C even when the command catches it:
+#: Python then ends the process by the signal (-2) instead of the command's 130 (CPython's
+#: ``_Py_UnhandledKeyboardInterrupt``).
+UNCUTTABLE_IMPORTS = ("numpy", "mujoco")
+
+
 def run_command(prog: str, main: Callable[[], int | None], kept: str = "") -> NoReturn:
     """Run a command's ``main`` as the process and exit with its status. Ctrl-C at any moment, the command's
     imports included (``main`` imports the command's module), is one stderr line ``PROG: interrupted; KEPT`` and exit
     130, never a traceback; a Ctrl-C once ``main`` has returned (the process ending) is ignored: the process exits
     with the command's status, never by the signal (-2)."""
+    import importlib
+
     try:
+        with interrupts_deferred():
+            for name in UNCUTTABLE_IMPORTS:
+                importlib.import_module(name)
         code = main()
     except KeyboardInterrupt:
         signal.signal(signal.SIGINT, signal.SIG_IGN)
