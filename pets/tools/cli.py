@@ -114,11 +114,8 @@ def interrupts_deferred() -> Iterator[None]:
 
 #: Libraries a Ctrl-C must never cut while they import, imported by :func:`run_command` before the command runs.
 #: numpy: an interrupt inside its import can be swallowed and leave it half-imported, and the next ``np.linalg``
-#: recurses until RecursionError. mujoco: its extension runs Python code through ``PyRun_String`` while it imports,
-#: and a KeyboardInterrupt raised there marks the interpreter as ended by Ctrl-C even when the command catches it:
-#: Python then ends the process by the signal (-2) instead of the command's 130 (CPython's
-#: ``_Py_UnhandledKeyboardInterrupt``).
-UNCUTTABLE_IMPORTS = ("numpy", "mujoco")
+#: recurses until RecursionError.
+UNCUTTABLE_IMPORTS = ("numpy",)
 
 
 def run_command(prog: str, main: Callable[[], int | None], kept: str = "") -> NoReturn:
@@ -143,4 +140,27 @@ def run_command(prog: str, main: Callable[[], int | None], kept: str = "") -> No
     # would not do: the interpreter's finalisation puts SIGINT back to its default, and the process would end by the
     # signal (-2), while an ignored signal stays ignored to the end.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _forget_handled_interrupt(code)
     sys.exit(code)
+
+
+def _forget_handled_interrupt(code: int | str | None) -> None:
+    """CPython marks the process as ended by an unhandled Ctrl-C whenever a KeyboardInterrupt passes through code
+    run by ``exec`` of a string (dataclasses, namedtuples and torch's imports run many), even when the command then
+    catches it, and ends the process by SIGINT (-2) instead of its exit status. The command returned a status, so it
+    handled any: clear the mark (a C global up to Python 3.11; from 3.12 it sits in the runtime state, out of reach:
+    an interrupted command then exits at once after the exit handlers instead)."""
+    import ctypes
+
+    try:
+        ctypes.c_int.in_dll(ctypes.pythonapi, "_Py_UnhandledKeyboardInterrupt").value = 0
+    except ValueError:  # not a symbol of this Python
+        if code != EXIT_INTERRUPTED:
+            return
+        import atexit
+        import os
+
+        atexit._run_exitfuncs()
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(EXIT_INTERRUPTED)
