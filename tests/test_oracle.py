@@ -8,6 +8,7 @@ import torch
 
 import envs
 from pets import oracle
+from tests.test_cli import TINY, cli
 
 
 def _stepped_return(env, actions: np.ndarray) -> float:
@@ -45,27 +46,78 @@ def test_returns_equal_the_real_env_stepped_through_each_sequence_and_leave_it_u
     assert returns.dtype == torch.float64 and len(set(returns.tolist())) == 4
 
 
-def test_termination_penalty_is_subtracted_where_the_real_env_terminates() -> None:
-    """Hopper for 60 steps, half the sequences idle, half full random torques: those that fall lose the penalty."""
+def _hopper_sequences():
+    """Hopper after a reset, 8 sequences of 60 steps (half idle, half full random torques) and, per sequence, the
+    real env's last observation stepped through it and whether it fell."""
     spec = envs.get("hopper")
     env = spec.make()
     env.reset(seed=3)
     scale = np.array([0.0] * 4 + [1.0] * 4).reshape(8, 1, 1)
     actions = torch.as_tensor(scale * np.random.default_rng(1).uniform(-1, 1, size=(8, 60, spec.act_dim)))
-    plain = oracle.SimulatorEvaluator(env, spec.make)(torch.zeros(spec.obs_dim), actions)
-    penalised = oracle.SimulatorEvaluator(env, spec.make, termination_penalty=100.0)(torch.zeros(spec.obs_dim), actions)
-    fell = []
+    qpos, qvel = env.unwrapped.data.qpos.copy(), env.unwrapped.data.qvel.copy()
+    fell, last = [], []
     for sequence in actions.numpy():
-        real = spec.make()
-        real.reset(seed=3)
-        terminated = False
+        real = spec.make().unwrapped
+        real.reset(seed=0)
+        real.set_state(qpos, qvel)
         for action in sequence:
-            terminated = real.step(action)[2]
+            obs, _, terminated, _, _ = real.step(action)
             if terminated:
                 break
         fell.append(terminated)
+        last.append(obs)
     assert 0 < sum(fell) < len(fell)  # both kinds among the sequences
-    np.testing.assert_allclose((plain - penalised).numpy(), [100.0 if f else 0.0 for f in fell], atol=1e-9)
+    return spec, env, actions, np.array(fell), np.array(last)
+
+
+def test_termination_penalty_is_subtracted_where_the_real_env_terminates() -> None:
+    """Those of the Hopper sequences that fall lose the penalty, the others nothing."""
+    spec, env, actions, fell, _ = _hopper_sequences()
+    plain = oracle.SimulatorEvaluator(env, spec.make)(torch.zeros(spec.obs_dim), actions)
+    penalised = oracle.SimulatorEvaluator(env, spec.make, termination_penalty=100.0)(torch.zeros(spec.obs_dim), actions)
+    np.testing.assert_allclose((plain - penalised).numpy(), np.where(fell, 100.0, 0.0), atol=1e-9)
+
+
+def test_terminal_value_is_added_at_the_real_last_state_of_the_sequences_that_survive() -> None:
+    """V(obs) = 10 x (torso height): added where the real env did not fall, at its real last observation."""
+    spec, env, actions, fell, last = _hopper_sequences()
+    plain = oracle.SimulatorEvaluator(env, spec.make)(torch.zeros(spec.obs_dim), actions)
+    valued = oracle.SimulatorEvaluator(env, spec.make, terminal_value=lambda obs: 10.0 * obs[..., 0])(
+        torch.zeros(spec.obs_dim), actions
+    )
+    expected = np.where(fell, 0.0, 10.0 * last[:, 0].astype(np.float32))
+    np.testing.assert_allclose((valued - plain).numpy(), expected, rtol=1e-6, atol=1e-9)
+
+
+def test_value_from_a_run_plans_with_that_runs_value(tmp_path) -> None:
+    """--value-from RUN_DIR: the true dynamics with the terminal value a run learned; recorded in --json."""
+    run = tmp_path / "run"
+    cli("--env", "invertedpendulum", "--seed", 3, *TINY, "value.enabled=true", "value.steps=50", "--trials", 1,
+        "--out", run)  # fmt: skip
+    out = tmp_path / "oracle.json"
+    argv = ["--env", "invertedpendulum", "--preset", "fast", "--steps", "20", "--json", str(out), "--quiet"]
+    assert oracle.main([*argv, "--value-from", str(run)]) == 0
+    record = json.loads(out.read_text())
+    assert record["value_from"] == str(run) and record["episodes"][0]["steps"] == 20
+    value = oracle._run_value(run, envs.get("invertedpendulum"))
+    weights = torch.load(run / "checkpoint.pt", weights_only=False)["value"]["net.0.weight"]
+    assert torch.equal(value.net[0].weight, weights)
+
+
+def test_value_from_refuses_what_holds_no_value_of_this_env(tmp_path, capsys) -> None:
+    run = tmp_path / "run"
+    cli("--env", "invertedpendulum", "--seed", 3, *TINY, "value.enabled=false", "--trials", 1, "--out", run)
+    cases = [
+        (["--env", "invertedpendulum", "--value-from", str(tmp_path)], "is not a run directory"),
+        (["--env", "invertedpendulum", "--value-from", str(run)], "learned no terminal value"),
+        (["--env", "hopper", "--value-from", str(run)], "is a run of invertedpendulum, not of hopper"),
+    ]
+    for argv, message in cases:
+        with pytest.raises(SystemExit) as exc:
+            oracle.main(argv)
+        assert exc.value.code == 2
+        err = capsys.readouterr().err
+        assert message in err and len(err.strip().splitlines()) <= 2, err  # the header line, then the error
 
 
 def test_mpc_with_the_true_dynamics_balances_the_pendulum(tmp_path) -> None:

@@ -1,7 +1,7 @@
 """MPC with the true simulator as its model: is a failure the planner's or the learned model's?
 
     python -m pets.oracle --env ENV [--preset fast] [--steps N] [--episodes K] [--seed S] [--quiet]
-                          [--json OUT] [planner.KEY=VALUE ...]
+                          [--json OUT] [--value-from RUN_DIR] [planner.KEY=VALUE ...]
 
 The configured planner (``planner.*`` of the env's config and preset, overrides as in ``run_pets.py``) plans
 every step as PETS' MPC agent does (:class:`pets.agent.MPCAgent`: warm start, ``replan_every``), but every
@@ -10,15 +10,18 @@ state (``qpos``, ``qvel``) and stepped through the sequence, summing the env's o
 a terminating step. So the planner sees the exact returns of its candidates over its horizon, with no model
 error and no sampling noise. If it still fails, the planner (its horizon, population, action
 parameterisation, the objective's ties) is the cause; if it succeeds where ``run_pets.py`` fails, the learned
-model or its data is. Episode ``i`` resets with ``pets.data.collect.episode_seeds(seed, i)[0]``; the planner draws
-from one ``torch.Generator`` seeded with ``seed``.
+model or its data is. ``--value-from RUN_DIR`` adds the terminal value that run learned (``value.enabled``;
+pets.planning.value) to every candidate that does not terminate, as the run's own planner does: with the true
+dynamics and the run's value, a failure is the value's or the planner's, not the model's. Episode ``i`` resets
+with ``pets.data.collect.episode_seeds(seed, i)[0]``; the planner draws from one ``torch.Generator`` seeded with
+``seed``.
 
 A diagnostic, not a hot path: candidates are simulated one at a time in Python (about ``population x
 iterations x horizon`` simulator steps per MPC step; at InvertedDoublePendulum's fast preset, feedback candidates
 over 60 steps, 0.3-0.7 s per step, so a whole 1000-step episode takes 5-12 min: ``--steps`` shortens it).
 Model settings (``model.*``, ``planner.particles``, ``planner.propagation``, ``planner.precision``) and
-``value.*`` have no effect. Output: per episode the steps, the reward, whether the env terminated, and (for the
-cart-pole envs) the cart's largest distance from the centre.
+``value.*`` have no effect (the value is a run's, with ``--value-from``). Output: per episode the steps, the
+reward, whether the env terminated, and (for the cart-pole envs) the cart's largest distance from the centre.
 """
 
 from __future__ import annotations
@@ -27,7 +30,7 @@ import itertools
 import json
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -47,21 +50,31 @@ class SimulatorEvaluator:
     Scores from the current state of ``env`` (a live gymnasium MuJoCo env; ``obs`` is ignored, the full
     simulator state is used): per candidate, a private copy of the env is set to that state and stepped through
     the actions, summing rewards until the horizon ends or the env terminates (the terminating step's reward
-    counts; ``termination_penalty`` is then subtracted, as in the learned model's evaluator). The live env is not
-    touched. With ``feedback`` (pets.planning.feedback) a candidate is the gains of a
-    feedback law, rolled out in closed loop for ``feedback.horizon`` steps from ``obs``.
+    counts; ``termination_penalty`` is then subtracted, as in the learned model's evaluator), plus
+    ``terminal_value`` of the last observation where it did not terminate. The live env is not touched. With
+    ``feedback`` (pets.planning.feedback) a candidate is the gains of a feedback law, rolled out in closed loop for
+    ``feedback.horizon`` steps from ``obs``.
     """
 
-    def __init__(self, env: Any, make_env: Any, feedback: Any = None, termination_penalty: float = 0.0) -> None:
+    def __init__(
+        self,
+        env: Any,
+        make_env: Any,
+        feedback: Any = None,
+        termination_penalty: float = 0.0,
+        terminal_value: Callable[[Tensor], Tensor] | None = None,
+    ) -> None:
         self.env = env.unwrapped
         self.feedback = feedback
         self.termination_penalty = termination_penalty
+        self.terminal_value = terminal_value
         self.sim = make_env().unwrapped
         self.sim.reset(seed=0)  # gymnasium requires a reset before step; the state is overwritten per candidate
 
     def __call__(self, obs: Tensor, actions: Tensor, generator: torch.Generator | None = None) -> Tensor:
         qpos, qvel = self.env.data.qpos.copy(), self.env.data.qvel.copy()
         returns = np.zeros(actions.shape[0])
+        survived: dict[int, np.ndarray] = {}  # candidate -> its last observation, where it did not terminate
         fb = self.feedback
         start = torch.as_tensor(obs, dtype=torch.float32).reshape(1, -1).cpu()
         for i, candidate in enumerate(actions.detach().cpu()):
@@ -76,10 +89,23 @@ class SimulatorEvaluator:
                     break
                 if fb is not None:
                     state = torch.as_tensor(next_obs, dtype=torch.float32).reshape(1, -1)
+            else:
+                survived[i] = next_obs
+        if self.terminal_value is not None and survived:
+            with torch.no_grad():
+                last = torch.as_tensor(np.stack(list(survived.values())), dtype=torch.float32)
+                returns[list(survived)] += self.terminal_value(last).double().numpy()
         return torch.as_tensor(returns, dtype=actions.dtype, device=actions.device)
 
 
-def run_episode(cfg: Any, spec: Any, seed: int, episode: int, steps: int | None = None) -> dict[str, Any]:
+def run_episode(
+    cfg: Any,
+    spec: Any,
+    seed: int,
+    episode: int,
+    steps: int | None = None,
+    terminal_value: Callable[[Tensor], Tensor] | None = None,
+) -> dict[str, Any]:
     """One episode (at most ``steps`` long; default the env's own limit) of MPC with :class:`SimulatorEvaluator`:
     steps, reward, terminated, largest |cart x| (cart-pole envs), seconds."""
     from pets.agent import MPCAgent
@@ -105,7 +131,7 @@ def run_episode(cfg: Any, spec: Any, seed: int, episode: int, steps: int | None 
         feedback.fit_scale(torch.as_tensor(np.concatenate([e.obs for e in random_steps]), dtype=torch.float32))
     agent = MPCAgent(
         make_planner(cfg, spec, device, feedback),
-        SimulatorEvaluator(env, spec.make, feedback, cfg.planner.termination_penalty),
+        SimulatorEvaluator(env, spec.make, feedback, cfg.planner.termination_penalty, terminal_value),
         replan_every=cfg.planner.replan_every,
         action_low=spec.action_low,
         action_high=spec.action_high,
@@ -132,6 +158,13 @@ def build_parser() -> OneLineParser:
     p.add_argument("--seed", type=int, default=0, help="seed of the env resets and the planner")
     p.add_argument("--json", type=Path, default=None, help="also write the results as JSON to this file")
     p.add_argument("--quiet", action="store_true", help="no line per episode while running")
+    p.add_argument(
+        "--value-from",
+        type=Path,
+        default=None,
+        metavar="RUN_DIR",
+        help="add the terminal value this run learned (value.enabled) to the candidates that do not terminate",
+    )
     p.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides (planner.*)")
     return p
 
@@ -158,16 +191,18 @@ def main(argv: Sequence[str] | None = None) -> int:
         fail(PROG, str(err).strip("'\""))
     if cfg.threads > 0:
         torch.set_num_threads(cfg.threads)
+    value = None if args.value_from is None else _run_value(args.value_from, spec)
     p = cfg.planner
     print(
         f"{PROG}: {spec.name}, {p.name}, horizon {p.horizon}, population {p.population}, "
-        f"{p.iterations} iterations, true dynamics",
+        f"{p.iterations} iterations, true dynamics"
+        + (f", the terminal value of {args.value_from}" if args.value_from else ""),
         file=sys.stderr,
     )
     results = []
     for episode in range(args.episodes):
         try:
-            result = run_episode(cfg, spec, args.seed, episode, args.steps)
+            result = run_episode(cfg, spec, args.seed, episode, args.steps, value)
         except ConfigError as err:
             fail(PROG, str(err))
         results.append(result)
@@ -179,8 +214,32 @@ def main(argv: Sequence[str] | None = None) -> int:
             )
     if args.json is not None:
         record = {"planner": OmegaConf.to_container(p), "episodes": results}
+        if args.value_from is not None:
+            record["value_from"] = str(args.value_from)
         atomic_write_bytes(args.json, json.dumps(record, indent=1).encode())
     return 0
+
+
+def _run_value(run_dir: Path, spec: Any) -> Any:
+    """The terminal value that the run in ``run_dir`` learned, for this env; one line and exit 2 otherwise."""
+    from pets.builder import load_value
+    from pets.config import ConfigError, load_config
+    from pets.runs import rundir
+
+    if not (run_dir / rundir.CONFIG_FILE).is_file():
+        fail(PROG, f"--value-from {run_dir} is not a run directory (no {rundir.CONFIG_FILE})")
+    try:
+        run_cfg = load_config(str(run_dir / rundir.CONFIG_FILE))
+        if run_cfg.env != spec.name:
+            raise ConfigError(f"--value-from {run_dir} is a run of {run_cfg.env}, not of {spec.name}")
+        if not run_cfg.value.enabled:
+            raise ConfigError(f"--value-from {run_dir} learned no terminal value (its value.enabled is false)")
+        if rundir.load_checkpoint(run_dir) is None:
+            raise ConfigError(f"--value-from {run_dir} has no {rundir.CHECKPOINT_FILE} yet (no trial completed)")
+        value = load_value(run_dir, run_cfg, spec)
+    except (ValueError, OSError) as err:  # ConfigError is a ValueError
+        fail(PROG, str(err))
+    return value.eval()
 
 
 if __name__ == "__main__":
