@@ -1,0 +1,50 @@
+"""The console scripts (pyproject.toml, ``[project.scripts]``): each runs its command as ``python -m`` does, through
+:func:`pets.tools.cli.run_command`, so Ctrl-C at any moment, the command's own imports included, is one line and exit
+130, never a traceback. The command is imported only inside it (this module imports nothing heavy)."""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable
+from typing import NoReturn
+
+from pets.tools import forward
+from pets.tools.cli import interrupts_deferred, run_command
+
+
+def _tool(name: str) -> Callable[[], NoReturn]:
+    """The console script of ``pets.tools.NAME`` (``python -m pets.NAME``)."""
+
+    def script() -> NoReturn:
+        forward("__main__", name)
+        raise AssertionError("unreachable: run_command exits")
+
+    script.__doc__ = f"``pets-{name.replace('_', '-')}``: ``python -m pets.{name}``."
+    return script
+
+
+def _command(prog: str, module: str) -> Callable[[], NoReturn]:
+    """The console script of ``module.main`` (imported with Ctrl-C deferred)."""
+
+    def main() -> int:
+        with interrupts_deferred():
+            command = importlib.import_module(module).main
+        return command()
+
+    def script() -> NoReturn:
+        run_command(prog, main)
+
+    script.__doc__ = f"``{prog}``: ``{module}.main``."
+    return script
+
+
+run_pets = _command("run_pets.py", "run_pets")
+compare = _command("pets.compare", "pets.experiments.cli")
+collect = _tool("collect")
+train = _tool("train")
+evaluate = _tool("evaluate")
+openloop = _tool("openloop")
+oracle = _tool("oracle")
+visualize = _tool("visualize")
+onestep = _tool("onestep")
+bench = _tool("bench")
