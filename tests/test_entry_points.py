@@ -1,5 +1,5 @@
 """The console scripts named in pyproject.toml: each resolves to a callable that runs its command from ``sys.argv``
-(as ``python -m`` does, pets/console.py), and its ``--help`` exits 0."""
+(as ``python -m`` does, pets/tools/console.py), and its ``--help`` exits 0."""
 
 import importlib
 import signal

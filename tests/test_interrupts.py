@@ -101,11 +101,11 @@ def test_pets_train_interrupted_at_any_moment(tmp_path, cpu, data_set):
 
 @pytest.mark.parametrize("cpu", MOMENTS[:2])
 def test_a_console_script_interrupted_in_its_imports_is_one_line_and_130(tmp_path, cpu):
-    """``pets-compare`` as pip writes it (``sys.exit(compare())`` after ``from pets.console import compare``); with
-    ``pets.experiments.cli:main`` as the script, a Ctrl-C in its imports was a traceback (6 of 6 at 0.3 CPU-s)."""
+    """``pets-compare`` as pip writes it (``sys.exit(compare())`` after ``from pets.tools.console import compare``);
+    with ``pets.experiments.cli:main`` as the script, a Ctrl-C in its imports was a traceback (6 of 6 at 0.3 CPU-s)."""
     argv = ["pets-compare", "offline", "--envs", "invertedpendulum", "--models", "delta", "--quiet"]
     script = f"import sys; sys.argv = {[*argv, '--out', str(tmp_path / 'off')]!r}; " + (
-        "from pets.console import compare; sys.exit(compare())"
+        "from pets.tools.console import compare; sys.exit(compare())"
     )
     _check(_interrupted(["-c", script], cpu, ROOT))
 

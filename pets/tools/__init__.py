@@ -10,6 +10,8 @@
 - ``visualize``: the paper's trajectory figure, rendered by MuJoCo;
 - ``bench``, ``bench_train``, ``bench_layers``: planning-step, model-training and bf16-layer benchmarks;
 - ``cli``: what every command shares: one-line errors and the one table of exit statuses.
+- ``console``: the console scripts (``run-pets``, ``pets-compare``, ``pets-train``, ...), each run as ``python -m``
+  runs it.
 
 Each also answers at its old path, ``python -m pets.X`` and ``import pets.X`` (:func:`forward`).
 """
