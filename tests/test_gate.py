@@ -59,6 +59,10 @@ def test_oracle_files_become_rows_and_no_input_is_one_line_exit_2(tmp_path):
     (tmp_path / "hopper_pen.json").write_text(json.dumps({"planner": penalised, "episodes": episodes}))
     (row,) = gate.oracle_rows(tmp_path / "hopper_pen.json")
     assert row["termination_penalty"] == 100.0 and gate.ceiling([row]) == {}  # not the preset's setting
+    valued = {"planner": planner, "episodes": episodes, "value_from": "/runs/hopper-v2-s100"}
+    (tmp_path / "hopper_value.json").write_text(json.dumps(valued))
+    (row,) = gate.oracle_rows(tmp_path / "hopper_value.json")
+    assert row["terminal_value"] == "hopper-v2-s100" and gate.ceiling([row]) == {}  # a learned value: no ceiling
     proc = subprocess.run([sys.executable, "-m", "pets.experiments.gate", "--out", str(tmp_path / "x")],
                           capture_output=True, text=True, timeout=60)  # fmt: skip
     assert proc.returncode == 2 and "give run directories" in proc.stderr and len(proc.stderr.splitlines()) == 1

@@ -246,6 +246,7 @@ def oracle_rows(path: Path) -> list[dict[str, Any]]:
             "horizon": p["horizon"],
             "iterations": p["iterations"],
             "termination_penalty": float(p.get("termination_penalty", 0.0)),  # absent: written before the setting
+            "terminal_value": Path(data["value_from"]).name if data.get("value_from") else "",  # --value-from RUN
             "episode": i,
             "steps": e["steps"],
             "reward": float(e["reward"]),
@@ -257,15 +258,16 @@ def oracle_rows(path: Path) -> list[dict[str, Any]]:
 
 def ceiling(rows: Sequence[Mapping[str, Any]]) -> dict[str, float]:
     """Per env, the mean reward of the true-dynamics episodes run with the locomotion preset's planner settings
-    (the env's own entries of the preset included), termination penalty included."""
+    (the env's own entries of the preset included), termination penalty included; never with a run's learned
+    terminal value (``pets.oracle --value-from``: the value is not the simulator's)."""
     from pets.config import make_config
 
     out: dict[str, list[float]] = {}
     for r in rows:
         p = make_config(r["env"], "delta", "locomotion").planner
-        if (r["planner"], r["population"], r["horizon"], r["iterations"], r["termination_penalty"]) == (
-            p.name, p.population, p.horizon, p.iterations, p.termination_penalty
-        ):  # fmt: skip
+        setting = (r["planner"], r["population"], r["horizon"], r["iterations"], r["termination_penalty"])
+        if not r.get("terminal_value") and setting == (p.name, p.population, p.horizon, p.iterations,
+                                                      p.termination_penalty):  # fmt: skip
             out.setdefault(r["env"], []).append(float(r["reward"]))
     return {env: float(np.mean(values)) for env, values in out.items()}
 
@@ -286,7 +288,8 @@ def _table(path: Path, columns: Mapping[str, str]) -> str:
 def oracle_table(tree: Path) -> str:
     """The ``locomotion-oracle`` block: every true-dynamics episode of ``locomotion_oracle.csv``."""
     columns = {"source": "file", "population": "population", "horizon": "horizon", "iterations": "iterations"}
-    columns |= {"termination_penalty": "termination penalty", "steps": "steps", "reward": "reward", "fell": "fell"}
+    columns |= {"termination_penalty": "termination penalty", "terminal_value": "terminal value of"}
+    columns |= {"steps": "steps", "reward": "reward", "fell": "fell"}
     return _table(tree / "docs" / "results" / "locomotion_oracle.csv", columns)
 
 
