@@ -223,6 +223,7 @@ ORACLE_COLUMNS = [
     "horizon",
     "iterations",
     "termination_penalty",
+    "terminal_value",
     "episode",
     "steps",
     "reward",

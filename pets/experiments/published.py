@@ -290,6 +290,8 @@ RAW: tuple[str, ...] = (
     _path("locomotion_gate_runs.csv"),
     # the composition study (docs/studies/composition.md) while it runs: one row per finished run and horizon
     _path("composition_runs_partial.csv"),
+    # the online locomotion study (docs/studies/online_locomotion.md) while it runs: one row per run, partial or not
+    _path("online_locomotion_runs_partial.csv"),
 )
 
 
