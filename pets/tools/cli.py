@@ -114,8 +114,9 @@ def interrupts_deferred() -> Iterator[None]:
 
 #: Libraries a Ctrl-C must never cut while they import, imported by :func:`run_command` before the command runs.
 #: numpy: an interrupt inside its import can be swallowed and leave it half-imported, and the next ``np.linalg``
-#: recurses until RecursionError.
-UNCUTTABLE_IMPORTS = ("numpy",)
+#: recurses until RecursionError. mujoco: an interrupt inside its extensions' initialisation becomes an ImportError
+#: ("initialization failed"), which gymnasium reports as "MuJoCo is not installed" with a traceback.
+UNCUTTABLE_IMPORTS = ("numpy", "mujoco")
 
 
 def run_command(prog: str, main: Callable[[], int | None], kept: str = "") -> NoReturn:
