@@ -234,8 +234,6 @@ def _run_value(run_dir: Path, spec: Any) -> Any:
             raise ConfigError(f"--value-from {run_dir} is a run of {run_cfg.env}, not of {spec.name}")
         if not run_cfg.value.enabled:
             raise ConfigError(f"--value-from {run_dir} learned no terminal value (its value.enabled is false)")
-        if rundir.load_checkpoint(run_dir) is None:
-            raise ConfigError(f"--value-from {run_dir} has no {rundir.CHECKPOINT_FILE} yet (no trial completed)")
         value = load_value(run_dir, run_cfg, spec)
     except (ValueError, OSError) as err:  # ConfigError is a ValueError
         fail(PROG, str(err))
