@@ -301,6 +301,14 @@ def pilots_table(tree: Path) -> str:
     return _table(tree / "docs" / "results" / "locomotion_pilots.csv", columns)
 
 
+def online_partial_table(tree: Path) -> str:
+    """The ``online-locomotion-partial`` block: one row per run of the online locomotion study while it runs
+    (``online_locomotion_runs_partial.csv``, the pilot rows' format)."""
+    columns = {"run": "run", "head": "arm", "seed": "seed", "env_steps": "env steps", "reward_25k": "25k"}
+    columns |= {"reward_50k": "50k", "reward_100k": "100k (endpoint)", "cpu_hours": "CPU-hours"}
+    return _table(tree / "docs" / "results" / "online_locomotion_runs_partial.csv", columns)
+
+
 def gate_table(tree: Path) -> str:
     """The ``locomotion-gate`` block: every run of ``locomotion_gate_runs.csv``, then the verdict per env."""
     runs = {"env": "env", "agent": "agent", "seed": "seed", "env_steps": "env steps", "reward_25k": "25k"}

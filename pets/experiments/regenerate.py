@@ -21,12 +21,15 @@ from pathlib import Path
 from pets.experiments import published
 from pets.experiments.answer import answer_table, coverage_table, later_offline_table
 from pets.experiments.arguments import PROG
-from pets.experiments.gate import episode_ends_table, gate_table, oracle_table, pilots_table
+from pets.experiments.gate import episode_ends_table, gate_table, online_partial_table, oracle_table, pilots_table
 from pets.runs.fileio import atomic_write_bytes
 from pets.tools.cli import fail
 
 #: The docs that may hold generated blocks.
-BLOCK_FILES = ("README.md", "docs/results.md", "docs/experiments.md", "docs/studies/locomotion_gate.md")
+BLOCK_FILES = (
+    *("README.md", "docs/results.md", "docs/experiments.md"),
+    *("docs/studies/locomotion_gate.md", "docs/studies/online_locomotion.md"),
+)
 #: Block name -> its content, rendered from a tree (the repository or its generated copy).
 BLOCKS: dict[str, Callable[[Path], str]] = {
     "answer": answer_table,
@@ -36,6 +39,7 @@ BLOCKS: dict[str, Callable[[Path], str]] = {
     "locomotion-pilots": pilots_table,
     "locomotion-episode-ends": episode_ends_table,
     "locomotion-gate": gate_table,
+    "online-locomotion-partial": online_partial_table,
 }
 _BLOCK = re.compile(r"(<!-- report:(?P<name>[\w-]+) -->\n)(?P<body>.*?)(<!-- /report:(?P=name) -->)", re.DOTALL)
 
