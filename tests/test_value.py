@@ -17,7 +17,7 @@ from pets.data.rollout import RandomPolicy, run_steps
 from pets.planning.propagation import PROPAGATIONS, TrajectoryEvaluator
 from pets.planning.value import ValueFunction, episode_ends, returns_to_go
 from tests.test_cli import TINY, cli, rows
-from tests.test_propagation import OBS_DIM, FakeEnsemble, make_head
+from tests.test_propagation import OBS_DIM, FakeEnsemble, first_action_terminates, make_head, unit_reward
 
 
 def discounted_cumsum(x: np.ndarray, discount: float) -> np.ndarray:
@@ -79,14 +79,7 @@ def test_terminal_value_is_added_for_surviving_rows_only(prop: str) -> None:
     """Unit rewards, termination when the action's first entry > 0.5 (one step only), V(obs) = 100 + obs_0:
     a candidate that terminates gets its steps only; one that survives also V of its final state."""
     ens = FakeEnsemble(torch.full((3, OBS_DIM), 0.5))  # every member moves each coordinate by +0.5 per step
-    h = 6
-
-    def unit_reward(obs, act, nxt):
-        return torch.ones(obs.shape[:-1], dtype=obs.dtype)
-
-    def term(obs, act, nxt):
-        return act[..., 0] > 0.5
-
+    h, term = 6, first_action_terminates
     actions = torch.zeros(3, h, 2)
     actions[0, 2, 0] = 1.0  # terminates at step 2
     ev = TrajectoryEvaluator(

@@ -39,7 +39,7 @@ def _command(prog: str, module: str) -> Callable[[], NoReturn]:
 
 
 run_pets = _command("run_pets.py", "run_pets")
-compare = _command("pets.compare", "pets.experiments.cli")
+compare = _command("pets.compare", "pets.compare")  # its main imports pets.experiments with Ctrl-C deferred
 collect = _tool("collect")
 train = _tool("train")
 evaluate = _tool("evaluate")
