@@ -89,22 +89,3 @@ def test_the_summary_and_the_docs_block_are_made_from_the_committed_runs_csv(tmp
     assert float(row["threshold"]) == 2800 and row["n_runs"] == "3"
     text = gate.gate_table(tmp_path)
     assert "| halfcheetah | delta | 2 |" in text and "not passed" in text
-
-
-def test_the_online_studys_partial_block_shows_each_run_from_its_committed_rows(tmp_path):
-    """The ``online-locomotion-partial`` block: one table row per CSV row, the arm and the endpoint as written."""
-    from pets.experiments.report import write_csv
-
-    results = tmp_path / "docs" / "results"
-    results.mkdir(parents=True)
-    rows = [
-        {"run": "halfcheetah-delta-s0", "head": "delta", "seed": 0, "env_steps": 100000, "reward_25k": 2383.86,
-         "reward_50k": 2646.65, "reward_100k": 3233.83, "cpu_hours": 1.441},
-        {"run": "halfcheetah-gem-se-s0", "head": "gem-se", "seed": 0, "env_steps": 8000, "reward_25k": None,
-         "reward_50k": None, "reward_100k": None, "cpu_hours": 0.125},
-    ]  # fmt: skip
-    write_csv(results / "online_locomotion_runs_partial.csv", rows, list(rows[0]))
-    lines = gate.online_partial_table(tmp_path).splitlines()
-    assert lines[0] == "| run | arm | seed | env steps | 25k | 50k | 100k (endpoint) | CPU-hours |"
-    assert lines[2] == "| halfcheetah-delta-s0 | delta | 0 | 100000 | 2384 | 2647 | 3234 | 1.441 |"
-    assert lines[3] == "| halfcheetah-gem-se-s0 | gem-se | 0 | 8000 |  |  |  | 0.125 |" and len(lines) == 4

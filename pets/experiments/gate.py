@@ -66,7 +66,7 @@ def curve(rows: Sequence[Mapping[str, Any]], full_length: int, window: int = WIN
     return np.array(steps, dtype=np.int64), np.array(values)
 
 
-def _read(run_dir: Path) -> tuple[dict[str, Any], list[dict[str, str]]]:
+def read_run(run_dir: Path) -> tuple[dict[str, Any], list[dict[str, str]]]:
     import yaml
 
     cfg = yaml.safe_load((run_dir / "config.yaml").read_text())
@@ -86,7 +86,7 @@ def full_length(cfg: Mapping[str, Any]) -> int:
 
 def run_row(run_dir: Path, agent: str | None = None) -> dict[str, Any]:
     """The :data:`RUN_COLUMNS` row of one run directory (``agent``: default the run's head)."""
-    cfg, rows = _read(run_dir)
+    cfg, rows = read_run(run_dir)
     cpu = float(rows[-1]["cpu_time_s"]) if rows else 0.0
     plan = sum(float(r.get("plan_cpu_s", "nan")) for r in rows)
     budget = cfg.get("max_env_steps") or BUDGET
@@ -184,7 +184,7 @@ def pilot_row(run_dir: Path) -> dict[str, Any]:
     env and head), the endpoint at the env steps it reached and at each checkpoint, its CPU-hours."""
     from pets.config import all_keys, make_config
 
-    cfg, rows = _read(run_dir)
+    cfg, rows = read_run(run_dir)
     preset = make_config(cfg["env"], cfg["head"], "locomotion")
     differs = []
     for key in all_keys(preset):
@@ -273,7 +273,7 @@ def ceiling(rows: Sequence[Mapping[str, Any]]) -> dict[str, float]:
     return {env: float(np.mean(values)) for env, values in out.items()}
 
 
-def _table(path: Path, columns: Mapping[str, str]) -> str:
+def csv_table(path: Path, columns: Mapping[str, str]) -> str:
     """The committed CSV ``path`` as a markdown table of ``columns`` (CSV column -> header), numbers to 4 digits."""
     from pets.experiments.report import csv_number, fmt, md_table, read_csv_rows
 
@@ -291,22 +291,14 @@ def oracle_table(tree: Path) -> str:
     columns = {"source": "file", "population": "population", "horizon": "horizon", "iterations": "iterations"}
     columns |= {"termination_penalty": "termination penalty", "terminal_value": "terminal value of"}
     columns |= {"steps": "steps", "reward": "reward", "fell": "fell"}
-    return _table(tree / "docs" / "results" / "locomotion_oracle.csv", columns)
+    return csv_table(tree / "docs" / "results" / "locomotion_oracle.csv", columns)
 
 
 def pilots_table(tree: Path) -> str:
     """The ``locomotion-pilots`` block: one row per pilot run of ``locomotion_pilots.csv``."""
     columns = {"run": "run", "overrides": "overrides", "env_steps": "env steps", "reward_last5": "last-5 mean"}
     columns |= {"fall_fraction": "episodes that fell", "cpu_hours": "CPU-hours"}
-    return _table(tree / "docs" / "results" / "locomotion_pilots.csv", columns)
-
-
-def online_partial_table(tree: Path) -> str:
-    """The ``online-locomotion-partial`` block: one row per run of the online locomotion study while it runs
-    (``online_locomotion_runs_partial.csv``, the pilot rows' format)."""
-    columns = {"run": "run", "head": "arm", "seed": "seed", "env_steps": "env steps", "reward_25k": "25k"}
-    columns |= {"reward_50k": "50k", "reward_100k": "100k (endpoint)", "cpu_hours": "CPU-hours"}
-    return _table(tree / "docs" / "results" / "online_locomotion_runs_partial.csv", columns)
+    return csv_table(tree / "docs" / "results" / "locomotion_pilots.csv", columns)
 
 
 def gate_table(tree: Path) -> str:
@@ -317,7 +309,7 @@ def gate_table(tree: Path) -> str:
     summary = {"env": "env", "agent": "agent", "n_runs": "runs", "mean": "mean", "iqm": "IQM", "ci_low": "CI low"}
     summary |= {"ci_high": "CI high", "threshold": "threshold", "verdict": "verdict"}
     path = tree / "docs" / "results" / "locomotion_gate"
-    return f"{_table(Path(f'{path}_runs.csv'), runs)}\n\n{_table(Path(f'{path}_summary.csv'), summary)}"
+    return f"{csv_table(Path(f'{path}_runs.csv'), runs)}\n\n{csv_table(Path(f'{path}_summary.csv'), summary)}"
 
 
 def episode_ends_table(tree: Path) -> str:
@@ -341,10 +333,12 @@ def write_csv(path: Path, rows: Sequence[Mapping[str, Any]], columns: Sequence[s
     """The rows with their cells as :func:`_cell` shows them, written by the experiments' CSV writer."""
     from pets.experiments.report import write_csv as write_rows
 
-    write_rows(path, [{c: _cell(r[c]) for c in columns} for r in rows], columns)
+    write_rows(path, [{c: cell_text(r[c]) for c in columns} for r in rows], columns)
 
 
-def _cell(v: Any) -> str:
+def cell_text(v: Any) -> str:
+    if v is None:
+        return ""
     if isinstance(v, float):
         return "" if math.isnan(v) else f"{v:.6g}"
     return str(v)
@@ -358,7 +352,7 @@ def plot(run_dirs: Sequence[Path], path: Path, references: Mapping[str, float] |
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    runs = [(d, *_read(d)) for d in run_dirs]
+    runs = [(d, *read_run(d)) for d in run_dirs]
     env_names = list(dict.fromkeys(cfg["env"] for _, cfg, _ in runs))
     fig, axes = plt.subplots(1, len(env_names), figsize=(5 * len(env_names), 3.6), squeeze=False)
     for ax, env in zip(axes[0], env_names):
@@ -408,7 +402,7 @@ def main(argv: list[str] | None = None) -> int:
         write_csv(Path(f"{args.out}_summary.csv"), summary_rows(runs), SUMMARY_COLUMNS)
         rows = runs
     for r in rows:
-        print("  ".join(f"{k}={_cell(v)}" for k, v in r.items()), file=sys.stdout)
+        print("  ".join(f"{k}={cell_text(v)}" for k, v in r.items()), file=sys.stdout)
     if args.figure:
         plot(args.run_dirs, args.figure, ceiling([row for path in args.oracle for row in oracle_rows(path)]))
     return 0

@@ -176,6 +176,18 @@ def _gate_summary() -> Product:
     return Product("locomotion gate summary", (out,), (runs,), make)
 
 
+def _locomotion_summary() -> Product:
+    """The online locomotion study's summary and secondary comparisons from its committed run rows."""
+    from pets.experiments.studies import locomotion
+
+    runs = _path(locomotion.RUNS)
+
+    def make() -> None:
+        locomotion.write_summary(Path(RESULTS))
+
+    return Product("online locomotion summary", (_path(locomotion.SUMMARY), _path(locomotion.VERSUS)), (runs,), make)
+
+
 def _headline() -> Product:
     """docs/results/headline (``pets.compare headline`` with docs/results.md's command) and its figures."""
     offline = [_path(f"paper_{e}_summary.csv") for e in ORIGINAL]
@@ -228,6 +240,7 @@ PRODUCTS: tuple[Product, ...] = (
     *(_online_summary(s) for s in ONLINE),
     _headline(),
     _gate_summary(),
+    _locomotion_summary(),
 )
 
 _CRLF = "written with CRLF line ends by the CSV writer of its date; today's code gives the same values with LF ends"
@@ -290,8 +303,8 @@ RAW: tuple[str, ...] = (
     _path("locomotion_gate_runs.csv"),
     # the composition study (docs/studies/composition.md) while it runs: one row per finished run and horizon
     _path("composition_runs_partial.csv"),
-    # the online locomotion study (docs/studies/online_locomotion.md) while it runs: one row per run, partial or not
-    _path("online_locomotion_runs_partial.csv"),
+    # the online locomotion study (docs/studies/online_locomotion.md): one row per run, complete, partial or crashed
+    _path("online_locomotion_runs.csv"),
 )
 
 

@@ -21,7 +21,8 @@ from pathlib import Path
 from pets.experiments import published
 from pets.experiments.answer import answer_table, coverage_table, later_offline_table
 from pets.experiments.arguments import PROG
-from pets.experiments.gate import episode_ends_table, gate_table, online_partial_table, oracle_table, pilots_table
+from pets.experiments.gate import episode_ends_table, gate_table, oracle_table, pilots_table
+from pets.experiments.studies.locomotion import runs_table, summary_table
 from pets.runs.fileio import atomic_write_bytes
 from pets.tools.cli import fail
 
@@ -39,7 +40,8 @@ BLOCKS: dict[str, Callable[[Path], str]] = {
     "locomotion-pilots": pilots_table,
     "locomotion-episode-ends": episode_ends_table,
     "locomotion-gate": gate_table,
-    "online-locomotion-partial": online_partial_table,
+    "online-locomotion-runs": runs_table,
+    "online-locomotion": summary_table,
 }
 _BLOCK = re.compile(r"(<!-- report:(?P<name>[\w-]+) -->\n)(?P<body>.*?)(<!-- /report:(?P=name) -->)", re.DOTALL)
 

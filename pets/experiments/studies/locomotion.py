@@ -1,0 +1,222 @@
+"""The online locomotion study (docs/studies/online_locomotion.md): each arm against ``delta`` at the locomotion
+preset, paired by seed, on the envs where the locomotion gate passed. Its metric table (:data:`STUDY`), one row per
+run directory (:func:`run_row`), the summary from the committed rows (:func:`summary_from_runs`), the secondary
+comparisons between two GEM arms (:func:`versus_rows`) and the generated markdown.
+
+    python -m pets.experiments.studies.locomotion RUN_DIR [RUN_DIR ...] --out docs/results/online_locomotion_runs.csv
+
+Per run (pre-registered): ``endpoint``, the gate's endpoint at the budget (the mean return of the last 5 complete
+episodes); secondary: ``auc``, the mean of that moving window at every 1,000 env steps from 10k to the budget (the
+area under the reward curve over its span); ``steps_to_threshold``, the first env step at which the window reaches
+the gate's threshold (NaN if never). A run short of the budget is ``partial`` (still running; left out of the
+summary); a run the study gave up on (``--crashed RUN``) counts as the worst outcome, an endpoint and AUC of 0.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pets.experiments import gate
+from pets.experiments.report import csv_number, fmt, fmt_interval, md_table
+from pets.experiments.statistics import BASELINE, REPS, iqm_ci, paired_differences, sign_flip_p
+from pets.experiments.studies.base import (
+    HIGHER,
+    LOWER,
+    Group,
+    Metric,
+    Study,
+    arm_statistics,
+    holm_over_summary,
+    table_cells,
+    table_header,
+)
+
+OUTCOME = Group("outcome")
+REACHED = Group("reached", reached=True, missing="-")
+STUDY = Study(
+    name="online-locomotion",
+    keys=("env", "model"),
+    context=("env_steps",),
+    metrics=(
+        Metric("endpoint", "endpoint", HIGHER, OUTCOME, "p_improvement", f"P(endpoint > {BASELINE}'s)", "diff",
+               "endpoint (last 5 at the budget)"),
+        Metric("auc", "auc", HIGHER, OUTCOME, label="AUC"),
+        Metric("steps_to_threshold", "steps_to_threshold", LOWER, REACHED, label="env steps to it"),
+        Metric("cpu_hours", "cpu_hours", label="CPU h"),
+    ),
+)  # fmt: skip
+#: One row per run: the study's columns, then the checkpoints, the falls and whether the run is complete.
+RUN_COLUMNS = [*STUDY.run_columns(), "reward_25k", "reward_50k", "fall_fraction", "status"]
+SUMMARY_COLUMNS = STUDY.summary_columns()
+#: The secondary comparisons between arms (pre-registered): composition alone, then SE(n) against GEM's groups.
+COMPARISONS = (("gem", "delta-groupfeat"), ("gem-se", "gem"))
+VERSUS_COLUMNS = ["env", "model", "versus", "n_pairs", "diff", "diff_ci_low", "diff_ci_high", "p_signflip", "n_higher"]
+AUC_FROM, AUC_EVERY = 10_000, 1_000
+
+
+def auc(rows: Sequence[Mapping[str, Any]], length: int, budget: int = gate.BUDGET) -> float:
+    """Mean of the gate's moving window at every :data:`AUC_EVERY` env steps from :data:`AUC_FROM` to ``budget``
+    (NaN if the run has not got to the budget or has fewer than 5 complete episodes at 10k)."""
+    points = [gate.endpoint(rows, n, length) for n in range(AUC_FROM, budget + 1, AUC_EVERY)]
+    return float(np.mean(points)) if rows and int(float(rows[-1]["env_steps"])) >= budget else math.nan
+
+
+def steps_to_threshold(rows: Sequence[Mapping[str, Any]], length: int, threshold: float) -> float:
+    """The first env step at which the moving window reaches ``threshold`` (NaN if never or no threshold)."""
+    steps, values = gate.curve(rows, length)
+    hit = np.flatnonzero(values >= threshold) if math.isfinite(threshold) else []
+    return float(steps[hit[0]]) if len(hit) else math.nan
+
+
+def run_row(run_dir: Path, crashed: bool = False) -> dict[str, Any]:
+    """The :data:`RUN_COLUMNS` row of one run directory of the study (``crashed``: the worst outcome)."""
+    cfg, rows = gate.read_run(run_dir)
+    base = gate.run_row(run_dir)
+    length, budget = gate.full_length(cfg), int(cfg.get("max_env_steps") or gate.BUDGET)
+    complete = base["status"] == "complete"
+    row = {"env": cfg["env"], "model": cfg["head"], "seed": int(cfg["seed"]), "env_steps": base["env_steps"]}
+    row |= {"diverged": "crashed" if crashed else ""}
+    row |= {"endpoint": base[f"reward_{gate.BUDGET // 1000}k"], "auc": auc(rows, length, budget)}
+    row |= {"steps_to_threshold": steps_to_threshold(rows, length, gate.THRESHOLDS.get(cfg["env"], math.nan))}
+    row |= {"cpu_hours": base["cpu_hours"], "reward_25k": base["reward_25k"], "reward_50k": base["reward_50k"]}
+    row |= {"fall_fraction": base["fall_fraction"], "status": "crashed" if crashed else base["status"]}
+    if crashed:
+        row |= {"endpoint": 0.0, "auc": 0.0} if not complete else {}
+    return row
+
+
+def _runs(rows: Sequence[Mapping[str, str]]) -> list[dict[str, Any]]:
+    """The runs the summary counts (complete or crashed), numbers parsed; a crashed run is not ``diverged`` for the
+    statistics: it enters every one with its worst-outcome values (0), as registered."""
+    out = []
+    for r in rows:
+        if r["status"] in ("complete", "crashed"):
+            run = {k: csv_number(r[k]) for k in ("endpoint", "auc", "steps_to_threshold", "cpu_hours")}
+            out.append({**run, "env": r["env"], "model": r["model"], "seed": int(r["seed"]), "diverged": None})
+    return out
+
+
+def summary_from_runs(rows: Sequence[Mapping[str, str]], *, reps: int = REPS) -> list[dict[str, Any]]:
+    """:data:`SUMMARY_COLUMNS` rows per (env, arm) from the committed run rows: the IQM [CI] of each metric and,
+    against ``delta`` (paired by seed), the IQM [CI] of the endpoint's differences, its exact sign-flip p and
+    Holm's adjustment over every (env, arm) test."""
+    runs, summary = _runs(rows), []
+    for env in dict.fromkeys(r["env"] for r in runs):
+        arms: dict[str, list[dict[str, Any]]] = {}
+        for r in runs:
+            if r["env"] == env:
+                arms.setdefault(r["model"], []).append(r)
+        order = sorted(arms, key=lambda m: m != BASELINE)
+        baselines = {m: BASELINE if m != BASELINE and BASELINE in arms else None for m in order}
+        threshold = gate.THRESHOLDS.get(env)
+        stats = arm_statistics(STUDY, arms, baselines, reps=reps, threshold=threshold is not None)
+        steps = max(int(csv_number(r["env_steps"])) for r in rows if r["env"] == env)
+        summary += [{"env": env, "model": m, "env_steps": steps, **stats[m], "threshold": threshold} for m in order]
+    holm_over_summary(STUDY, summary)
+    return summary
+
+
+def versus_rows(rows: Sequence[Mapping[str, str]], *, reps: int = REPS) -> list[dict[str, Any]]:
+    """Secondary (no Holm): per env and pair of :data:`COMPARISONS` both of whose arms have runs, the endpoint's
+    paired differences model - versus: IQM [CI], exact sign-flip p and the pairs where the model is higher."""
+    runs, out = _runs(rows), []
+    for env in dict.fromkeys(r["env"] for r in runs):
+        by = {}
+        for r in runs:
+            if r["env"] == env:
+                by.setdefault(r["model"], {})[r["seed"]] = r["endpoint"]
+        for model, versus in COMPARISONS:
+            seeds, d = paired_differences(by.get(model, {}), by.get(versus, {}))
+            if not seeds:
+                continue
+            (mid,), (low,), (high,) = iqm_ci(d, reps=reps)
+            out.append({"env": env, "model": model, "versus": versus, "n_pairs": len(seeds), "diff": float(mid),
+                        "diff_ci_low": float(low), "diff_ci_high": float(high),
+                        "p_signflip": sign_flip_p(d[:, 0]), "n_higher": int((d[:, 0] > 0).sum())})  # fmt: skip
+    return out
+
+
+def summary_markdown(summary: Sequence[Mapping[str, str]], versus: Sequence[Mapping[str, str]]) -> str:
+    """The ``online-locomotion`` block: per env the summary table, then the secondary comparisons."""
+    parts = []
+    for env in dict.fromkeys(r["env"] for r in summary):
+        mine = [{k: _value(k, v) for k, v in r.items()} for r in summary if r["env"] == env]
+        threshold = mine[0].get("threshold")
+        header = ["env", "model", "seeds", *table_header(STUDY, True, threshold)]
+        body = [[r["env"], r["model"], str(r["n_seeds"]), *table_cells(STUDY, r, True, r["model"] == BASELINE)]
+                for r in mine]  # fmt: skip
+        parts.append(md_table(header, body))
+    if versus:
+        header = ["env", "model", "versus", "pairs", "paired diff", "p (sign-flip)", "model higher in"]
+        body = [[r["env"], r["model"], r["versus"], r["n_pairs"],
+                 fmt_interval(*(csv_number(r[k]) for k in ("diff", "diff_ci_low", "diff_ci_high"))),
+                 fmt(csv_number(r["p_signflip"]), 3), r["n_higher"]] for r in versus]  # fmt: skip
+        parts.append(md_table(header, body))
+    return "\n\n".join(parts) if parts else "No seed is complete in every arm yet."
+
+
+RESULTS = Path("docs") / "results"
+RUNS, SUMMARY, VERSUS = (f"online_locomotion_{kind}.csv" for kind in ("runs", "summary", "versus"))
+
+
+def write_summary(results: Path) -> None:
+    """Write :data:`SUMMARY` and :data:`VERSUS` in ``results`` from its :data:`RUNS` (``pets.compare report``)."""
+    from pets.experiments.report import read_csv_rows
+
+    rows = read_csv_rows(results / RUNS)
+    gate.write_csv(results / SUMMARY, summary_from_runs(rows), SUMMARY_COLUMNS)
+    gate.write_csv(results / VERSUS, versus_rows(rows), VERSUS_COLUMNS)
+
+
+def runs_table(tree: Path) -> str:
+    """The ``online-locomotion-runs`` block: one row per run (complete, partial or crashed) of :data:`RUNS`."""
+    columns = {"env": "env", "model": "arm", "seed": "seed", "env_steps": "env steps", "reward_25k": "25k"}
+    columns |= {"reward_50k": "50k", "endpoint": "100k (endpoint)", "cpu_hours": "CPU-hours", "status": "status"}
+    return gate.csv_table(tree / RESULTS / RUNS, columns)
+
+
+def summary_table(tree: Path) -> str:
+    """The ``online-locomotion`` block: :func:`summary_markdown` of the generated summary and versus files."""
+    from pets.experiments.report import read_csv_rows
+
+    return summary_markdown(*(read_csv_rows(tree / RESULTS / name) for name in (SUMMARY, VERSUS)))
+
+
+def _value(key: str, text: str) -> Any:
+    if key in ("env", "model", "ci_exact_note"):
+        return text
+    value = csv_number(text)
+    if key.startswith("n_"):
+        return None if math.isnan(value) else int(value)
+    return None if math.isnan(value) else value
+
+
+def main(argv: list[str] | None = None) -> int:
+    from pets.tools.cli import OneLineParser
+
+    p = OneLineParser(prog="pets.experiments.studies.locomotion", description=__doc__.splitlines()[0])
+    p.add_argument("run_dirs", nargs="+", type=Path, help="the study's run directories (run_pets.py --out)")
+    p.add_argument("--out", type=Path, required=True, help="the runs CSV to write (one row per run)")
+    p.add_argument("--crashed", nargs="*", type=Path, default=[], help="runs given up on: the worst outcome")
+    args = p.parse_args(argv)
+    missing = [str(d) for d in args.run_dirs if not (d / "config.yaml").is_file()]
+    if missing:
+        p.error(f"not run directories (no config.yaml): {', '.join(missing)}")
+    unknown = [str(d) for d in args.crashed if d not in args.run_dirs]
+    if unknown:
+        p.error(f"--crashed names runs not given: {', '.join(unknown)}")
+    rows = [run_row(d, crashed=d in args.crashed) for d in args.run_dirs]
+    gate.write_csv(args.out, rows, RUN_COLUMNS)
+    for r in rows:
+        print("  ".join(f"{k}={gate.cell_text(v)}" for k, v in r.items()))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,143 @@
+"""The online locomotion study (pets.experiments.studies.locomotion; docs/studies/online_locomotion.md): one row per
+run directory, the paired summary from the committed rows, checked against scipy's exact permutation test."""
+
+from __future__ import annotations
+
+import csv
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from scipy import stats
+
+from pets.experiments.studies import locomotion as study
+
+FIELDS = ["trial", "env_steps", "episode_reward", "episode_length", "terminated", "cpu_time_s", "plan_cpu_s"]
+
+
+def make_run(root: Path, model: str, seed: int, rewards: list[float], budget: int = 100_000) -> Path:
+    """A run directory of HalfCheetah-shaped trials (1,000 steps each after 1,000 seed steps), cut at ``budget``."""
+    run = root / f"halfcheetah-{model}-s{seed}"
+    run.mkdir(parents=True)
+    cfg = {"env": "halfcheetah", "head": model, "seed": seed, "max_env_steps": 100_000, "episode_length": None}
+    (run / "config.yaml").write_text(yaml.safe_dump(cfg))
+    with (run / "metrics.csv").open("w", newline="") as f:
+        writer = csv.DictWriter(f, FIELDS)
+        writer.writeheader()
+        for i, r in enumerate(rewards):
+            steps = 1000 * (i + 2)
+            if steps > budget:
+                break
+            writer.writerow({"trial": i, "env_steps": steps, "episode_reward": r, "episode_length": 1000,
+                             "terminated": 0, "cpu_time_s": 36.0 * (i + 1), "plan_cpu_s": 30.0})  # fmt: skip
+    return run
+
+
+def ramp(final: float) -> list[float]:
+    """99 trials rising linearly to ``final`` (the last trial ends at the 100k budget)."""
+    return [final * (i + 1) / 99 for i in range(99)]
+
+
+def test_a_run_row_has_the_endpoint_the_auc_and_the_steps_to_the_threshold(tmp_path):
+    rewards = ramp(3000.0)
+    row = study.run_row(make_run(tmp_path, "delta", 0, rewards))
+    assert row["status"] == "complete" and row["env_steps"] == 100_000
+    assert row["endpoint"] == pytest.approx(np.mean(rewards[-5:]))
+    # the window at n env steps holds the trials ending at n - 4000 ... n (trial i ends at 1000 * (i + 2))
+    window = [np.mean(rewards[n // 1000 - 6 : n // 1000 - 1]) for n in range(10_000, 100_001, 1000)]
+    assert row["auc"] == pytest.approx(np.mean(window))
+    first = next(i for i in range(4, 99) if np.mean(rewards[i - 4 : i + 1]) >= 2800)
+    assert row["steps_to_threshold"] == 1000 * (first + 2)
+    assert row["cpu_hours"] == pytest.approx(36.0 * 99 / 3600, abs=1e-4)
+    partial = study.run_row(make_run(tmp_path, "gem", 0, rewards, budget=40_000))
+    assert partial["status"] == "partial" and math.isnan(partial["endpoint"]) and math.isnan(partial["auc"])
+    crashed = study.run_row(make_run(tmp_path, "gem-se", 0, rewards, budget=40_000), crashed=True)
+    assert crashed["status"] == "crashed" and crashed["endpoint"] == 0.0 and crashed["auc"] == 0.0
+
+
+def write_runs(path: Path, finals: dict[str, list[float]], partial: dict[str, int] | None = None) -> list[dict]:
+    rows = []
+    for model, values in finals.items():
+        for seed, value in enumerate(values):
+            row = dict.fromkeys(study.RUN_COLUMNS, "") | {"env": "halfcheetah", "model": model, "seed": seed}
+            rows.append(row | {"env_steps": 100_000, "endpoint": value, "auc": value / 2, "cpu_hours": 1.5,
+                               "status": "complete"})  # fmt: skip
+    for model, seed in (partial or {}).items():
+        rows.append(dict.fromkeys(study.RUN_COLUMNS, "") | {"env": "halfcheetah", "model": model, "seed": seed,
+                                                             "env_steps": 40_000, "status": "partial"})  # fmt: skip
+    study.gate.write_csv(path, rows, study.RUN_COLUMNS)
+    with path.open() as f:
+        return list(csv.DictReader(f))
+
+
+def test_the_summary_pairs_each_arm_with_delta_by_seed_against_scipys_exact_test(tmp_path):
+    delta = [3000.0, 4400.0, 1300.0, 2500.0, 3600.0, 2000.0]
+    gem = [3100.0, 4300.0, 1500.0, 2700.0, 3900.0, 1950.0]
+    se = [2000.0, 4000.0, 1000.0, 2600.0, 3000.0, 1900.0]
+    rows = write_runs(tmp_path / "runs.csv", {"delta": delta, "gem": gem, "gem-se": se}, {"delta-groupfeat": 0})
+    summary = {r["model"]: r for r in study.summary_from_runs(rows, reps=200)}
+    assert set(summary) == {"delta", "gem", "gem-se"}  # the partial run is not counted
+    assert summary["delta"]["n_seeds"] == 6 and summary["delta"]["diff_to_delta"] is None
+    p = {}
+    for model, values in (("gem", gem), ("gem-se", se)):
+        d = np.array(values) - np.array(delta)
+        exact = stats.permutation_test((d,), np.mean, permutation_type="samples", n_resamples=np.inf).pvalue
+        assert summary[model]["diff_p_signflip"] == pytest.approx(exact)
+        assert summary[model]["n_pairs"] == 6
+        assert summary[model]["diff_ci_low"] <= summary[model]["diff_to_delta"] <= summary[model]["diff_ci_high"]
+        p[model] = exact
+    low, high = sorted(p.values())  # Holm over the two tests
+    adjusted = {m: (min(1, 2 * v) if v == low else min(1, max(2 * low, v))) for m, v in p.items()}
+    for model in p:
+        assert summary[model]["diff_p_holm"] == pytest.approx(adjusted[model])
+    (versus,) = [r for r in study.versus_rows(rows, reps=200) if r["model"] == "gem-se"]
+    d = np.array(se) - np.array(gem)
+    assert versus["versus"] == "gem" and versus["n_higher"] == int((d > 0).sum())
+    exact = stats.permutation_test((d,), np.mean, permutation_type="samples", n_resamples=np.inf).pvalue
+    assert versus["p_signflip"] == pytest.approx(exact)
+
+
+def test_a_crashed_run_enters_the_paired_test_as_zero(tmp_path):
+    rows = write_runs(tmp_path / "runs.csv", {"delta": [3000.0] * 5, "gem": [3100.0] * 4 + [0.0]})
+    rows[-1]["status"] = "crashed"
+    (_, gem) = study.summary_from_runs(rows, reps=100)
+    d = np.array([100.0] * 4 + [-3000.0])
+    exact = stats.permutation_test((d,), np.mean, permutation_type="samples", n_resamples=np.inf).pvalue
+    assert gem["n_seeds"] == 5 and gem["diff_p_signflip"] == pytest.approx(exact)
+
+
+def test_the_report_makes_the_summary_and_both_blocks_from_the_runs_file(tmp_path, monkeypatch):
+    from pets.experiments import published
+
+    results = tmp_path / "docs" / "results"
+    results.mkdir(parents=True)
+    write_runs(results / study.RUNS, {"delta": [3000.0, 2000.0], "gem": [3500.0, 2100.0]}, {"gem-se": 0})
+    monkeypatch.chdir(tmp_path)
+    (product,) = [p for p in published.PRODUCTS if p.name == "online locomotion summary"]
+    product.make()
+    runs = study.runs_table(tmp_path).splitlines()
+    assert runs[0] == "| env | arm | seed | env steps | 25k | 50k | 100k (endpoint) | CPU-hours | status |"
+    assert runs[-1] == "| halfcheetah | gem-se | 0 | 40000 |  |  |  |  | partial |" and len(runs) == 7
+    table = study.summary_table(tmp_path)
+    assert "| halfcheetah | gem | 2 | 2800 [2100, 3500] |" in table and "| 300 [100, 500] | 2 | 0.5 |" in table
+    assert "| gem | delta-groupfeat |" not in table  # no delta-groupfeat runs: no secondary row
+
+
+def test_the_command_writes_the_runs_file_and_refuses_what_is_not_a_run(tmp_path):
+    run = make_run(tmp_path, "delta", 0, ramp(3000.0))
+    out = tmp_path / "runs.csv"
+    cmd = [sys.executable, "-m", "pets.experiments.studies.locomotion"]
+    proc = subprocess.run([*cmd, str(run), "--out", str(out)], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    (row,) = list(csv.DictReader(out.open()))
+    assert row["model"] == "delta" and row["status"] == "complete" and list(row) == study.RUN_COLUMNS
+    proc = subprocess.run([*cmd, str(tmp_path / "nope"), "--out", str(out)], capture_output=True, text=True,
+                          timeout=120)  # fmt: skip
+    assert proc.returncode == 2 and "no config.yaml" in proc.stderr and len(proc.stderr.splitlines()) == 1
+    proc = subprocess.run([*cmd, str(run), "--out", str(out), "--crashed", str(tmp_path / "other")],
+                          capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert proc.returncode == 2 and "--crashed names runs not given" in proc.stderr
