@@ -312,23 +312,6 @@ def gate_table(tree: Path) -> str:
     return f"{csv_table(Path(f'{path}_runs.csv'), runs)}\n\n{csv_table(Path(f'{path}_summary.csv'), summary)}"
 
 
-def episode_ends_table(tree: Path) -> str:
-    """The ``locomotion-episode-ends`` block: per Ant run of ``locomotion_episode_ends.csv`` (docs/scripts/
-    episode_ends.py; its replay buffer's episodes, the seed data's included), how its episodes ended."""
-    from pets.experiments.report import md_table, read_csv_rows
-
-    counts: dict[str, list[int]] = {}
-    for r in read_csv_rows(tree / "docs" / "results" / "locomotion_episode_ends.csv"):
-        fell, height, up = int(r["fell"]), float(r["height"]), float(r["up_cos"])
-        c = counts.setdefault(r["run"], [0, 0, 0, 0])
-        c[0] += 1
-        c[1] += fell
-        c[2] += fell and height > 1.0  # Ant's healthy_z_range is [0.2, 1.0]: above it, a jump
-        c[3] += not fell and up < 0
-    header = ["run", "episodes", "fell", "fell by jumping (torso above 1.0)", "did not fall, ended on its back"]
-    return md_table(header, ([run, *map(str, c)] for run, c in counts.items()))
-
-
 def write_csv(path: Path, rows: Sequence[Mapping[str, Any]], columns: Sequence[str]) -> None:
     """The rows with their cells as :func:`_cell` shows them, written by the experiments' CSV writer."""
     from pets.experiments.report import write_csv as write_rows

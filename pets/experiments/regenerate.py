@@ -21,7 +21,8 @@ from pathlib import Path
 from pets.experiments import published
 from pets.experiments.answer import answer_table, coverage_table, later_offline_table
 from pets.experiments.arguments import PROG
-from pets.experiments.gate import episode_ends_table, gate_table, oracle_table, pilots_table
+from pets.experiments.gate import gate_table, oracle_table, pilots_table
+from pets.experiments.gate_diagnosis import episode_ends_table, frozen_planning_table, reward_prediction_table
 from pets.experiments.studies.locomotion import runs_table, summary_table
 from pets.runs.fileio import atomic_write_bytes
 from pets.tools.cli import fail
@@ -39,6 +40,8 @@ BLOCKS: dict[str, Callable[[Path], str]] = {
     "locomotion-oracle": oracle_table,
     "locomotion-pilots": pilots_table,
     "locomotion-episode-ends": episode_ends_table,
+    "locomotion-frozen-planning": frozen_planning_table,
+    "locomotion-reward-prediction": reward_prediction_table,
     "locomotion-gate": gate_table,
     "online-locomotion-runs": runs_table,
     "online-locomotion": summary_table,

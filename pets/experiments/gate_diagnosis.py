@@ -1,0 +1,54 @@
+"""The locomotion gate's diagnosis blocks (docs/studies/locomotion_gate.md, "Pilots"): how the Ant pilots' episodes
+ended and what a pilot's learned model, frozen, does (``docs/scripts/episode_ends.py`` and
+``docs/scripts/frozen_model_checks.py`` write the committed CSVs these render)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from pets.experiments.gate import csv_table
+from pets.experiments.report import fmt, md_table, read_csv_rows
+
+RESULTS = Path("docs") / "results"
+
+
+def episode_ends_table(tree: Path) -> str:
+    """The ``locomotion-episode-ends`` block: per Ant run of ``locomotion_episode_ends.csv`` (docs/scripts/
+    episode_ends.py; its replay buffer's episodes, the seed data's included), how its episodes ended."""
+    counts: dict[str, list[int]] = {}
+    for r in read_csv_rows(tree / RESULTS / "locomotion_episode_ends.csv"):
+        fell, height, up = int(r["fell"]), float(r["height"]), float(r["up_cos"])
+        c = counts.setdefault(r["run"], [0, 0, 0, 0])
+        c[0] += 1
+        c[1] += fell
+        c[2] += fell and height > 1.0  # Ant's healthy_z_range is [0.2, 1.0]: above it, a jump
+        c[3] += not fell and up < 0
+    header = ["run", "episodes", "fell", "fell by jumping (torso above 1.0)", "did not fall, ended on its back"]
+    return md_table(header, ([run, *map(str, c)] for run, c in counts.items()))
+
+
+def frozen_planning_table(tree: Path) -> str:
+    """The ``locomotion-frozen-planning`` block: per run and planner variant of ``locomotion_frozen_planning.csv``,
+    the episodes, how many fell, their mean length and mean return."""
+    groups: dict[tuple[str, str], list[dict[str, str]]] = {}
+    for r in read_csv_rows(tree / RESULTS / "locomotion_frozen_planning.csv"):
+        groups.setdefault((r["run"], r["variant"]), []).append(r)
+    header = ["run", "planner variant", "episodes", "fell", "mean steps", "mean return"]
+
+    def mean(rs: list[dict[str, str]], key: str) -> str:
+        return fmt(float(np.mean([float(r[key]) for r in rs])))
+
+    body = [
+        [run, variant, str(len(rs)), str(sum(int(r["fell"]) for r in rs)), mean(rs, "steps"), mean(rs, "reward")]
+        for (run, variant), rs in groups.items()
+    ]
+    return md_table(header, body)
+
+
+def reward_prediction_table(tree: Path) -> str:
+    """The ``locomotion-reward-prediction`` block: ``locomotion_reward_prediction.csv`` as it is."""
+    columns = {"run": "run", "horizon": "H", "true_mean": "true sum (mean)", "true_sd": "true sum (sd)"}
+    columns |= {"pred_mean": "predicted (mean)", "corr": "correlation", "mean_abs_error": "mean abs error"}
+    return csv_table(tree / RESULTS / "locomotion_reward_prediction.csv", columns)

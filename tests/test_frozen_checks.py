@@ -1,0 +1,59 @@
+"""docs/scripts/frozen_model_checks.py: a run's frozen model planning in the real env under planner variants, and its
+open-loop reward prediction along the run's own actions (the locomotion gate's Ant diagnosis)."""
+
+from __future__ import annotations
+
+import csv
+import subprocess
+import sys
+
+import pytest
+import torch
+
+import envs
+from tests.test_cli import ROOT, TINY, cli
+
+SCRIPT = ROOT / "docs" / "scripts" / "frozen_model_checks.py"
+
+
+def check(*args: object) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(SCRIPT), *map(str, args)], cwd=ROOT, capture_output=True, text=True,
+                          timeout=300)  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def hopper_run(tmp_path_factory):
+    run = tmp_path_factory.mktemp("frozen") / "hopper"
+    cli("--env", "hopper", "--seed", 1, *TINY, "value.enabled=true", "value.steps=20", "--trials", 2, "--out", run)
+    return run
+
+
+def test_plan_rows_replay_the_same_starts_and_a_zero_risk_is_the_base_planner(hopper_run, tmp_path):
+    out = tmp_path / "plan.csv"
+    proc = check("plan", hopper_run, "--variants", "base", "risk=0", "planner.horizon=3", "pen=1000", "novalue",
+                 "--episodes", 2, "--steps", 15, "--out", out)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    rows = list(csv.DictReader(out.open()))
+    assert [r["variant"] for r in rows] == [v for v in ("base", "risk=0", "planner.horizon=3", "pen=1000", "novalue")
+                                            for _ in range(2)]  # fmt: skip
+    base, risk = rows[:2], rows[2:4]
+    assert [(r["steps"], r["reward"], r["height"]) for r in base] == [(r["steps"], r["reward"], r["height"])
+                                                                      for r in risk]  # fmt: skip
+    for r in rows:
+        assert 1 <= int(r["steps"]) <= 15 and r["fell"] in ("0", "1")
+        assert r["fell"] == "1" or int(r["steps"]) == 15
+    bad = check("plan", hopper_run, "--variants", "wobble=1", "--out", tmp_path / "x.csv")
+    assert bad.returncode != 0 and "unknown variant 'wobble=1'" in bad.stderr
+
+
+def test_reward_rows_match_the_model_and_the_envs_own_reward_at_one_step(hopper_run, tmp_path):
+    out = tmp_path / "reward.csv"
+    proc = check("reward", hopper_run, "--horizons", 1, 3, "--out", out)
+    assert proc.returncode == 0, proc.stderr
+    one, three = list(csv.DictReader(out.open()))
+    assert (one["horizon"], three["horizon"], one["windows"]) == ("1", "3", "400")
+    buffer = torch.load(hopper_run / "checkpoint.pt", weights_only=False)["buffer"]
+    # the true one-step sums are rewards of real transitions: their mean lies within the buffer's range
+    rew = envs.get("hopper").reward(*(torch.as_tensor(buffer[k]).float() for k in ("obs", "act", "next_obs")))
+    assert float(rew.min()) <= float(one["true_mean"]) <= float(rew.max())
+    assert -1.0 <= float(one["corr"]) <= 1.0 and float(one["mean_abs_error"]) >= 0
