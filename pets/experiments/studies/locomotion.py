@@ -79,16 +79,13 @@ def run_row(run_dir: Path, crashed: bool = False) -> dict[str, Any]:
     cfg, rows = gate.read_run(run_dir)
     base = gate.run_row(run_dir)
     length, budget = gate.full_length(cfg), int(cfg.get("max_env_steps") or gate.BUDGET)
-    complete = base["status"] == "complete"
     row = {"env": cfg["env"], "model": cfg["head"], "seed": int(cfg["seed"]), "env_steps": base["env_steps"]}
     row |= {"diverged": "crashed" if crashed else ""}
     row |= {"endpoint": base[f"reward_{gate.BUDGET // 1000}k"], "auc": auc(rows, length, budget)}
     row |= {"steps_to_threshold": steps_to_threshold(rows, length, gate.THRESHOLDS.get(cfg["env"], math.nan))}
     row |= {"cpu_hours": base["cpu_hours"], "reward_25k": base["reward_25k"], "reward_50k": base["reward_50k"]}
     row |= {"fall_fraction": base["fall_fraction"], "status": "crashed" if crashed else base["status"]}
-    if crashed:
-        row |= {"endpoint": 0.0, "auc": 0.0} if not complete else {}
-    return row
+    return row | ({"endpoint": 0.0, "auc": 0.0} if crashed else {})
 
 
 def _runs(rows: Sequence[Mapping[str, str]]) -> list[dict[str, Any]]:
@@ -97,7 +94,7 @@ def _runs(rows: Sequence[Mapping[str, str]]) -> list[dict[str, Any]]:
     out = []
     for r in rows:
         if r["status"] in ("complete", "crashed"):
-            run = {k: csv_number(r[k]) for k in ("endpoint", "auc", "steps_to_threshold", "cpu_hours")}
+            run = {m.name: csv_number(r[m.name]) for m in STUDY.metrics}
             out.append({**run, "env": r["env"], "model": r["model"], "seed": int(r["seed"]), "diverged": None})
     return out
 
