@@ -58,3 +58,32 @@ def test_threads_on_resume_is_allowed_and_changes_no_result(finished, tmp_path):
     cli("--resume", run, "--trials", 3, "threads=2", "--quiet")
     got, want = rows(run), rows(longer)
     assert [[r[k] for k in METRIC_KEYS] for r in got] == [[r[k] for k in METRIC_KEYS] for r in want]
+
+
+def _older_run(finished, run, keep_in_file: dict | None = None):
+    """A copy of ``finished`` as a run started before ``planner.termination_penalty`` existed: the key in neither its
+    checkpoint nor its config.yaml (``keep_in_file``: what the file says for it instead)."""
+    import torch
+    import yaml
+
+    run.mkdir()
+    for path in finished.iterdir():
+        if path.is_file():
+            (run / path.name).write_bytes(path.read_bytes())
+    state = torch.load(run / "checkpoint.pt", weights_only=False)
+    del state["config"]["planner"]["termination_penalty"]
+    torch.save(state, run / "checkpoint.pt")
+    cfg = yaml.safe_load((run / "config.yaml").read_text())
+    del cfg["planner"]["termination_penalty"]
+    cfg["planner"].update(keep_in_file or {})
+    (run / "config.yaml").write_text(yaml.safe_dump(cfg))
+
+
+def test_a_run_started_before_a_key_existed_resumes_with_its_default(finished, tmp_path):
+    run = tmp_path / "older"
+    _older_run(finished, run)
+    cli("--resume", run, "--trials", 3, "--quiet")
+    assert [r["trial"] for r in rows(run)] == ["0", "1", "2"]
+    edited = tmp_path / "older-edited"
+    _older_run(finished, edited, {"termination_penalty": 5.0})  # written into the file after the start: an edit
+    assert "planner.termination_penalty: None in the checkpoint, 5.0 in config.yaml" in _refused("--resume", edited)

@@ -4,11 +4,12 @@
     python docs/scripts/frozen_model_checks.py reward RUN_DIR [RUN_DIR ...] --horizons 1 5 15 30
 
 ``plan``: MPC in the real env with the run's model and value frozen (``PETS.load``), one row per episode and planner
-variant: ``base`` (the run's own planner), ``margin=Z`` (a predicted torso height above Z also ends a particle, the
-env's own limit being 1.0), ``pen=X`` (``planner.termination_penalty`` X), ``risk=B`` (a candidate scored by the
-mean minus B standard deviations of its particles' returns), ``novalue`` (no terminal value), ``planner.KEY=VALUE``
-(the agent rebuilt with that planner setting, e.g. ``planner.horizon=5``). Episode ``e`` resets the env with seed
-1000 + e, so every variant meets the same starts.
+variant: ``base`` (the run's own planner), ``zero`` (no planner: the zero action every step), ``margin=Z`` (a
+predicted torso height above Z also ends a particle, the env's own limit being 1.0), ``pen=X``
+(``planner.termination_penalty`` X), ``risk=B`` (a candidate scored by the mean minus B standard deviations of its
+particles' returns), ``novalue`` (no terminal value), ``planner.KEY=VALUE`` (the agent rebuilt with that planner
+setting, e.g. ``planner.horizon=5``). Episode ``e`` resets the env with seed 1000 + e, so every variant meets the
+same starts.
 ``reward``: the model's open-loop prediction of the summed reward over H steps along action sequences of the run's
 own replay buffer (400 windows within one episode, drawn with seed 0): Pearson correlation with the true sum and the
 mean absolute error. Rows are appended to ``--out`` (one CSV per check).
@@ -75,8 +76,12 @@ def _variant(pets, variant: str) -> None:
             return per.mean(1) - beta * per.std(1)
 
         ev.__class__ = type("RiskAverse", (type(ev),), {"__call__": score})  # this evaluator only
+    elif kind == "zero":  # no planning: the zero action every step (what standing still earns)
+        run.agent.act = lambda obs: np.zeros(spec.act_dim, dtype=np.float32)
+        run.agent.reset = lambda: None
     elif kind != "base":
-        raise SystemExit(f"unknown variant {variant!r}: base, margin=Z, pen=X, risk=B, novalue or planner.KEY=VALUE")
+        known = "base, zero, margin=Z, pen=X, risk=B, novalue or planner.KEY=VALUE"
+        raise SystemExit(f"unknown variant {variant!r}: {known}")
 
 
 def plan(run_dir: Path, variant: str, episodes: int, steps: int) -> list[dict]:

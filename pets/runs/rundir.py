@@ -177,13 +177,17 @@ def _flat(d: Any, prefix: str = "") -> dict[str, Any]:
 def check_resumed_config(run_dir: Path, state: dict[str, Any], cfg: Any) -> None:
     """ConfigError when config.yaml no longer says what the checkpoint was written with (an edit after the run
     started: the run would go on with the checkpoint's optimiser state and claim the edited values). Checkpoints
-    from before the config was saved in them are not checked."""
+    from before the config was saved in them are not checked; nor is a key in neither the checkpoint nor the file
+    (added to the code after the run started: it takes its default, which keeps what the code did before it)."""
+    import yaml
     from omegaconf import OmegaConf
 
     if not isinstance(state.get("config"), dict):
         return
     saved, now = _flat(state["config"]), _flat(OmegaConf.to_container(cfg))
-    changed = sorted(k for k in saved.keys() | now.keys() if k not in RESUMABLE_KEYS and saved.get(k) != now.get(k))
+    written = _flat(yaml.safe_load((run_dir / CONFIG_FILE).read_text()) or {})
+    keys = saved.keys() | written.keys()
+    changed = sorted(k for k in keys if k not in RESUMABLE_KEYS and saved.get(k) != now.get(k))
     if changed:
         first = changed[0]
         raise ConfigError(
