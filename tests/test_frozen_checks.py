@@ -57,3 +57,18 @@ def test_reward_rows_match_the_model_and_the_envs_own_reward_at_one_step(hopper_
     rew = envs.get("hopper").reward(*(torch.as_tensor(buffer[k]).float() for k in ("obs", "act", "next_obs")))
     assert float(rew.min()) <= float(one["true_mean"]) <= float(rew.max())
     assert -1.0 <= float(one["corr"]) <= 1.0 and float(one["mean_abs_error"]) >= 0
+
+
+def test_the_frozen_planning_block_counts_falls_and_averages_per_run_and_variant(tmp_path):
+    from pets.experiments.gate_diagnosis import frozen_planning_table
+    from pets.experiments.report import write_csv
+
+    results = tmp_path / "docs" / "results"
+    results.mkdir(parents=True)
+    rows = [
+        {"run": "ant", "variant": v, "episode": e, "steps": n, "reward": r, "fell": f, "height": 0.5, "cpu_s": 1}
+        for v, e, n, r, f in (("base", 0, 100, 10.0, 1), ("base", 1, 300, 50.0, 0), ("zero", 0, 300, 296.0, 0))
+    ]
+    write_csv(results / "locomotion_frozen_planning.csv", rows, list(rows[0]))
+    lines = frozen_planning_table(tmp_path).splitlines()
+    assert lines[2:] == ["| ant | base | 2 | 1 | 200 | 30 |", "| ant | zero | 1 | 0 | 300 | 296 |"]
