@@ -18,6 +18,7 @@ from typing import Any
 
 from pets.experiments.published import NOT_GENERATED, ONLINE, PRODUCTS, RAW, RESULTS
 from pets.experiments.report import csv_number, fmt, md_table
+from pets.experiments.studies.base import P_EXACT, P_HOLM, RATIO
 
 MODEL = "gem"
 ALPHA = 0.05
@@ -50,8 +51,8 @@ def _difference_verdict(diff: float, holm: float) -> str:
 
 def _primary_cell(r: Mapping[str, str]) -> str:
     """The cell of a ``primary.csv`` row: its ratio to delta, pairs, exact and Holm p and verdict."""
-    num = [csv_number(r[k]) for k in ("ratio_to_delta", "ratio_ci_low", "ratio_ci_high")]
-    p, holm = csv_number(r["p_value_exact"]), csv_number(r["p_value_holm"])
+    num = [csv_number(r[k]) for k in RATIO]
+    p, holm = csv_number(r[P_EXACT]), csv_number(r[P_HOLM])
     verdict = r["verdict"].replace("(win)", "(**win**)").replace("(loss)", "(**loss**)")
     return _cell(*num, r["n_pairs"], p, holm, verdict, "pairs")
 
@@ -65,10 +66,10 @@ def _planning(tree: Path) -> dict[str, str]:
     cells = {}
     for r in _rows(tree / RESULTS / "headline" / "headline_planning.csv"):
         if r["loop"] == "closed" and r["model"] == MODEL:
-            diff, holm = csv_number(r["diff_to_delta"]), csv_number(r["p_value_holm"])
+            diff, holm = csv_number(r["diff_to_delta"]), csv_number(r[P_HOLM])
             num = (diff, csv_number(r["diff_ci_low"]), csv_number(r["diff_ci_high"]))
             verdict = _difference_verdict(diff, holm)
-            cells[r["env"]] = _cell(*num, r["n_pairs"], csv_number(r["p_value_exact"]), holm, verdict, "pairs")
+            cells[r["env"]] = _cell(*num, r["n_pairs"], csv_number(r[P_EXACT]), holm, verdict, "pairs")
     return cells
 
 

@@ -35,7 +35,7 @@ from pets.experiments.primary import primary_markdown, read_csv_rows, read_prima
 from pets.experiments.report import csv_number, disagreement_lines, fmt, fmt_interval, md_table, write_csv
 from pets.experiments.statistics import BASELINE, ci_exact_note, holm
 from pets.experiments.studies import planning
-from pets.experiments.studies.base import headline_columns, headline_row, headline_table
+from pets.experiments.studies.base import P_HOLM, headline_columns, headline_row, headline_table
 from pets.experiments.studies.offline import IQM, N_DIVERGED, N_PAIRS, NOTE, P_EXACT, P_LOWER, RATIO
 from pets.experiments.studies.offline import STUDY as OFFLINE_STUDY
 from pets.experiments.studies.online import STUDY as ONLINE_STUDY
@@ -55,7 +55,7 @@ ONLINE_COLUMNS = headline_columns(ONLINE_STUDY)
 _PLANNING_OWN = planning.STUDY.paired().columns()[:3]
 _PLANNING_READ = planning.PAIRED[:-1]  # the note is recomputed from the CI and p
 PLANNING_COLUMNS = ["env", "loop", "planner", "model", "steps", "n_seeds", *_PLANNING_OWN,
-                    f"{BASELINE}_{_PLANNING_OWN[0]}", *_PLANNING_READ, "p_value_holm", planning.NOTE,
+                    f"{BASELINE}_{_PLANNING_OWN[0]}", *_PLANNING_READ, P_HOLM, planning.NOTE,
                     "source"]  # fmt: skip
 _PLANNING_NEEDED = {*planning.STUDY.keys, "steps", _PLANNING_OWN[0], *_PLANNING_READ}
 
@@ -164,7 +164,7 @@ def planning_rows(path: Path, loop: str) -> list[dict[str, Any]]:
                 **{k: csv_number(row[k]) for k in _PLANNING_OWN},
                 f"{BASELINE}_{_PLANNING_OWN[0]}": csv_number(b[_PLANNING_OWN[0]]),
                 **{k: csv_number(row[k]) for k in _PLANNING_READ},
-                "p_value_holm": math.nan,  # set for the primary family by write_headline
+                P_HOLM: math.nan,  # set for the primary family by write_headline
                 planning.NOTE: _diff_note(row, csv_number(row[planning.P_EXACT])),
                 "source": str(path),
             }
@@ -193,7 +193,7 @@ def planning_table(rows: Sequence[Mapping[str, Any]]) -> str:
             fmt(r[f"{BASELINE}_{_PLANNING_OWN[0]}"]),
             fmt_interval(*(r[c] for c in (planning.DIFF, planning.DIFF_LOW, planning.DIFF_HIGH)), missing="-"),
             fmt(r[planning.P_EXACT]) if math.isfinite(r[planning.P_EXACT]) else "-",
-            fmt(r["p_value_holm"]) if math.isfinite(r["p_value_holm"]) else "-",
+            fmt(r[P_HOLM]) if math.isfinite(r[P_HOLM]) else "-",
         ]
         for r in rows
     ]
@@ -215,8 +215,8 @@ def offline_table(rows: Sequence[Mapping[str, Any]]) -> str:
     for r in rows:
         key = (r["env"], r["model"])
         lines.setdefault(key, {"horizon": r["horizon"], "pairs": r["n_pairs"], "div": (0, 0)})
-        ratio = fmt_interval(r["ratio_to_delta"], r["ratio_ci_low"], r["ratio_ci_high"])
-        exact = f", p {fmt(r['p_value_exact'], 3)}" if math.isfinite(r["p_value_exact"]) else ""
+        ratio = fmt_interval(*(r[k] for k in RATIO))
+        exact = f", p {fmt(r[P_EXACT], 3)}" if math.isfinite(r[P_EXACT]) else ""
         lines[key][r["metric"]] = f"{ratio}{exact}; P {_p(r)}"
         div = lines[key]["div"]
         lines[key]["div"] = (max(div[0], r["n_diverged"]), max(div[1], r["delta_n_diverged"]))
@@ -248,7 +248,7 @@ def relative_rows(path: Path, metric: str = "mean_step_error") -> dict[str, dict
     if not path.is_file():
         raise HeadlineError(f"{path}: no such file (give the relative_error.csv that pets.compare offline wrote)")
     rows = read_csv_rows(path, HeadlineError)
-    if not rows or not {"env", "model", "metric", "relative", "ratio_to_delta"} <= set(rows[0]):
+    if not rows or not {"env", "model", "metric", "relative", RATIO[0]} <= set(rows[0]):
         raise HeadlineError(f"{path}: not a pets.compare relative_error.csv (env, model, metric, relative, ...)")
     out: dict[str, dict[str, dict[str, Any]]] = {}
     for r in rows:
@@ -292,7 +292,7 @@ def write_headline(
                  for r in planning_rows(p, loop)]  # fmt: skip
     family = [r for r in plan_rows if r["loop"] == "closed" and r["model"] == model]  # planning's primary
     for r, adjusted in zip(family, holm([r[planning.P_EXACT] for r in family])):
-        r["p_value_holm"] = adjusted
+        r[P_HOLM] = adjusted
     fig2: dict[str, dict[str, dict[str, Any]]] = {}
     for path in relative:
         fig2.update(relative_rows(path))

@@ -12,6 +12,7 @@ import numpy as np
 
 from pets.experiments.report import BOOT_SEED, csv_number
 from pets.experiments.statistics import BASELINE, REPS, iqm_ci
+from pets.experiments.studies.base import RATIO
 from pets.runs.fileio import atomic_write_bytes
 from pets.stats.bootstrap import bootstrap_band
 
@@ -238,7 +239,7 @@ def plot_ratio(path: Path, rows: Mapping[str, Mapping[str, Mapping[str, Any]]], 
     plt = _pyplot()
     models = [m for m in dict.fromkeys(m for vals in rows.values() for m in vals) if m != baseline]
     fig, ax = plt.subplots(figsize=_group_figsize(len(rows), len(models)))
-    values = _grouped_points(ax, rows, models, ("ratio_to_delta", "ratio_ci_low", "ratio_ci_high"), bars=False)
+    values = _grouped_points(ax, rows, models, RATIO, bars=False)
     ax.axhline(1.0, color="grey", lw=1.0, ls="--")
     positive = [v for v in values if v > 0]
     if positive and max(positive) / min(positive) >= 4:
@@ -281,9 +282,6 @@ def plot_openloop(
     atomic_write_bytes(path, _figure_bytes(fig))
 
 
-_RATIO_KEYS = ("ratio_to_delta", "ratio_ci_low", "ratio_ci_high")
-
-
 def plot_headline_ratios(
     path: Path,
     offline: Mapping[str, Sequence[Mapping[str, str]]],
@@ -304,10 +302,10 @@ def plot_headline_ratios(
                 pts = sorted(
                     (
                         int(r["horizon"]),
-                        *(csv_number(r[k]) for k in _RATIO_KEYS),
+                        *(csv_number(r[k]) for k in RATIO),
                     )
                     for r in rows
-                    if r["env"] == env and r["model"] == model and r["metric"] == metric and r["ratio_to_delta"]
+                    if r["env"] == env and r["model"] == model and r["metric"] == metric and r[RATIO[0]]
                 )
                 if not pts:
                     continue

@@ -37,6 +37,7 @@ from pets.experiments.statistics import (
     sign_flip_p,
     two_level_iqm_ci,
 )
+from pets.experiments.studies.base import P_EXACT, P_HOLM, RATIO
 
 #: The level used where the data sets are not at hand (e.g. summaries of committed runs CSVs): the standardized
 #: error of an independent draw from the training distribution, sqrt(2) training standard deviations.
@@ -57,11 +58,9 @@ PRIMARY_COLUMNS = [
     "endpoint_iqm",
     "endpoint_ci_low",
     "endpoint_ci_high",
-    "ratio_to_delta",
-    "ratio_ci_low",
-    "ratio_ci_high",
-    "p_value_exact",
-    "p_value_holm",
+    *RATIO,
+    P_EXACT,
+    P_HOLM,
     "p_improvement",
     "p_improvement_ci_low",
     "p_improvement_ci_high",
@@ -79,7 +78,7 @@ VERSUS_COLUMNS = [
     "ratio",
     "ratio_ci_low",
     "ratio_ci_high",
-    "p_value_exact",
+    P_EXACT,
     "n_lower",
 ]
 PAST_LEVEL_COLUMNS = ["env", "model", "horizon", "n_runs", "n_past_level", "fraction_past_level", "median_error"]
@@ -203,19 +202,19 @@ def primary_rows(
                     ci = two_level_iqm_ci(by_data, reps=reps, seed=seed)
                 else:
                     ci = tuple(float(v[0]) for v in iqm_ci(ratios[:, None], reps=reps, seed=seed))
-                row["ratio_to_delta"], row["ratio_ci_low"], row["ratio_ci_high"] = ci
-                row["p_value_exact"] = sign_flip_p(np.log(ratios))
+                row.update(zip(RATIO, ci))
+                row[P_EXACT] = sign_flip_p(np.log(ratios))
                 p = p_improvement_ci(vals, np.array(list(eb.values()))[:, None], reps=reps, seed=seed)
                 row["p_improvement"], row["p_improvement_ci_low"], row["p_improvement_ci_high"] = (
                     float(v[0]) for v in p
                 )
             out.append(row)
-    tested = [i for i, r in enumerate(out) if "p_value_exact" in r]
-    for i, p in zip(tested, holm([out[i]["p_value_exact"] for i in tested])):
+    tested = [i for i, r in enumerate(out) if P_EXACT in r]
+    for i, p in zip(tested, holm([out[i][P_EXACT] for i in tested])):
         r = out[i]
-        r["p_value_holm"] = p
-        r["verdict"] = _verdict(r["ratio_to_delta"], p)
-        r["ci_exact_note"] = ci_exact_note(r["ratio_ci_low"], r["ratio_ci_high"], 1.0, r["p_value_exact"])
+        r[P_HOLM] = p
+        r["verdict"] = _verdict(r[RATIO[0]], p)
+        r["ci_exact_note"] = ci_exact_note(r[RATIO[1]], r[RATIO[2]], 1.0, r[P_EXACT])
     return out
 
 
@@ -257,7 +256,7 @@ def versus_rows(
                     "tracking_horizons": " ".join(map(str, hs)),
                     "n_pairs": len(pairs),
                     **dict(zip(("ratio", "ratio_ci_low", "ratio_ci_high"), ci)),
-                    "p_value_exact": sign_flip_p(np.log(ratios)),
+                    P_EXACT: sign_flip_p(np.log(ratios)),
                     "n_lower": int((ratios < 1).sum()),
                 }
             )
@@ -322,7 +321,7 @@ def read_primary(path: Path) -> list[dict[str, Any]]:
     if not path.is_file():
         raise ValueError(f"{path}: no such file (give a primary.csv of pets.compare offline or offline_primary.py)")
     rows = read_csv_rows(path)  # ValueError for a binary file
-    if not rows or not {"env", "model", "level", "tracking_horizons", "p_value_holm", "verdict"} <= set(rows[0]):
+    if not rows or not {"env", "model", "level", "tracking_horizons", P_HOLM, "verdict"} <= set(rows[0]):
         raise ValueError(f"{path}: not a primary.csv (env, model, level, tracking_horizons, ..., verdict)")
     text = {"env", "model", "level_source", "tracking_horizons", "verdict", "ci_exact_note"}
 
@@ -347,8 +346,8 @@ def primary_markdown(rows: Sequence[Mapping[str, Any]], source: str | None = Non
             "-"
             if r["model"] == BASELINE
             else f"{_fmt(r.get('ratio_to_delta'))} [{_fmt(r.get('ratio_ci_low'))}, {_fmt(r.get('ratio_ci_high'))}]",
-            _fmt(r.get("p_value_exact")),
-            _fmt(r.get("p_value_holm")),
+            _fmt(r.get(P_EXACT)),
+            _fmt(r.get(P_HOLM)),
             str(r.get("n_past_level", "-")),
             r.get("verdict", "-") if r["model"] != BASELINE else "-",
         ]

@@ -34,6 +34,9 @@ HIGHER, LOWER = 1, -1
 #: The columns of a study's paired difference (its primary endpoint): ``n_pairs`` and the note are unprefixed.
 PAIRED = ("{p}_to_" + BASELINE, "{p}_ci_low", "{p}_ci_high", "n_pairs", "{p}_p_signflip", "{p}_p_holm", "ci_exact_note")
 INTERVAL = ("iqm", "ci_low", "ci_high")
+#: The columns of a paired ratio to the baseline (IQM [CI] of the per-pair ratios) and of its exact and Holm p.
+RATIO = (f"ratio_to_{BASELINE}", "ratio_ci_low", "ratio_ci_high")
+P_EXACT, P_HOLM = "p_value_exact", "p_value_holm"
 
 
 @dataclass(frozen=True)

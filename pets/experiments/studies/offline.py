@@ -33,7 +33,7 @@ from pets.experiments.statistics import (
     paired_ratios,
     sign_flip_p,
 )
-from pets.experiments.studies.base import INTERVAL
+from pets.experiments.studies.base import INTERVAL, P_EXACT, RATIO
 from pets.learning.evaluation import METRICS as EVALUATE_METRICS
 
 #: The horizon label of the columns averaged over the horizons (relative_error.csv, Fig. 2).
@@ -43,8 +43,8 @@ IQM, CI_LOW, CI_HIGH, N_SEEDS, N_DIVERGED = OWN = (*INTERVAL, "n_seeds", "n_dive
 #: The comparison with delta per (metric, horizon): P(lower error than delta's) with its CI, the IQM of the per-pair
 #: ratios with its CI, and the exact sign-flip test of the mean log ratio.
 P_LOWER = ("p_improvement", "p_improvement_ci_low", "p_improvement_ci_high")
-RATIO = ("ratio_to_delta", "ratio_ci_low", "ratio_ci_high")
-N_PAIRS, P_EXACT, NOTE = EXACT = ("n_pairs", "p_value_exact", "ci_exact_note")
+N_PAIRS, NOTE = "n_pairs", "ci_exact_note"
+EXACT = (N_PAIRS, P_EXACT, NOTE)
 COMPARED = (*P_LOWER, *RATIO, *EXACT)
 #: Fig. 2 as the paper normalises it: the IQM [CI] divided by the largest model's IQM of the env.
 RELATIVE = ("relative", "relative_ci_low", "relative_ci_high")

@@ -16,6 +16,7 @@ import numpy as np
 
 from pets.experiments.report import BOOT_SEED, fmt_ci
 from pets.experiments.statistics import BASELINE, ci_exact_note, sign_flip_p
+from pets.experiments.studies.base import P_EXACT
 from pets.stats.bootstrap import bootstrap_ci, summarise
 
 #: A metric's statistics over seeds (the keys of :func:`pets.stats.bootstrap.summarise`), the IQM only where asked.
@@ -23,7 +24,7 @@ MEAN_CI = ("mean", "ci_low", "ci_high")
 #: The paired difference model - delta over the seeds both have: its count, mean [CI], exact sign-flip p (secondary:
 #: no multiplicity correction) and the note where the bootstrap CI and the exact test disagree.
 DIFF, DIFF_LOW, DIFF_HIGH = "diff_to_delta", "diff_ci_low", "diff_ci_high"
-N_PAIRS, P_EXACT, NOTE = "n_pairs", "p_value_exact", "ci_exact_note"
+N_PAIRS, NOTE = "n_pairs", "ci_exact_note"
 PAIRED = (N_PAIRS, DIFF, DIFF_LOW, DIFF_HIGH, P_EXACT, NOTE)
 
 
