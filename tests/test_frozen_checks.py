@@ -72,3 +72,22 @@ def test_the_frozen_planning_block_counts_falls_and_averages_per_run_and_variant
     write_csv(results / "locomotion_frozen_planning.csv", rows, list(rows[0]))
     lines = frozen_planning_table(tmp_path).splitlines()
     assert lines[2:] == ["| ant | base | 2 | 1 | 200 | 30 |", "| ant | zero | 1 | 0 | 300 | 296 |"]
+
+
+def test_falls_rows_count_the_buffers_falls_by_the_envs_own_termination(hopper_run, tmp_path):
+    """Every Hopper episode of a tiny run ends in a fall or at the 30-step limit; one step before a fall the model's
+    prediction is checked against the env's own termination function, so the count of falls is Hopper's."""
+    from pets.planning.value import episode_ends
+
+    out = tmp_path / "falls.csv"
+    proc = check("falls", hopper_run, "--horizons", 1, 2, "--out", out)
+    assert proc.returncode == 0, proc.stderr
+    one, two = list(csv.DictReader(out.open()))
+    buffer = torch.load(hopper_run / "checkpoint.pt", weights_only=False)["buffer"]
+    obs, act, nxt = (torch.as_tensor(buffer[k]).float() for k in ("obs", "act", "next_obs"))
+    last = torch.nonzero(episode_ends(obs, nxt)).flatten()
+    env_falls = int(envs.get("hopper").terminated(obs[last], act[last], nxt[last]).sum())
+    assert int(one["falls"]) == env_falls > 0 and int(two["falls"]) <= env_falls
+    assert 0 <= int(one["foreseen"]) <= env_falls and float(one["recall"]) == pytest.approx(
+        int(one["foreseen"]) / env_falls, abs=1e-4
+    )

@@ -1,7 +1,8 @@
-"""Two checks of an online run's learned model, frozen at its checkpoint (the locomotion gate's Ant diagnosis):
+"""Three checks of an online run's learned model, frozen at its checkpoint (the locomotion gate's diagnosis):
 
     python docs/scripts/frozen_model_checks.py plan RUN_DIR --variants base margin=0.9 ... [--episodes 4 --steps 300]
     python docs/scripts/frozen_model_checks.py reward RUN_DIR [RUN_DIR ...] --horizons 1 5 15 30
+    python docs/scripts/frozen_model_checks.py falls RUN_DIR [RUN_DIR ...] --horizons 1 3 5 10 15
 
 ``plan``: MPC in the real env with the run's model and value frozen (``PETS.load``), one row per episode and planner
 variant: ``base`` (the run's own planner), ``zero`` (no planner: the zero action every step), ``margin=Z`` (a
@@ -12,7 +13,10 @@ setting, e.g. ``planner.horizon=5``). Episode ``e`` resets the env with seed 100
 same starts.
 ``reward``: the model's open-loop prediction of the summed reward over H steps along action sequences of the run's
 own replay buffer (400 windows within one episode, drawn with seed 0): Pearson correlation with the true sum and the
-mean absolute error. Rows are appended to ``--out`` (one CSV per check).
+mean absolute error. ``falls``: for every episode of the buffer that ended in a fall (the env's own termination
+function), whether the model's open-loop rollout from H steps before the end, along the recorded actions, ends in
+a predicted termination within those H steps (the fraction of falls foreseen, ``recall``). Rows are appended to
+``--out`` (one CSV per check).
 """
 
 from __future__ import annotations
@@ -27,6 +31,7 @@ import numpy as np
 import torch
 
 PLAN_COLUMNS = ["run", "variant", "episode", "steps", "reward", "fell", "height", "cpu_s"]
+FALLS_COLUMNS = ["run", "horizon", "falls", "foreseen", "recall"]
 REWARD_COLUMNS = ["run", "horizon", "windows", "true_mean", "true_sd", "pred_mean", "corr", "mean_abs_error"]
 
 
@@ -107,17 +112,8 @@ def plan(run_dir: Path, variant: str, episodes: int, steps: int) -> list[dict]:
 
 
 def reward(run_dir: Path, horizon: int, windows: int = 400) -> dict:
-    from omegaconf import OmegaConf
-
-    import envs
-    from pets.api import load_model
-    from pets.planning.value import episode_ends
-
-    spec = envs.get(OmegaConf.load(run_dir / "config.yaml").env)
-    model = load_model(run_dir)
-    buffer = torch.load(run_dir / "checkpoint.pt", map_location="cpu", weights_only=False)["buffer"]
-    obs, act, nxt = (torch.as_tensor(buffer[k]).float() for k in ("obs", "act", "next_obs"))
-    ends = episode_ends(obs, nxt).numpy()
+    spec, model, obs, act, nxt, ends = _buffer(run_dir)
+    ends = ends.numpy()
     rng, starts = np.random.default_rng(0), []
     while len(starts) < windows:
         s = int(rng.integers(len(obs) - horizon))
@@ -135,6 +131,38 @@ def reward(run_dir: Path, horizon: int, windows: int = 400) -> dict:
             "mean_abs_error": round(float(np.abs(predicted - true).mean()), 3)}  # fmt: skip
 
 
+def _buffer(run_dir: Path):
+    """``(spec, model, obs, act, next_obs, episode ends)`` of a run's checkpoint."""
+    from omegaconf import OmegaConf
+
+    import envs
+    from pets.api import load_model
+    from pets.planning.value import episode_ends
+
+    spec = envs.get(OmegaConf.load(run_dir / "config.yaml").env)
+    buffer = torch.load(run_dir / "checkpoint.pt", map_location="cpu", weights_only=False)["buffer"]
+    obs, act, nxt = (torch.as_tensor(buffer[k]).float() for k in ("obs", "act", "next_obs"))
+    return spec, load_model(run_dir), obs, act, nxt, episode_ends(obs, nxt)
+
+
+def falls(run_dir: Path, horizon: int) -> dict:
+    spec, model, obs, act, nxt, ends = _buffer(run_dir)
+    last = torch.nonzero(ends).flatten()
+    fell = spec.terminated(obs[last], act[last], nxt[last]).bool()
+    first = torch.cat([torch.zeros(1, dtype=torch.long), last[:-1] + 1])
+    seen = total = 0
+    for end, start in zip(last[fell].tolist(), first[fell].tolist()):
+        s = end - horizon + 1
+        if s < start:  # the episode is shorter than the horizon
+            continue
+        pred = model.rollout(obs[s : s + 1], act[None, s : end + 1], "mean")[0]
+        before = torch.cat([obs[s : s + 1], pred[:-1]])
+        seen += bool(spec.terminated(before, act[s : end + 1], pred).any())
+        total += 1
+    recall = round(seen / total, 4) if total else ""
+    return {"run": run_dir.name, "horizon": horizon, "falls": total, "foreseen": seen, "recall": recall}
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="check", required=True)
@@ -148,6 +176,10 @@ def main() -> int:
     r.add_argument("run_dirs", type=Path, nargs="+")
     r.add_argument("--horizons", type=int, nargs="+", default=[1, 5, 15, 30])
     r.add_argument("--out", type=Path, required=True)
+    f = sub.add_parser("falls")
+    f.add_argument("run_dirs", type=Path, nargs="+")
+    f.add_argument("--horizons", type=int, nargs="+", default=[1, 3, 5, 10, 15])
+    f.add_argument("--out", type=Path, required=True)
     args = parser.parse_args()
     torch.set_num_threads(1)
     if args.check == "plan":
@@ -156,8 +188,9 @@ def main() -> int:
             _append(args.out, rows, PLAN_COLUMNS)
             print(variant, [(r["steps"], r["reward"], r["fell"]) for r in rows], flush=True)
     else:
-        rows = [reward(d, h) for d in args.run_dirs for h in args.horizons]
-        _append(args.out, rows, REWARD_COLUMNS)
+        check, columns = (reward, REWARD_COLUMNS) if args.check == "reward" else (falls, FALLS_COLUMNS)
+        rows = [check(d, h) for d in args.run_dirs for h in args.horizons]
+        _append(args.out, rows, columns)
         for row in rows:
             print(row)
     return 0

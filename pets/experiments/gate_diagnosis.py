@@ -47,6 +47,12 @@ def frozen_planning_table(tree: Path) -> str:
     return md_table(header, body)
 
 
+def fall_prediction_table(tree: Path) -> str:
+    """The ``locomotion-fall-prediction`` block: ``locomotion_fall_prediction.csv`` as it is."""
+    columns = {"run": "run", "horizon": "H steps before the fall", "falls": "falls", "foreseen": "foreseen"}
+    return csv_table(tree / RESULTS / "locomotion_fall_prediction.csv", columns | {"recall": "fraction foreseen"})
+
+
 def reward_prediction_table(tree: Path) -> str:
     """The ``locomotion-reward-prediction`` block: ``locomotion_reward_prediction.csv`` as it is."""
     columns = {"run": "run", "horizon": "H", "true_mean": "true sum (mean)", "true_sd": "true sum (sd)"}

@@ -304,6 +304,7 @@ RAW: tuple[str, ...] = (
     # what a pilot's learned model does, frozen (docs/scripts/frozen_model_checks.py)
     _path("locomotion_frozen_planning.csv"),
     _path("locomotion_reward_prediction.csv"),
+    _path("locomotion_fall_prediction.csv"),
     # the composition study (docs/studies/composition.md) while it runs: one row per finished run and horizon
     _path("composition_runs_partial.csv"),
     # the online locomotion study (docs/studies/online_locomotion.md): one row per run, complete, partial or crashed

@@ -22,7 +22,12 @@ from pets.experiments import published
 from pets.experiments.answer import answer_table, coverage_table, later_offline_table
 from pets.experiments.arguments import PROG
 from pets.experiments.gate import gate_table, oracle_table, pilots_table
-from pets.experiments.gate_diagnosis import episode_ends_table, frozen_planning_table, reward_prediction_table
+from pets.experiments.gate_diagnosis import (
+    episode_ends_table,
+    fall_prediction_table,
+    frozen_planning_table,
+    reward_prediction_table,
+)
 from pets.experiments.studies.locomotion import runs_table, summary_table
 from pets.runs.fileio import atomic_write_bytes
 from pets.tools.cli import fail
@@ -41,6 +46,7 @@ BLOCKS: dict[str, Callable[[Path], str]] = {
     "locomotion-pilots": pilots_table,
     "locomotion-episode-ends": episode_ends_table,
     "locomotion-frozen-planning": frozen_planning_table,
+    "locomotion-fall-prediction": fall_prediction_table,
     "locomotion-reward-prediction": reward_prediction_table,
     "locomotion-gate": gate_table,
     "online-locomotion-runs": runs_table,
