@@ -1,4 +1,4 @@
-"""The offline primary endpoint (pets.experiments.primary, issue 37): level, tracking horizons, clipping, tests."""
+"""The offline primary endpoint (pets.experiments.studies.primary, issue 37): level, tracking horizons, tests."""
 
 from __future__ import annotations
 
@@ -13,7 +13,8 @@ import pytest
 import scipy.stats
 
 import envs
-from pets.experiments.primary import (
+from pets.experiments.statistics import holm
+from pets.experiments.studies.primary import (
     DEFAULT_LEVEL,
     no_information_level,
     past_level_rows,
@@ -21,7 +22,6 @@ from pets.experiments.primary import (
     primary_rows,
     tracking_horizons,
 )
-from pets.experiments.statistics import holm
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "docs/results"
@@ -123,7 +123,7 @@ def test_no_test_without_a_tracking_horizon_and_past_level_counts():
 def test_versus_compares_two_arms_on_the_primary_endpoint_at_the_baselines_horizons():
     """gem-se against gem: per seed the ratio of their primary endpoints (delta's tracking horizons, the level's
     clipping), its IQM = scipy's 25 %-trimmed mean, the exact p = scipy's permutation test, no Holm."""
-    from pets.experiments.primary import versus_rows
+    from pets.experiments.studies.primary import versus_rows
 
     delta = {s: [0.2, 0.4, 0.9, 1.2] for s in range(6)}  # tracking horizons 1, 5, 10 at level 1.0
     gem = {s: [0.1 * (1 + s / 10), 0.2, 0.5, 5.0] for s in range(6)}

@@ -3,10 +3,10 @@
     python docs/scripts/offline_primary.py docs/results/paper_*_runs.csv --out docs/results/offline_primary
 
 Reads per-run rows (``prediction_runs.csv`` of ``pets.compare offline``, committed as
-``docs/results/paper_ENV_runs.csv``) and writes ``OUT.csv`` (:data:`pets.experiments.primary.PRIMARY_COLUMNS`,
+``docs/results/paper_ENV_runs.csv``) and writes ``OUT.csv`` (:data:`pets.experiments.studies.primary.PRIMARY_COLUMNS`,
 Holm over every (env, arm) test of the call) and ``OUT_past_level.csv`` (how models fail, per horizon), and prints
 the table. ``--versus gem-se:gem`` adds ``OUT_versus.csv``: one arm against another on the same endpoint
-(``pets.experiments.primary.versus_rows``, secondary). The data sets are not in the repository, so the level is
+(``pets.experiments.studies.primary.versus_rows``, secondary). The data sets are not in the repository, so the level is
 sqrt(2) (``level_source`` says so); a fresh ``pets.compare offline`` computes it from its data, and
 ``--levels PRIMARY.csv ...`` takes each env's level from such a study's own ``primary.csv`` (its delta row), so
 that runs of studies summarised apart get one Holm step with the levels their studies computed.
@@ -19,7 +19,7 @@ import csv
 import sys
 from pathlib import Path
 
-from pets.experiments.primary import read_primary, write_primary_files
+from pets.experiments.studies.primary import read_primary, write_primary_files
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -31,7 +31,6 @@ from pathlib import Path
 from typing import Any
 
 from pets.experiments.plots import plot_headline_ratios
-from pets.experiments.primary import primary_markdown, read_csv_rows, read_primary  # read_csv_rows: report's
 from pets.experiments.report import csv_number, disagreement_lines, fmt, fmt_interval, md_table, write_csv
 from pets.experiments.statistics import BASELINE, ci_exact_note, holm
 from pets.experiments.studies import planning
@@ -39,6 +38,7 @@ from pets.experiments.studies.base import P_HOLM, headline_columns, headline_row
 from pets.experiments.studies.offline import IQM, N_DIVERGED, N_PAIRS, NOTE, P_EXACT, P_LOWER, RATIO
 from pets.experiments.studies.offline import STUDY as OFFLINE_STUDY
 from pets.experiments.studies.online import STUDY as ONLINE_STUDY
+from pets.experiments.studies.primary import primary_markdown, read_csv_rows, read_primary  # read_csv_rows: report's
 from pets.runs.fileio import atomic_write_bytes
 
 #: Offline metrics of the headline, in order (the offline study's metric table flags them): the whole state, then

@@ -5,7 +5,7 @@ and error metric the IQM over seeds with its 95 % stratified-bootstrap CI; the p
 model's error is lower than delta's (P, with CI); the paired per-seed ratio model / delta (IQM and
 CI over the seeds both have). Divergence is per horizon
 (:func:`pets.experiments.statistics.divergences` at the env's no-information level,
-:func:`pets.experiments.primary.env_level`): a run diverged at a horizon is left out of the IQM, CI and ratios
+:func:`pets.experiments.studies.primary.env_level`): a run diverged at a horizon is left out of the IQM, CI and ratios
 at that horizon, counted in ``n_diverged`` there, and enters P as error ``+inf`` there; at its other horizons
 it counts normally. The error averaged over the tracking horizons (Fig. 2) counts only the runs that diverged at
 none of them. The metrics are the eval.json keys ending in ``_error`` that every run of the env has
@@ -26,7 +26,7 @@ Files:
   per seed, then the statistics over the seeds that diverged at none of them), plus ``relative`` (the IQM
   divided by the largest model's IQM in the env, as the paper normalises Fig. 2) with its CI divided by the
   same number.
-- ``primary.csv``: the pre-registered primary endpoint per env and arm (:mod:`pets.experiments.primary`: the
+- ``primary.csv``: the pre-registered primary endpoint per env and arm (:mod:`pets.experiments.studies.primary`: the
   no-information level, the tracking horizons, the paired ratio of the clipped standardized error averaged over
   them, its exact p-value and Holm's adjustment over the (env, arm) tests, the verdict), also at the top of
   ``prediction.md``; ``past_level.csv``: per env, model and horizon the runs at or past the level (how models fail).
@@ -64,14 +64,6 @@ from pets.experiments.offline_tables import (
     runs_sections,
 )
 from pets.experiments.plots import plot_absolute, plot_ratio, plot_relative
-from pets.experiments.primary import (
-    PAST_LEVEL_COLUMNS,
-    PRIMARY_COLUMNS,
-    env_level,
-    past_level_rows,
-    primary_markdown,
-    primary_rows,
-)
 from pets.experiments.report import write_csv
 from pets.experiments.rundirs import env_stem, json_matches, precision_note, run_name
 from pets.experiments.statistics import REPS
@@ -86,6 +78,14 @@ from pets.experiments.studies.offline import (
     mark_divergences,
     pair_key,
     shared_horizons_and_metrics,
+)
+from pets.experiments.studies.primary import (
+    PAST_LEVEL_COLUMNS,
+    PRIMARY_COLUMNS,
+    env_level,
+    past_level_rows,
+    primary_markdown,
+    primary_rows,
 )
 from pets.runs.fileio import atomic_write_bytes
 

@@ -4,7 +4,7 @@ committed summaries it does not make, each with its reason (:data:`NOT_GENERATED
 repository root; the products run with that root (or a copy of its docs/results) as the working directory.
 
 The code is the code that made the committed files: :func:`pets.experiments.studies.offline.summary_from_runs`
-(``docs/scripts/resummarise_offline.py``), :func:`pets.experiments.primary.write_primary_files`
+(``docs/scripts/resummarise_offline.py``), :func:`pets.experiments.studies.primary.write_primary_files`
 (``docs/scripts/offline_primary.py``), :func:`pets.experiments.studies.online.summary_from_runs` (the statistics of
 ``pets.compare online``) and :func:`pets.experiments.headline.write_headline` (``pets.compare headline``).
 """
@@ -16,7 +16,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from pets.experiments.primary import DEFAULT_LEVEL, DEFAULT_SOURCE
+from pets.experiments.studies.primary import DEFAULT_LEVEL, DEFAULT_SOURCE
 
 RESULTS = "docs/results"
 #: The no-information level of each env's data set, computed from the data sets (not in the repository) by the
@@ -126,7 +126,7 @@ def _primary(
     outputs = (*primary, *published, *((versus,) if versus else ()))
 
     def make() -> None:
-        from pets.experiments.primary import write_primary_files
+        from pets.experiments.studies.primary import write_primary_files
 
         keep = None if models is None else {"delta", *models}
         rows = [r for path in inputs for r in _rows(path) if keep is None or r["model"] in keep]

@@ -29,7 +29,7 @@ a thin layer over rliable (Agarwal et al. 2021, "Deep RL at the edge of the stat
   :func:`two_level_iqm_ci`: the IQM's CI with data sets as the outer level of a two-level bootstrap.
 - :func:`divergence` / :func:`divergences`: per horizon, whether a run's evaluation holds a non-finite
   value there, or predictions that went non-finite, or a ``standardized_error`` at or past the env's
-  no-information level (:mod:`pets.experiments.primary`; :data:`DIVERGED_STANDARDIZED_ERROR` without one).
+  no-information level (:mod:`pets.experiments.studies.primary`; :data:`DIVERGED_STANDARDIZED_ERROR` without one).
   A run diverged at a horizon is counted and shown as such there,
   never averaged into an IQM; at its other horizons it counts normally.
 
@@ -354,7 +354,7 @@ def divergence(values: Mapping[str, Any], level: float | None = None) -> str | N
     """Why a run diverged at one horizon, or None if it did not, from its evaluation's ``{key: value}`` at that
     horizon: a value is not finite, ``nonfinite_fraction > 0`` (some predictions went inf/NaN) or
     ``standardized_error`` (when the key exists) at or past ``level``, the env's no-information level
-    (:mod:`pets.experiments.primary`); without a level, past :data:`DIVERGED_STANDARDIZED_ERROR`."""
+    (:mod:`pets.experiments.studies.primary`); without a level, past :data:`DIVERGED_STANDARDIZED_ERROR`."""
     for key, value in values.items():
         v = float(value)
         if not math.isfinite(v):

@@ -19,8 +19,6 @@ from typing import Any
 
 import numpy as np
 
-from pets.experiments.primary import METRIC as PRIMARY_METRIC
-from pets.experiments.primary import tracking_horizons
 from pets.experiments.report import BOOT_SEED
 from pets.experiments.rundirs import run_name
 from pets.experiments.statistics import (
@@ -34,6 +32,8 @@ from pets.experiments.statistics import (
     sign_flip_p,
 )
 from pets.experiments.studies.base import INTERVAL, P_EXACT, RATIO
+from pets.experiments.studies.primary import METRIC as PRIMARY_METRIC
+from pets.experiments.studies.primary import tracking_horizons
 from pets.learning.evaluation import METRICS as EVALUATE_METRICS
 
 #: The horizon label of the columns averaged over the horizons (relative_error.csv, Fig. 2).
@@ -254,7 +254,7 @@ def _sign_flip_log(ratios: np.ndarray) -> float:
 def figure_horizons(
     evals: Mapping[str, Sequence[Mapping[str, Any]]], horizons: Sequence[int], level: float
 ) -> list[int]:
-    """Fig. 2's horizons: delta's tracking horizons (:func:`pets.experiments.primary.tracking_horizons` of its
+    """Fig. 2's horizons: delta's tracking horizons (:func:`pets.experiments.studies.primary.tracking_horizons` of its
     standardized error at the no-information ``level``); all ``horizons`` where the env has no delta run or no
     standardized error."""
     base = evals.get(BASELINE, [])
