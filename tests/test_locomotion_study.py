@@ -53,6 +53,9 @@ def test_a_run_row_has_the_endpoint_the_auc_and_the_steps_to_the_threshold(tmp_p
     first = next(i for i in range(4, 99) if np.mean(rewards[i - 4 : i + 1]) >= 2800)
     assert row["steps_to_threshold"] == 1000 * (first + 2)
     assert row["cpu_hours"] == pytest.approx(36.0 * 99 / 3600, abs=1e-4)
+    curve = study.curve_rows(tmp_path / "halfcheetah-delta-s0")
+    assert [c["env_steps"] for c in curve] == list(range(10_000, 100_001, 1000))
+    assert [c["reward"] for c in curve] == pytest.approx(window)
     partial = study.run_row(make_run(tmp_path, "gem", 0, rewards, budget=40_000))
     assert partial["status"] == "partial" and math.isnan(partial["endpoint"]) and math.isnan(partial["auc"])
     crashed = study.run_row(make_run(tmp_path, "gem-se", 0, rewards, budget=40_000), crashed=True)
@@ -116,9 +119,14 @@ def test_the_report_makes_the_summary_and_both_blocks_from_the_runs_file(tmp_pat
     results = tmp_path / "docs" / "results"
     results.mkdir(parents=True)
     write_runs(results / study.RUNS, {"delta": [3000.0, 2000.0], "gem": [3500.0, 2100.0]}, {"gem-se": 0})
+    runs = [make_run(tmp_path / m, m, s, ramp(3000.0)) for m in ("delta", "gem") for s in (0, 1)]
+    curves = [c for run in runs for c in study.curve_rows(run)]
+    study.gate.write_csv(results / study.CURVES, curves, study.CURVE_COLUMNS)
+    (tmp_path / "docs" / "figures").mkdir()
     monkeypatch.chdir(tmp_path)
     (product,) = [p for p in published.PRODUCTS if p.name == "online locomotion summary"]
     product.make()
+    assert (tmp_path / study.FIGURE).read_bytes().startswith(b"\x89PNG")
     runs = study.runs_table(tmp_path).splitlines()
     assert runs[0] == "| env | arm | seed | env steps | 25k | 50k | 100k (endpoint) | CPU-hours | status |"
     assert runs[-1] == "| halfcheetah | gem-se | 0 | 40000 |  |  |  |  | partial |" and len(runs) == 7

@@ -36,7 +36,7 @@ def arm_colors(labels: Sequence[str]) -> dict[str, Any]:
     return {label: cmap(i % 10) for i, label in enumerate(labels)}
 
 
-def _figure_bytes(fig: Any) -> bytes:
+def figure_bytes(fig: Any) -> bytes:
     import matplotlib.pyplot as plt
 
     buf = io.BytesIO()
@@ -45,7 +45,7 @@ def _figure_bytes(fig: Any) -> bytes:
     return buf.getvalue()
 
 
-def _pyplot() -> Any:
+def pyplot() -> Any:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -77,7 +77,7 @@ def plot_online(
     {arm: diverged runs}, counted in the legend, never plotted."""
     x_label, x_scale = ONLINE_X[x_key]
     diverged = diverged or {}
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(7, 4.5))
     for arm, seed_rows in runs.items():
         c = colors[arm]
@@ -113,7 +113,7 @@ def plot_online(
     ax.grid(alpha=0.3)
     ax.legend()
     fig.tight_layout()
-    atomic_write_bytes(path, _figure_bytes(fig))
+    atomic_write_bytes(path, figure_bytes(fig))
 
 
 def _n_label(model: str, n_seeds: int, n_diverged: int) -> str:
@@ -129,7 +129,7 @@ def plot_absolute(path: Path, env: str, curves: Mapping[str, Mapping[str, Any]])
     """Fig. 3: per model the IQM of the mean step-wise error vs horizon with its CI band (log y if the values
     span a factor >= 10). ``curves``: {model: {"horizons", "iqm", "ci_low", "ci_high", "n_runs", "n_diverged"}},
     ``n_diverged`` per horizon (the runs left out there, named in the legend)."""
-    plt = _pyplot()
+    plt = pyplot()
     colors = model_colors(list(curves))
     fig, ax = plt.subplots(figsize=(6.5, 4.5))
     values = []
@@ -151,7 +151,7 @@ def plot_absolute(path: Path, env: str, curves: Mapping[str, Mapping[str, Any]])
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8)
     fig.tight_layout()
-    atomic_write_bytes(path, _figure_bytes(fig))
+    atomic_write_bytes(path, figure_bytes(fig))
 
 
 def _grouped_points(
@@ -216,7 +216,7 @@ def plot_relative(path: Path, rows: Mapping[str, Mapping[str, Mapping[str, Any]]
     """Fig. 2 as the paper normalises it: per env one bar per model, the IQM over seeds of the error averaged
     over the env's tracking horizons divided by the env's largest model IQM (``rows[env][model]``:
     relative_error.csv rows), with the CI divided alike; diverged seeds are left out and counted above the bar."""
-    plt = _pyplot()
+    plt = pyplot()
     models = list(dict.fromkeys(m for vals in rows.values() for m in vals))
     fig, ax = plt.subplots(figsize=_group_figsize(len(rows), len(models)))
     _grouped_points(ax, rows, models, ("relative", "relative_ci_low", "relative_ci_high"), bars=True)
@@ -229,14 +229,14 @@ def plot_relative(path: Path, rows: Mapping[str, Mapping[str, Mapping[str, Any]]
     )
     _legend_outside(ax)
     fig.tight_layout()
-    atomic_write_bytes(path, _figure_bytes(fig))
+    atomic_write_bytes(path, figure_bytes(fig))
 
 
 def plot_ratio(path: Path, rows: Mapping[str, Mapping[str, Mapping[str, Any]]], baseline: str = "delta") -> None:
     """Fig. 2 as a paired ratio: per env and model (``baseline`` aside) the IQM over seeds of the per-seed ratio
     of the error averaged over the env's tracking horizons to ``baseline``'s, with its CI; a line at 1 (log y if
     the values span a factor >= 4)."""
-    plt = _pyplot()
+    plt = pyplot()
     models = [m for m in dict.fromkeys(m for vals in rows.values() for m in vals) if m != baseline]
     fig, ax = plt.subplots(figsize=_group_figsize(len(rows), len(models)))
     values = _grouped_points(ax, rows, models, RATIO, bars=False)
@@ -253,7 +253,7 @@ def plot_ratio(path: Path, rows: Mapping[str, Mapping[str, Mapping[str, Any]]], 
     ax.grid(alpha=0.3, axis="y", which="both")
     _legend_outside(ax)
     fig.tight_layout()
-    atomic_write_bytes(path, _figure_bytes(fig))
+    atomic_write_bytes(path, figure_bytes(fig))
 
 
 def plot_openloop(
@@ -265,7 +265,7 @@ def plot_openloop(
 ) -> None:
     """Open-loop reward per step, one panel per planner: per model the mean over seeds (rows of each
     ``(n_seeds, steps)`` array) with the bootstrap band."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, axes = plt.subplots(1, len(panels), figsize=(5.5 * len(panels), 4), squeeze=False)
     for ax, (planner, by_model) in zip(axes[0], panels.items()):
         for model, curves in by_model.items():
@@ -279,7 +279,7 @@ def plot_openloop(
         ax.grid(alpha=0.3)
         ax.legend()
     fig.tight_layout()
-    atomic_write_bytes(path, _figure_bytes(fig))
+    atomic_write_bytes(path, figure_bytes(fig))
 
 
 def plot_headline_ratios(
@@ -292,7 +292,7 @@ def plot_headline_ratios(
     """The paired ratio ``model`` / delta against the horizon, one line per env, one panel per metric of
     ``metrics``, from offline summary.csv rows (``{source: rows}``); ``caption`` under the panels (say where the runs
     were made)."""
-    plt = _pyplot()
+    plt = pyplot()
     from matplotlib.ticker import NullFormatter, ScalarFormatter
 
     fig, axes = plt.subplots(1, len(metrics), figsize=(5.2 * len(metrics), 3.8), squeeze=False)
@@ -329,4 +329,4 @@ def plot_headline_ratios(
     if caption:
         fig.text(0.01, 0.01, caption, fontsize=7, color="dimgrey")
     fig.tight_layout(rect=(0, 0.04 if caption else 0, 1, 1))
-    atomic_write_bytes(path, _figure_bytes(fig))
+    atomic_write_bytes(path, figure_bytes(fig))

@@ -185,7 +185,8 @@ def _locomotion_summary() -> Product:
     def make() -> None:
         locomotion.write_summary(Path(RESULTS))
 
-    return Product("online locomotion summary", (_path(locomotion.SUMMARY), _path(locomotion.VERSUS)), (runs,), make)
+    outputs = (_path(locomotion.SUMMARY), _path(locomotion.VERSUS), str(locomotion.FIGURE))
+    return Product("online locomotion summary", outputs, (runs, _path(locomotion.CURVES)), make)
 
 
 def _headline() -> Product:
@@ -309,6 +310,7 @@ RAW: tuple[str, ...] = (
     _path("composition_runs_partial.csv"),
     # the online locomotion study (docs/studies/online_locomotion.md): one row per run, complete, partial or crashed
     _path("online_locomotion_runs.csv"),
+    _path("online_locomotion_curves.csv"),
 )
 
 

@@ -3,7 +3,8 @@ preset, paired by seed, on the envs where the locomotion gate passed. Its metric
 run directory (:func:`run_row`), the summary from the committed rows (:func:`summary_from_runs`), the secondary
 comparisons between two GEM arms (:func:`versus_rows`) and the generated markdown.
 
-    python -m pets.experiments.studies.locomotion RUN_DIR [RUN_DIR ...] --out docs/results/online_locomotion_runs.csv
+    python -m pets.experiments.studies.locomotion RUN_DIR [RUN_DIR ...] --out docs/results/online_locomotion_runs.csv \
+        --curves docs/results/online_locomotion_curves.csv
 
 Per run (pre-registered): ``endpoint``, the gate's endpoint at the budget (the mean return of the last 5 complete
 episodes); secondary: ``auc``, the mean of that moving window at every 1,000 env steps from 10k to the budget (the
@@ -23,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from pets.experiments import gate
-from pets.experiments.report import csv_number, fmt, fmt_interval, md_table
+from pets.experiments.report import BOOT_SEED, csv_number, fmt, fmt_interval, md_table
 from pets.experiments.statistics import BASELINE, REPS, iqm_ci, paired_differences, sign_flip_p
 from pets.experiments.studies.base import (
     HIGHER,
@@ -159,7 +160,51 @@ def summary_markdown(summary: Sequence[Mapping[str, str]], versus: Sequence[Mapp
 
 
 RESULTS = Path("docs") / "results"
-RUNS, SUMMARY, VERSUS = (f"online_locomotion_{kind}.csv" for kind in ("runs", "summary", "versus"))
+RUNS, SUMMARY, VERSUS, CURVES = (f"online_locomotion_{kind}.csv" for kind in ("runs", "summary", "versus", "curves"))
+FIGURE = Path("docs") / "figures" / "online_locomotion.png"
+CURVE_COLUMNS = ["env", "model", "seed", "env_steps", "reward"]
+
+
+def curve_rows(run_dir: Path) -> list[dict[str, Any]]:
+    """A run's learning curve: the gate's moving window at every :data:`AUC_EVERY` env steps from :data:`AUC_FROM`
+    to the steps it reached (NaN where it has fewer than 5 complete episodes)."""
+    cfg, rows = gate.read_run(run_dir)
+    reached, length = int(float(rows[-1]["env_steps"])) if rows else 0, gate.full_length(cfg)
+    return [{"env": cfg["env"], "model": cfg["head"], "seed": int(cfg["seed"]), "env_steps": n,
+             "reward": gate.endpoint(rows, n, length)} for n in range(AUC_FROM, reached + 1, AUC_EVERY)]  # fmt: skip
+
+
+def plot_curves(results: Path, figure: Path) -> None:
+    """Reward (the moving window) against env steps per env, one line per arm: the mean over its complete runs
+    with a 95 % bootstrap band (seeds resampled as whole curves), the gate's threshold dashed."""
+    from pets.experiments.plots import figure_bytes, model_colors, pyplot
+    from pets.experiments.report import read_csv_rows
+    from pets.runs.fileio import atomic_write_bytes
+    from pets.stats.bootstrap import bootstrap_band
+
+    done = {(r["env"], r["model"], r["seed"]) for r in read_csv_rows(results / RUNS) if r["status"] == "complete"}
+    curves: dict[str, dict[str, dict[str, list[tuple[int, float]]]]] = {}
+    for r in read_csv_rows(results / CURVES):
+        if (r["env"], r["model"], r["seed"]) in done:
+            run = curves.setdefault(r["env"], {}).setdefault(r["model"], {}).setdefault(r["seed"], [])
+            run.append((int(r["env_steps"]), csv_number(r["reward"])))
+    plt = pyplot()
+    fig, axes = plt.subplots(1, max(len(curves), 1), figsize=(6 * max(len(curves), 1), 4), squeeze=False)
+    for ax, (env, arms) in zip(axes[0], curves.items()):
+        colors = model_colors(list(arms))
+        for model in sorted(arms, key=lambda m: m != BASELINE):
+            steps = np.array([n for n, _ in next(iter(arms[model].values()))])
+            values = np.array([[v for _, v in run] for run in arms[model].values()])
+            low, high = bootstrap_band(values, seed=BOOT_SEED)
+            ax.plot(steps / 1000, values.mean(axis=0), color=colors[model], label=f"{model} (n={len(values)})")
+            ax.fill_between(steps / 1000, low, high, color=colors[model], alpha=0.2, lw=0)
+        if env in gate.THRESHOLDS:
+            ax.axhline(gate.THRESHOLDS[env], color="k", ls="--", lw=1, label="gate threshold")
+        ax.set(title=env, xlabel="env steps (thousands)", ylabel=f"return, last {gate.WINDOW} episodes (95 % CI)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    atomic_write_bytes(figure, figure_bytes(fig))
 
 
 def write_summary(results: Path) -> None:
@@ -169,6 +214,7 @@ def write_summary(results: Path) -> None:
     rows = read_csv_rows(results / RUNS)
     gate.write_csv(results / SUMMARY, summary_from_runs(rows), SUMMARY_COLUMNS)
     gate.write_csv(results / VERSUS, versus_rows(rows), VERSUS_COLUMNS)
+    plot_curves(results, results.parent / "figures" / FIGURE.name)
 
 
 def runs_table(tree: Path) -> str:
@@ -200,6 +246,7 @@ def main(argv: list[str] | None = None) -> int:
     p = OneLineParser(prog="pets.experiments.studies.locomotion", description=__doc__.splitlines()[0])
     p.add_argument("run_dirs", nargs="+", type=Path, help="the study's run directories (run_pets.py --out)")
     p.add_argument("--out", type=Path, required=True, help="the runs CSV to write (one row per run)")
+    p.add_argument("--curves", type=Path, help="also write every run's learning curve to this CSV")
     p.add_argument("--crashed", nargs="*", type=Path, default=[], help="runs given up on: the worst outcome")
     args = p.parse_args(argv)
     missing = [str(d) for d in args.run_dirs if not (d / "config.yaml").is_file()]
@@ -210,6 +257,8 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f"--crashed names runs not given: {', '.join(unknown)}")
     rows = [run_row(d, crashed=d in args.crashed) for d in args.run_dirs]
     gate.write_csv(args.out, rows, RUN_COLUMNS)
+    if args.curves:
+        gate.write_csv(args.curves, [c for d in args.run_dirs for c in curve_rows(d)], CURVE_COLUMNS)
     for r in rows:
         print("  ".join(f"{k}={gate.cell_text(v)}" for k, v in r.items()))
     return 0
