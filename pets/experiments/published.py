@@ -186,7 +186,8 @@ def _locomotion_summary() -> Product:
         locomotion.write_summary(Path(RESULTS))
 
     outputs = (_path(locomotion.SUMMARY), _path(locomotion.VERSUS), str(locomotion.FIGURE))
-    return Product("online locomotion summary", outputs, (runs, _path(locomotion.CURVES)), make)
+    inputs = (runs, _path(locomotion.CURVES), _path("locomotion_oracle.csv"))
+    return Product("online locomotion summary", outputs, inputs, make)
 
 
 def _headline() -> Product:

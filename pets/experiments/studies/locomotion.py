@@ -163,6 +163,7 @@ RESULTS = Path("docs") / "results"
 RUNS, SUMMARY, VERSUS, CURVES = (f"online_locomotion_{kind}.csv" for kind in ("runs", "summary", "versus", "curves"))
 FIGURE = Path("docs") / "figures" / "online_locomotion.png"
 CURVE_COLUMNS = ["env", "model", "seed", "env_steps", "reward"]
+_SETTING = ("population", "horizon", "iterations", "termination_penalty")  # numbers in the oracle's rows
 
 
 def curve_rows(run_dir: Path) -> list[dict[str, Any]]:
@@ -176,7 +177,8 @@ def curve_rows(run_dir: Path) -> list[dict[str, Any]]:
 
 def plot_curves(results: Path, figure: Path) -> None:
     """Reward (the moving window) against env steps per env, one line per arm: the mean over its complete runs
-    with a 95 % bootstrap band (seeds resampled as whole curves), the gate's threshold dashed."""
+    with a 95 % bootstrap band (seeds resampled as whole curves), the gate's threshold dashed and the ceiling
+    (the true-dynamics MPC of the preset's planner, ``locomotion_oracle.csv``) dotted."""
     from pets.experiments.plots import figure_bytes, model_colors, pyplot
     from pets.experiments.report import read_csv_rows
     from pets.runs.fileio import atomic_write_bytes
@@ -188,6 +190,9 @@ def plot_curves(results: Path, figure: Path) -> None:
         if (r["env"], r["model"], r["seed"]) in done:
             run = curves.setdefault(r["env"], {}).setdefault(r["model"], {}).setdefault(r["seed"], [])
             run.append((int(r["env_steps"]), csv_number(r["reward"])))
+    oracle = results / "locomotion_oracle.csv"
+    ceiling = gate.ceiling([dict(r, reward=csv_number(r["reward"]), **{k: csv_number(r[k]) for k in _SETTING})
+                            for r in read_csv_rows(oracle)]) if oracle.is_file() else {}  # fmt: skip
     plt = pyplot()
     fig, axes = plt.subplots(1, max(len(curves), 1), figsize=(6 * max(len(curves), 1), 4), squeeze=False)
     for ax, (env, arms) in zip(axes[0], curves.items()):
@@ -200,6 +205,8 @@ def plot_curves(results: Path, figure: Path) -> None:
             ax.fill_between(steps / 1000, low, high, color=colors[model], alpha=0.2, lw=0)
         if env in gate.THRESHOLDS:
             ax.axhline(gate.THRESHOLDS[env], color="k", ls="--", lw=1, label="gate threshold")
+        if env in ceiling:
+            ax.axhline(ceiling[env], color="tab:gray", ls=":", lw=1, label="true-dynamics MPC (no value)")
         ax.set(title=env, xlabel="env steps (thousands)", ylabel=f"return, last {gate.WINDOW} episodes (95 % CI)")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
