@@ -89,3 +89,24 @@ def test_the_summary_and_the_docs_block_are_made_from_the_committed_runs_csv(tmp
     assert float(row["threshold"]) == 2800 and row["n_runs"] == "3"
     text = gate.gate_table(tmp_path)
     assert "| halfcheetah | delta | 2 |" in text and "not passed" in text
+
+
+def test_the_ablation_block_names_each_arm_by_its_overrides_and_pairs_complete_seeds(tmp_path):
+    from pets.experiments.gate_diagnosis import ablation_table
+    from pets.experiments.report import write_csv
+
+    results = tmp_path / "docs" / "results"
+    results.mkdir(parents=True)
+    rows = [
+        {"env": "halfcheetah", "seed": s, "overrides": o, "env_steps": n, "reward_100k": r}
+        for s, o, n, r in (
+            (100, "", 100000, 3000.0), (101, "", 100000, 2000.0), (100, "value.enabled=False", 100000, 1500.0),
+            (101, "value.enabled=False", 100000, 1600.0), (102, "value.enabled=False", 40000, ""),
+            (100, "planner.horizon=30", 100000, 9999.0),  # a pilot, not an arm
+        )
+    ]  # fmt: skip
+    write_csv(results / "locomotion_pilots.csv", rows, list(rows[0]))
+    lines = ablation_table(tmp_path).splitlines()
+    assert lines[2] == "| full preset | 3000 | 2000 | not run | 2500 | - |"
+    assert lines[3] == "| without the value | 1500 | 1600 | partial (40k) | 1550 | -950 (2 pairs) |"
+    assert lines[4] == "| epoch training | not run | not run | not run | - | - (0 pairs) |" and len(lines) == 5

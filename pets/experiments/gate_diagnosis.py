@@ -58,3 +58,33 @@ def reward_prediction_table(tree: Path) -> str:
     columns = {"run": "run", "horizon": "H", "true_mean": "true sum (mean)", "true_sd": "true sum (sd)"}
     columns |= {"pred_mean": "predicted (mean)", "corr": "correlation", "mean_abs_error": "mean abs error"}
     return csv_table(tree / RESULTS / "locomotion_reward_prediction.csv", columns)
+
+
+#: The ablation's arms (docs/studies/locomotion_gate.md, amendment of 2026-11-28 06:35 UTC): a pilot row's overrides
+#: name its arm; HalfCheetah, pilot seeds 100-102.
+ABLATION = {"": "full preset", "value.enabled=False": "without the value", "model.iterations=0": "epoch training"}
+ABLATION_SEEDS = ("100", "101", "102")
+
+
+def ablation_table(tree: Path) -> str:
+    """The ``locomotion-ablation`` block: per arm the endpoint at the budget of each seed (or how far a partial run
+    got), the mean over its complete seeds and the mean paired difference to the full preset over the seeds both
+    have complete (3 seeds at most: a direction, never significance)."""
+    rows = [r for r in read_csv_rows(tree / RESULTS / "locomotion_pilots.csv") if r["env"] == "halfcheetah"]
+    done: dict[str, dict[str, float]] = {arm: {} for arm in ABLATION}
+    cells: dict[str, dict[str, str]] = {arm: {} for arm in ABLATION}
+    for r in rows:
+        if r["overrides"] in ABLATION and r["seed"] in ABLATION_SEEDS:
+            final, reached = r["reward_100k"], int(r["env_steps"]) // 1000
+            cells[r["overrides"]][r["seed"]] = fmt(float(final)) if final else f"partial ({reached}k)"
+            if final:
+                done[r["overrides"]][r["seed"]] = float(final)
+    body = []
+    for arm, label in ABLATION.items():
+        pairs = sorted(set(done[arm]) & set(done[""]))
+        diff = fmt(float(np.mean([done[arm][s] - done[""][s] for s in pairs]))) if pairs and arm else "-"
+        mean = fmt(float(np.mean(list(done[arm].values())))) if done[arm] else "-"
+        seeds = [cells[arm].get(s, "not run") for s in ABLATION_SEEDS]
+        body.append([label, *seeds, mean, f"{diff} ({len(pairs)} pairs)" if arm else "-"])
+    header = ["arm", *(f"seed {s}" for s in ABLATION_SEEDS), "mean (complete)", "minus the full preset"]
+    return md_table(header, body)

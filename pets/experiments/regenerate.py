@@ -23,6 +23,7 @@ from pets.experiments.answer import answer_table, coverage_table, later_offline_
 from pets.experiments.arguments import PROG
 from pets.experiments.gate import gate_table, oracle_table, pilots_table
 from pets.experiments.gate_diagnosis import (
+    ablation_table,
     episode_ends_table,
     fall_prediction_table,
     frozen_planning_table,
@@ -49,6 +50,7 @@ BLOCKS: dict[str, Callable[[Path], str]] = {
     "locomotion-fall-prediction": fall_prediction_table,
     "locomotion-reward-prediction": reward_prediction_table,
     "locomotion-gate": gate_table,
+    "locomotion-ablation": ablation_table,
     "online-locomotion-runs": runs_table,
     "online-locomotion": summary_table,
 }
