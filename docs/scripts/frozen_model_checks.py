@@ -56,6 +56,8 @@ def _variant(pets, variant: str) -> None:
     ev, spec = run.agent.evaluator, run.spec
     z = _height(spec)
     kind, _, arg = variant.partition("=")
+    if kind == "margin" and z is None:
+        raise SystemExit(f"margin=Z needs a body with a free root (a torso height); {spec.name} has none")
     if kind == "margin":
         top, terminated = float(arg), ev.terminated_fn
         ev.terminated_fn = lambda o, a, n: terminated(o, a, n) | (n[..., z] > top)
