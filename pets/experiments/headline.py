@@ -44,8 +44,7 @@ from pets.runs.fileio import atomic_write_bytes
 #: Offline metrics of the headline, in order (the offline study's metric table flags them): the whole state, then
 #: the group coordinates (where GEM composes).
 OFFLINE_METRICS = OFFLINE_STUDY.headline_metrics()
-OFFLINE_COLUMNS = ["env", "model", "metric", "horizon", *RATIO, *P_LOWER, P_EXACT, NOTE, N_PAIRS, N_DIVERGED,
-                   f"{BASELINE}_{N_DIVERGED}", "source"]  # fmt: skip
+OFFLINE_COLUMNS = OFFLINE_STUDY.headline_columns()
 #: Online: the columns the online study's metric table flags for the headline (:mod:`pets.experiments.studies`).
 ONLINE_COLUMNS = headline_columns(ONLINE_STUDY)
 

@@ -103,6 +103,13 @@ class OfflineStudy:
         errors = order_metrics(keys)
         return [*self.run_keys, *errors, *(k for k in keys if k not in errors)]
 
+    def headline_columns(self) -> list[str]:
+        """headline_offline.csv: per env, model, metric and horizon the ratio to delta, P(lower error), the exact p
+        with its note, the pairs and the divergences (the model's and delta's), then the summary it came from."""
+        env, model, horizon, metric = self.keys
+        compared = [*RATIO, *P_LOWER, P_EXACT, NOTE, N_PAIRS, N_DIVERGED, f"{BASELINE}_{N_DIVERGED}"]
+        return [env, model, metric, horizon, *compared, "source"]
+
     def table_metrics(self) -> list[ErrorMetric]:
         return [m for m in self.metrics if m.table]
 
