@@ -64,8 +64,15 @@ AUC_FROM, AUC_EVERY = 10_000, 1_000
 def auc(rows: Sequence[Mapping[str, Any]], length: int, budget: int = gate.BUDGET) -> float:
     """Mean of the gate's moving window at every :data:`AUC_EVERY` env steps from :data:`AUC_FROM` to ``budget``
     (NaN if the run has not got to the budget or has fewer than 5 complete episodes at 10k)."""
-    points = [gate.endpoint(rows, n, length) for n in range(AUC_FROM, budget + 1, AUC_EVERY)]
-    return float(np.mean(points)) if rows and int(float(rows[-1]["env_steps"])) >= budget else math.nan
+    if not rows or int(float(rows[-1]["env_steps"])) < budget:
+        return math.nan
+    return float(np.mean([reward for _, reward in window_points(rows, length, budget)]))
+
+
+def window_points(rows: Sequence[Mapping[str, Any]], length: int, until: int) -> list[tuple[int, float]]:
+    """``(env steps, the gate's moving window there)`` every :data:`AUC_EVERY` env steps from :data:`AUC_FROM` to
+    ``until``: the grid of the AUC and of the committed learning curves."""
+    return [(n, gate.endpoint(rows, n, length)) for n in range(AUC_FROM, until + 1, AUC_EVERY)]
 
 
 def steps_to_threshold(rows: Sequence[Mapping[str, Any]], length: int, threshold: float) -> float:
@@ -170,9 +177,9 @@ def curve_rows(run_dir: Path) -> list[dict[str, Any]]:
     """A run's learning curve: the gate's moving window at every :data:`AUC_EVERY` env steps from :data:`AUC_FROM`
     to the steps it reached (NaN where it has fewer than 5 complete episodes)."""
     cfg, rows = gate.read_run(run_dir)
-    reached, length = int(float(rows[-1]["env_steps"])) if rows else 0, gate.full_length(cfg)
-    return [{"env": cfg["env"], "model": cfg["head"], "seed": int(cfg["seed"]), "env_steps": n,
-             "reward": gate.endpoint(rows, n, length)} for n in range(AUC_FROM, reached + 1, AUC_EVERY)]  # fmt: skip
+    reached = int(float(rows[-1]["env_steps"])) if rows else 0
+    run = {"env": cfg["env"], "model": cfg["head"], "seed": int(cfg["seed"])}
+    return [run | {"env_steps": n, "reward": r} for n, r in window_points(rows, gate.full_length(cfg), reached)]
 
 
 def plot_curves(results: Path, figure: Path) -> None:
