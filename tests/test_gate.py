@@ -29,6 +29,37 @@ def test_the_endpoint_is_the_last_five_complete_episodes_and_skips_one_cut_by_th
     assert x.tolist() == [int(r["env_steps"]) for r in rows[4:7]] and y[-1] == pytest.approx(500.0)
 
 
+def test_a_curve_is_the_endpoint_on_the_grid_up_to_the_budget_and_the_cli_commits_it(tmp_path):
+    """The committed learning curve of a run directory: the endpoint every 1,000 env steps from 10,000 (NaN before
+    five complete episodes), cut at the gate's budget; ``--out`` writes it beside the runs' rows."""
+    import yaml
+
+    from pets.experiments.curves import GRID_EVERY, GRID_FROM
+
+    rows, steps = [], 1000
+    for i in range(120):  # 120 complete 1,000-step episodes: 121k env steps, past the budget
+        steps += 1000
+        rows.append(episode(steps, float(i), 1000))
+    points = gate.curve_rows({"env": "halfcheetah"}, rows, 1000)
+    assert [p["env_steps"] for p in points] == list(range(GRID_FROM, gate.BUDGET + 1, GRID_EVERY))
+    for p in points:
+        assert p["reward"] == pytest.approx(gate.endpoint(rows, p["env_steps"], 1000)) and p["env"] == "halfcheetah"
+    assert points[0]["reward"] == pytest.approx((4 + 5 + 6 + 7 + 8) / 5)  # episodes 0-8 ended by 10k steps
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    (run_dir / "config.yaml").write_text(yaml.safe_dump({"env": "halfcheetah", "head": "delta", "seed": 3,
+                                                         "max_env_steps": gate.BUDGET}))  # fmt: skip
+    columns = ["trial", *rows[0], "plan_cpu_s", "cpu_time_s"]
+    with (run_dir / "metrics.csv").open("w", newline="") as f:
+        writer = csv.DictWriter(f, columns)
+        writer.writeheader()
+        writer.writerows({"trial": i, "plan_cpu_s": 1.0, "cpu_time_s": 2.0 * i} | r for i, r in enumerate(rows))
+    assert gate.main([str(run_dir), "--out", str(tmp_path / "gate")]) == 0
+    committed = list(csv.DictReader((tmp_path / "gate_curves.csv").open()))
+    assert len(committed) == len(points) and committed[0]["seed"] == "3" and committed[0]["agent"] == "delta"
+    assert float(committed[-1]["reward"]) == pytest.approx(points[-1]["reward"], rel=1e-5)
+
+
 def run(seed: int, final: float, status: str = "complete") -> dict:
     return {"env": "halfcheetah", "agent": "delta", "seed": seed, "reward_100k": final, "status": status}
 
@@ -81,9 +112,17 @@ def test_the_summary_and_the_docs_block_are_made_from_the_committed_runs_csv(tmp
         for s, r in ((0, "3000"), (1, "2900"), (2, "2400"))
     ]
     write_csv(results / "locomotion_gate_runs.csv", [r | {"status": "complete"} for r in runs], gate.RUN_COLUMNS)
+    curve = [{"env": "halfcheetah", "agent": "delta", "seed": s, "env_steps": n, "reward": n / 10 + s}
+             for s in range(3) for n in (10_000, 11_000)]  # fmt: skip
+    write_csv(results / "locomotion_gate_curves.csv", curve, gate.CURVE_COLUMNS)
+    pilot = [{"run": "halfcheetah-v2-s100", "env": "halfcheetah", "env_steps": 10_000, "reward": 1.0}]
+    write_csv(results / "locomotion_pilots_curves.csv", pilot, gate.PILOT_CURVE_COLUMNS)
+    (tmp_path / "docs" / "figures").mkdir()
     monkeypatch.chdir(tmp_path)
-    (product,) = [p for p in published.PRODUCTS if p.name == "locomotion gate summary"]
+    (product,) = [p for p in published.PRODUCTS if p.name.startswith("locomotion gate summary")]
     product.make()
+    for name in ("locomotion_gate.png", "locomotion_pilots.png"):  # drawn from the committed curves alone
+        assert (tmp_path / "docs" / "figures" / name).read_bytes().startswith(b"\x89PNG")
     (row,) = list(csv.DictReader((results / "locomotion_gate_summary.csv").open()))
     assert row["verdict"] == "not passed" and float(row["mean"]) == pytest.approx(8300 / 3, rel=1e-5)
     assert float(row["threshold"]) == 2800 and row["n_runs"] == "3"

@@ -1,8 +1,11 @@
 """The locomotion gate (docs/studies/locomotion_gate.md): does PETS at ``--preset locomotion`` learn to run and
 walk within 100k env steps? The endpoint of one online run, the per-run and summary rows, the verdict.
 
-    python -m pets.experiments.gate RUN_DIR [RUN_DIR ...] --out docs/results/locomotion_gate [--figure FILE]
+    python -m pets.experiments.gate RUN_DIR [RUN_DIR ...] [--sac SAC_DATA ...] --out docs/results/locomotion_gate
     python -m pets.experiments.gate --pilots RUN_DIR [RUN_DIR ...] --out docs/results/locomotion_pilots
+
+Writes the runs' rows and their learning curves (``OUT_runs.csv`` and ``OUT_curves.csv``; pilots: ``OUT.csv`` and
+``OUT_curves.csv``); ``python -m pets.compare report`` makes the summary and the figures from those rows.
 
 The endpoint of a run at ``n`` env steps: the mean return of the last :data:`WINDOW` complete episodes (ended by
 a fall or by the episode's step limit, not by the budget) whose last step is at or before ``n`` (the seed data's
@@ -19,6 +22,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from pets.experiments.curves import window_points
 
 #: The pre-registered thresholds (Wang et al. 2019, PETS-CEM at 200k env steps), per catalogue env.
 THRESHOLDS = {"halfcheetah": 2800.0, "ant": 1170.0, "hopper": 1130.0}
@@ -123,21 +128,34 @@ def episodes_row(
     return row
 
 
-def sac_row(path: Path, cpu_s: float = math.nan) -> dict[str, Any]:
-    """The :data:`RUN_COLUMNS` row of a SAC collection (``python -m pets.collect --policy sac:STEPS``, a data set
-    holding every episode SAC trained on, in order; the last one cut at STEPS): agent ``sac``."""
-    import envs
+def sac_episodes(path: Path) -> tuple[str, int, list[dict[str, Any]]]:
+    """``(env, seed, metrics-like rows)`` of a SAC collection (``python -m pets.collect --policy sac:STEPS``, a data
+    set holding every episode SAC trained on, in order; the last one cut at STEPS)."""
     from pets.data.datasets import load_dataset
 
     data = load_dataset(path)
-    env = str(data["env"])
     rows, steps = [], 0
     for rew, term, n in zip(data["rew"], data["terminated"], data["lengths"]):
         steps += int(n)
         rows.append({"env_steps": steps, "episode_reward": float(np.nansum(rew[:n])), "episode_length": int(n),
                      "terminated": int(bool(term[:n].any()))})  # fmt: skip
-    seed = int(data["seed"]) if "seed" in data else -1
+    return str(data["env"]), int(data["seed"]) if "seed" in data else -1, rows
+
+
+def sac_row(path: Path, cpu_s: float = math.nan) -> dict[str, Any]:
+    """The :data:`RUN_COLUMNS` row of a SAC collection (:func:`sac_episodes`): agent ``sac``."""
+    import envs
+
+    env, seed, rows = sac_episodes(path)
     return episodes_row(env, "sac", seed, rows, envs.get(env).episode_length, BUDGET, cpu_s, 0.0)
+
+
+def sac_curve(path: Path) -> list[dict[str, Any]]:
+    """:func:`curve_rows` of a SAC collection, agent ``sac``."""
+    import envs
+
+    env, seed, rows = sac_episodes(path)
+    return curve_rows({"env": env, "agent": "sac", "seed": seed}, rows, envs.get(env).episode_length)
 
 
 def summary_rows(runs: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
@@ -273,6 +291,15 @@ def ceiling(rows: Sequence[Mapping[str, Any]]) -> dict[str, float]:
     return {env: float(np.mean(values)) for env, values in out.items()}
 
 
+def committed_ceiling(path: Path) -> dict[str, float]:
+    """:func:`ceiling` of the committed ``locomotion_oracle.csv`` (empty where the file is absent)."""
+    from pets.experiments.report import csv_number, read_csv_rows
+
+    numbers = ("reward", "population", "horizon", "iterations", "termination_penalty")
+    rows = read_csv_rows(path) if path.is_file() else []
+    return ceiling([dict(r, **{k: csv_number(r[k]) for k in numbers}) for r in rows])
+
+
 def csv_table(path: Path, columns: Mapping[str, str]) -> str:
     """The committed CSV ``path`` as a markdown table of ``columns`` (CSV column -> header), numbers to 4 digits."""
     from pets.experiments.report import csv_number, fmt, md_table, read_csv_rows
@@ -327,31 +354,46 @@ def cell_text(v: Any) -> str:
     return str(v)
 
 
-def plot(run_dirs: Sequence[Path], path: Path, references: Mapping[str, float] | None = None) -> None:
-    """Reward (the endpoint's moving window) against env steps, one panel per env, one line per run; the gate's
-    threshold (and ``references``: env -> a level, e.g. the true-dynamics ceiling) as horizontal lines."""
-    import matplotlib
+CURVE_COLUMNS = ["env", "agent", "seed", "env_steps", "reward"]
+PILOT_CURVE_COLUMNS = ["run", "env", "env_steps", "reward"]
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
-    runs = [(d, *read_run(d)) for d in run_dirs]
-    env_names = list(dict.fromkeys(cfg["env"] for _, cfg, _ in runs))
-    fig, axes = plt.subplots(1, len(env_names), figsize=(5 * len(env_names), 3.6), squeeze=False)
-    for ax, env in zip(axes[0], env_names):
-        for run_dir, cfg, rows in runs:
-            if cfg["env"] == env:
-                x, y = curve(rows, full_length(cfg))
-                ax.plot(x / 1000, y, label=run_dir.name, lw=1.2)
-        if env in THRESHOLDS:
-            ax.axhline(THRESHOLDS[env], color="k", ls="--", lw=1, label="gate threshold")
-        if references and env in references:
-            ax.axhline(references[env], color="tab:gray", ls=":", lw=1, label="true-dynamics MPC (no value)")
-        ax.set(title=env, xlabel="env steps (thousands)", ylabel=f"return, mean of last {WINDOW} episodes")
-        ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+def curve_rows(key: Mapping[str, Any], rows: Sequence[Mapping[str, Any]], length: int) -> list[dict[str, Any]]:
+    """One run's learning curve (its :func:`endpoint` on :mod:`pets.experiments.curves`' grid up to the budget or
+    the steps it reached), each point a row that starts with ``key`` (the run's columns)."""
+
+    reached = min(int(float(rows[-1]["env_steps"])) if rows else 0, BUDGET)
+    points = window_points(lambda n: endpoint(rows, n, length), reached)
+    return [dict(key, env_steps=n, reward=r) for n, r in points]
+
+
+def run_curve(run_dir: Path, pilot: bool = False) -> list[dict[str, Any]]:
+    """:func:`curve_rows` of a run directory: keyed by env, agent (its head) and seed, or (``pilot``) by its name."""
+    cfg, rows = read_run(run_dir)
+    key = {"run": run_dir.name, "env": cfg["env"]} if pilot else {"env": cfg["env"], "agent": cfg["head"],
+                                                                 "seed": int(cfg["seed"])}  # fmt: skip
+    return curve_rows(key, rows, full_length(cfg))
+
+
+def write_figures(results: Path, figures: Path) -> None:
+    """``locomotion_gate.png`` (per env, each agent's complete runs: mean and 95 % band) and
+    ``locomotion_pilots.png`` (one line per pilot) from the committed curve rows (``pets.compare report``)."""
+    from pets.experiments.curves import group_curves, plot_curves
+    from pets.experiments.report import read_csv_rows
+
+    ceil = committed_ceiling(results / "locomotion_oracle.csv")
+
+    def key(r: Mapping[str, str]) -> tuple[str, str, str]:
+        return r["env"], r["agent"], r["seed"]
+
+    done = {key(r) for r in read_csv_rows(results / "locomotion_gate_runs.csv") if r["status"] == "complete"}
+    rows = [r for r in read_csv_rows(results / "locomotion_gate_curves.csv") if key(r) in done]
+    ylabel = f"return, last {WINDOW} episodes (95 % CI)"
+    plot_curves(figures / "locomotion_gate.png", group_curves(rows, "agent", "seed"), thresholds=THRESHOLDS,
+                ceiling=ceil, first="delta", ylabel=ylabel)  # fmt: skip
+    pilots = group_curves(read_csv_rows(results / "locomotion_pilots_curves.csv"), "run", "run")
+    plot_curves(figures / "locomotion_pilots.png", pilots, thresholds=THRESHOLDS, ceiling=ceil,
+                ylabel=f"return, last {WINDOW} episodes")  # fmt: skip
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -360,10 +402,9 @@ def main(argv: list[str] | None = None) -> int:
     p = OneLineParser(prog="pets.experiments.gate", description=__doc__.splitlines()[0])
     p.add_argument("run_dirs", nargs="*", type=Path, help="online run directories (run_pets.py --out)")
     p.add_argument("--sac", nargs="*", type=Path, default=[], help="SAC data sets (pets.collect --policy sac:STEPS)")
-    p.add_argument("--out", type=Path, required=True, help="output prefix: OUT_runs.csv, OUT_summary.csv")
+    p.add_argument("--out", type=Path, required=True, help="output prefix (see above)")
     p.add_argument("--oracle", nargs="*", type=Path, default=[], help="pets.oracle --json files: OUT_oracle.csv")
     p.add_argument("--pilots", action="store_true", help="pilot runs: one OUT.csv row per run with its overrides")
-    p.add_argument("--figure", type=Path, help="also plot the runs' curves to this PNG")
     args = p.parse_args(argv)
     if not (args.run_dirs or args.sac or args.oracle):
         p.error("give run directories, --sac data sets or --oracle files")
@@ -379,15 +420,15 @@ def main(argv: list[str] | None = None) -> int:
     elif args.pilots:
         rows = [pilot_row(d) for d in args.run_dirs]
         write_csv(args.out.with_suffix(".csv"), rows, list(rows[0]))
+        curves = [c for d in args.run_dirs for c in run_curve(d, pilot=True)]
+        write_csv(Path(f"{args.out}_curves.csv"), curves, PILOT_CURVE_COLUMNS)
     else:
-        runs = [run_row(d) for d in args.run_dirs] + [sac_row(path) for path in args.sac]
-        write_csv(Path(f"{args.out}_runs.csv"), runs, RUN_COLUMNS)
-        write_csv(Path(f"{args.out}_summary.csv"), summary_rows(runs), SUMMARY_COLUMNS)
-        rows = runs
+        rows = [run_row(d) for d in args.run_dirs] + [sac_row(path) for path in args.sac]
+        write_csv(Path(f"{args.out}_runs.csv"), rows, RUN_COLUMNS)
+        curves = [c for d in args.run_dirs for c in run_curve(d)] + [c for path in args.sac for c in sac_curve(path)]
+        write_csv(Path(f"{args.out}_curves.csv"), curves, CURVE_COLUMNS)
     for r in rows:
         print("  ".join(f"{k}={cell_text(v)}" for k, v in r.items()), file=sys.stdout)
-    if args.figure:
-        plot(args.run_dirs, args.figure, ceiling([row for path in args.oracle for row in oracle_rows(path)]))
     return 0
 
 

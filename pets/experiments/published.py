@@ -162,8 +162,15 @@ def _online_summary(study: str) -> Product:
 
 def _gate_summary() -> Product:
     """``locomotion_gate_summary.csv`` (the verdict per env) from ``locomotion_gate_runs.csv`` (one row per run,
-    ``python -m pets.experiments.gate RUN_DIR ... --out docs/results/locomotion_gate``)."""
+    ``python -m pets.experiments.gate RUN_DIR ... --out docs/results/locomotion_gate``), and the gate's and the
+    pilots' figures from their committed curve rows."""
     runs, out = _path("locomotion_gate_runs.csv"), _path("locomotion_gate_summary.csv")
+    curves = (
+        _path("locomotion_gate_curves.csv"),
+        _path("locomotion_pilots_curves.csv"),
+        _path("locomotion_oracle.csv"),
+    )
+    figures = ("docs/figures/locomotion_gate.png", "docs/figures/locomotion_pilots.png")
 
     def make() -> None:
         from pets.experiments import gate
@@ -172,8 +179,9 @@ def _gate_summary() -> Product:
         key = f"reward_{gate.BUDGET // 1000}k"
         rows = [dict(r, **{key: csv_number(r[key])}) for r in _rows(runs)]
         gate.write_csv(Path(out), gate.summary_rows(rows), gate.SUMMARY_COLUMNS)
+        gate.write_figures(Path(RESULTS), Path("docs/figures"))
 
-    return Product("locomotion gate summary", (out,), (runs,), make)
+    return Product("locomotion gate summary and figures", (out, *figures), (runs, *curves), make)
 
 
 def _locomotion_summary() -> Product:
@@ -303,6 +311,8 @@ RAW: tuple[str, ...] = (
     _path("locomotion_oracle.csv"),
     _path("locomotion_episode_ends.csv"),
     _path("locomotion_gate_runs.csv"),
+    _path("locomotion_gate_curves.csv"),
+    _path("locomotion_pilots_curves.csv"),
     # what a pilot's learned model does, frozen (docs/scripts/frozen_model_checks.py)
     _path("locomotion_frozen_planning.csv"),
     _path("locomotion_reward_prediction.csv"),

@@ -23,8 +23,8 @@ from typing import Any
 
 import numpy as np
 
-from pets.experiments import gate
-from pets.experiments.report import BOOT_SEED, csv_number, fmt, fmt_interval, md_table
+from pets.experiments import curves, gate
+from pets.experiments.report import csv_number, fmt, fmt_interval, md_table
 from pets.experiments.statistics import BASELINE, REPS, iqm_ci, paired_differences, sign_flip_p
 from pets.experiments.studies.base import (
     HIGHER,
@@ -58,7 +58,8 @@ SUMMARY_COLUMNS = STUDY.summary_columns()
 #: The secondary comparisons between arms (pre-registered): composition alone, then SE(n) against GEM's groups.
 COMPARISONS = (("gem", "delta-groupfeat"), ("gem-se", "gem"))
 VERSUS_COLUMNS = ["env", "model", "versus", "n_pairs", "diff", "diff_ci_low", "diff_ci_high", "p_signflip", "n_higher"]
-AUC_FROM, AUC_EVERY = 10_000, 1_000
+#: The AUC's grid (amendment of 2026-11-28 09:35 UTC), the committed curves' too.
+AUC_FROM, AUC_EVERY = curves.GRID_FROM, curves.GRID_EVERY
 
 
 def auc(rows: Sequence[Mapping[str, Any]], length: int, budget: int = gate.BUDGET) -> float:
@@ -66,13 +67,8 @@ def auc(rows: Sequence[Mapping[str, Any]], length: int, budget: int = gate.BUDGE
     (NaN if the run has not got to the budget or has fewer than 5 complete episodes at 10k)."""
     if not rows or int(float(rows[-1]["env_steps"])) < budget:
         return math.nan
-    return float(np.mean([reward for _, reward in window_points(rows, length, budget)]))
-
-
-def window_points(rows: Sequence[Mapping[str, Any]], length: int, until: int) -> list[tuple[int, float]]:
-    """``(env steps, the gate's moving window there)`` every :data:`AUC_EVERY` env steps from :data:`AUC_FROM` to
-    ``until``: the grid of the AUC and of the committed learning curves."""
-    return [(n, gate.endpoint(rows, n, length)) for n in range(AUC_FROM, until + 1, AUC_EVERY)]
+    points = curves.window_points(lambda n: gate.endpoint(rows, n, length), budget, AUC_FROM, AUC_EVERY)
+    return float(np.mean([reward for _, reward in points]))
 
 
 def steps_to_threshold(rows: Sequence[Mapping[str, Any]], length: int, threshold: float) -> float:
@@ -170,55 +166,26 @@ RESULTS = Path("docs") / "results"
 RUNS, SUMMARY, VERSUS, CURVES = (f"online_locomotion_{kind}.csv" for kind in ("runs", "summary", "versus", "curves"))
 FIGURE = Path("docs") / "figures" / "online_locomotion.png"
 CURVE_COLUMNS = ["env", "model", "seed", "env_steps", "reward"]
-_SETTING = ("population", "horizon", "iterations", "termination_penalty")  # numbers in the oracle's rows
 
 
 def curve_rows(run_dir: Path) -> list[dict[str, Any]]:
-    """A run's learning curve: the gate's moving window at every :data:`AUC_EVERY` env steps from :data:`AUC_FROM`
-    to the steps it reached (NaN where it has fewer than 5 complete episodes)."""
+    """A run's learning curve (:func:`pets.experiments.gate.curve_rows`), keyed by env, model and seed."""
     cfg, rows = gate.read_run(run_dir)
-    reached = int(float(rows[-1]["env_steps"])) if rows else 0
-    run = {"env": cfg["env"], "model": cfg["head"], "seed": int(cfg["seed"])}
-    return [run | {"env_steps": n, "reward": r} for n, r in window_points(rows, gate.full_length(cfg), reached)]
+    return gate.curve_rows({"env": cfg["env"], "model": cfg["head"], "seed": int(cfg["seed"])}, rows,
+                           gate.full_length(cfg))  # fmt: skip
 
 
 def plot_curves(results: Path, figure: Path) -> None:
     """Reward (the moving window) against env steps per env, one line per arm: the mean over its complete runs
     with a 95 % bootstrap band (seeds resampled as whole curves), the gate's threshold dashed and the ceiling
     (the true-dynamics MPC of the preset's planner, ``locomotion_oracle.csv``) dotted."""
-    from pets.experiments.plots import figure_bytes, model_colors, pyplot
     from pets.experiments.report import read_csv_rows
-    from pets.runs.fileio import atomic_write_bytes
-    from pets.stats.bootstrap import bootstrap_band
 
     done = {(r["env"], r["model"], r["seed"]) for r in read_csv_rows(results / RUNS) if r["status"] == "complete"}
-    curves: dict[str, dict[str, dict[str, list[tuple[int, float]]]]] = {}
-    for r in read_csv_rows(results / CURVES):
-        if (r["env"], r["model"], r["seed"]) in done:
-            run = curves.setdefault(r["env"], {}).setdefault(r["model"], {}).setdefault(r["seed"], [])
-            run.append((int(r["env_steps"]), csv_number(r["reward"])))
-    oracle = results / "locomotion_oracle.csv"
-    ceiling = gate.ceiling([dict(r, reward=csv_number(r["reward"]), **{k: csv_number(r[k]) for k in _SETTING})
-                            for r in read_csv_rows(oracle)]) if oracle.is_file() else {}  # fmt: skip
-    plt = pyplot()
-    fig, axes = plt.subplots(1, max(len(curves), 1), figsize=(6 * max(len(curves), 1), 4), squeeze=False)
-    for ax, (env, arms) in zip(axes[0], curves.items()):
-        colors = model_colors(list(arms))
-        for model in sorted(arms, key=lambda m: m != BASELINE):
-            steps = np.array([n for n, _ in next(iter(arms[model].values()))])
-            values = np.array([[v for _, v in run] for run in arms[model].values()])
-            low, high = bootstrap_band(values, seed=BOOT_SEED)
-            ax.plot(steps / 1000, values.mean(axis=0), color=colors[model], label=f"{model} (n={len(values)})")
-            ax.fill_between(steps / 1000, low, high, color=colors[model], alpha=0.2, lw=0)
-        if env in gate.THRESHOLDS:
-            ax.axhline(gate.THRESHOLDS[env], color="k", ls="--", lw=1, label="gate threshold")
-        if env in ceiling:
-            ax.axhline(ceiling[env], color="tab:gray", ls=":", lw=1, label="true-dynamics MPC (no value)")
-        ax.set(title=env, xlabel="env steps (thousands)", ylabel=f"return, last {gate.WINDOW} episodes (95 % CI)")
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=8)
-    fig.tight_layout()
-    atomic_write_bytes(figure, figure_bytes(fig))
+    rows = [r for r in read_csv_rows(results / CURVES) if (r["env"], r["model"], r["seed"]) in done]
+    curves.plot_curves(figure, curves.group_curves(rows, "model", "seed"), thresholds=gate.THRESHOLDS,
+                       ceiling=gate.committed_ceiling(results / "locomotion_oracle.csv"), first=BASELINE,
+                       ylabel=f"return, last {gate.WINDOW} episodes (95 % CI)")  # fmt: skip
 
 
 def write_summary(results: Path) -> None:
