@@ -91,3 +91,39 @@ def test_falls_rows_count_the_buffers_falls_by_the_envs_own_termination(hopper_r
     assert 0 <= int(one["foreseen"]) <= env_falls and float(one["recall"]) == pytest.approx(
         int(one["foreseen"]) / env_falls, abs=1e-4
     )
+
+
+def test_episode_ends_rows_cover_the_buffer_with_each_episodes_mean_squared_action(hopper_run, tmp_path):
+    """docs/scripts/episode_ends.py: the episodes' steps add up to the buffer, and action_sq is each episode's mean
+    squared action norm, recomputed here from the buffer's actions."""
+    out = tmp_path / "ends.csv"
+    proc = subprocess.run([sys.executable, str(ROOT / "docs" / "scripts" / "episode_ends.py"), str(hopper_run),
+                           "--out", str(out)], cwd=ROOT, capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    rows = list(csv.DictReader(out.open()))
+    act = torch.as_tensor(torch.load(hopper_run / "checkpoint.pt", weights_only=False)["buffer"]["act"]).double()
+    assert sum(int(r["steps"]) for r in rows) == len(act)
+    start = 0
+    for r in rows:
+        n = int(r["steps"])
+        assert float(r["action_sq"]) == pytest.approx(float(act[start : start + n].square().sum(-1).mean()), abs=1e-3)
+        start += n
+
+
+def test_the_episode_ends_block_counts_jumps_backs_and_planned_full_episodes(tmp_path):
+    from pets.experiments.gate_diagnosis import episode_ends_table
+    from pets.experiments.report import write_csv
+
+    results = tmp_path / "docs" / "results"
+    results.mkdir(parents=True)
+    rows = [  # the first episode is the seed data's (random): not a planned one
+        {"run": "ant", "episode": e, "steps": n, "fell": f, "action_sq": a, "height": h, "up_cos": u}
+        for e, n, f, a, h, u in (
+            (0, 1000, 0, 2.7, 0.5, 1.0),
+            (1, 40, 1, 1.0, 1.05, 0.9),
+            (2, 1000, 0, 0.5, 0.27, -0.9),
+            (3, 1000, 0, 1.5, 0.6, 0.99),
+        )  # fmt: skip
+    ]
+    write_csv(results / "locomotion_episode_ends.csv", rows, list(rows[0]))
+    assert episode_ends_table(tmp_path).splitlines()[2] == "| ant | 4 | 1 | 1 | 1 | 2 | 1 |"

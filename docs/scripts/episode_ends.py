@@ -3,7 +3,8 @@
     python docs/scripts/episode_ends.py RUN_DIR [RUN_DIR ...] [--out OUT.csv]
 
 Columns: run (the directory's name), episode, steps, fell (the env's own termination function on its last
-transition), and for a body with a free root (an ``Rn`` translation of 3 and an ``SO3_quat`` rotation: Ant,
+transition), action_sq (the mean over its steps of the action's squared norm: Ant's control cost is 0.5 times it),
+and for a body with a free root (an ``Rn`` translation of 3 and an ``SO3_quat`` rotation: Ant,
 Humanoid) the torso's height and the cosine between the torso's up axis and the world's up at the episode's last
 state (1 upright, -1 on its back). On Ant a fall is a height out of ``healthy_z_range`` = [0.2, 1.0]: above it, a
 jump; below, a collapse.
@@ -35,6 +36,7 @@ def rows(run_dir: Path) -> list[dict[str, object]]:
     out = []
     for i, (end, start) in enumerate(zip(last.tolist(), [0, *(last + 1).tolist()])):
         row: dict[str, object] = {"run": run_dir.name, "episode": i, "steps": end - start + 1, "fell": int(fell[i])}
+        row["action_sq"] = round(float(act[start : end + 1].square().sum(-1).mean()), 3)
         if root is not None and spec.layout.group(root[1]).kind == "SO3_quat":
             z = spec.layout.group(root[0]).indices[2]
             w, x, y, _ = (float(v) for v in nxt[end, list(spec.layout.group(root[1]).indices)])

@@ -16,17 +16,30 @@ RESULTS = Path("docs") / "results"
 
 def episode_ends_table(tree: Path) -> str:
     """The ``locomotion-episode-ends`` block: per Ant run of ``locomotion_episode_ends.csv`` (docs/scripts/
-    episode_ends.py; its replay buffer's episodes, the seed data's included), how its episodes ended."""
+    episode_ends.py; its replay buffer's episodes, the seed data's included), how its episodes ended, and the mean
+    squared action norm per step of its planned episodes (after the preset's 1,000 random seed steps) that lasted the
+    full 1,000 steps."""
     counts: dict[str, list[int]] = {}
+    action_sq: dict[str, list[float]] = {}
+    start: dict[str, int] = {}
     for r in read_csv_rows(tree / RESULTS / "locomotion_episode_ends.csv"):
+        begun = start.get(r["run"], 0)
+        start[r["run"]] = begun + int(r["steps"])
         fell, height, up = int(r["fell"]), float(r["height"]), float(r["up_cos"])
         c = counts.setdefault(r["run"], [0, 0, 0, 0])
         c[0] += 1
         c[1] += fell
         c[2] += fell and height > 1.0  # Ant's healthy_z_range is [0.2, 1.0]: above it, a jump
         c[3] += not fell and up < 0
+        if int(r["steps"]) == 1000 and begun >= 1000:
+            action_sq.setdefault(r["run"], []).append(float(r["action_sq"]))
     header = ["run", "episodes", "fell", "fell by jumping (torso above 1.0)", "did not fall, ended on its back"]
-    return md_table(header, ([run, *map(str, c)] for run, c in counts.items()))
+    header += ["planned 1,000-step episodes", "their squared action per step"]
+    return md_table(
+        header,
+        ([run, *map(str, c), str(len(action_sq.get(run, []))), fmt(float(np.mean(action_sq[run]))) if run in action_sq
+          else "-"] for run, c in counts.items()),
+    )  # fmt: skip
 
 
 def frozen_planning_table(tree: Path) -> str:
