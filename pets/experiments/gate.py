@@ -91,7 +91,11 @@ def full_length(cfg: Mapping[str, Any]) -> int:
 
 def run_row(run_dir: Path, agent: str | None = None) -> dict[str, Any]:
     """The :data:`RUN_COLUMNS` row of one run directory (``agent``: default the run's head)."""
-    cfg, rows = read_run(run_dir)
+    return config_row(*read_run(run_dir), agent=agent)
+
+
+def config_row(cfg: Mapping[str, Any], rows: Sequence[Mapping[str, Any]], agent: str | None = None) -> dict[str, Any]:
+    """:func:`run_row` of a run's config and metrics rows (:func:`read_run`)."""
     cpu = float(rows[-1]["cpu_time_s"]) if rows else 0.0
     plan = sum(float(r.get("plan_cpu_s", "nan")) for r in rows)
     budget = cfg.get("max_env_steps") or BUDGET

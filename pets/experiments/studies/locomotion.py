@@ -81,7 +81,7 @@ def steps_to_threshold(rows: Sequence[Mapping[str, Any]], length: int, threshold
 def run_row(run_dir: Path, crashed: bool = False) -> dict[str, Any]:
     """The :data:`RUN_COLUMNS` row of one run directory of the study (``crashed``: the worst outcome)."""
     cfg, rows = gate.read_run(run_dir)
-    base = gate.run_row(run_dir)
+    base = gate.config_row(cfg, rows)
     length, budget = gate.full_length(cfg), int(cfg.get("max_env_steps") or gate.BUDGET)
     row = {"env": cfg["env"], "model": cfg["head"], "seed": int(cfg["seed"]), "env_steps": base["env_steps"]}
     row |= {"diverged": "crashed" if crashed else ""}
