@@ -149,3 +149,21 @@ def test_the_ablation_block_names_each_arm_by_its_overrides_and_pairs_complete_s
     assert lines[2] == "| full preset | 3000 | 2000 | not run | 2500 | - |"
     assert lines[3] == "| without the value | 1500 | 1600 | partial (40k) | 1550 | -950 (2 pairs) |"
     assert lines[4] == "| epoch training | not run | not run | not run | - | - (0 pairs) |" and len(lines) == 5
+
+
+def test_committed_curves_keep_complete_runs_of_the_agents_asked_for(tmp_path):
+    """The online study's SAC reference line: the gate's committed curves of complete SAC runs only."""
+    from pets.experiments.gate_figures import committed_curves
+    from pets.experiments.report import write_csv
+
+    runs = [dict.fromkeys(gate.RUN_COLUMNS, "") | {"env": "halfcheetah", "agent": a, "seed": s, "status": st}
+            for a, s, st in (("sac", 0, "complete"), ("sac", 1, "partial"), ("delta", 0, "complete"))]  # fmt: skip
+    write_csv(tmp_path / "locomotion_gate_runs.csv", runs, gate.RUN_COLUMNS)
+    points = [{"env": "halfcheetah", "agent": a, "seed": s, "env_steps": n, "reward": float(n)}
+              for a, s in (("sac", 0), ("sac", 1), ("delta", 0)) for n in (10_000, 11_000)]  # fmt: skip
+    write_csv(tmp_path / "locomotion_gate_curves.csv", points, gate.CURVE_COLUMNS)
+    assert committed_curves(tmp_path, agents={"sac"}) == {
+        "halfcheetah": {"sac": {"0": [(10_000, 10_000.0), (11_000, 11_000.0)]}}
+    }
+    assert set(committed_curves(tmp_path)["halfcheetah"]) == {"sac", "delta"}
+    assert committed_curves(tmp_path / "absent") == {}

@@ -48,10 +48,13 @@ def plot_curves(
     ceiling: Mapping[str, float],
     first: str = "",
     ylabel: str = "return, last 5 episodes",
+    references: Curves | None = None,
 ) -> None:
     """One panel per env, one line per label: the mean over its members with a 95 % bootstrap band (members
     resampled as whole curves; a single member's band is its own line), ``thresholds`` dashed and ``ceiling``
-    (the true-dynamics MPC) dotted. ``first``: the label drawn first (the baseline)."""
+    (the true-dynamics MPC) dotted. ``first``: the label drawn first (the baseline). ``references``: other agents'
+    curves (e.g. SAC's from the gate) drawn as the mean over their members, thin and dash-dotted, in the panels of
+    ``curves``' envs only."""
     from pets.experiments.plots import figure_bytes, model_colors, pyplot
     from pets.experiments.report import BOOT_SEED
     from pets.runs.fileio import atomic_write_bytes
@@ -64,12 +67,13 @@ def plot_curves(
         colors = model_colors(list(lines))
         for label in sorted(lines, key=lambda name: name != first):
             members = lines[label]
-            length = min(len(points) for points in members.values())  # members cut at different steps: the common part
-            steps = np.array([n for n, _ in next(iter(members.values()))[:length]])
-            values = np.array([[v for _, v in points[:length]] for points in members.values()])
+            steps, values = _curve_matrix(members)
             low, high = bootstrap_band(values, seed=BOOT_SEED)
             ax.plot(steps / 1000, values.mean(axis=0), color=colors[label], label=f"{label} (n={len(values)})")
             ax.fill_between(steps / 1000, low, high, color=colors[label], alpha=0.2, lw=0)
+        for label, members in (references or {}).get(env, {}).items():
+            steps, values = _mean_curve(members)
+            ax.plot(steps / 1000, values, color="k", ls="-.", lw=1, label=f"{label} (n={len(members)})")
         if env in thresholds:
             ax.axhline(thresholds[env], color="k", ls="--", lw=1, label="gate threshold")
         if env in ceiling:
@@ -79,3 +83,16 @@ def plot_curves(
         ax.legend(fontsize=8)
     fig.tight_layout()
     atomic_write_bytes(path, figure_bytes(fig))
+
+
+def _curve_matrix(members: Mapping[str, list[tuple[int, float]]]) -> tuple[np.ndarray, np.ndarray]:
+    """``(env steps, values (members, points))`` over the steps every member reached (runs cut at different steps:
+    the common part)."""
+    length = min(len(points) for points in members.values())
+    steps = np.array([n for n, _ in next(iter(members.values()))[:length]])
+    return steps, np.array([[v for _, v in points[:length]] for points in members.values()])
+
+
+def _mean_curve(members: Mapping[str, list[tuple[int, float]]]) -> tuple[np.ndarray, np.ndarray]:
+    steps, values = _curve_matrix(members)
+    return steps, values.mean(axis=0)

@@ -295,15 +295,6 @@ def ceiling(rows: Sequence[Mapping[str, Any]]) -> dict[str, float]:
     return {env: float(np.mean(values)) for env, values in out.items()}
 
 
-def committed_ceiling(path: Path) -> dict[str, float]:
-    """:func:`ceiling` of the committed ``locomotion_oracle.csv`` (empty where the file is absent)."""
-    from pets.experiments.report import csv_number, read_csv_rows
-
-    numbers = ("reward", "population", "horizon", "iterations", "termination_penalty")
-    rows = read_csv_rows(path) if path.is_file() else []
-    return ceiling([dict(r, **{k: csv_number(r[k]) for k in numbers}) for r in rows])
-
-
 def csv_table(path: Path, columns: Mapping[str, str]) -> str:
     """The committed CSV ``path`` as a markdown table of ``columns`` (CSV column -> header), numbers to 4 digits."""
     from pets.experiments.report import csv_number, fmt, md_table, read_csv_rows
@@ -377,27 +368,6 @@ def run_curve(run_dir: Path, pilot: bool = False) -> list[dict[str, Any]]:
     key = {"run": run_dir.name, "env": cfg["env"]} if pilot else {"env": cfg["env"], "agent": cfg["head"],
                                                                  "seed": int(cfg["seed"])}  # fmt: skip
     return curve_rows(key, rows, full_length(cfg))
-
-
-def write_figures(results: Path, figures: Path) -> None:
-    """``locomotion_gate.png`` (per env, each agent's complete runs: mean and 95 % band) and
-    ``locomotion_pilots.png`` (one line per pilot) from the committed curve rows (``pets.compare report``)."""
-    from pets.experiments.curves import group_curves, plot_curves
-    from pets.experiments.report import read_csv_rows
-
-    ceil = committed_ceiling(results / "locomotion_oracle.csv")
-
-    def key(r: Mapping[str, str]) -> tuple[str, str, str]:
-        return r["env"], r["agent"], r["seed"]
-
-    done = {key(r) for r in read_csv_rows(results / "locomotion_gate_runs.csv") if r["status"] == "complete"}
-    rows = [r for r in read_csv_rows(results / "locomotion_gate_curves.csv") if key(r) in done]
-    ylabel = f"return, last {WINDOW} episodes (95 % CI)"
-    plot_curves(figures / "locomotion_gate.png", group_curves(rows, "agent", "seed"), thresholds=THRESHOLDS,
-                ceiling=ceil, first="delta", ylabel=ylabel)  # fmt: skip
-    pilots = group_curves(read_csv_rows(results / "locomotion_pilots_curves.csv"), "run", "run")
-    plot_curves(figures / "locomotion_pilots.png", pilots, thresholds=THRESHOLDS, ceiling=ceil,
-                ylabel=f"return, last {WINDOW} episodes")  # fmt: skip
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -177,15 +177,18 @@ def curve_rows(run_dir: Path) -> list[dict[str, Any]]:
 
 def plot_curves(results: Path, figure: Path) -> None:
     """Reward (the moving window) against env steps per env, one line per arm: the mean over its complete runs
-    with a 95 % bootstrap band (seeds resampled as whole curves), the gate's threshold dashed and the ceiling
-    (the true-dynamics MPC of the preset's planner, ``locomotion_oracle.csv``) dotted."""
+    with a 95 % bootstrap band (seeds resampled as whole curves), the gate's threshold dashed, the ceiling (the
+    true-dynamics MPC of the preset's planner, ``locomotion_oracle.csv``) dotted and SAC's mean curve at the same
+    budget (the gate's reference runs, ``locomotion_gate_curves.csv``) dash-dotted."""
+    from pets.experiments import gate_figures
     from pets.experiments.report import read_csv_rows
 
     done = {(r["env"], r["model"], r["seed"]) for r in read_csv_rows(results / RUNS) if r["status"] == "complete"}
     rows = [r for r in read_csv_rows(results / CURVES) if (r["env"], r["model"], r["seed"]) in done]
     curves.plot_curves(figure, curves.group_curves(rows, "model", "seed"), thresholds=gate.THRESHOLDS,
-                       ceiling=gate.committed_ceiling(results / "locomotion_oracle.csv"), first=BASELINE,
-                       ylabel=f"return, last {gate.WINDOW} episodes (95 % CI)")  # fmt: skip
+                       ceiling=gate_figures.committed_ceiling(results / "locomotion_oracle.csv"), first=BASELINE,
+                       ylabel=f"return, last {gate.WINDOW} episodes (95 % CI)",
+                       references=gate_figures.committed_curves(results, agents={"sac"}))  # fmt: skip
 
 
 def write_summary(results: Path) -> None:
