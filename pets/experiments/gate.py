@@ -241,6 +241,7 @@ ORACLE_COLUMNS = [
     "env",
     "source",
     "planner",
+    "candidates",
     "population",
     "horizon",
     "iterations",
@@ -265,6 +266,7 @@ def oracle_rows(path: Path) -> list[dict[str, Any]]:
             "env": path.stem.split("_")[0],
             "source": path.stem,
             "planner": p["name"],
+            "candidates": p.get("candidates", "open_loop"),
             "population": p["population"],
             "horizon": p["horizon"],
             "iterations": p["iterations"],
@@ -288,8 +290,9 @@ def ceiling(rows: Sequence[Mapping[str, Any]]) -> dict[str, float]:
     out: dict[str, list[float]] = {}
     for r in rows:
         p = make_config(r["env"], "delta", "locomotion").planner
-        setting = (r["planner"], r["population"], r["horizon"], r["iterations"], r["termination_penalty"])
-        if not r.get("terminal_value") and setting == (p.name, p.population, p.horizon, p.iterations,
+        setting = (r["planner"], r.get("candidates", "open_loop"), r["population"], r["horizon"], r["iterations"],
+                   r["termination_penalty"])  # fmt: skip
+        if not r.get("terminal_value") and setting == (p.name, p.candidates, p.population, p.horizon, p.iterations,
                                                       p.termination_penalty):  # fmt: skip
             out.setdefault(r["env"], []).append(float(r["reward"]))
     return {env: float(np.mean(values)) for env, values in out.items()}
@@ -310,7 +313,8 @@ def csv_table(path: Path, columns: Mapping[str, str]) -> str:
 
 def oracle_table(tree: Path) -> str:
     """The ``locomotion-oracle`` block: every true-dynamics episode of ``locomotion_oracle.csv``."""
-    columns = {"source": "file", "population": "population", "horizon": "horizon", "iterations": "iterations"}
+    columns = {"source": "file", "candidates": "candidates", "population": "population", "horizon": "horizon"}
+    columns |= {"iterations": "iterations"}
     columns |= {"termination_penalty": "termination penalty", "terminal_value": "terminal value of"}
     columns |= {"steps": "steps", "reward": "reward", "fell": "fell"}
     return csv_table(tree / "docs" / "results" / "locomotion_oracle.csv", columns)
