@@ -360,7 +360,6 @@ PILOT_CURVE_COLUMNS = ["run", "env", "env_steps", "reward"]
 def curve_rows(key: Mapping[str, Any], rows: Sequence[Mapping[str, Any]], length: int) -> list[dict[str, Any]]:
     """One run's learning curve (its :func:`endpoint` on :mod:`pets.experiments.curves`' grid up to the budget or
     the steps it reached), each point a row that starts with ``key`` (the run's columns)."""
-
     reached = min(int(float(rows[-1]["env_steps"])) if rows else 0, BUDGET)
     points = window_points(lambda n: endpoint(rows, n, length), reached)
     return [dict(key, env_steps=n, reward=r) for n, r in points]

@@ -6,10 +6,9 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
 
 from pets.experiments import gate
-from pets.experiments.curves import group_curves, plot_curves
+from pets.experiments.curves import Curves, group_curves, plot_curves
 from pets.experiments.report import csv_number, read_csv_rows
 
 
@@ -20,7 +19,7 @@ def committed_ceiling(path: Path) -> dict[str, float]:
     return gate.ceiling([dict(r, **{k: csv_number(r[k]) for k in numbers}) for r in rows])
 
 
-def committed_curves(results: Path, agents: set[str] | None = None) -> dict[str, Any]:
+def committed_curves(results: Path, agents: set[str] | None = None) -> Curves:
     """The gate's committed curves of its complete runs (``locomotion_gate_{runs,curves}.csv`` in ``results``; of
     ``agents`` only, if given) as :data:`pets.experiments.curves.Curves` by agent and seed; empty without them."""
     runs, points = results / "locomotion_gate_runs.csv", results / "locomotion_gate_curves.csv"
