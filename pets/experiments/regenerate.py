@@ -35,7 +35,7 @@ from pets.tools.cli import fail
 
 #: The docs that may hold generated blocks.
 BLOCK_FILES = (
-    *("README.md", "docs/results.md", "docs/experiments.md"),
+    *("README.md", "docs/results.md", "docs/experiments.md", "docs/planning.md"),
     *("docs/studies/locomotion_gate.md", "docs/studies/online_locomotion.md"),
 )
 #: Block name -> its content, rendered from a tree (the repository or its generated copy).
