@@ -84,12 +84,16 @@ def test_oracle_files_become_rows_and_no_input_is_one_line_exit_2(tmp_path):
     (tmp_path / "hopper_cem.json").write_text(json.dumps({"planner": planner, "episodes": episodes}))
     (row,) = gate.oracle_rows(tmp_path / "hopper_cem.json")
     assert row["env"] == "hopper" and row["steps"] == 139 and row["fell"] == 1 and row["reward"] == 376.0
-    assert row["termination_penalty"] == 0.0  # a file from before the setting: the default
+    assert row["termination_penalty"] == 0.0 and row["candidates"] == "open_loop"  # written before: the defaults
     assert gate.ceiling([row]) == {"hopper": 376.0}  # the locomotion preset's planner
     penalised = dict(planner, termination_penalty=100.0)
     (tmp_path / "hopper_pen.json").write_text(json.dumps({"planner": penalised, "episodes": episodes}))
     (row,) = gate.oracle_rows(tmp_path / "hopper_pen.json")
     assert row["termination_penalty"] == 100.0 and gate.ceiling([row]) == {}  # not the preset's setting
+    closed = {"planner": dict(planner, candidates="feedback"), "episodes": episodes}
+    (tmp_path / "hopper_feedback.json").write_text(json.dumps(closed))
+    (row,) = gate.oracle_rows(tmp_path / "hopper_feedback.json")
+    assert row["candidates"] == "feedback" and gate.ceiling([row]) == {}  # not the preset's candidates
     valued = {"planner": planner, "episodes": episodes, "value_from": "/runs/hopper-v2-s100"}
     (tmp_path / "hopper_value.json").write_text(json.dumps(valued))
     (row,) = gate.oracle_rows(tmp_path / "hopper_value.json")
