@@ -7,7 +7,7 @@ gate or of the online locomotion study regenerates from ``docs/results`` without
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Container, Iterable, Mapping
 from pathlib import Path
 
 import numpy as np
@@ -38,6 +38,19 @@ def group_curves(rows: Iterable[Mapping[str, str]], label: str, member: str) -> 
         points = out.setdefault(r["env"], {}).setdefault(r[label], {}).setdefault(r[member], [])
         points.append((int(r["env_steps"]), csv_number(r["reward"])))
     return out
+
+
+def complete_curves(runs: Path, points: Path, label: str, keep: Container[str] | None = None) -> Curves:
+    """The committed curve rows ``points`` of the runs that ``runs`` (one row per run: ``env``, ``label``, ``seed``,
+    ``status``) marks complete, of the labels in ``keep`` if given, as :data:`Curves` by ``label`` and seed."""
+    from pets.experiments.report import read_csv_rows
+
+    def key(r: Mapping[str, str]) -> tuple[str, str, str]:
+        return r["env"], r[label], r["seed"]
+
+    wanted = [r for r in read_csv_rows(runs) if keep is None or r[label] in keep]
+    done = {key(r) for r in wanted if r["status"] == "complete"}
+    return group_curves((r for r in read_csv_rows(points) if key(r) in done), label, "seed")
 
 
 def plot_curves(
@@ -72,8 +85,8 @@ def plot_curves(
             ax.plot(steps / 1000, values.mean(axis=0), color=colors[label], label=f"{label} (n={len(values)})")
             ax.fill_between(steps / 1000, low, high, color=colors[label], alpha=0.2, lw=0)
         for label, members in (references or {}).get(env, {}).items():
-            steps, values = _mean_curve(members)
-            ax.plot(steps / 1000, values, color="k", ls="-.", lw=1, label=f"{label} (n={len(members)})")
+            steps, values = _curve_matrix(members)
+            ax.plot(steps / 1000, values.mean(axis=0), color="k", ls="-.", lw=1, label=f"{label} (n={len(members)})")
         if env in thresholds:
             ax.axhline(thresholds[env], color="k", ls="--", lw=1, label="gate threshold")
         if env in ceiling:
@@ -91,8 +104,3 @@ def _curve_matrix(members: Mapping[str, list[tuple[int, float]]]) -> tuple[np.nd
     length = min(len(points) for points in members.values())
     steps = np.array([n for n, _ in next(iter(members.values()))[:length]])
     return steps, np.array([[v for _, v in points[:length]] for points in members.values()])
-
-
-def _mean_curve(members: Mapping[str, list[tuple[int, float]]]) -> tuple[np.ndarray, np.ndarray]:
-    steps, values = _curve_matrix(members)
-    return steps, values.mean(axis=0)

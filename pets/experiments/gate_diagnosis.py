@@ -35,11 +35,11 @@ def episode_ends_table(tree: Path) -> str:
             action_sq.setdefault(r["run"], []).append(float(r["action_sq"]))
     header = ["run", "episodes", "fell", "fell by jumping (torso above 1.0)", "did not fall, ended on its back"]
     header += ["planned 1,000-step episodes", "their squared action per step"]
-    return md_table(
-        header,
-        ([run, *map(str, c), str(len(action_sq.get(run, []))), fmt(float(np.mean(action_sq[run]))) if run in action_sq
-          else "-"] for run, c in counts.items()),
-    )  # fmt: skip
+    body = []
+    for run, c in counts.items():
+        planned = action_sq.get(run, [])
+        body.append([run, *map(str, c), str(len(planned)), fmt(float(np.mean(planned))) if planned else "-"])
+    return md_table(header, body)
 
 
 def frozen_planning_table(tree: Path) -> str:

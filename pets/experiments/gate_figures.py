@@ -4,11 +4,10 @@ ceiling (``locomotion_oracle.csv``)."""
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from pathlib import Path
 
 from pets.experiments import gate
-from pets.experiments.curves import Curves, group_curves, plot_curves
+from pets.experiments.curves import Curves, complete_curves, group_curves, plot_curves
 from pets.experiments.report import csv_number, read_csv_rows
 
 
@@ -23,16 +22,7 @@ def committed_curves(results: Path, agents: set[str] | None = None) -> Curves:
     """The gate's committed curves of its complete runs (``locomotion_gate_{runs,curves}.csv`` in ``results``; of
     ``agents`` only, if given) as :data:`pets.experiments.curves.Curves` by agent and seed; empty without them."""
     runs, points = results / "locomotion_gate_runs.csv", results / "locomotion_gate_curves.csv"
-    if not (runs.is_file() and points.is_file()):
-        return {}
-
-    def key(r: Mapping[str, str]) -> tuple[str, str, str]:
-        return r["env"], r["agent"], r["seed"]
-
-    done = {
-        key(r) for r in read_csv_rows(runs) if r["status"] == "complete" and (agents is None or r["agent"] in agents)
-    }
-    return group_curves((r for r in read_csv_rows(points) if key(r) in done), "agent", "seed")
+    return complete_curves(runs, points, "agent", agents) if runs.is_file() and points.is_file() else {}
 
 
 def write_figures(results: Path, figures: Path) -> None:

@@ -181,11 +181,9 @@ def plot_curves(results: Path, figure: Path) -> None:
     true-dynamics MPC of the preset's planner, ``locomotion_oracle.csv``) dotted and SAC's mean curve at the same
     budget (the gate's reference runs, ``locomotion_gate_curves.csv``) dash-dotted."""
     from pets.experiments import gate_figures
-    from pets.experiments.report import read_csv_rows
 
-    done = {(r["env"], r["model"], r["seed"]) for r in read_csv_rows(results / RUNS) if r["status"] == "complete"}
-    rows = [r for r in read_csv_rows(results / CURVES) if (r["env"], r["model"], r["seed"]) in done]
-    curves.plot_curves(figure, curves.group_curves(rows, "model", "seed"), thresholds=gate.THRESHOLDS,
+    arms = curves.complete_curves(results / RUNS, results / CURVES, "model")
+    curves.plot_curves(figure, arms, thresholds=gate.THRESHOLDS,
                        ceiling=gate_figures.committed_ceiling(results / "locomotion_oracle.csv"), first=BASELINE,
                        ylabel=f"return, last {gate.WINDOW} episodes (95 % CI)",
                        references=gate_figures.committed_curves(results, agents={"sac"}))  # fmt: skip
