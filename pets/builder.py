@@ -95,6 +95,7 @@ def make_agent(
         compile=p.compile,
         terminal_value=value,
         termination_penalty=p.termination_penalty,
+        risk_aversion=p.risk_aversion,
         feedback=feedback,
     )
     planner = make_planner(cfg, spec, device, feedback)

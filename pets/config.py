@@ -95,6 +95,9 @@ class PlannerConfig:
     propagation: str = "tsinf"
     replan_every: int = 1
     termination_penalty: float = 0.0  # subtracted from a candidate's return where it terminates (a fall) in the horizon
+    # k >= 0: a candidate's return is its particles' mean return minus k x their standard deviation (pessimism
+    # against the model's spread, docs/planning.md); 0: the mean, as in PETS
+    risk_aversion: float = 0.0
     # The settings of one planner only, planner.<name>.* (used when planner.name is that planner), are added by
     # schema() from the planner table (pets.planning.planners.PLANNER_CLASSES: each class's `section`)
     feedback: FeedbackConfig = field(default_factory=FeedbackConfig)
@@ -332,7 +335,7 @@ def validate(cfg: DictConfig) -> None:
         if OmegaConf.select(cfg, key) not in choices:
             raise ConfigError(f"{key} must be one of {', '.join(choices)}, got {OmegaConf.select(cfg, key)!r}")
     nonnegative = ("model.lr", "planner.elites", "planner.alpha", "model.holdout_ratio", "gem.frobenius_weight")
-    for key in (*nonnegative, "planner.termination_penalty"):
+    for key in (*nonnegative, "planner.termination_penalty", "planner.risk_aversion"):
         v = OmegaConf.select(cfg, key)
         if not math.isfinite(v) or v < 0:
             raise ConfigError(f"{key} must be a finite number >= 0, got {v}")

@@ -68,6 +68,8 @@ def test_override_beats_preset_beats_env_default():
         ("planner.elites=1000", "planner.population=480], got 1000"),
         ("planner.elites=2.5", "planner.elites must be"),
         ("model.curve_every=-1", "model.curve_every must be >= 0"),
+        ("planner.risk_aversion=-1", "planner.risk_aversion must be a finite number >= 0, got -1.0"),
+        ("planner.risk_aversion=inf", "planner.risk_aversion must be a finite number >= 0, got inf"),
     ],
 )
 def test_bad_values_raise_config_error(item, fragment):
@@ -109,3 +111,19 @@ def test_fast_preset_plans_invertedpendulum_with_the_terminal_value_and_small_mp
     assert (idp.planner.mppi.sigma, idp.value.enabled) == (0.5, False)
     off = make_config("invertedpendulum", "gem", "fast", {"value.enabled": "false", "planner.mppi.sigma": "0.5"})
     assert (off.planner.mppi.sigma, off.value.enabled) == (0.5, False)
+
+
+def test_risk_aversion_reaches_the_agents_evaluator_and_defaults_to_the_mean() -> None:
+    """``planner.risk_aversion`` is off by default (PETS' mean over particles) and the built agent's evaluator gets
+    the configured value."""
+    import torch
+
+    import envs
+    from pets import builder
+    from pets.models import make_model
+
+    spec, cpu = envs.get("hopper"), torch.device("cpu")
+    for overrides, k in (({}, 0.0), ({"planner.risk_aversion": "1.5"}, 1.5)):
+        cfg = make_config("hopper", "delta", "locomotion", overrides)
+        agent = builder.make_agent(cfg, spec, make_model(cfg, spec, cpu), cpu, torch.Generator())
+        assert cfg.planner.risk_aversion == k and agent.evaluator.risk_aversion == k

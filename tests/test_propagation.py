@@ -296,6 +296,35 @@ def test_termination_penalty_is_subtracted_from_terminated_rows_only(prop: str) 
         TrajectoryEvaluator(model, unit_reward, term, termination_penalty=-1.0)
 
 
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("prop", PROPAGATIONS)
+def test_risk_aversion_subtracts_k_times_the_particles_spread(device: str, prop: str) -> None:
+    """A real Gaussian ensemble whose members disagree: the risk-averse return is the rollout's per-particle
+    returns' mean less k times their population standard deviation (numpy's), on the same generator state;
+    where the particles cannot differ (expectation) it is the plain mean."""
+    from dynamics.networks import GaussianEnsemble
+
+    torch.manual_seed(1)
+    ens = GaussianEnsemble(OBS_DIM + ACT_DIM, OBS_DIM, ensemble_size=5, hidden_size=16, num_layers=2).to(device)
+    model = DynamicsModel(make_head(), ens)
+    obs0 = torch.tensor([0.2, -0.1, 0.4], device=device)
+    actions = (torch.rand(4, 5, ACT_DIM, generator=torch.Generator().manual_seed(0)) * 2 - 1).to(device)
+    k = 0.7
+    with torch.no_grad():
+        _, rew = TrajectoryEvaluator(model, reward_fn, None, particles=6, propagation=prop).rollout(
+            obs0, actions, torch.Generator(device=device).manual_seed(3)
+        )
+        risky = TrajectoryEvaluator(model, reward_fn, None, particles=6, propagation=prop, risk_aversion=k)
+        ret = risky(obs0, actions, torch.Generator(device=device).manual_seed(3))
+    per_particle = rew.sum(-1).double().cpu().numpy()
+    spread = per_particle.std(axis=1)  # numpy's default: the population standard deviation
+    assert (spread > 1e-3).all() == (prop != "expectation")
+    expected = torch.from_numpy(per_particle.mean(axis=1) - k * spread).float()
+    torch.testing.assert_close(ret.cpu(), expected, rtol=1e-5, atol=1e-5)
+    with pytest.raises(ValueError, match="risk_aversion must be a finite number >= 0"):
+        TrajectoryEvaluator(model, reward_fn, None, risk_aversion=-0.5)
+
+
 def test_termination_from_state_with_analytic_return() -> None:
     """A state-based termination (coordinate 0 above 0.25) against the loop ground truth."""
     c = torch.tensor([0.05, 0.0, -0.03])

@@ -141,6 +141,10 @@ class TrajectoryEvaluator:
     termination_penalty: subtracted from the return of every row that terminated within the horizon (>= 0; 0:
       a termination only ends the rewards, as in PETS). It ranks a candidate predicted to fall below one that
       does not, however much faster it moves before the fall.
+    risk_aversion: k >= 0; a candidate's return is the mean over its particles minus k times their standard
+      deviation (population form), a pessimism against the model's spread that ranks a candidate whose particles
+      disagree (some fall, some run) below one whose particles agree; 0: the mean, as in PETS. Inert where the
+      particles cannot differ (``expectation``, or one particle).
     feedback: a :class:`pets.planning.feedback.LinearFeedback`: candidates are then gains (N, rows, act_dim), rolled out
       for ``feedback.horizon`` steps with each particle's action computed from its own predicted state; None:
       candidates are action sequences (N, H, act_dim).
@@ -161,6 +165,7 @@ class TrajectoryEvaluator:
         compile_backend: str = "inductor",
         terminal_value: Callable[[Tensor], Tensor] | None = None,
         termination_penalty: float = 0.0,
+        risk_aversion: float = 0.0,
         feedback: LinearFeedback | None = None,
     ) -> None:
         if propagation not in PROPAGATIONS:
@@ -189,6 +194,9 @@ class TrajectoryEvaluator:
         if not math.isfinite(termination_penalty) or termination_penalty < 0:
             raise ValueError(f"termination_penalty must be a finite number >= 0, got {termination_penalty!r}")
         self.termination_penalty = float(termination_penalty)
+        if not math.isfinite(risk_aversion) or risk_aversion < 0:
+            raise ValueError(f"risk_aversion must be a finite number >= 0, got {risk_aversion!r}")
+        self.risk_aversion = float(risk_aversion)
         self.feedback = feedback
         self._propagation = PROPAGATION_TABLE[propagation]
         self._candidates = OpenLoop() if feedback is None else FeedbackGains(feedback)
@@ -370,7 +378,8 @@ class TrajectoryEvaluator:
 
     @torch.no_grad()
     def __call__(self, obs0: Tensor, actions: Tensor, generator: torch.Generator | None = None) -> Tensor:
-        """Mean over particles of the summed horizon rewards, shape (N,), for actions (N, H, act_dim).
+        """Mean over particles of the summed horizon rewards (less ``risk_aversion`` times their standard
+        deviation), shape (N,), for actions (N, H, act_dim).
 
         Finite for finite rewards of finite states (see the module docstring), except that every return is NaN
         when the first transition of every row is non-finite (a broken model: the planner then raises
@@ -378,7 +387,10 @@ class TrajectoryEvaluator:
         """
         obs0, actions = self._check(obs0, actions, generator)
         total, _, _, p_eff, all_diverged = self._run(obs0, actions, generator, record=False)
-        returns = total.view(actions.shape[0], p_eff).mean(dim=1)
+        per_particle = total.view(actions.shape[0], p_eff)
+        returns = per_particle.mean(dim=1)
+        if self.risk_aversion and p_eff > 1:
+            returns = returns - self.risk_aversion * per_particle.std(dim=1, correction=0)
         return torch.where(all_diverged, torch.full_like(returns, float("nan")), returns)
 
     @torch.no_grad()
@@ -389,8 +401,8 @@ class TrajectoryEvaluator:
         and the rewards that count towards the return, (N, P, H) (zero after a termination,
         ``nonfinite_reward`` on a transition into a non-finite state), so that
         ``rewards.sum(-1).mean(-1)`` equals ``self(obs0, actions)`` for the same generator state without a
-        ``terminal_value`` (unless every row's first transition is non-finite: then the rewards keep the penalty
-        and ``self`` returns NaN).
+        ``terminal_value`` or ``risk_aversion`` (unless every row's first transition is non-finite: then the
+        rewards keep the penalty and ``self`` returns NaN).
         For ``expectation`` the single rollout per candidate is repeated over the P particles.
         """
         obs0, actions = self._check(obs0, actions, generator)
