@@ -365,10 +365,11 @@ def curve_rows(key: Mapping[str, Any], rows: Sequence[Mapping[str, Any]], length
     return [dict(key, env_steps=n, reward=r) for n, r in points]
 
 
-def run_curve(run_dir: Path, pilot: bool = False) -> list[dict[str, Any]]:
-    """:func:`curve_rows` of a run directory: keyed by env, agent (its head) and seed, or (``pilot``) by its name."""
+def run_curve(run_dir: Path, pilot: bool = False, head: str = "agent") -> list[dict[str, Any]]:
+    """:func:`curve_rows` of a run directory: keyed by env, its head (under the column ``head``) and seed, or
+    (``pilot``) by its name."""
     cfg, rows = read_run(run_dir)
-    key = {"run": run_dir.name, "env": cfg["env"]} if pilot else {"env": cfg["env"], "agent": cfg["head"],
+    key = {"run": run_dir.name, "env": cfg["env"]} if pilot else {"env": cfg["env"], head: cfg["head"],
                                                                  "seed": int(cfg["seed"])}  # fmt: skip
     return curve_rows(key, rows, full_length(cfg))
 

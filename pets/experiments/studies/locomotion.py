@@ -169,10 +169,8 @@ CURVE_COLUMNS = ["env", "model", "seed", "env_steps", "reward"]
 
 
 def curve_rows(run_dir: Path) -> list[dict[str, Any]]:
-    """A run's learning curve (:func:`pets.experiments.gate.curve_rows`), keyed by env, model and seed."""
-    cfg, rows = gate.read_run(run_dir)
-    return gate.curve_rows({"env": cfg["env"], "model": cfg["head"], "seed": int(cfg["seed"])}, rows,
-                           gate.full_length(cfg))  # fmt: skip
+    """A run's learning curve (:func:`pets.experiments.gate.run_curve`), keyed by env, model and seed."""
+    return gate.run_curve(run_dir, head="model")
 
 
 def plot_curves(results: Path, figure: Path) -> None:
