@@ -8,10 +8,14 @@ from pathlib import Path
 
 import numpy as np
 
+import envs
 from pets.experiments.gate import csv_table
 from pets.experiments.report import fmt, md_table, read_csv_rows
+from pets.presets import PRESETS
 
 RESULTS = Path("docs") / "results"
+SEED_STEPS = PRESETS["locomotion"]["seed_steps"]  # the random episodes before the first planned one
+ANT_TOP = 1.0  # the top of gymnasium Ant-v5's healthy_z_range [0.2, 1.0]: a torso above it fell by jumping
 
 
 def episode_ends_table(tree: Path) -> str:
@@ -22,6 +26,7 @@ def episode_ends_table(tree: Path) -> str:
     counts: dict[str, list[int]] = {}
     action_sq: dict[str, list[float]] = {}
     start: dict[str, int] = {}
+    full = envs.get("ant").episode_length
     for r in read_csv_rows(tree / RESULTS / "locomotion_episode_ends.csv"):
         begun = start.get(r["run"], 0)
         start[r["run"]] = begun + int(r["steps"])
@@ -29,9 +34,9 @@ def episode_ends_table(tree: Path) -> str:
         c = counts.setdefault(r["run"], [0, 0, 0, 0])
         c[0] += 1
         c[1] += fell
-        c[2] += fell and height > 1.0  # Ant's healthy_z_range is [0.2, 1.0]: above it, a jump
+        c[2] += fell and height > ANT_TOP
         c[3] += not fell and up < 0
-        if int(r["steps"]) == 1000 and begun >= 1000:
+        if int(r["steps"]) == full and begun >= SEED_STEPS:
             action_sq.setdefault(r["run"], []).append(float(r["action_sq"]))
     header = ["run", "episodes", "fell", "fell by jumping (torso above 1.0)", "did not fall, ended on its back"]
     header += ["planned 1,000-step episodes", "their squared action per step"]
