@@ -149,3 +149,44 @@ def test_the_command_writes_the_runs_file_and_refuses_what_is_not_a_run(tmp_path
     proc = subprocess.run([*cmd, str(run), "--out", str(out), "--crashed", str(tmp_path / "other")],
                           capture_output=True, text=True, timeout=120)  # fmt: skip
     assert proc.returncode == 2 and "--crashed names runs not given" in proc.stderr
+
+
+def test_identical_rows_stand_for_delta_groupfeat_on_a_planar_env_and_only_where_it_was_not_run(tmp_path):
+    """On HalfCheetah (planar) a delta-groupfeat seed with no run takes gem's complete row, marked not run (no
+    CPU-hours) and counted by the summary; a seed it ran keeps its own row, and must agree with gem's; on Ant (the
+    torso on SO(3)) nothing is made up."""
+    gem = {s: study.run_row(make_run(tmp_path / "gem", "gem", s, ramp(2000.0 + 500 * s))) for s in range(3)}
+    own = study.run_row(make_run(tmp_path / "feat", "delta-groupfeat", 0, ramp(2000.0)))
+    made = study.identical_rows([*gem.values(), own])
+    assert [(r["model"], r["seed"]) for r in made] == [("delta-groupfeat", 1), ("delta-groupfeat", 2)]
+    for r in made:
+        assert r["status"] == study.IDENTICAL_STATUS and math.isnan(r["cpu_hours"])
+        assert {k: r[k] for k in study.RUN_COLUMNS if k not in ("model", "cpu_hours", "status")} == pytest.approx(
+            {k: gem[r["seed"]][k] for k in study.RUN_COLUMNS if k not in ("model", "cpu_hours", "status")}, nan_ok=True
+        )
+    assert study.planar("halfcheetah") and not study.planar("ant")
+    assert study.identical_rows([{**g, "env": "ant"} for g in gem.values()]) == []
+    differing = study.run_row(make_run(tmp_path / "other", "delta-groupfeat", 0, ramp(2100.0)))
+    with pytest.raises(ValueError, match="halfcheetah seed 0: delta-groupfeat and gem differ in endpoint"):
+        study.identical_rows([*gem.values(), differing])
+    path = tmp_path / "runs.csv"
+    study.gate.write_csv(path, [*gem.values(), own, *made], study.RUN_COLUMNS)
+    with path.open() as f:
+        summary = {r["model"]: r for r in study.summary_from_runs(list(csv.DictReader(f)))}
+    assert summary["delta-groupfeat"]["n_seeds"] == 3 and summary["gem"]["n_seeds"] == 3
+    assert summary["delta-groupfeat"]["endpoint_iqm"] == pytest.approx(summary["gem"]["endpoint_iqm"])
+    assert summary["delta-groupfeat"]["cpu_hours_mean"] == pytest.approx(own["cpu_hours"])  # the run it made
+
+
+def test_the_command_adds_identical_rows_when_asked(tmp_path):
+    runs = [make_run(tmp_path, "gem", s, ramp(2500.0)) for s in (0, 1)]
+    out = tmp_path / "runs.csv"
+    cmd = [sys.executable, "-m", "pets.experiments.studies.locomotion", *map(str, runs), "--out", str(out)]
+    assert subprocess.run(cmd, capture_output=True, text=True, timeout=120).returncode == 0
+    assert {r["model"] for r in csv.DictReader(out.open())} == {"gem"}
+    assert subprocess.run([*cmd, "--identical"], capture_output=True, text=True, timeout=120).returncode == 0
+    rows = list(csv.DictReader(out.open()))
+    assert [(r["model"], r["seed"], r["status"]) for r in rows if r["model"] != "gem"] == [
+        ("delta-groupfeat", "0", study.IDENTICAL_STATUS),
+        ("delta-groupfeat", "1", study.IDENTICAL_STATUS),
+    ]

@@ -154,7 +154,10 @@ def arm_statistics(
                 iqm, low, high = ci(scores, reps=reps, seed=seed)
                 for j, m in enumerate(metrics):
                     s.update(dict(zip(m.columns(), (iqm[j], low[j], high[j]))))
-        s.update({m.columns()[0]: float(np.mean([r[m.name] for r in rs])) for m in study.metrics if not m.group})
+        for m in study.metrics:  # an ungrouped metric (a cost): the mean over the runs that record it
+            if not m.group:
+                recorded = [r[m.name] for r in rs if math.isfinite(r[m.name])]
+                s[m.columns()[0]] = float(np.mean(recorded)) if recorded else math.nan
         base = baselines.get(arm)
         if base is not None and base in runs:
             for m in study.metrics:

@@ -11,6 +11,8 @@ episodes); secondary: ``auc``, the mean of that moving window at every 1,000 env
 area under the reward curve over its span); ``steps_to_threshold``, the first env step at which the window reaches
 the gate's threshold (NaN if never). A run short of the budget is ``partial`` (still running; left out of the
 summary); a run the study gave up on (``--crashed RUN``) counts as the worst outcome, an endpoint and AUC of 0.
+``--identical``: on a planar env ``delta-groupfeat`` is ``gem`` bit for bit, so a seed of it that was not run takes
+``gem``'s row, marked so (:func:`identical_rows`).
 """
 
 from __future__ import annotations
@@ -92,12 +94,48 @@ def run_row(run_dir: Path, crashed: bool = False) -> dict[str, Any]:
     return row | ({"endpoint": 0.0, "auc": 0.0} if crashed else {})
 
 
+#: On an env whose every group is ``Rn`` or ``SO2_angle`` (a planar body) ``delta-groupfeat`` is ``gem`` bit for bit:
+#: the same inputs, targets, training and plans (tests/test_models.py, ``test_groupfeat_equals_gem_on_a_planar_env``).
+IDENTICAL = ("delta-groupfeat", "gem")
+IDENTICAL_STATUS = "not run: gem's run (identical)"
+_COMPARED = ("endpoint", "auc", "reward_25k", "reward_50k", "steps_to_threshold", "fall_fraction")
+
+
+def planar(env: str) -> bool:
+    """Whether every group of ``env``'s layout composes by addition (``Rn``, ``SO2_angle``)."""
+    import envs
+
+    return all(g.kind in ("Rn", "SO2_angle") for g in envs.get(env).layout.groups)
+
+
+def identical_rows(rows: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
+    """The rows of :data:`IDENTICAL`'s first arm for the seeds of a planar env that it has no row of: each the
+    complete row of the second arm with the first's name, no CPU-hours (not run) and :data:`IDENTICAL_STATUS`.
+    Where both arms have complete rows their learning results must agree, else ``ValueError`` (they are not
+    identical: run the arm)."""
+    arm, same = IDENTICAL
+    have = {(r["env"], r["seed"]): r for r in rows if r["model"] == arm}
+    out = []
+    for r in rows:
+        if r["model"] != same or r["status"] != "complete" or not planar(r["env"]):
+            continue
+        mine = have.get((r["env"], r["seed"]))
+        if mine is None:
+            out.append({**r, "model": arm, "cpu_hours": math.nan, "status": IDENTICAL_STATUS})
+        elif mine["status"] == "complete":
+            differ = [k for k in _COMPARED if gate.cell_text(mine[k]) != gate.cell_text(r[k])]
+            if differ:
+                raise ValueError(f"{r['env']} seed {r['seed']}: {arm} and {same} differ in {', '.join(differ)}: "
+                                 f"not identical, so {arm} must be run")  # fmt: skip
+    return out
+
+
 def _runs(rows: Sequence[Mapping[str, str]]) -> list[dict[str, Any]]:
     """The runs the summary counts (complete or crashed), numbers parsed; a crashed run is not ``diverged`` for the
     statistics: it enters every one with its worst-outcome values (0), as registered."""
     out = []
     for r in rows:
-        if r["status"] in ("complete", "crashed"):
+        if r["status"] in ("complete", "crashed", IDENTICAL_STATUS):
             run = {m.name: csv_number(r[m.name]) for m in STUDY.metrics}
             out.append({**run, "env": r["env"], "model": r["model"], "seed": int(r["seed"]), "diverged": None})
     return out
@@ -228,6 +266,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", type=Path, required=True, help="the runs CSV to write (one row per run)")
     p.add_argument("--curves", type=Path, help="also write every run's learning curve to this CSV")
     p.add_argument("--crashed", nargs="*", type=Path, default=[], help="runs given up on: the worst outcome")
+    same = "on a planar env, a delta-groupfeat seed not run takes gem's row (identical by construction)"
+    p.add_argument("--identical", action="store_true", help=same)
     args = p.parse_args(argv)
     missing = [str(d) for d in args.run_dirs if not (d / "config.yaml").is_file()]
     if missing:
@@ -236,6 +276,11 @@ def main(argv: list[str] | None = None) -> int:
     if unknown:
         p.error(f"--crashed names runs not given: {', '.join(unknown)}")
     rows = [run_row(d, crashed=d in args.crashed) for d in args.run_dirs]
+    if args.identical:
+        try:
+            rows += identical_rows(rows)
+        except ValueError as e:
+            p.error(str(e))
     gate.write_csv(args.out, rows, RUN_COLUMNS)
     if args.curves:
         gate.write_csv(args.curves, [c for d in args.run_dirs for c in curve_rows(d)], CURVE_COLUMNS)
