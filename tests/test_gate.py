@@ -171,3 +171,31 @@ def test_committed_curves_keep_complete_runs_of_the_agents_asked_for(tmp_path):
     }
     assert set(committed_curves(tmp_path)["halfcheetah"]) == {"sac", "delta"}
     assert committed_curves(tmp_path / "absent") == {}
+
+
+def test_the_compute_block_sums_the_recorded_cpu_hours_per_part_and_env_counting_reused_runs_once(tmp_path):
+    from pets.experiments.gate_diagnosis import compute_table
+    from pets.experiments.report import write_csv
+
+    results = tmp_path / "docs" / "results"
+    results.mkdir(parents=True)
+    gate_rows = [{"env": "halfcheetah", "agent": a, "seed": s, "cpu_hours": h}
+                 for a, s, h in (("delta", 0, 1.5), ("delta", 1, 1.25), ("sac", 0, ""))]  # fmt: skip
+    write_csv(results / "locomotion_gate_runs.csv", gate_rows, list(gate_rows[0]))
+    cells = (("ant", 100, "planner.horizon=5", 0.75), ("ant", 100, "", 0.5), ("halfcheetah", 100, "", 0.25),
+             ("halfcheetah", 101, "value.enabled=False", 1.0))  # fmt: skip
+    pilots = [{"env": e, "seed": s, "overrides": o, "cpu_hours": h} for e, s, o, h in cells]
+    write_csv(results / "locomotion_pilots.csv", pilots, list(pilots[0]))
+    frozen = [{"run": r, "cpu_s": c} for r, c in (("ant-v7-78k-e300", 1800.0), ("ant-v5-s100", 1800.0))]
+    write_csv(results / "locomotion_frozen_planning.csv", frozen, list(frozen[0]))
+    online = [{"env": "halfcheetah", "model": m, "seed": s, "cpu_hours": h}
+              for m, s, h in (("delta", 0, 1.5), ("gem", 0, 2.0), ("delta-groupfeat", 1, ""))]  # fmt: skip
+    write_csv(results / "online_locomotion_runs.csv", online, list(online[0]))
+    assert compute_table(tmp_path).splitlines()[2:] == [
+        "| the gate's runs | halfcheetah | 2 | 2.75 |",
+        "| the gate's pilots | ant | 2 | 1.25 |",
+        "| the gate's ablation (with pilot v2) | halfcheetah | 2 | 1.25 |",
+        "| frozen-model planning checks | ant | 2 | 1 |",
+        "| the online study's runs | halfcheetah | 1 | 2 |",
+        "| all of the above |  | 9 | 8.25 |",
+    ]

@@ -7,10 +7,11 @@
 ``plan``: MPC in the real env with the run's model and value frozen (``PETS.load``), one row per episode and planner
 variant: ``base`` (the run's own planner), ``zero`` (no planner: the zero action every step), ``margin=Z`` (a
 predicted torso height above Z also ends a particle, the env's own limit being 1.0), ``pen=X``
-(``planner.termination_penalty`` X), ``risk=B`` (a candidate scored by the mean minus B standard deviations of its
-particles' returns), ``novalue`` (no terminal value), ``planner.KEY=VALUE`` (the agent rebuilt with that planner
-setting, e.g. ``planner.horizon=5``). Episode ``e`` resets the env with seed 1000 + e, so every variant meets the
-same starts.
+(``planner.termination_penalty`` X), ``risk=B`` (``planner.risk_aversion`` B: a candidate scored by the mean minus B
+population standard deviations of its particles' returns; rows written before 2026-11-28 16:50 UTC used the sample
+standard deviation, B x sqrt(P / (P - 1)) in today's terms, 1.118 B for P = 5 particles), ``novalue`` (no
+terminal value), ``planner.KEY=VALUE`` (the agent rebuilt with that planner setting, e.g. ``planner.horizon=5``).
+Episode ``e`` resets the env with seed 1000 + e, so every variant meets the same starts.
 ``reward``: the model's open-loop prediction of the summed reward over H steps along action sequences of the run's
 own replay buffer (400 windows within one episode, drawn with seed 0): Pearson correlation with the true sum and the
 mean absolute error. ``falls``: for every episode of the buffer that ended in a fall (the env's own termination
@@ -72,17 +73,8 @@ def _variant(pets, variant: str) -> None:
         ev.termination_penalty = float(arg)
     elif kind == "novalue":
         ev.terminal_value = None
-    elif kind == "risk":
-        beta = float(arg)
-
-        @torch.no_grad()
-        def score(self, obs0, actions, generator=None):
-            obs0, actions = self._check(obs0, actions, generator)
-            total, _, _, particles, _ = self._run(obs0, actions, generator, record=False)
-            per = total.view(actions.shape[0], particles)
-            return per.mean(1) - beta * per.std(1)
-
-        ev.__class__ = type("RiskAverse", (type(ev),), {"__call__": score})  # this evaluator only
+    elif kind == "risk":  # planner.risk_aversion (the population standard deviation)
+        ev.risk_aversion = float(arg)
     elif kind == "zero":  # no planning: the zero action every step (what standing still earns)
         run.agent.act = lambda obs: np.zeros(spec.act_dim, dtype=np.float32)
         run.agent.reset = lambda: None

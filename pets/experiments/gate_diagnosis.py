@@ -1,6 +1,7 @@
 """The locomotion gate's diagnosis blocks (docs/studies/locomotion_gate.md, "Pilots"): how the Ant pilots' episodes
 ended and what a pilot's learned model, frozen, does (``docs/scripts/episode_ends.py`` and
-``docs/scripts/frozen_model_checks.py`` write the committed CSVs these render)."""
+``docs/scripts/frozen_model_checks.py`` write the committed CSVs these render); and what the locomotion work cost
+(docs/results.md)."""
 
 from __future__ import annotations
 
@@ -106,3 +107,37 @@ def ablation_table(tree: Path) -> str:
         body.append([label, *seeds, mean, f"{diff} ({len(pairs)} pairs)" if arm else "-"])
     header = ["arm", *(f"seed {s}" for s in ABLATION_SEEDS), "mean (complete)", "minus the full preset"]
     return md_table(header, body)
+
+
+def _is_ablation(r: dict[str, str]) -> bool:
+    return r["env"] == "halfcheetah" and r["overrides"] in ABLATION and r["seed"] in ABLATION_SEEDS
+
+
+def compute_table(tree: Path) -> str:
+    """The ``locomotion-compute`` block: the CPU-hours (process CPU, one thread per run) recorded in the committed rows
+    of the locomotion work, per part and env: the gate's runs, its pilots and ablation runs (whose full preset's seed
+    100 is HalfCheetah's pilot v2), the frozen-model planning checks, and the online study's own runs (the gate's
+    ``delta`` runs it reuses counted once, as the gate's; rows of arms not run, none)."""
+    parts: dict[tuple[str, str], list[float]] = {}
+
+    def add(part: str, env: str, hours: str | float) -> None:
+        value = float(hours) if hours != "" else np.nan
+        if np.isfinite(value):
+            parts.setdefault((part, env), []).append(value)
+
+    gate_runs = read_csv_rows(tree / RESULTS / "locomotion_gate_runs.csv")
+    for r in gate_runs:
+        add("the gate's runs", r["env"], r["cpu_hours"])
+    for r in read_csv_rows(tree / RESULTS / "locomotion_pilots.csv"):
+        part = "the gate's ablation (with pilot v2)" if _is_ablation(r) else "the gate's pilots"
+        add(part, r["env"], r["cpu_hours"])
+    for r in read_csv_rows(tree / RESULTS / "locomotion_frozen_planning.csv"):
+        add("frozen-model planning checks", r["run"].split("-")[0], float(r["cpu_s"]) / 3600)
+    reused = {(r["env"], r["agent"], r["seed"]) for r in gate_runs}
+    for r in read_csv_rows(tree / RESULTS / "online_locomotion_runs.csv"):
+        if (r["env"], r["model"], r["seed"]) not in reused:
+            add("the online study's runs", r["env"], r["cpu_hours"])
+    body = [[part, env, str(len(v)), fmt(float(np.sum(v)))] for (part, env), v in parts.items()]
+    every = [h for v in parts.values() for h in v]
+    body.append(["all of the above", "", str(len(every)), fmt(float(np.sum(every)))])
+    return md_table(["part", "env", "runs (or episodes)", "CPU-hours"], body)

@@ -24,6 +24,7 @@ from pets.experiments.arguments import PROG
 from pets.experiments.gate import gate_table, oracle_table, pilots_table
 from pets.experiments.gate_diagnosis import (
     ablation_table,
+    compute_table,
     episode_ends_table,
     fall_prediction_table,
     frozen_planning_table,
@@ -51,6 +52,7 @@ BLOCKS: dict[str, Callable[[Path], str]] = {
     "locomotion-reward-prediction": reward_prediction_table,
     "locomotion-gate": gate_table,
     "locomotion-ablation": ablation_table,
+    "locomotion-compute": compute_table,
     "online-locomotion-runs": runs_table,
     "online-locomotion": summary_table,
 }
