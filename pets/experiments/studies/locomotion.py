@@ -131,8 +131,9 @@ def identical_rows(rows: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
 
 
 def _runs(rows: Sequence[Mapping[str, str]]) -> list[dict[str, Any]]:
-    """The runs the summary counts (complete or crashed), numbers parsed; a crashed run is not ``diverged`` for the
-    statistics: it enters every one with its worst-outcome values (0), as registered."""
+    """The runs the summary counts (complete, crashed, or identical by construction to one that is complete), numbers
+    parsed; a crashed run is not ``diverged`` for the statistics: it enters every one with its worst-outcome values
+    (0), as registered."""
     out = []
     for r in rows:
         if r["status"] in ("complete", "crashed", IDENTICAL_STATUS):
