@@ -11,7 +11,7 @@ import numpy as np
 
 import envs
 from pets.experiments.gate import csv_table
-from pets.experiments.report import fmt, md_table, read_csv_rows
+from pets.experiments.report import csv_number, fmt, md_table, read_csv_rows
 from pets.presets import PRESETS
 
 RESULTS = Path("docs") / "results"
@@ -39,7 +39,7 @@ def episode_ends_table(tree: Path) -> str:
         c[3] += not fell and up < 0
         if int(r["steps"]) == full and begun >= SEED_STEPS:
             action_sq.setdefault(r["run"], []).append(float(r["action_sq"]))
-    header = ["run", "episodes", "fell", "fell by jumping (torso above 1.0)", "did not fall, ended on its back"]
+    header = ["run", "episodes", "fell", f"fell by jumping (torso above {ANT_TOP})", "did not fall, ended on its back"]
     header += ["planned 1,000-step episodes", "their squared action per step"]
     body = []
     for run, c in counts.items():
@@ -85,15 +85,19 @@ ABLATION = {"": "full preset", "value.enabled=False": "without the value", "mode
 ABLATION_SEEDS = ("100", "101", "102")
 
 
+def _is_ablation(r: dict[str, str]) -> bool:
+    """Whether a pilot row is a run of the ablation (its full preset's seed 100 is HalfCheetah's pilot v2)."""
+    return r["env"] == "halfcheetah" and r["overrides"] in ABLATION and r["seed"] in ABLATION_SEEDS
+
+
 def ablation_table(tree: Path) -> str:
     """The ``locomotion-ablation`` block: per arm the endpoint at the budget of each seed (or how far a partial run
     got), the mean over its complete seeds and the mean paired difference to the full preset over the seeds both
     have complete (3 seeds at most: a direction, never significance)."""
-    rows = [r for r in read_csv_rows(tree / RESULTS / "locomotion_pilots.csv") if r["env"] == "halfcheetah"]
     done: dict[str, dict[str, float]] = {arm: {} for arm in ABLATION}
     cells: dict[str, dict[str, str]] = {arm: {} for arm in ABLATION}
-    for r in rows:
-        if r["overrides"] in ABLATION and r["seed"] in ABLATION_SEEDS:
+    for r in read_csv_rows(tree / RESULTS / "locomotion_pilots.csv"):
+        if _is_ablation(r):
             final, reached = r["reward_100k"], int(r["env_steps"]) // 1000
             cells[r["overrides"]][r["seed"]] = fmt(float(final)) if final else f"partial ({reached}k)"
             if final:
@@ -109,10 +113,6 @@ def ablation_table(tree: Path) -> str:
     return md_table(header, body)
 
 
-def _is_ablation(r: dict[str, str]) -> bool:
-    return r["env"] == "halfcheetah" and r["overrides"] in ABLATION and r["seed"] in ABLATION_SEEDS
-
-
 def compute_table(tree: Path) -> str:
     """The ``locomotion-compute`` block: the CPU-hours (process CPU, one thread per run) recorded in the committed rows
     of the locomotion work, per part and env: the gate's runs, its pilots and ablation runs (whose full preset's seed
@@ -120,23 +120,22 @@ def compute_table(tree: Path) -> str:
     ``delta`` runs it reuses counted once, as the gate's; rows of arms not run, none)."""
     parts: dict[tuple[str, str], list[float]] = {}
 
-    def add(part: str, env: str, hours: str | float) -> None:
-        value = float(hours) if hours != "" else np.nan
-        if np.isfinite(value):
-            parts.setdefault((part, env), []).append(value)
+    def add(part: str, env: str, hours: float) -> None:
+        if np.isfinite(hours):  # an empty cell (not recorded, or not run) is NaN
+            parts.setdefault((part, env), []).append(hours)
 
     gate_runs = read_csv_rows(tree / RESULTS / "locomotion_gate_runs.csv")
     for r in gate_runs:
-        add("the gate's runs", r["env"], r["cpu_hours"])
+        add("the gate's runs", r["env"], csv_number(r["cpu_hours"]))
     for r in read_csv_rows(tree / RESULTS / "locomotion_pilots.csv"):
         part = "the gate's ablation (with pilot v2)" if _is_ablation(r) else "the gate's pilots"
-        add(part, r["env"], r["cpu_hours"])
+        add(part, r["env"], csv_number(r["cpu_hours"]))
     for r in read_csv_rows(tree / RESULTS / "locomotion_frozen_planning.csv"):
-        add("frozen-model planning checks", r["run"].split("-")[0], float(r["cpu_s"]) / 3600)
+        add("frozen-model planning checks", r["run"].split("-")[0], csv_number(r["cpu_s"]) / 3600)
     reused = {(r["env"], r["agent"], r["seed"]) for r in gate_runs}
     for r in read_csv_rows(tree / RESULTS / "online_locomotion_runs.csv"):
         if (r["env"], r["model"], r["seed"]) not in reused:
-            add("the online study's runs", r["env"], r["cpu_hours"])
+            add("the online study's runs", r["env"], csv_number(r["cpu_hours"]))
     body = [[part, env, str(len(v)), fmt(float(np.sum(v)))] for (part, env), v in parts.items()]
     every = [h for v in parts.values() for h in v]
     body.append(["all of the above", "", str(len(every)), fmt(float(np.sum(every)))])

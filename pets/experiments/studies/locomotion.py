@@ -102,10 +102,12 @@ _COMPARED = ("endpoint", "auc", "reward_25k", "reward_50k", "steps_to_threshold"
 
 
 def planar(env: str) -> bool:
-    """Whether every group of ``env``'s layout composes by addition (``Rn``, ``SO2_angle``)."""
+    """Whether every group of ``env``'s layout composes by addition (its codec is ``additive``: ``Rn``,
+    ``SO2_angle``)."""
     import envs
+    from gem_head.codecs import CODECS
 
-    return all(g.kind in ("Rn", "SO2_angle") for g in envs.get(env).layout.groups)
+    return all(CODECS[g.kind].additive for g in envs.get(env).layout.groups)
 
 
 def identical_rows(rows: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
