@@ -116,3 +116,50 @@ def test_report_refuses_a_root_without_results(tmp_path, capsys) -> None:
         main(["report", "--check", "--root", str(tmp_path)])
     err = capsys.readouterr().err.strip().splitlines()
     assert exc.value.code == 2 and len(err) == 1 and "no docs/results here" in err[0], err
+
+
+def test_paper_tables_read_the_committed_summary_cell_by_cell() -> None:
+    """Each paper-protocol block: delta's IQM [CI], another model's ratio [CI] and exact p as the summary has them,
+    every run past the level spelt out, and no table for a metric the env lacks (zeros)."""
+    from pets.experiments.offline_tables import paper_table
+    from pets.experiments.report import read_csv_rows
+
+    rows = {
+        (r["model"], r["metric"], r["horizon"]): r
+        for r in read_csv_rows(ROOT / published.RESULTS / "paper_idp_summary.csv")
+    }
+    text = paper_table(ROOT, "idp")
+    table = [line.split(" | ") for line in text.split("\n") if line.startswith("| ")]
+    assert table[0][2:] == ["h=1", "h=5", "h=10", "h=25 |"]  # the horizons the study evaluated
+    gem = next(cells for cells in table if cells[1] == "gem")  # the standardized error's row, the first metric
+    r = rows[("gem", "standardized_error", "1")]
+    assert gem[2] == f"{float(r['ratio_to_delta']):.3g} [{float(r['ratio_ci_low']):.3g}, " + (
+        f"{float(r['ratio_ci_high']):.3g}], p {float(r['p_value_exact']):.2g}"
+    )
+    assert gem[5] == "all diverged |" and rows[("gem", "standardized_error", "25")]["n_seeds"] == "0"
+    assert "with n pairs it cannot go below" in text
+
+
+def test_the_papers_own_comparison_is_the_per_seed_ratio_of_the_committed_runs(tmp_path, monkeypatch) -> None:
+    """``paper_own_comparison.csv``: gem2-x1 against delta-det-x1 on Ant is the interquartile mean of the per-seed
+    ratios of the committed runs (scipy's trimmed mean), with the exact p of 5 pairs all one way."""
+    from scipy.stats import trim_mean
+
+    from pets.experiments.report import read_csv_rows
+
+    root = _small_tree(tmp_path, monkeypatch, {"the paper's own comparison"})
+    monkeypatch.chdir(root)
+    next(p for p in published.PRODUCTS).make()
+    out = read_csv_rows(root / published.RESULTS / "paper_own_comparison.csv")
+    row = next(
+        r
+        for r in out
+        if (r["env"], r["model"], r["baseline"], r["metric"], r["horizon"])
+        == ("ant", "gem2-x1", "delta-det-x1", "rotation_error", "10")
+    )
+    runs = read_csv_rows(ROOT / published.RESULTS / "paper_ant_runs.csv")
+    value = {(r["model"], r["seed"]): float(r["rotation_error"]) for r in runs if r["horizon"] == "10"}
+    ratios = [value[("gem2-x1", s)] / value[("delta-det-x1", s)] for s in "01234"]
+    assert float(row["ratio_to_delta"]) == pytest.approx(trim_mean(ratios, 0.25), rel=1e-12)
+    assert row["n_pairs"] == "5" and float(row["p_value_exact"]) == pytest.approx(1 / 16)
+    assert {r["baseline"] for r in out} == {"delta-det-x1", "delta-det"}

@@ -1,13 +1,16 @@
 """The offline summary's markdown, prediction.md: the header, a section per env, Fig. 2's table, the diverged and the
-missing runs (:mod:`pets.experiments.offline_summary` writes it).
+missing runs (:mod:`pets.experiments.offline_summary` writes it); and docs/results.md's table of one paper-protocol
+study, rendered from its committed summary (:func:`paper_table`, the ``offline-paper-STUDY`` blocks).
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from pathlib import Path
 from typing import Any
 
-from pets.experiments.report import fmt_interval, md_table
+from pets.experiments.published import RESULTS
+from pets.experiments.report import csv_number, fmt, fmt_interval, md_table, read_csv_rows
 from pets.experiments.rundirs import env_stem
 from pets.experiments.statistics import BASELINE, MIN_SEEDS, SMALL_SAMPLE_NOTE
 from pets.experiments.studies.offline import (
@@ -15,6 +18,7 @@ from pets.experiments.studies.offline import (
     N_DIVERGED,
     N_PAIRS,
     N_SEEDS,
+    P_EXACT,
     P_LOWER,
     RATIO,
     RELATIVE,
@@ -172,3 +176,69 @@ def runs_sections(diverged_runs: Sequence[str], missing: Sequence[str], failed: 
         text += ["## Missing runs (not in the statistics)", ""]
         text += [f"- {m}{': ' + failed[m] if failed and m in failed else ''}" for m in missing] + [""]
     return text
+
+
+#: What a paper-protocol table shows (the legend under it).
+PAPER_LEGEND = (
+    "Per metric and horizon: the baseline's IQM over seeds [95 % CI]; every other model its paired ratio to the "
+    "baseline (IQM of the per-seed ratios [95 % CI]) and the exact sign-flip p, uncorrected (secondary: read a single "
+    "cell with care, a consistent row with more confidence; with n pairs it cannot go below 2^(1-n)). A run past the "
+    "env's no-information level at a horizon is diverged there: counted, left out of the IQM and the ratios."
+)
+
+
+def _paper_cell(r: Mapping[str, str] | None, baseline: bool) -> str:
+    """A cell: the baseline's IQM [CI], another model's ratio [CI] and exact p, with its diverged runs; "-" for a
+    horizon the study did not evaluate."""
+    if r is None:
+        return "-"
+    n, diverged = int(float(r[N_SEEDS])), int(float(r[N_DIVERGED]))
+    if n == 0:
+        return "all diverged"
+    if baseline:
+        text = fmt_interval(*(csv_number(r[c]) for c in INTERVAL), digits=3)
+    else:
+        ratio = fmt_interval(*(csv_number(r[c]) for c in RATIO), digits=3)
+        text = ratio if ratio == "n/a" else f"{ratio}, p {fmt(csv_number(r[P_EXACT]), 2)}"
+    return text + (f" ({diverged} diverged)" if diverged else "")
+
+
+def _shown_metrics(rows: Sequence[Mapping[str, str]]) -> list[str]:
+    """The study's headline metrics that have a value > 0 somewhere in ``rows`` (an env without such coordinates
+    has zeros)."""
+    has = {r["metric"] for r in rows if csv_number(r[INTERVAL[0]]) > 0}
+    return [m for m in STUDY.headline_metrics() if m in has]
+
+
+def paper_table(tree: Path, study: str) -> str:
+    """The table of ``paper_STUDY_summary.csv`` under ``tree``: per shown metric (:func:`_shown_metrics`) a row
+    per model (delta's IQM, the others' ratios to it), a column per horizon; then :data:`PAPER_LEGEND`."""
+    rows = read_csv_rows(tree / RESULTS / f"paper_{study}_summary.csv")
+    horizons = sorted({int(r["horizon"]) for r in rows})
+    models = list(dict.fromkeys(r["model"] for r in rows))
+    cells = {(r["metric"], r["model"], int(r["horizon"])): r for r in rows}
+    table = [
+        [metric.replace("_", " ") if i == 0 else "", model]
+        + [_paper_cell(cells.get((metric, model, h)), model == BASELINE) for h in horizons]
+        for metric in _shown_metrics(rows)
+        for i, model in enumerate(models)
+    ]
+    return md_table(["metric", "model", *(f"h={h}" for h in horizons)], table) + "\n\n" + PAPER_LEGEND
+
+
+def own_comparison_table(tree: Path) -> str:
+    """``paper_own_comparison.csv`` as a table: per env, GEM's deterministic model against the baseline's of the
+    same kind (the paper's own comparison), per shown metric, a column per horizon."""
+    rows = read_csv_rows(tree / RESULTS / "paper_own_comparison.csv")
+    horizons = sorted({int(r["horizon"]) for r in rows})
+    cells = {(r["env"], r["model"], r["metric"], int(r["horizon"])): r for r in rows}
+    pairs = list(dict.fromkeys((r["env"], r["model"], r["baseline"]) for r in rows))
+    table = [
+        [env, f"{model} / {baseline}", metric.replace("_", " ")]
+        + [_paper_cell(cells.get((env, model, metric, h)), False) for h in horizons]
+        for env, model, baseline in pairs
+        for metric in _shown_metrics([r for r in rows if r["env"] == env])
+        if metric != STUDY.figure_metric()
+    ]
+    header = ["env", "model / its baseline", "metric", *(f"h={h}" for h in horizons)]
+    return md_table(header, table) + "\n\n" + PAPER_LEGEND

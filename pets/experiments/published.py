@@ -112,6 +112,36 @@ def _offline_summary(study: str, data_levels: bool, relative: bool = True) -> Pr
     return Product(f"offline summary {study}", outputs, (runs,), make)
 
 
+#: The paper's own comparison: GEM's deterministic models against the baseline's of the same kind (model, baseline).
+OWN_PAIRS = (("gem2-x1", "delta-det-x1"), ("gem2", "delta-det"))
+
+
+def _own_comparison() -> Product:
+    """``paper_own_comparison.csv``: per original study and :data:`OWN_PAIRS` pair (where the study ran both), the
+    offline summary's comparison of the model with that baseline in place of delta (``baseline`` names it)."""
+    inputs = tuple(_path(f"paper_{s}_runs.csv") for s in ORIGINAL)
+    out = _path("paper_own_comparison.csv")
+
+    def make() -> None:
+        from pets.experiments.report import write_csv
+        from pets.experiments.statistics import BASELINE
+        from pets.experiments.studies.offline import SUMMARY_COLUMNS, summary_from_runs
+
+        table = []
+        for study, path in zip(ORIGINAL, inputs, strict=True):
+            rows = _rows(path)
+            level = _levels([rows[0]["env"]], study == "ip")[rows[0]["env"]][0]
+            for model, baseline in OWN_PAIRS:
+                pair = [{**r, "model": BASELINE if r["model"] == baseline else model} for r in rows
+                        if r["model"] in (model, baseline)]  # fmt: skip
+                if {r["model"] for r in pair} == {model, BASELINE}:
+                    summary, _ = summary_from_runs(pair, level)
+                    table += [{**r, "baseline": baseline} for r in summary if r["model"] == model]
+        write_csv(Path(out), table, ["baseline", *SUMMARY_COLUMNS])
+
+    return Product("the paper's own comparison", (out,), inputs, make)
+
+
 def _primary(
     out: str, studies: Sequence[str], *, data_levels: bool, models: set[str] | None = None, **files: str
 ) -> Product:
@@ -231,6 +261,7 @@ def _headline() -> Product:
 #: Every generated file, in the order they are made (a product's inputs are made before it).
 PRODUCTS: tuple[Product, ...] = (
     *(_offline_summary(e, data_levels=False) for e in ORIGINAL),
+    _own_comparison(),
     _offline_summary("data3", data_levels=True),
     _offline_summary("50k", data_levels=True),
     _offline_summary("gemse_partial", data_levels=True, relative=False),

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import functools
 import re
 import shutil
 import sys
@@ -30,6 +31,7 @@ from pets.experiments.gate_diagnosis import (
     frozen_planning_table,
     reward_prediction_table,
 )
+from pets.experiments.offline_tables import own_comparison_table, paper_table
 from pets.experiments.studies.locomotion import runs_table, summary_table
 from pets.runs.fileio import atomic_write_bytes
 from pets.tools.cli import fail
@@ -43,6 +45,8 @@ BLOCK_FILES = (
 BLOCKS: dict[str, Callable[[Path], str]] = {
     "answer": answer_table,
     "later-offline": later_offline_table,
+    **{f"offline-paper-{s}": functools.partial(paper_table, study=s) for s in published.ORIGINAL},
+    "offline-paper-own": own_comparison_table,
     "coverage": coverage_table,
     "locomotion-oracle": oracle_table,
     "locomotion-pilots": pilots_table,

@@ -39,11 +39,14 @@ def fmt_ci(s: Mapping[str, float]) -> str:
     return f"{fmt(s['mean'])} [{fmt(s['ci_low'])}, {fmt(s['ci_high'])}]"
 
 
-def fmt_interval(value: float | None, low: float | None, high: float | None, missing: str = "n/a") -> str:
-    """``value [low, high]``, or ``missing`` when any of the three is absent or not finite (never a bare nan/inf)."""
+def fmt_interval(
+    value: float | None, low: float | None, high: float | None, missing: str = "n/a", digits: int = 4
+) -> str:
+    """``value [low, high]`` (``digits`` significant digits), or ``missing`` when any of the three is absent or not
+    finite (never a bare nan/inf)."""
     if any(v is None or not math.isfinite(v) for v in (value, low, high)):
         return missing
-    return f"{fmt(value)} [{fmt(low)}, {fmt(high)}]"
+    return f"{fmt(value, digits)} [{fmt(low, digits)}, {fmt(high, digits)}]"
 
 
 def csv_number(text: str | None) -> float:
