@@ -142,6 +142,22 @@ def _own_comparison() -> Product:
     return Product("the paper's own comparison", (out,), inputs, make)
 
 
+def _per_data_set() -> Product:
+    """``paper_data3_per_data_set.csv``: the primary endpoint of each of the 3-data-set study's data sets alone
+    (:func:`pets.experiments.studies.primary.per_data_set_rows`), at the data sets' levels."""
+    runs, out = _path("paper_data3_runs.csv"), _path("paper_data3_per_data_set.csv")
+
+    def make() -> None:
+        from pets.experiments.report import write_csv
+        from pets.experiments.studies.primary import PER_DATA_SET_COLUMNS, per_data_set_rows
+
+        rows = _rows(runs)
+        levels = _levels(list(dict.fromkeys(r["env"] for r in rows)), True)
+        write_csv(Path(out), per_data_set_rows(rows, levels), PER_DATA_SET_COLUMNS)
+
+    return Product("the 3-data-set study per data set", (out,), (runs,), make)
+
+
 def _primary(
     out: str, studies: Sequence[str], *, data_levels: bool, models: set[str] | None = None, **files: str
 ) -> Product:
@@ -263,6 +279,7 @@ PRODUCTS: tuple[Product, ...] = (
     *(_offline_summary(e, data_levels=False) for e in ORIGINAL),
     _own_comparison(),
     _offline_summary("data3", data_levels=True),
+    _per_data_set(),
     _offline_summary("50k", data_levels=True),
     _offline_summary("gemse_partial", data_levels=True, relative=False),
     _primary("offline_primary_gem", PRIMARY_ORDER, data_levels=False, models={"gem"}),

@@ -32,6 +32,7 @@ from pets.experiments.gate_diagnosis import (
     reward_prediction_table,
 )
 from pets.experiments.offline_tables import own_comparison_table, paper_table
+from pets.experiments.robustness import curves_table, data_sets_table
 from pets.experiments.studies.locomotion import runs_table, summary_table
 from pets.runs.fileio import atomic_write_bytes
 from pets.tools.cli import fail
@@ -47,6 +48,8 @@ BLOCKS: dict[str, Callable[[Path], str]] = {
     "later-offline": later_offline_table,
     **{f"offline-paper-{s}": functools.partial(paper_table, study=s) for s in published.ORIGINAL},
     "offline-paper-own": own_comparison_table,
+    "offline-data-sets": data_sets_table,
+    "offline-learning-curves": curves_table,
     "coverage": coverage_table,
     "locomotion-oracle": oracle_table,
     "locomotion-pilots": pilots_table,

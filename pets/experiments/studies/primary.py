@@ -68,6 +68,9 @@ PRIMARY_COLUMNS = [
     "verdict",
     "ci_exact_note",
 ]
+#: The columns of the per-data-set file: the primary file's, without Holm's step and verdict (a secondary,
+#: uncorrected comparison), after the data seed (:func:`per_data_set_rows`).
+PER_DATA_SET_COLUMNS = ["data_seed", *(c for c in PRIMARY_COLUMNS if c not in ("p_value_holm", "verdict"))]
 #: :func:`versus_rows`: one arm against another on the primary endpoint (a secondary comparison).
 VERSUS_COLUMNS = [
     "env",
@@ -215,6 +218,19 @@ def primary_rows(
         r[P_HOLM] = p
         r["verdict"] = _verdict(r[RATIO[0]], p)
         r["ci_exact_note"] = ci_exact_note(r[RATIO[1]], r[RATIO[2]], 1.0, r[P_EXACT])
+    return out
+
+
+def per_data_set_rows(
+    rows: Iterable[Mapping[str, Any]], levels: Mapping[str, tuple[float, str]]
+) -> list[dict[str, Any]]:
+    """The primary endpoint (:func:`primary_rows`) of each data set alone: its own
+    tracking horizons and pairs, no correction (the 3-data-set study's secondary)."""
+    rows = list(rows)
+    out = []
+    for d in sorted({int(r["data_seed"]) for r in rows}):
+        subset = [r for r in rows if int(r["data_seed"]) == d]
+        out += [{"data_seed": d, **r} for r in primary_rows(subset, levels)]
     return out
 
 
