@@ -163,3 +163,21 @@ def test_the_papers_own_comparison_is_the_per_seed_ratio_of_the_committed_runs(t
     assert float(row["ratio_to_delta"]) == pytest.approx(trim_mean(ratios, 0.25), rel=1e-12)
     assert row["n_pairs"] == "5" and float(row["p_value_exact"]) == pytest.approx(1 / 16)
     assert {r["baseline"] for r in out} == {"delta-det-x1", "delta-det"}
+
+
+def test_the_versus_table_and_an_env_filtered_table_read_the_committed_files() -> None:
+    """The body-frame study's blocks: gem-se / gem per env as its versus file has it (the pairs where gem-se is
+    lower), and one env's rows of a summary that holds five."""
+    from pets.experiments.offline_tables import GEMSE_METRICS, paper_table, versus_table
+    from pets.experiments.report import read_csv_rows
+
+    versus = {r["env"]: r for r in read_csv_rows(ROOT / published.RESULTS / "paper_gemse_primary_versus.csv")}
+    lines = versus_table(ROOT, "gemse").split("\n")[2:]
+    assert len(lines) == len(versus) == 5
+    ant = next(line for line in lines if line.startswith("| ant |"))
+    assert ant.endswith(f"| {versus['ant']['n_lower']} of {versus['ant']['n_pairs']} |")
+    assert f"{float(versus['ant']['ratio']):.4g} [" in ant
+    hopper = paper_table(ROOT, "gemse", env="hopper", metrics=GEMSE_METRICS)
+    labels = [line.split(" | ")[0].strip("| ") for line in hopper.split("\n")[2:] if line.startswith("| ")]
+    assert [label for label in labels if label] == [m.replace("_", " ") for m in GEMSE_METRICS]
+    assert hopper.count("| gem-se |") == len(GEMSE_METRICS)

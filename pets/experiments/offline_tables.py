@@ -178,6 +178,8 @@ def runs_sections(diverged_runs: Sequence[str], missing: Sequence[str], failed: 
     return text
 
 
+#: The metrics of the body-frame composition study's per-env tables: the whole state, then the root's pieces.
+GEMSE_METRICS = ("standardized_error", "translation_error", "rotation_error", "velocity_error")
 #: What a paper-protocol table shows (the legend under it).
 PAPER_LEGEND = (
     "Per metric and horizon: the baseline's IQM over seeds [95 % CI]; every other model its paired ratio to the "
@@ -210,20 +212,35 @@ def _shown_metrics(rows: Sequence[Mapping[str, str]]) -> list[str]:
     return [m for m in STUDY.headline_metrics() if m in has]
 
 
-def paper_table(tree: Path, study: str) -> str:
-    """The table of ``paper_STUDY_summary.csv`` under ``tree``: per shown metric (:func:`_shown_metrics`) a row
-    per model (delta's IQM, the others' ratios to it), a column per horizon; then :data:`PAPER_LEGEND`."""
-    rows = read_csv_rows(tree / RESULTS / f"paper_{study}_summary.csv")
+def paper_table(tree: Path, study: str, env: str | None = None, metrics: Sequence[str] = ()) -> str:
+    """The table of ``paper_STUDY_summary.csv`` under ``tree`` (of ``env`` where the study has several): per metric
+    (``metrics``, else the shown ones, :func:`_shown_metrics`) a row per model (delta's IQM, the others' ratios to
+    it), a column per horizon; then :data:`PAPER_LEGEND`."""
+    rows = [r for r in read_csv_rows(tree / RESULTS / f"paper_{study}_summary.csv") if env in (None, r["env"])]
     horizons = sorted({int(r["horizon"]) for r in rows})
     models = list(dict.fromkeys(r["model"] for r in rows))
     cells = {(r["metric"], r["model"], int(r["horizon"])): r for r in rows}
     table = [
         [metric.replace("_", " ") if i == 0 else "", model]
         + [_paper_cell(cells.get((metric, model, h)), model == BASELINE) for h in horizons]
-        for metric in _shown_metrics(rows)
+        for metric in (metrics or _shown_metrics(rows))
         for i, model in enumerate(models)
     ]
     return md_table(["metric", "model", *(f"h={h}" for h in horizons)], table) + "\n\n" + PAPER_LEGEND
+
+
+def versus_table(tree: Path, study: str) -> str:
+    """``paper_STUDY_primary_versus.csv`` as a table: per env, one arm against another on the primary endpoint (a
+    secondary comparison: IQM of the per-seed ratios [95 % CI], exact sign-flip p, pairs where the arm is lower)."""
+    rows = read_csv_rows(tree / RESULTS / f"paper_{study}_primary_versus.csv")
+    table = [
+        [r["env"], f"{r['model']} / {r['versus']}", r["tracking_horizons"],
+         fmt_interval(*(csv_number(r[c]) for c in ("ratio", "ratio_ci_low", "ratio_ci_high"))),
+         fmt(csv_number(r[P_EXACT]), 2), f"{r['n_lower']} of {r['n_pairs']}"]
+        for r in rows
+    ]  # fmt: skip
+    header = ["env", "arm / other arm", "tracking horizons", "ratio [95 % CI]", "exact p", "arm lower in"]
+    return md_table(header, table)
 
 
 def own_comparison_table(tree: Path) -> str:

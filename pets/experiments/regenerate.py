@@ -31,7 +31,7 @@ from pets.experiments.gate_diagnosis import (
     frozen_planning_table,
     reward_prediction_table,
 )
-from pets.experiments.offline_tables import own_comparison_table, paper_table
+from pets.experiments.offline_tables import GEMSE_METRICS, own_comparison_table, paper_table, versus_table
 from pets.experiments.robustness import curves_table, data_sets_table
 from pets.experiments.studies.locomotion import runs_table, summary_table
 from pets.runs.fileio import atomic_write_bytes
@@ -48,6 +48,11 @@ BLOCKS: dict[str, Callable[[Path], str]] = {
     "later-offline": later_offline_table,
     **{f"offline-paper-{s}": functools.partial(paper_table, study=s) for s in published.ORIGINAL},
     "offline-paper-own": own_comparison_table,
+    "offline-gemse-versus": functools.partial(versus_table, study="gemse"),
+    **{
+        f"offline-gemse-{e}": functools.partial(paper_table, study="gemse", env=e, metrics=GEMSE_METRICS)
+        for e in ("halfcheetah", "hopper", "walker2d", "ant", "humanoid")
+    },
     "offline-data-sets": data_sets_table,
     "offline-learning-curves": curves_table,
     "coverage": coverage_table,
