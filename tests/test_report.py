@@ -181,3 +181,24 @@ def test_the_versus_table_and_an_env_filtered_table_read_the_committed_files() -
     labels = [line.split(" | ")[0].strip("| ") for line in hopper.split("\n")[2:] if line.startswith("| ")]
     assert [label for label in labels if label] == [m.replace("_", " ") for m in GEMSE_METRICS]
     assert hopper.count("| gem-se |") == len(GEMSE_METRICS)
+
+
+def test_the_planning_table_reads_the_per_env_summaries_and_the_headlines_holm_step() -> None:
+    """HalfCheetah's open loop: gem's difference to delta is the summary's, sign included (prose once had it
+    flipped); the closed loop carries Holm's p from the headline; exploratory rows say so."""
+    from pets.experiments.planning_tables import planning_table
+    from pets.experiments.report import read_csv_rows
+
+    opened = next(
+        r for r in read_csv_rows(ROOT / published.RESULTS / "openloop_halfcheetah_summary.csv") if r["model"] == "gem"
+    )
+    holm = next(
+        r["p_value_holm"]
+        for r in read_csv_rows(ROOT / published.RESULTS / "headline" / "headline_planning.csv")
+        if (r["env"], r["model"], r["loop"]) == ("halfcheetah", "gem", "closed")
+    )
+    lines = planning_table(ROOT).split("\n")
+    cheetah = next(line for line in lines if line.startswith("| halfcheetah | gem |")).split(" | ")
+    assert float(opened["diff_to_delta"]) < 0 and cheetah[5].startswith(f"{float(opened['diff_to_delta']):.3g} [")
+    assert cheetah[3].endswith(f"Holm {float(holm):.2g}")
+    assert sum("(exploratory)" in line for line in lines) == 3

@@ -32,6 +32,7 @@ from pets.experiments.gate_diagnosis import (
     reward_prediction_table,
 )
 from pets.experiments.offline_tables import GEMSE_METRICS, own_comparison_table, paper_table, versus_table
+from pets.experiments.planning_tables import planning_table
 from pets.experiments.robustness import curves_table, data_sets_table
 from pets.experiments.studies.locomotion import runs_table, summary_table
 from pets.runs.fileio import atomic_write_bytes
@@ -55,6 +56,7 @@ BLOCKS: dict[str, Callable[[Path], str]] = {
     },
     "offline-data-sets": data_sets_table,
     "offline-learning-curves": curves_table,
+    "planning": planning_table,
     "coverage": coverage_table,
     "locomotion-oracle": oracle_table,
     "locomotion-pilots": pilots_table,
