@@ -202,3 +202,20 @@ def test_the_planning_table_reads_the_per_env_summaries_and_the_headlines_holm_s
     assert float(opened["diff_to_delta"]) < 0 and cheetah[5].startswith(f"{float(opened['diff_to_delta']):.3g} [")
     assert cheetah[3].endswith(f"Holm {float(holm):.2g}")
     assert sum("(exploratory)" in line for line in lines) == 3
+
+
+def test_an_online_block_recomputes_its_study_and_holm_spans_the_files_it_joins() -> None:
+    """The observation-every-fifth-step study sits in two runs files; its block's Holm step is over both envs
+    (the pre-registered family): Reacher's adjusted p is twice its exact p, InvertedDoublePendulum's its own."""
+    from pets.experiments.studies.online import study_table
+
+    def p_columns(text: str, env: str) -> tuple[float, float]:
+        header = next(line for line in text.split("\n") if line.startswith("| env |")).split(" | ")
+        row = next(line for line in text.split("\n") if line.startswith(f"| {env} | gem |")).split(" | ")
+        return float(row[header.index("p (sign-flip)")]), float(row[header.index("p (Holm)")])
+
+    joined = study_table(ROOT, ("online_idp_replan5", "online_reacher_replan5"))
+    reacher, idp = p_columns(joined, "reacher"), p_columns(joined, "inverteddoublependulum")
+    assert reacher[0] < idp[0] and reacher[1] == pytest.approx(2 * reacher[0], rel=1e-2) and idp[1] == idp[0]
+    alone = study_table(ROOT, "online_reacher_replan5")
+    assert p_columns(alone, "reacher")[1] == p_columns(alone, "reacher")[0]  # one test: nothing to adjust

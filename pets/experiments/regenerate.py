@@ -35,6 +35,7 @@ from pets.experiments.offline_tables import GEMSE_METRICS, own_comparison_table,
 from pets.experiments.planning_tables import planning_table
 from pets.experiments.robustness import curves_table, data_sets_table
 from pets.experiments.studies.locomotion import runs_table, summary_table
+from pets.experiments.studies.online import study_table
 from pets.runs.fileio import atomic_write_bytes
 from pets.tools.cli import fail
 
@@ -57,6 +58,8 @@ BLOCKS: dict[str, Callable[[Path], str]] = {
     "offline-data-sets": data_sets_table,
     "offline-learning-curves": curves_table,
     "planning": planning_table,
+    **{f"online-{s}": functools.partial(study_table, study=s) for s in published.ONLINE if "time_to_solve" not in s},
+    "online-replan5": functools.partial(study_table, study=("online_idp_replan5", "online_reacher_replan5")),
     "coverage": coverage_table,
     "locomotion-oracle": oracle_table,
     "locomotion-pilots": pilots_table,

@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from pets.experiments.report import BOOT_SEED, csv_number, fmt, fmt_interval
+from pets.experiments.report import BOOT_SEED, csv_number, fmt, fmt_interval, md_table
 from pets.experiments.statistics import (
     BASELINE,
     REPS,
@@ -256,6 +256,21 @@ def table_cells(study: Study, r: Mapping[str, Any], compared: bool, is_baseline:
                 cells += [fmt_interval(r[d], r[low], r[high]), "-" if r[n_pairs] is None else str(r[n_pairs])]
                 cells += ["-" if r[k] is None else fmt(r[k], 3) for k in (p, p_holm)]
     return cells + [_cell(m, r[m.columns()[0]]) for m in study.metrics if not m.group]
+
+
+def env_tables(study: Study, rows: Sequence[Mapping[str, Any]]) -> list[str]:
+    """Markdown: one table per env of a study's summary rows (numbers or None; :func:`table_cells`), each row its
+    model (and planner, where any row has one), its seeds and the metric cells with the baseline comparisons."""
+    tables = []
+    for env in dict.fromkeys(r["env"] for r in rows):
+        mine = [r for r in rows if r["env"] == env]
+        planner = any(r.get("planner") for r in mine)
+        header = ["env", "model", *(["planner"] if planner else []), "seeds"]
+        header += table_header(study, True, mine[0].get("threshold"))
+        body = [[r["env"], r["model"], *([r["planner"] or "-"] if planner else []), str(r["n_seeds"]),
+                 *table_cells(study, r, True, r["model"] == BASELINE)] for r in mine]  # fmt: skip
+        tables.append(md_table(header, body))
+    return tables
 
 
 def _headline_metrics(study: Study, group: Group) -> list[Metric]:

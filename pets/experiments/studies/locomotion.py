@@ -35,9 +35,8 @@ from pets.experiments.studies.base import (
     Metric,
     Study,
     arm_statistics,
+    env_tables,
     holm_over_summary,
-    table_cells,
-    table_header,
 )
 
 OUTCOME = Group("outcome")
@@ -186,14 +185,7 @@ def versus_rows(rows: Sequence[Mapping[str, str]], *, reps: int = REPS) -> list[
 
 def summary_markdown(summary: Sequence[Mapping[str, str]], versus: Sequence[Mapping[str, str]]) -> str:
     """The ``online-locomotion`` block: per env the summary table, then the secondary comparisons."""
-    parts = []
-    for env in dict.fromkeys(r["env"] for r in summary):
-        mine = [{k: _value(k, v) for k, v in r.items()} for r in summary if r["env"] == env]
-        threshold = mine[0].get("threshold")
-        header = ["env", "model", "seeds", *table_header(STUDY, True, threshold)]
-        body = [[r["env"], r["model"], str(r["n_seeds"]), *table_cells(STUDY, r, True, r["model"] == BASELINE)]
-                for r in mine]  # fmt: skip
-        parts.append(md_table(header, body))
+    parts = env_tables(STUDY, [{k: _value(k, v) for k, v in r.items()} for r in summary])
     if versus:
         header = ["env", "model", "versus", "pairs", "paired diff", "p (sign-flip)", "model higher in"]
         body = [[r["env"], r["model"], r["versus"], r["n_pairs"],

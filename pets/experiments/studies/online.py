@@ -8,12 +8,22 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
+from pathlib import Path
 from typing import Any
 
 from pets.experiments.online_runs import COST_KEYS, THRESHOLD_KEYS, THRESHOLDS
 from pets.experiments.rundirs import arm_label
 from pets.experiments.statistics import BASELINE, REPS
-from pets.experiments.studies.base import HIGHER, LOWER, Group, Metric, Study, arm_statistics, holm_over_summary
+from pets.experiments.studies.base import (
+    HIGHER,
+    LOWER,
+    Group,
+    Metric,
+    Study,
+    arm_statistics,
+    env_tables,
+    holm_over_summary,
+)
 
 #: The online study's metric table (:mod:`pets.experiments.studies.base`): one line per metric.
 OUTCOME = Group("outcome")
@@ -104,3 +114,14 @@ def summary_from_runs(
         summary += env_summary_rows(env, runs, arms, trials, min(final_window, trials), thresholds, reps=reps)[0]
     holm_over_summary(STUDY, summary)
     return summary
+
+
+def study_table(tree: Path, study: str | Sequence[str]) -> str:
+    """An online study's block in docs/results.md: its summary recomputed from the committed
+    ``docs/results/STUDY_runs.csv`` (:func:`summary_from_runs`; several files: one summary, Holm over all their
+    arm-vs-delta tests), one table per env."""
+    from pets.experiments.report import read_csv_rows
+
+    names = [study] if isinstance(study, str) else list(study)
+    rows = [r for name in names for r in read_csv_rows(tree / "docs" / "results" / f"{name}_runs.csv")]
+    return "\n\n".join(env_tables(STUDY, summary_from_runs(rows)))
