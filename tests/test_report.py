@@ -219,3 +219,20 @@ def test_an_online_block_recomputes_its_study_and_holm_spans_the_files_it_joins(
     assert reacher[0] < idp[0] and reacher[1] == pytest.approx(2 * reacher[0], rel=1e-2) and idp[1] == idp[0]
     alone = study_table(ROOT, "online_reacher_replan5")
     assert p_columns(alone, "reacher")[1] == p_columns(alone, "reacher")[0]  # one test: nothing to adjust
+
+
+def test_the_runs_coverage_counts_the_committed_rows() -> None:
+    """What ran, per env: Ant's arms with their seed counts as its runs file has them, and an env with no online
+    study at the fast preset says so."""
+    from pets.experiments.answer import runs_coverage_table
+    from pets.experiments.report import read_csv_rows
+
+    seeds: dict[str, set[str]] = {}
+    for r in read_csv_rows(ROOT / published.RESULTS / "paper_ant_runs.csv"):
+        seeds.setdefault(r["model"], set()).add(r["seed"])
+    text = runs_coverage_table(ROOT)
+    ant = next(line for line in text.split("\n") if line.startswith("| ant |"))
+    assert ant.split(" | ")[1] == ", ".join(f"{m} ({len(s)})" for m, s in seeds.items())
+    assert "| hopper |" in text and "not run at the fast preset" in next(
+        line for line in text.split("\n") if line.startswith("| hopper |")
+    )

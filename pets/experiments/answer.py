@@ -16,7 +16,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from pets.experiments.published import NOT_GENERATED, ONLINE, PRODUCTS, RAW, RESULTS
+from pets.experiments.published import NOT_GENERATED, ONLINE, ORIGINAL, PRODUCTS, RAW, RESULTS
 from pets.experiments.report import csv_number, fmt, md_table
 from pets.experiments.studies.base import P_EXACT, P_HOLM, RATIO
 
@@ -140,3 +140,33 @@ def coverage_table(tree: Path) -> str:
     excluded = md_table(header, [[", ".join(names), why] for why, names in reasons.items()])
     raw = f"Per-seed or per-trial data, the inputs (nothing to regenerate): {len(RAW)} files and folders of {RESULTS}."
     return f"{made}\n\n{excluded}\n\n{raw}"
+
+
+def _seeds(rows: list[dict[str, str]], key: str = "model") -> str:
+    """``arm (N seeds), ...`` of per-run rows, arms in the order the rows give them."""
+    seeds: dict[str, set[str]] = {}
+    for r in rows:
+        seeds.setdefault(r[key], set()).add(r["seed"])
+    return ", ".join(f"{arm} ({len(s)})" for arm, s in seeds.items())
+
+
+def runs_coverage_table(tree: Path) -> str:
+    """What ran, per env: the arms of the paper-protocol study with their seeds, and of each online study of the
+    fast preset with their seeds and trials, counted from the committed per-run rows."""
+    online: dict[str, list[str]] = {}
+    for study in ONLINE_STUDIES:
+        rows = _rows(tree / RESULTS / f"{study}_runs.csv")
+        for env in dict.fromkeys(r["env"] for r in rows):
+            mine = [r for r in rows if r["env"] == env]
+            online.setdefault(env, []).append(f"{_seeds(mine)}; {mine[0]['trials']} trials ({study})")
+    table = []
+    for study in ORIGINAL:
+        rows = _rows(tree / RESULTS / f"paper_{study}_runs.csv")
+        env = rows[0]["env"]
+        table.append([env, _seeds(rows), "; ".join(online.get(env, ["not run at the fast preset"]))])
+    header = [
+        "env",
+        "offline, the paper's protocol: arm (seeds)",
+        "online, the fast preset: arm (seeds); trials (at most)",
+    ]
+    return md_table(header, table)

@@ -20,7 +20,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 
 from pets.experiments import published
-from pets.experiments.answer import answer_table, coverage_table, later_offline_table
+from pets.experiments.answer import answer_table, coverage_table, later_offline_table, runs_coverage_table
 from pets.experiments.arguments import PROG
 from pets.experiments.gate import gate_table, oracle_table, pilots_table
 from pets.experiments.gate_diagnosis import (
@@ -61,6 +61,7 @@ BLOCKS: dict[str, Callable[[Path], str]] = {
     **{f"online-{s}": functools.partial(study_table, study=s) for s in published.ONLINE if "time_to_solve" not in s},
     "online-replan5": functools.partial(study_table, study=("online_idp_replan5", "online_reacher_replan5")),
     "coverage": coverage_table,
+    "runs-coverage": runs_coverage_table,
     "locomotion-oracle": oracle_table,
     "locomotion-pilots": pilots_table,
     "locomotion-episode-ends": episode_ends_table,
