@@ -142,11 +142,11 @@ def coverage_table(tree: Path) -> str:
     return f"{made}\n\n{excluded}\n\n{raw}"
 
 
-def _seeds(rows: list[dict[str, str]], key: str = "model") -> str:
+def _seeds(rows: list[dict[str, str]]) -> str:
     """``arm (N seeds), ...`` of per-run rows, arms in the order the rows give them."""
     seeds: dict[str, set[str]] = {}
     for r in rows:
-        seeds.setdefault(r[key], set()).add(r["seed"])
+        seeds.setdefault(r["model"], set()).add(r["seed"])
     return ", ".join(f"{arm} ({len(s)})" for arm, s in seeds.items())
 
 

@@ -53,10 +53,6 @@ def data_sets_table(tree: Path) -> str:
     return md_table(header, rows)
 
 
-def _at(curve: Mapping[int, float], step: int) -> float:
-    return curve.get(step, math.nan)
-
-
 def curves_table(tree: Path) -> str:
     """Holdout error (one step, standardised) at the checkpoints of the paper's budget (one seed per env and
     model) and of the 5x rerun (median over its seeds), and the last checkpoint over the one before: below 1,
@@ -68,7 +64,7 @@ def curves_table(tree: Path) -> str:
             run = curves.setdefault((r["env"], r["model"]), {}).setdefault(r["run"], {})
             run[int(r["step"])] = float(r["holdout_error"])
         for (env, model), runs in curves.items():
-            at = [float(np.median([_at(c, s) for c in runs.values()])) for s in steps]
+            at = [float(np.median([c.get(s, math.nan) for c in runs.values()])) for s in steps]
             cells = " / ".join(fmt(v, 3) for v in at)
             rows.append([env, model, f"{len(runs)} ({runs_word})", " / ".join(f"{s // 1000}k" for s in steps), cells,
                          fmt(at[-1] / at[-2], 3)])  # fmt: skip
