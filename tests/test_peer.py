@@ -136,3 +136,30 @@ def test_learning_summary_pairs_and_tests():
     reached = summary["reached_threshold"]
     assert reached["gem_pets_mean"] == 1.0 and reached["mbrl_lib_mean"] == pytest.approx(0.4)
     assert summary["steps_to_threshold"]["n_pairs"] == 2  # only the seeds where both reached it
+
+
+def test_the_online_halfcheetah_wrapper_gives_mbrls_observations_and_the_true_rewards():
+    """mbrl-lib's learning loop sees HalfCheetah-v5 through the wrapper: its observations are those of the offline
+    conversion checked above (x velocity first, 0 at a reset), over a reset inside the rollout too, and the
+    rewards are the env's own."""
+    import envs
+
+    peer = load_script()
+    spec = envs.get("halfcheetah")
+    raw, wrapped = spec.make(), peer.halfcheetah_velocity_obs(spec.make(), spec.dt)
+    rng = np.random.default_rng(5)
+    obs, act, nxt, seen, rewards = [], [], [], [], []
+    for episode in range(2):
+        o, _ = raw.reset(seed=episode)
+        w, _ = wrapped.reset(seed=episode)
+        first = w
+        for _ in range(15):
+            a = rng.uniform(-1, 1, 6)
+            n, r, *_ = raw.step(a)
+            wn, wr, *_ = wrapped.step(a)
+            obs.append(o), act.append(a), nxt.append(n), seen.append(wn), rewards.append((r, wr))
+            o = n
+        assert first[0] == 0.0
+    obs_m, _, nxt_m = peer.halfcheetah_mbrl_data(*(np.asarray(x, dtype=np.float64) for x in (obs, act, nxt)), spec.dt)
+    np.testing.assert_allclose(np.asarray(seen), nxt_m, rtol=1e-5, atol=1e-5)
+    assert all(r == wr for r, wr in rewards)

@@ -503,7 +503,40 @@ def write_csv(path: Path, rows: list[dict[str, Any]]) -> None:
 LEARN_ENVS: dict[str, dict[str, Any]] = {
     "invertedpendulum": {"weight_decay": 3.3e-5, "mbrl_fns": ("inverted_pendulum", "inverted_pendulum")},
     "reacher": {"weight_decay": 1.7e-4, "mbrl_fns": None},
+    # mbrl's own PETS-HalfCheetah: its observation (x velocity first, :func:`halfcheetah_velocity_obs`), reward,
+    # preprocessing and weight decay (examples/conf/overrides/pets_halfcheetah.yaml)
+    "halfcheetah": {"weight_decay": 1e-4, "mbrl_fns": ("halfcheetah", "no_termination")},
 }
+#: mbrl-lib's settings of its PETS-HalfCheetah example that its loop needs beside the matched ones.
+HALFCHEETAH_MBRL = {
+    "obs_process_fn": "mbrl.env.pets_halfcheetah.HalfCheetahEnv.preprocess_fn",
+    "no_delta_list": [0],
+}
+
+
+def halfcheetah_velocity_obs(env: Any, dt: float) -> Any:
+    """HalfCheetah-v5 with root x at index 0 (this project's layout) seen as mbrl's PETS-HalfCheetah env, online:
+    entry 0 becomes the x velocity of the step that led to the state, 0 at a reset (the conversion of
+    :func:`halfcheetah_mbrl_data`); rewards, terminations and the other entries pass through."""
+    import gymnasium
+    import numpy as np
+
+    class VelocityObs(gymnasium.Wrapper):
+        def reset(self, **kwargs: Any) -> Any:
+            obs, info = self.env.reset(**kwargs)
+            self._x = float(obs[0])
+            out = np.array(obs, dtype=np.float32)
+            out[0] = 0.0
+            return out, info
+
+        def step(self, action: Any) -> Any:
+            obs, reward, terminated, truncated, info = self.env.step(action)
+            out = np.array(obs, dtype=np.float32)
+            out[0] = (float(obs[0]) - self._x) / dt
+            self._x = float(obs[0])
+            return out, reward, terminated, truncated, info
+
+    return VelocityObs(env)
 
 
 class TrialsDone(Exception):
@@ -615,8 +648,12 @@ def mbrl_run(args: argparse.Namespace) -> int:
         x = torch.randn(8, spec.obs_dim)
         a, n = torch.randn(8, spec.act_dim), torch.randn(8, spec.obs_dim)
         assert torch.equal(spec.reward_fn(x, a, n), spec.reward_fn(n, a, n)), "reward reads obs"
+    base = spec.make()
+    extra: dict[str, Any] = {}
+    if spec.name == "halfcheetah":
+        base, extra = halfcheetah_velocity_obs(base, spec.dt), HALFCHEETAH_MBRL
     env = trial_wrapper(
-        gymnasium.wrappers.TimeLimit(spec.make(), args.episode_length), args.seed, args.trials, args.seed_steps
+        gymnasium.wrappers.TimeLimit(base, args.episode_length), args.seed, args.trials, args.seed_steps
     )
     np.random.seed(args.seed)
     torch.manual_seed(args.seed)
@@ -642,6 +679,7 @@ def mbrl_run(args: argparse.Namespace) -> int:
         # one step more than the trials can take: the loop always reaches the reset that raises TrialsDone
         num_steps=args.trials * args.episode_length + 1,
         seed=args.seed,
+        **extra,
     )
     with tempfile.TemporaryDirectory() as work_dir:
         try:
@@ -735,14 +773,14 @@ def learn(args: argparse.Namespace) -> int:
     rows: list[dict[str, Any]] = []
     for i, seed in enumerate(seeds):
         order = ("mbrl-lib", "gem-pets") if i % 2 == 0 else ("gem-pets", "mbrl-lib")
-        for impl in order:
+        for impl in (o for o in order if args.arms == "both" or o == args.arms):
             run = _mbrl_trials if impl == "mbrl-lib" else _project_trials
             wall, cpu, trial_rows = run(spec.name, seed, args.trials, settings, work)
             run_rows = [
                 {**r, "wall_time_s": sum(t["trial_wall_s"] for t in trial_rows[: j + 1])}
                 for j, r in enumerate(trial_rows)
             ]
-            minutes, steps = time_to_threshold(run_rows, threshold)
+            steps = time_to_threshold(run_rows, threshold)["steps_to_threshold"]
             print(
                 f"seed {seed} {impl}: rewards {[round(r['episode_reward'], 1) for r in trial_rows]}, "
                 f"wall {wall:.0f} s, cpu {cpu:.0f} s",
@@ -766,7 +804,9 @@ def learn(args: argparse.Namespace) -> int:
     date = _utc_now()
     command = (
         f"{Path(sys.executable).parent.parent.name}/bin/python docs/scripts/{PROG} learn --env {spec.name} "
-        f"--seeds {args.seeds} " + " ".join(_setting_flags(settings))
+        f"--seeds {args.seeds} "
+        + ("" if args.arms == "both" else f"--arms {args.arms} ")
+        + " ".join(_setting_flags(settings))
     )
     for r in rows:
         r.update(
@@ -782,10 +822,11 @@ def learn(args: argparse.Namespace) -> int:
         )
     out = Path(args.out or RESULTS / f"peer_learning_{spec.name}.csv")
     write_csv(out, rows)
-    summary = learning_summary(rows, args.trials)
-    write_csv(out.with_name(out.stem + "_summary.csv"), summary)
-    for s in summary:
-        print(s)
+    if args.arms == "both":  # the paired summary needs both arms
+        summary = learning_summary(rows, args.trials)
+        write_csv(out.with_name(out.stem + "_summary.csv"), summary)
+        for s in summary:
+            print(s)
     print(f"wrote {out}")
     return 0
 
@@ -939,6 +980,12 @@ def build_parser() -> argparse.ArgumentParser:
             s.add_argument("--seeds", default="0,1,2,3,4")
             s.add_argument("--work-dir", default="/tmp/peer-mbrl")
             s.add_argument("--out", help="default docs/results/peer_learning_ENV.csv (+ _summary.csv)")
+            s.add_argument(
+                "--arms",
+                choices=("both", "mbrl-lib"),
+                default="both",
+                help="mbrl-lib: its runs alone, beside this project's runs made elsewhere (no summary)",
+            )
         else:
             s.add_argument("--seed", type=int, required=True)
             s.add_argument("--json", required=True)
