@@ -197,12 +197,14 @@ def _paper_cell(r: Mapping[str, str] | None, baseline: bool) -> str:
     n, diverged = int(float(r[N_SEEDS])), int(float(r[N_DIVERGED]))
     if n == 0:
         return "all diverged"
-    if baseline:
-        text = fmt_interval(*(csv_number(r[c]) for c in INTERVAL), digits=3)
-    else:
-        ratio = fmt_interval(*(csv_number(r[c]) for c in RATIO), digits=3)
-        text = ratio if ratio == "n/a" else f"{ratio}, p {fmt(csv_number(r[P_EXACT]), 2)}"
+    text = fmt_interval(*(csv_number(r[c]) for c in INTERVAL), digits=3) if baseline else ratio_cell(r)
     return text + (f" ({diverged} diverged)" if diverged else "")
+
+
+def ratio_cell(r: Mapping[str, str]) -> str:
+    """``ratio [CI], p P`` of a row with the ratio-to-delta columns and the exact p; ``n/a`` without a ratio."""
+    ratio = fmt_interval(*(csv_number(r[c]) for c in RATIO), digits=3)
+    return ratio if ratio == "n/a" else f"{ratio}, p {fmt(csv_number(r[P_EXACT]), 2)}"
 
 
 def _shown_metrics(rows: Sequence[Mapping[str, str]]) -> list[str]:

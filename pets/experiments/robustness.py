@@ -11,18 +11,14 @@ from pathlib import Path
 
 import numpy as np
 
+from pets.experiments.offline_tables import ratio_cell
 from pets.experiments.published import RESULTS
-from pets.experiments.report import csv_number, fmt, fmt_interval, md_table, read_csv_rows
+from pets.experiments.report import csv_number, fmt, md_table, read_csv_rows
 from pets.experiments.statistics import BASELINE
-from pets.experiments.studies.base import P_EXACT, RATIO
+from pets.experiments.studies.base import RATIO
 
 #: The learning curves' checkpoints (training steps) of the paper's budget and of the 5x rerun.
 PAPER_STEPS, LONG_STEPS = (2000, 5000, 8000, 10000), (10000, 40000, 50000)
-
-
-def _ratio_cell(r: Mapping[str, str]) -> str:
-    ratio = fmt_interval(*(csv_number(r[c]) for c in RATIO), digits=3)
-    return f"{ratio}, p {fmt(csv_number(r[P_EXACT]), 2)}"
 
 
 def _rule(long: Mapping[str, str], short: Mapping[str, str]) -> str:
@@ -41,13 +37,13 @@ def data_sets_table(tree: Path) -> str:
     long = {r["env"]: r for r in read_csv_rows(tree / RESULTS / "paper_50k_primary.csv") if r["model"] != BASELINE}
     rows = [
         [r["env"], f"data set {r['data_seed']}", "10k (the paper's)", r["tracking_horizons"], r["n_pairs"],
-         _ratio_cell(r), ""]
+         ratio_cell(r), ""]
         for r in per
     ]  # fmt: skip
     for env, r in long.items():
         short = next(s for s in per if s["env"] == env and s["data_seed"] == "0")
         rule = f"verdict {_rule(r, short)}"
-        rows.append([env, "data set 0", "50k (5x)", r["tracking_horizons"], r["n_pairs"], _ratio_cell(r), rule])
+        rows.append([env, "data set 0", "50k (5x)", r["tracking_horizons"], r["n_pairs"], ratio_cell(r), rule])
     rows.sort(key=lambda row: row[0])
     header = ["env", "data", "iterations", "tracking horizons", "pairs", "gem / delta [95 % CI], exact p", "5x rule"]
     return md_table(header, rows)
