@@ -199,3 +199,15 @@ def test_the_compute_block_sums_the_recorded_cpu_hours_per_part_and_env_counting
         "| the online study's runs | halfcheetah | 1 | 2 |",
         "| all of the above |  | 9 | 8.25 |",
     ]
+
+
+def test_merging_keeps_committed_rows_in_their_order_and_replaces_every_row_of_a_key_given(tmp_path):
+    from pets.experiments.report import merge_committed, write_csv
+
+    path = tmp_path / "curves.csv"
+    assert merge_committed(path, [{"seed": "0", "x": "1"}], ["seed"]) == ([{"seed": "0", "x": "1"}], 0)
+    committed = [{"seed": s, "x": x} for s, x in (("0", "1"), ("1", "2"), ("1", "3"), ("2", "4"))]
+    write_csv(path, committed, ["seed", "x"])
+    new = [{"seed": "1", "x": "9"}, {"seed": "3", "x": "5"}]
+    rows, kept = merge_committed(path, new, ["seed"])
+    assert kept == 2 and [(r["seed"], r["x"]) for r in rows] == [("0", "1"), ("1", "9"), ("2", "4"), ("3", "5")]

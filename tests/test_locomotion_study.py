@@ -4,6 +4,7 @@ run directory, the paired summary from the committed rows, checked against scipy
 from __future__ import annotations
 
 import csv
+import io
 import math
 import subprocess
 import sys
@@ -190,3 +191,22 @@ def test_the_command_adds_identical_rows_when_asked(tmp_path):
         ("delta-groupfeat", "0", study.IDENTICAL_STATUS),
         ("delta-groupfeat", "1", study.IDENTICAL_STATUS),
     ]
+
+
+def test_the_command_keeps_committed_rows_of_runs_not_given_and_replaces_those_given(tmp_path):
+    """A run directory lost with a replaced machine must not lose its committed row: the runs and curves files
+    keep it, in its place; a run given again replaces its rows; ``--replace`` writes only the runs given."""
+    old = [make_run(tmp_path / "old", "delta", s, ramp(3000.0)) for s in (0, 1)]
+    out, curves = tmp_path / "runs.csv", tmp_path / "curves.csv"
+    files = ["--out", str(out), "--curves", str(curves)]
+    assert study.main([*map(str, old), *files]) == 0
+    committed = out.read_text()
+    partial = make_run(tmp_path / "new", "delta", 1, ramp(3000.0), budget=50_000)
+    assert study.main([str(partial), *files]) == 0
+    rows = list(csv.DictReader(out.open()))
+    assert [(r["seed"], r["status"]) for r in rows] == [("0", "complete"), ("1", "partial")]
+    assert rows[0] == next(csv.DictReader(io.StringIO(committed)))  # kept as committed, cell for cell
+    steps = {(r["seed"], r["env_steps"]) for r in csv.DictReader(curves.open())}
+    assert ("0", "100000") in steps and ("1", "50000") in steps and ("1", "100000") not in steps
+    assert study.main([str(partial), *files, "--replace"]) == 0
+    assert [r["seed"] for r in csv.DictReader(out.open())] == ["1"]

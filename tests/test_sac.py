@@ -4,7 +4,9 @@ Ground truth: SB3's own replay buffer (what SAC trained on) and the real MuJoCo 
 after ``learning_starts`` = 100 steps, so a few hundred steps exercise learning and recording.
 """
 
+import math
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -251,7 +253,7 @@ def test_collect_cli_deletes_the_sac_checkpoint_once_the_data_are_written(tmp_pa
     assert out.is_file() and not ckpt.exists() and "sac_resumed_at" not in load_dataset(out)
 
 
-def test_the_locomotion_gate_reads_sac_episodes_from_a_sac_collection(sac_run):
+def test_the_locomotion_gate_reads_sac_episodes_from_a_sac_collection(sac_run, tmp_path):
     """SAC's reference row of the gate (pets.experiments.gate.sac_row) is the episodes SAC trained on, in order."""
     from pets.experiments.gate import sac_row
 
@@ -261,3 +263,8 @@ def test_the_locomotion_gate_reads_sac_episodes_from_a_sac_collection(sac_run):
     assert row["env"] == name and row["agent"] == "sac" and row["env_steps"] == STEPS
     assert row["episodes"] == len(data["lengths"]) and row["status"] == "partial"  # 300 of 100k steps
     assert row["fall_fraction"] == pytest.approx(float(data["terminated"].any(axis=1).mean()), abs=1e-4)
+    assert math.isnan(row["cpu_hours"])  # nothing recorded its CPU time
+    copy = tmp_path / "train.npz"
+    shutil.copy(work / "train.npz", copy)
+    copy.with_suffix(".cpu_s").write_text("5400.0\n")  # the collection's CPU seconds, written beside it
+    assert sac_row(copy)["cpu_hours"] == 1.5

@@ -146,11 +146,16 @@ def sac_episodes(path: Path) -> tuple[str, int, list[dict[str, Any]]]:
     return str(data["env"]), int(data["seed"]) if "seed" in data else -1, rows
 
 
-def sac_row(path: Path, cpu_s: float = math.nan) -> dict[str, Any]:
-    """The :data:`RUN_COLUMNS` row of a SAC collection (:func:`sac_episodes`): agent ``sac``."""
+def sac_row(path: Path, cpu_s: float | None = None) -> dict[str, Any]:
+    """The :data:`RUN_COLUMNS` row of a SAC collection (:func:`sac_episodes`): agent ``sac``. Its CPU seconds:
+    ``cpu_s``, else the number in ``PATH.cpu_s`` beside the data set where one was written (the collection's
+    process CPU time, e.g. ``/usr/bin/time -f "%U %S"`` summed), else unknown (NaN)."""
     import envs
 
     env, seed, rows = sac_episodes(path)
+    if cpu_s is None:
+        beside = path.with_suffix(".cpu_s")
+        cpu_s = float(beside.read_text()) if beside.is_file() else math.nan
     return episodes_row(env, "sac", seed, rows, envs.get(env).episode_length, BUDGET, cpu_s, 0.0)
 
 
@@ -338,11 +343,22 @@ def gate_table(tree: Path) -> str:
     return f"{csv_table(Path(f'{path}_runs.csv'), runs)}\n\n{csv_table(Path(f'{path}_summary.csv'), summary)}"
 
 
-def write_csv(path: Path, rows: Sequence[Mapping[str, Any]], columns: Sequence[str]) -> None:
-    """The rows with their cells as :func:`_cell` shows them, written by the experiments' CSV writer."""
+def write_csv(
+    path: Path, rows: Sequence[Mapping[str, Any]], columns: Sequence[str], keep: Sequence[str] = ()
+) -> list[dict[str, str]]:
+    """The rows with their cells as :func:`cell_text` shows them, written by the experiments' CSV writer. ``keep``
+    (key columns): merged into the committed file, its rows of other keys kept (:func:`report.merge_committed`; a
+    line says how many). Returns the rows written."""
+    from pets.experiments.report import merge_committed
     from pets.experiments.report import write_csv as write_rows
 
-    write_rows(path, [{c: cell_text(r[c]) for c in columns} for r in rows], columns)
+    text = [{c: cell_text(r[c]) for c in columns} for r in rows]
+    if keep:
+        text, kept = merge_committed(path, text, keep)
+        if kept:
+            print(f"{path}: kept {kept} committed rows whose run directories were not given", file=sys.stderr)
+    write_rows(path, text, columns)
+    return text
 
 
 def cell_text(v: Any) -> str:
@@ -374,6 +390,13 @@ def run_curve(run_dir: Path, pilot: bool = False, head: str = "agent") -> list[d
     return curve_rows(key, rows, full_length(cfg))
 
 
+#: The ``--replace`` help of the commands that write a study's runs tables from run directories.
+REPLACE_HELP = (
+    "write only the runs given (default: merge them into the committed tables, keeping the rows of runs whose "
+    "directories are not given, e.g. finished on a machine since replaced)"
+)
+
+
 def main(argv: list[str] | None = None) -> int:
     from pets.tools.cli import OneLineParser
 
@@ -383,7 +406,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", type=Path, required=True, help="output prefix (see above)")
     p.add_argument("--oracle", nargs="*", type=Path, default=[], help="pets.oracle --json files: OUT_oracle.csv")
     p.add_argument("--pilots", action="store_true", help="pilot runs: one OUT.csv row per run with its overrides")
+    p.add_argument("--replace", action="store_true", help=REPLACE_HELP)
     args = p.parse_args(argv)
+    keep = () if args.replace else ("run",) if args.pilots else ("env", "agent", "seed")
     if not (args.run_dirs or args.sac or args.oracle):
         p.error("give run directories, --sac data sets or --oracle files")
     missing = [str(d) for d in args.run_dirs if not (d / "config.yaml").is_file()]
@@ -397,14 +422,14 @@ def main(argv: list[str] | None = None) -> int:
         rows = []
     elif args.pilots:
         rows = [pilot_row(d) for d in args.run_dirs]
-        write_csv(args.out.with_suffix(".csv"), rows, list(rows[0]))
+        write_csv(args.out.with_suffix(".csv"), rows, list(rows[0]), keep)
         curves = [c for d in args.run_dirs for c in run_curve(d, pilot=True)]
-        write_csv(Path(f"{args.out}_curves.csv"), curves, PILOT_CURVE_COLUMNS)
+        write_csv(Path(f"{args.out}_curves.csv"), curves, PILOT_CURVE_COLUMNS, keep)
     else:
         rows = [run_row(d) for d in args.run_dirs] + [sac_row(path) for path in args.sac]
-        write_csv(Path(f"{args.out}_runs.csv"), rows, RUN_COLUMNS)
+        write_csv(Path(f"{args.out}_runs.csv"), rows, RUN_COLUMNS, keep)
         curves = [c for d in args.run_dirs for c in run_curve(d)] + [c for path in args.sac for c in sac_curve(path)]
-        write_csv(Path(f"{args.out}_curves.csv"), curves, CURVE_COLUMNS)
+        write_csv(Path(f"{args.out}_curves.csv"), curves, CURVE_COLUMNS, keep)
     for r in rows:
         print("  ".join(f"{k}={cell_text(v)}" for k, v in r.items()), file=sys.stdout)
     return 0

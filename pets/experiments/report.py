@@ -85,3 +85,31 @@ def read_csv_rows(path: Path, error: type[Exception] = ValueError) -> list[dict[
             return list(csv.DictReader(f))
     except (UnicodeDecodeError, csv.Error) as err:
         raise error(f"{path}: not a text CSV file ({type(err).__name__}: {str(err)[:80]})") from None
+
+
+def merge_committed(
+    path: Path, rows: Sequence[Mapping[str, str]], key: Sequence[str]
+) -> tuple[list[dict[str, str]], int]:
+    """``rows`` (cells as text) merged into the CSV already at ``path``: the committed rows in their order, those of
+    a ``key`` that ``rows`` has replaced by all of ``rows``' rows of that key (several for a curve), then the keys
+    that are new. A committed row whose run directory is no longer on this machine (a finished run, a replaced
+    machine) is kept as it is, never lost by rewriting the table. Returns the rows and how many were kept."""
+    new: dict[tuple[str, ...], list[dict[str, str]]] = {}
+    for r in rows:
+        new.setdefault(tuple(r[k] for k in key), []).append(dict(r))
+    if not path.is_file():
+        return [r for group in new.values() for r in group], 0
+    with path.open(newline="") as f:
+        committed = list(csv.DictReader(f))
+    out: list[dict[str, str]] = []
+    placed: set[tuple[str, ...]] = set()
+    kept = 0
+    for r in committed:
+        k = tuple(r.get(c, "") for c in key)
+        if k not in new:
+            out.append(r)
+            kept += 1
+        elif k not in placed:
+            out += new[k]
+            placed.add(k)
+    return out + [r for k, group in new.items() if k not in placed for r in group], kept

@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from pets.experiments import curves, gate
-from pets.experiments.report import csv_number, fmt, fmt_interval, md_table
+from pets.experiments.report import csv_number, fmt, fmt_interval, md_table, merge_committed
 from pets.experiments.statistics import BASELINE, REPS, iqm_ci, paired_differences, sign_flip_p
 from pets.experiments.studies.base import (
     HIGHER,
@@ -263,6 +263,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--crashed", nargs="*", type=Path, default=[], help="runs given up on: the worst outcome")
     same = "on a planar env, a delta-groupfeat seed not run takes gem's row (identical by construction)"
     p.add_argument("--identical", action="store_true", help=same)
+    p.add_argument("--replace", action="store_true", help=gate.REPLACE_HELP)
     args = p.parse_args(argv)
     missing = [str(d) for d in args.run_dirs if not (d / "config.yaml").is_file()]
     if missing:
@@ -270,15 +271,22 @@ def main(argv: list[str] | None = None) -> int:
     unknown = [str(d) for d in args.crashed if d not in args.run_dirs]
     if unknown:
         p.error(f"--crashed names runs not given: {', '.join(unknown)}")
+    keep = () if args.replace else ("env", "model", "seed")
     rows = [run_row(d, crashed=d in args.crashed) for d in args.run_dirs]
+    text = [{c: gate.cell_text(r[c]) for c in RUN_COLUMNS} for r in rows]
+    if keep:
+        text, kept = merge_committed(args.out, text, keep)
+        text = [r for r in text if r["status"] != IDENTICAL_STATUS]  # derived again below
+        if kept:
+            print(f"{args.out}: kept {kept} committed rows whose run directories were not given", file=sys.stderr)
     if args.identical:
         try:
-            rows += identical_rows(rows)
+            text += identical_rows(text)
         except ValueError as e:
             p.error(str(e))
-    gate.write_csv(args.out, rows, RUN_COLUMNS)
+    gate.write_csv(args.out, text, RUN_COLUMNS)
     if args.curves:
-        gate.write_csv(args.curves, [c for d in args.run_dirs for c in curve_rows(d)], CURVE_COLUMNS)
+        gate.write_csv(args.curves, [c for d in args.run_dirs for c in curve_rows(d)], CURVE_COLUMNS, keep)
     for r in rows:
         print("  ".join(f"{k}={gate.cell_text(v)}" for k, v in r.items()))
     return 0

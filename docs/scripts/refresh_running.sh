@@ -1,0 +1,24 @@
+#!/usr/bin/env bash
+# The committed rows of the running studies, refreshed from the run directories under ROOT (default /work/runs):
+# ROOT/gate/* (gate runs; *.npz SAC data sets with *.cpu_s), ROOT/pilots/*, ROOT/online/*. Rows of runs whose
+# directories are not here (finished on a machine since replaced) are kept as committed (--replace not given);
+# then the report regenerates every generated table and figure, and --check confirms it.
+#     bash docs/scripts/refresh_running.sh [ROOT]
+set -euo pipefail
+root=${1:-/work/runs}
+cd "$(dirname "$0")/../.."
+shopt -s nullglob
+gate=("$root"/gate/*/config.yaml) sac=("$root"/gate/*.npz) pilots=("$root"/pilots/*/config.yaml)
+online=("$root"/online/*/config.yaml)
+if ((${#gate[@]} + ${#sac[@]})); then
+  python -m pets.experiments.gate "${gate[@]%/config.yaml}" --sac "${sac[@]}" --out docs/results/locomotion_gate >/dev/null
+fi
+if ((${#pilots[@]})); then
+  python -m pets.experiments.gate "${pilots[@]%/config.yaml}" --pilots --out docs/results/locomotion_pilots >/dev/null
+fi
+if ((${#online[@]})); then
+  python -m pets.experiments.studies.locomotion "${online[@]%/config.yaml}" --identical \
+    --out docs/results/online_locomotion_runs.csv --curves docs/results/online_locomotion_curves.csv >/dev/null
+fi
+python -m pets.compare report >/dev/null
+python -m pets.compare report --check
