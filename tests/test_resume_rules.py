@@ -87,3 +87,16 @@ def test_a_run_started_before_a_key_existed_resumes_with_its_default(finished, t
     edited = tmp_path / "older-edited"
     _older_run(finished, edited, {"termination_penalty": 5.0})  # written into the file after the start: an edit
     assert "planner.termination_penalty: None in the checkpoint, 5.0 in config.yaml" in _refused("--resume", edited)
+
+
+def test_the_history_names_the_cpu_of_every_session_and_takes_the_column_into_an_old_history(tmp_path):
+    """The CPU behind a run's CPU-hours is recorded per session (a resumed run may have moved machines); a history
+    written before the column keeps its rows, their CPU unknown (empty)."""
+    from pets.runs import rundir
+    from pets.runs.hardware import cpu_isa
+
+    (tmp_path / rundir.HISTORY_FILE).write_text("time,action,trials_done,host,pid\n2026-11-27T10:00:00,start,0,vm,7\n")
+    rundir.append_history(tmp_path, "resume", 4)
+    old, new = rundir.read_history(tmp_path)
+    assert (old["action"], old["pid"], old["cpu"]) == ("start", "7", None)
+    assert (new["action"], new["trials_done"]) == ("resume", "4") and new["cpu"].endswith(f"({cpu_isa()})")

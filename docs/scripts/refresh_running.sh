@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The committed rows of the running studies, refreshed from the run directories under ROOT (default /work/runs):
-# ROOT/gate/* (gate runs; *.npz SAC data sets with *.cpu_s), ROOT/pilots/*, ROOT/online/*. Rows of runs whose
+# ROOT/gate/* (gate runs; *.npz SAC data sets with *.cpu_s), ROOT/pilots/*, ROOT/online/*, ROOT/composition. Rows of runs whose
 # directories are not here (finished on a machine since replaced) are kept as committed (--replace not given);
 # then the report regenerates every generated table and figure, and --check confirms it.
 #     bash docs/scripts/refresh_running.sh [ROOT]
@@ -19,6 +19,15 @@ fi
 if ((${#online[@]})); then
   python -m pets.experiments.studies.locomotion "${online[@]%/config.yaml}" --identical \
     --out docs/results/online_locomotion_runs.csv --curves docs/results/online_locomotion_curves.csv >/dev/null
+fi
+# The composition study's snapshot: every finished run of ROOT/composition/results (a remade data set's runs
+# replace the withdrawn ones: docs/studies/composition.md, amendment of 2026-11-28 21:30 UTC).
+if compgen -G "$root/composition/results/*/eval.json" >/dev/null; then
+  summary=$(mktemp -d)
+  python docs/scripts/partial_offline_runs.py "$root/composition/results" docs/results/composition_runs_partial.csv \
+    --summary "$summary" --envs ant,humanoid --models delta-groupfeat,gem,gem-se,delta --seeds 0,1,2,3,4 \
+    --data-seeds 0,1,2 >/dev/null
+  cp "$summary/summary.csv" docs/results/composition_summary_partial.csv
 fi
 python -m pets.compare report >/dev/null
 python -m pets.compare report --check

@@ -11,6 +11,7 @@ so config.yaml records the precision a run used and a resumed run (or the same r
 from __future__ import annotations
 
 import functools
+import platform
 import sys
 
 import torch
@@ -32,6 +33,19 @@ def cpu_flags() -> frozenset[str]:
     except OSError:
         pass
     return frozenset()
+
+
+@functools.lru_cache(maxsize=1)
+def cpu_name() -> str:
+    """The CPU's model name and bf16 ISA, e.g. ``Intel(R) Xeon(R) Processor (AMX)`` (the platform's processor
+    name off Linux; ``unknown`` where neither says)."""
+    name = ""
+    try:
+        with open("/proc/cpuinfo") as f:
+            name = next((line.partition(":")[2].strip() for line in f if line.startswith("model name")), "")
+    except OSError:
+        pass
+    return f"{name or platform.processor() or 'unknown'} ({cpu_isa()})"
 
 
 def cpu_isa(flags: frozenset[str] | None = None) -> str:

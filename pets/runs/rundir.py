@@ -29,7 +29,7 @@ CHECKPOINT_FILE = "checkpoint.pt"
 PLOT_FILE = "rewards.png"
 #: One row per session of a run (start or resume): when, where, and how many trials were done when it began.
 HISTORY_FILE = "history.csv"
-HISTORY_COLUMNS = ["time", "action", "trials_done", "host", "pid"]
+HISTORY_COLUMNS = ["time", "action", "trials_done", "host", "pid", "cpu"]
 
 #: model_val_loss: the trainer's holdout error of the selected model after the trial's training;
 #: model_val_loss_initial: the same for the weights that training started from (a trained model has less).
@@ -71,11 +71,19 @@ def write_metrics(run_dir: Path, rows: list[dict[str, Any]]) -> None:
 
 def append_history(run_dir: Path, action: str, trials_done: int) -> None:
     """Add this session (``start`` or ``resume`` at ``trials_done`` trials) to history.csv: a resumed run shows
-    that it went on from its checkpoint, not from trial 0."""
+    that it went on from its checkpoint, not from trial 0, and the CPU of every session names the machine behind
+    its CPU-hours (a history written before the ``cpu`` column gets it, empty in its old rows)."""
+    from pets.runs.hardware import cpu_name
+
     path = run_dir / HISTORY_FILE
-    old = path.read_text() if path.is_file() else ",".join(HISTORY_COLUMNS) + "\n"
-    row = [time.strftime("%Y-%m-%dT%H:%M:%S"), action, str(trials_done), socket.gethostname(), str(os.getpid())]
-    atomic_write_bytes(path, (old + ",".join(row) + "\n").encode())
+    header, _, rows = (path.read_text() if path.is_file() else "").partition("\n")
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow(HISTORY_COLUMNS)
+    now = time.strftime("%Y-%m-%dT%H:%M:%S")
+    writer.writerow([now, action, trials_done, socket.gethostname(), os.getpid(), cpu_name()])
+    head, _, new = buf.getvalue().partition("\n")
+    atomic_write_bytes(path, f"{head}\n{rows}{new}".encode())
 
 
 def read_history(run_dir: Path) -> list[dict[str, str]]:
