@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import math
 
+import numpy as np
 import pytest
 
 from pets.experiments import gate
@@ -61,7 +62,9 @@ def test_a_curve_is_the_endpoint_on_the_grid_up_to_the_budget_and_the_cli_commit
 
 
 def run(seed: int, final: float, status: str = "complete") -> dict:
-    return {"env": "halfcheetah", "agent": "delta", "seed": seed, "reward_100k": final, "status": status}
+    steps = gate.BUDGET if status == "complete" else gate.BUDGET // 2
+    return {"env": "halfcheetah", "agent": "delta", "seed": seed, "env_steps": steps, "reward_100k": final,
+            "status": status}  # fmt: skip
 
 
 def test_the_verdict_is_the_mean_over_seeds_against_the_threshold_with_a_run_without_endpoint_as_zero():
@@ -112,7 +115,8 @@ def test_the_summary_and_the_docs_block_are_made_from_the_committed_runs_csv(tmp
     results = tmp_path / "docs" / "results"
     results.mkdir(parents=True)
     runs = [
-        dict.fromkeys(gate.RUN_COLUMNS, "") | {"env": "halfcheetah", "agent": "delta", "seed": s, "reward_100k": r}
+        dict.fromkeys(gate.RUN_COLUMNS, "")
+        | {"env": "halfcheetah", "agent": "delta", "seed": s, "env_steps": "100000", "reward_100k": r}
         for s, r in ((0, "3000"), (1, "2900"), (2, "2400"))
     ]
     write_csv(results / "locomotion_gate_runs.csv", [r | {"status": "complete"} for r in runs], gate.RUN_COLUMNS)
@@ -211,3 +215,38 @@ def test_merging_keeps_committed_rows_in_their_order_and_replaces_every_row_of_a
     new = [{"seed": "1", "x": "9"}, {"seed": "3", "x": "5"}]
     rows, kept = merge_committed(path, new, ["seed"])
     assert kept == 2 and [(r["seed"], r["x"]) for r in rows] == [("0", "1"), ("1", "9"), ("2", "4"), ("3", "5")]
+
+
+def test_mbrl_lib_runs_become_gate_rows_complete_at_their_registered_budget_and_summarised_there(tmp_path):
+    """A peer_mbrl.py learn CSV (one row per trial; its gem-pets rows ignored): each mbrl-lib run is a gate row,
+    complete at the 50k env steps its 49 trials reach (the amendment of 21:45 UTC), its endpoint the gate's window
+    there, and the summary reads the agent's endpoint at 50k, not the gate's 100k."""
+    from pets.experiments import gate_references as ref
+    from pets.experiments.report import write_csv
+
+    rows = []
+    for impl, seed in (("mbrl-lib", 0), ("mbrl-lib", 1), ("gem-pets", 0)):
+        for t in range(49):
+            rows.append({"env": "HalfCheetah-v5", "impl": impl, "seed": seed, "trial": t,
+                         "episode_reward": 10.0 * t + seed, "episode_length": 1000, "env_steps": 1000 * (t + 2),
+                         "run_cpu_s": 7200.0})  # fmt: skip
+    path = tmp_path / "peer.csv"
+    write_csv(path, rows, list(rows[0]))
+    made = [gate.reference_row(r) for r in ref.peer_runs(path)]
+    assert [(r["env"], r["agent"], r["seed"], r["status"]) for r in made] == [
+        ("halfcheetah", "mbrl-lib", 0, "complete"),
+        ("halfcheetah", "mbrl-lib", 1, "complete"),
+    ]
+    assert made[0]["env_steps"] == 50_000 and made[0]["cpu_hours"] == 2.0 and math.isnan(made[0]["reward_100k"])
+    assert made[1]["reward_50k"] == pytest.approx(np.mean([10.0 * t + 1 for t in range(44, 49)]))
+    (summary,) = gate.summary_rows(made)
+    assert summary["endpoint_at"] == 50_000 and summary["mean"] == pytest.approx(
+        np.mean([r["reward_50k"] for r in made])
+    )
+    assert gate.main(["--peer", str(path), "--out", str(tmp_path / "gate")]) == 0
+    curves = list(csv.DictReader((tmp_path / "gate_curves.csv").open()))
+    assert {c["agent"] for c in curves} == {"mbrl-lib"} and max(int(c["env_steps"]) for c in curves) == 50_000
+    assert (
+        gate.endpoint_budget([{"env_steps": 100_000, "status": "complete"}, {"env_steps": 50_000, "status": "partial"}])
+        == gate.BUDGET
+    )

@@ -254,8 +254,11 @@ def test_collect_cli_deletes_the_sac_checkpoint_once_the_data_are_written(tmp_pa
 
 
 def test_the_locomotion_gate_reads_sac_episodes_from_a_sac_collection(sac_run, tmp_path):
-    """SAC's reference row of the gate (pets.experiments.gate.sac_row) is the episodes SAC trained on, in order."""
-    from pets.experiments.gate import sac_row
+    """SAC's reference row of the gate (gate_references.sac_run, gate.reference_row): the episodes SAC trained on."""
+    from pets.experiments import gate, gate_references
+
+    def sac_row(path):
+        return gate.reference_row(gate_references.sac_run(path))
 
     name, work, _, _ = sac_run
     data = load_dataset(work / "train.npz")

@@ -9,9 +9,11 @@ root=${1:-/work/runs}
 cd "$(dirname "$0")/../.."
 shopt -s nullglob
 gate=("$root"/gate/*/config.yaml) sac=("$root"/gate/*.npz) pilots=("$root"/pilots/*/config.yaml)
+peer=(docs/results/peer_gate_*.csv)  # mbrl-lib's runs (peer_mbrl.py learn --out), committed as they finish
 online=("$root"/online/*/config.yaml)
-if ((${#gate[@]} + ${#sac[@]})); then
-  python -m pets.experiments.gate "${gate[@]%/config.yaml}" --sac "${sac[@]}" --out docs/results/locomotion_gate >/dev/null
+if ((${#gate[@]} + ${#sac[@]} + ${#peer[@]})); then
+  python -m pets.experiments.gate "${gate[@]%/config.yaml}" --sac "${sac[@]}" --peer "${peer[@]}" \
+    --out docs/results/locomotion_gate >/dev/null
 fi
 if ((${#pilots[@]})); then
   python -m pets.experiments.gate "${pilots[@]%/config.yaml}" --pilots --out docs/results/locomotion_pilots >/dev/null

@@ -1,7 +1,8 @@
 """The locomotion gate (docs/studies/locomotion_gate.md): does PETS at ``--preset locomotion`` learn to run and
 walk within 100k env steps? The endpoint of one online run, the per-run and summary rows, the verdict.
 
-    python -m pets.experiments.gate RUN_DIR [RUN_DIR ...] [--sac SAC_DATA ...] --out docs/results/locomotion_gate
+    python -m pets.experiments.gate RUN_DIR [RUN_DIR ...] [--sac SAC_DATA ...] [--peer PEER_CSV ...] \
+        --out docs/results/locomotion_gate
     python -m pets.experiments.gate --pilots RUN_DIR [RUN_DIR ...] --out docs/results/locomotion_pilots
 
 Writes the runs' rows and their learning curves (``OUT_runs.csv`` and ``OUT_curves.csv``; pilots: ``OUT.csv`` and
@@ -24,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from pets.experiments.curves import window_points
+from pets.experiments.gate_references import Reference, peer_runs, sac_run
 
 #: The pre-registered thresholds (Wang et al. 2019, PETS-CEM at 200k env steps), per catalogue env.
 THRESHOLDS = {"halfcheetah": 2800.0, "ant": 1170.0, "hopper": 1130.0}
@@ -42,7 +44,7 @@ RUN_COLUMNS = [
     "plan_cpu_hours",
     "status",
 ]
-SUMMARY_COLUMNS = ["env", "agent", "n_runs", "mean", "iqm", "ci_low", "ci_high", "threshold", "verdict"]
+SUMMARY_COLUMNS = ["env", "agent", "n_runs", "endpoint_at", "mean", "iqm", "ci_low", "ci_high", "threshold", "verdict"]
 
 
 def complete(row: Mapping[str, Any], full_length: int) -> bool:
@@ -132,51 +134,48 @@ def episodes_row(
     return row
 
 
-def sac_episodes(path: Path) -> tuple[str, int, list[dict[str, Any]]]:
-    """``(env, seed, metrics-like rows)`` of a SAC collection (``python -m pets.collect --policy sac:STEPS``, a data
-    set holding every episode SAC trained on, in order; the last one cut at STEPS)."""
-    from pets.data.datasets import load_dataset
-
-    data = load_dataset(path)
-    rows, steps = [], 0
-    for rew, term, n in zip(data["rew"], data["terminated"], data["lengths"]):
-        steps += int(n)
-        rows.append({"env_steps": steps, "episode_reward": float(np.nansum(rew[:n])), "episode_length": int(n),
-                     "terminated": int(bool(term[:n].any()))})  # fmt: skip
-    return str(data["env"]), int(data["seed"]) if "seed" in data else -1, rows
-
-
-def sac_row(path: Path, cpu_s: float | None = None) -> dict[str, Any]:
-    """The :data:`RUN_COLUMNS` row of a SAC collection (:func:`sac_episodes`): agent ``sac``. Its CPU seconds:
-    ``cpu_s``, else the number in ``PATH.cpu_s`` beside the data set where one was written (the collection's
-    process CPU time, e.g. ``/usr/bin/time -f "%U %S"`` summed), else unknown (NaN)."""
+def reference_row(ref: Reference) -> dict[str, Any]:
+    """The :data:`RUN_COLUMNS` row of a reference run (SAC, mbrl-lib: :mod:`pets.experiments.gate_references`),
+    complete at its own budget where it has one."""
     import envs
 
-    env, seed, rows = sac_episodes(path)
-    if cpu_s is None:
-        beside = path.with_suffix(".cpu_s")
-        cpu_s = float(beside.read_text()) if beside.is_file() else math.nan
-    return episodes_row(env, "sac", seed, rows, envs.get(env).episode_length, BUDGET, cpu_s, 0.0)
+    length = envs.get(ref.env).episode_length
+    return episodes_row(ref.env, ref.agent, ref.seed, ref.rows, length, ref.budget or BUDGET, ref.cpu_s, ref.plan_cpu_s)
 
 
-def sac_curve(path: Path) -> list[dict[str, Any]]:
-    """:func:`curve_rows` of a SAC collection, agent ``sac``."""
+def reference_curve(ref: Reference) -> list[dict[str, Any]]:
+    """:func:`curve_rows` of a reference run, keyed by env, agent and seed."""
     import envs
 
-    env, seed, rows = sac_episodes(path)
-    return curve_rows({"env": env, "agent": "sac", "seed": seed}, rows, envs.get(env).episode_length)
+    key = {"env": ref.env, "agent": ref.agent, "seed": ref.seed}
+    return curve_rows(key, ref.rows, envs.get(ref.env).episode_length)
+
+
+def endpoint_budget(runs: Sequence[Mapping[str, Any]]) -> int:
+    """Where an agent's endpoint is read: the gate's budget, or for a reference whose every run is complete at a
+    smaller registered budget (mbrl-lib: 50k env steps) the last checkpoint all of them reached."""
+    if not all(r["status"] == "complete" for r in runs):
+        return BUDGET
+    steps = [int(float(r["env_steps"])) for r in runs]
+    if min(steps) >= BUDGET:
+        return BUDGET
+    reached = [n for n in CHECKPOINTS if n <= min(steps)]
+    return reached[-1] if reached else BUDGET
 
 
 def summary_rows(runs: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
-    """Per (env, agent): the endpoint at the budget over its runs (mean, IQM with a bootstrap CI) and, for the gate's
-    agent ``delta``, the verdict by the pre-registered rule (the mean over the seeds reaches the threshold; a run
-    with no endpoint counts as 0, the worst outcome). ``partial`` while a run is short of the budget."""
+    """Per (env, agent): the endpoint at its budget (:func:`endpoint_budget`) over its runs (mean, IQM with a
+    bootstrap CI) and, for the gate's agent ``delta``, the verdict by the pre-registered rule (the mean over the
+    seeds reaches the threshold; a run with no endpoint counts as 0, the worst outcome). ``partial`` while a run is
+    short of the budget."""
+    from pets.experiments.report import csv_number
     from pets.experiments.statistics import iqm_ci
 
     out = []
     for env, agent in dict.fromkeys((r["env"], r["agent"]) for r in runs):
         mine = [r for r in runs if r["env"] == env and r["agent"] == agent]
-        final = np.array([r[f"reward_{BUDGET // 1000}k"] for r in mine], dtype=np.float64)
+        at = endpoint_budget(mine)
+        final = np.array([csv_number(r[f"reward_{at // 1000}k"]) for r in mine], dtype=np.float64)
         partial = any(r["status"] != "complete" for r in mine)
         scores = np.where(np.isfinite(final), final, 0.0)  # a complete run without an endpoint: the worst
         point, low, high = iqm_ci(scores[:, None]) if not partial else ([math.nan],) * 3
@@ -192,6 +191,7 @@ def summary_rows(runs: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
                 "env": env,
                 "agent": agent,
                 "n_runs": len(mine),
+                "endpoint_at": at,
                 "mean": float(scores.mean()) if not partial else math.nan,
                 "iqm": float(point[0]),
                 "ci_low": float(low[0]),
@@ -337,7 +337,8 @@ def gate_table(tree: Path) -> str:
     runs = {"env": "env", "agent": "agent", "seed": "seed", "env_steps": "env steps", "reward_25k": "25k"}
     runs |= {"reward_50k": "50k", "reward_100k": "100k (endpoint)", "fall_fraction": "fell", "cpu_hours": "CPU-h"}
     runs |= {"status": "status"}
-    summary = {"env": "env", "agent": "agent", "n_runs": "runs", "mean": "mean", "iqm": "IQM", "ci_low": "CI low"}
+    summary = {"env": "env", "agent": "agent", "n_runs": "runs", "endpoint_at": "endpoint at (env steps)"}
+    summary |= {"mean": "mean", "iqm": "IQM", "ci_low": "CI low"}
     summary |= {"ci_high": "CI high", "threshold": "threshold", "verdict": "verdict"}
     path = tree / "docs" / "results" / "locomotion_gate"
     return f"{csv_table(Path(f'{path}_runs.csv'), runs)}\n\n{csv_table(Path(f'{path}_summary.csv'), summary)}"
@@ -403,22 +404,23 @@ def main(argv: list[str] | None = None) -> int:
     p = OneLineParser(prog="pets.experiments.gate", description=__doc__.splitlines()[0])
     p.add_argument("run_dirs", nargs="*", type=Path, help="online run directories (run_pets.py --out)")
     p.add_argument("--sac", nargs="*", type=Path, default=[], help="SAC data sets (pets.collect --policy sac:STEPS)")
+    p.add_argument("--peer", nargs="*", type=Path, default=[], help="mbrl-lib runs (peer_mbrl.py learn CSVs)")
     p.add_argument("--out", type=Path, required=True, help="output prefix (see above)")
     p.add_argument("--oracle", nargs="*", type=Path, default=[], help="pets.oracle --json files: OUT_oracle.csv")
     p.add_argument("--pilots", action="store_true", help="pilot runs: one OUT.csv row per run with its overrides")
     p.add_argument("--replace", action="store_true", help=REPLACE_HELP)
     args = p.parse_args(argv)
     keep = () if args.replace else ("run",) if args.pilots else ("env", "agent", "seed")
-    if not (args.run_dirs or args.sac or args.oracle):
-        p.error("give run directories, --sac data sets or --oracle files")
+    if not (args.run_dirs or args.sac or args.peer or args.oracle):
+        p.error("give run directories, --sac data sets, --peer CSVs or --oracle files")
     missing = [str(d) for d in args.run_dirs if not (d / "config.yaml").is_file()]
-    missing += [str(path) for path in [*args.sac, *args.oracle] if not path.is_file()]
+    missing += [str(path) for path in [*args.sac, *args.peer, *args.oracle] if not path.is_file()]
     if missing:
         p.error(f"not run directories (no config.yaml) or files: {', '.join(missing)}")
     if args.oracle:
         oracle = [row for path in args.oracle for row in oracle_rows(path)]
         write_csv(Path(f"{args.out}_oracle.csv"), oracle, ORACLE_COLUMNS)
-    if not (args.run_dirs or args.sac):
+    if not (args.run_dirs or args.sac or args.peer):
         rows = []
     elif args.pilots:
         rows = [pilot_row(d) for d in args.run_dirs]
@@ -426,9 +428,10 @@ def main(argv: list[str] | None = None) -> int:
         curves = [c for d in args.run_dirs for c in run_curve(d, pilot=True)]
         write_csv(Path(f"{args.out}_curves.csv"), curves, PILOT_CURVE_COLUMNS, keep)
     else:
-        rows = [run_row(d) for d in args.run_dirs] + [sac_row(path) for path in args.sac]
+        refs = [sac_run(path) for path in args.sac] + [r for path in args.peer for r in peer_runs(path)]
+        rows = [run_row(d) for d in args.run_dirs] + [reference_row(r) for r in refs]
         write_csv(Path(f"{args.out}_runs.csv"), rows, RUN_COLUMNS, keep)
-        curves = [c for d in args.run_dirs for c in run_curve(d)] + [c for path in args.sac for c in sac_curve(path)]
+        curves = [c for d in args.run_dirs for c in run_curve(d)] + [c for r in refs for c in reference_curve(r)]
         write_csv(Path(f"{args.out}_curves.csv"), curves, CURVE_COLUMNS, keep)
     for r in rows:
         print("  ".join(f"{k}={cell_text(v)}" for k, v in r.items()), file=sys.stdout)

@@ -220,11 +220,8 @@ def _gate_summary() -> Product:
 
     def make() -> None:
         from pets.experiments import gate, gate_figures
-        from pets.experiments.report import csv_number
 
-        key = f"reward_{gate.BUDGET // 1000}k"
-        rows = [dict(r, **{key: csv_number(r[key])}) for r in _rows(runs)]
-        gate.write_csv(Path(out), gate.summary_rows(rows), gate.SUMMARY_COLUMNS)
+        gate.write_csv(Path(out), gate.summary_rows(_rows(runs)), gate.SUMMARY_COLUMNS)
         gate_figures.write_figures(Path(RESULTS), Path("docs/figures"))
 
     return Product("locomotion gate summary and figures", (out, *figures), (runs, *curves), make)
