@@ -8,15 +8,15 @@ below is a handful of batched tensor ops whatever the number of units. Per codec
   - ``target``: its target slots, the log of the relative motion G_t^-1 G_{t+1} (right) or G_{t+1} G_t^-1 (left);
   - ``decode``: its observation entries of the next state, exp of its target slots composed with G_t;
   - ``frobenius``: its per-sample term of the paper's algebraic loss (``GemHead.frobenius_loss``);
-  - ``matrices``: its group elements as matrices, where it has some.
+  - ``matrices``: its group elements as matrices, where it has some; class methods, on one group's entries, the
+    evaluation's metrics (``step_terms``, ``rotation_angle``, ``entry_difference``).
 
-``additive`` codecs (``Rn``, ``SO2_angle``) are those whose group product is addition of the observed coordinates:
-``GemHead`` writes ``next - obs`` into their slots (and ``obs + target`` into their entries) for all of them at once,
-in contiguous runs, before their ``target`` / ``decode`` fix-ups run.
+``additive`` codecs (``Rn``, ``SO2_angle``), whose group product adds the observed coordinates, get ``next - obs``
+in their slots (``obs + target`` in their entries) at once, in contiguous runs, before their fix-ups run.
 
 ``CODECS`` maps a kind name to its codec class, in the order the kinds' features enter the network; a new kind is
-one subclass of :class:`GroupCodec` and one ``register_codec`` call (which also lets ``envs.layout.Group`` accept
-the kind). The root codecs of ``gem-se`` (``SE2``, ``SE3``) live in ``gem_head.se_root``.
+one subclass of :class:`GroupCodec` and one ``register_codec`` call (which lets ``envs.layout.Group`` accept it).
+The root codecs of ``gem-se`` (``SE2``, ``SE3``) live in ``gem_head.se_root``.
 """
 
 from __future__ import annotations
@@ -107,11 +107,17 @@ class GroupCodec:
     matrix_size: ClassVar[int | None] = None
     #: A rotation: its entries get the rotation error (:meth:`rotation_angle`), not the translation error.
     is_rotation: ClassVar[bool] = False
+    #: Order of :meth:`step_terms` in the step error's sum: the metric's since v1 (0 plain, 1 angles, 2 quaternions).
+    step_place: ClassVar[int] = 0
+
+    @classmethod
+    def step_terms(cls, pred: Tensor, true: Tensor) -> Tensor:
+        """The squared terms ``(..., t)`` one group ``(..., width)`` adds to the step error: ``(x - x')^2``."""
+        return (pred - true).pow(2)
 
     @classmethod
     def rotation_angle(cls, pred: Tensor, true: Tensor) -> Tensor:
-        """Geodesic angle in [0, pi] between the predicted and true entries ``(..., width)`` of one group of a
-        rotation kind (:attr:`is_rotation`): ``(...)``."""
+        """Geodesic angle ``(...)`` in [0, pi] between predicted and true entries ``(..., width)`` of a rotation."""
         raise NotImplementedError(f"{cls.kind} is not a rotation kind")
 
     @classmethod
@@ -238,12 +244,17 @@ class SO2AngleCodec(SO2Codec):
     (-pi, pi]; decoding theta' = theta + alpha, never wrapped (MuJoCo hinge positions are unbounded).
     """
 
-    kind, width, additive, is_rotation = "SO2_angle", 1, True, True
+    kind, width, additive, is_rotation, step_place = "SO2_angle", 1, True, True, 1
 
     @classmethod
     def rotation_angle(cls, pred: Tensor, true: Tensor) -> Tensor:
         """``|wrap(a - a')|``."""
         return wrap_angle(pred[..., 0] - true[..., 0]).abs()
+
+    @classmethod
+    def step_terms(cls, pred: Tensor, true: Tensor) -> Tensor:
+        """``wrap(a - a')^2``."""
+        return wrap_angle(pred - true).pow(2)
 
     @classmethod
     def entry_difference(cls, pred: Tensor, true: Tensor) -> Tensor:
@@ -335,7 +346,12 @@ class SO3QuatCodec(GroupCodec):
     sum_k ||exp(alpha_hat_k) o R_t - R_{t+1}||_F^2 / mean(scale_k^2) (o: this composition).
     """
 
-    kind, width, tangent_dim, matrix_size, is_rotation = "SO3_quat", 4, 3, 3, True
+    kind, width, tangent_dim, matrix_size, is_rotation, step_place = "SO3_quat", 4, 3, 3, True, 2
+
+    @classmethod
+    def step_terms(cls, pred: Tensor, true: Tensor) -> Tensor:
+        """``min(|q - q'|^2, |q + q'|^2)`` of the quaternions as given (not normalised): ``(..., 1)``."""
+        return torch.minimum((pred - true).pow(2).sum(-1, True), (pred + true).pow(2).sum(-1, True))
 
     @classmethod
     def rotation_angle(cls, pred: Tensor, true: Tensor) -> Tensor:
@@ -407,9 +423,8 @@ _ADDED_KINDS: set[str] = set()
 
 
 def register_codec(cls: type[GroupCodec]) -> type[GroupCodec]:
-    """Add ``cls`` under ``cls.kind`` (usable as a decorator); a layout group kind (any codec but a ``composite``
-    root codec) is also accepted by ``envs.layout.Group`` from then on. A kind already registered to another class,
-    or known to the layout with another width, is an error."""
+    """Add ``cls`` under ``cls.kind`` (a decorator too); ``envs.layout.Group`` accepts it from then on (unless a
+    ``composite`` root codec). A kind registered to another class, or of another width in the layout: an error."""
     known = CODECS.get(cls.kind)
     if known is not None and known is not cls:
         raise ValueError(f"codec kind {cls.kind!r} is already registered to {known.__name__}")

@@ -229,11 +229,11 @@ def _names_a_kind(node: ast.AST) -> bool:
 
 
 def test_group_kinds_dispatch_through_their_tables() -> None:
-    """The rotation error, the per-entry differences and the parts of an observation come from each kind's codec
-    (``gem_head.codecs``), its MuJoCo qpos from the kind table (``envs.layout.KIND_QPOS``): no chain of comparisons
-    of ``.kind`` with kind names there (``_total_squared`` keeps its fixed summation order, and its kind names)."""
+    """The step error, the rotation error, the per-entry differences and the parts of an observation come from each
+    kind's codec (``gem_head.codecs``), its MuJoCo qpos from the kind table (``envs.layout.KIND_QPOS``): no chain of
+    comparisons of ``.kind`` with kind names there."""
     where = {
-        "pets/learning/evaluation.py": ("rotation_angles", "entry_differences", "layout_parts"),
+        "pets/learning/evaluation.py": ("_total_squared", "rotation_angles", "entry_differences", "layout_parts"),
         "envs/render.py": ("qpos_from_obs",),
     }
     chains = [

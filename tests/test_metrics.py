@@ -344,3 +344,22 @@ def test_metric_names():
         "standardized_error",
     )
     assert HORIZON_KEYS == (*METRICS, "nonfinite_fraction")
+
+
+def test_each_codec_owns_its_step_terms_and_the_quaternion_term_is_the_chordal_distance_of_scipys_rotations():
+    """The step error's terms come from the codecs; for unit quaternions the SO3_quat term
+    min(|q - q'|^2, |q + q'|^2) is 2 - 2 |<q, q'>| (the same rotation: 0, whichever sign scipy gives q)."""
+    from scipy.spatial.transform import Rotation
+
+    from gem_head.codecs import CODECS
+
+    r, r2 = Rotation.random(200, random_state=1), Rotation.random(200, random_state=2)
+    q = torch.tensor(r.as_quat(scalar_first=True))
+    q2 = torch.tensor(r2.as_quat(scalar_first=True))
+    term = CODECS["SO3_quat"].step_terms(q, q2)
+    assert term.shape == (200, 1)
+    torch.testing.assert_close(term[:, 0], 2 - 2 * (q * q2).sum(-1).abs())
+    assert torch.allclose(CODECS["SO3_quat"].step_terms(q, -q), torch.zeros(200, 1, dtype=F64))
+    a = t(0.1, 3.0, -3.0)
+    torch.testing.assert_close(CODECS["SO2_angle"].step_terms(a, -a), wrap_angle(2 * a).pow(2))
+    assert [CODECS[k].step_place for k in ("Rn", "SO2_cossin", "SO2_angle", "SO3_quat")] == [0, 0, 1, 2]

@@ -109,37 +109,30 @@ def _check_shapes(pred: Tensor, true: Tensor, layout: ObsLayout) -> None:
 
 
 def _total_squared(pred: Tensor, true: Tensor, layout: ObsLayout) -> Tensor:
-    """``e^2`` of the paper's step error, as computed since the first version of this module (do not change:
-    ``mean_step_error`` of old and new evaluations must agree): Rn and SO2_cossin ``|x - x'|^2``, SO2_angle
-    ``wrap(x - x')^2``, SO3_quat (as given, not normalised) ``min(|q - q'|^2, |q + q'|^2)``, velocities, other
-    and derived ``|x - x'|^2``."""
+    """``e^2`` of the paper's step error: each group's codec's ``step_terms`` (``gem_head.codecs``: Rn and
+    SO2_cossin ``|x - x'|^2``, SO2_angle ``wrap(x - x')^2``, SO3_quat as given ``min(|q - q'|^2, |q + q'|^2)``),
+    summed by the codecs' ``step_place`` in increasing order, then velocities, other and derived ``|x - x'|^2``.
+    The summation order is the metric's since the first version of this module (do not change: ``mean_step_error``
+    of old and new evaluations must agree bit for bit)."""
     import torch
 
-    def idx(ix: Sequence[int]) -> Tensor:
-        return torch.tensor(list(ix), dtype=torch.long, device=pred.device)
+    from gem_head.codecs import CODECS
 
-    plain = [i for g in layout.groups if g.kind in ("Rn", "SO2_cossin") for i in g.indices]
-    angles = [g.indices[0] for g in layout.groups if g.kind == "SO2_angle"]
-    quats = [g.indices for g in layout.groups if g.kind == "SO3_quat"]
-    zero = pred.new_zeros(pred.shape[:-1])
+    places: dict[int, list[Tensor]] = {}
+    for g in layout.groups:
+        codec, ix = CODECS[g.kind], list(g.indices)
+        places.setdefault(codec.step_place, []).append(codec.step_terms(pred[..., ix], true[..., ix]))
+    total = pred.new_zeros(pred.shape[:-1])
+    for place in sorted(places):
+        total = total + torch.cat(places[place], dim=-1).sum(-1)
 
     def sq(ix: Sequence[int]) -> Tensor:
         if not ix:
-            return zero
-        i = idx(ix)
+            return pred.new_zeros(pred.shape[:-1])
+        i = torch.tensor(list(ix), dtype=torch.long, device=pred.device)
         return (pred.index_select(-1, i) - true.index_select(-1, i)).pow(2).sum(-1)
 
-    groups = sq(plain)
-    if angles:
-        i = idx(angles)
-        groups = groups + wrap_angle(pred.index_select(-1, i) - true.index_select(-1, i)).pow(2).sum(-1)
-    if quats:
-        i = idx([k for q in quats for k in q])
-        q = pred.index_select(-1, i).unflatten(-1, (len(quats), 4))
-        q_true = true.index_select(-1, i).unflatten(-1, (len(quats), 4))
-        minus, plus = (q - q_true).pow(2).sum(-1), (q + q_true).pow(2).sum(-1)
-        groups = groups + torch.minimum(minus, plus).sum(-1)
-    return groups + sq(layout.velocities) + sq(layout.other + layout.derived)
+    return total + sq(layout.velocities) + sq(layout.other + layout.derived)
 
 
 def rotation_angles(pred: Tensor, true: Tensor, layout: ObsLayout) -> Tensor:
