@@ -24,11 +24,13 @@ if ((${#online[@]})); then
 fi
 # The composition study's snapshot: every finished run of ROOT/composition/results (a remade data set's runs
 # replace the withdrawn ones: docs/studies/composition.md, amendment of 2026-11-28 21:30 UTC).
-if compgen -G "$root/composition/results/*/eval.json" >/dev/null; then
-  summary=$(mktemp -d)
+if compgen -G "$root/composition/results/runs/*/eval.json" >/dev/null; then
+  summary=$(mktemp -d) names=$(ls "$root/composition/results/runs")
+  envs=$(cut -d- -f1 <<<"$names" | sort -u | paste -sd,)  # run names: ENV-MODEL[-dDATA]-sSEED (data set 0: no -d)
+  data=$( (echo 0; grep -o -- '-d[0-9]*-s' <<<"$names" || true) | tr -dc '0-9\n' | sort -un | paste -sd,)
   python docs/scripts/partial_offline_runs.py "$root/composition/results" docs/results/composition_runs_partial.csv \
-    --summary "$summary" --envs ant,humanoid --models delta-groupfeat,gem,gem-se,delta --seeds 0,1,2,3,4 \
-    --data-seeds 0,1,2 >/dev/null
+    --summary "$summary" --envs "$envs" --models delta-groupfeat,gem,gem-se,delta --seeds 0,1,2,3,4 \
+    --data-seeds "$data" >/dev/null
   cp "$summary/summary.csv" docs/results/composition_summary_partial.csv
 fi
 python -m pets.compare report >/dev/null
