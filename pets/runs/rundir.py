@@ -76,7 +76,7 @@ def append_history(run_dir: Path, action: str, trials_done: int) -> None:
     from pets.runs.hardware import cpu_name
 
     path = run_dir / HISTORY_FILE
-    header, _, rows = (path.read_text() if path.is_file() else "").partition("\n")
+    _, _, rows = (path.read_text() if path.is_file() else "").partition("\n")  # the header is written anew
     buf = io.StringIO()
     writer = csv.writer(buf, lineterminator="\n")
     writer.writerow(HISTORY_COLUMNS)
