@@ -3,6 +3,7 @@
     python docs/scripts/partial_offline_runs.py OUT_DIR SNAPSHOT.csv
     python docs/scripts/partial_offline_runs.py OUT_DIR SNAPSHOT.csv --summary DIR --envs E --models M --seeds S \
         [--data-seeds D]
+    python docs/scripts/partial_offline_runs.py OUT_DIR SNAPSHOT.csv --levels LEVELS.csv
 
 Columns of SNAPSHOT.csv: run, env, model (the run's head; an arm's label is in the run name), data (its test file
 name, which names the data set), seed (the model's), horizon and
@@ -44,6 +45,31 @@ def write_runs(out: Path, snapshot: Path) -> list[dict]:
     return evals
 
 
+def write_levels(out: Path, runs: list[dict], levels: Path) -> None:
+    """LEVELS.csv (env, data_seed, level): the no-information level of every data set the finished runs were
+    evaluated on (``pets.experiments.studies.primary.no_information_level``); rows of data sets not under OUT_DIR
+    (made on a machine since replaced) are kept as they were."""
+    import envs
+    from pets.data.datasets import load_dataset
+    from pets.experiments.studies.composition import LEVEL_COLUMNS, data_seed
+    from pets.experiments.studies.primary import no_information_level
+
+    kept = {}
+    if levels.is_file():
+        with open(levels, newline="") as f:
+            kept = {(r["env"], int(r["data_seed"])): r for r in csv.DictReader(f)}
+    for env, test in sorted({(r["env"], r["data"]) for r in runs}):
+        train = out / "data" / test.replace("-test.npz", "-train.npz")
+        layout = envs.get(env).layout
+        level = no_information_level(load_dataset(train), load_dataset(out / "data" / test), layout)
+        kept[(env, data_seed(test))] = {"env": env, "data_seed": data_seed(test), "level": level}
+    with open(levels, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=LEVEL_COLUMNS, lineterminator="\n")
+        writer.writeheader()
+        writer.writerows(kept[k] for k in sorted(kept))
+    print(f"{levels}: {len(kept)} data sets")
+
+
 def write_summary(
     out: Path, summary: Path, evals: list[dict], envs: str, models: str, seeds: str, data_seeds: str = "0"
 ) -> None:
@@ -73,10 +99,14 @@ def main(argv: list[str]) -> int:
     parser.add_argument("--models", help="with --summary: comma-separated models (arms)")
     parser.add_argument("--seeds", help="with --summary: comma-separated seeds")
     parser.add_argument("--data-seeds", default="0", help="with --summary: comma-separated data seeds (default 0)")
+    parser.add_argument("--levels", type=Path, help="also write the no-information level of each data set here")
     args = parser.parse_args(argv)
     if args.summary and not (args.envs and args.models and args.seeds):
         parser.error("--summary needs --envs, --models and --seeds")
     evals = write_runs(args.out, args.snapshot)
+    if args.levels:
+        with open(args.snapshot, newline="") as f:
+            write_levels(args.out, list(csv.DictReader(f)), args.levels)
     if args.summary:
         write_summary(args.out, args.summary, evals, args.envs, args.models, args.seeds, args.data_seeds)
     return 0

@@ -22,16 +22,12 @@ if ((${#online[@]})); then
   python -m pets.experiments.studies.locomotion "${online[@]%/config.yaml}" --identical \
     --out docs/results/online_locomotion_runs.csv --curves docs/results/online_locomotion_curves.csv >/dev/null
 fi
-# The composition study's snapshot: every finished run of ROOT/composition/results (a remade data set's runs
-# replace the withdrawn ones: docs/studies/composition.md, amendment of 2026-11-28 21:30 UTC).
+# The composition study: every finished run of ROOT/composition/results and its data sets' levels (a remade data
+# set's runs replace the withdrawn ones: docs/studies/composition.md, amendment of 2026-11-28 21:30 UTC); the
+# report makes its summary, primary and secondary files from them.
 if compgen -G "$root/composition/results/runs/*/eval.json" >/dev/null; then
-  summary=$(mktemp -d) names=$(ls "$root/composition/results/runs")
-  envs=$(cut -d- -f1 <<<"$names" | sort -u | paste -sd,)  # run names: ENV-MODEL[-dDATA]-sSEED (data set 0: no -d)
-  data=$( (echo 0; grep -o -- '-d[0-9]*-s' <<<"$names" || true) | tr -dc '0-9\n' | sort -un | paste -sd,)
-  python docs/scripts/partial_offline_runs.py "$root/composition/results" docs/results/composition_runs_partial.csv \
-    --summary "$summary" --envs "$envs" --models delta-groupfeat,gem,gem-se,delta --seeds 0,1,2,3,4 \
-    --data-seeds "$data" >/dev/null
-  cp "$summary/summary.csv" docs/results/composition_summary_partial.csv
+  python docs/scripts/partial_offline_runs.py "$root/composition/results" docs/results/composition_runs.csv \
+    --levels docs/results/composition_levels.csv >/dev/null
 fi
 python -m pets.compare report >/dev/null
 python -m pets.compare report --check

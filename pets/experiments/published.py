@@ -241,6 +241,18 @@ def _locomotion_summary() -> Product:
     return Product("online locomotion summary", outputs, inputs, make)
 
 
+def _composition() -> Product:
+    """The composition study's summary, primary family, secondary endpoints and figure from its committed runs and
+    data sets' levels (:mod:`pets.experiments.studies.composition`)."""
+    from pets.experiments.studies import composition
+
+    def make() -> None:
+        composition.write_products(Path(RESULTS), Path("docs/figures"))
+
+    outputs = (*(_path(n) for n in composition.OUTPUTS), f"docs/figures/{composition.FIGURE}")
+    return Product("composition study", outputs, (_path(composition.RUNS), _path(composition.LEVELS)), make)
+
+
 def _headline() -> Product:
     """docs/results/headline (``pets.compare headline`` with docs/results.md's command) and its figures."""
     offline = [_path(f"paper_{e}_summary.csv") for e in ORIGINAL]
@@ -296,6 +308,7 @@ PRODUCTS: tuple[Product, ...] = (
     _headline(),
     _gate_summary(),
     _locomotion_summary(),
+    _composition(),
 )
 
 _CRLF = "written with CRLF line ends by the CSV writer of its date; today's code gives the same values with LF ends"
@@ -323,10 +336,6 @@ NOT_GENERATED: dict[str, str] = {
     _path("paper_idp_h50_per_horizon.csv"): (
         "per-horizon statistics in an older column set (p_ci_low, no n_diverged or exact p) by a command not kept "
         "in the repository; its per-run rows (paper_idp_h50_runs.csv) are committed"
-    ),
-    _path("composition_summary_partial.csv"): (
-        "a snapshot of the composition study while it runs (docs/scripts/partial_offline_runs.py --summary, from its "
-        "run directories' eval.json, not committed); its per-run rows are composition_runs_partial.csv"
     ),
     _path("onestep_before_issue18.csv"): "one-step errors per dimension of trained models that are not committed",
     _path("onestep_after_issue18.csv"): "one-step errors per dimension of trained models that are not committed",
@@ -362,8 +371,9 @@ RAW: tuple[str, ...] = (
     _path("locomotion_frozen_planning.csv"),
     _path("locomotion_reward_prediction.csv"),
     _path("locomotion_fall_prediction.csv"),
-    # the composition study (docs/studies/composition.md) while it runs: one row per finished run and horizon
-    _path("composition_runs_partial.csv"),
+    # the composition study (docs/studies/composition.md): one row per finished run and horizon; its data sets' levels
+    _path("composition_runs.csv"),
+    _path("composition_levels.csv"),
     # the online locomotion study (docs/studies/online_locomotion.md): one row per run, complete, partial or crashed
     _path("online_locomotion_runs.csv"),
     _path("online_locomotion_curves.csv"),

@@ -34,6 +34,7 @@ from pets.experiments.gate_diagnosis import (
 from pets.experiments.offline_tables import GEMSE_METRICS, own_comparison_table, paper_table, versus_table
 from pets.experiments.planning_tables import planning_table
 from pets.experiments.robustness import curves_table, data_sets_table
+from pets.experiments.studies import composition
 from pets.experiments.studies.locomotion import runs_table, summary_table
 from pets.experiments.studies.online import study_table
 from pets.runs.fileio import atomic_write_bytes
@@ -42,7 +43,7 @@ from pets.tools.cli import fail
 #: The docs that may hold generated blocks.
 BLOCK_FILES = (
     *("README.md", "docs/results.md", "docs/experiments.md", "docs/planning.md"),
-    *("docs/studies/locomotion_gate.md", "docs/studies/online_locomotion.md"),
+    *("docs/studies/locomotion_gate.md", "docs/studies/online_locomotion.md", "docs/studies/composition.md"),
 )
 #: Block name -> its content, rendered from a tree (the repository or its generated copy).
 BLOCKS: dict[str, Callable[[Path], str]] = {
@@ -73,6 +74,7 @@ BLOCKS: dict[str, Callable[[Path], str]] = {
     "locomotion-compute": compute_table,
     "online-locomotion-runs": runs_table,
     "online-locomotion": summary_table,
+    "composition": composition.study_table,
 }
 _BLOCK = re.compile(r"(<!-- report:(?P<name>[\w-]+) -->\n)(?P<body>.*?)(<!-- /report:(?P=name) -->)", re.DOTALL)
 

@@ -20,7 +20,7 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Collection, Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -164,24 +164,42 @@ def _verdict(ratio: float, p_holm: float) -> str:
     return "lower error (win)" if ratio < 1 else "higher error (loss)"
 
 
+def paired_ratio(
+    e: Mapping[Run, float], versus: Mapping[Run, float], *, reps: int = REPS, seed: int = 0
+) -> tuple[list[Run], np.ndarray, tuple[float, float, float]]:
+    """The pairs (data seed, seed) two arms share, their per-pair ratios ``e / versus`` and the IQM [CI] of those
+    ratios (the two-level bootstrap, data sets outer, with several data sets)."""
+    pairs = sorted(set(e) & set(versus))
+    ratios = np.array([e[r] / versus[r] for r in pairs])
+    if len({d for d, _ in pairs}) > 1:
+        by_data = {d: [x for (dd, _), x in zip(pairs, ratios) if dd == d] for d, _ in pairs}
+        return pairs, ratios, two_level_iqm_ci(by_data, reps=reps, seed=seed)
+    return pairs, ratios, tuple(float(v[0]) for v in iqm_ci(ratios[:, None], reps=reps, seed=seed))
+
+
 def primary_rows(
     rows: Iterable[Mapping[str, Any]],
     levels: Mapping[str, tuple[float, str]] | None = None,
     *,
     reps: int = REPS,
     seed: int = 0,
+    baseline: str = BASELINE,
+    arms: Collection[str] | None = None,
 ) -> list[dict[str, Any]]:
     """The :data:`PRIMARY_COLUMNS` rows (one per env and arm, the baseline first) from per-run rows with ``env``,
     ``model``, ``seed``, ``horizon`` and ``standardized_error``; ``levels`` {env: (level, where it came from)},
     :data:`DEFAULT_LEVEL` for the envs it lacks. Envs without baseline runs or without a tracking horizon get
-    no test (their rows say why in ``verdict``)."""
+    no test (their rows say why in ``verdict``). ``baseline``: the arm whose median sets the tracking horizons and
+    that every other arm is paired with; ``arms``: the arms tested (default: every other model of ``rows``)."""
     levels = dict(levels or {})
     out: list[dict[str, Any]] = []
     for env, models in _errors(rows).items():
         level, source = levels.get(env, (DEFAULT_LEVEL, DEFAULT_SOURCE))
-        base = models.get(BASELINE, {})
+        base = models.get(baseline, {})
         hs = tracking_horizons(base, level) if base else []
-        for model, runs in sorted(models.items(), key=lambda kv: (kv[0] != BASELINE, kv[0])):
+        for model, runs in sorted(models.items(), key=lambda kv: (kv[0] != baseline, kv[0])):
+            if arms is not None and model != baseline and model not in arms:
+                continue
             row: dict[str, Any] = {"env": env, "model": model, "level": level, "level_source": source}
             row["tracking_horizons"] = " ".join(map(str, hs))
             if not hs:
@@ -194,17 +212,11 @@ def primary_rows(
                 float(v[0]) for v in iqm_ci(vals, reps=reps, seed=seed)
             )
             row["n_past_level"] = sum(any(not r[h] < level for h in hs) for r in runs.values())
-            if model != BASELINE:
+            if model != baseline:
                 eb = {s: endpoint(r, hs, level) for s, r in base.items() if all(h in r for h in hs)}
-                pairs = sorted(set(e) & set(eb))
-                ratios = np.array([e[s] / eb[s] for s in pairs])
+                pairs, ratios, ci = paired_ratio(e, eb, reps=reps, seed=seed)
                 row["n_pairs"] = len(pairs)
                 row["n_data_sets"] = len({d for d, _ in pairs})
-                if row["n_data_sets"] > 1:  # data sets as the outer level of the bootstrap
-                    by_data = {d: [r for (dd, _), r in zip(pairs, ratios) if dd == d] for d, _ in pairs}
-                    ci = two_level_iqm_ci(by_data, reps=reps, seed=seed)
-                else:
-                    ci = tuple(float(v[0]) for v in iqm_ci(ratios[:, None], reps=reps, seed=seed))
                 row.update(zip(RATIO, ci))
                 row[P_EXACT] = sign_flip_p(np.log(ratios))
                 p = p_improvement_ci(vals, np.array(list(eb.values()))[:, None], reps=reps, seed=seed)
@@ -257,13 +269,7 @@ def versus_rows(
                 continue
             e, ev = ({r: endpoint(v, hs, level) for r, v in models[m].items() if all(h in v for h in hs)}
                      for m in (model, versus))  # fmt: skip
-            pairs = sorted(set(e) & set(ev))
-            ratios = np.array([e[r] / ev[r] for r in pairs])
-            if len({d for d, _ in pairs}) > 1:
-                by_data = {d: [x for (dd, _), x in zip(pairs, ratios) if dd == d] for d, _ in pairs}
-                ci = two_level_iqm_ci(by_data, reps=reps, seed=seed)
-            else:
-                ci = tuple(float(v[0]) for v in iqm_ci(ratios[:, None], reps=reps, seed=seed))
+            pairs, ratios, ci = paired_ratio(e, ev, reps=reps, seed=seed)
             out.append(
                 {
                     "env": env,

@@ -1,0 +1,269 @@
+"""The composition study (docs/studies/composition.md, issue 53): is GEM's gain on the 3D bodies its inputs or its
+composition? Every number is made from the study's committed per-run rows (``composition_runs.csv``: one row per
+run and horizon, the run's data set named by its test file) and its data sets' no-information levels
+(``composition_levels.csv``).
+
+- :func:`primary_rows` (the pre-registered family): per env, ``gem`` and ``gem-se`` against ``delta-groupfeat`` on
+  the offline primary endpoint (:mod:`pets.experiments.studies.primary`, ``delta-groupfeat``'s median setting the
+  tracking horizons), paired by (data set, seed), Holm over every test present (4 once both envs have run).
+- :func:`secondary_rows` (labelled so): the same ratios of ``rotation_error`` at those horizons (a non-finite
+  error counts as the largest possible, every angle pi); and the paper's long-horizon claim, ``gem / delta`` of the
+  standardized error at h = 50 where ``delta``'s median there is below the level (clipped at it), exact p, no Holm.
+- :func:`horizon_rows`: per env, arm, metric and horizon the IQM of the runs with its CI (the figure's points).
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Iterable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pets.experiments.report import fmt, fmt_interval, md_table
+from pets.experiments.statistics import iqm_ci, sign_flip_p, two_level_iqm_ci
+from pets.experiments.studies import primary as offline_primary
+from pets.experiments.studies.base import P_EXACT, P_HOLM, RATIO
+from pets.experiments.studies.primary import Run, endpoint, paired_ratio, tracking_horizons
+
+#: The baseline of the primary family (GEM's inputs, delta's targets) and the arms tested against it.
+BASELINE = "delta-groupfeat"
+ARMS = ("gem", "gem-se")
+#: The long-horizon secondary: ``model / versus`` at ``horizon``.
+LONG_HORIZON = ("gem", "delta", 50)
+METRICS = ("standardized_error", "rotation_error")
+#: The registered pairs per comparison (3 data sets x 5 seeds): a row with fewer is a snapshot, with no verdict.
+PAIRS = 15
+SECONDARY_COLUMNS = ["endpoint", "env", "model", "versus", "horizons", "n_pairs", "n_data_sets", "ratio",
+                     "ratio_ci_low", "ratio_ci_high", P_EXACT, "n_lower", "note"]  # fmt: skip
+HORIZON_COLUMNS = ["env", "model", "metric", "horizon", "n_runs", "iqm", "ci_low", "ci_high"]
+LEVEL_COLUMNS = ["env", "data_seed", "level"]
+
+
+def data_seed(test_file: str) -> int:
+    """The data set of a run from its test file's name (``ant-test.npz``: 0, ``ant-d2-test.npz``: 2)."""
+    found = re.search(r"-d(\d+)-test\.npz$", test_file)
+    return int(found.group(1)) if found else 0
+
+
+def with_data_seed(rows: Iterable[Mapping[str, Any]]) -> list[dict[str, Any]]:
+    """The runs' rows with ``data_seed`` read from their ``data`` column."""
+    return [{**r, "data_seed": data_seed(str(r["data"]))} for r in rows]
+
+
+def env_levels(level_rows: Iterable[Mapping[str, Any]]) -> dict[str, tuple[float, str]]:
+    """{env: (level, source)}: the mean of the no-information levels of the env's data sets."""
+    by_env: dict[str, dict[int, float]] = {}
+    for r in level_rows:
+        by_env.setdefault(str(r["env"]), {})[int(r["data_seed"])] = float(r["level"])
+    return {
+        env: (float(np.mean(list(v.values()))), f"mean of data sets {', '.join(map(str, sorted(v)))}")
+        for env, v in by_env.items()
+    }
+
+
+def primary_rows(rows: Iterable[Mapping[str, Any]], levels: Mapping[str, tuple[float, str]]) -> list[dict[str, Any]]:
+    """The pre-registered family (:data:`PRIMARY_COLUMNS`): ``delta-groupfeat``'s row, then gem's and gem-se's."""
+    return offline_primary.primary_rows(with_data_seed(rows), levels, baseline=BASELINE, arms=ARMS)
+
+
+def _by_run(rows: Iterable[Mapping[str, Any]], metric: str) -> dict[str, dict[str, dict[Run, dict[int, float]]]]:
+    """{env: {model: {(data seed, seed): {horizon: metric}}}}, a missing or non-finite value as inf."""
+    out: dict[str, dict[str, dict[Run, dict[int, float]]]] = {}
+    for r in with_data_seed(rows):
+        value = float(r[metric]) if r.get(metric) not in (None, "") else math.inf
+        runs = out.setdefault(str(r["env"]), {}).setdefault(str(r["model"]), {})
+        runs.setdefault((r["data_seed"], int(r["seed"])), {})[int(r["horizon"])] = (
+            value if math.isfinite(value) else math.inf
+        )
+    return out
+
+
+def worst_rotation(env: str) -> float:
+    """The largest ``rotation_error`` the env's layout allows: pi for every rotation group's geodesic angle."""
+    import envs
+    from gem_head.codecs import CODECS
+
+    groups = sum(CODECS[g.kind].is_rotation for g in envs.get(env).layout.groups)
+    return math.pi * math.sqrt(groups)
+
+
+def _ratio_row(endpoint_name: str, env: str, model: str, versus: str, hs: Sequence[int],
+               e: Mapping[Run, float], ev: Mapping[Run, float]) -> dict[str, Any]:  # fmt: skip
+    pairs, ratios, ci = paired_ratio(e, ev)
+    return {
+        "endpoint": endpoint_name, "env": env, "model": model, "versus": versus, "horizons": " ".join(map(str, hs)),
+        "n_pairs": len(pairs), "n_data_sets": len({d for d, _ in pairs}),
+        **dict(zip(("ratio", "ratio_ci_low", "ratio_ci_high"), ci)),
+        P_EXACT: sign_flip_p(np.log(ratios)), "n_lower": int((ratios < 1).sum()), "note": "",
+    }  # fmt: skip
+
+
+def secondary_rows(rows: Sequence[Mapping[str, Any]], levels: Mapping[str, tuple[float, str]]) -> list[dict[str, Any]]:
+    """The pre-registered secondary endpoints (:data:`SECONDARY_COLUMNS`; no Holm): ``rotation_error`` of each arm
+    against ``delta-groupfeat`` at the primary's tracking horizons, then ``gem / delta`` at h = 50."""
+    std, rot = _by_run(rows, METRICS[0]), _by_run(rows, METRICS[1])
+    out = []
+    for env, models in std.items():
+        level = levels[env][0]
+        hs = tracking_horizons(models.get(BASELINE, {}), level) if BASELINE in models else []
+        worst = worst_rotation(env)
+        for arm in ARMS:
+            if hs and arm in models:
+                e, eb = ({run: float(np.mean([min(v[h], worst) for h in hs])) for run, v in rot[env][m].items()
+                          if all(h in v for h in hs)} for m in (arm, BASELINE))  # fmt: skip
+                out.append(_ratio_row("rotation_error", env, arm, BASELINE, hs, e, eb))
+        model, versus, h = LONG_HORIZON
+        if model in models and versus in models:
+            base = {run: v for run, v in models[versus].items() if h in v}
+            median = float(np.median([v[h] for v in base.values()])) if base else math.inf
+            if not median < level:
+                why = f"{versus} no longer tracks at h = {h} (its median is past the level): the claim cannot be tested"
+                out.append({"endpoint": f"standardized_error at h = {h}", "env": env, "model": model, "versus": versus,
+                            "horizons": str(h), "note": why})  # fmt: skip
+                continue
+            e, ev = ({run: endpoint(v, [h], level) for run, v in models[m].items() if h in v} for m in (model, versus))
+            out.append(_ratio_row(f"standardized_error at h = {h}", env, model, versus, [h], e, ev))
+    return out
+
+
+def horizon_rows(rows: Sequence[Mapping[str, Any]], levels: Mapping[str, tuple[float, str]]) -> list[dict[str, Any]]:
+    """Per env, arm, metric and horizon (:data:`HORIZON_COLUMNS`): the IQM over the runs with its CI (two-level
+    over several data sets), a non-finite error counted at its cap (the level; every angle pi)."""
+    out = []
+    for metric in METRICS:
+        for env, models in _by_run(rows, metric).items():
+            cap = levels[env][0] if metric == METRICS[0] else worst_rotation(env)
+            for model, runs in models.items():
+                for h in sorted({h for v in runs.values() for h in v}):
+                    values = {run: min(v[h], cap) for run, v in runs.items() if h in v}
+                    by_data: dict[int, list[float]] = {}
+                    for (d, _), x in values.items():
+                        by_data.setdefault(d, []).append(x)
+                    if len(by_data) > 1:
+                        ci = two_level_iqm_ci(by_data)
+                    else:
+                        ci = tuple(float(v[0]) for v in iqm_ci(np.array(list(values.values()))[:, None]))
+                    out.append({"env": env, "model": model, "metric": metric, "horizon": h,
+                                "n_runs": len(values), **dict(zip(("iqm", "ci_low", "ci_high"), ci))})  # fmt: skip
+    return out
+
+
+def _p(x: float | None) -> str:
+    return "" if x is None else fmt(x, 3)
+
+
+def _pairs(r: Mapping[str, Any]) -> str:
+    return f"{r['n_pairs']} ({r['n_data_sets']})" if r.get("n_pairs") is not None else ""
+
+
+def _primary_line(r: Mapping[str, Any]) -> list[str]:
+    ratio = fmt_interval(r.get(RATIO[0]), r.get(RATIO[1]), r.get(RATIO[2]), missing="", digits=3)
+    cells = [r["env"], r["model"], _pairs(r), r["tracking_horizons"] or "", ratio]
+    n = int(r.get("n_pairs") or 0)
+    verdict = r["verdict"] if n >= PAIRS else f"none yet (a snapshot: {n} of {PAIRS} pairs)"
+    return cells + [_p(r.get(P_EXACT)), _p(r.get(P_HOLM)), verdict]
+
+
+def _secondary_line(r: Mapping[str, Any]) -> list[str]:
+    ratio = fmt_interval(r.get("ratio"), r.get("ratio_ci_low"), r.get("ratio_ci_high"), missing="", digits=3)
+    lower = "" if r.get("n_lower") is None else str(r["n_lower"])
+    cells = [r["endpoint"], r["env"], f"{r['model']} / {r['versus']}", _pairs(r), ratio, _p(r.get(P_EXACT))]
+    return cells + [lower, r.get("note") or ""]
+
+
+def markdown(primary: Sequence[Mapping[str, Any]], secondary: Sequence[Mapping[str, Any]]) -> str:
+    """The study's generated block: the primary family, then the secondary endpoints."""
+    head = ["env", "arm", "pairs (data sets)", "tracking horizons", "ratio [CI]", "exact p", "Holm p", "verdict"]
+    second = ["endpoint", "env", "model / versus", "pairs (data sets)", "ratio [CI]", "exact p", "lower in", "note"]
+    lines = [
+        "Primary (a family of 4 tests registered, Holm over the tests present): arm / delta-groupfeat of the "
+        "standardized error averaged over delta-groupfeat's tracking horizons, IQM [95 % CI] of the per-pair ratios.",
+        "",
+        md_table(head, [_primary_line(r) for r in primary if r["model"] != BASELINE]),
+        "",
+        "Secondary (pre-registered, no Holm): rotation_error at the same horizons; the paper's long-horizon claim.",
+        "",
+        md_table(second, [_secondary_line(r) for r in secondary]),
+    ]
+    return "\n".join(lines) + "\n"
+
+
+def plot(horizons: Sequence[Mapping[str, Any]], path: Path) -> None:
+    """The four arms' error per horizon (one column per env; standardized error, rotation error), CI bands."""
+    from pets.experiments.plots import figure_bytes, model_colors, pyplot
+    from pets.runs.fileio import atomic_write_bytes
+
+    envs = list(dict.fromkeys(r["env"] for r in horizons))
+    models = (BASELINE, *ARMS, LONG_HORIZON[1])
+    colors = model_colors(models)
+    fig, axes = pyplot().subplots(2, len(envs), figsize=(5 * len(envs), 7), squeeze=False)
+    for col, env in enumerate(envs):
+        for row, metric in enumerate(METRICS):
+            ax = axes[row][col]
+            for model in models:
+                pts = [r for r in horizons if r["env"] == env and r["metric"] == metric and r["model"] == model]
+                if pts:
+                    h, c = [r["horizon"] for r in pts], colors[model]
+                    ax.plot(h, [r["iqm"] for r in pts], marker="o", color=c, label=f"{model} ({pts[0]['n_runs']} runs)")
+                    ax.fill_between(h, [r["ci_low"] for r in pts], [r["ci_high"] for r in pts], color=c, alpha=0.2)
+            ax.set(xscale="log", xlabel="horizon (steps)", ylabel=f"{metric.replace('_', ' ')} (IQM, 95 % CI)")
+            ax.set_title(env)
+            ax.legend(fontsize=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_bytes(path, figure_bytes(fig))
+
+
+#: The study's committed inputs and generated outputs (``pets.compare report``), relative to the results folder.
+RUNS, LEVELS = "composition_runs.csv", "composition_levels.csv"
+OUTPUTS = tuple(f"composition_{name}.csv" for name in ("summary", "primary", "secondary", "horizons"))
+FIGURE = "composition.png"
+
+
+def write_products(results: Path, figures: Path) -> None:
+    """Every generated file of the study from its committed runs and levels: the offline summary (each arm
+    against ``delta``, :func:`pets.experiments.studies.offline.summary_from_runs`), the primary family, the
+    secondary endpoints, the per-horizon points and their figure."""
+    from pets.experiments.report import read_csv_rows, write_csv
+    from pets.experiments.studies.offline import SUMMARY_COLUMNS, summary_from_runs
+
+    rows = read_csv_rows(results / RUNS)
+    levels = env_levels(read_csv_rows(results / LEVELS))
+    summary = []
+    for env in dict.fromkeys(r["env"] for r in rows):
+        summary += summary_from_runs(with_data_seed(r for r in rows if r["env"] == env), levels[env][0])[0]
+    horizons = horizon_rows(rows, levels)
+    tables = (
+        (summary, SUMMARY_COLUMNS),
+        (primary_rows(rows, levels), offline_primary.PRIMARY_COLUMNS),
+        (secondary_rows(rows, levels), SECONDARY_COLUMNS),
+        (horizons, HORIZON_COLUMNS),
+    )
+    for name, (table, columns) in zip(OUTPUTS, tables, strict=True):
+        write_csv(results / name, table, columns)
+    plot(horizons, figures / FIGURE)
+
+
+def study_table(tree: Path) -> str:
+    """The generated block of docs/studies/composition.md, from the generated primary and secondary files."""
+    from pets.experiments.report import read_csv_rows
+
+    def value(text: str) -> Any:
+        try:
+            return None if text == "" else float(text)
+        except ValueError:
+            return text
+
+    def numbers(path: Path) -> list[dict[str, Any]]:
+        return [{k: v if "horizons" in k else value(v) for k, v in r.items()} for r in read_csv_rows(path)]
+
+    results = tree / "docs" / "results"
+    primary, secondary = (numbers(results / name) for name in OUTPUTS[1:3])
+    for r in (*primary, *secondary):
+        for k in ("n_pairs", "n_data_sets", "n_lower"):
+            if r.get(k) is not None:
+                r[k] = int(r[k])
+    return markdown(primary, secondary)
