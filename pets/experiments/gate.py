@@ -354,10 +354,7 @@ def write_csv(
     from pets.experiments.report import write_csv as write_rows
 
     text = [{c: cell_text(r[c]) for c in columns} for r in rows]
-    if keep:
-        text, kept = merge_committed(path, text, keep)
-        if kept:
-            print(f"{path}: kept {kept} committed rows whose run directories were not given", file=sys.stderr)
+    text = merge_committed(path, text, keep)[0] if keep else text
     write_rows(path, text, columns)
     return text
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import io
 import math
+import sys
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -93,7 +94,8 @@ def merge_committed(
     """``rows`` (cells as text) merged into the CSV already at ``path``: the committed rows in their order, those of
     a ``key`` that ``rows`` has replaced by all of ``rows``' rows of that key (several for a curve), then the keys
     that are new. A committed row whose run directory is no longer on this machine (a finished run, a replaced
-    machine) is kept as it is, never lost by rewriting the table. Returns the rows and how many were kept."""
+    machine) is kept as it is, never lost by rewriting the table (a line on stderr says how many). Returns the rows
+    and how many were kept."""
     new: dict[tuple[str, ...], list[dict[str, str]]] = {}
     for r in rows:
         new.setdefault(tuple(r[k] for k in key), []).append(dict(r))
@@ -112,4 +114,6 @@ def merge_committed(
         elif k not in placed:
             out += new[k]
             placed.add(k)
+    if kept:
+        print(f"{path}: kept {kept} committed rows whose run directories were not given", file=sys.stderr)
     return out + [r for k, group in new.items() if k not in placed for r in group], kept

@@ -21,31 +21,27 @@ CONCRETE_PRECISIONS = ("fp32", "bf16")
 
 
 @functools.lru_cache(maxsize=1)
-def cpu_flags() -> frozenset[str]:
-    """The CPU feature flags of ``/proc/cpuinfo`` (empty off Linux or when unreadable)."""
+def _cpuinfo_field(name: str) -> str:
+    """The first ``name : value`` of ``/proc/cpuinfo`` ("" off Linux, when unreadable or absent)."""
     if not sys.platform.startswith("linux"):
-        return frozenset()
+        return ""
     try:
         with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("flags"):
-                    return frozenset(line.partition(":")[2].split())
+            return next((line.partition(":")[2].strip() for line in f if line.startswith(name)), "")
     except OSError:
-        pass
-    return frozenset()
+        return ""
 
 
 @functools.lru_cache(maxsize=1)
+def cpu_flags() -> frozenset[str]:
+    """The CPU feature flags of ``/proc/cpuinfo`` (empty off Linux or when unreadable)."""
+    return frozenset(_cpuinfo_field("flags").split())
+
+
 def cpu_name() -> str:
     """The CPU's model name and bf16 ISA, e.g. ``Intel(R) Xeon(R) Processor (AMX)`` (the platform's processor
     name off Linux; ``unknown`` where neither says)."""
-    name = ""
-    try:
-        with open("/proc/cpuinfo") as f:
-            name = next((line.partition(":")[2].strip() for line in f if line.startswith("model name")), "")
-    except OSError:
-        pass
-    return f"{name or platform.processor() or 'unknown'} ({cpu_isa()})"
+    return f"{_cpuinfo_field('model name') or platform.processor() or 'unknown'} ({cpu_isa()})"
 
 
 def cpu_isa(flags: frozenset[str] | None = None) -> str:

@@ -275,10 +275,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = [run_row(d, crashed=d in args.crashed) for d in args.run_dirs]
     text = [{c: gate.cell_text(r[c]) for c in RUN_COLUMNS} for r in rows]
     if keep:
-        text, kept = merge_committed(args.out, text, keep)
-        text = [r for r in text if r["status"] != IDENTICAL_STATUS]  # derived again below
-        if kept:
-            print(f"{args.out}: kept {kept} committed rows whose run directories were not given", file=sys.stderr)
+        text = [r for r in merge_committed(args.out, text, keep)[0] if r["status"] != IDENTICAL_STATUS]  # derived below
     if args.identical:
         try:
             text += identical_rows(text)
