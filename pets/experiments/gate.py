@@ -293,8 +293,9 @@ def ceiling(rows: Sequence[Mapping[str, Any]]) -> dict[str, float]:
     from pets.config import make_config
 
     out: dict[str, list[float]] = {}
+    planners = {env: make_config(env, "delta", "locomotion").planner for env in {r["env"] for r in rows}}
     for r in rows:
-        p = make_config(r["env"], "delta", "locomotion").planner
+        p = planners[r["env"]]
         setting = (r["planner"], r.get("candidates", "open_loop"), r["population"], r["horizon"], r["iterations"],
                    r["termination_penalty"])  # fmt: skip
         if not r.get("terminal_value") and setting == (p.name, p.candidates, p.population, p.horizon, p.iterations,
