@@ -125,3 +125,14 @@ def test_the_products_and_the_block_are_made_from_the_committed_rows_only(tmp_pa
     block = composition.study_table(tmp_path)
     assert "| ant | gem | 6 (2) | 1 5 10 25 | 0.9 [0.9, 0.9] |" in block
     assert "| standardized_error at h = 50 | ant | gem / delta | 6 (2) |" in block
+
+
+def test_a_run_without_its_envs_level_is_named(tmp_path: Path):
+    rows = _study(0.9, 1.0)
+    with open(tmp_path / composition.RUNS, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    (tmp_path / composition.LEVELS).write_text("env,data_seed,level\nhumanoid,0,1.4\n")
+    with pytest.raises(ValueError, match=r"composition_levels.csv: no level for ant \(partial_offline_runs.py"):
+        composition.write_products(tmp_path, tmp_path)

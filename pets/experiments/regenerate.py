@@ -176,7 +176,7 @@ def report_main(args: argparse.Namespace) -> int:
             print(f"{PROG} report --check: {len(published.outputs())} files and the generated blocks are up to date")
             return 0
         changed = write(root)
-    except ReportError as err:
+    except ValueError as err:  # a ReportError, or a committed input a product cannot read (said in one line)
         fail(f"{PROG} report", str(err))
     print(f"{PROG} report: {len(changed)} file(s) written{': ' + ', '.join(changed) if changed else ''}")
     return 0

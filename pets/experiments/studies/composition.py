@@ -232,6 +232,9 @@ def write_products(results: Path, figures: Path) -> None:
 
     rows = read_csv_rows(results / RUNS)
     levels = env_levels(read_csv_rows(results / LEVELS))
+    missing = sorted({r["env"] for r in rows} - set(levels))
+    if missing:
+        raise ValueError(f"{results / LEVELS}: no level for {', '.join(missing)} (partial_offline_runs.py --levels)")
     summary = []
     for env in dict.fromkeys(r["env"] for r in rows):
         summary += summary_from_runs(with_data_seed(r for r in rows if r["env"] == env), levels[env][0])[0]
