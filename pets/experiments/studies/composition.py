@@ -23,10 +23,10 @@ from typing import Any
 import numpy as np
 
 from pets.experiments.report import fmt, fmt_interval, md_table
-from pets.experiments.statistics import iqm_ci, sign_flip_p, two_level_iqm_ci
+from pets.experiments.statistics import sign_flip_p
 from pets.experiments.studies import primary as offline_primary
 from pets.experiments.studies.base import P_EXACT, P_HOLM, RATIO
-from pets.experiments.studies.primary import Run, endpoint, paired_ratio, tracking_horizons
+from pets.experiments.studies.primary import Run, endpoint, paired_ratio, run_iqm_ci, tracking_horizons
 
 #: The baseline of the primary family (GEM's inputs, delta's targets) and the arms tested against it.
 BASELINE = "delta-groupfeat"
@@ -139,13 +139,7 @@ def horizon_rows(rows: Sequence[Mapping[str, Any]], levels: Mapping[str, tuple[f
             for model, runs in models.items():
                 for h in sorted({h for v in runs.values() for h in v}):
                     values = {run: min(v[h], cap) for run, v in runs.items() if h in v}
-                    by_data: dict[int, list[float]] = {}
-                    for (d, _), x in values.items():
-                        by_data.setdefault(d, []).append(x)
-                    if len(by_data) > 1:
-                        ci = two_level_iqm_ci(by_data)
-                    else:
-                        ci = tuple(float(v[0]) for v in iqm_ci(np.array(list(values.values()))[:, None]))
+                    ci = run_iqm_ci(values)
                     out.append({"env": env, "model": model, "metric": metric, "horizon": h,
                                 "n_runs": len(values), **dict(zip(("iqm", "ci_low", "ci_high"), ci))})  # fmt: skip
     return out

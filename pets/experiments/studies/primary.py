@@ -164,17 +164,25 @@ def _verdict(ratio: float, p_holm: float) -> str:
     return "lower error (win)" if ratio < 1 else "higher error (loss)"
 
 
+def run_iqm_ci(values: Mapping[Run, float], *, reps: int = REPS, seed: int = 0) -> tuple[float, float, float]:
+    """The IQM [CI] of per-run values {(data seed, seed): value}: with several data sets the two-level bootstrap
+    (:func:`pets.experiments.statistics.two_level_iqm_ci`, data sets outer), else the stratified one."""
+    by_data: dict[int, list[float]] = {}
+    for (d, _), x in values.items():
+        by_data.setdefault(d, []).append(x)
+    if len(by_data) > 1:
+        return two_level_iqm_ci(by_data, reps=reps, seed=seed)
+    return tuple(float(v[0]) for v in iqm_ci(np.array(list(values.values()))[:, None], reps=reps, seed=seed))
+
+
 def paired_ratio(
     e: Mapping[Run, float], versus: Mapping[Run, float], *, reps: int = REPS, seed: int = 0
 ) -> tuple[list[Run], np.ndarray, tuple[float, float, float]]:
     """The pairs (data seed, seed) two arms share, their per-pair ratios ``e / versus`` and the IQM [CI] of those
-    ratios (the two-level bootstrap, data sets outer, with several data sets)."""
+    ratios (:func:`run_iqm_ci`)."""
     pairs = sorted(set(e) & set(versus))
     ratios = np.array([e[r] / versus[r] for r in pairs])
-    if len({d for d, _ in pairs}) > 1:
-        by_data = {d: [x for (dd, _), x in zip(pairs, ratios) if dd == d] for d, _ in pairs}
-        return pairs, ratios, two_level_iqm_ci(by_data, reps=reps, seed=seed)
-    return pairs, ratios, tuple(float(v[0]) for v in iqm_ci(ratios[:, None], reps=reps, seed=seed))
+    return pairs, ratios, run_iqm_ci(dict(zip(pairs, ratios)), reps=reps, seed=seed)
 
 
 def primary_rows(
