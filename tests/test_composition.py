@@ -108,15 +108,19 @@ def test_levels_are_the_mean_of_the_data_sets():
     assert level == pytest.approx(1.3) and source == "mean of data sets 0, 1"
 
 
-def test_the_products_and_the_block_are_made_from_the_committed_rows_only(tmp_path: Path):
-    results, figures = tmp_path / "docs" / "results", tmp_path / "docs" / "figures"
-    results.mkdir(parents=True)
-    rows = _study(0.9, 1.05)
+def _commit(results: Path, rows: list[dict], levels: str) -> None:
+    """The study's committed inputs in ``results``: its runs and its levels' rows (``levels``, after the header)."""
     with open(results / composition.RUNS, "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))
         writer.writeheader()
         writer.writerows(rows)
-    (results / composition.LEVELS).write_text("env,data_seed,level\nant,0,1.0\nant,1,1.0\n")
+    (results / composition.LEVELS).write_text("env,data_seed,level\n" + levels)
+
+
+def test_the_products_and_the_block_are_made_from_the_committed_rows_only(tmp_path: Path):
+    results, figures = tmp_path / "docs" / "results", tmp_path / "docs" / "figures"
+    results.mkdir(parents=True)
+    _commit(results, _study(0.9, 1.05), "ant,0,1.0\nant,1,1.0\n")
     composition.write_products(results, figures)
     assert all((results / name).is_file() for name in composition.OUTPUTS) and (figures / composition.FIGURE).is_file()
     with open(results / "composition_summary.csv", newline="") as f:
@@ -128,11 +132,6 @@ def test_the_products_and_the_block_are_made_from_the_committed_rows_only(tmp_pa
 
 
 def test_a_run_without_its_envs_level_is_named(tmp_path: Path):
-    rows = _study(0.9, 1.0)
-    with open(tmp_path / composition.RUNS, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
-    (tmp_path / composition.LEVELS).write_text("env,data_seed,level\nhumanoid,0,1.4\n")
+    _commit(tmp_path, _study(0.9, 1.0), "humanoid,0,1.4\n")
     with pytest.raises(ValueError, match=r"composition_levels.csv: no level for ant \(partial_offline_runs.py"):
         composition.write_products(tmp_path, tmp_path)
