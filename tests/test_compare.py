@@ -34,12 +34,12 @@ from pets.experiments.cli import EXIT_FAILED, main
 from pets.experiments.headline import HeadlineError, write_headline
 from pets.experiments.offline import compare_offline
 from pets.experiments.offline_summary import summarise_offline
-from pets.experiments.online_summary import SUMMARY_COLUMNS as ONLINE_COLUMNS
-from pets.experiments.online_summary import summarise_online
 from pets.experiments.report import fmt, fmt_interval, write_csv
 from pets.experiments.statistics import REPS, ci_exact_note, holm
 from pets.experiments.studies.offline import SUMMARY_COLUMNS, summary_from_runs
 from pets.experiments.studies.online import STUDY as ONLINE_STUDY
+from pets.experiments.studies.online import SUMMARY_COLUMNS as ONLINE_COLUMNS
+from pets.experiments.studies.online import summarise_online
 from pets.runs import rundir
 from tests.processes import alive, default_sigint
 from tests.threads import one_thread
@@ -457,7 +457,7 @@ def test_online_summary_md_has_iqm_p_and_no_nan_or_inf(fake_online):
 def test_online_time_to_threshold_counts_runs_that_never_reach_it(tmp_path):
     """Issue 13: minutes (wall_time_s / 60 at the end of the first trial at or above the threshold) and env steps
     to the threshold; the IQM [CI] over the runs that reached it, the others counted in n_reached."""
-    from pets.experiments.online_runs import THRESHOLDS, time_to_threshold
+    from pets.experiments.studies.online import THRESHOLDS, time_to_threshold
 
     assert THRESHOLDS["invertedpendulum"] == 1000 and THRESHOLDS["reacher"] == -5 and "halfcheetah" in THRESHOLDS
     for model in ("delta", "gem"):
@@ -1373,7 +1373,7 @@ def test_bad_arms_are_one_line_exit_2(arm, fragment, tmp_path, capsys):
 def test_online_until_threshold_stops_each_run_at_the_mark_and_counts_it_complete(tmp_path, capsys, monkeypatch):
     """--until-threshold: stop_reward = the env's threshold, a run ends after its first trial at or above it, is
     complete with fewer than --trials rows (summary, reuse), and resuming it adds nothing."""
-    from pets.experiments.online_runs import THRESHOLDS
+    from pets.experiments.studies.online import THRESHOLDS
 
     monkeypatch.setitem(THRESHOLDS, "invertedpendulum", 3.0)  # every tiny episode lasts >= 3 steps: trial 0 stops
     args = ["online", "--envs", "invertedpendulum", "--models", "delta", "--seeds", "0,1", "--trials", 4, "--out",

@@ -729,7 +729,7 @@ def test_the_checkpoint_keeps_the_keys_of_before_the_parts_protocol_and_round_tr
 def test_metrics_written_before_the_cpu_column_read_back_with_nan(tmp_path) -> None:
     """A run resumed from a checkpoint of before ``cpu_time_s``: its old rows have no such key, written as nan (a
     float the readers parse), and the online statistics give no CPU minutes for it instead of failing."""
-    from pets.experiments.online_runs import online_run_stats
+    from pets.experiments.studies.online import online_run_stats
 
     old = {"trial": 0, "env_steps": 10, "episode_reward": 5.0, "episode_length": 10, "wall_time_s": 3.0}
     new = {**old, "trial": 1, "env_steps": 20, "wall_time_s": 6.0, "cpu_time_s": math.nan}

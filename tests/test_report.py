@@ -186,8 +186,8 @@ def test_the_versus_table_and_an_env_filtered_table_read_the_committed_files() -
 def test_the_planning_table_reads_the_per_env_summaries_and_the_headlines_holm_step() -> None:
     """HalfCheetah's open loop: gem's difference to delta is the summary's, sign included (prose once had it
     flipped); the closed loop carries Holm's p from the headline; exploratory rows say so."""
-    from pets.experiments.planning_tables import planning_table
     from pets.experiments.report import read_csv_rows
+    from pets.experiments.studies.planning import planning_table
 
     opened = next(
         r for r in read_csv_rows(ROOT / published.RESULTS / "openloop_halfcheetah_summary.csv") if r["model"] == "gem"

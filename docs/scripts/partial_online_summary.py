@@ -4,7 +4,7 @@
         --trials 50 [--final-window 3] [--metrics-to DIR]
 
 Copies every run's metrics.csv, config.yaml and history.csv (not the checkpoints) from ``STUDY_OUT/runs`` to
-``SNAPSHOT/runs`` and writes the study's summary there (``pets.experiments.online_summary.summarise_online``: the
+``SNAPSHOT/runs`` and writes the study's summary there (``pets.experiments.studies.online.summarise_online``: the
 runs with all their trials enter the statistics, the others are listed as incomplete). Safe while the sweep runs:
 it never writes under ``STUDY_OUT`` and starts no run. ``--metrics-to DIR`` also copies every run's metrics.csv
 to ``DIR/RUN.csv`` (what to commit so that a lost machine loses no finished trial's numbers).
@@ -17,7 +17,7 @@ import shutil
 import sys
 from pathlib import Path
 
-from pets.experiments.online_summary import summarise_online
+from pets.experiments.studies.online import summarise_online
 
 
 def main(argv: list[str] | None = None) -> int:

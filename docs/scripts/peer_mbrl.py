@@ -498,7 +498,7 @@ def write_csv(path: Path, rows: list[dict[str, Any]]) -> None:
 
 # ---------------------------------------------------------------------------------------------- learn
 #: Per env: mbrl-lib's example override values that have no counterpart in this project's config (weight decay),
-#: the time-to-threshold mark (pets.experiments.online_summary.THRESHOLDS; InvertedPendulum's is its
+#: the time-to-threshold mark (pets.experiments.studies.online.THRESHOLDS; InvertedPendulum's is its
 #: maximum, i.e. the episode length), and mbrl's own reward/termination functions where it has them for the env.
 LEARN_ENVS: dict[str, dict[str, Any]] = {
     "invertedpendulum": {"weight_decay": 3.3e-5, "mbrl_fns": ("inverted_pendulum", "inverted_pendulum")},
@@ -757,7 +757,7 @@ def learn(args: argparse.Namespace) -> int:
     import torch
 
     import envs
-    from pets.experiments.online_runs import THRESHOLDS, time_to_threshold
+    from pets.experiments.studies.online import THRESHOLDS, time_to_threshold
 
     torch.set_num_threads(args.threads)
     spec = envs.get(args.env)

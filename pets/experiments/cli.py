@@ -35,7 +35,7 @@ are never mixed. Bad lists, envs, models or keys exit 2 with one line; a failed 
 the others go on, the summary covers the finished runs, and the exit status is 1.
 
 The options: :mod:`pets.experiments.options`. The modes: :mod:`pets.experiments.online` and
-:mod:`pets.experiments.offline`; the files they write: :mod:`pets.experiments.online_summary` and
+:mod:`pets.experiments.offline`; the files they write: :mod:`pets.experiments.studies.online` and
 :mod:`pets.experiments.offline_summary`.
 """
 

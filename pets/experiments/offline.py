@@ -48,9 +48,9 @@ from pets.experiments.offline_data import (
 )
 from pets.experiments.offline_jobs import CLOSED, offline_job, offline_todo
 from pets.experiments.offline_summary import summarise_offline
-from pets.experiments.planning_summary import summarise_openloop
 from pets.experiments.rundirs import NOT_COMPARED, check_out_writable, check_same_config, left_to_auto, run_name
 from pets.experiments.runner import open_backend
+from pets.experiments.studies.planning import summarise_openloop
 
 #: Seed of the start points of the prediction-error evaluation (the same for every model and seed).
 EVAL_SEED = 0

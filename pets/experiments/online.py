@@ -30,8 +30,6 @@ from typing import Any
 
 from pets.experiments.arguments import PROG, UsageError, few_seeds_warning
 from pets.experiments.backend import Backend
-from pets.experiments.online_runs import THRESHOLDS, online_rows
-from pets.experiments.online_summary import summarise_online
 from pets.experiments.rundirs import (
     NOT_COMPARED,
     check_out_writable,
@@ -41,6 +39,7 @@ from pets.experiments.rundirs import (
     run_name,
 )
 from pets.experiments.runner import online_job, open_backend
+from pets.experiments.studies.online import THRESHOLDS, online_rows, summarise_online
 from pets.runs.rundir import stopped
 
 
@@ -165,7 +164,7 @@ def _check_thresholds(env_names: Sequence[str], until_threshold: bool) -> None:
     if unknown:
         raise UsageError(
             f"--until-threshold: no threshold for {', '.join(unknown)}; thresholds exist for "
-            f"{', '.join(THRESHOLDS)} (pets.experiments.online_summary.THRESHOLDS)"
+            f"{', '.join(THRESHOLDS)} (pets.experiments.studies.online.THRESHOLDS)"
         )
 
 

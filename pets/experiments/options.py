@@ -96,7 +96,7 @@ def _add_online(sub: Any) -> None:
     on.add_argument(
         "--until-threshold",
         action="store_true",
-        help="stop each run at its first trial reaching the env's threshold (pets.experiments.online_summary."
+        help="stop each run at its first trial reaching the env's threshold (pets.experiments.studies.online."
         "THRESHOLDS); --trials is then the most",
     )
     on.add_argument(

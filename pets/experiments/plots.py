@@ -72,7 +72,7 @@ def plot_online(
     grid with its 95 % stratified-bootstrap CI band (:func:`pets.experiments.statistics.iqm_ci`, one call
     per arm with the 200 grid points as columns, all :data:`~pets.experiments.statistics.REPS`
     replications: about 0.2 s per arm and figure for 5 seeds on 2 busy CPU cores; the grid:
-    :mod:`pets.experiments.online_summary`), each seed's raw curve faintly behind. ``runs``: {arm: the
+    :mod:`pets.experiments.studies.online`), each seed's raw curve faintly behind. ``runs``: {arm: the
     metrics rows of each seed that did not diverge} (an empty list: every run diverged); ``diverged``:
     {arm: diverged runs}, counted in the legend, never plotted."""
     x_label, x_scale = ONLINE_X[x_key]

@@ -16,6 +16,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+from pets.experiments.studies.planning import ENVS as PLANNING_ENVS
 from pets.experiments.studies.primary import DEFAULT_LEVEL, DEFAULT_SOURCE
 
 RESULTS = "docs/results"
@@ -47,17 +48,6 @@ ONLINE = (
     "time_to_solve_halfcheetah_compiled",
     "time_to_solve_ip_compiled",
     "time_to_solve_reacher_compiled",
-)
-#: The planning study's envs (its committed summaries: ``openloop_ENV`` and ``planning_ENV``).
-PLANNING_ENVS = (
-    "invertedpendulum",
-    "ant",
-    "inverteddoublependulum",
-    "reacher",
-    "hopper",
-    "walker2d",
-    "halfcheetah",
-    "humanoid",
 )
 
 

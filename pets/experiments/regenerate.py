@@ -32,11 +32,11 @@ from pets.experiments.gate_diagnosis import (
     reward_prediction_table,
 )
 from pets.experiments.offline_tables import GEMSE_METRICS, own_comparison_table, paper_table, versus_table
-from pets.experiments.planning_tables import planning_table
 from pets.experiments.robustness import curves_table, data_sets_table
 from pets.experiments.studies import composition
 from pets.experiments.studies.locomotion import runs_table, summary_table
 from pets.experiments.studies.online import study_table
+from pets.experiments.studies.planning import planning_table
 from pets.runs.fileio import atomic_write_bytes
 from pets.tools.cli import fail
 

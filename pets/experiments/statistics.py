@@ -1,7 +1,7 @@
 """Statistics over seeds: the A/B statistics of both comparisons (rliable); the mean bootstrap of the open-loop
 statistics is :mod:`pets.stats.bootstrap`.
 
-**A/B statistics** (:mod:`pets.experiments.offline_summary` and :mod:`pets.experiments.online_summary`),
+**A/B statistics** (:mod:`pets.experiments.offline_summary` and :mod:`pets.experiments.studies.online`),
 a thin layer over rliable (Agarwal et al. 2021, "Deep RL at the edge of the statistical precipice"):
 
 - :func:`iqm_ci`: per column of a (runs, columns) score matrix the interquartile mean (IQM, rliable's
