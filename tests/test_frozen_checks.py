@@ -60,7 +60,7 @@ def test_reward_rows_match_the_model_and_the_envs_own_reward_at_one_step(hopper_
 
 
 def test_the_frozen_planning_block_counts_falls_and_averages_per_run_and_variant(tmp_path):
-    from pets.experiments.gate_diagnosis import frozen_planning_table
+    from pets.experiments.gate_published import frozen_planning_table
     from pets.experiments.report import write_csv
 
     results = tmp_path / "docs" / "results"
@@ -111,7 +111,7 @@ def test_episode_ends_rows_cover_the_buffer_with_each_episodes_mean_squared_acti
 
 
 def test_the_episode_ends_block_counts_jumps_backs_and_planned_full_episodes(tmp_path):
-    from pets.experiments.gate_diagnosis import episode_ends_table
+    from pets.experiments.gate_published import episode_ends_table
     from pets.experiments.report import write_csv
 
     results = tmp_path / "docs" / "results"

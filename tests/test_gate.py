@@ -134,12 +134,14 @@ def test_the_summary_and_the_docs_block_are_made_from_the_committed_runs_csv(tmp
     (row,) = list(csv.DictReader((results / "locomotion_gate_summary.csv").open()))
     assert row["verdict"] == "not passed" and float(row["mean"]) == pytest.approx(8300 / 3, rel=1e-5)
     assert float(row["threshold"]) == 2800 and row["n_runs"] == "3"
-    text = gate.gate_table(tmp_path)
+    from pets.experiments.gate_published import gate_table
+
+    text = gate_table(tmp_path)
     assert "| halfcheetah | delta | 2 |" in text and "not passed" in text
 
 
 def test_the_ablation_block_names_each_arm_by_its_overrides_and_pairs_complete_seeds(tmp_path):
-    from pets.experiments.gate_diagnosis import ablation_table
+    from pets.experiments.gate_published import ablation_table
     from pets.experiments.report import write_csv
 
     results = tmp_path / "docs" / "results"
@@ -161,7 +163,7 @@ def test_the_ablation_block_names_each_arm_by_its_overrides_and_pairs_complete_s
 
 def test_committed_curves_keep_complete_runs_of_the_agents_asked_for(tmp_path):
     """The online study's SAC reference line: the gate's committed curves of complete SAC runs only."""
-    from pets.experiments.gate_figures import committed_curves
+    from pets.experiments.gate_published import committed_curves
     from pets.experiments.report import write_csv
 
     runs = [dict.fromkeys(gate.RUN_COLUMNS, "") | {"env": "halfcheetah", "agent": a, "seed": s, "status": st}
@@ -178,7 +180,7 @@ def test_committed_curves_keep_complete_runs_of_the_agents_asked_for(tmp_path):
 
 
 def test_the_compute_block_sums_the_recorded_cpu_hours_per_part_and_env_counting_reused_runs_once(tmp_path):
-    from pets.experiments.gate_diagnosis import compute_table
+    from pets.experiments.gate_published import compute_table
     from pets.experiments.report import write_csv
 
     results = tmp_path / "docs" / "results"

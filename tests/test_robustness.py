@@ -1,4 +1,4 @@
-"""The offline verdicts' robustness checks as generated tables (pets.experiments.robustness): the primary endpoint
+"""The offline verdicts' robustness checks as generated tables (pets.experiments.offline_tables): the primary endpoint
 of each data set alone, recomputed here from the committed per-run rows with scipy; the 5x rerun's pre-registered
 rule; the learning curves' checkpoints as pandas reads them."""
 
@@ -11,8 +11,8 @@ import pytest
 from scipy.stats import trim_mean
 
 from pets.experiments import published
+from pets.experiments.offline_tables import _rule, curves_table
 from pets.experiments.report import read_csv_rows
-from pets.experiments.robustness import _rule, curves_table
 from pets.experiments.studies.primary import PER_DATA_SET_COLUMNS, per_data_set_rows
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -12,7 +12,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from pets.experiments.offline_tables import env_section
+from pets.experiments.offline_summary import env_section
 from pets.experiments.report import BOOT_SEED, fmt_ci, fmt_interval, write_csv
 from pets.experiments.studies import offline, planning
 from pets.experiments.studies.base import (

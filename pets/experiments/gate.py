@@ -304,47 +304,6 @@ def ceiling(rows: Sequence[Mapping[str, Any]]) -> dict[str, float]:
     return {env: float(np.mean(values)) for env, values in out.items()}
 
 
-def csv_table(path: Path, columns: Mapping[str, str]) -> str:
-    """The committed CSV ``path`` as a markdown table of ``columns`` (CSV column -> header), numbers to 4 digits."""
-    from pets.experiments.report import csv_number, fmt, md_table, read_csv_rows
-
-    def cell(text: str) -> str:
-        try:
-            return fmt(csv_number(text)) if text else ""
-        except ValueError:
-            return text
-
-    return md_table(list(columns.values()), ([cell(r[c]) for c in columns] for r in read_csv_rows(path)))
-
-
-def oracle_table(tree: Path) -> str:
-    """The ``locomotion-oracle`` block: every true-dynamics episode of ``locomotion_oracle.csv``."""
-    columns = {"source": "file", "candidates": "candidates", "population": "population", "horizon": "horizon"}
-    columns |= {"iterations": "iterations"}
-    columns |= {"termination_penalty": "termination penalty", "terminal_value": "terminal value of"}
-    columns |= {"steps": "steps", "reward": "reward", "fell": "fell"}
-    return csv_table(tree / "docs" / "results" / "locomotion_oracle.csv", columns)
-
-
-def pilots_table(tree: Path) -> str:
-    """The ``locomotion-pilots`` block: one row per pilot run of ``locomotion_pilots.csv``."""
-    columns = {"run": "run", "overrides": "overrides", "env_steps": "env steps", "reward_last5": "last-5 mean"}
-    columns |= {"fall_fraction": "episodes that fell", "cpu_hours": "CPU-hours"}
-    return csv_table(tree / "docs" / "results" / "locomotion_pilots.csv", columns)
-
-
-def gate_table(tree: Path) -> str:
-    """The ``locomotion-gate`` block: every run of ``locomotion_gate_runs.csv``, then the verdict per env."""
-    runs = {"env": "env", "agent": "agent", "seed": "seed", "env_steps": "env steps", "reward_25k": "25k"}
-    runs |= {"reward_50k": "50k", "reward_100k": "100k (endpoint)", "fall_fraction": "fell", "cpu_hours": "CPU-h"}
-    runs |= {"status": "status"}
-    summary = {"env": "env", "agent": "agent", "n_runs": "runs", "endpoint_at": "endpoint at (env steps)"}
-    summary |= {"mean": "mean", "iqm": "IQM", "ci_low": "CI low"}
-    summary |= {"ci_high": "CI high", "threshold": "threshold", "verdict": "verdict"}
-    path = tree / "docs" / "results" / "locomotion_gate"
-    return f"{csv_table(Path(f'{path}_runs.csv'), runs)}\n\n{csv_table(Path(f'{path}_summary.csv'), summary)}"
-
-
 def write_csv(
     path: Path, rows: Sequence[Mapping[str, Any]], columns: Sequence[str], keep: Sequence[str] = ()
 ) -> list[dict[str, str]]:

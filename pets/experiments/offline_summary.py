@@ -44,8 +44,8 @@ With ``--openloop``: ``openloop.md``, ``openloop.csv`` (per env, planner and mod
 per step and the total reward of the open-loop plans, mean and CI over seeds) and ``openloop_ENV.png``
 (reward vs step per model, one panel per planner).
 
-The study's metric table and statistics: :mod:`pets.experiments.studies.offline`; the text of prediction.md:
-:mod:`pets.experiments.offline_tables`.
+The study's metric table and statistics: :mod:`pets.experiments.studies.offline`; the text of prediction.md is
+made here (:func:`prediction_header`, :func:`env_section`, :func:`fig2_section`, :func:`runs_sections`).
 """
 
 from __future__ import annotations
@@ -55,25 +55,22 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from pets.experiments.offline_tables import (
-    FIGURE_METRIC,
-    env_section,
-    fig2_section,
-    prediction_header,
-    runs_behind,
-    runs_sections,
-)
 from pets.experiments.plots import plot_absolute, plot_ratio, plot_relative
-from pets.experiments.report import write_csv
+from pets.experiments.report import fmt_interval, md_table, write_csv
 from pets.experiments.rundirs import env_stem, json_matches, precision_note, run_name
-from pets.experiments.statistics import REPS
+from pets.experiments.statistics import BASELINE, MIN_SEEDS, REPS, SMALL_SAMPLE_NOTE
 from pets.experiments.studies.offline import (
     INTERVAL,
     N_DIVERGED,
+    N_PAIRS,
+    N_SEEDS,
+    P_LOWER,
     RATIO,
+    RELATIVE,
     RELATIVE_COLUMNS,
     STUDY,
     SUMMARY_COLUMNS,
+    OfflineStudy,
     env_summary_rows,
     mark_divergences,
     pair_key,
@@ -247,3 +244,155 @@ def _missing_runs(
             out / "runs" / run_name(e, m, s, data_seed=d) / "eval.json", {**request, "data": test_label(e, d)}
         )
     ]
+
+
+#: The metric of Fig. 2 and Fig. 3 (the study's metric table).
+FIGURE_METRIC = STUDY.figure_metric()
+
+
+def _metric_tables(
+    metric: str, models: Sequence[str], stats: Mapping[str, Mapping[tuple[str, Any], Mapping[str, Any]]], hs: Sequence
+) -> list[str]:
+    """Markdown: the IQM [CI] table of one metric per model and horizon (with the runs diverged at each
+    horizon, :func:`_fmt_iqm`), then P of improvement over delta."""
+    rows = [
+        [model, str(runs_behind(stats[model][(metric, hs[0])]))] + [_fmt_iqm(stats[model][(metric, h)]) for h in hs]
+        for model in models
+    ]
+    text = [f"### {metric}", "", md_table(["model", "seeds"] + [f"h={h}" for h in hs], rows), ""]
+    others = [m for m in models if m != BASELINE]
+    if BASELINE in models and others:
+        text += [
+            f"P({metric} < {BASELINE}'s) [95 % CI]:",
+            "",
+            md_table(
+                ["model"] + [f"h={h}" for h in hs],
+                [[m] + [_fmt_p(stats[m][(metric, h)]) for h in hs] for m in others],
+            ),
+            "",
+        ]
+    return text
+
+
+def runs_behind(s: Mapping[str, Any]) -> int:
+    """The runs behind a statistic: the seeds in it and the seeds diverged there."""
+    return s[N_SEEDS] + s[N_DIVERGED]
+
+
+def _fmt_iqm(s: Mapping[str, Any]) -> str:
+    """IQM [CI] of one column, then "(k diverged)" if k runs diverged there; "all diverged" if every run did."""
+    if s[N_SEEDS] == 0:
+        return "all diverged"
+    return fmt_interval(*_values(s, INTERVAL)) + (f" ({s[N_DIVERGED]} diverged)" if s[N_DIVERGED] else "")
+
+
+def small_sample(s: Mapping[str, Any]) -> bool:
+    """Whether a statistic rests on fewer than :data:`MIN_SEEDS` seeds (and at least one)."""
+    return 0 < s[N_SEEDS] < MIN_SEEDS
+
+
+def _values(s: Mapping[str, Any], columns: Sequence[str]) -> list[Any]:
+    return [s[c] for c in columns]
+
+
+def _fmt_p(s: Mapping[str, Any]) -> str:
+    return fmt_interval(*_values(s, P_LOWER), "n/a")
+
+
+def prediction_header() -> list[str]:
+    """The top of prediction.md: what the tables show."""
+    return [
+        "# Offline comparison: long-horizon prediction error",
+        "",
+        "Step-wise errors of pets.evaluate (ensemble-mean rollouts on the test data, the same start points for "
+        "every model and seed of an env) per horizon. Per model: the interquartile mean (IQM) over seeds with "
+        "its 95 % stratified-bootstrap CI in brackets (rliable). P: the probability that the model's error "
+        f"is lower than {BASELINE}'s (a random seed of each; ties count half) with its CI. A run is diverged at a "
+        "horizon when a value of its evaluation there is not finite, some predictions went non-finite, or its "
+        "standardized_error is at or past the env's no-information level (the error of predicting a random "
+        "training observation; primary.csv gives it): its prediction no longer tracks the state. At that "
+        "horizon it is counted ('(k diverged)' after the IQM; 'all diverged' when every run did), left out of the "
+        "IQM, CI and ratios, and counts as an infinite error in P; at its other horizons it counts normally. "
+        "seeds: the model's evaluated runs.",
+        "",
+    ]
+
+
+def env_section(
+    env: str,
+    asked: Sequence[int],
+    common: Sequence[int],
+    metrics: Sequence[str],
+    models: Sequence[str],
+    stats: Mapping[str, Mapping[tuple[str, Any], Mapping[str, Any]]],
+    runs: Sequence[Mapping[str, Any]],
+    study: OfflineStudy = STUDY,
+) -> list[str]:
+    """Markdown of one env: its horizons (and the ``asked`` ones it skipped), the small-sample note where needed, a
+    table per metric of the ``study``'s metric table flagged ``table`` that it has (and shows), its Fig. 3."""
+    skipped = sorted(set(asked) - set(common))
+    note = f"; skipped: {', '.join(map(str, skipped))} (longer than the test episodes)" if skipped else ""
+    env_small = any(small_sample(stats[m][(metrics[0], h)]) for m in models for h in common)
+    text = [f"## {env} (horizons {', '.join(map(str, common))}{note})", ""]
+    text += [SMALL_SAMPLE_NOTE, ""] if env_small else []
+    for metric in study.table_metrics():
+        if metric.name in metrics and metric.shown(runs):
+            text += _metric_tables(metric.name, models, stats, common)
+    return text + [f"![absolute error](absolute_error_{env_stem(env)}.png)", ""]
+
+
+def fig2_section(fig2: Mapping[str, Mapping[str, Mapping[str, Any]]], has_ratio: bool) -> list[str]:
+    """Markdown of Fig. 2: per env and model the error averaged over the env's tracking horizons, relative and as a
+    ratio to delta."""
+    fig2_small = any(small_sample(r) for vals in fig2.values() for r in vals.values())
+    text = [
+        "## Fig. 2: error averaged over the tracking horizons",
+        "",
+        f"Per seed the {FIGURE_METRIC} averaged over the env's tracking horizons (those where {BASELINE}'s median "
+        "standardized error is below the no-information level, as in the primary endpoint; all horizons when "
+        f"there is no {BASELINE} run), then the IQM over seeds [95 % CI]. "
+        "relative: divided by the largest model's IQM in the env, as the paper normalises (the CI divided "
+        f"by the same number). ratio to {BASELINE}: IQM [CI] of the per-seed ratios over the seeds both "
+        "models have (paired: same seed, data and start points). A run diverged at any of those horizons is left out "
+        "of the average and counted under diverged.",
+        "",
+    ]
+    text += [SMALL_SAMPLE_NOTE, ""] if fig2_small else []
+    header = ["env", "horizons", "model", "seeds", "diverged", "relative", f"ratio to {BASELINE}", "pairs"]
+    rows = [_fig2_row(env, m, r) for env, vals in fig2.items() for m, r in vals.items()]
+    return text + [
+        md_table([*header, f"P(error < {BASELINE}'s)"], rows),
+        "",
+        "![relative error](relative_error.png)" + (" ![ratio to delta](ratio_to_delta.png)" if has_ratio else ""),
+        "",
+    ]
+
+
+def _fig2_row(env: str, m: str, r: Mapping[str, Any]) -> list[str]:
+    """One row of Fig. 2's table."""
+    return [
+        env,
+        r.get("horizons") or "none",
+        m,
+        str(r[N_SEEDS]),
+        str(r[N_DIVERGED]),
+        fmt_interval(*_values(r, RELATIVE), "all diverged" if not r[N_SEEDS] else "n/a"),
+        "-" if m == BASELINE else fmt_interval(*_values(r, RATIO)),
+        "-" if r[N_PAIRS] is None else str(r[N_PAIRS]),
+        "-" if m == BASELINE else _fmt_p(r),
+    ]
+
+
+def runs_sections(diverged_runs: Sequence[str], missing: Sequence[str], failed: Mapping[str, str] | None) -> list[str]:
+    """Markdown of the diverged runs (with their horizons) and the missing ones (with why, where they failed)."""
+    text = []
+    if diverged_runs:
+        text += (
+            ["## Diverged runs (counted, not in the IQMs at these horizons nor in the average)", ""]
+            + [f"- {d}" for d in diverged_runs]
+            + [""]
+        )
+    if missing:
+        text += ["## Missing runs (not in the statistics)", ""]
+        text += [f"- {m}{': ' + failed[m] if failed and m in failed else ''}" for m in missing] + [""]
+    return text

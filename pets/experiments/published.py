@@ -209,10 +209,10 @@ def _gate_summary() -> Product:
     figures = ("docs/figures/locomotion_gate.png", "docs/figures/locomotion_pilots.png")
 
     def make() -> None:
-        from pets.experiments import gate, gate_figures
+        from pets.experiments import gate, gate_published
 
         gate.write_csv(Path(out), gate.summary_rows(_rows(runs)), gate.SUMMARY_COLUMNS)
-        gate_figures.write_figures(Path(RESULTS), Path("docs/figures"))
+        gate_published.write_figures(Path(RESULTS), Path("docs/figures"))
 
     return Product("locomotion gate summary and figures", (out, *figures), (runs, *curves), make)
 

@@ -22,17 +22,25 @@ from pathlib import Path
 from pets.experiments import published
 from pets.experiments.answer import answer_table, coverage_table, later_offline_table, runs_coverage_table
 from pets.experiments.arguments import PROG
-from pets.experiments.gate import gate_table, oracle_table, pilots_table
-from pets.experiments.gate_diagnosis import (
+from pets.experiments.gate_published import (
     ablation_table,
     compute_table,
     episode_ends_table,
     fall_prediction_table,
     frozen_planning_table,
+    gate_table,
+    oracle_table,
+    pilots_table,
     reward_prediction_table,
 )
-from pets.experiments.offline_tables import GEMSE_METRICS, own_comparison_table, paper_table, versus_table
-from pets.experiments.robustness import curves_table, data_sets_table
+from pets.experiments.offline_tables import (
+    GEMSE_METRICS,
+    curves_table,
+    data_sets_table,
+    own_comparison_table,
+    paper_table,
+    versus_table,
+)
 from pets.experiments.studies import composition
 from pets.experiments.studies.locomotion import runs_table, summary_table
 from pets.experiments.studies.online import study_table

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from pets.experiments import curves, gate
+from pets.experiments import curves, gate, gate_published
 from pets.experiments.report import csv_number, fmt, fmt_interval, md_table, merge_committed
 from pets.experiments.statistics import BASELINE, REPS, iqm_ci, paired_differences, sign_flip_p
 from pets.experiments.studies.base import (
@@ -211,13 +211,11 @@ def plot_curves(results: Path, figure: Path) -> None:
     with a 95 % bootstrap band (seeds resampled as whole curves), the gate's threshold dashed, the ceiling (the
     true-dynamics MPC of the preset's planner, ``locomotion_oracle.csv``) dotted and SAC's mean curve at the same
     budget (the gate's reference runs, ``locomotion_gate_curves.csv``) dash-dotted."""
-    from pets.experiments import gate_figures
-
     arms = curves.complete_curves(results / RUNS, results / CURVES, "model")
     curves.plot_curves(figure, arms, thresholds=gate.THRESHOLDS,
-                       ceiling=gate_figures.committed_ceiling(results / "locomotion_oracle.csv"), first=BASELINE,
+                       ceiling=gate_published.committed_ceiling(results / "locomotion_oracle.csv"), first=BASELINE,
                        ylabel=f"return, last {gate.WINDOW} episodes (95 % CI)",
-                       references=gate_figures.committed_curves(results, agents={"sac"}))  # fmt: skip
+                       references=gate_published.committed_curves(results, agents={"sac"}))  # fmt: skip
 
 
 def write_summary(results: Path) -> None:
@@ -234,7 +232,7 @@ def runs_table(tree: Path) -> str:
     """The ``online-locomotion-runs`` block: one row per run (complete, partial or crashed) of :data:`RUNS`."""
     columns = {"env": "env", "model": "arm", "seed": "seed", "env_steps": "env steps", "reward_25k": "25k"}
     columns |= {"reward_50k": "50k", "endpoint": "100k (endpoint)", "cpu_hours": "CPU-hours", "status": "status"}
-    return gate.csv_table(tree / RESULTS / RUNS, columns)
+    return gate_published.csv_table(tree / RESULTS / RUNS, columns)
 
 
 def summary_table(tree: Path) -> str:

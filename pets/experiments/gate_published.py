@@ -1,16 +1,22 @@
-"""The locomotion gate's diagnosis blocks (docs/studies/locomotion_gate.md, "Pilots"): how the Ant pilots' episodes
-ended and what a pilot's learned model, frozen, does (``docs/scripts/episode_ends.py`` and
+"""The locomotion gate's published blocks and figures, made by ``pets.compare report`` from its committed rows only:
+the tables of its runs, pilots and true-dynamics episodes (:func:`gate_table`, :func:`pilots_table`,
+:func:`oracle_table`), its figures (:func:`write_figures`: the runs' and the pilots' learning curves,
+``locomotion_gate_curves.csv`` and ``locomotion_pilots_curves.csv``, with the true-dynamics ceiling,
+``locomotion_oracle.csv``), and the diagnosis blocks (docs/studies/locomotion_gate.md, "Pilots"): how the Ant pilots'
+episodes ended and what a pilot's learned model, frozen, does (``docs/scripts/episode_ends.py`` and
 ``docs/scripts/frozen_model_checks.py`` write the committed CSVs these render); and what the locomotion work cost
 (docs/results.md)."""
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
 
 import envs
-from pets.experiments.gate import csv_table
+from pets.experiments import gate
+from pets.experiments.curves import Curves, complete_curves, group_curves, plot_curves
 from pets.experiments.report import csv_number, fmt, md_table, read_csv_rows
 from pets.presets import PRESETS
 
@@ -140,3 +146,69 @@ def compute_table(tree: Path) -> str:
     every = [h for v in parts.values() for h in v]
     body.append(["all of the above", "", str(len(every)), fmt(float(np.sum(every)))])
     return md_table(["part", "env", "runs (or episodes)", "CPU-hours"], body)
+
+
+def csv_table(path: Path, columns: Mapping[str, str]) -> str:
+    """The committed CSV ``path`` as a markdown table of ``columns`` (CSV column -> header), numbers to 4 digits."""
+
+    def cell(text: str) -> str:
+        try:
+            return fmt(csv_number(text)) if text else ""
+        except ValueError:
+            return text
+
+    return md_table(list(columns.values()), ([cell(r[c]) for c in columns] for r in read_csv_rows(path)))
+
+
+def oracle_table(tree: Path) -> str:
+    """The ``locomotion-oracle`` block: every true-dynamics episode of ``locomotion_oracle.csv``."""
+    columns = {"source": "file", "candidates": "candidates", "population": "population", "horizon": "horizon"}
+    columns |= {"iterations": "iterations"}
+    columns |= {"termination_penalty": "termination penalty", "terminal_value": "terminal value of"}
+    columns |= {"steps": "steps", "reward": "reward", "fell": "fell"}
+    return csv_table(tree / "docs" / "results" / "locomotion_oracle.csv", columns)
+
+
+def pilots_table(tree: Path) -> str:
+    """The ``locomotion-pilots`` block: one row per pilot run of ``locomotion_pilots.csv``."""
+    columns = {"run": "run", "overrides": "overrides", "env_steps": "env steps", "reward_last5": "last-5 mean"}
+    columns |= {"fall_fraction": "episodes that fell", "cpu_hours": "CPU-hours"}
+    return csv_table(tree / "docs" / "results" / "locomotion_pilots.csv", columns)
+
+
+def gate_table(tree: Path) -> str:
+    """The ``locomotion-gate`` block: every run of ``locomotion_gate_runs.csv``, then the verdict per env."""
+    runs = {"env": "env", "agent": "agent", "seed": "seed", "env_steps": "env steps", "reward_25k": "25k"}
+    runs |= {"reward_50k": "50k", "reward_100k": "100k (endpoint)", "fall_fraction": "fell", "cpu_hours": "CPU-h"}
+    runs |= {"status": "status"}
+    summary = {"env": "env", "agent": "agent", "n_runs": "runs", "endpoint_at": "endpoint at (env steps)"}
+    summary |= {"mean": "mean", "iqm": "IQM", "ci_low": "CI low"}
+    summary |= {"ci_high": "CI high", "threshold": "threshold", "verdict": "verdict"}
+    path = tree / "docs" / "results" / "locomotion_gate"
+    return f"{csv_table(Path(f'{path}_runs.csv'), runs)}\n\n{csv_table(Path(f'{path}_summary.csv'), summary)}"
+
+
+def committed_ceiling(path: Path) -> dict[str, float]:
+    """:func:`pets.experiments.gate.ceiling` of the committed ``locomotion_oracle.csv`` (empty without it)."""
+    numbers = ("reward", "population", "horizon", "iterations", "termination_penalty")
+    rows = read_csv_rows(path) if path.is_file() else []
+    return gate.ceiling([dict(r, **{k: csv_number(r[k]) for k in numbers}) for r in rows])
+
+
+def committed_curves(results: Path, agents: set[str] | None = None) -> Curves:
+    """The gate's committed curves of its complete runs (``locomotion_gate_{runs,curves}.csv`` in ``results``; of
+    ``agents`` only, if given) as :data:`pets.experiments.curves.Curves` by agent and seed; empty without them."""
+    runs, points = results / "locomotion_gate_runs.csv", results / "locomotion_gate_curves.csv"
+    return complete_curves(runs, points, "agent", agents) if runs.is_file() and points.is_file() else {}
+
+
+def write_figures(results: Path, figures: Path) -> None:
+    """``locomotion_gate.png`` (per env, each agent's complete runs: mean and 95 % band) and
+    ``locomotion_pilots.png`` (one line per pilot) from the committed curve rows (``pets.compare report``)."""
+    ceil = committed_ceiling(results / "locomotion_oracle.csv")
+    ylabel = f"return, last {gate.WINDOW} episodes (95 % CI)"
+    plot_curves(figures / "locomotion_gate.png", committed_curves(results), thresholds=gate.THRESHOLDS, ceiling=ceil,
+                first="delta", ylabel=ylabel)  # fmt: skip
+    pilots = group_curves(read_csv_rows(results / "locomotion_pilots_curves.csv"), "run", "run")
+    plot_curves(figures / "locomotion_pilots.png", pilots, thresholds=gate.THRESHOLDS, ceiling=ceil,
+                ylabel=f"return, last {gate.WINDOW} episodes")  # fmt: skip
