@@ -1755,7 +1755,7 @@ def test_offline_data_seeds_pair_by_data_set_and_seed(offline, tmp_path):
 def test_partial_offline_snapshot_of_a_finished_study_is_its_own_summary(offline, tmp_path):
     """docs/scripts/partial_offline_runs.py: one row per run and horizon from eval.json, and with --summary the
     summary of the finished runs, written beside the study (nothing under it); for a finished study that is the
-    study's own summary.csv and primary.csv, value for value."""
+    study's own summary.csv and primary.csv, value for value; --levels: its data set's level, primary.csv's."""
     partial = _script("partial_offline_runs")
     import shutil
 
@@ -1766,12 +1766,16 @@ def test_partial_offline_snapshot_of_a_finished_study_is_its_own_summary(offline
                     **kwargs)  # fmt: skip
     before = sorted(p.name for p in study.iterdir())
     args = [str(study), str(tmp_path / "runs.csv"), "--summary", str(tmp_path / "snap"), "--envs", "invertedpendulum"]
-    assert partial.main([*args, "--models", "delta,gem", "--seeds", "0,1"]) == 0
+    levels = tmp_path / "levels.csv"
+    assert partial.main([*args, "--models", "delta,gem", "--seeds", "0,1", "--levels", str(levels)]) == 0
     rows = csv_rows(tmp_path / "runs.csv")
     assert {(r["model"], r["seed"]) for r in rows} == {(m, s) for m in ("delta", "gem") for s in ("0", "1")}
     assert sorted(p.name for p in study.iterdir()) == before
     for name in ("summary.csv", "primary.csv"):
         assert csv_rows(tmp_path / "snap" / name) == csv_rows(study / name), name
+    (level,) = csv_rows(levels)  # the data set's no-information level: the one the study's primary endpoint used
+    assert (level["env"], level["data_seed"]) == ("invertedpendulum", "0")
+    assert float(level["level"]) == pytest.approx(float(csv_rows(study / "primary.csv")[0]["level"]), rel=1e-12)
 
 
 def test_trajectory_figures_of_a_study_add_the_horizon_where_delta_stops_tracking(offline, tmp_path, capsys):

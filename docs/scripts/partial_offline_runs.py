@@ -27,8 +27,8 @@ from omegaconf import OmegaConf
 METRICS = ("standardized_error", "translation_error", "rotation_error", "velocity_error", "nonfinite_fraction")
 
 
-def write_runs(out: Path, snapshot: Path) -> list[dict]:
-    """SNAPSHOT.csv from every finished run's eval.json; returns the eval.json contents."""
+def write_runs(out: Path, snapshot: Path) -> tuple[list[dict], list[dict]]:
+    """SNAPSHOT.csv from every finished run's eval.json; returns its rows and the eval.json contents."""
     rows, evals = [], []
     for path in sorted((out / "runs").glob("*/eval.json")):
         e = json.loads(path.read_text())
@@ -42,7 +42,7 @@ def write_runs(out: Path, snapshot: Path) -> list[dict]:
         writer.writeheader()
         writer.writerows(rows)
     print(f"{snapshot}: {len({r['run'] for r in rows})} finished runs")
-    return evals
+    return rows, evals
 
 
 def write_levels(out: Path, runs: list[dict], levels: Path) -> None:
@@ -103,10 +103,9 @@ def main(argv: list[str]) -> int:
     args = parser.parse_args(argv)
     if args.summary and not (args.envs and args.models and args.seeds):
         parser.error("--summary needs --envs, --models and --seeds")
-    evals = write_runs(args.out, args.snapshot)
+    rows, evals = write_runs(args.out, args.snapshot)
     if args.levels:
-        with open(args.snapshot, newline="") as f:
-            write_levels(args.out, list(csv.DictReader(f)), args.levels)
+        write_levels(args.out, rows, args.levels)
     if args.summary:
         write_summary(args.out, args.summary, evals, args.envs, args.models, args.seeds, args.data_seeds)
     return 0

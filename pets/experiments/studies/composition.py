@@ -26,7 +26,7 @@ from pets.experiments.report import fmt, fmt_interval, md_table
 from pets.experiments.statistics import sign_flip_p
 from pets.experiments.studies import primary as offline_primary
 from pets.experiments.studies.base import P_EXACT, P_HOLM, RATIO
-from pets.experiments.studies.primary import Run, endpoint, paired_ratio, run_iqm_ci, tracking_horizons
+from pets.experiments.studies.primary import Run, endpoint, median_inf, paired_ratio, run_iqm_ci, tracking_horizons
 
 #: The baseline of the primary family (GEM's inputs, delta's targets) and the arms tested against it.
 BASELINE = "delta-groupfeat"
@@ -118,7 +118,7 @@ def secondary_rows(rows: Sequence[Mapping[str, Any]], levels: Mapping[str, tuple
         model, versus, h = LONG_HORIZON
         if model in models and versus in models:
             base = {run: v for run, v in models[versus].items() if h in v}
-            median = float(np.median([v[h] for v in base.values()])) if base else math.inf
+            median = median_inf(v[h] for v in base.values())  # none: NaN, which does not track either
             if not median < level:
                 why = f"{versus} no longer tracks at h = {h} (its median is past the level): the claim cannot be tested"
                 out.append({"endpoint": f"standardized_error at h = {h}", "env": env, "model": model, "versus": versus,

@@ -119,7 +119,7 @@ def env_level(data_dir: Path, env: str) -> tuple[float, str]:
     return level, f"data ({train.name} vs {test.name})"
 
 
-def _median(values: Iterable[float]) -> float:
+def median_inf(values: Iterable[float]) -> float:
     """Median with non-finite values counted as +inf (a diverged run is past every level)."""
     x = np.array([v if math.isfinite(v) else math.inf for v in values], dtype=np.float64)
     return float(np.median(x)) if x.size else math.nan
@@ -147,7 +147,7 @@ def tracking_horizons(baseline: Mapping[Any, Mapping[int, float]], level: float)
     common = sorted(set.intersection(*[set(h) for h in baseline.values()])) if baseline else []
     out = []
     for h in common:
-        if not _median(run[h] for run in baseline.values()) < level:
+        if not median_inf(run[h] for run in baseline.values()) < level:
             break
         out.append(h)
     return out
@@ -312,7 +312,7 @@ def past_level_rows(rows: Iterable[Mapping[str, Any]], levels: Mapping[str, tupl
                         "n_runs": len(errs),
                         "n_past_level": past,
                         "fraction_past_level": past / len(errs),
-                        "median_error": _median(errs),
+                        "median_error": median_inf(errs),
                     }
                 )
     return out
