@@ -358,6 +358,7 @@ RAW: tuple[str, ...] = (
     _path("locomotion_gate_curves.csv"),
     # mbrl-lib's PETS beside the gate (peer_mbrl.py learn --arms mbrl-lib): one row per trial, a file per seed
     _path("peer_gate_halfcheetah_s0.csv"),
+    _path("peer_gate_halfcheetah_s1.csv"),
     _path("locomotion_pilots_curves.csv"),
     # what a pilot's learned model does, frozen (docs/scripts/frozen_model_checks.py)
     _path("locomotion_frozen_planning.csv"),
