@@ -166,14 +166,14 @@ def oracle_table(tree: Path) -> str:
     columns |= {"iterations": "iterations"}
     columns |= {"termination_penalty": "termination penalty", "terminal_value": "terminal value of"}
     columns |= {"steps": "steps", "reward": "reward", "fell": "fell"}
-    return csv_table(tree / "docs" / "results" / "locomotion_oracle.csv", columns)
+    return csv_table(tree / RESULTS / "locomotion_oracle.csv", columns)
 
 
 def pilots_table(tree: Path) -> str:
     """The ``locomotion-pilots`` block: one row per pilot run of ``locomotion_pilots.csv``."""
     columns = {"run": "run", "overrides": "overrides", "env_steps": "env steps", "reward_last5": "last-5 mean"}
     columns |= {"fall_fraction": "episodes that fell", "cpu_hours": "CPU-hours"}
-    return csv_table(tree / "docs" / "results" / "locomotion_pilots.csv", columns)
+    return csv_table(tree / RESULTS / "locomotion_pilots.csv", columns)
 
 
 def gate_table(tree: Path) -> str:
@@ -184,8 +184,8 @@ def gate_table(tree: Path) -> str:
     summary = {"env": "env", "agent": "agent", "n_runs": "runs", "endpoint_at": "endpoint at (env steps)"}
     summary |= {"mean": "mean", "iqm": "IQM", "ci_low": "CI low"}
     summary |= {"ci_high": "CI high", "threshold": "threshold", "verdict": "verdict"}
-    path = tree / "docs" / "results" / "locomotion_gate"
-    return f"{csv_table(Path(f'{path}_runs.csv'), runs)}\n\n{csv_table(Path(f'{path}_summary.csv'), summary)}"
+    parts = (("runs", runs), ("summary", summary))
+    return "\n\n".join(csv_table(tree / RESULTS / f"locomotion_gate_{part}.csv", cols) for part, cols in parts)
 
 
 def committed_ceiling(path: Path) -> dict[str, float]:

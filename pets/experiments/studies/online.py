@@ -40,7 +40,7 @@ from typing import Any
 import numpy as np
 
 from pets.experiments.plots import arm_colors, model_colors, plot_online
-from pets.experiments.report import disagreement_lines, md_table, write_csv
+from pets.experiments.report import csv_number, disagreement_lines, md_table, write_csv
 from pets.experiments.rundirs import arm_label, env_stem, online_arms, precision_note, run_name
 from pets.experiments.statistics import BASELINE, MIN_SEEDS, REPS, SMALL_SAMPLE_NOTE
 from pets.experiments.studies.base import (
@@ -193,10 +193,6 @@ def env_summary_rows(
     return rows, stats
 
 
-def _number(text: str | None) -> float:
-    return math.nan if text in ("", None) else float(text)
-
-
 def summary_from_runs(
     rows: Sequence[Mapping[str, str]],
     final_window: int = 3,
@@ -214,7 +210,7 @@ def summary_from_runs(
         labels, _ = arm_baselines(arms)
         runs: dict[str, list[dict[str, Any]]] = {}
         for r in mine:
-            run = {k: _number(r.get(k)) for k in ("final_reward", "auc", *THRESHOLD_KEYS, *COST_KEYS)}
+            run = {k: csv_number(r.get(k)) for k in ("final_reward", "auc", *THRESHOLD_KEYS, *COST_KEYS)}
             run.update(seed=int(r["seed"]), diverged=r["diverged"] or None)
             runs.setdefault(labels[(r["model"], r["planner"] or None)], []).append(run)
         trials = int(mine[0]["trials"])
