@@ -252,3 +252,33 @@ def test_mbrl_lib_runs_become_gate_rows_complete_at_their_registered_budget_and_
         gate.endpoint_budget([{"env_steps": 100_000, "status": "complete"}, {"env_steps": 50_000, "status": "partial"}])
         == gate.BUDGET
     )
+
+
+def test_the_peer_block_sets_each_agent_beside_mbrl_lib_at_its_budget(tmp_path):
+    """The mbrl-lib comparison: on the envs where mbrl-lib ran, each agent's complete runs at 50k env steps: the
+    reward there (mean [min, max]), CPU-hours per 10k env steps over each run's own budget, and the reward per
+    CPU-hour pro rata to 50k; partial runs and envs without mbrl-lib are left out, a missing CPU time is said."""
+    from pets.experiments.gate_published import peer_table
+    from pets.experiments.report import write_csv
+
+    results = tmp_path / "docs" / "results"
+    results.mkdir(parents=True)
+    rows = [
+        dict.fromkeys(gate.RUN_COLUMNS, "")
+        | {"env": e, "agent": a, "seed": s, "env_steps": n, "reward_50k": r, "cpu_hours": c, "status": st}
+        for e, a, s, n, r, c, st in (
+            ("halfcheetah", "delta", 0, 100000, 2000.0, 1.0, "complete"),
+            ("halfcheetah", "delta", 1, 100000, 3000.0, 2.0, "complete"),
+            ("halfcheetah", "delta", 2, 60000, 9999.0, 0.5, "partial"),
+            ("halfcheetah", "mbrl-lib", 0, 50000, 1000.0, 1.25, "complete"),
+            ("halfcheetah", "sac", 0, 100000, 800.0, "", "complete"),
+            ("ant", "delta", 0, 100000, 900.0, 0.8, "complete"),
+        )
+    ]  # fmt: skip
+    write_csv(results / "locomotion_gate_runs.csv", rows, gate.RUN_COLUMNS)
+    lines = peer_table(tmp_path).splitlines()
+    # delta: 0.1 and 0.2 CPU-h per 10k steps; 2000 / 0.5 and 3000 / 1.0 reward per CPU-h to 50k
+    assert lines[2] == "| halfcheetah | delta | 2 | 100000 | 2500 [2000, 3000] | 0.15 | 3500 |"
+    assert lines[3] == "| halfcheetah | mbrl-lib | 1 | 50000 | 1000 [1000, 1000] | 0.25 | 800 |"
+    assert lines[4] == "| halfcheetah | sac | 1 | 100000 | 800 [800, 800] | not recorded | not recorded |"
+    assert len(lines) == 5

@@ -188,6 +188,37 @@ def gate_table(tree: Path) -> str:
     return "\n\n".join(csv_table(tree / RESULTS / f"locomotion_gate_{part}.csv", cols) for part, cols in parts)
 
 
+#: The env steps at which the gate's agents are set side by side (mbrl-lib's budget: the amendment of 2026-11-28,
+#: 21:45 UTC), and the unit of the cost column.
+PEER_STEPS, COST_STEPS = 50_000, 10_000
+
+
+def peer_table(tree: Path) -> str:
+    """The ``locomotion-peer`` block: on each env where mbrl-lib ran, every agent's complete gate runs side by side
+    at :data:`PEER_STEPS` env steps: the reward there (mean [min, max] over runs), the CPU-hours per
+    :data:`COST_STEPS` env steps (each run's CPU-hours over its own budget), and the reward there per CPU-hour spent
+    to reach it (a run's CPU-hours pro rata to :data:`PEER_STEPS`; for runs whose budget is larger the per-step
+    cost is constant by their design, a fixed planner and a fixed number of gradient steps per env step)."""
+    runs = [r for r in read_csv_rows(tree / RESULTS / "locomotion_gate_runs.csv") if r["status"] == "complete"]
+    body = []
+    for env in dict.fromkeys(r["env"] for r in runs if r["agent"] == "mbrl-lib"):
+        for agent in dict.fromkeys(r["agent"] for r in runs if r["env"] == env):
+            mine = [r for r in runs if (r["env"], r["agent"]) == (env, agent)]
+            reward = np.array([csv_number(r[f"reward_{PEER_STEPS // 1000}k"]) for r in mine])
+            per_step = np.array([csv_number(r["cpu_hours"]) / int(r["env_steps"]) for r in mine])
+            per_hour = reward / (per_step * PEER_STEPS)
+            cost, rate = (
+                fmt(float(np.mean(v))) if np.isfinite(v).all() else "not recorded"
+                for v in (per_step * COST_STEPS, per_hour)
+            )
+            budgets = "/".join(sorted({r["env_steps"] for r in mine}))
+            spread = f"{fmt(float(np.mean(reward)))} [{fmt(float(reward.min()))}, {fmt(float(reward.max()))}]"
+            body.append([env, agent, str(len(mine)), budgets, spread, cost, rate])
+    header = ["env", "agent", "complete runs", "budget (env steps)", f"reward at {PEER_STEPS // 1000}k env steps"]
+    header += [f"CPU-h per {COST_STEPS // 1000}k env steps", f"reward at {PEER_STEPS // 1000}k per CPU-h to it"]
+    return md_table(header, body)
+
+
 def committed_ceiling(path: Path) -> dict[str, float]:
     """:func:`pets.experiments.gate.ceiling` of the committed ``locomotion_oracle.csv`` (empty without it)."""
     numbers = ("reward", "population", "horizon", "iterations", "termination_penalty")

@@ -30,6 +30,7 @@ from pets.experiments.gate_published import (
     frozen_planning_table,
     gate_table,
     oracle_table,
+    peer_table,
     pilots_table,
     reward_prediction_table,
 )
@@ -79,6 +80,7 @@ BLOCKS: dict[str, Callable[[Path], str]] = {
     "locomotion-reward-prediction": reward_prediction_table,
     "locomotion-gate": gate_table,
     "locomotion-ablation": ablation_table,
+    "locomotion-peer": peer_table,
     "locomotion-compute": compute_table,
     "online-locomotion-runs": runs_table,
     "online-locomotion": summary_table,
