@@ -109,6 +109,8 @@ class PETSRun:
         self.env_steps = 0
         self.wall_time_s = 0.0
         self.cpu_time_s = 0.0
+        #: The current trial's process CPU seconds in model training and in the terminal value's fit.
+        self.trial_cpu = {"train": 0.0, "value": 0.0}
         self.last_train: TrainResult | None = None
         self.recorder = EpisodeRecorder(self.spec, self.env) if cfg.video_every else None
         #: Set by :func:`run`: the one-line estimate of a long run from its first planning steps (pets.planning.cost).
@@ -169,12 +171,16 @@ class PETSRun:
     def _train(self, when: str | None = None) -> None:
         """Train on all data so far; TrainingDiverged names where (``when``, default: the current trial)."""
         obs, act, next_obs = self.buffer.tensors(self.device)
+        start = time.process_time()
         try:
             self.last_train = self.trainer.train(obs, act, next_obs, self.train_gen)
         except TrainingDiverged as err:
             raise TrainingDiverged(f"{when or f'trial {self.trials_done}'}: {err}") from None
+        self.trial_cpu["train"] += time.process_time() - start
         if self.value is not None:
+            start = time.process_time()
             self._fit_value(obs, act, next_obs)
+            self.trial_cpu["value"] += time.process_time() - start
         if self.agent.feedback is not None:
             self.agent.feedback.fit_scale(obs)
 
@@ -220,6 +226,7 @@ class PETSRun:
     def run_trial(self, progress: bool = True) -> dict[str, Any]:
         """Collect one episode with the MPC agent, then train the model on all data so far."""
         trial, start, start_cpu = self.trials_done, time.perf_counter(), time.process_time()
+        self.trial_cpu = {"train": 0.0, "value": 0.0}
         if trial == 0 and len(self.buffer) == 0:
             self.collect_seed_data()
         random_policy = len(self.buffer) == 0  # seed_steps=0: the first trial explores at random
@@ -283,6 +290,8 @@ class PETSRun:
             "model_epochs": lt.epochs,
             "plan_seconds_per_step": 0.0 if random_policy else self.mpc_policy.seconds / length,
             "plan_cpu_s": 0.0 if random_policy else round(self.mpc_policy.cpu_seconds, 3),
+            "train_cpu_s": round(self.trial_cpu["train"], 3),
+            "value_cpu_s": round(self.trial_cpu["value"], 3),
             "wall_time_s": round(self.wall_time_s, 3),
             "cpu_time_s": round(self.cpu_time_s, 3),
         }

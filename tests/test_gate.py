@@ -282,3 +282,21 @@ def test_the_peer_block_sets_each_agent_beside_mbrl_lib_at_its_budget(tmp_path):
     assert lines[3] == "| halfcheetah | mbrl-lib | 1 | 50000 | 1000 [1000, 1000] | 0.25 | 800 |"
     assert lines[4] == "| halfcheetah | sac | 1 | 100000 | 800 [800, 800] | not recorded | not recorded |"
     assert len(lines) == 5
+
+
+def test_the_cost_block_splits_each_runs_cpu_into_its_parts_and_projects_it_to_the_budget(tmp_path):
+    """locomotion-cost: per run the shares of planning, model training, the value fit and the rest of its CPU over
+    all its trials, and its CPU-hours pro rata to the gate's 100k env steps."""
+    from pets.experiments.gate_published import cost_table
+    from pets.experiments.report import write_csv
+
+    results = tmp_path / "docs" / "results"
+    results.mkdir(parents=True)
+    rows = [
+        {"run": "hc", "trial": t, "env_steps": n, "plan_cpu_s": p, "train_cpu_s": tr, "value_cpu_s": v, "cpu_s": c}
+        for t, n, p, tr, v, c in ((0, 2000, 100.0, 50.0, 10.0, 200.0), (1, 3000, 200.0, 100.0, 10.0, 340.0))
+    ]
+    write_csv(results / "locomotion_cost_breakdown.csv", rows, list(rows[0]))
+    lines = cost_table(tmp_path).splitlines()
+    # 540 CPU-s over 3,000 env steps -> 5 CPU-h per 100k; 300 / 150 / 20 / 70 of 540
+    assert lines[2] == "| hc | 3000 | 5 | 56 % | 28 % | 4 % | 13 % |" and len(lines) == 3

@@ -156,3 +156,20 @@ def test_openloop_video_has_a_frame_per_executed_step(offline, tmp_path):
     for path, length in zip(result["videos"], result["lengths"]):
         frames = iio.imread(path)
         assert length == 6 and frames.shape == (6, 240, 320, 3) and frames.std() > 5
+
+
+def test_metrics_split_each_trials_cpu_into_planning_training_and_the_value(tmp_path):
+    """plan_cpu_s, train_cpu_s and value_cpu_s: process CPU seconds of the trial's planning, model training and
+    terminal-value fit; together never more than the trial's share of the cumulative cpu_time_s; the value's is 0
+    without a value, positive with one; trial 0's training includes the seed data's."""
+    with_value, without = tmp_path / "value", tmp_path / "plain"
+    cli("--env", "invertedpendulum", "--trials", 2, "value.enabled=true", "value.steps=50", "--out", with_value, *TINY)
+    cli("--env", "invertedpendulum", "--trials", 2, "value.enabled=false", "--out", without, *TINY)
+    for run_dir, valued in ((with_value, True), (without, False)):
+        before = 0.0
+        for r in rows(run_dir):
+            plan, train, value = (float(r[k]) for k in ("plan_cpu_s", "train_cpu_s", "value_cpu_s"))
+            spent = float(r["cpu_time_s"]) - before
+            before = float(r["cpu_time_s"])
+            assert plan > 0 and train > 0 and (value > 0) == valued, (run_dir.name, r)
+            assert plan + train + value <= spent + 1e-3, (run_dir.name, r)

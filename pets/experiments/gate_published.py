@@ -180,7 +180,7 @@ def gate_table(tree: Path) -> str:
     """The ``locomotion-gate`` block: every run of ``locomotion_gate_runs.csv``, then the verdict per env."""
     runs = {"env": "env", "agent": "agent", "seed": "seed", "env_steps": "env steps", "reward_25k": "25k"}
     runs |= {"reward_50k": "50k", "reward_100k": "100k (endpoint)", "fall_fraction": "fell", "cpu_hours": "CPU-h"}
-    runs |= {"status": "status"}
+    runs |= {"plan_cpu_hours": "of it planning", "status": "status"}
     summary = {"env": "env", "agent": "agent", "n_runs": "runs", "endpoint_at": "endpoint at (env steps)"}
     summary |= {"mean": "mean", "iqm": "IQM", "ci_low": "CI low"}
     summary |= {"ci_high": "CI high", "threshold": "threshold", "verdict": "verdict"}
@@ -217,6 +217,28 @@ def peer_table(tree: Path) -> str:
     header = ["env", "agent", "complete runs", "budget (env steps)", f"reward at {PEER_STEPS // 1000}k env steps"]
     header += [f"CPU-h per {COST_STEPS // 1000}k env steps", f"reward at {PEER_STEPS // 1000}k per CPU-h to it"]
     return md_table(header, body)
+
+
+#: The parts of a run's process CPU in ``locomotion_cost_breakdown.csv`` (docs/scripts/cost_breakdown.py), by column.
+COST_PARTS = {"plan_cpu_s": "planning", "train_cpu_s": "model training", "value_cpu_s": "value fit"}
+
+
+def cost_table(tree: Path) -> str:
+    """The ``locomotion-cost`` block: per run of ``locomotion_cost_breakdown.csv``, its process CPU over all its
+    trials (the seed data's and the first compiles included) per :data:`COST_PARTS`, the rest (the simulator and the
+    run's bookkeeping) apart, as shares, and all of it projected pro rata to the gate's budget."""
+    runs: dict[str, list[dict[str, str]]] = {}
+    for r in read_csv_rows(tree / RESULTS / "locomotion_cost_breakdown.csv"):
+        runs.setdefault(r["run"], []).append(r)
+    body = []
+    for run, rows in runs.items():
+        total = sum(float(r["cpu_s"]) for r in rows)
+        parts = [sum(float(r[k]) for r in rows) for k in COST_PARTS]
+        steps = int(rows[-1]["env_steps"])
+        shares = [f"{100 * v / total:.0f} %" for v in (*parts, total - sum(parts))]
+        body.append([run, str(steps), fmt(total / 3600 * gate.BUDGET / steps), *shares])
+    header = ["run", "env steps", f"CPU-h per {gate.BUDGET // 1000}k env steps", *COST_PARTS.values()]
+    return md_table([*header, "simulator and the rest"], body)
 
 
 def committed_ceiling(path: Path) -> dict[str, float]:

@@ -204,6 +204,8 @@ def _gate_summary() -> Product:
     curves = (
         _path("locomotion_gate_curves.csv"),
         _path("locomotion_pilots_curves.csv"),
+        # where a locomotion-preset run's CPU goes, per trial (docs/scripts/cost_breakdown.py)
+        _path("locomotion_cost_breakdown.csv"),
         _path("locomotion_oracle.csv"),
     )
     figures = ("docs/figures/locomotion_gate.png", "docs/figures/locomotion_pilots.png")
@@ -360,6 +362,8 @@ RAW: tuple[str, ...] = (
     _path("peer_gate_halfcheetah_s0.csv"),
     _path("peer_gate_halfcheetah_s1.csv"),
     _path("locomotion_pilots_curves.csv"),
+    # where a locomotion-preset run's CPU goes, per trial (docs/scripts/cost_breakdown.py)
+    _path("locomotion_cost_breakdown.csv"),
     # what a pilot's learned model does, frozen (docs/scripts/frozen_model_checks.py)
     _path("locomotion_frozen_planning.csv"),
     _path("locomotion_reward_prediction.csv"),

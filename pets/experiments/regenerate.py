@@ -25,6 +25,7 @@ from pets.experiments.arguments import PROG
 from pets.experiments.gate_published import (
     ablation_table,
     compute_table,
+    cost_table,
     episode_ends_table,
     fall_prediction_table,
     frozen_planning_table,
@@ -82,6 +83,7 @@ BLOCKS: dict[str, Callable[[Path], str]] = {
     "locomotion-ablation": ablation_table,
     "locomotion-peer": peer_table,
     "locomotion-compute": compute_table,
+    "locomotion-cost": cost_table,
     "online-locomotion-runs": runs_table,
     "online-locomotion": summary_table,
     "composition": composition.study_table,

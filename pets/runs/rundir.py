@@ -45,15 +45,18 @@ METRIC_COLUMNS = [
     "model_epochs",
     "plan_seconds_per_step",
     "plan_cpu_s",
+    "train_cpu_s",
+    "value_cpu_s",
     "wall_time_s",
     "cpu_time_s",
 ]
 #: The columns of metrics.csv that measure time, not what the run did: a resumed or repeated run with the same seed
 #: repeats every other column. ``cpu_time_s``: the run's process CPU seconds (all its threads; not the compile
 #: workers inductor starts as other processes), cumulative like ``wall_time_s``; NaN for a run resumed from a
-#: checkpoint written before the column existed. ``plan_cpu_s``: the trial's planning in process CPU seconds (the rest of
-#: ``cpu_time_s`` is training, the simulator and the run's own bookkeeping).
-TIMING_COLUMNS = ("plan_seconds_per_step", "plan_cpu_s", "wall_time_s", "cpu_time_s")
+#: checkpoint written before the column existed. ``plan_cpu_s``, ``train_cpu_s``, ``value_cpu_s``: the trial's
+#: planning, model training and terminal-value fit in process CPU seconds (the rest of the trial's share of
+#: ``cpu_time_s`` is the simulator and the run's own bookkeeping; nan in rows written before the columns existed).
+TIMING_COLUMNS = ("plan_seconds_per_step", "plan_cpu_s", "train_cpu_s", "value_cpu_s", "wall_time_s", "cpu_time_s")
 
 
 def write_config(run_dir: Path, cfg: DictConfig) -> None:
