@@ -361,6 +361,7 @@ RAW: tuple[str, ...] = (
     # mbrl-lib's PETS beside the gate (peer_mbrl.py learn --arms mbrl-lib): one row per trial, a file per seed
     _path("peer_gate_halfcheetah_s0.csv"),
     _path("peer_gate_halfcheetah_s1.csv"),
+    _path("peer_gate_halfcheetah_s2.csv"),
     _path("locomotion_pilots_curves.csv"),
     # where a locomotion-preset run's CPU goes, per trial (docs/scripts/cost_breakdown.py)
     _path("locomotion_cost_breakdown.csv"),
