@@ -11,27 +11,24 @@ replace its earlier rows in ``--out``; other runs' rows are kept.
 from __future__ import annotations
 
 import argparse
-import csv
 import sys
 from pathlib import Path
 
-from omegaconf import OmegaConf
+from pets.experiments import gate
 
 COLUMNS = ["run", "env", "head", "seed", "trial", "env_steps", "plan_cpu_s", "train_cpu_s", "value_cpu_s", "cpu_s"]
 
 
 def run_rows(run_dir: Path) -> list[dict[str, object]]:
     """One row per trial of ``run_dir``: its CPU seconds by part, and all of the trial's (``cpu_s``)."""
-    cfg = OmegaConf.load(run_dir / "config.yaml")
-    with open(run_dir / "metrics.csv", newline="") as f:
-        metrics = list(csv.DictReader(f))
+    cfg, metrics = gate.read_run(run_dir)
     if not metrics or "train_cpu_s" not in metrics[0]:
         sys.exit(f"cost_breakdown.py: error: {run_dir} has no train_cpu_s column (made before it existed)")
     rows, before = [], 0.0
     for m in metrics:
         total = float(m["cpu_time_s"])
         rows.append(
-            {"run": run_dir.name, "env": cfg.env, "head": cfg.head, "seed": cfg.seed}
+            {"run": run_dir.name, "env": cfg["env"], "head": cfg["head"], "seed": cfg["seed"]}
             | {k: m[k] for k in ("trial", "env_steps", "plan_cpu_s", "train_cpu_s", "value_cpu_s")}
             | {"cpu_s": round(total - before, 3)}
         )
@@ -45,16 +42,8 @@ def main() -> None:
     p.add_argument("--out", type=Path, required=True)
     args = p.parse_args()
     new = [row for run_dir in args.runs for row in run_rows(run_dir)]
-    names = {r["run"] for r in new}
-    kept = []
-    if args.out.is_file():
-        with open(args.out, newline="") as f:
-            kept = [r for r in csv.DictReader(f) if r["run"] not in names]
-    with open(args.out, "w", newline="") as f:
-        writer = csv.DictWriter(f, COLUMNS, lineterminator="\n")
-        writer.writeheader()
-        writer.writerows([*kept, *new])
-    print(f"{len(new)} rows of {len(names)} run(s) written to {args.out}")
+    gate.write_csv(args.out, new, COLUMNS, keep=("run",))  # other runs' committed rows kept
+    print(f"{len(new)} rows of {len(args.runs)} run(s) written to {args.out}")
 
 
 if __name__ == "__main__":

@@ -204,8 +204,6 @@ def _gate_summary() -> Product:
     curves = (
         _path("locomotion_gate_curves.csv"),
         _path("locomotion_pilots_curves.csv"),
-        # where a locomotion-preset run's CPU goes, per trial (docs/scripts/cost_breakdown.py)
-        _path("locomotion_cost_breakdown.csv"),
         _path("locomotion_oracle.csv"),
     )
     figures = ("docs/figures/locomotion_gate.png", "docs/figures/locomotion_pilots.png")
