@@ -210,3 +210,19 @@ def test_the_command_keeps_committed_rows_of_runs_not_given_and_replaces_those_g
     assert ("0", "100000") in steps and ("1", "50000") in steps and ("1", "100000") not in steps
     assert study.main([str(partial), *files, "--replace"]) == 0
     assert [r["seed"] for r in csv.DictReader(out.open())] == ["1"]
+
+
+def test_the_figure_draws_delta_groupfeat_only_where_it_is_not_gems_curve(tmp_path, monkeypatch):
+    """On HalfCheetah (planar) delta-groupfeat's curve is gem's and is not drawn again; on Ant it is drawn."""
+    runs, points = [], []
+    for env in ("halfcheetah", "ant"):
+        for model in ("delta", "gem", "delta-groupfeat"):
+            runs.append({"env": env, "model": model, "seed": 0, "status": "complete"})
+            points += [{"env": env, "model": model, "seed": 0, "env_steps": n, "reward": 1.0} for n in (1000, 2000)]
+    study.gate.write_csv(tmp_path / study.RUNS, runs, ["env", "model", "seed", "status"])
+    study.gate.write_csv(tmp_path / study.CURVES, points, study.CURVE_COLUMNS)
+    drawn = {}
+    monkeypatch.setattr(study.curves, "plot_curves", lambda path, arms, **kw: drawn.update(arms))
+    study.plot_curves(tmp_path, tmp_path / "figure.png")
+    assert sorted(drawn["halfcheetah"]) == ["delta", "gem"]
+    assert sorted(drawn["ant"]) == ["delta", "delta-groupfeat", "gem"]
