@@ -213,6 +213,22 @@ def test_storage_check_names_the_node_that_cannot_write_out():
         ray.shutdown()
 
 
+def test_a_private_instance_runs_its_workers_at_the_drivers_priority(monkeypatch):
+    """Ray's own default starts workers at niceness 15, where beside any busy process a run gets a sliver of a core
+    (docs/cluster.md); the instance a sweep starts for itself runs them at the driver's niceness."""
+    from pets.experiments.backend import Backend
+    from pets.experiments.ray_backend import connect
+
+    monkeypatch.setenv("RAY_worker_niceness", "15")
+    monkeypatch.delenv("RAY_worker_niceness")  # unset now, and unset again after the test
+    ray_module = connect(Backend(kind="ray"))
+    try:
+        niceness = ray_module.remote(num_cpus=0)(lambda: os.nice(0))
+        assert ray_module.get(niceness.remote()) == os.nice(0)
+    finally:
+        ray_module.shutdown()
+
+
 def test_a_run_that_fails_by_itself_is_reported_with_its_reason_not_retried(tmp_path, capsys):
     """A run directory with a corrupt checkpoint: its resume exits 2; the task fails once (no retry: only lost
     workers are retried), the driver prints the reason, the summary lists the run, exit status EXIT_FAILED (3)."""

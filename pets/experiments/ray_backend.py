@@ -43,6 +43,10 @@ def connect(backend: Backend) -> Any:
         return ray
     if backend.address is None:  # a private instance for one sweep; a cluster's own auth mode and token are kept
         os.environ.setdefault("RAY_AUTH_MODE", "disabled")
+        # Ray starts its workers at niceness 15; the runs are this instance's whole work, so they run at the
+        # driver's priority, as the local backend's do (at 15, beside any other busy process, they got a sliver of
+        # a core: a small sweep took 13x the local backend's time). A cluster keeps its own setting (docs/cluster.md).
+        os.environ.setdefault("RAY_worker_niceness", "0")
     from envs.custom import child_environment
 
     # Every worker imports from the folder the command runs in, as a local run does (--envs mymodule:SPEC): the
