@@ -26,12 +26,12 @@ while IFS='|' read -r wd out kind args; do
   [[ -z "$wd" || "$wd" == \#* ]] && continue
   log=$logs/$(basename "$out").log
   cd "$wd" || continue
-  case $kind in
-    pets | sac | cmd) ;;
+  case $kind in  # skip what is already done
+    pets) ;;
+    sac) [[ -f "$out.npz" ]] && continue ;;
+    cmd) [[ -f "$out.done" ]] && continue ;;
     *) echo "unknown kind '$kind' in $jobs (pets, sac or cmd)" >> "$log"; continue ;;
   esac
-  [[ $kind == sac && -f "$out.npz" ]] && continue
-  [[ $kind == cmd && -f "$out.done" ]] && continue
   echo "$(date -u +%FT%H:%M) start $out" >> "$logs/queue_$(basename "$jobs").log"
   case $kind in
     pets)
