@@ -21,10 +21,12 @@ from pets.experiments.statistics import (
     iqm_columns,
     p_improvement,
     p_improvement_ci,
+    p_lower_columns,
     paired_differences,
     paired_ratios,
     sign_flip_p,
 )
+from pets.stats import stratified
 from pets.stats.bootstrap import bootstrap_band, bootstrap_ci, iqm, summarise
 
 INF, NAN = math.inf, math.nan
@@ -60,6 +62,31 @@ def test_iqm_ci_is_rliables_interval_estimate(shape, seed):
     np.testing.assert_array_equal(high, ref_interval["x"][1])
     assert (low <= point).all() and (point <= high).all()
     assert iqm_ci(x, reps=300, seed=seed)[1].tolist() == low.tolist()  # reproducible
+
+
+@pytest.mark.parametrize("block_elements", [2_000_000, 50])  # 50: the replications drawn in many blocks
+@pytest.mark.parametrize("runs, columns, reps", [(5, 1, 1000), (15, 3, 400), (34, 1, 300), (10, 8, 257), (1, 2, 50)])
+def test_stratified_percentile_ci_is_rliables_interval_estimate_bit_for_bit(runs, columns, reps, block_elements):
+    """All replications at once: rliable's numbers (its own bootstrap, arch's loop) and its use of the global
+    generator, for one array and for two resampled independently with different numbers of runs."""
+    rng = np.random.default_rng(runs * 100 + columns)
+    x = np.round(rng.standard_cauchy(size=(runs, columns)), 2)  # rounded: ties, as seeds' rewards can have
+    y = np.round(rng.normal(size=(runs + 3, columns)), 1)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(stratified, "_BLOCK_ELEMENTS", block_elements)
+        for arrays, func, key in [([x], iqm_columns, "x"), ([-x, -y], p_lower_columns, "p")]:
+            np.random.seed(runs)
+            point, low, high = stratified.stratified_percentile_ci(arrays, func, reps=reps, confidence=0.9)
+            after = np.random.get_state()[1].copy()
+            np.random.seed(runs)
+            scores = arrays[0] if len(arrays) == 1 else arrays
+            ref_point, ref_interval = library.get_interval_estimates(
+                {key: scores}, func, reps=reps, confidence_interval_size=0.9
+            )
+            np.testing.assert_array_equal(np.random.get_state()[1], after)  # the same draws, no more, no fewer
+            np.testing.assert_array_equal(point, ref_point[key])
+            np.testing.assert_array_equal(low, ref_interval[key][0])
+            np.testing.assert_array_equal(high, ref_interval[key][1])
 
 
 @pytest.mark.parametrize("values", [[1.0, 4.0, 10.0], [2.0, 7.0], [5.0]])

@@ -7,7 +7,7 @@ a thin layer over rliable (Agarwal et al. 2021, "Deep RL at the edge of the stat
 - :func:`iqm_ci`: per column of a (runs, columns) score matrix the interquartile mean (IQM, rliable's
   ``metrics.aggregate_iqm`` = ``scipy.stats.trim_mean(x, 0.25)``: sort, drop ``floor(n / 4)`` values
   at each end, average the rest; for ``n < 4`` the plain mean) with its 95 % stratified-bootstrap
-  percentile CI, one ``rliable.library.get_interval_estimates`` call for all columns. The stratified
+  percentile CI, rliable's ``library.get_interval_estimates`` for all columns at once. The stratified
   bootstrap resamples the runs of every column independently, so a column's interval is the
   percentile bootstrap of that column alone, whatever else is in the call.
 - :func:`p_improvement` / :func:`p_improvement_ci`: the probability that a model is better than the
@@ -43,10 +43,12 @@ Reproducibility: rliable's bootstraps draw their indices from numpy's *global* g
 generator with ``seed`` and restores its previous state afterwards, so the same inputs give the
 same numbers in every process, whatever ran before.
 
-Speed: the function bootstrapped for the IQM is :func:`iqm_columns`, the partition-and-average of
-``scipy.stats.trim_mean`` vectorised over columns (bit-identical to ``aggregate_iqm`` per column;
-the tests pin it), because scipy's wrapper costs about 0.2 ms per call, ten times rliable's own cost
-per replication. Likewise :func:`p_lower_columns` for the probability of improvement (identical to
+Speed: the intervals are :func:`pets.stats.stratified.stratified_percentile_ci`, rliable's stratified percentile
+bootstrap with all replications drawn and evaluated at once: the same numbers bit for bit and the same draws from
+the global generator (the tests pin both against rliable itself), without arch's loop of one Python iteration per
+replication (``docs/scripts/bench_bootstrap.py`` prints both costs; docs/performance.md). The statistics bootstrapped are :func:`iqm_columns`, the partition-and-average
+of ``scipy.stats.trim_mean`` vectorised over columns and replications (bit-identical to ``aggregate_iqm`` per
+column; the tests pin it), and :func:`p_lower_columns` for the probability of improvement (identical to
 ``probability_of_improvement`` per column). :data:`REPS` replications: see its comment.
 """
 
@@ -60,6 +62,7 @@ from typing import Any
 import numpy as np
 
 from pets.stats.bootstrap import check_confidence, iqm_columns
+from pets.stats.stratified import stratified_percentile_ci
 
 #: The model every other model (arm) of a comparison is compared with: P of improvement, ratios, differences.
 BASELINE = "delta"
@@ -74,8 +77,7 @@ SMALL_SAMPLE_NOTE = (
 CONFIDENCE = 0.95
 #: Bootstrap replications of the rliable intervals. The percentile CI of an IQM over 5 seeds has at
 #: most C(9, 5) = 126 distinct resample values per column, and 5000 replications put the 2.5 %
-#: quantile within about 0.5 percentage points of probability; the statistics of a full offline
-#: summary (8 envs x 6 models x 5 horizons x 8 metrics) take about 15 s on 2 CPU cores with it.
+#: quantile within about 0.5 percentage points of probability.
 REPS = 5_000
 #: A run whose ``standardized_error`` (the RMS prediction error in units of the training data's standard
 #: deviations) exceeds this at a horizon is diverged at that horizon: predicting the data mean scores about 1 and an
@@ -111,28 +113,20 @@ def iqm_ci(
     scores: Any, *, reps: int = REPS, seed: int = 0, confidence: float = CONFIDENCE
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(iqm, ci_low, ci_high)``, each (columns,): per column of ``scores`` (runs, columns) the IQM and its
-    stratified-bootstrap percentile CI (``rliable.library.get_interval_estimates``, ``reps`` replications,
-    numpy's global generator seeded with ``seed`` for the call). One run gives ``(x, x, x)``.
+    stratified-bootstrap percentile CI (rliable's ``library.get_interval_estimates``, ``reps`` replications,
+    numpy's global generator seeded with ``seed`` for the call; computed by
+    :func:`~pets.stats.stratified.stratified_percentile_ci`). One run gives ``(x, x, x)``.
 
     ValueError for non-finite scores (diverged runs are left out by the caller, never averaged in), an
     empty matrix or ``reps < 1``.
     """
-    from rliable import library
-
     x = _score_matrix(scores, "scores")
     _check_reps(reps)
     check_confidence(confidence, reps)
     if not np.isfinite(x).all():
         raise ValueError("scores contain NaN or inf; leave diverged runs out before the IQM")
     with _global_numpy_seed(seed):
-        point, interval = library.get_interval_estimates(
-            {"x": x}, iqm_columns, method="percentile", reps=reps, confidence_interval_size=confidence
-        )
-    return (
-        np.asarray(point["x"], dtype=np.float64),
-        interval["x"][0].astype(np.float64),
-        interval["x"][1].astype(np.float64),
-    )
+        return stratified_percentile_ci([x], iqm_columns, reps=reps, confidence=confidence)
 
 
 def iqm_ci_finite(
@@ -169,10 +163,11 @@ def _as_errors(values: Any, name: str, higher_is_better: bool = False) -> np.nda
 
 def p_lower_columns(err_x: np.ndarray, err_y: np.ndarray) -> np.ndarray:
     """Per column ``P(X < Y) + P(X = Y) / 2`` over all pairs of a run of ``err_x`` and one of ``err_y``:
-    ``rliable.metrics.probability_of_improvement(-err_x, -err_y)`` of each column, vectorised."""
-    a, b = err_x[:, None, :], err_y[None, :, :]
-    wins = (a < b).sum(axis=(0, 1)) + 0.5 * (a == b).sum(axis=(0, 1))
-    return wins / (err_x.shape[0] * err_y.shape[0])
+    ``rliable.metrics.probability_of_improvement(-err_x, -err_y)`` of each column, vectorised. A leading
+    axis (replications, runs, columns) on both gives every replication's, (replications, columns)."""
+    a, b = err_x[..., :, None, :], err_y[..., None, :, :]
+    wins = (a < b).sum(axis=(-3, -2)) + 0.5 * (a == b).sum(axis=(-3, -2))
+    return wins / (err_x.shape[-2] * err_y.shape[-2])
 
 
 def p_improvement(model: Any, baseline: Any, *, higher_is_better: bool = False) -> float:
@@ -208,8 +203,6 @@ def p_improvement_ci(
     (runs_model, columns) against ``baseline`` (runs_baseline, columns) with rliable's stratified
     independent bootstrap CI (each model's runs resampled on their own; ``reps`` replications, seed as
     :func:`iqm_ci`). 1-D inputs are one column. Non-finite values count as the worst (diverged)."""
-    from rliable import library
-
     x = _as_errors(model, "model", higher_is_better)
     y = _as_errors(baseline, "baseline", higher_is_better)
     if x.shape[1] != y.shape[1]:
@@ -217,14 +210,7 @@ def p_improvement_ci(
     _check_reps(reps)
     check_confidence(confidence, reps)
     with _global_numpy_seed(seed):
-        point, interval = library.get_interval_estimates(
-            {"p": [x, y]}, p_lower_columns, method="percentile", reps=reps, confidence_interval_size=confidence
-        )
-    return (
-        np.asarray(point["p"], dtype=np.float64),
-        interval["p"][0].astype(np.float64),
-        interval["p"][1].astype(np.float64),
-    )
+        return stratified_percentile_ci([x, y], p_lower_columns, reps=reps, confidence=confidence)
 
 
 def paired_ratios(model: Mapping[Any, Any], delta: Mapping[Any, Any]) -> tuple[list[Any], np.ndarray]:

@@ -41,10 +41,11 @@ def check_confidence(confidence: float, n_boot: int) -> None:
 
 def iqm_columns(scores: np.ndarray) -> np.ndarray:
     """IQM of every column of ``scores`` (runs, columns): ``rliable.metrics.aggregate_iqm`` of each column
-    (scipy's ``trim_mean(x, 0.25)``: the same partition and average, vectorised over the columns)."""
-    n = scores.shape[0]
+    (scipy's ``trim_mean(x, 0.25)``: the same partition and average, vectorised over the columns). A leading
+    axis (replications, runs, columns) gives every replication's IQMs, (replications, columns)."""
+    n = scores.shape[-2]
     cut = int(0.25 * n)
-    return np.partition(scores, (cut, n - cut - 1), axis=0)[cut : n - cut].mean(axis=0)
+    return np.partition(scores, (cut, n - cut - 1), axis=-2)[..., cut : n - cut, :].mean(axis=-2)
 
 
 def bootstrap_means(samples: np.ndarray, n_boot: int, rng: np.random.Generator) -> np.ndarray:
