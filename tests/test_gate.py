@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -104,6 +105,31 @@ def test_oracle_files_become_rows_and_no_input_is_one_line_exit_2(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "pets.experiments.gate", "--out", str(tmp_path / "x")],
                           capture_output=True, text=True, timeout=60)  # fmt: skip
     assert proc.returncode == 2 and "give run directories" in proc.stderr and len(proc.stderr.splitlines()) == 1
+
+
+def test_oracle_files_merge_into_the_committed_rows_of_other_files(tmp_path):
+    """An oracle file run later (e.g. with a gate run's value) adds its rows; the committed rows of files not given
+    (run on a machine since replaced) are kept, those of a file given again are replaced; --replace writes only
+    the files given."""
+    import json
+
+    def oracle_file(name: str, rewards: list[float]) -> Path:
+        episodes = [{"steps": 100, "reward": r, "terminated": True, "seconds": 1.0} for r in rewards]
+        planner = {"name": "cem", "population": 100, "horizon": 15, "iterations": 3}
+        (tmp_path / f"{name}.json").write_text(json.dumps({"planner": planner, "episodes": episodes}))
+        return tmp_path / f"{name}.json"
+
+    out = tmp_path / "locomotion"
+    first, second = oracle_file("hopper_a", [1.0, 2.0]), oracle_file("hopper_b", [3.0])
+    assert gate.main(["--oracle", str(first), str(second), "--out", str(out)]) == 0
+    first.unlink()  # its machine replaced: only its committed rows remain
+    assert gate.main(["--oracle", str(oracle_file("hopper_b", [4.0, 5.0])), "--out", str(out)]) == 0
+    rows = list(csv.DictReader((tmp_path / "locomotion_oracle.csv").open()))
+    assert [(r["source"], r["reward"]) for r in rows] == [("hopper_a", "1"), ("hopper_a", "2"), ("hopper_b", "4"),
+                                                          ("hopper_b", "5")]  # fmt: skip
+    assert gate.main(["--oracle", str(second), "--out", str(out), "--replace"]) == 0
+    rows = list(csv.DictReader((tmp_path / "locomotion_oracle.csv").open()))
+    assert [(r["source"], r["reward"]) for r in rows] == [("hopper_b", "4"), ("hopper_b", "5")]
 
 
 def test_the_summary_and_the_docs_block_are_made_from_the_committed_runs_csv(tmp_path, monkeypatch):

@@ -365,7 +365,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", type=Path, required=True, help="output prefix (see above)")
     p.add_argument("--oracle", nargs="*", type=Path, default=[], help="pets.oracle --json files: OUT_oracle.csv")
     p.add_argument("--pilots", action="store_true", help="pilot runs: one OUT.csv row per run with its overrides")
-    p.add_argument("--replace", action="store_true", help=REPLACE_HELP)
+    p.add_argument("--replace", action="store_true", help=REPLACE_HELP + "; likewise the rows of --oracle files")
     args = p.parse_args(argv)
     keep = () if args.replace else ("run",) if args.pilots else ("env", "agent", "seed")
     if not (args.run_dirs or args.sac or args.peer or args.oracle):
@@ -376,7 +376,7 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f"not run directories (no config.yaml) or files: {', '.join(missing)}")
     if args.oracle:
         oracle = [row for path in args.oracle for row in oracle_rows(path)]
-        write_csv(Path(f"{args.out}_oracle.csv"), oracle, ORACLE_COLUMNS)
+        write_csv(Path(f"{args.out}_oracle.csv"), oracle, ORACLE_COLUMNS, () if args.replace else ("env", "source"))
     if not (args.run_dirs or args.sac or args.peer):
         rows = []
     elif args.pilots:
