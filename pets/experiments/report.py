@@ -115,5 +115,5 @@ def merge_committed(
             out += new[k]
             placed.add(k)
     if kept:
-        print(f"{path}: kept {kept} committed rows whose run directories were not given", file=sys.stderr)
+        print(f"{path}: kept {kept} committed rows of runs (or files) not given", file=sys.stderr)
     return out + [r for k, group in new.items() if k not in placed for r in group], kept
