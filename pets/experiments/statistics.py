@@ -46,10 +46,11 @@ same numbers in every process, whatever ran before.
 Speed: the intervals are :func:`pets.stats.stratified.stratified_percentile_ci`, rliable's stratified percentile
 bootstrap with all replications drawn and evaluated at once: the same numbers bit for bit and the same draws from
 the global generator (the tests pin both against rliable itself), without arch's loop of one Python iteration per
-replication (``docs/scripts/bench_bootstrap.py`` prints both costs; docs/performance.md). The statistics bootstrapped are :func:`iqm_columns`, the partition-and-average
-of ``scipy.stats.trim_mean`` vectorised over columns and replications (bit-identical to ``aggregate_iqm`` per
-column; the tests pin it), and :func:`p_lower_columns` for the probability of improvement (identical to
-``probability_of_improvement`` per column). :data:`REPS` replications: see its comment.
+replication (``docs/scripts/bench_bootstrap.py`` prints both costs; docs/performance.md). The statistics
+bootstrapped are :func:`iqm_columns`, the partition-and-average of ``scipy.stats.trim_mean`` vectorised over
+columns and replications (bit-identical to ``aggregate_iqm`` per column; the tests pin it), and
+:func:`p_lower_columns` for the probability of improvement (identical to ``probability_of_improvement`` per
+column). :data:`REPS` replications: see its comment.
 """
 
 from __future__ import annotations
