@@ -123,7 +123,8 @@ def test_oracle_files_merge_into_the_committed_rows_of_other_files(tmp_path):
     first, second = oracle_file("hopper_a", [1.0, 2.0]), oracle_file("hopper_b", [3.0])
     assert gate.main(["--oracle", str(first), str(second), "--out", str(out)]) == 0
     first.unlink()  # its machine replaced: only its committed rows remain
-    assert gate.main(["--oracle", str(oracle_file("hopper_b", [4.0, 5.0])), "--out", str(out)]) == 0
+    second = oracle_file("hopper_b", [4.0, 5.0])  # the same file run again
+    assert gate.main(["--oracle", str(second), "--out", str(out)]) == 0
     rows = list(csv.DictReader((tmp_path / "locomotion_oracle.csv").open()))
     assert [(r["source"], r["reward"]) for r in rows] == [("hopper_a", "1"), ("hopper_a", "2"), ("hopper_b", "4"),
                                                           ("hopper_b", "5")]  # fmt: skip

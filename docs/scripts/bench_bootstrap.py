@@ -11,24 +11,16 @@ CPU seconds, the median of ``--repeat`` runs each, and checks that the two give 
 from __future__ import annotations
 
 import argparse
-import platform
 import statistics
 import time
-from pathlib import Path
 
 import numpy as np
 from rliable import library
 
 from pets.experiments.statistics import REPS, p_lower_columns
+from pets.runs.hardware import cpu_name
 from pets.stats.bootstrap import iqm_columns
 from pets.stats.stratified import stratified_percentile_ci
-
-
-def _cpu_name() -> str:
-    for line in Path("/proc/cpuinfo").read_text().splitlines() if Path("/proc/cpuinfo").is_file() else []:
-        if line.startswith("model name"):
-            return line.split(":", 1)[1].strip()
-    return platform.machine()
 
 
 def _cpu(call, *args, **kwargs) -> tuple[float, object]:
@@ -49,7 +41,7 @@ def main() -> None:
         [rng.normal(size=(5, 40)), rng.normal(size=(5, 40))],
         p_lower_columns,
     )
-    print(f"{_cpu_name()}, {REPS} replications, median of {args.repeat} (process CPU s)")
+    print(f"{cpu_name()}, {REPS} replications, median of {args.repeat} (process CPU s)")
     for name, (arrays, func) in cases.items():
         theirs, ours = [], []
         for _ in range(args.repeat):
