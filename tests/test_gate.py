@@ -246,6 +246,58 @@ def test_merging_keeps_committed_rows_in_their_order_and_replaces_every_row_of_a
     assert kept == 2 and [(r["seed"], r["x"]) for r in rows] == [("0", "1"), ("1", "9"), ("2", "4"), ("3", "5")]
 
 
+def test_a_run_started_again_under_its_name_keeps_the_committed_rows_until_it_passes_them(tmp_path, capsys):
+    """A run lost with its machine and started again from the start under its directory name: while its rows have
+    fewer env steps than the committed ones (a curve: the largest), the committed rows stay and a line names the
+    run; once the new rows reach further they replace them. Without ``progress`` the new rows replace as before."""
+    from pets.experiments.report import merge_committed, write_csv
+
+    path = tmp_path / "curves.csv"
+    committed = [{"run": "a", "env_steps": n, "reward": r} for n, r in (("10000", "5"), ("26000", "9"))]
+    committed.append({"run": "b", "env_steps": "20000", "reward": "1"})
+    write_csv(path, committed, ["run", "env_steps", "reward"])
+    rerun = [{"run": "a", "env_steps": "7000", "reward": "2"}, {"run": "b", "env_steps": "21000", "reward": "3"}]
+    rows, _ = merge_committed(path, rerun, ["run"], progress="env_steps")
+    assert [(r["run"], r["env_steps"]) for r in rows] == [("a", "10000"), ("a", "26000"), ("b", "21000")]
+    assert "kept the committed rows of a (further in env_steps" in capsys.readouterr().err
+    assert merge_committed(path, rerun, ["run"])[0] == rerun
+    passed = [{"run": "a", "env_steps": n, "reward": "4"} for n in ("10000", "27000")]
+    assert merge_committed(path, passed, ["run"], progress="env_steps")[0][:2] == passed
+
+
+def test_the_gate_keeps_a_lost_pilot_row_while_its_rerun_is_behind(tmp_path):
+    """The gate's pilot tables through its command line: a pilot started again under its directory name (12 trials
+    so far) leaves the committed row and curve of the run that got to 26k env steps as they were; at 27k it
+    replaces them."""
+    from pets.config import config_yaml, make_config
+    from pets.experiments.report import read_csv_rows, write_csv
+
+    run_dir = tmp_path / "halfcheetah-v2-s100"
+    run_dir.mkdir()
+    (run_dir / "config.yaml").write_text(config_yaml(make_config("halfcheetah", "delta", "locomotion")))
+
+    def trials(n: int) -> None:
+        rows = [episode(1000 * (i + 2), float(i), 1000) for i in range(n)]
+        with (run_dir / "metrics.csv").open("w", newline="") as f:
+            writer = csv.DictWriter(f, ["trial", *rows[0], "plan_cpu_s", "cpu_time_s"])
+            writer.writeheader()
+            writer.writerows({"trial": i, "plan_cpu_s": 1.0, "cpu_time_s": 2.0 * i} | r for i, r in enumerate(rows))
+
+    out, curves = tmp_path / "pilots", tmp_path / "pilots_curves.csv"
+    trials(12)
+    lost = dict(gate.pilot_row(run_dir), env_steps=26000, reward_last5=3222.45)
+    gate.write_csv(out.with_suffix(".csv"), [lost], list(lost))
+    curve = [{"run": run_dir.name, "env": "halfcheetah", "env_steps": n, "reward": 1.0} for n in (10000, 26000)]
+    write_csv(curves, curve, gate.PILOT_CURVE_COLUMNS)
+    committed = read_csv_rows(out.with_suffix(".csv")), read_csv_rows(curves)
+    assert gate.main([str(run_dir), "--pilots", "--out", str(out)]) == 0
+    assert (read_csv_rows(out.with_suffix(".csv")), read_csv_rows(curves)) == committed
+    trials(26)
+    assert gate.main([str(run_dir), "--pilots", "--out", str(out)]) == 0
+    assert read_csv_rows(out.with_suffix(".csv"))[0]["env_steps"] == "27000"
+    assert read_csv_rows(curves)[-1]["env_steps"] == "27000"
+
+
 def test_mbrl_lib_runs_become_gate_rows_complete_at_their_registered_budget_and_summarised_there(tmp_path):
     """A peer_mbrl.py learn CSV (one row per trial; its gem-pets rows ignored): each mbrl-lib run is a gate row,
     complete at the 50k env steps its 49 trials reach (the amendment of 21:45 UTC), its endpoint the gate's window

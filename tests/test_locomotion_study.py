@@ -195,21 +195,26 @@ def test_the_command_adds_identical_rows_when_asked(tmp_path):
 
 def test_the_command_keeps_committed_rows_of_runs_not_given_and_replaces_those_given(tmp_path):
     """A run directory lost with a replaced machine must not lose its committed row: the runs and curves files
-    keep it, in its place; a run given again replaces its rows; ``--replace`` writes only the runs given."""
+    keep it, in its place; a run given again replaces its rows once it reaches as far (while it is behind, as a
+    run started again from the start, the committed rows stay); ``--replace`` writes only the runs given."""
     old = [make_run(tmp_path / "old", "delta", s, ramp(3000.0)) for s in (0, 1)]
     out, curves = tmp_path / "runs.csv", tmp_path / "curves.csv"
     files = ["--out", str(out), "--curves", str(curves)]
     assert study.main([*map(str, old), *files]) == 0
-    committed = out.read_text()
-    partial = make_run(tmp_path / "new", "delta", 1, ramp(3000.0), budget=50_000)
+    committed = out.read_text(), curves.read_text()
+    partial = make_run(tmp_path / "new", "delta", 1, ramp(2000.0), budget=50_000)
     assert study.main([str(partial), *files]) == 0
+    assert (out.read_text(), curves.read_text()) == committed
+    again = make_run(tmp_path / "again", "delta", 1, ramp(2000.0))
+    assert study.main([str(again), *files]) == 0
     rows = list(csv.DictReader(out.open()))
-    assert [(r["seed"], r["status"]) for r in rows] == [("0", "complete"), ("1", "partial")]
-    assert rows[0] == next(csv.DictReader(io.StringIO(committed)))  # kept as committed, cell for cell
-    steps = {(r["seed"], r["env_steps"]) for r in csv.DictReader(curves.open())}
-    assert ("0", "100000") in steps and ("1", "50000") in steps and ("1", "100000") not in steps
+    assert [(r["seed"], r["status"]) for r in rows] == [("0", "complete"), ("1", "complete")]
+    assert rows[0] == next(csv.DictReader(io.StringIO(committed[0])))  # kept as committed, cell for cell
+    assert float(rows[1]["endpoint"]) == pytest.approx(np.mean(ramp(2000.0)[-5:]), rel=1e-5)
     assert study.main([str(partial), *files, "--replace"]) == 0
-    assert [r["seed"] for r in csv.DictReader(out.open())] == ["1"]
+    assert [(r["seed"], r["status"]) for r in csv.DictReader(out.open())] == [("1", "partial")]
+    steps = {(r["seed"], r["env_steps"]) for r in csv.DictReader(curves.open())}
+    assert ("1", "50000") in steps and ("1", "100000") not in steps and ("0", "100000") not in steps
 
 
 def test_the_figure_draws_delta_groupfeat_only_where_it_is_not_gems_curve(tmp_path, monkeypatch):

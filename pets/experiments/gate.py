@@ -308,13 +308,15 @@ def write_csv(
     path: Path, rows: Sequence[Mapping[str, Any]], columns: Sequence[str], keep: Sequence[str] = ()
 ) -> list[dict[str, str]]:
     """The rows with their cells as :func:`cell_text` shows them, written by the experiments' CSV writer. ``keep``
-    (key columns): merged into the committed file, its rows of other keys kept (:func:`report.merge_committed`; a
-    line says how many). Returns the rows written."""
+    (key columns): merged into the committed file, its rows of other keys kept, and a key's committed rows kept
+    while its new rows have fewer env steps (:func:`report.merge_committed`; a line says which). Returns the rows
+    written."""
     from pets.experiments.report import merge_committed
     from pets.experiments.report import write_csv as write_rows
 
     text = [{c: cell_text(r[c]) for c in columns} for r in rows]
-    text = merge_committed(path, text, keep)[0] if keep else text
+    progress = "env_steps" if "env_steps" in columns else None
+    text = merge_committed(path, text, keep, progress)[0] if keep else text
     write_rows(path, text, columns)
     return text
 

@@ -89,13 +89,15 @@ def read_csv_rows(path: Path, error: type[Exception] = ValueError) -> list[dict[
 
 
 def merge_committed(
-    path: Path, rows: Sequence[Mapping[str, str]], key: Sequence[str]
+    path: Path, rows: Sequence[Mapping[str, str]], key: Sequence[str], progress: str | None = None
 ) -> tuple[list[dict[str, str]], int]:
     """``rows`` (cells as text) merged into the CSV already at ``path``: the committed rows in their order, those of
     a ``key`` that ``rows`` has replaced by all of ``rows``' rows of that key (several for a curve), then the keys
     that are new. A committed row whose run directory is no longer on this machine (a finished run, a replaced
-    machine) is kept as it is, never lost by rewriting the table (a line on stderr says how many). Returns the rows
-    and how many were kept."""
+    machine) is kept as it is, never lost by rewriting the table (a line on stderr says how many). With
+    ``progress`` (a column such as ``env_steps``), a key's committed rows that got further than its new rows (a run
+    lost with its machine and started again under its name) are kept too, until the new rows pass them (a line
+    names them). Returns the rows and how many were kept."""
     new: dict[tuple[str, ...], list[dict[str, str]]] = {}
     for r in rows:
         new.setdefault(tuple(r[k] for k in key), []).append(dict(r))
@@ -103,6 +105,12 @@ def merge_committed(
         return [r for group in new.values() for r in group], 0
     with path.open(newline="") as f:
         committed = list(csv.DictReader(f))
+    if progress is not None:
+        behind = _behind_committed(committed, new, key, progress)
+        if behind:
+            names = ", ".join("/".join(k) for k in sorted(behind))
+            print(f"{path}: kept the committed rows of {names} (further in {progress} than the new)", file=sys.stderr)
+            new = {k: group for k, group in new.items() if k not in behind}
     out: list[dict[str, str]] = []
     placed: set[tuple[str, ...]] = set()
     kept = 0
@@ -117,3 +125,21 @@ def merge_committed(
     if kept:
         print(f"{path}: kept {kept} committed rows of runs (or files) not given", file=sys.stderr)
     return out + [r for k, group in new.items() if k not in placed for r in group], kept
+
+
+def _behind_committed(
+    committed: Sequence[Mapping[str, str]],
+    new: Mapping[tuple[str, ...], Sequence[Mapping[str, str]]],
+    key: Sequence[str],
+    progress: str,
+) -> set[tuple[str, ...]]:
+    """The keys whose new rows reach less far in ``progress`` (the largest value of the column) than the committed
+    rows of the key."""
+
+    def reach(group: Sequence[Mapping[str, str]]) -> float:
+        return max((float(r[progress]) for r in group if r.get(progress, "") != ""), default=0.0)
+
+    before: dict[tuple[str, ...], list[Mapping[str, str]]] = {}
+    for r in committed:
+        before.setdefault(tuple(r.get(c, "") for c in key), []).append(r)
+    return {k for k, group in new.items() if k in before and reach(group) < reach(before[k])}

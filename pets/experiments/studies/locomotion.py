@@ -277,7 +277,8 @@ def main(argv: list[str] | None = None) -> int:
     rows = [run_row(d, crashed=d in args.crashed) for d in args.run_dirs]
     text = [{c: gate.cell_text(r[c]) for c in RUN_COLUMNS} for r in rows]
     if keep:
-        text = [r for r in merge_committed(args.out, text, keep)[0] if r["status"] != IDENTICAL_STATUS]  # derived below
+        merged = merge_committed(args.out, text, keep, "env_steps")[0]
+        text = [r for r in merged if r["status"] != IDENTICAL_STATUS]  # derived below
     if args.identical:
         try:
             text += identical_rows(text)
