@@ -353,7 +353,8 @@ def run_curve(run_dir: Path, pilot: bool = False, head: str = "agent") -> list[d
 #: The ``--replace`` help of the commands that write a study's runs tables from run directories.
 REPLACE_HELP = (
     "write only the runs given (default: merge them into the committed tables, keeping the rows of runs whose "
-    "directories are not given, e.g. finished on a machine since replaced)"
+    "directories are not given, e.g. finished on a machine since replaced, and a run's committed rows while its "
+    "directory given has fewer env steps, e.g. started again under its name)"
 )
 
 
