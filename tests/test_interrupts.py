@@ -167,6 +167,30 @@ def test_an_interrupt_the_command_handled_ends_with_its_status_not_by_the_signal
     assert "Traceback" not in proc.stderr
 
 
+def test_an_interrupt_that_lands_in_a_finaliser_is_delivered_again_not_swallowed(tmp_path):
+    """A Ctrl-C whose KeyboardInterrupt is raised inside a ``__del__`` or a weakref callback (an import's
+    module-lock callback, seen once at 1 CPU-s into ``pets.train`` on 2026-11-29) cannot propagate there: Python
+    printed "Exception ignored" with a traceback and the command went on to exit 0. run_command delivers it again:
+    one line, exit 130."""
+    (tmp_path / "probe.py").write_text(
+        "import signal, time\n"
+        "from pets.tools.cli import run_command\n"
+        "class Finalised:\n"
+        "    def __del__(self):\n"
+        "        signal.raise_signal(signal.SIGINT)  # its KeyboardInterrupt is raised here, inside __del__\n"
+        "def main():\n"
+        "    Finalised()\n"
+        "    time.sleep(30)\n"
+        "    return 0\n"
+        "run_command('probe', main)\n"
+    )
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    proc = subprocess.run([sys.executable, "-m", "probe"], cwd=tmp_path, env=env, capture_output=True, text=True,
+                          preexec_fn=default_sigint, timeout=120)  # fmt: skip
+    _check(proc)
+    assert proc.returncode == 130 and error_lines(proc.stderr) == ["probe: interrupted"], proc.stderr
+
+
 @pytest.fixture(scope="module")
 def data_set(tmp_path_factory) -> Path:
     return collect_random(tmp_path_factory.mktemp("data") / "ip.npz", 20)

@@ -126,6 +126,7 @@ def run_command(prog: str, main: Callable[[], int | None], kept: str = "") -> No
     with the command's status, never by the signal (-2)."""
     import importlib
 
+    sys.unraisablehook = _interrupt_again(sys.unraisablehook)
     try:
         with interrupts_deferred():
             for name in UNCUTTABLE_IMPORTS:
@@ -143,6 +144,29 @@ def run_command(prog: str, main: Callable[[], int | None], kept: str = "") -> No
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     _forget_handled_interrupt(code)
     sys.exit(code)
+
+
+def _interrupt_again(hook: Callable[[Any], object]) -> Callable[[Any], object]:
+    """``sys.unraisablehook`` that delivers again a Ctrl-C that landed in a finaliser or a weakref callback (an
+    import's module-lock callback, a ``__del__``): Python cannot raise there, so it would print "Exception ignored"
+    with a traceback and go on as if no Ctrl-C had come. Any other unraisable exception goes to ``hook``."""
+    import _thread
+    import threading
+    import time
+
+    main = threading.main_thread().ident
+
+    def interrupt_soon() -> None:  # once the main thread is out of the hook, where it would be ignored again
+        time.sleep(0.01)
+        signal.pthread_kill(main, signal.SIGINT)  # a real signal: it ends a sleep or a wait; ignored once ending
+
+    def hook_or_interrupt(unraisable: Any) -> object:
+        if isinstance(unraisable.exc_type, type) and issubclass(unraisable.exc_type, KeyboardInterrupt):
+            _thread.start_new_thread(interrupt_soon, ())  # not threading's: its start() waits, in the hook
+            return None
+        return hook(unraisable)
+
+    return hook_or_interrupt
 
 
 def _forget_handled_interrupt(code: int | str | None) -> None:
