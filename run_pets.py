@@ -168,8 +168,6 @@ def main(argv: list[str] | None = None) -> int:
 def _main(argv: list[str] | None = None) -> int:
     with interrupts_deferred():  # Ctrl-C waits for the imports: a module half-imported breaks the run's next import
         args = build_parser().parse_intermixed_args(argv)  # imports pets.config, and with it torch
-        import torch._dynamo  # noqa: F401  (the optimiser imports it when the run is built)
-
         import envs
         from envs.render import RenderingUnavailable
         from pets import loop
@@ -258,6 +256,8 @@ def _main(argv: list[str] | None = None) -> int:
     if problem:
         advice = "copy the run somewhere writable and resume the copy" if args.resume else "pick another --out"
         _fail(f"{problem}; {advice}")
+    with interrupts_deferred():  # once the settings are checked: bad input is refused without its ~1.5 CPU-s
+        import torch._dynamo  # noqa: F401  (the optimiser imports it when the run is built)
     print(start_line(run_dir, args, cfg), file=sys.stderr)
     try:
         rows = loop.run(cfg, Path(run_dir), resume=args.resume is not None, progress=not args.quiet)
