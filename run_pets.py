@@ -256,10 +256,10 @@ def _main(argv: list[str] | None = None) -> int:
     if problem:
         advice = "copy the run somewhere writable and resume the copy" if args.resume else "pick another --out"
         _fail(f"{problem}; {advice}")
-    with interrupts_deferred():  # once the settings are checked: bad input is refused without its ~1.5 CPU-s
-        import torch._dynamo  # noqa: F401  (the optimiser imports it when the run is built)
     print(start_line(run_dir, args, cfg), file=sys.stderr)
     try:
+        with interrupts_deferred():  # once the settings are checked: bad input is refused without its ~1.5 CPU-s
+            import torch._dynamo  # noqa: F401  (the optimiser imports it when the run is built)
         rows = loop.run(cfg, Path(run_dir), resume=args.resume is not None, progress=not args.quiet)
     except (ConfigError, RenderingUnavailable) as err:  # the second: --video on a machine without headless GL
         remove_if_unused(Path(run_dir), created)

@@ -624,6 +624,25 @@ def test_a_full_file_system_is_one_line_keeps_the_completed_trials_and_resume_fi
     assert not any(n.endswith(".tmp") for n in listing), listing
 
 
+def test_a_start_that_failed_removes_the_directory_it_made_empty_or_holding_only_its_lock(tmp_path):
+    """A run that stopped before writing anything (a Ctrl-C after the writability probe made ``--out``, before the
+    lock was taken, left an empty folder on 2026-11-29) leaves no folder it made; a folder the user gave stays,
+    and one holding anything else is left as it is."""
+    from pets.runs.fileio import LOCK_FILE, remove_if_unused
+
+    empty, lock_only, given, holding = (tmp_path / n for n in ("empty", "lock-only", "given", "holding"))
+    for d in (empty, lock_only, given, holding):
+        d.mkdir()
+    for d in (lock_only, given, holding):
+        (d / LOCK_FILE).touch()
+    (holding / "config.yaml").write_text("env: reacher\n")
+    for d, created in ((empty, True), (lock_only, True), (given, False), (holding, True)):
+        remove_if_unused(d, created)
+    assert not empty.exists() and not lock_only.exists()
+    assert given.is_dir() and not any(given.iterdir())
+    assert sorted(p.name for p in holding.iterdir()) == sorted([LOCK_FILE, "config.yaml"])
+
+
 def test_a_second_offline_training_on_the_same_directory_is_refused(tmp_path, invertedpendulum_data):
     """Issue 17 item 2: pets.train holds the run directory's lock too; while another process holds it, a second
     training exits 2 with one line before any work and writes nothing."""

@@ -114,12 +114,15 @@ def remove_temporaries(directory: Path) -> list[Path]:
 
 def remove_if_unused(directory: Path, created: bool) -> None:
     """After a run that failed before writing anything: remove the lock file of ``directory`` if it is the only thing
-    there, and the directory itself if this command ``created`` it (no folder holding only ``.lock`` is left)."""
+    there, and the directory itself, empty (before the lock was taken) or so emptied, if this command ``created`` it
+    (no folder holding only ``.lock``, or nothing, is left)."""
     directory = Path(directory)
     try:
-        if [p.name for p in directory.iterdir()] != [LOCK_FILE]:
+        names = [p.name for p in directory.iterdir()]
+        if names not in ([], [LOCK_FILE]):
             return
-        (directory / LOCK_FILE).unlink()
+        if names:
+            (directory / LOCK_FILE).unlink()
         if created:
             directory.rmdir()
     except OSError:  # gone, or another process put something there meanwhile: leave it
