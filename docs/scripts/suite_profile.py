@@ -1,6 +1,7 @@
 """Where the test suite's time goes: runs the README's test command with ``--durations=0`` and logs every Python
 process it starts (CPU seconds at exit, its command line), then prints the wall time, the ten costliest test files,
-the costliest tests, and the subprocesses' CPU per command (how much of it is Python's and torch's start-up).
+the costliest tests, the subprocesses' CPU per command (how much of it is Python's and torch's start-up) and how
+busy the cores were.
 
     python docs/scripts/suite_profile.py [--log-dir DIR] [-- PYTEST_ARGS...]
 
@@ -37,6 +38,13 @@ if os.environ.get("SUITE_PROFILE_LOG"):
 DURATION = re.compile(r"([\d.]+)s (call|setup|teardown)\s+(tests/\S+?\.py)::(\S+)")
 
 
+def cpu_jiffies() -> tuple[int, int]:
+    """The machine's busy and idle clock ticks since boot, all cores (``/proc/stat``'s first line)."""
+    fields = [int(v) for v in Path("/proc/stat").read_text().splitlines()[0].split()[1:]]
+    idle = fields[3] + fields[4]  # idle, iowait
+    return sum(fields) - idle, idle
+
+
 def command_name(argv: str) -> str:
     """A process's command for grouping: the script's file name or ``-m MODULE`` (``-c`` for pytest's workers and
     multiprocessing's children)."""
@@ -64,7 +72,7 @@ def main() -> int:
     user_site.mkdir(parents=True, exist_ok=True)
     hook.write_text(HOOK)
     try:
-        start = time.monotonic()
+        start, before = time.monotonic(), cpu_jiffies()
         with durations.open("w") as out:
             code = subprocess.call(
                 [sys.executable, "-m", "pytest", *pytest_args, "--durations=0"],
@@ -74,9 +82,11 @@ def main() -> int:
                 env={**os.environ, "SUITE_PROFILE_LOG": str(processes.resolve())},
             )
         wall = time.monotonic() - start
+        busy, idle = (a - b for a, b in zip(cpu_jiffies(), before))
     finally:
         hook.unlink()
     report(durations, processes, wall)
+    print(f"\nthe machine's cores were busy {100 * busy / (busy + idle):.0f} % of the run (idle: room for a worker)")
     return code
 
 
