@@ -161,7 +161,7 @@ def _interrupt_again(hook: Callable[[Any], object]) -> Callable[[Any], object]:
         signal.pthread_kill(main, signal.SIGINT)  # a real signal: it ends a sleep or a wait; ignored once ending
 
     def hook_or_interrupt(unraisable: Any) -> object:
-        if isinstance(unraisable.exc_type, type) and issubclass(unraisable.exc_type, KeyboardInterrupt):
+        if issubclass(unraisable.exc_type, KeyboardInterrupt):
             _thread.start_new_thread(interrupt_soon, ())  # not threading's: its start() waits, in the hook
             return None
         return hook(unraisable)
