@@ -93,13 +93,14 @@ def main() -> int:
 def report(durations: Path, processes: Path, wall: float) -> None:
     files: collections.Counter[str] = collections.Counter()
     tests: list[tuple[float, str]] = []
-    for line in durations.read_text().splitlines():
+    lines = durations.read_text().strip().splitlines()
+    for line in lines:
         m = DURATION.match(line)
         if m:
             files[m.group(3)] += float(m.group(1))
             tests.append((float(m.group(1)), f"{m.group(2)} {m.group(3)}::{m.group(4)}"))
     print(f"wall {wall:.0f} s; the tests' durations add up to {sum(files.values()):.0f} s; last line:")
-    print("   ", durations.read_text().strip().splitlines()[-1])
+    print("   ", lines[-1])
     print("\ncostliest test files (s):")
     for name, s in files.most_common(10):
         print(f"  {s:7.1f}  {name}")
