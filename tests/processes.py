@@ -1,9 +1,10 @@
 """Process states from Linux's /proc, for the tests that check that no process outlives its run; and the small
 random data set that the subprocess tests train on."""
 
-import subprocess
 import sys
 from pathlib import Path
+
+from tests import warm
 
 
 def children(pid: int) -> list[int]:
@@ -53,5 +54,5 @@ def collect_random(out: Path, episodes: int) -> Path:
     argv = ["-m", "pets.collect", "--env", "invertedpendulum", "--policy", "random", "--episodes", str(episodes)]
     root = Path(__file__).resolve().parents[1]
     cmd = [sys.executable, *argv, "--threads", "1", "--out", str(out), "--quiet"]
-    subprocess.run(cmd, cwd=root, check=True, capture_output=True, timeout=300)
+    warm.run(cmd, cwd=root, check=True, capture_output=True, timeout=300)
     return out

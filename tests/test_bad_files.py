@@ -9,6 +9,7 @@ import sys
 
 import pytest
 
+from tests import warm
 from tests.test_cli import ROOT, cli, error_lines
 
 BINARY = bytes(range(128, 256)) * 20
@@ -22,7 +23,7 @@ def binary(tmp_path):
 
 
 def _compare(*args: object) -> subprocess.CompletedProcess:
-    return subprocess.run(
+    return warm.run(
         [sys.executable, "-m", "pets.compare", *map(str, args)],
         cwd=ROOT,
         capture_output=True,

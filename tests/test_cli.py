@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 
+from tests import warm
 from tests.tiny import TINY_MODEL, TINY_PLANNER
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -26,7 +27,7 @@ TINY = [
 
 
 def cli(*args, check=True, timeout=300):
-    proc = subprocess.run(
+    proc = warm.run(
         [sys.executable, str(ROOT / "run_pets.py"), *map(str, args)],
         cwd=ROOT,
         capture_output=True,

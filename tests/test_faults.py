@@ -19,6 +19,7 @@ from pathlib import Path
 import pytest
 
 from pets.runs import rundir
+from tests import warm
 from tests.processes import collect_random, cpu_seconds, default_sigint
 from tests.test_cli import ROOT, TINY, cli, error_lines, rows
 
@@ -278,7 +279,7 @@ def test_train_on_a_data_set_of_other_widths_is_one_line_naming_the_file_and_fie
     data["obs"] = data["obs"][..., :3]
     bad = tmp_path / "narrow.npz"
     np.savez(bad, **data)
-    proc = subprocess.run(
+    proc = warm.run(
         [sys.executable, "-m", "pets.train", "--data", str(bad), "--model", "delta", "--out", str(tmp_path / "run")],
         cwd=ROOT,
         capture_output=True,
@@ -356,7 +357,7 @@ def test_unwritable_output_locations_are_one_line_before_any_work(tmp_path, refe
         ),
     ]
     for args, fragment in commands:
-        proc = subprocess.run([sys.executable, *map(str, args)], cwd=ROOT, capture_output=True, text=True, timeout=120)
+        proc = warm.run([sys.executable, *map(str, args)], cwd=ROOT, capture_output=True, text=True, timeout=120)
         lines = error_lines(proc.stderr)
         assert proc.returncode == 2 and len(lines) == 1 and fragment in lines[0], (args, proc.stderr)
 
@@ -650,7 +651,7 @@ def test_a_second_offline_training_on_the_same_directory_is_refused(tmp_path, in
 
     out = tmp_path / "run"
     with locked(out):
-        proc = subprocess.run(
+        proc = warm.run(
             [
                 sys.executable,
                 "-m",

@@ -8,12 +8,12 @@ from __future__ import annotations
 import os
 import re
 import shlex
-import subprocess
 import sys
 
 import numpy as np
 
 from pets.runs import rundir
+from tests import warm
 from tests.test_cli import ROOT, TINY, cli, error_lines
 from tests.threads import one_thread
 
@@ -85,7 +85,7 @@ def test_the_documented_metrics_columns_are_the_files():
 
 def test_pets_compare_takes_run_pets_spellings_env_model_seed_and_threads(tmp_path):
     args = ["--env", "invertedpendulum", "--model", "delta", "--seed", "0", "--trials", "1", "threads=2"]
-    proc = subprocess.run(
+    proc = warm.run(
         [sys.executable, "-m", "pets.compare", "online", *args, "--out", str(tmp_path), "--quiet", *TINY[:-2]],
         cwd=ROOT,
         capture_output=True,

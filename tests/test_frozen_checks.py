@@ -11,13 +11,14 @@ import pytest
 import torch
 
 import envs
+from tests import warm
 from tests.test_cli import ROOT, TINY, cli
 
 SCRIPT = ROOT / "docs" / "scripts" / "frozen_model_checks.py"
 
 
 def check(*args: object) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, str(SCRIPT), *map(str, args)], cwd=ROOT, capture_output=True, text=True,
+    return warm.run([sys.executable, str(SCRIPT), *map(str, args)], cwd=ROOT, capture_output=True, text=True,
                           timeout=300)  # fmt: skip
 
 
@@ -97,7 +98,7 @@ def test_episode_ends_rows_cover_the_buffer_with_each_episodes_mean_squared_acti
     """docs/scripts/episode_ends.py: the episodes' steps add up to the buffer, and action_sq is each episode's mean
     squared action norm, recomputed here from the buffer's actions."""
     out = tmp_path / "ends.csv"
-    proc = subprocess.run([sys.executable, str(ROOT / "docs" / "scripts" / "episode_ends.py"), str(hopper_run),
+    proc = warm.run([sys.executable, str(ROOT / "docs" / "scripts" / "episode_ends.py"), str(hopper_run),
                            "--out", str(out)], cwd=ROOT, capture_output=True, text=True, timeout=300)  # fmt: skip
     assert proc.returncode == 0, proc.stderr
     rows = list(csv.DictReader(out.open()))

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from pets.experiments import gate
+from tests import warm
 
 
 def episode(steps: int, reward: float, length: int, terminated: bool = False) -> dict[str, str]:
@@ -80,7 +81,6 @@ def test_the_verdict_is_the_mean_over_seeds_against_the_threshold_with_a_run_wit
 
 def test_oracle_files_become_rows_and_no_input_is_one_line_exit_2(tmp_path):
     import json
-    import subprocess
     import sys
 
     episodes = [{"steps": 139, "reward": 376.0, "terminated": True, "seconds": 1.0}]
@@ -102,7 +102,7 @@ def test_oracle_files_become_rows_and_no_input_is_one_line_exit_2(tmp_path):
     (tmp_path / "hopper_value.json").write_text(json.dumps(valued))
     (row,) = gate.oracle_rows(tmp_path / "hopper_value.json")
     assert row["terminal_value"] == "hopper-v2-s100" and gate.ceiling([row]) == {}  # a learned value: no ceiling
-    proc = subprocess.run([sys.executable, "-m", "pets.experiments.gate", "--out", str(tmp_path / "x")],
+    proc = warm.run([sys.executable, "-m", "pets.experiments.gate", "--out", str(tmp_path / "x")],
                           capture_output=True, text=True, timeout=60)  # fmt: skip
     assert proc.returncode == 2 and "give run directories" in proc.stderr and len(proc.stderr.splitlines()) == 1
 

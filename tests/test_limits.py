@@ -4,7 +4,6 @@ pets.openloop and the Python API, and a run refused that way leaves no directory
 
 from __future__ import annotations
 
-import subprocess
 import sys
 import time
 
@@ -13,6 +12,7 @@ import pytest
 import pets
 from pets.config import ConfigError
 from pets.limits import SIZE_BOUNDS
+from tests import warm
 from tests.test_cli import ROOT, TINY, cli, error_lines
 
 #: (env, override, what the one line says): the values of issue 55 and two the estimate refuses (terabytes).
@@ -56,7 +56,7 @@ def test_pets_openloop_refuses_a_planner_too_big_in_one_line(tmp_path):
         (["planner.population=100000000000"], "planner.population must be <= 10,000,000"),
         (["planner.population=5000000", "planner.particles=1000"], "lower planner.population, planner.particles"),
     ):
-        proc = subprocess.run(
+        proc = warm.run(
             [sys.executable, "-m", "pets.openloop", "--run", str(run), "--quiet", *args],
             cwd=ROOT,
             capture_output=True,

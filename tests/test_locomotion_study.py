@@ -6,7 +6,6 @@ from __future__ import annotations
 import csv
 import io
 import math
-import subprocess
 import sys
 from pathlib import Path
 
@@ -16,6 +15,7 @@ import yaml
 from scipy import stats
 
 from pets.experiments.studies import locomotion as study
+from tests import warm
 
 FIELDS = ["trial", "env_steps", "episode_reward", "episode_length", "terminated", "cpu_time_s", "plan_cpu_s"]
 
@@ -140,14 +140,14 @@ def test_the_command_writes_the_runs_file_and_refuses_what_is_not_a_run(tmp_path
     run = make_run(tmp_path, "delta", 0, ramp(3000.0))
     out = tmp_path / "runs.csv"
     cmd = [sys.executable, "-m", "pets.experiments.studies.locomotion"]
-    proc = subprocess.run([*cmd, str(run), "--out", str(out)], capture_output=True, text=True, timeout=120)
+    proc = warm.run([*cmd, str(run), "--out", str(out)], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     (row,) = list(csv.DictReader(out.open()))
     assert row["model"] == "delta" and row["status"] == "complete" and list(row) == study.RUN_COLUMNS
-    proc = subprocess.run([*cmd, str(tmp_path / "nope"), "--out", str(out)], capture_output=True, text=True,
+    proc = warm.run([*cmd, str(tmp_path / "nope"), "--out", str(out)], capture_output=True, text=True,
                           timeout=120)  # fmt: skip
     assert proc.returncode == 2 and "no config.yaml" in proc.stderr and len(proc.stderr.splitlines()) == 1
-    proc = subprocess.run([*cmd, str(run), "--out", str(out), "--crashed", str(tmp_path / "other")],
+    proc = warm.run([*cmd, str(run), "--out", str(out), "--crashed", str(tmp_path / "other")],
                           capture_output=True, text=True, timeout=120)  # fmt: skip
     assert proc.returncode == 2 and "--crashed names runs not given" in proc.stderr
 
@@ -183,9 +183,9 @@ def test_the_command_adds_identical_rows_when_asked(tmp_path):
     runs = [make_run(tmp_path, "gem", s, ramp(2500.0)) for s in (0, 1)]
     out = tmp_path / "runs.csv"
     cmd = [sys.executable, "-m", "pets.experiments.studies.locomotion", *map(str, runs), "--out", str(out)]
-    assert subprocess.run(cmd, capture_output=True, text=True, timeout=120).returncode == 0
+    assert warm.run(cmd, capture_output=True, text=True, timeout=120).returncode == 0
     assert {r["model"] for r in csv.DictReader(out.open())} == {"gem"}
-    assert subprocess.run([*cmd, "--identical"], capture_output=True, text=True, timeout=120).returncode == 0
+    assert warm.run([*cmd, "--identical"], capture_output=True, text=True, timeout=120).returncode == 0
     rows = list(csv.DictReader(out.open()))
     assert [(r["model"], r["seed"], r["status"]) for r in rows if r["model"] != "gem"] == [
         ("delta-groupfeat", "0", study.IDENTICAL_STATUS),

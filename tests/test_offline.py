@@ -27,6 +27,7 @@ from pets.learning.offline import OFFLINE_DEFAULTS, offline_config
 from pets.models import make_model
 from pets.planning.propagation import TrajectoryEvaluator
 from pets.runs import rundir
+from tests import warm
 from tests.threads import one_thread
 from tests.tiny import TINY_MODEL as RUN_MODEL
 from tests.tiny import TINY_PLANNER
@@ -51,7 +52,7 @@ def command(module, *args):
 
 
 def run(module, *args, check=True, timeout=300):
-    proc = subprocess.run(command(module, *args), cwd=ROOT, capture_output=True, text=True, timeout=timeout, env=ENV)
+    proc = warm.run(command(module, *args), cwd=ROOT, capture_output=True, text=True, timeout=timeout, env=ENV)
     if check and proc.returncode != 0:
         raise AssertionError(f"{module} exit {proc.returncode}\n{proc.stdout}\n{proc.stderr}")
     return proc
@@ -366,7 +367,7 @@ def test_sample_starts_leave_room_and_are_distinct():
     ],
 )
 def test_bad_input_exits_2_with_one_line(module, args, fragment, tmp_path):
-    proc = subprocess.run(
+    proc = warm.run(
         [sys.executable, "-m", module, *args],
         cwd=tmp_path,
         capture_output=True,
@@ -433,7 +434,7 @@ def test_closed_loop_mpc_with_the_frozen_model_replays_in_the_simulator(delta_ru
     assert again["rewards"] == res["rewards"]
     assert hashlib.sha256(ckpt.read_bytes()).hexdigest() == before
     out = tmp_path / "c.json"
-    code = subprocess.run(
+    code = warm.run(
         [sys.executable, "-m", "pets.openloop", "--run", str(delta_run), "--closed-loop", "--steps", "4",
          "--episodes", "1", "--quiet", "--json", str(out), *(f"{k}={v}" for k, v in small.items())],
         capture_output=True, text=True,

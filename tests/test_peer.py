@@ -3,12 +3,13 @@ that need no mbrl-lib (observation conversion, trial wrapper, paired summary) on
 
 import importlib.util
 import math
-import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+
+from tests import warm
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "docs" / "scripts" / "peer_mbrl.py"
@@ -33,7 +34,7 @@ def test_imports_without_mbrl():
 @pytest.mark.skipif(MBRL_HERE, reason="mbrl-lib is importable in this environment: nothing to refuse")
 @pytest.mark.parametrize("command", [["plan"], ["learn", "--env", "invertedpendulum"]])
 def test_refuses_in_one_line_without_mbrl(command):
-    out = subprocess.run([sys.executable, str(SCRIPT), *command], capture_output=True, text=True, cwd=ROOT, timeout=120)
+    out = warm.run([sys.executable, str(SCRIPT), *command], capture_output=True, text=True, cwd=ROOT, timeout=120)
     assert out.returncode == 2
     assert out.stdout == ""
     lines = out.stderr.strip().splitlines()

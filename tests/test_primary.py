@@ -22,6 +22,7 @@ from pets.experiments.studies.primary import (
     primary_rows,
     tracking_horizons,
 )
+from tests import warm
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "docs/results"
@@ -30,7 +31,7 @@ RESULTS = ROOT / "docs/results"
 def _offline_primary(*args: object) -> subprocess.CompletedProcess:
     """``docs/scripts/offline_primary.py`` with ``args``, run from the project root."""
     command = [sys.executable, str(ROOT / "docs/scripts/offline_primary.py"), *map(str, args)]
-    return subprocess.run(command, capture_output=True, text=True, cwd=ROOT)
+    return warm.run(command, capture_output=True, text=True, cwd=ROOT)
 
 
 HORIZONS = (1, 5, 10, 25)

@@ -7,7 +7,6 @@ after ``learning_starts`` = 100 steps, so a few hundred steps exercise learning 
 import math
 import os
 import shutil
-import subprocess
 import sys
 from pathlib import Path
 
@@ -17,6 +16,7 @@ import pytest
 import envs
 from pets.data.collect import collect, collect_sac, make_policy
 from pets.data.datasets import load_dataset, transitions
+from tests import warm
 from tests.threads import one_thread
 
 pytest.importorskip("stable_baselines3", reason='the sac extra is part of .[dev]: pip install -e ".[dev]"')
@@ -27,7 +27,7 @@ STEPS = 300
 
 
 def collect_cli(*args, check=True):
-    proc = subprocess.run(
+    proc = warm.run(
         [sys.executable, "-m", "pets.collect", *map(str, args), "--threads", "1", "--quiet"],
         cwd=ROOT,
         capture_output=True,
@@ -147,7 +147,7 @@ def test_compare_offline_with_sac_data_and_the_paper_protocol(tmp_path):
     args = [sys.executable, "-m", "pets.compare", "offline", "--envs", "invertedpendulum", "--models", "delta,gem",
             "--seeds", "0,1", "--out", str(out), "--policy", "sac:200", "--protocol", "paper", "--test-episodes", "2",
             "--max-steps", "30", "--starts", "10", "--horizons", "1,5", "--quiet", "model.iterations=30"]  # fmt: skip
-    proc = subprocess.run(args, cwd=ROOT, capture_output=True, text=True, timeout=600, env=ENV)
+    proc = warm.run(args, cwd=ROOT, capture_output=True, text=True, timeout=600, env=ENV)
     assert proc.returncode == 0, proc.stderr
     train, test = (
         load_dataset(out / "data/invertedpendulum-train.npz"),
@@ -165,7 +165,7 @@ def test_compare_offline_with_sac_data_and_the_paper_protocol(tmp_path):
         offline = rundir.load_checkpoint(run)["offline"]
         assert offline["protocol"] == "paper" and len(offline["search"]) == 3
         assert (run / "eval.json").is_file()
-    again = subprocess.run(args, cwd=ROOT, capture_output=True, text=True, timeout=600, env=ENV)
+    again = warm.run(args, cwd=ROOT, capture_output=True, text=True, timeout=600, env=ENV)
     assert again.returncode == 0 and "4 reused, 0 with work to do" in again.stderr, again.stderr
 
 
@@ -175,7 +175,7 @@ def test_paper_protocol_trains_and_evaluates_on_the_sac_data(sac_run):
 
     name, work, _, _ = sac_run
     run_dir = work / "paper-gem"
-    train = subprocess.run(
+    train = warm.run(
         [sys.executable, "-m", "pets.train", "--data", str(work / "train.npz"), "--model", "gem", "--protocol",
          "paper", "--out", str(run_dir), "--quiet", "model.iterations=5", "threads=1"],
         cwd=ROOT, capture_output=True, text=True, timeout=300, env=ENV,
@@ -183,7 +183,7 @@ def test_paper_protocol_trains_and_evaluates_on_the_sac_data(sac_run):
     assert train.returncode == 0, train.stderr
     width = 512 if name == "ant" else 100  # the paper searched [512] x 1..3 for Ant and Humanoid
     assert [f"hidden layers {n} x {width}" in train.stdout for n in (1, 2, 3)] == [True] * 3
-    evaluate = subprocess.run(
+    evaluate = warm.run(
         [sys.executable, "-m", "pets.evaluate", "--run", str(run_dir), "--data", str(work / "test.npz"),
          "--train-data", str(work / "train.npz"), "--horizons", "1,5", "--starts", "20", "--json",
          str(work / "eval.json"), "--threads", "1"],
