@@ -123,3 +123,13 @@ def test_what_a_fork_cannot_have_goes_to_a_fresh_process(tmp_path):
     assert warm._startup_env({"OMP_NUM_THREADS": "1", "FOO": "x"}) == (("OMP_NUM_THREADS", "1"),)
     proc = warm.run([sys.executable, "-c", "import sys; print(sys.flags.optimize)"], capture_output=True, text=True)
     assert proc.stdout == "0\n"
+
+
+def test_a_module_runs_in_a_main_namespace_like_a_fresh_ones(tmp_path):
+    (tmp_path / "probe.py").write_text(
+        "import sys\nprint(sys.argv, sorted(k for k in globals() if k != 'sys'), __file__)\n"
+        "print(sorted(m for m in sys.modules if m.startswith('probe')))\n"
+    )
+    for args in (["-m", "probe", "a"], ["-m", "nope_no_such_module"]):
+        warm_proc, fresh = both([sys.executable, *args], cwd=tmp_path, capture_output=True, text=True, timeout=120)
+        assert_same(warm_proc, fresh)

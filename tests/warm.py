@@ -233,13 +233,17 @@ def _child(request: dict, base_path: list[str]) -> None:
             os.close(opened)
         argv = request["argv"][1:]
         if argv[0] == "-m":
-            sys.argv, first = [argv[1], *argv[2:]], os.getcwd()
+            sys.argv, first = ["-m", *argv[2:]], os.getcwd()
         else:
             sys.argv, first = argv, os.path.dirname(os.path.realpath(argv[0]))
         sys.path[:] = [first, *base_path]
         if argv[0] == "-m":
             sys.modules.pop(argv[1], None)  # a fresh Python has not imported the module it runs
-            runpy.run_module(argv[1], run_name="__main__", alter_sys=True)
+            main = sys.modules["__main__"].__dict__  # the server's: a fresh one holds only these
+            kept = {"__builtins__": main["__builtins__"], "__annotations__": {}}
+            main.clear()
+            main.update(kept)
+            runpy._run_module_as_main(argv[1])  # what ``python -m`` calls: argv[0] the module's file, as it stays
         else:
             runpy.run_path(argv[0], run_name="__main__")
     except SystemExit as stop:

@@ -24,12 +24,13 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
 HOOK = """import os
-if os.environ.get("SUITE_PROFILE_LOG"):
+_suite_profile_log = os.environ.get("SUITE_PROFILE_LOG")
+if _suite_profile_log:  # read now: a process may change its environment (tests/warm.py's forks replace it)
     import atexit, sys
     def _suite_profile_line():
         t = os.times()
         try:
-            with open(os.environ["SUITE_PROFILE_LOG"], "a") as f:
+            with open(_suite_profile_log, "a") as f:
                 f.write(f"{os.getpid()}\\t{t.user + t.system:.2f}\\t{' '.join(sys.argv)[:200]}\\n")
         except OSError:
             pass
