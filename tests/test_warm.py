@@ -3,6 +3,7 @@ commands' refusals and help, a short run's metrics, and how a Python process end
 Ctrl-C, threads, atexit, stdin, cwd, environment, argv and ``sys.path``)."""
 
 import csv
+import os
 import subprocess
 import sys
 import time
@@ -133,3 +134,11 @@ def test_a_module_runs_in_a_main_namespace_like_a_fresh_ones(tmp_path):
     for args in (["-m", "probe", "a"], ["-m", "nope_no_such_module"]):
         warm_proc, fresh = both([sys.executable, *args], cwd=tmp_path, capture_output=True, text=True, timeout=120)
         assert_same(warm_proc, fresh)
+
+
+def test_the_fresh_variable_runs_every_command_in_a_fresh_python(tmp_path, monkeypatch):
+    (tmp_path / "parent.py").write_text("import os\nprint(os.getppid())\n")
+    cmd = [sys.executable, str(tmp_path / "parent.py")]
+    assert int(warm.run(cmd, capture_output=True, text=True).stdout) != os.getpid()  # a warm server's child
+    monkeypatch.setenv(warm.FRESH_VARIABLE, "1")
+    assert int(warm.run(cmd, capture_output=True, text=True).stdout) == os.getpid()

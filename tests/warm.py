@@ -39,6 +39,9 @@ WARM_MODULES = tuple(
 )
 #: Environment variables read at start-up (by Python, OpenMP, MKL, CUDA, MuJoCo's GL choice, the loader).
 STARTUP_PREFIXES = tuple("PYTHON OMP_ KMP_ MKL_ GOMP_ CUDA CUBLAS TORCH MUJOCO_GL PYOPENGL LD_ MALLOC LANG LC_".split())
+#: Set (to anything) in the suite's environment, every command runs in a fresh Python (``subprocess.run``); off
+#: Linux too (the fork's safety is checked through /proc; macOS's system libraries do not survive a fork).
+FRESH_VARIABLE = "PETS_TESTS_FRESH"
 #: ``subprocess.run`` keyword arguments ``run`` takes (anything else goes to ``subprocess.run``).
 ACCEPTED = {"cwd", "env", "capture_output", "text", "timeout", "check", "input", "stdout", "stderr"}
 
@@ -46,7 +49,7 @@ ACCEPTED = {"cwd", "env", "capture_output", "text", "timeout", "check", "input",
 def run(cmd, **kwargs) -> subprocess.CompletedProcess:
     """``subprocess.run(cmd, **kwargs)``, forked from a warm server where the command allows it (see the module)."""
     argv = [str(a) for a in cmd]
-    if not _forkable(argv, kwargs):
+    if os.environ.get(FRESH_VARIABLE) or sys.platform != "linux" or not _forkable(argv, kwargs):
         return subprocess.run(cmd, **kwargs)
     env = {str(k): str(v) for k, v in (os.environ if kwargs.get("env") is None else kwargs["env"]).items()}
     return _server(_startup_env(env)).run(argv, **{**kwargs, "env": env})
