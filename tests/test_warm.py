@@ -142,3 +142,11 @@ def test_the_fresh_variable_runs_every_command_in_a_fresh_python(tmp_path, monke
     assert int(warm.run(cmd, capture_output=True, text=True).stdout) != os.getpid()  # a warm server's child
     monkeypatch.setenv(warm.FRESH_VARIABLE, "1")
     assert int(warm.run(cmd, capture_output=True, text=True).stdout) == os.getpid()
+
+
+def test_each_child_draws_fresh_random_numbers_as_a_fresh_python_does(tmp_path):
+    (tmp_path / "draw.py").write_text("import random, numpy, torch\nprint(random.random(), numpy.random.rand())\n"
+                                      "print(torch.initial_seed())\n")  # fmt: skip
+    cmd = [sys.executable, str(tmp_path / "draw.py")]
+    first, second = (warm.run(cmd, capture_output=True, text=True).stdout.splitlines() for _ in range(2))
+    assert first[0] != second[0] and first[1] != second[1]  # new entropy per process, as each fresh Python draws

@@ -12,7 +12,8 @@ traceback and exit 1, an uncaught ``KeyboardInterrupt`` as death by SIGINT, atex
 What a forked child cannot have, ``run`` leaves to a fresh process (``subprocess.run`` with the same arguments):
 another interpreter, ``python -c``/flags, keyword arguments it does not take, and environment variables read at
 start-up (``PYTHON*``, OpenMP/MKL, CUDA, ``MUJOCO_GL``, ``LD_*``) that differ from a server's, a server being
-kept per value of those. Two things a forked child shares with its server, so the tests whose point they are keep
+kept per value of those. Python's, numpy's and torch's global random generators get fresh entropy in each child, as in a
+fresh process; two things a forked child shares with its server, so the tests whose point they are keep
 ``subprocess.run``: the hash seed of ``str`` (cross-process reproducibility), and the start-up itself (imports,
 entry points, a Ctrl-C during them). The warm-up must print nothing, or ``run`` refuses to use the server: a
 command's first warning belongs in its own stderr. test_warm.py pins the equivalence with ``subprocess.run``."""
@@ -219,13 +220,20 @@ def _send(channel, message: dict) -> None:
 def _child(request: dict, base_path: list[str]) -> None:
     """Become ``python argv[1:]`` in ``cwd`` with ``env``; never returns."""
     import atexit as exits
+    import random
     import runpy
+
+    import numpy
+    import torch
 
     code = 0
     try:
         os.chdir(request["cwd"])
         os.environ.clear()
         os.environ.update(request["env"])
+        random.seed()  # fresh entropy for the global generators, as in a fresh process
+        numpy.random.seed()
+        torch.seed()
         for fd, path, flags in (
             (0, request["stdin"] or os.devnull, os.O_RDONLY),
             (1, request["stdout"], os.O_WRONLY | os.O_CREAT),
