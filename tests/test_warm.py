@@ -69,11 +69,13 @@ def test_the_commands_refusals_and_help_are_the_same_bytes(tmp_path):
         [sys.executable, str(ROOT / "run_pets.py"), "--env", "nope"],
         [sys.executable, str(ROOT / "run_pets.py"), "--env", "invertedpendulum", "planner.horizon=0"],
         [sys.executable, "-m", "pets.collect", "--help"],
+        [sys.executable, str(tmp_path / "missing.py")],
+        [sys.executable, "-m", "pets.no_such_tool"],
         [sys.executable, "-m", "pets.compare", "offline", "--envs", "nope", "--out", str(tmp_path / "c")],
     ):
         warm_proc, fresh = both(cmd, cwd=ROOT, capture_output=True, text=True, timeout=120)
         assert_same(warm_proc, fresh)
-        assert "Traceback" not in fresh.stderr
+        assert "Traceback" not in fresh.stderr and (fresh.returncode == 0) == ("--help" in cmd)
 
 
 def test_a_short_run_gives_the_same_metrics(tmp_path):
@@ -117,10 +119,14 @@ def test_a_timeout_kills_the_child_and_raises_with_its_output(tmp_path):
 
 
 def test_what_a_fork_cannot_have_goes_to_a_fresh_process(tmp_path):
-    assert not warm._forkable([sys.executable, "-c", "pass"], {})
-    assert not warm._forkable(["/usr/bin/env", "python", "x.py"], {})
-    assert not warm._forkable([sys.executable, "x.py"], {"preexec_fn": print})
-    assert warm._forkable([sys.executable, "x.py"], {"capture_output": True, "timeout": 5})
+    (tmp_path / "x.py").write_text("")
+    here = {"cwd": tmp_path}
+    assert warm._forkable([sys.executable, "x.py"], {**here, "capture_output": True, "timeout": 5})
+    assert not warm._forkable([sys.executable, "-c", "pass"], here)
+    assert not warm._forkable(["/usr/bin/env", "python", "x.py"], here)
+    assert not warm._forkable([sys.executable, "x.py"], {**here, "preexec_fn": print})
+    assert not warm._forkable([sys.executable, "y.py"], here)  # Python's own "can't open file"
+    assert not warm._forkable([sys.executable, "x.py"], {"cwd": tmp_path / "gone"})  # subprocess.run raises
     assert warm._startup_env({"OMP_NUM_THREADS": "1", "FOO": "x"}) == (("OMP_NUM_THREADS", "1"),)
     proc = warm.run([sys.executable, "-c", "import sys; print(sys.flags.optimize)"], capture_output=True, text=True)
     assert proc.stdout == "0\n"

@@ -4,19 +4,19 @@ Each Python command the suite starts pays Python's and torch's start-up (~1.2 CP
 work; the suite starts a few hundred. ``run`` keeps them real processes (their own pid, exit status, signals, files)
 but forks each from a server that has imported torch, the commands' modules and the envs, and run nothing else: no
 thread besides OpenBLAS's pool (which handles fork; checked before every fork) and no torch op, so no OpenMP pool
-is inherited. The child
-sets up what a fresh ``python script.py ...`` would have (argv, ``sys.path[0]``, cwd, environment, standard
-streams), runs the command as ``__main__`` and exits as Python does (``SystemExit`` codes, an uncaught exception's
-traceback and exit 1, an uncaught ``KeyboardInterrupt`` as death by SIGINT, atexit handlers, non-daemon threads).
+is inherited. The child sets up what a fresh ``python script.py ...`` would have (argv, ``sys.path[0]``, cwd,
+environment, standard streams, fresh entropy for Python's, numpy's and torch's global generators), runs the command
+as ``__main__`` and exits as Python does (``SystemExit`` codes, an uncaught exception's traceback and exit 1, an
+uncaught ``KeyboardInterrupt`` as death by SIGINT, atexit handlers, non-daemon threads).
 
 What a forked child cannot have, ``run`` leaves to a fresh process (``subprocess.run`` with the same arguments):
 another interpreter, ``python -c``/flags, keyword arguments it does not take, and environment variables read at
-start-up (``PYTHON*``, OpenMP/MKL, CUDA, ``MUJOCO_GL``, ``LD_*``) that differ from a server's, a server being
-kept per value of those. Python's, numpy's and torch's global random generators get fresh entropy in each child, as in a
-fresh process; two things a forked child shares with its server, so the tests whose point they are keep
-``subprocess.run``: the hash seed of ``str`` (cross-process reproducibility), and the start-up itself (imports,
-entry points, a Ctrl-C during them). The warm-up must print nothing, or ``run`` refuses to use the server: a
-command's first warning belongs in its own stderr. test_warm.py pins the equivalence with ``subprocess.run``."""
+start-up (``PYTHON*``, OpenMP/MKL, CUDA, ``MUJOCO_GL``, ``LD_*``, the locale) that differ from a server's, a server
+being kept per value of those. Two things a forked child shares with its server, so the tests whose point they are
+keep ``subprocess.run``: the hash seed of ``str`` (cross-process reproducibility), and the start-up itself
+(imports, entry points, a Ctrl-C during them). The warm-up must print nothing, or ``run`` refuses to use the
+server: a command's first warning belongs in its own stderr. test_warm.py pins the equivalence with
+``subprocess.run``."""
 
 from __future__ import annotations
 
@@ -61,9 +61,13 @@ def _forkable(argv: list[str], kwargs: dict) -> bool:
         return False
     if kwargs.get("stdout") not in (None, subprocess.PIPE) or kwargs.get("stderr") not in (None, subprocess.PIPE):
         return False
+    cwd = kwargs.get("cwd") or os.getcwd()
+    if not os.path.isdir(cwd):
+        return False  # subprocess.run raises for it
     if argv[1] == "-m":
         return len(argv) > 2
-    return not argv[1].startswith("-") and argv[1].endswith(".py")
+    script = os.path.join(cwd, argv[1])
+    return not argv[1].startswith("-") and argv[1].endswith(".py") and os.path.isfile(script)  # else Python's error
 
 
 def _startup_env(env: dict) -> tuple:
