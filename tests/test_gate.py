@@ -179,13 +179,14 @@ def test_the_ablation_block_names_each_arm_by_its_overrides_and_pairs_complete_s
             (100, "", 100000, 3000.0), (101, "", 100000, 2000.0), (100, "value.enabled=False", 100000, 1500.0),
             (101, "value.enabled=False", 100000, 1600.0), (102, "value.enabled=False", 40000, ""),
             (100, "planner.horizon=30", 100000, 9999.0),  # a pilot, not an arm
+            (101, "model.iterations=0", 100000, 2500.0),
         )
     ]  # fmt: skip
     write_csv(results / "locomotion_pilots.csv", rows, list(rows[0]))
     lines = ablation_table(tmp_path).splitlines()
     assert lines[2] == "| full preset | 3000 | 2000 | not run | 2500 | - |"
     assert lines[3] == "| without the value | 1500 | 1600 | partial (40k) | 1550 | -950 (2 pairs) |"
-    assert lines[4] == "| epoch training | not run | not run | not run | - | - (0 pairs) |" and len(lines) == 5
+    assert lines[4] == "| epoch training | not run | 2500 | not run | 2500 | 500 (1 pair) |" and len(lines) == 5
 
 
 def test_committed_curves_keep_complete_runs_of_the_agents_asked_for(tmp_path):

@@ -114,7 +114,8 @@ def ablation_table(tree: Path) -> str:
         diff = fmt(float(np.mean([done[arm][s] - done[""][s] for s in pairs]))) if pairs and arm else "-"
         mean = fmt(float(np.mean(list(done[arm].values())))) if done[arm] else "-"
         seeds = [cells[arm].get(s, "not run") for s in ABLATION_SEEDS]
-        body.append([label, *seeds, mean, f"{diff} ({len(pairs)} pairs)" if arm else "-"])
+        pairs_text = f"{len(pairs)} pair" + ("" if len(pairs) == 1 else "s")
+        body.append([label, *seeds, mean, f"{diff} ({pairs_text})" if arm else "-"])
     header = ["arm", *(f"seed {s}" for s in ABLATION_SEEDS), "mean (complete)", "minus the full preset"]
     return md_table(header, body)
 
