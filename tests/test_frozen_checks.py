@@ -19,7 +19,7 @@ SCRIPT = ROOT / "docs" / "scripts" / "frozen_model_checks.py"
 
 def check(*args: object) -> subprocess.CompletedProcess:
     return warm.run([sys.executable, str(SCRIPT), *map(str, args)], cwd=ROOT, capture_output=True, text=True,
-                          timeout=300)  # fmt: skip
+                    timeout=300)  # fmt: skip
 
 
 @pytest.fixture(scope="module")
@@ -99,7 +99,7 @@ def test_episode_ends_rows_cover_the_buffer_with_each_episodes_mean_squared_acti
     squared action norm, recomputed here from the buffer's actions."""
     out = tmp_path / "ends.csv"
     proc = warm.run([sys.executable, str(ROOT / "docs" / "scripts" / "episode_ends.py"), str(hopper_run),
-                           "--out", str(out)], cwd=ROOT, capture_output=True, text=True, timeout=300)  # fmt: skip
+                    "--out", str(out)], cwd=ROOT, capture_output=True, text=True, timeout=300)  # fmt: skip
     assert proc.returncode == 0, proc.stderr
     rows = list(csv.DictReader(out.open()))
     act = torch.as_tensor(torch.load(hopper_run / "checkpoint.pt", weights_only=False)["buffer"]["act"]).double()

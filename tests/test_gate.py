@@ -103,7 +103,7 @@ def test_oracle_files_become_rows_and_no_input_is_one_line_exit_2(tmp_path):
     (row,) = gate.oracle_rows(tmp_path / "hopper_value.json")
     assert row["terminal_value"] == "hopper-v2-s100" and gate.ceiling([row]) == {}  # a learned value: no ceiling
     proc = warm.run([sys.executable, "-m", "pets.experiments.gate", "--out", str(tmp_path / "x")],
-                          capture_output=True, text=True, timeout=60)  # fmt: skip
+                    capture_output=True, text=True, timeout=60)  # fmt: skip
     assert proc.returncode == 2 and "give run directories" in proc.stderr and len(proc.stderr.splitlines()) == 1
 
 

@@ -145,10 +145,10 @@ def test_the_command_writes_the_runs_file_and_refuses_what_is_not_a_run(tmp_path
     (row,) = list(csv.DictReader(out.open()))
     assert row["model"] == "delta" and row["status"] == "complete" and list(row) == study.RUN_COLUMNS
     proc = warm.run([*cmd, str(tmp_path / "nope"), "--out", str(out)], capture_output=True, text=True,
-                          timeout=120)  # fmt: skip
+                    timeout=120)  # fmt: skip
     assert proc.returncode == 2 and "no config.yaml" in proc.stderr and len(proc.stderr.splitlines()) == 1
     proc = warm.run([*cmd, str(run), "--out", str(out), "--crashed", str(tmp_path / "other")],
-                          capture_output=True, text=True, timeout=120)  # fmt: skip
+                    capture_output=True, text=True, timeout=120)  # fmt: skip
     assert proc.returncode == 2 and "--crashed names runs not given" in proc.stderr
 
 
