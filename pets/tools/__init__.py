@@ -33,12 +33,7 @@ def forward(name: str, tool: str) -> None:
     ``name`` is ``__main__`` (``python -m pets.<tool>``), else alias it in ``sys.modules`` (so ``import pets.<tool>``
     and patches of its attributes reach the tool itself)."""
     if name == "__main__":  # a command: Ctrl-C while it imports is one line and exit 130 too
-        from pets.tools.cli import interrupts_deferred, run_command
+        from pets.tools.cli import import_main, run_command
 
-        def main() -> int:
-            with interrupts_deferred():  # never a module half-imported
-                module = importlib.import_module(f"{__name__}.{tool}")
-            return module.main()
-
-        run_command(f"pets.{tool}", main)
+        run_command(f"pets.{tool}", lambda: import_main(f"{__name__}.{tool}")())
     sys.modules[name] = importlib.import_module(f"{__name__}.{tool}")

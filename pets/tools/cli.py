@@ -112,6 +112,26 @@ def interrupts_deferred() -> Iterator[None]:
         raise KeyboardInterrupt
 
 
+#: What a command interrupted before its own code began says it leaves: it has written nothing.
+NOTHING_WRITTEN = "nothing was written (it stopped while starting)"
+
+
+class InterruptedWhileStarting(KeyboardInterrupt):
+    """Ctrl-C before the command's own ``main`` began (its imports): :func:`run_command` says nothing was written."""
+
+
+def import_main(module: str) -> Callable[[], int | None]:
+    """``module.main``, imported with Ctrl-C deferred (never a module half-imported); a Ctrl-C during the import is
+    :class:`InterruptedWhileStarting`."""
+    import importlib
+
+    try:
+        with interrupts_deferred():
+            return importlib.import_module(module).main
+    except KeyboardInterrupt:
+        raise InterruptedWhileStarting from None
+
+
 #: Libraries a Ctrl-C must never cut while they import, imported by :func:`run_command` before the command runs.
 #: numpy: an interrupt inside its import can be swallowed and leave it half-imported, and the next ``np.linalg``
 #: recurses until RecursionError. mujoco: an interrupt inside its extensions' initialisation becomes an ImportError
@@ -122,19 +142,24 @@ UNCUTTABLE_IMPORTS = ("numpy", "mujoco")
 def run_command(prog: str, main: Callable[[], int | None], kept: str = "") -> NoReturn:
     """Run a command's ``main`` as the process and exit with its status. Ctrl-C at any moment, the command's
     imports included (``main`` imports the command's module), is one stderr line ``PROG: interrupted; KEPT`` and exit
-    130, never a traceback; a Ctrl-C once ``main`` has returned (the process ending) is ignored: the process exits
+    130, never a traceback (before the command's own code began, KEPT is :data:`NOTHING_WRITTEN`); a Ctrl-C once
+    ``main`` has returned (the process ending) is ignored: the process exits
     with the command's status, never by the signal (-2)."""
     import importlib
 
     sys.unraisablehook = _interrupt_again(sys.unraisablehook)
     try:
-        with interrupts_deferred():
-            for name in UNCUTTABLE_IMPORTS:
-                importlib.import_module(name)
+        try:
+            with interrupts_deferred():
+                for name in UNCUTTABLE_IMPORTS:
+                    importlib.import_module(name)
+        except KeyboardInterrupt:
+            raise InterruptedWhileStarting from None
         code = main()
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as stop:
         signal.signal(signal.SIGINT, signal.SIG_IGN)
-        print(f"\n{prog}: interrupted" + (f"; {kept}" if kept else ""), file=sys.stderr)
+        said = NOTHING_WRITTEN if isinstance(stop, InterruptedWhileStarting) else kept
+        print(f"\n{prog}: interrupted" + (f"; {said}" if said else ""), file=sys.stderr)
         code = EXIT_INTERRUPTED
     except SystemExit as done:  # fail(): its line is printed
         code = done.code

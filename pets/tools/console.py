@@ -4,12 +4,11 @@
 
 from __future__ import annotations
 
-import importlib
 from collections.abc import Callable
 from typing import NoReturn
 
 from pets.tools import forward
-from pets.tools.cli import interrupts_deferred, run_command
+from pets.tools.cli import import_main, run_command
 
 
 def _tool(name: str) -> Callable[[], NoReturn]:
@@ -26,13 +25,8 @@ def _tool(name: str) -> Callable[[], NoReturn]:
 def _command(prog: str, module: str) -> Callable[[], NoReturn]:
     """The console script of ``module.main`` (imported with Ctrl-C deferred)."""
 
-    def main() -> int:
-        with interrupts_deferred():
-            command = importlib.import_module(module).main
-        return command()
-
     def script() -> NoReturn:
-        run_command(prog, main)
+        run_command(prog, lambda: import_main(module)())
 
     script.__doc__ = f"``{prog}``: ``{module}.main``."
     return script
