@@ -143,8 +143,8 @@ def run_command(prog: str, main: Callable[[], int | None], kept: str = "") -> No
     """Run a command's ``main`` as the process and exit with its status. Ctrl-C at any moment, the command's
     imports included (``main`` imports the command's module), is one stderr line ``PROG: interrupted; KEPT`` and exit
     130, never a traceback (before the command's own code began, KEPT is :data:`NOTHING_WRITTEN`); a Ctrl-C once
-    ``main`` has returned (the process ending) is ignored: the process exits
-    with the command's status, never by the signal (-2)."""
+    ``main`` has returned (the process ending) is ignored: the process exits with the command's status, never by
+    the signal (-2)."""
     import importlib
 
     sys.unraisablehook = _interrupt_again(sys.unraisablehook)
