@@ -92,8 +92,8 @@ def interruptible(prog: str, kept: str) -> Callable[[Callable[..., int]], Callab
 
 
 @contextmanager
-def interrupts_deferred() -> Iterator[None]:
-    """Hold a Ctrl-C that comes inside the block until the block ends, then raise KeyboardInterrupt: imports and
+def interrupts_deferred(raises: type[KeyboardInterrupt] = KeyboardInterrupt) -> Iterator[None]:
+    """Hold a Ctrl-C that comes inside the block until the block ends, then raise ``raises``: imports and
     setup are never cut half-way (a module left half-imported breaks the next import of it, e.g. with a
     RecursionError, and libraries that catch too much can swallow the interrupt). Outside the main thread, where
     signals cannot be handled, it does nothing."""
@@ -109,7 +109,7 @@ def interrupts_deferred() -> Iterator[None]:
     finally:
         signal.signal(signal.SIGINT, previous)
     if caught:
-        raise KeyboardInterrupt
+        raise raises
 
 
 #: What a command interrupted before its own code began says it leaves: it has written nothing.
@@ -125,11 +125,8 @@ def import_main(module: str) -> Callable[[], int | None]:
     :class:`InterruptedWhileStarting`."""
     import importlib
 
-    try:
-        with interrupts_deferred():
-            return importlib.import_module(module).main
-    except KeyboardInterrupt:
-        raise InterruptedWhileStarting from None
+    with interrupts_deferred(InterruptedWhileStarting):
+        return importlib.import_module(module).main
 
 
 #: Libraries a Ctrl-C must never cut while they import, imported by :func:`run_command` before the command runs.
@@ -149,12 +146,9 @@ def run_command(prog: str, main: Callable[[], int | None], kept: str = "") -> No
 
     sys.unraisablehook = _interrupt_again(sys.unraisablehook)
     try:
-        try:
-            with interrupts_deferred():
-                for name in UNCUTTABLE_IMPORTS:
-                    importlib.import_module(name)
-        except KeyboardInterrupt:
-            raise InterruptedWhileStarting from None
+        with interrupts_deferred(InterruptedWhileStarting):
+            for name in UNCUTTABLE_IMPORTS:
+                importlib.import_module(name)
         code = main()
     except KeyboardInterrupt as stop:
         signal.signal(signal.SIGINT, signal.SIG_IGN)
