@@ -144,6 +144,15 @@ def test_pets_compare_offline_interrupted_at_any_moment_ends_with_130_not_by_the
     _check(_interrupted(args, cpu, ROOT))
 
 
+def _probe(tmp_path: Path, source: str, **kwargs: object) -> subprocess.CompletedProcess:
+    """``python -m probe`` in ``tmp_path``, ``source`` its probe.py, the project importable; output captured."""
+    (tmp_path / "probe.py").write_text(source)
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    return subprocess.run(
+        [sys.executable, "-m", "probe"], cwd=tmp_path, env=env, capture_output=True, text=True, **kwargs
+    )
+
+
 @pytest.mark.parametrize(
     "handled, status, mark",
     [("return 130", 130, True), ("return 0", 0, True), ("raise", 130, True), ("return 130", 130, False)],
@@ -153,17 +162,16 @@ def test_an_interrupt_the_command_handled_ends_with_its_status_not_by_the_signal
     generated methods are) makes CPython end the process by SIGINT (-2) once it exits, unless run_command clears
     that mark; where the mark is out of reach (``mark`` False: Python 3.12+), an interrupted command exits at once."""
     hide = "" if mark else "import ctypes\nctypes.c_int.in_dll = lambda *a: (_ for _ in ()).throw(ValueError('no'))\n"
-    (tmp_path / "probe.py").write_text(
+    proc = _probe(
+        tmp_path,
         hide + "from pets.tools.cli import run_command\n"
         "def main():\n"
         "    try:\n"
         "        exec('raise KeyboardInterrupt')\n"
         "    except KeyboardInterrupt:\n"
         f"        {handled}\n"
-        "run_command('probe', main)\n"
+        "run_command('probe', main)\n",
     )
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    proc = subprocess.run([sys.executable, "-m", "probe"], cwd=tmp_path, env=env, capture_output=True, text=True)
     assert proc.returncode == status, (proc.returncode, proc.stderr)
     assert "Traceback" not in proc.stderr
 
@@ -173,7 +181,8 @@ def test_an_interrupt_that_lands_in_a_finaliser_is_delivered_again_not_swallowed
     module-lock callback, seen once at 1 CPU-s into ``pets.train`` on 2026-11-29) cannot propagate there: Python
     printed "Exception ignored" with a traceback and the command went on to exit 0. run_command delivers it again:
     one line, exit 130."""
-    (tmp_path / "probe.py").write_text(
+    proc = _probe(
+        tmp_path,
         "import signal, time\n"
         "from pets.tools.cli import run_command\n"
         "class Finalised:\n"
@@ -183,11 +192,10 @@ def test_an_interrupt_that_lands_in_a_finaliser_is_delivered_again_not_swallowed
         "    Finalised()\n"
         "    time.sleep(30)\n"
         "    return 0\n"
-        "run_command('probe', main)\n"
+        "run_command('probe', main)\n",
+        preexec_fn=default_sigint,
+        timeout=120,
     )
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    proc = subprocess.run([sys.executable, "-m", "probe"], cwd=tmp_path, env=env, capture_output=True, text=True,
-                          preexec_fn=default_sigint, timeout=120)  # fmt: skip
     _check(proc)
     assert proc.returncode == 130 and error_lines(proc.stderr) == ["probe: interrupted"], proc.stderr
 
@@ -200,13 +208,13 @@ def test_an_interrupt_while_the_command_imports_says_that_nothing_was_written(tm
         "import signal\nsignal.raise_signal(signal.SIGINT)  # a Ctrl-C while the tool imports\n"
         "def main():\n    print('the tool ran')\n    return 0\n"
     )
-    (tmp_path / "probe.py").write_text(
+    proc = _probe(
+        tmp_path,
         "from pets.tools.cli import import_main, run_command\n"
-        "run_command('probe', lambda: import_main('slow_tool')())\n"
+        "run_command('probe', lambda: import_main('slow_tool')())\n",
+        preexec_fn=default_sigint,
+        timeout=120,
     )
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    proc = subprocess.run([sys.executable, "-m", "probe"], cwd=tmp_path, env=env, capture_output=True, text=True,
-                          preexec_fn=default_sigint, timeout=120)  # fmt: skip
     _check(proc)
     assert proc.returncode == 130 and error_lines(proc.stderr) == [f"probe: interrupted; {NOTHING_WRITTEN}"]
     assert "the tool ran" not in proc.stdout
