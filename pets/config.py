@@ -143,20 +143,27 @@ class Config:
 @cache
 def _schema_class(sections: tuple[tuple[str, type], ...]) -> type:
     """:class:`Config` whose ``planner`` has the fields ``sections`` (name, dataclass) besides the shared ones."""
+    clash = [name for name, _ in sections if name in {item.name for item in fields(PlannerConfig)}]
+    if clash:
+        raise ConfigError(f"planner {clash[0]!r} has a section but planner.{clash[0]} is a shared planner setting")
     own = [(name, section, field(default_factory=section)) for name, section in sections]
     planner = make_dataclass("PlannerConfig", own, bases=(PlannerConfig,))
     return make_dataclass("Config", [("planner", planner, field(default_factory=planner))], bases=(Config,))
 
 
+def _sections() -> tuple[tuple[str, type], ...]:
+    return tuple((name, cls.section) for name, cls in PLANNER_CLASSES.items() if cls.section is not None)
+
+
 def schema() -> DictConfig:
     """The typed config at its defaults: :class:`Config` with the section ``planner.<name>.*`` of every planner in
     the table that has one (``pets.planning.planners``: the class's ``section``)."""
-    shared = {item.name for item in fields(PlannerConfig)}
-    sections = tuple((name, cls.section) for name, cls in PLANNER_CLASSES.items() if cls.section is not None)
-    clash = [name for name, _ in sections if name in shared]
-    if clash:
-        raise ConfigError(f"planner {clash[0]!r} has a section but planner.{clash[0]} is a shared planner setting")
-    return OmegaConf.structured(_schema_class(sections))
+    return OmegaConf.structured(_schema_class(_sections()))
+
+
+@cache
+def _schema_keys(sections: tuple[tuple[str, type], ...]) -> tuple[str, ...]:
+    return tuple(all_keys(OmegaConf.structured(_schema_class(sections))))
 
 
 _POSITIVE_INTS = [
@@ -190,14 +197,9 @@ _CHOICES = {
 }
 
 
-def all_keys(cfg: DictConfig | None = None, prefix: str = "") -> list[str]:
-    """Every dotted key of the config, e.g. ``planner.population``."""
-    cfg = schema() if cfg is None else cfg
-    keys: list[str] = []
-    for k, v in cfg.items():
-        name = f"{prefix}{k}"
-        keys.extend(all_keys(v, name + ".") if isinstance(v, DictConfig) else [name])
-    return keys
+def all_keys(cfg: DictConfig | None = None) -> list[str]:
+    """Every dotted key of ``cfg`` (e.g. ``planner.population``); of the schema if None (once per planner table)."""
+    return list(_schema_keys(_sections())) if cfg is None else list(flatten(OmegaConf.to_container(cfg)))
 
 
 def read_config_file(path: str | Path) -> dict[str, Any]:
@@ -297,10 +299,11 @@ def set_value(cfg: DictConfig, key: str, value: Any) -> None:
     """Set ``key`` of ``cfg`` to ``value`` as an override would (lists and null from their text, types checked);
     ConfigError for an unknown key or a bad value."""
     key = _renamed(key)
-    if key not in set(all_keys()):
-        close = difflib.get_close_matches(key, all_keys(), n=1, cutoff=0.6)
+    keys = all_keys()
+    if key not in keys:
+        close = difflib.get_close_matches(key, keys, n=1, cutoff=0.6)
         hint = f"did you mean {close[0]}? " if close else ""
-        raise ConfigError(f"unknown config key {key!r}; {hint}accepted keys: {', '.join(all_keys())}")
+        raise ConfigError(f"unknown config key {key!r}; {hint}accepted keys: {', '.join(keys)}")
     current = OmegaConf.select(cfg, key)
     if isinstance(value, str) and value.lower() in ("null", "none") and (current is None or OmegaConf.is_list(current)):
         value = None
@@ -319,12 +322,9 @@ def set_value(cfg: DictConfig, key: str, value: Any) -> None:
         raise ConfigError(f"bad value for {key}: {str(err).splitlines()[0]}") from None
 
 
-def _merge_nested(cfg: DictConfig, values: dict[str, Any], prefix: str = "") -> None:
-    for k, v in values.items():
-        if isinstance(v, dict):
-            _merge_nested(cfg, v, f"{prefix}{k}.")
-        else:
-            set_value(cfg, f"{prefix}{k}", v)
+def _merge_nested(cfg: DictConfig, values: Mapping[str, Any]) -> None:
+    for key, value in flatten(values).items():
+        set_value(cfg, key, value)
 
 
 def validate(cfg: DictConfig) -> None:

@@ -586,12 +586,14 @@ class RandomShooting(BoxPlanner):
 
 def test_a_planner_registered_from_outside_the_package_plans_a_run(tmp_path, monkeypatch, capsys) -> None:
     import run_pets
-    from pets.config import ConfigError, make_config
+    from pets.config import ConfigError, all_keys, make_config
     from pets.planning.planners import PLANNER_CLASSES, register_planner
     from tests.test_cli import TINY
 
+    assert "planner.shooting.spread" not in all_keys()  # the schema's keys are worked out (and kept) before it
     monkeypatch.setitem(PLANNER_CLASSES, "shooting", RandomShooting)  # removed again after the test
     assert register_planner(RandomShooting) is RandomShooting
+    assert "planner.shooting.spread" in all_keys() and "planner.mppi.sigma" in all_keys()
     f, _ = quadratic(torch.zeros(3, 2))
     plan = RandomShooting(LOW, HIGH, horizon=3, population=200).plan(f, generator=torch.Generator().manual_seed(0))
     assert plan.shape == (3, 2) and float(f(plan[None])[0]) > -0.5
