@@ -5,7 +5,9 @@ three primary comparisons, each cell rendered from a generated or committed file
 - planning with a frozen pre-trained model, closed loop: the total-reward difference (``headline_planning.csv``,
   Holm over the 8 envs);
 - online: the final-reward difference of the env's online study, recomputed from its committed per-run rows
-  (:func:`pets.experiments.studies.online.summary_from_runs`, Holm over that study's arms).
+  (:func:`pets.experiments.studies.online.summary_from_runs`, Holm over that study's arms); on an env where the
+  online locomotion study has every pre-registered pair, its endpoint instead (its generated summary, Holm over
+  its (env, arm) tests): that study is the one whose baseline passed the locomotion gate.
 """
 
 from __future__ import annotations
@@ -73,6 +75,14 @@ def _planning(tree: Path) -> dict[str, str]:
     return cells
 
 
+def _difference_cell(r: Mapping[str, Any], study: str) -> str:
+    """The cell of an online summary row (numbers, or their CSV text): its paired difference to delta."""
+    keys = ("diff_to_delta", "diff_ci_low", "diff_ci_high", "diff_p_signflip", "diff_p_holm")
+    diff, low, high, p, holm = (r[k] if isinstance(r[k], float | int) else csv_number(r[k]) for k in keys)
+    text = _cell(diff, low, high, r["n_pairs"], p, holm, _difference_verdict(diff, holm), "pairs")
+    return f"{text} ({study})"
+
+
 def _online(tree: Path) -> dict[str, str]:
     from pets.experiments.studies.online import summary_from_runs
 
@@ -80,17 +90,26 @@ def _online(tree: Path) -> dict[str, str]:
     for study in ONLINE_STUDIES:
         for r in summary_from_runs(_rows(tree / RESULTS / f"{study}_runs.csv")):
             if r["model"] == MODEL and not r["planner"]:
-                v: Mapping[str, Any] = {k: math.nan if r.get(k) is None else r[k] for k in r}
-                diff, holm = v["diff_to_delta"], v["diff_p_holm"]
-                num = (diff, v["diff_ci_low"], v["diff_ci_high"])
-                text = _cell(*num, r["n_pairs"], v["diff_p_signflip"], holm, _difference_verdict(diff, holm), "pairs")
-                cells[r["env"]] = f"{text} ({study})"
+                cells[r["env"]] = _difference_cell(r, study)
     return cells
+
+
+def _locomotion(tree: Path) -> dict[str, str]:
+    """The online locomotion study's cell per env where it has every pre-registered pair (its design reads nothing
+    from a partial table), from its generated summary."""
+    from pets.experiments.studies import locomotion
+
+    return {
+        r["env"]: _difference_cell(r, "online_locomotion")
+        for r in _rows(tree / RESULTS / locomotion.SUMMARY)
+        if r["model"] == MODEL and r["n_pairs"] and int(r["n_pairs"]) == len(locomotion.SEEDS)
+    }
 
 
 def answer_table(tree: Path) -> str:
     """The answer table (module docstring) from the files under ``tree``."""
-    offline, planning, online = _offline(tree), _planning(tree), _online(tree)
+    offline, planning, locomotion = _offline(tree), _planning(tree), _locomotion(tree)
+    online = _online(tree) | locomotion
     header = [
         "env",
         "offline: error gem / delta [95 % CI]",
@@ -98,7 +117,7 @@ def answer_table(tree: Path) -> str:
         "online: final reward gem - delta [95 % CI]",
     ]
     rows = [[env, offline[env], planning.get(env, "not run"), online.get(env, "not run")] for env in offline]
-    return md_table(header, rows) + "\n\n" + LEGEND
+    return md_table(header, rows) + "\n\n" + LEGEND + (LOCOMOTION_LEGEND if locomotion else "")
 
 
 #: What a cell says (the legend under the answer table).
@@ -108,6 +127,12 @@ LEGEND = (
     f"{ALPHA}. Offline: IQM of the per-pair ratios of the pre-registered endpoint (the standardized error averaged "
     "over the tracking horizons; below 1: gem predicts better); planning: mean paired difference of the total reward "
     "of 300 MPC steps with the frozen model; online: IQM of the paired differences of the final reward."
+)
+#: Added to the legend once a cell is the online locomotion study's.
+LOCOMOTION_LEGEND = (
+    " The online locomotion study's cells (online_locomotion; docs/studies/online_locomotion.md): the locomotion "
+    "preset, whose delta passed the locomotion gate there; IQM of the paired differences of its endpoint, the mean "
+    "return of the last 5 episodes at 100k env steps, Holm over that study's (env, arm) tests."
 )
 #: The later offline studies (new data sets, more seeds) whose primary endpoint the second table shows.
 LATER_STUDIES = ("paper_data3_primary", "paper_gemse_primary", "paper_50k_primary")
