@@ -318,24 +318,28 @@ def test_cuda_where_there_is_none_is_refused_before_the_run_directory_is_made(tm
 
 
 def test_a_second_run_on_the_same_directory_is_refused_and_the_first_is_intact(tmp_path):
-    """Issue 17 item 2: two runs with one --out used to both exit 0, one run's results silently lost."""
+    """Issue 17 item 2: two runs with one --out used to both exit 0, one run's results silently lost. The first run
+    is stopped (SIGSTOP) while the second tries, so it cannot end before the second has been refused."""
     out = tmp_path / "run"
-    args = [sys.executable, str(ROOT / "run_pets.py"), "--env", "invertedpendulum", "--trials", 40, "--seed", 4]
+    args = [sys.executable, str(ROOT / "run_pets.py"), "--env", "invertedpendulum", "--trials", 8, "--seed", 4]
     first = subprocess.Popen([*map(str, args), "--out", str(out), *TINY], cwd=ROOT, stderr=subprocess.PIPE, text=True)
     deadline = time.time() + 120
     while not (out / "config.yaml").exists() and time.time() < deadline and first.poll() is None:
         time.sleep(0.05)
-    for second_args in (["--out", out], ["--resume", out]):
-        proc = (
-            cli(*args[2:], *second_args, *TINY, check=False)
-            if second_args[0] == "--out"
-            else cli("--resume", out, check=False)
-        )
+    first.send_signal(signal.SIGSTOP)
+    try:
+        refusals = [
+            cli(*args[2:], "--out", out, *TINY, check=False),
+            cli("--resume", out, check=False),
+        ]
+    finally:
+        first.send_signal(signal.SIGCONT)
+    for proc in refusals:
         lines = error_lines(proc.stderr)
         assert proc.returncode == 2 and len(lines) == 1, proc.stderr
         assert f"{out} is in use by another run (process {first.pid}); wait for it to finish" in lines[0], lines[0]
     assert first.wait(timeout=300) == 0, first.stderr.read()
-    assert [int(r["trial"]) for r in rows(out)] == list(range(40))
+    assert [int(r["trial"]) for r in rows(out)] == list(range(8))
     assert not list(out.glob(".*.tmp"))  # no temporary file left behind
 
 
