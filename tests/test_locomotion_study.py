@@ -234,8 +234,8 @@ def test_the_figure_draws_delta_groupfeat_only_where_it_is_not_gems_curve(tmp_pa
 
 
 def test_the_answer_takes_the_study_for_an_env_once_every_preregistered_pair_is_in(tmp_path):
-    """The answer table's online cell of HalfCheetah is the fast-preset study's until this study has all 10 pairs
-    of gem and delta, then this study's paired endpoint (scipy's exact p), with its legend."""
+    """The answer table's online cell of HalfCheetah is the fast-preset study's until every arm of this study has
+    its 10 pairs, then this study's paired endpoint for gem (scipy's exact p), with its legend."""
     import shutil
 
     from pets.experiments.answer import LOCOMOTION_LEGEND, answer_table
@@ -247,15 +247,17 @@ def test_the_answer_takes_the_study_for_an_env_once_every_preregistered_pair_is_
     delta = [3000.0, 4400.0, 1300.0, 2500.0, 3600.0, 2000.0, 3300.0, 2900.0, 4100.0, 1800.0]
     gem = [3100.0, 4300.0, 1500.0, 2700.0, 3900.0, 1950.0, 3500.0, 3000.0, 4400.0, 2100.0]
 
-    def halfcheetah_cell(seeds: int) -> str:
-        write_runs(results / study.RUNS, {"delta": delta, "gem": gem[:seeds]})
+    def halfcheetah_cell(gem_seeds: int, se_seeds: int) -> str:
+        arms = {"delta": delta, "gem": gem[:gem_seeds], "delta-groupfeat": gem, "gem-se": delta[:se_seeds]}
+        write_runs(results / study.RUNS, arms)
         study.write_summary(results)
         (row,) = [r for r in answer_table(tmp_path).splitlines() if r.startswith("| halfcheetah |")]
         return row.split(" | ")[-1]
 
-    assert halfcheetah_cell(9).endswith("(online_halfcheetah_fast_5seeds) |")
+    for gem_seeds, se_seeds in ((9, 10), (10, 9)):
+        assert halfcheetah_cell(gem_seeds, se_seeds).endswith("(online_halfcheetah_fast_5seeds) |")
     assert LOCOMOTION_LEGEND not in answer_table(tmp_path)
-    cell = halfcheetah_cell(10)
+    cell = halfcheetah_cell(10, 10)
     d = np.array(gem) - np.array(delta)
     exact = stats.permutation_test((d,), np.mean, permutation_type="samples", n_resamples=np.inf).pvalue
     assert cell.endswith("(online_locomotion) |") and ", 10 pairs, p " in cell, cell

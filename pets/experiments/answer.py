@@ -95,14 +95,15 @@ def _online(tree: Path) -> dict[str, str]:
 
 
 def _locomotion(tree: Path) -> dict[str, str]:
-    """The online locomotion study's cell per env where it has every pre-registered pair (its design reads nothing
-    from a partial table), from its generated summary."""
+    """The online locomotion study's cell per env where every arm has every pre-registered pair (its design reads
+    nothing from a partial table, and Holm's family is then whole), from its generated summary."""
     from pets.experiments.studies import locomotion
 
+    rows = _rows(tree / RESULTS / locomotion.SUMMARY)
+    pairs = {(r["env"], r["model"]): csv_number(r["n_pairs"]) for r in rows}
+    whole = {env for env, _ in pairs if all(pairs.get((env, arm)) == len(locomotion.SEEDS) for arm in locomotion.ARMS)}
     return {
-        r["env"]: _difference_cell(r, "online_locomotion")
-        for r in _rows(tree / RESULTS / locomotion.SUMMARY)
-        if r["model"] == MODEL and r["n_pairs"] and int(r["n_pairs"]) == len(locomotion.SEEDS)
+        r["env"]: _difference_cell(r, "online_locomotion") for r in rows if r["model"] == MODEL and r["env"] in whole
     }
 
 

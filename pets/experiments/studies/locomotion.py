@@ -195,8 +195,8 @@ def summary_markdown(summary: Sequence[Mapping[str, str]], versus: Sequence[Mapp
     return "\n\n".join(parts) if parts else "No seed is complete in every arm yet."
 
 
-#: The pre-registered seeds of every arm (docs/studies/online_locomotion.md, Design): 10 pairs per (env, arm) test.
-SEEDS = tuple(range(10))
+#: The pre-registered arms paired to delta and seeds of every arm (docs/studies/online_locomotion.md, Design).
+ARMS, SEEDS = ("delta-groupfeat", "gem", "gem-se"), tuple(range(10))
 RESULTS = Path("docs") / "results"
 RUNS, SUMMARY, VERSUS, CURVES = (f"online_locomotion_{kind}.csv" for kind in ("runs", "summary", "versus", "curves"))
 FIGURE = Path("docs") / "figures" / "online_locomotion.png"
