@@ -2,7 +2,7 @@
 """PETS with a swappable dynamics head.
 
     python run_pets.py --model MODEL --env halfcheetah [--trials N] [--seed S] [--device cpu|cuda|auto]
-                       [--preset research|fast] [--out DIR] [--resume DIR] [--video EVERY] [key=value ...]
+                       [--preset research|fast|locomotion] [--out DIR] [--resume DIR] [--video EVERY] [key=value ...]
 
 MODEL (``pets.config.HEADS``): delta, gem (probabilistic ensembles, PETS), delta-det, gem2 (the GEM paper's
 deterministic baseline and two-stage GEM, member predictions averaged) or delta-groupfeat (delta with GEM's

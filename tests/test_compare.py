@@ -1396,6 +1396,36 @@ def test_online_until_threshold_stops_each_run_at_the_mark_and_counts_it_complet
     assert code == 2 and "stop_reward= is set by --until-threshold" in err
 
 
+def test_online_at_an_env_step_budget_counts_runs_that_end_there_and_leaves_the_cut_episode_out(tmp_path, capsys):
+    """--preset locomotion (its trials an upper bound, --trials not needed): a run that ends at its env-step budget
+    is complete (summary, reuse); its last episode, cut by the budget, is in neither the final reward nor AUC."""
+    from pets.runs.rundir import cut_by_budget
+
+    args = ["online", "--envs", "invertedpendulum", "--models", "delta", "--seeds", "0", "--out", tmp_path,
+            "--preset", "locomotion", "--quiet", *TINY, "max_env_steps=300", "train_every=100",
+            "model.iterations=5", "model.compile=false"]  # fmt: skip
+    code, out, err = cli(capsys, *args)
+    assert code == 0, err
+    run = tmp_path / "runs" / "invertedpendulum-delta-s0"
+    assert load_config(str(run / "config.yaml")).trials == 100_000
+    rows = csv_rows(run / "metrics.csv")
+    last = rows[-1]
+    assert int(last["env_steps"]) == 300 and last["terminated"] == "0" and int(last["episode_length"]) < 30
+    assert cut_by_budget(rows, 300, 30) and not cut_by_budget(rows, 301, 30) and not cut_by_budget(rows, None, 30)
+    assert not cut_by_budget([{**last, "episode_length": "30"}], 300, 30)  # ended at its step limit: complete
+    rewards = [float(r["episode_reward"]) for r in rows[:-1]]
+    (per_run,) = csv_rows(tmp_path / "summary_runs.csv")
+    assert float(per_run["final_reward"]) == pytest.approx(np.mean(rewards[-3:]))
+    assert float(per_run["auc"]) == pytest.approx(np.mean(rewards))
+    assert online_row(tmp_path, "invertedpendulum", "delta")["n_seeds"] == "1"
+    summary = (tmp_path / "summary.md").read_text()
+    assert "(runs to their env-step budget, at most 100000 trials)" in summary and "Missing" not in summary
+    code, _, err = cli(capsys, *args)
+    assert code == 0 and "1 reused, 0 to resume, 0 to start" in err, err
+    code, _, err = cli(capsys, *[a if a != "locomotion" else "fast" for a in args])
+    assert code == 2 and "--trials is required (or trials in a --config file or a --preset that sets it)" in err
+
+
 # --------------------------------------------------------------------------- headline across summaries
 def test_headline_takes_each_comparison_from_the_summaries_at_the_longest_horizon(fake_offline, fake_online, tmp_path):
     off, _ = fake_offline
@@ -1525,10 +1555,13 @@ def test_table_numbers_are_readable():
 # --------------------------------------------------------------------------- precisions resolved per machine
 def _as_if_started_on_another_cpu_kind(run_dir):
     """Rewrite a run's recorded precisions to the other concrete value, as ``auto`` resolves on a machine of
-    another CPU kind (bf16 where native, fp32 elsewhere) in a study spread over a mixed cluster."""
+    another CPU kind (bf16 where native, fp32 elsewhere) in a study spread over a mixed cluster, and its
+    ``model.compile`` the other way too (the fast preset's ``auto`` follows the precision: on with bf16, for a run
+    long enough to compile)."""
     cfg = load_config(str(run_dir / "config.yaml"))
     other = "fp32" if cfg.planner.precision == "bf16" else "bf16"
     cfg.planner.precision = cfg.model.precision = other
+    cfg.model.compile = not cfg.model.compile
     rundir.write_config(run_dir, cfg)
     return other
 
@@ -1554,6 +1587,9 @@ def test_online_rerun_accepts_runs_whose_auto_precision_resolved_elsewhere_and_s
     code, _, err = cli(capsys, "online", *common, f"planner.precision={mine}", f"model.precision={mine}")
     assert code == 2 and "invertedpendulum-gem-s1 was made with another config" in err
     assert f"planner.precision: '{other}' != '{mine}'" in err
+    flipped = load_config(str(copy / "runs" / "invertedpendulum-gem-s1" / "config.yaml")).model.compile
+    code, _, err = cli(capsys, "online", *common, f"model.compile={not flipped}")
+    assert code == 2 and f"model.compile: {flipped} != {not flipped}" in err  # set on the line: compared
     assert "different precisions" not in (online[0] / "summary.md").read_text()  # one machine: no note
 
 
@@ -1689,7 +1725,7 @@ def test_compare_config_file_reaches_the_runs_and_bad_files_get_one_line(tmp_pat
         ),
         ("- a list\n", [], "expected a mapping of config keys, got a list"),
         ("head: gem\n", [], "--envs is required (or env in a --config file)"),
-        ("env: reacher\nhead: gem\n", [], "--trials is required (or trials in a --config file)"),
+        ("env: reacher\nhead: gem\n", [], "--trials is required (or trials in a --config file or a --preset that"),
         ("env: reacher\nhead: gem\ntrials: 1\ndevice: tpu\n", [], "device must be cpu, cuda or auto, got 'tpu'"),
         ("env: reacher\nhead: gem\ntrials: 1\n", ["--print-config", "x"], "expected key=value, got 'x'"),
     ):

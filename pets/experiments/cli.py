@@ -95,6 +95,7 @@ def overrides_from_line_and_file(args: argparse.Namespace) -> list[str]:
     from omegaconf import OmegaConf
 
     from pets.config import Config, ConfigError, override_text, overrides_with_file, parse_overrides
+    from pets.presets import PRESETS
 
     online = args.mode == "online"
     aside = ("env", "head", "device", *NOT_FROM_FILE, *(("trials",) if online else ()))
@@ -111,10 +112,13 @@ def overrides_from_line_and_file(args: argparse.Namespace) -> list[str]:
         args.device = kept["device"]
     if online and args.trials is None and "trials" in kept:
         args.trials = int(kept["trials"])
+    if online and args.trials is None and "trials" in PRESETS.get(args.preset, {}):
+        args.trials = int(PRESETS[args.preset]["trials"])  # e.g. locomotion's upper bound: the budget ends a run
     for option, key in (("envs", "env"), ("models", "head"), *((("trials", "trials"),) if online else ())):
         if getattr(args, option) is None:
             if key not in kept:
-                raise UsageError(f"--{option} is required (or {key} in a --config file)")
+                also = " or a --preset that sets it" if option == "trials" else ""
+                raise UsageError(f"--{option} is required (or {key} in a --config file{also})")
             if option != "trials":
                 setattr(args, option, str(kept[key]))
     defaults = OmegaConf.structured(Config)

@@ -68,7 +68,12 @@ def _add_common(q: OneLineParser) -> None:
         default=3,
         help="ray backend: retries of a run whose worker or node died (default 3; it resumes its checkpoint)",
     )
-    q.add_argument("--preset", default="research", help="config preset: research (default) or fast")
+    q.add_argument(
+        "--preset",
+        default="research",
+        help="config preset: research (default), fast (CPU) or locomotion (a 100k env-step budget per run; "
+        "docs/studies/locomotion_gate.md)",
+    )
     q.add_argument("--device", choices=("cpu", "cuda", "auto"), default=None, help="device of every run")
     q.add_argument("--quiet", action="store_true", help="no progress bar")
     q.add_argument(
@@ -91,7 +96,12 @@ def _add_online(sub: Any) -> None:
     """The ``online`` mode and its own options."""
     on = sub.add_parser("online", prog=f"{PROG} online", help="online PETS runs (run_pets.py)")
     _add_common(on)
-    on.add_argument("--trials", type=int, help="trials per run (required unless --config gives trials)")
+    on.add_argument(
+        "--trials",
+        type=int,
+        help="trials per run (required unless --config or the preset gives trials); with an env-step budget "
+        "(max_env_steps, as --preset locomotion sets) the most: each run ends at its budget",
+    )
     on.add_argument("--final-window", type=int, default=3, help="trials averaged for the final reward (default 3)")
     on.add_argument(
         "--until-threshold",

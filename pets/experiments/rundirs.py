@@ -40,6 +40,20 @@ def run_name(env: str, model: str, seed: int, planner: str | None = None, data_s
     return f"{env}-{model}{data}-s{seed}" if planner is None else f"{env}-{model}-{planner}{data}-s{seed}"
 
 
+def budget_of(run_dir: Path) -> tuple[int | None, int]:
+    """A run's env-step budget (``max_env_steps``; None: none) and its episodes' step limit, from its config.yaml
+    (``(None, 0)`` without one)."""
+    import yaml
+
+    from pets.experiments.gate import full_length
+
+    path = Path(run_dir) / "config.yaml"
+    cfg = yaml.safe_load(path.read_text()) if path.is_file() else None
+    if not isinstance(cfg, dict) or cfg.get("max_env_steps") is None:
+        return None, 0
+    return int(cfg["max_env_steps"]), full_length(cfg)
+
+
 def arm_label(model: str, planner: str | None) -> str:
     """What the summaries call one compared arm: the model, or ``MODEL+PLANNER`` when planners are compared."""
     return model if planner is None else f"{model}+{planner}"
@@ -70,10 +84,15 @@ NOT_COMPARED = ("trials", "threads")
 PRECISION_KEYS = ("planner.precision", "model.precision")
 
 
+#: Resolved by the machine too where a preset leaves it at ``auto`` (``pets.config.AUTO_BOOL_KEYS``): compiled
+#: training follows the resolved precision. Elsewhere its default is false, which no run of the sweep changes.
+COMPILE_KEYS = ("model.compile",)
+
+
 def left_to_auto(overrides: Mapping[str, Any]) -> tuple[str, ...]:
-    """The :data:`PRECISION_KEYS` that ``overrides`` leaves at ``auto``: a run made on another machine may hold
-    either concrete value for them, so a rerun does not compare them."""
-    return tuple(k for k in PRECISION_KEYS if str(overrides.get(k, "auto")) == "auto")
+    """The :data:`PRECISION_KEYS` and :data:`COMPILE_KEYS` that ``overrides`` does not set: a run made on another
+    machine may hold either concrete value for them, so a rerun does not compare them."""
+    return tuple(k for k in (*PRECISION_KEYS, *COMPILE_KEYS) if str(overrides.get(k, "auto")) == "auto")
 
 
 def precision_note(run_dirs: Iterable[Path]) -> list[str]:

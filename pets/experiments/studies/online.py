@@ -41,7 +41,7 @@ import numpy as np
 
 from pets.experiments.plots import arm_colors, model_colors, plot_online
 from pets.experiments.report import csv_number, disagreement_lines, md_table, write_csv
-from pets.experiments.rundirs import arm_label, env_stem, online_arms, precision_note, run_name
+from pets.experiments.rundirs import arm_label, budget_of, env_stem, online_arms, precision_note, run_name
 from pets.experiments.statistics import BASELINE, MIN_SEEDS, REPS, SMALL_SAMPLE_NOTE
 from pets.experiments.studies.base import (
     HIGHER,
@@ -105,18 +105,25 @@ def time_to_threshold(rows: Sequence[Mapping[str, float]], threshold: float | No
 
 
 def online_run_stats(
-    rows: Sequence[Mapping[str, float]], trials: int, final_window: int, threshold: float | None = None
+    rows: Sequence[Mapping[str, float]],
+    trials: int,
+    final_window: int,
+    threshold: float | None = None,
+    cut: bool = False,
 ) -> dict[str, Any]:
     """Per-run numbers from the first ``trials`` metrics rows: diverged (:func:`reward_divergence`: None or
     why), final (mean of the last ``final_window`` episode rewards), auc (mean episode reward over all
     trials), the :data:`THRESHOLD_KEYS` (:func:`time_to_threshold`), env_steps, wall_time_s (the run's
     wall-clock seconds: planning, simulation and model training), cpu_time_s (its process CPU seconds; NaN for a
     run without the column) and
-    plan_seconds_per_step (median over the planned trials; 0 if every trial was random)."""
+    plan_seconds_per_step (median over the planned trials; 0 if every trial was random). ``cut``: the last
+    episode was cut by the run's env-step budget (:func:`pets.runs.rundir.cut_by_budget`), so it is not in final
+    or auc."""
     use = list(rows)[:trials]
     to_threshold = time_to_threshold(use, threshold)
-    rewards = np.array([r["episode_reward"] for r in use], dtype=np.float64)
-    w = min(final_window, len(use))
+    outcomes = use[:-1] if cut and len(use) > 1 else use
+    rewards = np.array([r["episode_reward"] for r in outcomes], dtype=np.float64)
+    w = min(final_window, len(outcomes))
     planned = [r["plan_seconds_per_step"] for r in use if r.get("plan_seconds_per_step", 0.0) > 0]
     with np.errstate(invalid="ignore"):  # inf - inf in a diverged run: NaN, reported as such
         final, auc = float(rewards[-w:].mean()), float(rewards.mean())
@@ -249,7 +256,7 @@ def summarise_online(
     per env of the time-to-threshold columns (an env without one gets none). ``until_threshold``: a run that
     reached its env's threshold is complete with fewer rows (``pets.compare online --until-threshold``)."""
     out = Path(out)
-    found: dict[str, list] = {"per_run": [], "missing": [], "diverged": [], "included": []}
+    found: dict[str, list] = {"per_run": [], "missing": [], "diverged": [], "included": [], "budgeted": []}
     summary, text = [], []
     envs_done: list[tuple[str, list[dict[str, Any]]]] = []
     arms = online_arms(models, planners)
@@ -272,7 +279,9 @@ def summarise_online(
     write_csv(out / "summary.csv", summary, SUMMARY_COLUMNS)
     write_csv(out / "summary_runs.csv", found["per_run"], RUN_COLUMNS)
     text = (
-        _header(trials, w, compared, planners is not None, until_threshold) + text + precision_note(found["included"])
+        _header(trials, w, compared, planners is not None, until_threshold, bool(found["budgeted"]))
+        + text
+        + precision_note(found["included"])
     )
     text += _runs_sections(found["diverged"], found["missing"])
     atomic_write_bytes(out / "summary.md", "\n".join(text).encode())
@@ -295,6 +304,8 @@ def _env_runs(
     """``(runs, curves)`` of one env: {arm: :func:`online_run_stats` of each complete run} and {arm: the metrics rows
     of each complete run that did not diverge}; adds to ``found``'s lists the per-run rows, the missing and the
     diverged runs and the directories included."""
+    from pets.runs.rundir import cut_by_budget, stopped
+
     runs: dict[str, list[dict[str, Any]]] = {}
     curves: dict[str, list[list[dict[str, float]]]] = {}
     for model, planner in arms:
@@ -302,13 +313,16 @@ def _env_runs(
         for seed in seeds:
             name = run_name(env, model, seed, planner)
             rows, reached = _complete_rows(out / "runs" / name, thresholds.get(env, math.inf), until_threshold)
-            if len(rows) < trials and not reached:
+            budget, length = budget_of(out / "runs" / name)
+            if len(rows) < trials and not reached and not stopped(rows, None, budget):
                 found["missing"].append(
                     f"{name} ({len(rows)}/{trials} trials"
                     f"{'; failed: ' + failed[name] if failed and name in failed else ''})"
                 )
                 continue
-            s = {"seed": seed, **online_run_stats(rows, trials, final_window, thresholds.get(env))}
+            cut = not reached and cut_by_budget(rows[:trials], budget, length)
+            found["budgeted"] += [name] if budget is not None else []
+            s = {"seed": seed, **online_run_stats(rows, trials, final_window, thresholds.get(env), cut)}
             found["per_run"].append({"env": env, "model": model, "planner": planner or "", "trials": trials, **s})
             found["per_run"][-1]["diverged"] = s["diverged"] or ""
             unknown = (*THRESHOLD_KEYS, "cpu_time_s")  # never reached; a run without the CPU column
@@ -352,19 +366,22 @@ def _plot_env(
     )
 
 
-def _header(trials: int, w: int, compared: bool, with_planner: bool, until_threshold: bool) -> list[str]:
-    """The top of summary.md: what the columns mean."""
+def _header(trials: int, w: int, compared: bool, with_planner: bool, until_threshold: bool, budget: bool) -> list[str]:
+    """The top of summary.md: what the columns mean (``budget``: some run has an env-step budget)."""
     base_name = BASELINE if not with_planner else f"{BASELINE} with the same planner"
     if until_threshold:
         runs_line = f"# Online comparison (runs to the threshold, at most {trials} trials each)"
         span = "the trials up to the one that reached the threshold (or all, if none did)"
+    elif budget:
+        runs_line, span = f"# Online comparison (runs to their env-step budget, at most {trials} trials)", "all trials"
     else:
         runs_line, span = f"# Online comparison ({trials} trials per run)", f"all {trials} trials"
+    cut = " An episode cut by a run's env-step budget (max_env_steps) is in neither." if budget else ""
     return [
         runs_line,
         "",
         f"final = mean episode reward of the last {w} trial{'s' if w > 1 else ''} of each run; "
-        f"AUC = mean episode reward over {span}. Per arm: the interquartile mean (IQM) over seeds "
+        f"AUC = mean episode reward over {span}.{cut} Per arm: the interquartile mean (IQM) over seeds "
         "with its 95 % stratified-bootstrap CI in brackets (rliable)."
         + (
             f" P(final > {BASELINE}'s): the probability that a random seed of the arm ends with a higher final "
