@@ -299,6 +299,16 @@ class PETSRun:
         return row
 
 
+def _run_bar(cfg: DictConfig, pets_run: PETSRun, progress: bool) -> tqdm:
+    """The run's progress bar: its trials, or its env steps where an env-step budget ends it (its ``trials`` are
+    then an upper bound, e.g. ``--preset locomotion``'s 100,000)."""
+    if cfg.max_env_steps is None:
+        total, initial, unit = cfg.trials, pets_run.trials_done, "trial"
+    else:
+        total, initial, unit = cfg.max_env_steps, min(pets_run.env_steps, cfg.max_env_steps), "step"
+    return tqdm(total=total, initial=initial, desc=f"{cfg.env}-{cfg.head}", unit=unit, disable=not progress)
+
+
 def run(cfg: DictConfig, run_dir: Path, resume: bool = False, progress: bool = True) -> list[dict[str, Any]]:
     """Run (or continue) the PETS loop in ``run_dir`` until ``cfg.trials`` trials are done, or until a trial's
     reward reaches ``cfg.stop_reward``."""
@@ -342,9 +352,7 @@ def _run_locked(cfg: DictConfig, run_dir: Path, resume: bool, progress: bool) ->
     # Events past the last checkpoint (an interrupted trial's) are purged; each trial is written before its
     # checkpoint, so a resumed run neither loses nor repeats a scalar (pets.runs.tblog).
     events = ScalarLog(run_dir, cfg.tensorboard, purge_step=pets_run.env_steps + 1 if resume else None)
-    bar = tqdm(
-        total=cfg.trials, initial=pets_run.trials_done, desc=f"{cfg.env}-{cfg.head}", unit="trial", disable=not progress
-    )
+    bar = _run_bar(cfg, pets_run, progress)
     try:
         while not pets_run.finished():
             row = pets_run.run_trial(progress=progress)
@@ -354,7 +362,7 @@ def _run_locked(cfg: DictConfig, run_dir: Path, resume: bool, progress: bool) ->
             rundir.save_checkpoint(run_dir, pets_run.state_dict())
             rundir.write_metrics(run_dir, pets_run.rows)
             rundir.plot_rewards(run_dir, pets_run.rows, title)
-            bar.update(1)
+            bar.update(1 if cfg.max_env_steps is None else pets_run.env_steps - bar.n)
             bar.set_postfix(reward=f"{row['episode_reward']:.1f}", steps=row["env_steps"])
     finally:
         events.close()

@@ -186,6 +186,36 @@ def test_the_bar_over_trials_knows_its_total_and_shows_rate_and_eta(tmp_path, mo
     assert re.search(r"invertedpendulum-delta: +100%.* 2/2 \[\d\d:\d\d<\d\d:\d\d, +[\d.]+(trial/s|s/trial)", err), err
 
 
+def test_a_run_ended_by_its_env_step_budget_shows_a_bar_over_env_steps(tmp_path, monkeypatch, capsys):
+    """With ``max_env_steps`` (``--preset locomotion``: 100k, its trials an upper bound of 100,000) the bar counts
+    env steps to the budget, seed data included, not the trials it will never reach; a resume starts it where the
+    run stands."""
+    import re
+
+    import run_pets
+    from pets import loop
+
+    created = []
+
+    class Recording(loop.tqdm):
+        def __init__(self, *args, **kwargs):
+            created.append(kwargs)
+            super().__init__(*args, **kwargs)
+
+    monkeypatch.setattr(loop, "tqdm", Recording)
+    out = tmp_path / "run"
+    visible = [a for a in TINY if a != "--quiet"]
+    args = ["--env", "invertedpendulum", "--trials", "1000", "--out", str(out), *visible, "max_env_steps=200"]
+    assert run_pets.main([*args[:3], "2", *args[4:]]) == 0  # stopped at 2 trials, short of the budget
+    assert run_pets.main(["--resume", str(out), "--trials", "1000"]) == 0
+    steps = [int(r["env_steps"]) for r in csv.DictReader(open(out / "metrics.csv"))]
+    assert steps[-1] == 200
+    bars = [(kw["total"], kw["initial"]) for kw in created if kw.get("unit") == "step"]
+    assert bars == [(200, 0), (200, steps[1])] and not [kw for kw in created if kw.get("unit") == "trial"]
+    err = capsys.readouterr().err.replace("\r", "\n")
+    assert re.search(r"invertedpendulum-delta: +100%.* 200/200 \[", err), err
+
+
 def test_overrides_are_accepted_anywhere_on_the_command_line():
     """Issue 17 item 5: key=value after an option used to be 'unrecognized arguments'."""
     proc = cli("--env", "reacher", "threads=1", "--preset", "fast", "planner.population=50", "--trials", 0, check=False)
