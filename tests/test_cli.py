@@ -159,12 +159,8 @@ def test_online_training_selects_a_trained_model(tmp_path, env):
         assert float(row["model_val_loss"]) < min(0.8, float(row["model_val_loss_initial"])), row
 
 
-def test_the_bar_over_trials_knows_its_total_and_shows_rate_and_eta(tmp_path, monkeypatch, capsys):
-    """Issue 17 item 6: the trial-level bar is created with total=trials (initial=trials done on resume), so
-    tqdm shows n/total, the rate and the remaining time."""
-    import re
-
-    import run_pets
+def recorded_bars(monkeypatch) -> list[dict]:
+    """The keyword arguments of every progress bar pets.loop creates from now on (the bars still draw)."""
     from pets import loop
 
     created = []
@@ -175,6 +171,17 @@ def test_the_bar_over_trials_knows_its_total_and_shows_rate_and_eta(tmp_path, mo
             super().__init__(*args, **kwargs)
 
     monkeypatch.setattr(loop, "tqdm", Recording)
+    return created
+
+
+def test_the_bar_over_trials_knows_its_total_and_shows_rate_and_eta(tmp_path, monkeypatch, capsys):
+    """Issue 17 item 6: the trial-level bar is created with total=trials (initial=trials done on resume), so
+    tqdm shows n/total, the rate and the remaining time."""
+    import re
+
+    import run_pets
+
+    created = recorded_bars(monkeypatch)
     out = tmp_path / "run"
     visible = [a for a in TINY if a != "--quiet"]
     assert run_pets.main(["--env", "invertedpendulum", "--trials", "1", "--out", str(out), *visible]) == 0
@@ -193,16 +200,8 @@ def test_a_run_ended_by_its_env_step_budget_shows_a_bar_over_env_steps(tmp_path,
     import re
 
     import run_pets
-    from pets import loop
 
-    created = []
-
-    class Recording(loop.tqdm):
-        def __init__(self, *args, **kwargs):
-            created.append(kwargs)
-            super().__init__(*args, **kwargs)
-
-    monkeypatch.setattr(loop, "tqdm", Recording)
+    created = recorded_bars(monkeypatch)
     out = tmp_path / "run"
     visible = [a for a in TINY if a != "--quiet"]
     args = ["--env", "invertedpendulum", "--trials", "1000", "--out", str(out), *visible, "max_env_steps=200"]
