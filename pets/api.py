@@ -87,17 +87,22 @@ class PETS:
     # ------------------------------------------------------------------ learning and acting
     def learn(self, trials: int | None = None, callback: Callable[[dict[str, Any]], Any] | None = None) -> PETS:
         """Run ``trials`` more trials (default: up to the config's ``trials``), each one real episode with the MPC
-        agent followed by training on all data; the first is preceded by ``seed_steps`` random steps.
-        ``callback(row)`` gets every trial's row; returning ``False`` stops. Returns ``self``."""
+        agent followed by training on all data; the first is preceded by ``seed_steps`` random steps. Fewer where
+        the run is done first, as ``run_pets.py`` stops: its env-step budget ``max_env_steps`` spent (``--preset
+        locomotion``) or a trial at ``stop_reward``. ``callback(row)`` gets every trial's row; returning ``False``
+        stops. Returns ``self``."""
         if isinstance(trials, np.integer):
             trials = int(trials)
         if trials is not None and (isinstance(trials, bool) or not isinstance(trials, int) or trials < 1):
             raise ValueError(f"trials must be a positive int or None, got {trials!r}")
         if callback is not None and not callable(callback):
             raise ValueError(f"callback must be a function of a trial's row (or None), got {type(callback).__name__}")
-        target = self.config.trials if trials is None else self._run.trials_done + trials
-        while self._run.trials_done < target:
-            row = self._run.run_trial(progress=self.progress)
+        from pets.runs.rundir import stopped
+
+        run, cfg = self._run, self.config
+        target = cfg.trials if trials is None else run.trials_done + trials
+        while run.trials_done < target and not stopped(run.rows, cfg.stop_reward, cfg.max_env_steps):
+            row = run.run_trial(progress=self.progress)
             if callback is not None and callback(dict(row)) is False:
                 break
         return self

@@ -57,6 +57,21 @@ def test_a_saved_and_loaded_object_continues_as_the_one_never_saved(tmp_path):
         assert torch.equal(p, q)
 
 
+def test_learn_stops_where_the_run_is_done_as_run_pets_does():
+    """An env-step budget (``--preset locomotion``'s 100k, here 200) ends learn() before its trials, as it ends
+    run_pets.py; learning on after it does nothing (it raised "max_steps must be a positive int, got 0"), and a
+    trial at ``stop_reward`` ends it too."""
+    small = {**TINY, "value.steps": 20, "model.iterations": 5, "model.compile": False, "train_every": 100}
+    with one_thread():
+        budget = pets.PETS("invertedpendulum", model="delta", preset="locomotion", max_env_steps=200, **small)
+        budget.learn(trials=100)
+        done = budget.trials_done
+        assert 1 < done < 100 and budget.history[-1]["env_steps"] == 200
+        assert budget.learn().learn(trials=5).trials_done == done
+        reward = pets.PETS("invertedpendulum", model="delta", preset="fast", stop_reward=1.0, **small)
+        assert reward.learn(trials=5).trials_done == 1  # every episode earns at least 1
+
+
 def test_predict_is_the_models_own_decoding_and_types_follow_the_input(tmp_path):
     with one_thread():
         agent = pets.PETS("reacher", model="gem", preset="fast", seed=1, **TINY)
