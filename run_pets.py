@@ -284,8 +284,10 @@ def _main(argv: list[str] | None = None) -> int:
         return EXIT_INTERRUPTED
     if rows:
         last = rows[-1]
+        spent = cfg.max_env_steps is not None and int(last["env_steps"]) >= cfg.max_env_steps
+        budget = " (its budget, max_env_steps: --trials runs it no further)" if spent else ""
         print(
-            f"done: {len(rows)} trials, {int(last['env_steps'])} env steps, "
+            f"done: {len(rows)} trials, {int(last['env_steps'])} env steps{budget}, "
             f"last episode reward {last['episode_reward']:.2f}; results in {run_dir}"
         )
     return 0

@@ -196,7 +196,7 @@ def test_the_bar_over_trials_knows_its_total_and_shows_rate_and_eta(tmp_path, mo
 def test_a_run_ended_by_its_env_step_budget_shows_a_bar_over_env_steps(tmp_path, monkeypatch, capsys):
     """With ``max_env_steps`` (``--preset locomotion``: 100k, its trials an upper bound of 100,000) the bar counts
     env steps to the budget, seed data included, not the trials it will never reach; a resume starts it where the
-    run stands."""
+    run stands, and its done line says the budget is spent."""
     import re
 
     import run_pets
@@ -211,8 +211,10 @@ def test_a_run_ended_by_its_env_step_budget_shows_a_bar_over_env_steps(tmp_path,
     assert steps[-1] == 200
     bars = [(kw["total"], kw["initial"]) for kw in created if kw.get("unit") == "step"]
     assert bars == [(200, 0), (200, steps[1])] and not [kw for kw in created if kw.get("unit") == "trial"]
-    err = capsys.readouterr().err.replace("\r", "\n")
-    assert re.search(r"invertedpendulum-delta: +100%.* 200/200 \[", err), err
+    out, err = capsys.readouterr()
+    assert re.search(r"invertedpendulum-delta: +100%.* 200/200 \[", err.replace("\r", "\n")), err
+    assert "200 env steps (its budget, max_env_steps: --trials runs it no further)" in out  # only the resume's
+    assert out.count("its budget") == 1
 
 
 def test_overrides_are_accepted_anywhere_on_the_command_line():
