@@ -347,7 +347,7 @@ def _run_locked(cfg: DictConfig, run_dir: Path, resume: bool, progress: bool) ->
     rundir.append_history(run_dir, "resume" if resume else "start", pets_run.trials_done)
     budget_left = None if cfg.max_env_steps is None else cfg.max_env_steps - pets_run.env_steps
     pets_run.cost = CostEstimate(cfg, pets_run.episode_length, cfg.trials - pets_run.trials_done, budget_left)
-    if pets_run.trials_done < cfg.trials and (line := compile_line(cfg)):
+    if not pets_run.finished() and (line := compile_line(cfg)):  # none when nothing is left (budget spent)
         tqdm.write(line, file=sys.stderr)
     # Events past the last checkpoint (an interrupted trial's) are purged; each trial is written before its
     # checkpoint, so a resumed run neither loses nor repeats a scalar (pets.runs.tblog).

@@ -196,18 +196,19 @@ def test_the_bar_over_trials_knows_its_total_and_shows_rate_and_eta(tmp_path, mo
 def test_a_run_ended_by_its_env_step_budget_shows_a_bar_over_env_steps(tmp_path, monkeypatch, capsys):
     """With ``max_env_steps`` (``--preset locomotion``: 100k, its trials an upper bound of 100,000) the bar counts
     env steps to the budget, seed data included, not the trials it will never reach; a resume starts it where the
-    run stands, and its done line says the budget is spent."""
+    run stands, and its done line says the budget is spent; resuming it then prints no compile line."""
     import re
 
     import run_pets
+    from pets import loop
 
     created = recorded_bars(monkeypatch)
-    out = tmp_path / "run"
+    run = tmp_path / "run"
     visible = [a for a in TINY if a != "--quiet"]
-    args = ["--env", "invertedpendulum", "--trials", "1000", "--out", str(out), *visible, "max_env_steps=200"]
+    args = ["--env", "invertedpendulum", "--trials", "1000", "--out", str(run), *visible, "max_env_steps=200"]
     assert run_pets.main([*args[:3], "2", *args[4:]]) == 0  # stopped at 2 trials, short of the budget
-    assert run_pets.main(["--resume", str(out), "--trials", "1000"]) == 0
-    steps = [int(r["env_steps"]) for r in csv.DictReader(open(out / "metrics.csv"))]
+    assert run_pets.main(["--resume", str(run), "--trials", "1000"]) == 0
+    steps = [int(r["env_steps"]) for r in csv.DictReader(open(run / "metrics.csv"))]
     assert steps[-1] == 200
     bars = [(kw["total"], kw["initial"]) for kw in created if kw.get("unit") == "step"]
     assert bars == [(200, 0), (200, steps[1])] and not [kw for kw in created if kw.get("unit") == "trial"]
@@ -215,6 +216,9 @@ def test_a_run_ended_by_its_env_step_budget_shows_a_bar_over_env_steps(tmp_path,
     assert re.search(r"invertedpendulum-delta: +100%.* 200/200 \[", err.replace("\r", "\n")), err
     assert "200 env steps (its budget, max_env_steps: --trials runs it no further)" in out  # only the resume's
     assert out.count("its budget") == 1
+    monkeypatch.setattr(loop, "compile_line", lambda cfg: "compile-line-probe")  # as if it compiled
+    assert run_pets.main(["--resume", str(run), "--trials", "1000"]) == 0
+    assert "compile-line-probe" not in capsys.readouterr().err  # nothing left to run: no "compiling once" line
 
 
 def test_overrides_are_accepted_anywhere_on_the_command_line():
