@@ -310,8 +310,8 @@ def _run_bar(cfg: DictConfig, pets_run: PETSRun, progress: bool) -> tqdm:
 
 
 def run(cfg: DictConfig, run_dir: Path, resume: bool = False, progress: bool = True) -> list[dict[str, Any]]:
-    """Run (or continue) the PETS loop in ``run_dir`` until ``cfg.trials`` trials are done, or until a trial's
-    reward reaches ``cfg.stop_reward``."""
+    """Run (or continue) the PETS loop in ``run_dir`` until ``cfg.trials`` trials are done, a trial's reward
+    reaches ``cfg.stop_reward`` or the env-step budget ``cfg.max_env_steps`` is spent (:meth:`PETSRun.finished`)."""
     with locked(run_dir):  # one process per run directory; DirectoryInUse for a second one
         if not resume and (run_dir / rundir.CONFIG_FILE).exists():
             raise ConfigError(
