@@ -1,7 +1,7 @@
 """The ``compare`` command line (``python -m pets.compare``, ``pets-compare``): arguments, errors, exit status.
 
     python -m pets.compare online  --envs E1,E2 --models M1,M2 [--seeds 0,1,2,3,4] --trials N --out DIR
-                                   [--planners cem,icem] [--preset research|fast]
+                                   [--planners cem,icem] [--preset research|fast|locomotion]
                                    [--final-window W] [--device D] [--quiet] [ARMS] [BACKEND] [key=value ...]
     python -m pets.compare offline --envs E1,E2 --models M1,M2 [--seeds 0,1,2,3,4] --out DIR
                                    [--episodes E] [--test-episodes E2] [--max-steps T]
@@ -9,7 +9,7 @@
                                    [--starts K] [--data-seeds 0,1,2]
                                    [--openloop] [--planners cem,mppi] [--openloop-steps 50] [--openloop-episodes 5]
                                    [--closedloop] [--closedloop-steps 300] [--planner-overrides KEY=VALUE,...]
-                                   [--preset research|fast] [--device D] [--quiet] [ARMS] [BACKEND]
+                                   [--preset research|fast|locomotion] [--device D] [--quiet] [ARMS] [BACKEND]
                                    [key=value ...]
     python -m pets.compare headline [--offline S1.csv ...] [--online S2.csv ...] [--relative R1.csv ...]
                                    [--openloop O.csv ...] [--closedloop C.csv ...]

@@ -152,7 +152,7 @@ def run_episode(
 def build_parser() -> OneLineParser:
     p = OneLineParser(prog=PROG, description=__doc__.split("\n\n")[0])
     p.add_argument("--env", required=True, help="environment: a catalogue name or a gymnasium id")
-    p.add_argument("--preset", default="research", help="config preset: research (default) or fast")
+    p.add_argument("--preset", default="research", help="config preset: research (default), fast or locomotion")
     p.add_argument("--steps", type=int, default=None, help="episode length (default: the env's own)")
     p.add_argument("--episodes", type=int, default=1, help="episodes (default 1)")
     p.add_argument("--seed", type=int, default=0, help="seed of the env resets and the planner")

@@ -1,7 +1,8 @@
 """The ``pets.train`` command: offline training of a dynamics model on a collected data set, into a run directory.
 
     python -m pets.train --data FILE.npz --model MODEL --out RUN_DIR [--seed S] [--device D]
-                         [--epochs N] [--preset research|fast] [--protocol pets|paper] [--quiet] [key=value ...]
+                         [--epochs N] [--preset research|fast|locomotion] [--protocol pets|paper] [--quiet]
+                         [key=value ...]
 
 What it does, and what it writes: :mod:`pets.learning.offline`.
 """
