@@ -284,7 +284,7 @@ def _main(argv: list[str] | None = None) -> int:
         return EXIT_INTERRUPTED
     if rows:
         last = rows[-1]
-        spent = cfg.max_env_steps is not None and int(last["env_steps"]) >= cfg.max_env_steps
+        spent = rundir.stopped(rows, None, cfg.max_env_steps)
         budget = " (its budget, max_env_steps: --trials runs it no further)" if spent else ""
         print(
             f"done: {len(rows)} trials, {int(last['env_steps'])} env steps{budget}, "

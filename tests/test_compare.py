@@ -1399,7 +1399,7 @@ def test_online_until_threshold_stops_each_run_at_the_mark_and_counts_it_complet
 def test_online_at_an_env_step_budget_counts_runs_that_end_there_and_leaves_the_cut_episode_out(tmp_path, capsys):
     """--preset locomotion (its trials an upper bound, --trials not needed): a run that ends at its env-step budget
     is complete (summary, reuse); its last episode, cut by the budget, is in neither the final reward nor AUC."""
-    from pets.runs.rundir import cut_by_budget
+    from pets.experiments.rundirs import cut_by_budget
 
     args = ["online", "--envs", "invertedpendulum", "--models", "delta", "--seeds", "0", "--out", tmp_path,
             "--preset", "locomotion", "--quiet", *TINY, "max_env_steps=300", "train_every=100",

@@ -54,6 +54,17 @@ def budget_of(run_dir: Path) -> tuple[int | None, int]:
     return int(cfg["max_env_steps"]), full_length(cfg)
 
 
+def cut_by_budget(rows: Sequence[Mapping[str, Any]], max_env_steps: int | None, episode_length: int) -> bool:
+    """Whether the run's last episode was cut by its env-step budget ``max_env_steps``: the budget reached there and
+    the episode not complete (:func:`pets.experiments.gate.complete`: ended neither by itself nor at its step limit
+    ``episode_length``)."""
+    from pets.experiments.gate import complete
+
+    if max_env_steps is None or not rows or int(float(rows[-1]["env_steps"])) < max_env_steps:
+        return False
+    return not complete(rows[-1], episode_length)
+
+
 def arm_label(model: str, planner: str | None) -> str:
     """What the summaries call one compared arm: the model, or ``MODEL+PLANNER`` when planners are compared."""
     return model if planner is None else f"{model}+{planner}"

@@ -14,7 +14,6 @@ import re
 import socket
 import time
 import types
-from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -273,15 +272,6 @@ def plot_rewards(run_dir: Path, rows: list[dict[str, Any]], title: str) -> None:
     fig.savefig(buf, format="png", dpi=100)
     plt.close(fig)
     atomic_write_bytes(run_dir / PLOT_FILE, buf.getvalue())
-
-
-def cut_by_budget(rows: Sequence[Mapping[str, Any]], max_env_steps: int | None, episode_length: int) -> bool:
-    """Whether the run's last episode was cut by its env-step budget ``max_env_steps``: the budget reached there,
-    the episode ended neither by itself (``terminated``) nor at its step limit ``episode_length``."""
-    last = rows[-1] if rows else None
-    if max_env_steps is None or last is None or int(float(last["env_steps"])) < max_env_steps:
-        return False
-    return not int(float(last["terminated"])) and int(float(last["episode_length"])) < episode_length
 
 
 def stopped(rows: list[dict[str, Any]], stop_reward: float | None, max_env_steps: int | None = None) -> bool:

@@ -41,7 +41,7 @@ import numpy as np
 
 from pets.experiments.plots import arm_colors, model_colors, plot_online
 from pets.experiments.report import csv_number, disagreement_lines, md_table, write_csv
-from pets.experiments.rundirs import arm_label, budget_of, env_stem, online_arms, precision_note, run_name
+from pets.experiments.rundirs import arm_label, env_stem, online_arms, precision_note, run_name
 from pets.experiments.statistics import BASELINE, MIN_SEEDS, REPS, SMALL_SAMPLE_NOTE
 from pets.experiments.studies.base import (
     HIGHER,
@@ -117,7 +117,7 @@ def online_run_stats(
     wall-clock seconds: planning, simulation and model training), cpu_time_s (its process CPU seconds; NaN for a
     run without the column) and
     plan_seconds_per_step (median over the planned trials; 0 if every trial was random). ``cut``: the last
-    episode was cut by the run's env-step budget (:func:`pets.runs.rundir.cut_by_budget`), so it is not in final
+    episode was cut by the run's env-step budget (:func:`pets.experiments.rundirs.cut_by_budget`), so it is not in final
     or auc."""
     use = list(rows)[:trials]
     to_threshold = time_to_threshold(use, threshold)
@@ -304,7 +304,8 @@ def _env_runs(
     """``(runs, curves)`` of one env: {arm: :func:`online_run_stats` of each complete run} and {arm: the metrics rows
     of each complete run that did not diverge}; adds to ``found``'s lists the per-run rows, the missing and the
     diverged runs and the directories included."""
-    from pets.runs.rundir import cut_by_budget, stopped
+    from pets.experiments.rundirs import budget_of, cut_by_budget
+    from pets.runs.rundir import stopped
 
     runs: dict[str, list[dict[str, Any]]] = {}
     curves: dict[str, list[list[dict[str, float]]]] = {}
