@@ -263,3 +263,40 @@ def test_the_answer_takes_the_study_for_an_env_once_every_preregistered_pair_is_
     assert cell.endswith("(online_locomotion) |") and ", 10 pairs, p " in cell, cell
     assert float(cell.split(", p ")[1].split(",")[0]) == pytest.approx(exact, rel=1e-2)
     assert LOCOMOTION_LEGEND in answer_table(tmp_path)
+
+
+def test_the_papers_claim_is_worded_by_the_registered_rule_per_env(tmp_path):
+    """Reproduced only where gem ends higher than delta at family-wise 0.05 with every arm's 10 pairs in; not
+    reproduced where the pairs are in and it does not; not shown where the gate did not pass; not yet before."""
+    from pets.experiments.report import read_csv_rows
+
+    delta = [3000.0, 4400.0, 1300.0, 2500.0, 3600.0, 2000.0, 3300.0, 2900.0, 4100.0, 1800.0]
+    gates = [{"env": "halfcheetah", "agent": "delta", "verdict": "passed"},
+             {"env": "ant", "agent": "delta", "verdict": "not passed"}]  # fmt: skip
+
+    def claim(gem: list[float], se: list[float]) -> dict[str, str]:
+        rows = write_runs(tmp_path / "runs.csv", {"delta": delta, "gem": gem, "delta-groupfeat": gem, "gem-se": se})
+        study.gate.write_csv(tmp_path / "s.csv", study.summary_from_runs(rows, reps=100), study.SUMMARY_COLUMNS)
+        lines = study.claim_lines(read_csv_rows(tmp_path / "s.csv"), gates)
+        assert lines[0].startswith("The paper's claim, \"GEM+PETS consistently achieves higher rewards")
+        return {line.split(":")[0][2:]: line for line in lines[2:]}
+
+    higher, lower = [d + 200 for d in delta], [d - 200 for d in delta]
+    # every pair higher: exact p 2/1024 per test, Holm over the 3 tests 0.00586
+    win = claim(higher, lower)
+    assert win["halfcheetah"] == (
+        "- halfcheetah: **reproduced** (gem's endpoint against delta's: higher, Holm p 0.00586; delta-groupfeat: "
+        "higher; gem-se: lower) (a planar body: gem is GEM's inputs alone, nothing composes)"
+    )
+    assert win["ant"].startswith("- ant: **not shown** (the gate: not passed;")
+    assert win["hopper"].startswith("- hopper: **not shown** (the gate: not run;")
+    assert claim(lower, higher)["halfcheetah"].startswith("- halfcheetah: **not reproduced** (gem's endpoint against "
+                                                          "delta's: lower, Holm p 0.00586;")  # fmt: skip
+    mixed = [d + (200 if i % 2 else -200) for i, d in enumerate(delta)]
+    assert (
+        "**not reproduced** (gem's endpoint against delta's: no difference shown, Holm p 1;"
+        in claim(mixed, mixed)["halfcheetah"]
+    )
+    assert claim(higher[:9], higher)["halfcheetah"] == (
+        "- halfcheetah: not yet (pairs of 10 per arm: delta-groupfeat 9, gem 9, gem-se 10; no verdict is read before)"
+    )

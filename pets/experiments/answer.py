@@ -20,10 +20,10 @@ from typing import Any
 
 from pets.experiments.published import NOT_GENERATED, ONLINE, ORIGINAL, PRODUCTS, RAW, RESULTS
 from pets.experiments.report import csv_number, fmt, md_table
+from pets.experiments.statistics import ALPHA
 from pets.experiments.studies.base import P_EXACT, P_HOLM, RATIO
 
 MODEL = "gem"
-ALPHA = 0.05
 #: The online study of each env the answer reads (the first of :data:`pets.experiments.published.ONLINE`'s).
 ONLINE_STUDIES = ONLINE[:5]
 

@@ -76,6 +76,8 @@ SMALL_SAMPLE_NOTE = (
 )
 #: Confidence level of every interval.
 CONFIDENCE = 0.95
+#: Family-wise error rate of every verdict (Holm's adjusted p below it: a win or a loss).
+ALPHA = 0.05
 #: Bootstrap replications of the rliable intervals. The percentile CI of an IQM over 5 seeds has at
 #: most C(9, 5) = 126 distinct resample values per column, and 5000 replications put the 2.5 %
 #: quantile within about 0.5 percentage points of probability.

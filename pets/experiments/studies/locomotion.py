@@ -27,7 +27,7 @@ import numpy as np
 
 from pets.experiments import curves, gate, gate_published
 from pets.experiments.report import csv_number, fmt, fmt_interval, md_table, merge_committed
-from pets.experiments.statistics import BASELINE, REPS, iqm_ci, paired_differences, sign_flip_p
+from pets.experiments.statistics import ALPHA, BASELINE, REPS, iqm_ci, paired_differences, sign_flip_p
 from pets.experiments.studies.base import (
     HIGHER,
     LOWER,
@@ -197,8 +197,52 @@ def summary_markdown(summary: Sequence[Mapping[str, str]], versus: Sequence[Mapp
 
 #: The pre-registered arms paired to delta and seeds of every arm (docs/studies/online_locomotion.md, Design).
 ARMS, SEEDS = ("delta-groupfeat", "gem", "gem-se"), tuple(range(10))
+#: The design's envs: Ant and Hopper, and HalfCheetah (its amendment of 2026-11-28, 07:50 UTC).
+ENVS = ("halfcheetah", "ant", "hopper")
+#: The paper's claim the study tests, and the arm that is the paper's GEM.
+CLAIM, PAPER_ARM = "GEM+PETS consistently achieves higher rewards on complex environments", "gem"
+
+
+def _verdict(row: Mapping[str, str]) -> str:
+    holm, diff = csv_number(row["diff_p_holm"]), csv_number(row["diff_to_delta"])
+    if not math.isfinite(holm) or holm >= ALPHA:
+        return "no difference shown"
+    return "higher" if diff > 0 else "lower"
+
+
+def claim_lines(summary: Sequence[Mapping[str, str]], gate_summary: Sequence[Mapping[str, str]]) -> list[str]:
+    """The paper's claim per env of the design, worded by its rule (docs/studies/online_locomotion.md, amendment of
+    2026-11-30): *reproduced* where the paper's GEM (``gem``) ends higher than ``delta`` at family-wise
+    :data:`ALPHA` (Holm over the study's tests); *not reproduced* where every arm has its pre-registered pairs and
+    it does not (no difference shown, or lower); *not shown* where the gate did not pass (``delta`` below
+    competence: the study does not run there); *not yet* while pairs are missing. Each names the other arms'
+    outcomes beside it."""
+    gate_verdicts = {r["env"]: r["verdict"] for r in gate_summary if r["agent"] == BASELINE}
+    rows = {(r["env"], r["model"]): r for r in summary}
+    lines = []
+    for env in ENVS:
+        gate_verdict = gate_verdicts.get(env, "not run")
+        if gate_verdict != "passed":
+            lines.append(f"- {env}: **not shown** (the gate: {gate_verdict}; delta is not shown competent there, so "
+                         "the study does not run)")  # fmt: skip
+            continue
+        pairs = {arm: int(csv_number(rows[env, arm]["n_pairs"])) if (env, arm) in rows else 0 for arm in ARMS}
+        if any(n < len(SEEDS) for n in pairs.values()):
+            counts = ", ".join(f"{arm} {n}" for arm, n in pairs.items())
+            lines.append(f"- {env}: not yet (pairs of {len(SEEDS)} per arm: {counts}; no verdict is read before)")
+            continue
+        verdicts = {arm: _verdict(rows[env, arm]) for arm in ARMS}
+        word = "reproduced" if verdicts[PAPER_ARM] == "higher" else "not reproduced"
+        others = "; ".join(f"{arm}: {verdicts[arm]}" for arm in ARMS if arm != PAPER_ARM)
+        body = " (a planar body: gem is GEM's inputs alone, nothing composes)" if planar(env) else ""
+        lines.append(f"- {env}: **{word}** (gem's endpoint against delta's: {verdicts[PAPER_ARM]}, Holm p "
+                     f"{fmt(csv_number(rows[env, PAPER_ARM]['diff_p_holm']), 3)}; {others}){body}")  # fmt: skip
+    return [f'The paper\'s claim, "{CLAIM}", per env of the design (at family-wise {ALPHA:g}):', "", *lines]
+
+
 RESULTS = Path("docs") / "results"
 RUNS, SUMMARY, VERSUS, CURVES = (f"online_locomotion_{kind}.csv" for kind in ("runs", "summary", "versus", "curves"))
+GATE_SUMMARY = "locomotion_gate_summary.csv"
 FIGURE = Path("docs") / "figures" / "online_locomotion.png"
 CURVE_COLUMNS = ["env", "model", "seed", "env_steps", "reward"]
 
@@ -242,10 +286,13 @@ def runs_table(tree: Path) -> str:
 
 
 def summary_table(tree: Path) -> str:
-    """The ``online-locomotion`` block: :func:`summary_markdown` of the generated summary and versus files."""
+    """The ``online-locomotion`` block: :func:`summary_markdown` of the generated summary and versus files, then
+    :func:`claim_lines` (the gate's verdicts from its generated summary)."""
     from pets.experiments.report import read_csv_rows
 
-    return summary_markdown(*(read_csv_rows(tree / RESULTS / name) for name in (SUMMARY, VERSUS)))
+    summary, versus = (read_csv_rows(tree / RESULTS / name) for name in (SUMMARY, VERSUS))
+    gates = read_csv_rows(tree / RESULTS / GATE_SUMMARY) if (tree / RESULTS / GATE_SUMMARY).is_file() else []
+    return summary_markdown(summary, versus) + "\n\n" + "\n".join(claim_lines(summary, gates))
 
 
 def _value(key: str, text: str) -> Any:

@@ -28,6 +28,7 @@ import numpy as np
 
 from pets.experiments.report import read_csv_rows
 from pets.experiments.statistics import (
+    ALPHA,
     BASELINE,
     REPS,
     ci_exact_note,
@@ -43,8 +44,6 @@ from pets.experiments.studies.base import P_EXACT, P_HOLM, RATIO
 #: error of an independent draw from the training distribution, sqrt(2) training standard deviations.
 DEFAULT_LEVEL = math.sqrt(2.0)
 DEFAULT_SOURCE = "sqrt(2): data not at hand"
-#: Family-wise error rate of the primary verdicts.
-ALPHA = 0.05
 #: The metric of the primary endpoint.
 METRIC = "standardized_error"
 PRIMARY_COLUMNS = [
