@@ -135,3 +135,40 @@ def test_a_run_without_its_envs_level_is_named(tmp_path: Path):
     _commit(tmp_path, _study(0.9, 1.0), "humanoid,0,1.4\n")
     with pytest.raises(ValueError, match=r"composition_levels.csv: no level for ant \(partial_offline_runs.py"):
         composition.write_products(tmp_path, tmp_path)
+
+
+def _answer(tmp_path: Path, rows: list[dict]) -> str:
+    """The answer line from the primary family as the report writes it (a CSV file) and the answer table reads it."""
+    from pets.experiments.report import read_csv_rows, write_csv
+    from pets.experiments.studies.primary import PRIMARY_COLUMNS
+
+    levels = {"ant": (LEVEL, "given"), "humanoid": (LEVEL, "given")}
+    write_csv(tmp_path / "primary.csv", composition.primary_rows(rows, levels), PRIMARY_COLUMNS)
+    return composition.answer_line(read_csv_rows(tmp_path / "primary.csv"))
+
+
+def test_the_answer_line_words_each_env_by_the_registered_rule_once_both_arms_have_15_pairs(tmp_path: Path):
+    full = [(d, s) for d in (0, 1, 2) for s in range(5)]  # the registered 15 pairs
+    base = {r: [0.2 * (1 + r[1] / 10), 0.4 + 0.01 * r[0], 0.6, 0.8, 1.2] for r in full}
+
+    def env(name: str, gem: float, se: float, runs=full) -> list[dict]:
+        sign = {r: 1 if (r[0] + r[1]) % 2 else -1 for r in runs}  # mixed: no difference shown
+        scaled = {m: {r: [(s if s != 1.0 else 1 + 0.05 * sign[r]) * e for e in base[r]] for r in runs}
+                  for m, s in (("gem", gem), ("gem-se", se))}  # fmt: skip
+        return (_rows(name, "delta-groupfeat", {r: base[r] for r in runs}) + _rows(name, "gem", scaled["gem"])
+                + _rows(name, "gem-se", scaled["gem-se"]))  # fmt: skip
+
+    line = _answer(tmp_path, env("ant", 0.9, 1.0) + env("humanoid", 1.0, 1.0))
+    assert line.startswith("**Inputs or composition** (the composition study, docs/studies/composition.md:")
+    ant, humanoid = line.split("): ", 1)[1].split("; humanoid: ")
+    # every pair lower: exact p 2 / 2**15, Holm over the 4 tests 4x that
+    assert ant.startswith("ant: **composition adds beyond the inputs** (gem / delta-groupfeat 0.9 [0.9, 0.9], "
+                          "Holm p 0.000244; gem-se / delta-groupfeat ")  # fmt: skip
+    assert humanoid.startswith("**the inputs alone (composition adds nothing shown)** (gem / delta-groupfeat ")
+    line = _answer(tmp_path, env("ant", 1.0, 1.1) + env("humanoid", 1.0, 1.0))
+    assert "ant: **composition costs** (gem / delta-groupfeat " in line and ", Holm p 1;" in line
+    short = [(d, s) for d in (0, 1) for s in range(5)]
+    line = _answer(tmp_path, env("ant", 0.9, 0.9, runs=short))
+    assert line.endswith(
+        "ant: not yet (pairs of 15: gem 10, gem-se 10); humanoid: not yet (pairs of 15: gem 0, gem-se 0)."
+    )

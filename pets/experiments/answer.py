@@ -8,6 +8,9 @@ three primary comparisons, each cell rendered from a generated or committed file
   (:func:`pets.experiments.studies.online.summary_from_runs`, Holm over that study's arms); on an env where the
   online locomotion study has every pre-registered pair, its endpoint instead (its generated summary, Holm over
   its (env, arm) tests): that study is the one whose baseline passed the locomotion gate.
+
+Under the table, the line "inputs or composition" on the 3D bodies, from the composition study's primary family
+(:func:`pets.experiments.studies.composition.answer_line`).
 """
 
 from __future__ import annotations
@@ -118,7 +121,15 @@ def answer_table(tree: Path) -> str:
         "online: final reward gem - delta [95 % CI]",
     ]
     rows = [[env, offline[env], planning.get(env, "not run"), online.get(env, "not run")] for env in offline]
-    return md_table(header, rows) + "\n\n" + LEGEND + (LOCOMOTION_LEGEND if locomotion else "")
+    table = md_table(header, rows) + "\n\n" + LEGEND + (LOCOMOTION_LEGEND if locomotion else "")
+    return table + "\n\n" + _inputs_or_composition(tree)
+
+
+def _inputs_or_composition(tree: Path) -> str:
+    """The line "inputs or composition" (issue 53) from the composition study's generated primary family."""
+    from pets.experiments.studies import composition
+
+    return composition.answer_line(_rows(tree / RESULTS / composition.OUTPUTS[1]))
 
 
 #: What a cell says (the legend under the answer table).

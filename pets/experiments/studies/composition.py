@@ -26,7 +26,16 @@ from pets.experiments.report import fmt, fmt_interval, md_table
 from pets.experiments.statistics import sign_flip_p
 from pets.experiments.studies import primary as offline_primary
 from pets.experiments.studies.base import P_EXACT, P_HOLM, RATIO
-from pets.experiments.studies.primary import Run, endpoint, median_inf, paired_ratio, run_iqm_ci, tracking_horizons
+from pets.experiments.studies.primary import (
+    LOSS,
+    WIN,
+    Run,
+    endpoint,
+    median_inf,
+    paired_ratio,
+    run_iqm_ci,
+    tracking_horizons,
+)
 
 #: The baseline of the primary family (GEM's inputs, delta's targets) and the arms tested against it.
 BASELINE = "delta-groupfeat"
@@ -209,6 +218,41 @@ def plot(horizons: Sequence[Mapping[str, Any]], path: Path) -> None:
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_bytes(path, figure_bytes(fig))
+
+
+#: The envs of the design (the torso on SO(3)).
+ENVS = ("ant", "humanoid")
+
+
+def answer_line(primary: Sequence[Mapping[str, str]]) -> str:
+    """The answer table's line "inputs or composition" from the generated primary family (CSV rows), per env of the
+    design, by the rule of docs/studies/composition.md (amendment of 2026-11-30): *composition adds beyond the
+    inputs* where ``gem`` or ``gem-se`` has a lower error than ``delta-groupfeat`` at family-wise 0.05; *composition
+    costs* where neither does and one has a higher error; *the inputs alone* where neither differs; *not yet*
+    before both arms have their :data:`PAIRS` pairs. Each names both arms' ratio [CI] and Holm p."""
+    rows = {(r["env"], r["model"]): r for r in primary}
+    parts = []
+    for env in ENVS:
+        arms = {arm: rows.get((env, arm), {}) for arm in ARMS}
+        pairs = {arm: int(float(r.get("n_pairs") or 0)) for arm, r in arms.items()}
+        if min(pairs.values()) < PAIRS:
+            counts = ", ".join(f"{arm} {n}" for arm, n in pairs.items())
+            parts.append(f"{env}: not yet (pairs of {PAIRS}: {counts})")
+            continue
+        verdicts = [r["verdict"] for r in arms.values()]
+        word = ("composition adds beyond the inputs" if WIN in verdicts else "composition costs" if LOSS in verdicts
+                else "the inputs alone (composition adds nothing shown)")  # fmt: skip
+        detail = "; ".join(
+            f"{arm} / {BASELINE} {fmt_interval(*(float(r[k]) for k in RATIO), digits=3)}, "
+            f"Holm p {fmt(float(r[P_HOLM]), 3)}"
+            for arm, r in arms.items()
+        )
+        parts.append(f"{env}: **{word}** ({detail})")
+    return (
+        f"**Inputs or composition** (the composition study, docs/studies/composition.md: `gem` and `gem-se` against "
+        f"`{BASELINE}`, GEM's inputs with delta's targets, offline, {PAIRS} pairs over 3 data sets): "
+        + "; ".join(parts) + "."
+    )  # fmt: skip
 
 
 #: The study's committed inputs and generated outputs (``pets.compare report``), relative to the results folder.

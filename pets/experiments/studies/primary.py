@@ -157,10 +157,14 @@ def endpoint(run: Mapping[int, float], horizons: Sequence[int], level: float) ->
     return float(np.mean([min(run[h], level) if math.isfinite(run[h]) else level for h in horizons]))
 
 
+#: The verdicts of a ratio at family-wise :data:`ALPHA`.
+WIN, LOSS, NO_DIFFERENCE = "lower error (win)", "higher error (loss)", "no difference shown"
+
+
 def _verdict(ratio: float, p_holm: float) -> str:
     if not math.isfinite(p_holm) or p_holm >= ALPHA:
-        return "no difference shown"
-    return "lower error (win)" if ratio < 1 else "higher error (loss)"
+        return NO_DIFFERENCE
+    return WIN if ratio < 1 else LOSS
 
 
 def run_iqm_ci(values: Mapping[Run, float], *, reps: int = REPS, seed: int = 0) -> tuple[float, float, float]:
