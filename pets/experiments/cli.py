@@ -188,6 +188,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.print_config:
         print_shared_config(args, result["configs"])
         return 0
+    if "estimate" in result:
+        print(result["estimate"])
+        return 0
     print(report.read_text())
     if result["failed"]:
         print(f"{PROG}: {len(result['failed'])} run(s) failed: {', '.join(sorted(result['failed']))}", file=sys.stderr)
@@ -285,6 +288,7 @@ def _run_online(args: argparse.Namespace, shared: dict[str, Any]) -> dict[str, A
         final_window=args.final_window,
         planners=None if args.planners is None else parse_planners(args.planners),
         until_threshold=args.until_threshold,
+        estimate=args.estimate,
     )
 
 

@@ -91,6 +91,7 @@ def compare_online(
     arms: Mapping[str, tuple[str, Mapping[str, str]]] | None = None,
     until_threshold: bool = False,
     configs_only: bool = False,
+    estimate: bool = False,
 ) -> dict[str, Any]:
     """Run (or reuse/resume) every online run, then write the summary. Returns ``{"actions", "failed",
     "summary"}``. UsageError for bad settings or a run directory with another config.
@@ -101,6 +102,8 @@ def compare_online(
     ``until_threshold``: stop every run at its env's threshold (module docstring).
     ``configs_only``: return ``{"configs": {run name: resolved config}}`` once the arguments are checked, without
     looking at ``out`` or running anything (``--print-config``).
+    ``estimate``: return ``{"estimate": text}``, the CPU-hours of the runs still to do measured on this machine
+    (:mod:`pets.experiments.estimate`), without running or writing anything (``--estimate``).
     """
     backend = backend or Backend()
     if trials < 1 or final_window < 1:
@@ -114,6 +117,10 @@ def compare_online(
     )  # fmt: skip
     if configs_only:
         return {"configs": configs}
+    if estimate:
+        from pets.experiments.estimate import estimate as projected
+
+        return {"estimate": projected(configs, actions, out, backend.workers if backend.kind == "local" else None)}
     check_out_writable(out)  # after every argument is checked: bad input leaves no directory behind
     counts = {a: sum(1 for v in actions.values() if v == a) for a in ("reuse", "resume", "start")}
     with open_backend(backend, out, needed=bool(jobs)) as run:
@@ -201,8 +208,8 @@ def _plan_runs(
                 )
             except ConfigError as err:
                 raise UsageError(str(err)) from None
+            configs[name] = expected
             if configs_only:
-                configs[name] = expected
                 continue
             actions[name] = action = _checked_action(run_dir, trials, expected, arm_extra)
             if action != "reuse":

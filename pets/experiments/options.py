@@ -113,6 +113,12 @@ def _add_online(sub: Any) -> None:
         "--planners",
         help="also compare these planners (comma-separated pets.config.PLANNERS); every model x planner pair is an arm",
     )
+    on.add_argument(
+        "--estimate",
+        action="store_true",
+        help="print the CPU-hours of the runs still to do, measured on this machine (a few planning and training "
+        "steps per arm), and exit without running anything",
+    )
 
 
 def _add_offline(sub: Any) -> None:
