@@ -228,7 +228,7 @@ def answer_line(primary: Sequence[Mapping[str, str]]) -> str:
     """The answer table's line "inputs or composition" from the generated primary family (CSV rows), per env of the
     design, by the rule of docs/studies/composition.md (amendment of 2026-11-30): *composition adds beyond the
     inputs* where ``gem`` or ``gem-se`` has a lower error than ``delta-groupfeat`` at family-wise 0.05; *composition
-    costs* where neither does and one has a higher error; *the inputs alone* where neither differs; *not yet*
+    costs* where neither does and one has a higher error; *no difference shown* where neither differs; *not yet*
     before both arms have their :data:`PAIRS` pairs. Each names both arms' ratio [CI] and Holm p."""
     rows = {(r["env"], r["model"]): r for r in primary}
     parts = []
@@ -241,7 +241,7 @@ def answer_line(primary: Sequence[Mapping[str, str]]) -> str:
             continue
         verdicts = [r["verdict"] for r in arms.values()]
         word = ("composition adds beyond the inputs" if WIN in verdicts else "composition costs" if LOSS in verdicts
-                else "the inputs alone (composition adds nothing shown)")  # fmt: skip
+                else "no difference shown")  # fmt: skip
         detail = "; ".join(
             f"{arm} / {BASELINE} {fmt_interval(*(float(r[k]) for k in RATIO), digits=3)}, "
             f"Holm p {fmt(float(r[P_HOLM]), 3)}"
