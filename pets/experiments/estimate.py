@@ -1,13 +1,14 @@
 """``pets.compare online --estimate``: the sweep's CPU-hours projected on this machine before anything runs.
 
 Per arm of each env (the seeds cost alike) one short measurement with the run's own config, at the sweep's
-threads: the planning step's process-CPU seconds (:func:`pets.tools.bench.time_rows`, the median of
-:data:`PLAN_STEPS` steps of a briefly fitted model) and, for a fixed training schedule (``model.iterations`` > 0),
-one gradient step's (two trainings of :data:`TRAIN_STEPS` steps, eager). Projection per run still to do (a resumed one
-counts what is left of it): planned env steps (the budget, or trials x episode length: episodes that end early
-cost less) x the step, plus the trainings the schedule makes x ``model.iterations`` x the gradient step. Training by
-epochs with early stopping (``model.iterations=0``) grows with the data and is not projected. Not counted: the
-terminal value's fit, the simulator, start-up (a few % at the locomotion preset: docs/planning.md).
+threads: the process-CPU seconds (on CUDA the wall seconds) of a planning step (:func:`pets.tools.bench.time_rows`,
+the median of :data:`PLAN_STEPS` steps of a briefly fitted model) and, for a fixed training schedule
+(``model.iterations`` > 0), of a gradient step (two trainings of :data:`TRAIN_STEPS` steps, eager). Projection per
+run still to do (a resumed one counts what is left of it): planned env steps (the budget, or trials x episode
+length: episodes that end early cost less) x the step, plus the trainings the schedule makes x
+``model.iterations`` x the gradient step. Training by epochs with early stopping (``model.iterations=0``) grows
+with the data and is not projected. Not counted: the terminal value's fit, the simulator, start-up (a few % at the
+locomotion preset: docs/planning.md).
 """
 
 from __future__ import annotations
@@ -15,38 +16,47 @@ from __future__ import annotations
 import statistics
 import time
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import torch
 from omegaconf import DictConfig
 
+from pets.experiments.report import fmt, md_table
 from pets.experiments.studies.online import online_rows
 
 PLAN_STEPS, TRAIN_STEPS = 3, 20
 
 
 def plan_seconds(cfg: DictConfig, parts: Mapping[str, Any]) -> float:
-    """Median process-CPU seconds of one planning step of ``cfg``'s agent on ``parts``' model."""
+    """Median seconds of one planning step of ``cfg``'s agent on ``parts``' model: process CPU on a CPU, wall
+    (synchronised) on CUDA, where the device does the work."""
     from pets.tools.bench import time_rows
 
     (row,) = time_rows(cfg, [("estimate", {})], repeats=PLAN_STEPS, parts=dict(parts))
-    return float(row["cpu_seconds_per_step"])
+    return float(row["cpu_seconds_per_step" if parts["device"].type == "cpu" else "seconds_per_step"])
 
 
 def train_step_seconds(cfg: DictConfig, parts: Mapping[str, Any]) -> float:
-    """Median process-CPU seconds of one gradient step of ``cfg``'s trainer on ``parts``' random transitions."""
+    """Median seconds (as :func:`plan_seconds` counts them) of one gradient step of ``cfg``'s trainer on ``parts``'
+    random transitions."""
     from pets import builder
+    from pets.tools.measure import sync
 
+    device = parts["device"]
+    clock = time.process_time if device.type == "cpu" else time.perf_counter
     trainer = builder.make_trainer(cfg, parts["model"])
     trainer.compile, trainer.iterations = False, TRAIN_STEPS
     obs, act, nxt = parts["data"]
-    gen = torch.Generator(device=obs.device).manual_seed(cfg.seed)
+    gen = torch.Generator(device=device).manual_seed(cfg.seed)
     times = []
     for _ in range(3):  # the first one warms up; each call also evaluates its holdout, as a real training does
-        c0 = time.process_time()
+        sync(device)
+        t0 = clock()
         trainer.train(obs, act, nxt, gen)
-        times.append((time.process_time() - c0) / TRAIN_STEPS)
+        sync(device)
+        times.append((clock() - t0) / TRAIN_STEPS)
     parts["model"].eval()
     return statistics.median(times[1:])
 
@@ -77,6 +87,34 @@ def run_shape(cfg: DictConfig, episode_length: int, steps_done: int = 0) -> tupl
     return left, trainings * cfg.model.iterations
 
 
+@dataclass
+class ArmCost:
+    """The projection of one env and arm: the measured seconds per step and what its runs still do."""
+
+    plan_s: float
+    grad_s: float | None
+    runs: int = 0
+    steps: int = 0
+    grads: int | None = 0  # None: training by epochs (not projected)
+
+    @property
+    def plan_h(self) -> float:
+        return self.steps * self.plan_s / 3600
+
+    @property
+    def train_h(self) -> float:
+        return 0.0 if self.grads is None or self.grad_s is None else self.grads * self.grad_s / 3600
+
+    def row(self, key: str) -> list[str]:
+        train = (
+            "not projected (epochs)"
+            if self.grads is None
+            else f"{fmt(self.train_h, 3)} ({fmt(self.grad_s, 3)} s a step)"
+        )
+        return [key, str(self.runs), f"{self.steps:,}", f"{fmt(self.plan_h, 3)} ({fmt(self.plan_s, 3)} s a step)",
+                train, fmt(self.plan_h + self.train_h, 3)]  # fmt: skip
+
+
 def estimate(
     configs: Mapping[str, DictConfig],
     actions: Mapping[str, str],
@@ -86,46 +124,39 @@ def estimate(
 ) -> str:
     """The projection's table and total, for the runs of ``actions`` that are not reused; the wall time on
     ``workers`` local workers (None: a Ray cluster, whose parallelism the driver does not know). ``measure(cfg)`` gives
-    ``(planning CPU-s per step, CPU-s per gradient step or None)`` (default: measured now, once per env and arm)."""
+    ``(seconds per planning step, per gradient step or None)`` (default: measured now, once per env and arm)."""
     import envs
-    from pets.experiments.report import fmt, md_table
+    from pets import builder
 
-    measured: dict[str, tuple[float, float | None]] = {}
-    rows: dict[str, list[Any]] = {}
+    arms: dict[str, ArmCost] = {}
+    unit = "CPU-h"
     for name, cfg in configs.items():
         if actions.get(name, "start") == "reuse":
             continue
         key = name.rsplit("-s", 1)[0]  # the run's env and arm (pets.experiments.rundirs.run_name)
-        if key not in measured:
-            measured[key] = (measure or _measure)(cfg)
-        plan_s, grad_s = measured[key]
+        if key not in arms:
+            arms[key] = ArmCost(*(measure or _measure)(cfg))
+        if builder.resolve_device(cfg.device).type == "cuda":
+            unit = "hours"  # the device's wall time, as measured there
         length = cfg.episode_length or envs.get(cfg.env).episode_length
-        run_dir = out / "runs" / name
-        done = int(online_rows(run_dir)[-1]["env_steps"]) if actions.get(name) == "resume" else 0
+        done = int(online_rows(out / "runs" / name)[-1]["env_steps"]) if actions.get(name) == "resume" else 0
         steps, grads = run_shape(cfg, length, done)
-        train_h = None if grads is None or grad_s is None else grads * grad_s / 3600
-        acc = rows.setdefault(key, [0, 0, 0.0, 0.0, grads is None])
-        acc[0] += 1
-        acc[1] += steps
-        acc[2] += steps * plan_s / 3600
-        acc[3] += train_h or 0.0
-    if not rows:
+        arm = arms[key]
+        arm.runs, arm.steps = arm.runs + 1, arm.steps + steps
+        arm.grads = None if grads is None or arm.grads is None else arm.grads + grads
+    if not arms:
         return "nothing to run: every run of the sweep is complete (reused)"
-    header = ["env and arm", "runs to do", "planned env steps", "planning CPU-h", "training CPU-h", "CPU-h"]
-    body, total = [], 0.0
-    for key, (n, steps, plan_h, train_h, epochs) in rows.items():
-        total += plan_h + train_h
-        plan_s, grad_s = measured[key]
-        body.append([key, str(n), f"{steps:,}", f"{fmt(plan_h, 3)} ({fmt(plan_s, 3)} s a step)",
-                     "not projected (epochs)" if epochs else f"{fmt(train_h, 3)} ({fmt(grad_s, 3)} s a step)",
-                     fmt(plan_h + train_h, 3)])  # fmt: skip
-    runs = sum(r[0] for r in rows.values())
+    long_unit = "CPU-hours" if unit == "CPU-h" else "hours (on CUDA: wall time)"
+    header = ["env and arm", "runs to do", "planned env steps", f"planning {unit}", f"training {unit}", unit]
+    total = sum(a.plan_h + a.train_h for a in arms.values())
+    runs = sum(a.runs for a in arms.values())
     wall = "" if workers is None else f" ({fmt(total / min(workers, runs), 3)} h of wall time on {workers} worker(s))"
-    unprojected = "; training by epochs not included" if any(r[4] for r in rows.values()) else ""
+    epochs = "; training by epochs not included" if any(a.grads is None for a in arms.values()) else ""
+    table = md_table(header, [a.row(k) for k, a in arms.items()])
     return (
-        f"{md_table(header, body)}\n\n{runs} runs, about {fmt(total, 3)} CPU-hours{wall}, measured on this machine "
-        f"now{unprojected}; training measured eager (model.compile makes it faster); the value fit, the simulator "
-        "and start-up not counted; episodes that end early cost less"
+        f"{table}\n\n{runs} runs, about {fmt(total, 3)} {long_unit}{wall}, "
+        f"measured on this machine now{epochs}; training measured eager (model.compile makes it faster); the value "
+        "fit, the simulator and start-up not counted; episodes that end early cost less"
     )
 
 
