@@ -66,3 +66,19 @@ def test_estimate_measures_on_this_machine_counts_a_resumed_run_by_what_is_left_
     assert main([*SWEEP, "--trials", "4", "--out", str(out), "--estimate", *TINY]) == 0
     row = capsys.readouterr().out.splitlines()[2].split(" | ")
     assert row[1:3] == ["1", f"{120 - (done - 100):,}"]  # what is left of the planned steps (seed data apart)
+
+
+def test_without_out_every_run_is_to_do_and_no_directory_is_looked_at(tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(est, "_measure", lambda cfg: (0.01, 0.001))
+    monkeypatch.chdir(tmp_path)
+    stray = tmp_path / "runs" / "invertedpendulum-delta-s0"
+    stray.mkdir(parents=True)
+    (stray / "config.yaml").write_text("env: reacher\n")  # another config: a sweep into . would refuse it
+    assert main([*SWEEP, "--seeds", "0,1", "--trials", "4", "--estimate", *TINY]) == 0
+    row = capsys.readouterr().out.splitlines()[2]
+    assert row.startswith("| invertedpendulum-delta | 2 | 240 |") and sorted(p.name for p in tmp_path.iterdir()) == [
+        "runs"
+    ]
+    with pytest.raises(SystemExit) as exit_info:
+        main([*SWEEP, "--trials", "4", *TINY])  # a sweep itself still needs --out
+    assert exit_info.value.code == 2 and "--out is required" in capsys.readouterr().err

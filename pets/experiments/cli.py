@@ -228,7 +228,8 @@ def _run_mode(args: argparse.Namespace) -> tuple[dict[str, Any], Path]:
     if args.preset not in PRESETS:
         raise UsageError(f"unknown preset {args.preset!r}; accepted: {', '.join(PRESETS)}")
     overrides = overrides_from_line_and_file(args)
-    if args.out is None and not args.print_config:
+    estimate_only = getattr(args, "estimate", False) and not args.print_config
+    if args.out is None and not (args.print_config or estimate_only):
         raise UsageError("--out is required")
     env_names = parse_envs(args.envs)
     models = parse_models(args.models)
@@ -247,7 +248,7 @@ def _run_mode(args: argparse.Namespace) -> tuple[dict[str, Any], Path]:
         "overrides": overrides,
         "progress": not args.quiet,
         "arms": arms,
-        "configs_only": args.print_config,
+        "configs_only": args.print_config or (estimate_only and args.out is None),  # no --out: every run to start
     }
     if args.mode == "online":
         return _run_online(args, shared), out / "summary.md"
@@ -288,7 +289,7 @@ def _run_online(args: argparse.Namespace, shared: dict[str, Any]) -> dict[str, A
         final_window=args.final_window,
         planners=None if args.planners is None else parse_planners(args.planners),
         until_threshold=args.until_threshold,
-        estimate=args.estimate,
+        estimate=args.estimate and not args.print_config,
     )
 
 

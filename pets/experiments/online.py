@@ -103,7 +103,8 @@ def compare_online(
     ``configs_only``: return ``{"configs": {run name: resolved config}}`` once the arguments are checked, without
     looking at ``out`` or running anything (``--print-config``).
     ``estimate``: return ``{"estimate": text}``, the CPU-hours of the runs still to do measured on this machine
-    (:mod:`pets.experiments.estimate`), without running or writing anything (``--estimate``).
+    (:mod:`pets.experiments.estimate`), without running or writing anything (``--estimate``); with
+    ``configs_only``, of every run, ``out`` not looked at.
     """
     backend = backend or Backend()
     if trials < 1 or final_window < 1:
@@ -115,12 +116,12 @@ def compare_online(
         out, env_names, models, seeds, trials, planners, arms, extra, preset, backend.threads, until_threshold,
         configs_only,
     )  # fmt: skip
-    if configs_only:
-        return {"configs": configs}
-    if estimate:
+    if estimate:  # with configs_only (no --out) every run counts as one to start
         from pets.experiments.estimate import estimate as projected
 
         return {"estimate": projected(configs, actions, out, backend.workers if backend.kind == "local" else None)}
+    if configs_only:
+        return {"configs": configs}
     check_out_writable(out)  # after every argument is checked: bad input leaves no directory behind
     counts = {a: sum(1 for v in actions.values() if v == a) for a in ("reuse", "resume", "start")}
     with open_backend(backend, out, needed=bool(jobs)) as run:

@@ -116,8 +116,8 @@ def _add_online(sub: Any) -> None:
     on.add_argument(
         "--estimate",
         action="store_true",
-        help="print the CPU-hours of the runs still to do, measured on this machine (a few planning and training "
-        "steps per arm), and exit without running anything",
+        help="print the CPU-hours of the runs still to do in --out (without --out: of every run), measured on this "
+        "machine (a few planning and training steps per arm), and exit without running or writing anything",
     )
 
 
