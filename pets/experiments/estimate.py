@@ -14,6 +14,7 @@ locomotion preset: docs/planning.md).
 from __future__ import annotations
 
 import statistics
+import sys
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -23,6 +24,7 @@ from typing import Any
 import torch
 from omegaconf import DictConfig
 
+from pets.experiments.arguments import PROG
 from pets.experiments.report import fmt, md_table
 from pets.experiments.studies.online import online_rows
 
@@ -135,6 +137,7 @@ def estimate(
             continue
         key = name.rsplit("-s", 1)[0]  # the run's env and arm (pets.experiments.rundirs.run_name)
         if key not in arms:
+            print(f"{PROG} --estimate: measuring {key} (a few planning and gradient steps)", file=sys.stderr)
             arms[key] = ArmCost(*(measure or _measure)(cfg))
         if builder.resolve_device(cfg.device).type == "cuda":
             unit = "hours"  # the device's wall time, as measured there
