@@ -48,6 +48,10 @@ def test_the_projection_multiplies_the_measured_steps_and_skips_reused_runs(tmp_
     assert lines[5].startswith("3 runs, about 17.6 CPU-hours (8.8 h of wall time on 2 worker(s))")
     everything = dict.fromkeys(cfgs, "reuse")
     assert est.estimate(cfgs, everything, tmp_path, 2, measure).startswith("nothing to run")
+    epochs = {"halfcheetah-delta-s0": make_config("halfcheetah", "delta", "locomotion", {"model.iterations": 0})}
+    text = est.estimate(epochs, {}, tmp_path, None, lambda cfg: (0.1, None))
+    assert "| 2.75 (0.1 s a step) | not projected (epochs) | 2.75 |" in text and "wall time" not in text  # Ray
+    assert "training by epochs not included; the value fit" in text and "measured eager" not in text
 
 
 def test_estimate_measures_on_this_machine_counts_a_resumed_run_by_what_is_left_and_writes_nothing(

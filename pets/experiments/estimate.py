@@ -154,12 +154,14 @@ def estimate(
     total = sum(a.plan_h + a.train_h for a in arms.values())
     runs = sum(a.runs for a in arms.values())
     wall = "" if workers is None else f" ({fmt(total / min(workers, runs), 3)} h of wall time on {workers} worker(s))"
-    epochs = "; training by epochs not included" if any(a.grads is None for a in arms.values()) else ""
+    notes = ["training by epochs not included"] if any(a.grads is None for a in arms.values()) else []
+    if any(a.grads is not None for a in arms.values()):
+        notes.append("training measured eager (model.compile makes it faster)")
     table = md_table(header, [a.row(k) for k, a in arms.items()])
     return (
         f"{table}\n\n{runs} runs, about {fmt(total, 3)} {long_unit}{wall}, "
-        f"measured on this machine now{epochs}; training measured eager (model.compile makes it faster); the value "
-        "fit, the simulator and start-up not counted; episodes that end early cost less"
+        f"measured on this machine now; {'; '.join(notes)}; the value fit, the simulator and start-up not counted; "
+        "episodes that end early cost less"
     )
 
 
