@@ -52,6 +52,7 @@ def test_the_projection_multiplies_the_measured_steps_and_skips_reused_runs(tmp_
     text = est.estimate(epochs, {}, tmp_path, None, lambda cfg: (0.1, None))
     assert "| 2.75 (0.1 s a step) | not projected (epochs) | 2.75 |" in text and "wall time" not in text  # Ray
     assert "training by epochs not included; the value fit" in text and "measured eager" not in text
+    assert "\n\n1 run, about 2.75 CPU-hours, measured" in text
 
 
 def test_estimate_measures_on_this_machine_counts_a_resumed_run_by_what_is_left_and_writes_nothing(

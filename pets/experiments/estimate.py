@@ -159,7 +159,7 @@ def estimate(
         notes.append("training measured eager (model.compile makes it faster)")
     table = md_table(header, [a.row(k) for k, a in arms.items()])
     return (
-        f"{table}\n\n{runs} runs, about {fmt(total, 3)} {long_unit}{wall}, "
+        f"{table}\n\n{runs} run{'' if runs == 1 else 's'}, about {fmt(total, 3)} {long_unit}{wall}, "
         f"measured on this machine now; {'; '.join(notes)}; the value fit, the simulator and start-up not counted; "
         "episodes that end early cost less"
     )
