@@ -42,7 +42,7 @@ def plan_seconds(cfg: DictConfig, parts: Mapping[str, Any]) -> float:
 
 def train_step_seconds(cfg: DictConfig, parts: Mapping[str, Any]) -> float:
     """Median seconds (as :func:`plan_seconds` counts them) of one gradient step of ``cfg``'s trainer on ``parts``'
-    random transitions."""
+    random transitions (``data``)."""
     from pets import builder
     from pets.tools.measure import sync
 
@@ -61,17 +61,6 @@ def train_step_seconds(cfg: DictConfig, parts: Mapping[str, Any]) -> float:
         times.append((clock() - t0) / TRAIN_STEPS)
     parts["model"].eval()
     return statistics.median(times[1:])
-
-
-def prepare(cfg: DictConfig) -> dict[str, Any]:
-    """:func:`pets.tools.bench.prepare` with its random transitions kept for the training measurement."""
-    from pets.data.rollout import collect_random
-    from pets.tools.bench import prepare as bench_prepare
-
-    parts = bench_prepare(cfg)
-    data = collect_random(parts["spec"], 400, cfg.seed)
-    parts["data"] = tuple(torch.as_tensor(x, device=parts["device"]) for x in data)
-    return parts
 
 
 def run_shape(cfg: DictConfig, episode_length: int, steps_done: int = 0) -> tuple[int, int | None]:
@@ -166,6 +155,8 @@ def estimate(
 
 
 def _measure(cfg: DictConfig) -> tuple[float, float | None]:
-    parts = prepare(cfg)
+    from pets.tools.bench import prepare
+
+    parts = prepare(cfg)  # its model fitted on random transitions, which the training measurement reuses
     plan_s = plan_seconds(cfg, parts)
     return plan_s, (train_step_seconds(cfg, parts) if cfg.model.iterations > 0 else None)

@@ -110,7 +110,8 @@ class _CountingEvaluator:
 
 
 def prepare(cfg: DictConfig) -> dict[str, Any]:
-    """Env spec, a briefly trained model (400 random transitions, 2 epochs) and a start state."""
+    """Env spec, a briefly trained model (400 random transitions, 2 epochs), those transitions (``data``: obs,
+    act, next obs on the device) and a start state."""
     spec = envs.get(cfg.env)
     device = builder.resolve_device(cfg.device)
     if cfg.threads > 0:
@@ -122,7 +123,7 @@ def prepare(cfg: DictConfig) -> dict[str, Any]:
     trainer.max_epochs = 2
     trainer.train(obs, act, nxt, torch.Generator(device=device).manual_seed(cfg.seed))
     model.eval()
-    return {"spec": spec, "device": device, "model": model, "start": obs[-1].cpu().numpy()}
+    return {"spec": spec, "device": device, "model": model, "data": (obs, act, nxt), "start": obs[-1].cpu().numpy()}
 
 
 def _row_config(cfg: DictConfig, planner: dict[str, Any]) -> DictConfig:
