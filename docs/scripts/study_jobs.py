@@ -17,33 +17,32 @@ a running queue reads its file as it goes).
 from __future__ import annotations
 
 import argparse
-import csv
 import sys
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[2]
-RESULTS = ROOT / "docs" / "results"
-BUDGET = 100_000
+from pets.experiments.gate import BUDGET
+from pets.experiments.report import read_csv_rows
+
+RESULTS = Path(__file__).resolve().parents[2] / "docs" / "results"
 ABLATION = {"v2": "", "novalue": "value.enabled=false", "epochs": "model.iterations=0"}
 ONLINE_ARMS = ("gem-se", "gem", "delta")
 COMPOSITION = [("ant", 1), ("ant", 2), ("humanoid", 0), ("humanoid", 1), ("humanoid", 2)]
 COMPOSITION_ARMS = ("delta-groupfeat", "gem", "gem-se", "delta")
 
 
-def _rows(name: str) -> list[dict[str, str]]:
-    with open(RESULTS / name, newline="") as f:
-        return list(csv.DictReader(f))
-
-
 def ablation_left() -> list[tuple[str, int]]:
     """(arm, seed) of the ablation not yet at the budget, seed-major."""
-    done = {r["run"] for r in _rows("locomotion_pilots.csv") if float(r["env_steps"] or 0) >= BUDGET}
+    done = {r["run"] for r in read_csv_rows(RESULTS / "locomotion_pilots.csv") if float(r["env_steps"] or 0) >= BUDGET}
     return [(arm, s) for s in (100, 101, 102) for arm in ABLATION if f"halfcheetah-{arm}-s{s}" not in done]
 
 
 def online_left() -> list[tuple[str, int]]:
     """(arm, seed) of the online study on HalfCheetah not yet complete, seed by seed."""
-    done = {(r["model"], int(r["seed"])) for r in _rows("online_locomotion_runs.csv") if r["status"] == "complete"}
+    done = {
+        (r["model"], int(r["seed"]))
+        for r in read_csv_rows(RESULTS / "online_locomotion_runs.csv")
+        if r["status"] == "complete"
+    }
     return [(arm, s) for s in range(10) for arm in ONLINE_ARMS if (arm, s) not in done]
 
 
@@ -52,7 +51,7 @@ def composition_left() -> list[tuple[str, int, int]]:
     since a data set is made and run on one machine (the study's amendment of 2026-11-28; on the same machine the
     finished runs are reused, on a replaced one they run again with the data set)."""
     name = {0: "{env}-test.npz", 1: "{env}-d1-test.npz", 2: "{env}-d2-test.npz"}
-    done = {(r["env"], r["model"], r["data"], int(r["seed"])) for r in _rows("composition_runs.csv")}
+    done = {(r["env"], r["model"], r["data"], int(r["seed"])) for r in read_csv_rows(RESULTS / "composition_runs.csv")}
     left = [
         (env, d)
         for env, d in COMPOSITION
