@@ -228,7 +228,7 @@ def _run_mode(args: argparse.Namespace) -> tuple[dict[str, Any], Path]:
     if args.preset not in PRESETS:
         raise UsageError(f"unknown preset {args.preset!r}; accepted: {', '.join(PRESETS)}")
     overrides = overrides_from_line_and_file(args)
-    estimate_only = getattr(args, "estimate", False) and not args.print_config
+    estimate_only = args.estimate and not args.print_config
     if args.out is None and not (args.print_config or estimate_only):
         raise UsageError("--out is required")
     env_names = parse_envs(args.envs)
@@ -320,4 +320,5 @@ def _run_offline(args: argparse.Namespace, shared: dict[str, Any]) -> dict[str, 
         device=args.device or "auto",
         protocol=args.protocol,
         data_seeds=parse_seeds(args.data_seeds, "--data-seeds"),
+        estimate=args.estimate and not args.print_config,
     )

@@ -105,6 +105,7 @@ def compare_offline(
     arms: Mapping[str, tuple[str, Mapping[str, str]]] | None = None,
     configs_only: bool = False,
     data_seeds: Sequence[int] = (0,),
+    estimate: bool = False,
 ) -> dict[str, Any]:
     """Collect, train, evaluate (and open-loop plan) everything missing, then write the summaries.
 
@@ -113,6 +114,9 @@ def compare_offline(
     ``arms``: ``{label: (model, overrides)}`` for the names in ``models`` that are arms (``--arm``), not models.
     ``configs_only``: return ``{"configs": {run name: resolved config}}`` once the arguments are checked, without
     looking at ``out`` or running anything (``--print-config``).
+    ``estimate``: return ``{"estimate": text}``, the CPU-hours of the data sets and trainings still to do measured
+    on this machine (:mod:`pets.experiments.offline_estimate`), running and writing nothing (``--estimate``); with
+    ``configs_only``, of every data set and run, ``out`` not looked at.
     ``data_seeds``: the data sets (``--data-seeds``): every model and seed is trained and evaluated on each
     (:func:`data_paths`, :func:`collect_seeds`); runs pair by (data seed, seed).
     ``planner_overrides``: ``planner.*`` settings of the open- and closed-loop planning (``--planner-overrides``),
@@ -131,6 +135,12 @@ def compare_offline(
     sweep = _Sweep(out, env_names, models, seeds, data_seeds, arms or {}, extra, preset, protocol, device)
     configs = _expected_configs(sweep, proto, configs_only)
     _check_planner_overrides(configs, planners, planner_overrides, openloop, closedloop)
+    if estimate:
+        from pets.experiments.offline_estimate import sweep_estimate
+
+        data_args = (policy, steps, episodes, test_episodes, proto, max_steps, False, backend.threads)
+        workers = backend.workers if backend.kind == "local" else None
+        return {"estimate": sweep_estimate(sweep, configs, proto, data_args, workers, configs_only)}
     if configs_only:
         return {"configs": configs}
     check_out_writable(out)  # after every argument is checked: bad input leaves no directory behind
@@ -392,9 +402,11 @@ def _data_sets(
     max_steps: int | None,
     progress: bool,
     threads: int,
+    fresh: bool = False,
 ) -> tuple[dict[str, str], list]:
     """``({file: "reused"}, jobs)``: every existing data file checked here, a backend job per data set that lacks
-    a file (:func:`collect_data`, named "ENV data D"). UsageError for a file made with other settings."""
+    a file (:func:`collect_data`, named "ENV data D"). UsageError for a file made with other settings. ``fresh``:
+    no file looked at, every one to make (``--policy existing``: none)."""
     actions, jobs = {}, []
     for env, d in ((env, d) for env in sweep.env_names for d in sweep.data_seeds):
         missing = []
@@ -403,7 +415,9 @@ def _data_sets(
         parts = (("train", train_path, train_seed, episodes), ("test", test_path, test_seed, n_test))
         for part, path, seed, n in parts:
             part_policy = f"sb3:{sac_agent_path(train_path)}" if steps is not None and part == "test" else policy
-            if path.is_file() or policy == EXISTING:
+            if fresh and policy == EXISTING:
+                continue
+            if not fresh and (path.is_file() or policy == EXISTING):
                 try:
                     actions[path.name] = prepare_data(path, env, part_policy, n, seed, max_steps)
                 except ValueError as err:  # e.g. the SAC agent file went missing

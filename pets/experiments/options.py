@@ -89,6 +89,13 @@ def _add_common(q: OneLineParser) -> None:
         action="store_true",
         help="print the settings every run shares, resolved, as YAML (valid as --config) and exit",
     )
+    q.add_argument(
+        "--estimate",
+        action="store_true",
+        help="print the CPU-hours of the work still to do in --out (without --out: of all of it), measured on this "
+        "machine (online: a few planning and training steps per arm; offline: a few gradient steps per arm and "
+        "architecture, a short SAC training), and exit without running or writing anything",
+    )
     q.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides for every run")
 
 
@@ -112,12 +119,6 @@ def _add_online(sub: Any) -> None:
     on.add_argument(
         "--planners",
         help="also compare these planners (comma-separated pets.config.PLANNERS); every model x planner pair is an arm",
-    )
-    on.add_argument(
-        "--estimate",
-        action="store_true",
-        help="print the CPU-hours of the runs still to do in --out (without --out: of every run), measured on this "
-        "machine (a few planning and training steps per arm), and exit without running or writing anything",
     )
 
 
