@@ -100,3 +100,25 @@ def test_without_out_every_data_set_and_run_is_to_do_and_a_fixed_architecture_is
     assert sorted(p.name for p in tmp_path.iterdir()) == ["data"]
     assert main([*SWEEP, "--policy", "existing", "--estimate"]) == 0  # the user's files: nothing to collect
     assert capsys.readouterr().out.startswith("| env, arm")
+
+
+def test_a_stopped_sac_collection_counts_the_steps_its_checkpoint_leaves(tmp_path, monkeypatch, capsys):
+    import envs
+    from pets.data.sb3 import sac_checkpoint_path, sac_steps_done, train_sac
+    from pets.experiments.offline_data import collect_seeds, data_paths
+
+    monkeypatch.setattr(est, "_grad_seconds", lambda cfg: 0.001)
+    monkeypatch.setattr(est, "_data_seconds", lambda env, kind, threads: (0.01, 0.001))
+    out = tmp_path / "sweep"
+    train_path = data_paths(out / "data", "invertedpendulum")[0]
+    train_path.parent.mkdir(parents=True)
+    checkpoint = sac_checkpoint_path(train_path)
+    # the sweep's own SAC collection of this data set, its checkpoint at 100 of its 200 steps (the one a stop leaves)
+    train_sac(envs.get("invertedpendulum"), 200, seed=collect_seeds(0)[0], max_steps=30, checkpoint=checkpoint,
+              checkpoint_every=100)  # fmt: skip
+    assert sac_steps_done(train_path) == 100 and sac_steps_done(tmp_path / "none.npz") == 0
+    assert main([*SWEEP, "--out", str(out), "--estimate"]) == 0
+    assert capsys.readouterr().out.splitlines()[2].startswith("| invertedpendulum data 0 | 100 (0.01 s a step) |")
+    checkpoint.write_bytes(b"not a checkpoint")  # unreadable: the collection starts over, all of it counts
+    assert main([*SWEEP, "--out", str(out), "--estimate"]) == 0
+    assert capsys.readouterr().out.splitlines()[2].startswith("| invertedpendulum data 0 | 200 (0.01 s a step) |")

@@ -114,6 +114,16 @@ def read_sac_checkpoint(path: Path, settings: dict[str, Any]) -> dict[str, Any] 
     return state
 
 
+def sac_steps_done(out: Path) -> int:
+    """The env steps that the SAC collection writing the data set ``out`` has done so far: its checkpoint's, 0 where
+    there is none (a collection not begun, or finished) or it cannot be read (it would be started over)."""
+    try:
+        with open(sac_checkpoint_path(out), "rb") as f:
+            return int(pickle.load(f)["steps_done"])
+    except Exception:  # absent, truncated or foreign: the collection runs whole
+        return 0
+
+
 def refill_replay_buffer(agent: Any, episodes: list[Episode]) -> None:
     """Put ``episodes`` into ``agent``'s (empty) replay buffer as SB3's off-policy learner stores transitions: the
     observation, the true next observation, the action scaled to [-1, 1], the reward, done (terminated or

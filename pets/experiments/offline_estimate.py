@@ -12,8 +12,8 @@ Two kinds of work are projected, each from a short measurement on this machine a
   Training by epochs with early stopping (``model.iterations=0``, the ``pets`` protocol) grows with the data and
   is not projected.
 
-Not counted: the evaluation, the validation passes of the training, open- and closed-loop planning, start-up; a
-SAC data set in progress (its checkpoint) counts whole.
+Not counted: the evaluation, the validation passes of the training, open- and closed-loop planning, start-up. A SAC
+data set in progress counts the steps its checkpoint leaves.
 """
 
 from __future__ import annotations
@@ -23,6 +23,7 @@ import sys
 import time
 from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
@@ -84,6 +85,7 @@ def offline_estimate(
     workers: int | None,
     measure_grad: Callable[[DictConfig], float] | None = None,
     measure_data: Callable[[str, str, int], tuple[float, float]] | None = None,
+    resumed: bool = True,
 ) -> str:
     """The projection's tables and total.
 
@@ -92,7 +94,8 @@ def offline_estimate(
     (``(name, collect_data, (env, [(path, policy, episodes, seed), ...], max_steps, progress, threads))``);
     ``workers``: local workers for the wall time (None: Ray). ``measure_grad(cfg)``: seconds of a gradient step
     of ``cfg``'s model; ``measure_data(env, kind, threads)``: ``(seconds of a SAC step, of a policy and simulator
-    step)`` (defaults: measured now, once each)."""
+    step)`` (defaults: measured now, once each). ``resumed``: a SAC data set counts what its checkpoint leaves (False:
+    no file looked at)."""
     import envs
 
     grad_memo: dict[tuple[str, str, str], float] = {}
@@ -117,7 +120,7 @@ def offline_estimate(
     for label, _collect, (env, parts, max_steps, _progress, data_threads) in data_jobs:
         length = max_steps or envs.get(env).episode_length
         cost = data[label] = DataCost()
-        for _path, policy, episodes, _seed in parts:
+        for path, policy, episodes, _seed in parts:
             kind = _data_kind(policy)
             if kind == "run":
                 cost.projected = False
@@ -127,7 +130,10 @@ def offline_estimate(
                 data_memo[env, kind] = (measure_data or _data_seconds)(env, kind, data_threads)
             sac_s, rollout_s = data_memo[env, kind]
             if policy.startswith("sac:"):  # SAC's training; its test episodes are rolled with its agent (sb3:)
-                cost.sac_steps, cost.sac_s = int(policy.partition(":")[2]), sac_s
+                from pets.data.sb3 import sac_steps_done
+
+                done = sac_steps_done(Path(path)) if resumed else 0  # what a stopped collection has done
+                cost.sac_steps, cost.sac_s = int(policy.partition(":")[2]) - done, sac_s
             else:
                 cost.rollout_steps, cost.rollout_s = cost.rollout_steps + episodes * length, rollout_s
     if not trains and not data:
@@ -235,4 +241,4 @@ def sweep_estimate(sweep: Any, configs: Mapping[str, DictConfig], proto: Any, da
                     (cfg.model.hidden_size, cfg.model.num_layers),
                 )
     _, data_jobs = _data_sets(sweep, *data_args, fresh=configs_only)
-    return offline_estimate(configs, to_train, archs.__getitem__, data_jobs, workers)
+    return offline_estimate(configs, to_train, archs.__getitem__, data_jobs, workers, resumed=not configs_only)
