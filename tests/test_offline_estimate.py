@@ -98,6 +98,9 @@ def test_without_out_every_data_set_and_run_is_to_do_and_a_fixed_architecture_is
     assert lines[2] == "| invertedpendulum data 0 | 200 (0.01 s a step) | 60 (0.001 s a step) | 0.000572 |"
     assert lines[6].startswith("| invertedpendulum-delta | 2 | 40 | 64x2 (0.001 s) |")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["data"]
+    assert "planning" not in lines[-1]  # none asked for
+    assert main([*SWEEP, "--estimate", "--closedloop", "--planners", "cem"]) == 0
+    assert "nor the open- and closed-loop planning this sweep asks for" in capsys.readouterr().out
     assert main([*SWEEP, "--policy", "existing", "--estimate"]) == 0  # the user's files: nothing to collect
     assert capsys.readouterr().out.startswith("| env, arm")
 

@@ -140,7 +140,8 @@ def compare_offline(
 
         data_args = (policy, steps, episodes, test_episodes, proto, max_steps, False, backend.threads)
         workers = backend.workers if backend.kind == "local" else None
-        return {"estimate": sweep_estimate(sweep, configs, proto, data_args, workers, configs_only)}
+        planning = openloop or closedloop
+        return {"estimate": sweep_estimate(sweep, configs, proto, data_args, workers, configs_only, planning)}
     if configs_only:
         return {"configs": configs}
     check_out_writable(out)  # after every argument is checked: bad input leaves no directory behind

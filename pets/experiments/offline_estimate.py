@@ -12,8 +12,8 @@ Two kinds of work are projected, each from a short measurement on this machine a
   Training by epochs with early stopping (``model.iterations=0``, the ``pets`` protocol) grows with the data and
   is not projected.
 
-Not counted: the evaluation, the validation passes of the training, open- and closed-loop planning, start-up. A SAC
-data set in progress counts the steps its checkpoint leaves.
+Not counted: the evaluation, the validation passes of the training, open- and closed-loop planning (said where the
+sweep asks for it), start-up. A SAC data set in progress counts the steps its checkpoint leaves.
 """
 
 from __future__ import annotations
@@ -86,6 +86,7 @@ def offline_estimate(
     measure_grad: Callable[[DictConfig], float] | None = None,
     measure_data: Callable[[str, str, int], tuple[float, float]] | None = None,
     resumed: bool = True,
+    planning: bool = False,
 ) -> str:
     """The projection's tables and total.
 
@@ -95,7 +96,7 @@ def offline_estimate(
     ``workers``: local workers for the wall time (None: Ray). ``measure_grad(cfg)``: seconds of a gradient step
     of ``cfg``'s model; ``measure_data(env, kind, threads)``: ``(seconds of a SAC step, of a policy and simulator
     step)`` (defaults: measured now, once each). ``resumed``: a SAC data set counts what its checkpoint leaves (False:
-    no file looked at)."""
+    no file looked at). ``planning``: the sweep also plans (``--openloop``, ``--closedloop``), not projected: said."""
     import envs
 
     grad_memo: dict[tuple[str, str, str], float] = {}
@@ -138,7 +139,7 @@ def offline_estimate(
                 cost.rollout_steps, cost.rollout_s = cost.rollout_steps + episodes * length, rollout_s
     if not trains and not data:
         return "nothing to train or collect: every data set is there and every run trained (evaluation not counted)"
-    return _text(data, trains, workers)
+    return _text(data, trains, workers, planning)
 
 
 def _data_kind(policy: str) -> str:
@@ -148,7 +149,7 @@ def _data_kind(policy: str) -> str:
     return {"sb3": "sac"}.get(kind, kind if kind in ("sac", "run") else "random")
 
 
-def _text(data: dict[str, DataCost], trains: dict[str, TrainCost], workers: int | None) -> str:
+def _text(data: dict[str, DataCost], trains: dict[str, TrainCost], workers: int | None, planning: bool) -> str:
     blocks, total_data, total_train = [], 0.0, 0.0
     if data:
         header = ["data set", "SAC env steps", "rolled env steps", "CPU-h"]
@@ -171,7 +172,10 @@ def _text(data: dict[str, DataCost], trains: dict[str, TrainCost], workers: int 
         notes.append("training by epochs not included")
     if any(not c.projected for c in data.values()):
         notes.append("data rolled with a planning policy not included")
-    notes.append("the evaluation, validation, planning and start-up not counted")
+    notes.append("the evaluation, validation and start-up not counted")
+    if planning:
+        notes.append("nor the open- and closed-loop planning this sweep asks for, often the larger part (a planning "
+                     "step's CPU-seconds: python -m pets.bench)")  # fmt: skip
     return (
         "\n\n".join(blocks)
         + f"\n\n{len(data)} data set{'' if len(data) == 1 else 's'} to make and {runs} run{'' if runs == 1 else 's'} "
@@ -223,7 +227,7 @@ def _data_seconds(env: str, kind: str, threads: int) -> tuple[float, float]:
 
 
 def sweep_estimate(sweep: Any, configs: Mapping[str, DictConfig], proto: Any, data_args: tuple, workers: int | None,
-                   configs_only: bool) -> str:  # fmt: skip
+                   configs_only: bool, planning: bool) -> str:  # fmt: skip
     """:func:`offline_estimate` of an offline sweep (``pets.experiments.offline``): its runs without a trained model
     and its data sets still to make (``data_args``: :func:`pets.experiments.offline._data_sets`' after the sweep);
     ``configs_only`` (no ``--out``): every run and data set, no file looked at."""
@@ -241,4 +245,6 @@ def sweep_estimate(sweep: Any, configs: Mapping[str, DictConfig], proto: Any, da
                     (cfg.model.hidden_size, cfg.model.num_layers),
                 )
     _, data_jobs = _data_sets(sweep, *data_args, fresh=configs_only)
-    return offline_estimate(configs, to_train, archs.__getitem__, data_jobs, workers, resumed=not configs_only)
+    return offline_estimate(
+        configs, to_train, archs.__getitem__, data_jobs, workers, resumed=not configs_only, planning=planning
+    )
