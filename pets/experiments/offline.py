@@ -138,10 +138,10 @@ def compare_offline(
     if estimate:
         from pets.experiments.offline_estimate import sweep_estimate
 
-        data_args = (policy, steps, episodes, test_episodes, proto, max_steps, False, backend.threads)
-        workers = backend.workers if backend.kind == "local" else None
-        planning = openloop or closedloop
-        return {"estimate": sweep_estimate(sweep, configs, proto, data_args, workers, configs_only, planning)}
+        data = (policy, steps, episodes, test_episodes, proto, max_steps, False, backend.threads)
+        data_jobs = _data_sets(sweep, *data, fresh=configs_only)[1]
+        workers, planning = (backend.workers if backend.kind == "local" else None), openloop or closedloop
+        return {"estimate": sweep_estimate(sweep, configs, proto, data_jobs, workers, configs_only, planning)}
     if configs_only:
         return {"configs": configs}
     check_out_writable(out)  # after every argument is checked: bad input leaves no directory behind

@@ -226,12 +226,18 @@ def _data_seconds(env: str, kind: str, threads: int) -> tuple[float, float]:
     return sac_s, statistics.median(per_step)
 
 
-def sweep_estimate(sweep: Any, configs: Mapping[str, DictConfig], proto: Any, data_args: tuple, workers: int | None,
-                   configs_only: bool, planning: bool) -> str:  # fmt: skip
+def sweep_estimate(
+    sweep: Any,
+    configs: Mapping[str, DictConfig],
+    proto: Any,
+    data_jobs: Sequence[tuple[str, Any, tuple]],
+    workers: int | None,
+    configs_only: bool,
+    planning: bool,
+) -> str:
     """:func:`offline_estimate` of an offline sweep (``pets.experiments.offline``): its runs without a trained model
-    and its data sets still to make (``data_args``: :func:`pets.experiments.offline._data_sets`' after the sweep);
-    ``configs_only`` (no ``--out``): every run and data set, no file looked at."""
-    from pets.experiments.offline import _data_sets
+    and its data sets still to make (``data_jobs``, the sweep's); ``configs_only`` (no ``--out``): every run, no file
+    looked at."""
     from pets.experiments.rundirs import run_name
 
     to_train = {n for n in configs if configs_only or not (sweep.out / "runs" / n / "config.yaml").is_file()}
@@ -244,7 +250,6 @@ def sweep_estimate(sweep: Any, configs: Mapping[str, DictConfig], proto: Any, da
                 archs[name] = (() if fixed else proto.architectures(env)) or (
                     (cfg.model.hidden_size, cfg.model.num_layers),
                 )
-    _, data_jobs = _data_sets(sweep, *data_args, fresh=configs_only)
     return offline_estimate(
         configs, to_train, archs.__getitem__, data_jobs, workers, resumed=not configs_only, planning=planning
     )
