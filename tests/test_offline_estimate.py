@@ -4,6 +4,8 @@ having searched), the CPU-hours from per-step figures measured on this machine; 
 
 from __future__ import annotations
 
+import json
+
 import pytest
 
 from pets.config import make_config
@@ -17,11 +19,11 @@ SWEEP += ["--policy", "sac:200", "--test-episodes", "2", "--max-steps", "30", "-
 SWEEP += ["--quiet", "model.iterations=20"]
 
 
-def test_the_projection_multiplies_the_measured_steps_by_the_runs_architectures_and_data():
+def test_the_projection_multiplies_the_measured_steps_by_the_runs_architectures_data_and_planning():
     cfgs = {f"ant-{m}-s{s}": make_config("ant", m, "research", {"model.iterations": 10_000}) for m in ("delta", "gem")
             for s in (0, 1)}  # fmt: skip
     archs = {name: ((512, 1), (512, 2)) for name in cfgs}
-    archs["ant-gem-s1"] = ((200, 4),)  # not measured: the arm's first run to train gives its architectures
+    archs["ant-gem-s1"] = ((200, 4),)  # not measured for training: the arm's first run to train gives them
     grads = {(512, 1): 0.01, (512, 2): 0.02}
     seen = []
 
@@ -29,11 +31,17 @@ def test_the_projection_multiplies_the_measured_steps_by_the_runs_architectures_
         seen.append((cfg.head, cfg.model.hidden_size, cfg.model.num_layers))
         return grads[cfg.model.hidden_size, cfg.model.num_layers] * (2 if cfg.head == "gem" else 1)
 
+    def measure_plan(cfg):
+        assert cfg.planner.name == "cem" and cfg.planner.horizon in (30, 50)  # closed loop keeps the run's horizon
+        return 0.5 if cfg.planner.horizon == 50 else 0.2
+
+    train = ["train", "eval"]
+    pending = {"ant-delta-s1": [*train, "closedloop_cem"], "ant-gem-s0": train,
+               "ant-gem-s1": [*train, "closedloop_cem", "openloop_cem"]}  # fmt: skip
     data_jobs = [("ant data 0", None, ("ant", [("t.npz", "sac:1000", 5, 0), ("e.npz", "sb3:a.zip", 2, 1)], 300, 0, 1))]
-    text = est.offline_estimate(
-        cfgs, {"ant-delta-s1", "ant-gem-s0", "ant-gem-s1"}, archs.__getitem__, data_jobs, workers=2,
-        measure_grad=measure_grad, measure_data=lambda env, kind, threads: (0.036, 0.0018),
-    )  # fmt: skip
+    measures = est.Measures(measure_grad, lambda env, kind, threads: (0.036, 0.0018), measure_plan)
+    planning = {"closedloop": (300, 5), "openloop": (50, 5)}
+    text = est.offline_estimate(cfgs, pending, archs.__getitem__, data_jobs, 2, planning, measures=measures)
     assert seen == [("delta", 512, 1), ("delta", 512, 2), ("gem", 512, 1), ("gem", 512, 2)]
     lines = text.splitlines()
     # data: 1,000 SAC steps x 0.036 s + 2 test episodes x 300 steps x 0.0018 s = 37.08 s = 0.0103 h
@@ -41,13 +49,22 @@ def test_the_projection_multiplies_the_measured_steps_by_the_runs_architectures_
     # delta: one run (s0 is trained), 10,000 x (0.01 + 0.02) s = 300 s; gem: two runs x 10,000 x 0.06 s = 1,200 s
     assert lines[6] == "| ant-delta | 1 | 20,000 | 512x1 (0.01 s), 512x2 (0.02 s) | 0.0833 |"
     assert lines[7] == "| ant-gem | 2 | 40,000 | 512x1 (0.02 s), 512x2 (0.04 s) | 0.333 |"
-    assert lines[9].startswith(
-        "1 data set to make and 3 runs to train, about 0.427 CPU-hours (0.219 h of wall time"
-    )  # 0.0103 + 0.417 / 2
-    nothing = est.offline_estimate(cfgs, set(), archs.__getitem__, [], None, measure_grad, lambda *a: (0.0, 0.0))
-    assert nothing.startswith("nothing to train or collect")
+    # closed loop: 300 steps x 5 episodes, replanned every step, x 0.2 s = 300 s (delta's run may pick either
+    # architecture: measured at the larger); open loop: one plan of 50 steps per episode, 5 x 0.5 s
+    assert (
+        lines[11]
+        == "| ant-delta closedloop cem | 1 | 1,500 | 0.2 (at most: the largest searched architecture) | 0.0833 |"
+    )
+    assert lines[12:14] == ["| ant-gem closedloop cem | 1 | 1,500 | 0.2 | 0.0833 |",
+                            "| ant-gem openloop cem | 1 | 5 | 0.5 | 0.000694 |"]  # fmt: skip
+    # 0.0103 + 0.417 + 0.167 = 0.594 CPU-h; wall 0.0103 + 0.584 / 2 = 0.302 h
+    assert lines[15].startswith("1 data set(s) to make, 3 run(s) to train and 2 arm(s) to plan, about 0.594 "
+                                "CPU-hours (0.302 h of wall time on 2 worker(s) at best)")  # fmt: skip
+    assert "closed-loop episodes that end early cost less" in lines[15]
+    nothing = est.offline_estimate(cfgs, {}, archs.__getitem__, [], None, measures=measures)
+    assert nothing.startswith("nothing to train, plan or collect")
     epochs = {"ant-delta-s0": make_config("ant", "delta", "research", {"model.iterations": 0})}
-    text = est.offline_estimate(epochs, set(epochs), archs.__getitem__, [], None, measure_grad)
+    text = est.offline_estimate(epochs, {"ant-delta-s0": train}, archs.__getitem__, [], None, measures=measures)
     assert "| ant-delta | 1 | by epochs | - | not projected (epochs) |" in text and "wall time" not in text
     assert "training by epochs not included" in text
 
@@ -73,7 +90,19 @@ def test_estimate_before_a_real_sweep_counts_its_data_and_searched_architectures
     searched = rundir.load_checkpoint(out / "runs" / "invertedpendulum-delta-s0")["offline"]["search"]
     assert [f"{c['hidden_size']}x{c['num_layers']}" for c in searched] == ["100x1", "100x2", "100x3"]
     assert main([*SWEEP, "--out", str(out), "--estimate"]) == 0
-    assert capsys.readouterr().out.startswith("nothing to train or collect")
+    assert capsys.readouterr().out.startswith("nothing to train, plan or collect")
+    plan = ["--closedloop", "--planners", "cem", "--closedloop-steps", "10", "--openloop-episodes", "1",
+            "--planner-overrides", "planner.population=20,planner.particles=2"]  # fmt: skip
+    assert main([*SWEEP, "--out", str(out), "--estimate", *plan]) == 0  # trained runs: their own architecture
+    table = capsys.readouterr().out.splitlines()
+    assert table[2].startswith("| invertedpendulum-delta closedloop cem | 2 | 20 | ") and "at most" not in table[2]
+    assert main([*SWEEP, "--out", str(out), *plan]) == 0  # the planning, for real
+    capsys.readouterr()
+    runs = [out / "runs" / f"invertedpendulum-delta-s{s}" for s in (0, 1)]
+    executed = [json.loads((r / "closedloop_cem.json").read_text())["lengths"] for r in runs]
+    assert sum(map(sum, executed)) <= 20 and all(len(e) == 1 for e in executed)  # episodes that fall end early
+    assert main([*SWEEP, "--out", str(out), "--estimate", *plan]) == 0
+    assert capsys.readouterr().out.startswith("nothing to train, plan or collect")
     (out / "runs" / "invertedpendulum-delta-s1" / "config.yaml").unlink()  # a run to train again, its data there
     monkeypatch.setattr(est, "_grad_seconds", lambda cfg: 0.001)
     with pytest.raises(SystemExit) as exit_info:  # another config: refused, as the sweep itself refuses it
@@ -82,7 +111,7 @@ def test_estimate_before_a_real_sweep_counts_its_data_and_searched_architectures
     assert main([*SWEEP, "--out", str(out), "--estimate"]) == 0
     lines = capsys.readouterr().out.splitlines()
     assert lines[0].startswith("| env, arm") and lines[2].startswith("| invertedpendulum-delta | 1 | 60 |")
-    assert lines[4].startswith("0 data sets to make and 1 run to train")
+    assert lines[4].startswith("0 data set(s) to make, 1 run(s) to train and 0 arm(s) to plan")
 
 
 def test_without_out_every_data_set_and_run_is_to_do_and_a_fixed_architecture_is_the_only_one(
@@ -98,9 +127,13 @@ def test_without_out_every_data_set_and_run_is_to_do_and_a_fixed_architecture_is
     assert lines[2] == "| invertedpendulum data 0 | 200 (0.01 s a step) | 60 (0.001 s a step) | 0.000572 |"
     assert lines[6].startswith("| invertedpendulum-delta | 2 | 40 | 64x2 (0.001 s) |")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["data"]
-    assert "planning" not in lines[-1]  # none asked for
-    assert main([*SWEEP, "--estimate", "--closedloop", "--planners", "cem"]) == 0
-    assert "nor the open- and closed-loop planning this sweep asks for" in capsys.readouterr().out
+    assert "closed-loop" not in lines[-1]  # none asked for
+    monkeypatch.setattr(est, "_plan_seconds", lambda cfg: 0.01)
+    assert main([*SWEEP, "--estimate", "--closedloop", "--planners", "cem,mppi", "--closedloop-steps", "40"]) == 0
+    lines = capsys.readouterr().out.splitlines()  # 2 runs x 5 episodes x 40 steps, replanned every step
+    assert lines[10:12] == ["| invertedpendulum-delta closedloop cem | 2 | 400 | 0.01 (at most: the largest searched "
+                            "architecture) | 0.00111 |", "| invertedpendulum-delta closedloop mppi | 2 | 400 | 0.01 "
+                            "(at most: the largest searched architecture) | 0.00111 |"]  # fmt: skip
     assert main([*SWEEP, "--policy", "existing", "--estimate"]) == 0  # the user's files: nothing to collect
     assert capsys.readouterr().out.startswith("| env, arm")
 

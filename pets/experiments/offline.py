@@ -46,7 +46,7 @@ from pets.experiments.offline_data import (
     sac_agent_path,
     sac_steps,
 )
-from pets.experiments.offline_jobs import CLOSED, offline_job, offline_todo
+from pets.experiments.offline_jobs import CLOSED, OPEN, offline_job, offline_todo
 from pets.experiments.offline_summary import summarise_offline
 from pets.experiments.rundirs import NOT_COMPARED, check_out_writable, check_same_config, left_to_auto, run_name
 from pets.experiments.runner import open_backend
@@ -135,13 +135,18 @@ def compare_offline(
     sweep = _Sweep(out, env_names, models, seeds, data_seeds, arms or {}, extra, preset, protocol, device)
     configs = _expected_configs(sweep, proto, configs_only)
     _check_planner_overrides(configs, planners, planner_overrides, openloop, closedloop)
-    if estimate:
+    if estimate:  # what is left to do, projected (no --out: all of it)
         from pets.experiments.offline_estimate import sweep_estimate
 
-        data = (policy, steps, episodes, test_episodes, proto, max_steps, False, backend.threads)
-        data_jobs = _data_sets(sweep, *data, fresh=configs_only)[1]
-        workers, planning = (backend.workers if backend.kind == "local" else None), openloop or closedloop
-        return {"estimate": sweep_estimate(sweep, configs, proto, data_jobs, workers, configs_only, planning)}
+        data = (policy, steps, episodes, test_episodes, proto, max_steps, False, backend.threads, configs_only)
+        data_jobs = _data_sets(sweep, *data)[1]
+        plan = {OPEN: (openloop_steps, openloop_episodes, list(planners) * openloop),
+                CLOSED: (closedloop_steps, openloop_episodes, list(planners) * closedloop)}  # fmt: skip
+        requests = _requests(horizons, starts, openloop_steps, openloop_episodes, closedloop_steps, planner_overrides)
+        pending = None if configs_only else _jobs(sweep, requests, plan[OPEN][2], plan[CLOSED][2])[1]
+        workers = backend.workers if backend.kind == "local" else None
+        text = sweep_estimate(sweep, configs, proto, data_jobs, pending, plan, planner_overrides, workers)
+        return {"estimate": text}
     if configs_only:
         return {"configs": configs}
     check_out_writable(out)  # after every argument is checked: bad input leaves no directory behind
