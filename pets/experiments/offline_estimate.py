@@ -87,15 +87,18 @@ class PlanCost:
 
     runs: int = 0
     calls: int = 0  # planning steps: one per open-loop episode (of its horizon), one per replanning in closed loop
-    step_s: float = 0.0
-    bound: bool = False  # measured at the largest architecture the runs' search may pick: at most
+    seconds: float = 0.0
+    step_s: list[float] = field(default_factory=list)  # per run: its architecture's
+    bound: bool = False  # some measured at the largest architecture a run's search may pick: at most
 
     @property
     def hours(self) -> float:
-        return self.calls * self.step_s / 3600
+        return self.seconds / 3600
 
     def row(self, key: str) -> list[str]:
-        step = f"{fmt(self.step_s, 3)}{' (at most: the largest searched architecture)' if self.bound else ''}"
+        low, high = min(self.step_s), max(self.step_s)
+        step = fmt(low, 3) if fmt(low, 3) == fmt(high, 3) else f"{fmt(low, 3)}-{fmt(high, 3)}"
+        step += " (at most: the largest searched architecture)" if self.bound else ""
         return [key, str(self.runs), f"{self.calls:,}", step, fmt(self.hours, 3)]
 
 
@@ -198,13 +201,14 @@ def _plan_costs(
             arch = max(archs, key=lambda a: a[0] * a[1])  # a run to train: the search's pick is not known yet
             plan_cfg = planning_config(_with_arch(cfg, arch), planner, steps, overrides, closed=kind == "closedloop")
             key = f"{name.rsplit('-s', 1)[0]} {kind} {planner}"
-            cost = plans.setdefault(key, PlanCost(bound=len(archs) > 1))
-            cost.runs += 1
-            calls = -(-steps // plan_cfg.planner.replan_every) if kind == "closedloop" else 1
-            cost.calls += calls * episodes
+            calls = (-(-steps // plan_cfg.planner.replan_every) if kind == "closedloop" else 1) * episodes
             memo_key = (cfg.env, cfg.head, OmegaConf.to_yaml(plan_cfg.model), OmegaConf.to_yaml(plan_cfg.planner))
-            what = f"{key} ({arch[0]}x{arch[1]}: a few planning steps)"
-            cost.step_s = _measured(memo, memo_key, what, lambda c=plan_cfg: plan(c))
+            step_s = _measured(memo, memo_key, f"{key} ({arch[0]}x{arch[1]}: a few planning steps)",
+                               lambda c=plan_cfg: plan(c))  # fmt: skip
+            cost = plans.setdefault(key, PlanCost())
+            cost.runs, cost.calls, cost.seconds = cost.runs + 1, cost.calls + calls, cost.seconds + calls * step_s
+            cost.step_s.append(step_s)
+            cost.bound |= len(archs) > 1
     return plans
 
 
