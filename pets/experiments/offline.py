@@ -114,9 +114,9 @@ def compare_offline(
     ``arms``: ``{label: (model, overrides)}`` for the names in ``models`` that are arms (``--arm``), not models.
     ``configs_only``: return ``{"configs": {run name: resolved config}}`` once the arguments are checked, without
     looking at ``out`` or running anything (``--print-config``).
-    ``estimate``: return ``{"estimate": text}``, the CPU-hours of the data sets and trainings still to do measured
-    on this machine (:mod:`pets.experiments.offline_estimate`), running and writing nothing (``--estimate``); with
-    ``configs_only``, of every data set and run, ``out`` not looked at.
+    ``estimate``: return ``{"estimate": text}``, the CPU-hours of the data sets, trainings and planning still to do
+    measured on this machine (:mod:`pets.experiments.offline_estimate`), running and writing nothing
+    (``--estimate``); with ``configs_only``, of all of it, ``out`` not looked at.
     ``data_seeds``: the data sets (``--data-seeds``): every model and seed is trained and evaluated on each
     (:func:`data_paths`, :func:`collect_seeds`); runs pair by (data seed, seed).
     ``planner_overrides``: ``planner.*`` settings of the open- and closed-loop planning (``--planner-overrides``),
