@@ -53,6 +53,9 @@ def test_the_projection_multiplies_the_measured_steps_and_skips_reused_runs(tmp_
     assert "| 2.75 (0.1 s a step) | not projected (epochs) | 2.75 |" in text and "wall time" not in text  # Ray
     assert "training by epochs not included; the value fit" in text and "measured eager" not in text
     assert "\n\n1 run, about 2.75 CPU-hours, measured" in text
+    sparse = {"halfcheetah-delta-s0": make_config("halfcheetah", "delta", "locomotion", {"planner.replan_every": 5})}
+    text = est.estimate(sparse, {}, tmp_path, 1, lambda cfg: (0.1, 0.02))  # one plan per 5 env steps: 19,800 plans
+    assert "| halfcheetah-delta | 1 | 99,000 | 0.55 (0.1 s a step) | 0.55 (0.02 s a step) | 1.1 |" in text
 
 
 def test_estimate_measures_on_this_machine_counts_a_resumed_run_by_what_is_left_and_writes_nothing(

@@ -5,8 +5,8 @@ threads: the process-CPU seconds (on CUDA the wall seconds) of a planning step (
 the median of :data:`PLAN_STEPS` steps of a briefly fitted model) and, for a fixed training schedule
 (``model.iterations`` > 0), of a gradient step (two trainings of :data:`TRAIN_STEPS` steps, eager). Projection per
 run still to do (a resumed one counts what is left of it): planned env steps (the budget, or trials x episode
-length: episodes that end early cost less) x the step, plus the trainings the schedule makes x
-``model.iterations`` x the gradient step. Training by epochs with early stopping (``model.iterations=0``) grows
+length: episodes that end early cost less) / ``planner.replan_every`` x the step, plus the trainings the schedule
+makes x ``model.iterations`` x the gradient step. Training by epochs with early stopping (``model.iterations=0``) grows
 with the data and is not projected. Not counted: the terminal value's fit, the simulator, start-up (a few % at the
 locomotion preset: docs/planning.md).
 """
@@ -87,10 +87,11 @@ class ArmCost:
     runs: int = 0
     steps: int = 0
     grads: int | None = 0  # None: training by epochs (not projected)
+    replan_every: int = 1  # the agent plans once per this many env steps
 
     @property
     def plan_h(self) -> float:
-        return self.steps * self.plan_s / 3600
+        return -(-self.steps // self.replan_every) * self.plan_s / 3600
 
     @property
     def train_h(self) -> float:
@@ -127,7 +128,7 @@ def estimate(
         key = name.rsplit("-s", 1)[0]  # the run's env and arm (pets.experiments.rundirs.run_name)
         if key not in arms:
             print(f"{PROG} --estimate: measuring {key} (a few planning and gradient steps)", file=sys.stderr)
-            arms[key] = ArmCost(*(measure or _measure)(cfg))
+            arms[key] = ArmCost(*(measure or _measure)(cfg), replan_every=cfg.planner.replan_every)
         if builder.resolve_device(cfg.device).type == "cuda":
             unit = "hours"  # the device's wall time, as measured there
         length = cfg.episode_length or envs.get(cfg.env).episode_length
