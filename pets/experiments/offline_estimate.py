@@ -281,15 +281,14 @@ def _grad_seconds(cfg: DictConfig) -> float:
     from pets.experiments.estimate import train_step_seconds
     from pets.tools.bench import prepare
 
-    parts = prepare(OmegaConf.merge(cfg, {"model": {"iterations": 0}}))  # its 2 warm-up epochs, not the schedule
-    return train_step_seconds(cfg, parts)
+    return train_step_seconds(cfg, prepare(cfg))
 
 
 def _plan_seconds(cfg: DictConfig) -> float:
     from pets.experiments.estimate import plan_seconds
     from pets.tools.bench import prepare
 
-    return plan_seconds(cfg, prepare(OmegaConf.merge(cfg, {"model": {"iterations": 0}})))
+    return plan_seconds(cfg, prepare(cfg))
 
 
 def _data_seconds(env: str, kind: str, threads: int) -> tuple[float, float]:

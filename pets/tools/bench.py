@@ -120,7 +120,7 @@ def prepare(cfg: DictConfig) -> dict[str, Any]:
     model = make_model(cfg, spec, device)
     trainer = builder.make_trainer(cfg, model)
     obs, act, nxt = (torch.as_tensor(x, device=device) for x in collect_random(spec, 400, cfg.seed))
-    trainer.max_epochs = 2
+    trainer.max_epochs, trainer.iterations = 2, 0  # 2 epochs, whatever schedule the config trains by
     trainer.train(obs, act, nxt, torch.Generator(device=device).manual_seed(cfg.seed))
     model.eval()
     return {"spec": spec, "device": device, "model": model, "data": (obs, act, nxt), "start": obs[-1].cpu().numpy()}
