@@ -13,6 +13,7 @@ from pets.data.datasets import load_dataset
 from pets.experiments import offline_estimate as est
 from pets.experiments.cli import main
 from pets.runs import rundir
+from pets.tools.cli import EXIT_FAILED
 
 SWEEP = ["offline", "--envs", "invertedpendulum", "--models", "delta", "--seeds", "0,1", "--protocol", "paper"]
 SWEEP += ["--policy", "sac:200", "--test-episodes", "2", "--max-steps", "30", "--starts", "20", "--horizons", "1,5"]
@@ -137,7 +138,9 @@ def test_without_out_every_data_set_and_run_is_to_do_and_a_fixed_architecture_is
     assert capsys.readouterr().out.startswith("| env, arm")
 
 
-def test_a_stopped_sac_collection_counts_the_steps_its_checkpoint_leaves(tmp_path, monkeypatch, capsys):
+def test_a_stopped_sac_collection_counts_what_its_checkpoint_leaves_and_one_it_would_refuse_is_refused(
+    tmp_path, monkeypatch, capsys
+):
     import envs
     from pets.data.sb3 import sac_checkpoint_path, sac_steps_done, train_sac
     from pets.experiments.offline_data import collect_seeds, data_paths
@@ -151,9 +154,20 @@ def test_a_stopped_sac_collection_counts_the_steps_its_checkpoint_leaves(tmp_pat
     # the sweep's own SAC collection of this data set, its checkpoint at 100 of its 200 steps (the one a stop leaves)
     train_sac(envs.get("invertedpendulum"), 200, seed=collect_seeds(0)[0], max_steps=30, checkpoint=checkpoint,
               checkpoint_every=100)  # fmt: skip
-    assert sac_steps_done(train_path) == 100 and sac_steps_done(tmp_path / "none.npz") == 0
+    settings = (envs.get("invertedpendulum"), 200, collect_seeds(0)[0], 30)
+    assert sac_steps_done(train_path, *settings) == 100 and sac_steps_done(tmp_path / "none.npz", *settings) == 0
     assert main([*SWEEP, "--out", str(out), "--estimate"]) == 0
     assert capsys.readouterr().out.splitlines()[2].startswith("| invertedpendulum data 0 | 100 (0.01 s a step) |")
-    checkpoint.write_bytes(b"not a checkpoint")  # unreadable: the collection starts over, all of it counts
-    assert main([*SWEEP, "--out", str(out), "--estimate"]) == 0
-    assert capsys.readouterr().out.splitlines()[2].startswith("| invertedpendulum data 0 | 200 (0.01 s a step) |")
+    # a checkpoint the collection would refuse (written for other settings, or unreadable): the estimate refuses it
+    # with the sweep's own line (ground truth: the real sweep, whose data job fails there)
+    other_max_steps = [a if a != "30" else "25" for a in SWEEP]
+    for sweep, fragment in ((other_max_steps, "(max_steps: 30 != 25)"), (SWEEP, "cannot read the SAC checkpoint")):
+        if sweep is SWEEP:
+            checkpoint.write_bytes(b"not a checkpoint")
+        with pytest.raises(SystemExit) as exit_info:
+            main([*sweep, "--out", str(out), "--estimate"])
+        assert exit_info.value.code == 2 and fragment in capsys.readouterr().err
+        assert main([*sweep, "--out", str(out)]) == EXIT_FAILED
+        err = capsys.readouterr().err
+        assert "invertedpendulum data 0 failed: UsageError: " in err and fragment in err
+    assert checkpoint.read_bytes() == b"not a checkpoint"  # left as it was, for the user to delete

@@ -114,14 +114,16 @@ def read_sac_checkpoint(path: Path, settings: dict[str, Any]) -> dict[str, Any] 
     return state
 
 
-def sac_steps_done(out: Path) -> int:
-    """The env steps that the SAC collection writing the data set ``out`` has done so far: its checkpoint's, 0 where
-    there is none (a collection not begun, or finished) or it cannot be read (it would be started over)."""
-    try:
-        with open(sac_checkpoint_path(out), "rb") as f:
-            return int(pickle.load(f)["steps_done"])
-    except Exception:  # absent, truncated or foreign: the collection runs whole
-        return 0
+def sac_steps_done(
+    out: Path, spec: EnvSpec, steps: int, seed: int, max_steps: int | None, sac_kwargs: Any = None
+) -> int:
+    """The env steps that the SAC collection writing the data set ``out`` (with these settings, as
+    :func:`train_sac` takes them) has done so far: its checkpoint's, 0 where there is none (a collection not begun,
+    or finished). ValueError (:func:`read_sac_checkpoint`'s one line) where the checkpoint cannot be read or was
+    written for other settings: the collection refuses it too."""
+    settings = _checkpoint_settings(spec, steps, seed, max_steps, sac_kwargs)
+    state = read_sac_checkpoint(sac_checkpoint_path(out), settings)
+    return 0 if state is None else int(state["steps_done"])
 
 
 def refill_replay_buffer(agent: Any, episodes: list[Episode]) -> None:

@@ -32,7 +32,7 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from pets.experiments.arguments import PROG
+from pets.experiments.arguments import PROG, UsageError
 from pets.experiments.report import fmt, md_table
 
 #: SAC steps of the two measurement trainings (SB3 starts its gradient steps after 100).
@@ -222,7 +222,7 @@ def _data_costs(
     for label, _collect, (env, parts, max_steps, _progress, threads) in data_jobs:
         length = max_steps or envs.get(env).episode_length
         cost = data[label] = DataCost()
-        for path, policy, episodes, _seed in parts:
+        for path, policy, episodes, seed in parts:
             kind = _data_kind(policy)
             if kind == "run":
                 cost.projected = False
@@ -232,8 +232,12 @@ def _data_costs(
             if policy.startswith("sac:"):  # SAC's training; its test episodes are rolled with its agent (sb3:)
                 from pets.data.sb3 import sac_steps_done
 
-                done = sac_steps_done(Path(path)) if resumed else 0  # what a stopped collection has done
-                cost.sac_steps, cost.sac_s = int(policy.partition(":")[2]) - done, sac_s
+                steps = int(policy.partition(":")[2])
+                try:  # what a stopped collection has done; one it would refuse is refused here with its line
+                    done = sac_steps_done(Path(path), envs.get(env), steps, seed, max_steps) if resumed else 0
+                except ValueError as err:
+                    raise UsageError(str(err)) from None
+                cost.sac_steps, cost.sac_s = steps - done, sac_s
             else:
                 cost.rollout_steps, cost.rollout_s = cost.rollout_steps + episodes * length, rollout_s
     return data
