@@ -1262,6 +1262,12 @@ def test_a_stopped_sweep_starts_no_more_jobs_and_leaves_no_process_running(tmp_p
         (["online", "--envs", "reacher", "--models", "delta,transformer", "--trials", 1], "accepted: delta, gem"),
         (["online", "--envs", "reacher", "--models", "delta", "--seeds", "0,x", "--trials", 1], "--seeds"),
         (["online", "--envs", "reacher,", "--models", "delta", "--trials", 1], "without empty items"),
+        # an item given twice would silently make a smaller study than the list reads
+        (["online", "--envs", "reacher", "--models", "delta", "--seeds", "0,1,01", "--trials", 1], "names 1 twice"),
+        (["online", "--envs", "reacher,Reacher-v5", "--models", "delta", "--trials", 1], "names 'reacher' twice"),
+        (["offline", "--envs", "reacher", "--models", "delta,gem,delta"], "--models names 'delta' twice"),
+        (["offline", "--envs", "reacher", "--models", "delta", "--data-seeds", "2,2"], "--data-seeds names 2 twice"),
+        (["online", "--envs", "reacher", "--models", "delta", "--trials", 1, "--planners", "cem,cem"], "'cem' twice"),
         (["online", "--envs", "reacher", "--models", "delta", "--trials", 0], "must be >= 1"),
         (
             ["online", "--envs", "reacher", "--models", "delta", "--trials", 1, "planner.popsize=3"],

@@ -14,12 +14,24 @@ class UsageError(ValueError):
     """A bad argument or an inconsistent output directory: exit 2 with this one-line message."""
 
 
-def split_list(text: str, what: str) -> list[str]:
-    """``"a,b"`` -> ``["a", "b"]`` (order kept, duplicates dropped); UsageError if empty or with empty items."""
+def split_list(text: str, what: str, distinct: bool = True) -> list[str]:
+    """``"a,b"`` -> ``["a", "b"]`` (order kept); UsageError if empty, with empty items or (``distinct``) with an
+    item twice."""
     items = [t.strip() for t in str(text).split(",")]
     if not text or not all(items):
         raise UsageError(f"--{what} must be a comma-separated list without empty items, got {text!r}")
-    return list(dict.fromkeys(items))
+    return unique(items, what, text) if distinct else items
+
+
+def unique(items: list, what: str, text: str) -> list:
+    """``items`` if no two are equal, else UsageError naming the first given twice (a study of fewer runs than the
+    list reads, silently, is the mistake it prevents)."""
+    seen = set()
+    for item in items:
+        if item in seen:
+            raise UsageError(f"--{what} names {item!r} twice in {text!r}; give each once")
+        seen.add(item)
+    return items
 
 
 #: A comma between items, not one inside a list value ``[a,b]``.
@@ -37,12 +49,12 @@ def parse_envs(text: str) -> list[str]:
     import envs
 
     out = []
-    for name in split_list(text, "envs"):
+    for name in split_list(text, "envs", distinct=False):  # told apart by their canonical names below
         try:
             out.append(envs.canonical_name(name))
         except ValueError as err:
             raise UsageError(str(err)) from None
-    out = list(dict.fromkeys(out))
+    unique(out, "envs", text)  # two spellings of one env (a name and its gymnasium id)
     _check_stems(out)
     return out
 
@@ -81,14 +93,14 @@ def parse_models(text: str) -> list[str]:
 
 def parse_seeds(text: str, flag: str = "--seeds") -> list[int]:
     """Seeds (of ``flag``): comma-separated ints >= 0."""
-    items = split_list(text, flag.lstrip("-"))
+    items = split_list(text, flag.lstrip("-"), distinct=False)  # told apart as ints below
     try:
         seeds = [int(s) for s in items]
     except ValueError:
         raise UsageError(f"{flag} must be comma-separated ints >= 0 such as 0,1,2, got {text!r}") from None
     if min(seeds) < 0:
         raise UsageError(f"{flag} must be ints >= 0, got {text!r}")
-    return list(dict.fromkeys(seeds))
+    return unique(seeds, flag.lstrip("-"), text)  # 1 and 01 are one seed
 
 
 def few_seeds_warning(n_seeds: int) -> str | None:
