@@ -1818,6 +1818,13 @@ def test_partial_offline_snapshot_of_a_finished_study_is_its_own_summary(offline
     (level,) = csv_rows(levels)  # the data set's no-information level: the one the study's primary endpoint used
     assert (level["env"], level["data_seed"]) == ("invertedpendulum", "0")
     assert float(level["level"]) == pytest.approx(float(csv_rows(study / "primary.csv")[0]["level"]), rel=1e-12)
+    # the rows it holds are merged: a data set not under the study (made on a machine since replaced) keeps its
+    # rows; one under it has the rows of its runs there alone (a run of it not there is a withdrawn one)
+    gone = {**rows[0], "run": "invertedpendulum-delta-d7-s0", "data": "invertedpendulum-d7-test.npz"}
+    withdrawn = {**rows[0], "run": "invertedpendulum-delta-s9", "seed": "9"}
+    write_csv(tmp_path / "runs.csv", [withdrawn, *rows, gone], list(rows[0]))
+    assert partial.main([str(study), str(tmp_path / "runs.csv")]) == 0
+    assert csv_rows(tmp_path / "runs.csv") == sorted([*rows, gone], key=lambda r: (r["run"], int(r["horizon"])))
 
 
 def test_trajectory_figures_of_a_study_add_the_horizon_where_delta_stops_tracking(offline, tmp_path, capsys):

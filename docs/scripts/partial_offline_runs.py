@@ -5,6 +5,8 @@
         [--data-seeds D]
     python docs/scripts/partial_offline_runs.py OUT_DIR SNAPSHOT.csv --levels LEVELS.csv
 
+SNAPSHOT.csv keeps the rows it holds of data sets not under OUT_DIR (a study whose earlier data sets and runs
+were made on a machine since replaced); the rows of a data set under OUT_DIR come from its runs there alone.
 Columns of SNAPSHOT.csv: run, env, model (the run's head; an arm's label is in the run name), data (its test file
 name, which names the data set), seed (the model's), horizon and
 the eval.json errors of that horizon. With ``--summary DIR``: also the study's summary of the finished runs
@@ -28,7 +30,10 @@ METRICS = ("standardized_error", "translation_error", "rotation_error", "velocit
 
 
 def write_runs(out: Path, snapshot: Path) -> tuple[list[dict], list[dict]]:
-    """SNAPSHOT.csv from every finished run's eval.json; returns its rows and the eval.json contents."""
+    """SNAPSHOT.csv from every finished run's eval.json, merged into the rows it holds: a committed row is kept
+    where its data set (its test file) is not under OUT_DIR/data (made on a machine since replaced; a data set made
+    here again replaces all of its rows, a withdrawn data set's runs with the new ones). Returns the rows of the
+    runs under OUT_DIR and their eval.json contents."""
     rows, evals = [], []
     for path in sorted((out / "runs").glob("*/eval.json")):
         e = json.loads(path.read_text())
@@ -37,11 +42,16 @@ def write_runs(out: Path, snapshot: Path) -> tuple[list[dict], list[dict]]:
         for h, errors in e["horizons"].items():
             base = {"run": path.parent.name, "env": e["env"], "model": e["model"], "data": Path(e["data"]).name}
             rows.append({**base, "seed": seed, "horizon": int(h), **{m: errors.get(m) for m in METRICS}})
+    kept = []
+    if snapshot.is_file():
+        with open(snapshot, newline="") as f:
+            kept = [r for r in csv.DictReader(f) if not (out / "data" / r["data"]).is_file()]
+    merged = sorted(kept + rows, key=lambda r: (r["run"], int(r["horizon"])))
     with open(snapshot, "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=["run", "env", "model", "data", "seed", "horizon", *METRICS])
         writer.writeheader()
-        writer.writerows(rows)
-    print(f"{snapshot}: {len({r['run'] for r in rows})} finished runs")
+        writer.writerows(merged)
+    print(f"{snapshot}: {len({r['run'] for r in rows})} finished runs here, {len({r['run'] for r in kept})} kept")
     return rows, evals
 
 
