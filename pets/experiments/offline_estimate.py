@@ -231,8 +231,9 @@ def _data_costs(
                                          lambda e=env, k=kind, t=threads: measure(e, k, t))  # fmt: skip
             if policy.startswith("sac:"):  # SAC's training; its test episodes are rolled with its agent (sb3:)
                 from pets.data.sb3 import sac_steps_done
+                from pets.experiments.offline_data import sac_steps
 
-                steps = int(policy.partition(":")[2])
+                steps = sac_steps(policy, "pets")  # the collection's own reading of sac:STEPS (prepare_data)
                 try:  # what a stopped collection has done; one it would refuse is refused here with its line
                     done = sac_steps_done(Path(path), envs.get(env), steps, seed, max_steps) if resumed else 0
                 except ValueError as err:
