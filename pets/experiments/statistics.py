@@ -290,20 +290,49 @@ def two_level_iqm_ci(
     all values, with the percentile CI of a two-level bootstrap: each replication draws the data sets with
     replacement (outer level), then within each drawn data set its values with replacement (inner level), and
     takes the IQM of the pooled draw. A claim that rests on the data then carries the data sets' variance too,
-    not only that of network initialisation. One data set: the one-level bootstrap of its values."""
+    not only that of network initialisation. One data set: the one-level bootstrap of its values.
+
+    Replication ``r`` draws from ``numpy.random.default_rng(seed)`` the data sets (``integers(0, G, size=G)``),
+    then each drawn one's indices (``integers(0, n_g, size=n_g)``), replication after replication. Where every
+    data set has the same number of values, the draws' bounds do not depend on what was drawn, and one
+    ``integers`` call over the bounds laid out in that order draws the same numbers (numpy's bounded integers
+    take one element at a time from the generator's stream, whether the bound is a scalar or an array;
+    tests/test_stats.py pins it against the loop), so every replication is drawn at once; otherwise each one's
+    inner indices are drawn in one call. Either way the IQMs of replications of one pooled size are computed
+    together."""
     _check_reps(reps)
     check_confidence(confidence, reps)
     samples = [np.asarray(v, dtype=np.float64).reshape(-1) for v in groups.values()]
     if not samples or any(x.size == 0 or not np.isfinite(x).all() for x in samples):
         raise ValueError("two_level_iqm_ci needs finite values in every group and at least one group")
     rng = np.random.default_rng(seed)
-    stats = np.empty(reps)
-    for r in range(reps):
-        drawn = [samples[g] for g in rng.integers(0, len(samples), size=len(samples))]
-        stats[r] = iqm_columns(np.concatenate([x[rng.integers(0, x.size, size=x.size)] for x in drawn])[:, None])[0]
+    count, sizes = len(samples), np.array([x.size for x in samples])
+    values, starts = np.concatenate(samples), np.cumsum(sizes) - sizes
+    if (sizes == sizes[0]).all():
+        size = int(sizes[0])
+        bounds = np.concatenate([np.full(count, count), np.full(count * size, size)])
+        draws = rng.integers(0, np.broadcast_to(bounds, (reps, bounds.size)))
+        picks = starts[draws[:, :count], None] + draws[:, count:].reshape(reps, count, size)
+        return _iqm_and_ci(values, picks.reshape(reps, -1), confidence)
+    picks = []  # the bounds depend on the data sets drawn: two calls a replication
+    for _ in range(reps):
+        outer = rng.integers(0, count, size=count)
+        drawn = sizes[outer]
+        picks.append(np.repeat(starts[outer], drawn) + rng.integers(0, np.repeat(drawn, drawn)))
+    return _iqm_and_ci(values, picks, confidence)
+
+
+def _iqm_and_ci(values: np.ndarray, picks: Sequence[np.ndarray], confidence: float) -> tuple[float, float, float]:
+    """The IQM of ``values`` and the percentile CI of the IQMs of ``values[p]`` for each replication's indices
+    ``p``; replications of one pooled size are computed together."""
+    stats = np.empty(len(picks))
+    lengths = np.array([p.size for p in picks])
+    for length in np.unique(lengths):
+        rows = np.flatnonzero(lengths == length)
+        stats[rows] = iqm_columns(values[np.stack([picks[r] for r in rows]), None])[:, 0]
     tail = (1.0 - confidence) / 2.0
     low, high = np.quantile(stats, [tail, 1.0 - tail])
-    return float(iqm_columns(np.concatenate(samples)[:, None])[0]), float(low), float(high)
+    return float(iqm_columns(values[:, None])[0]), float(low), float(high)
 
 
 def ci_exact_note(low: float | None, high: float | None, null: float, p: float | None, alpha: float = 0.05) -> str:
