@@ -482,3 +482,13 @@ def test_two_level_iqm_ci_draws_every_replication_at_once_bit_for_bit(count, siz
         assert two_level_iqm_ci(groups, reps=3001, seed=seed)[1:] == _two_level_loop(groups, 3001, seed)
     groups = {0: [1.0, 4.0, 2.0], 1: [3.0, 8.0], 2: [0.5]}
     assert two_level_iqm_ci(groups, reps=999, seed=3)[1:] == _two_level_loop(groups, 999, 3)
+
+
+def test_two_level_iqm_ci_in_blocks_continues_the_stream(monkeypatch):
+    """Replications drawn block after block (bounded memory) are the loop's, equal sizes or not."""
+    from pets.experiments import statistics
+
+    monkeypatch.setattr(statistics, "_BLOCK_ELEMENTS", 50)  # 3 replications a block for 3 x 5 values
+    rng = np.random.default_rng(7)
+    for groups in ({d: rng.normal(size=5) for d in range(3)}, {0: rng.normal(size=5), 1: rng.normal(size=2)}):
+        assert statistics.two_level_iqm_ci(groups, reps=1001, seed=1)[1:] == _two_level_loop(groups, 1001, 1)

@@ -82,6 +82,8 @@ ALPHA = 0.05
 #: most C(9, 5) = 126 distinct resample values per column, and 5000 replications put the 2.5 %
 #: quantile within about 0.5 percentage points of probability.
 REPS = 5_000
+#: Bootstrap indices drawn per block of replications in :func:`two_level_iqm_ci` (about 16 MB of int64).
+_BLOCK_ELEMENTS = 2_000_000
 #: A run whose ``standardized_error`` (the RMS prediction error in units of the training data's standard
 #: deviations) exceeds this at a horizon is diverged at that horizon: predicting the data mean scores about 1 and an
 #: independent draw from the data about 1.4, so 100 is far beyond any model that still tracks the state.
@@ -308,31 +310,34 @@ def two_level_iqm_ci(
     rng = np.random.default_rng(seed)
     count, sizes = len(samples), np.array([x.size for x in samples])
     values, starts = np.concatenate(samples), np.cumsum(sizes) - sizes
-    if (sizes == sizes[0]).all():
-        size = int(sizes[0])
-        bounds = np.concatenate([np.full(count, count), np.full(count * size, size)])
-        draws = rng.integers(0, np.broadcast_to(bounds, (reps, bounds.size)))
-        picks = starts[draws[:, :count], None] + draws[:, count:].reshape(reps, count, size)
-        return _iqm_and_ci(values, picks.reshape(reps, -1), confidence)
-    picks = []  # the bounds depend on the data sets drawn: two calls a replication
-    for _ in range(reps):
-        outer = rng.integers(0, count, size=count)
-        drawn = sizes[outer]
-        picks.append(np.repeat(starts[outer], drawn) + rng.integers(0, np.repeat(drawn, drawn)))
-    return _iqm_and_ci(values, picks, confidence)
-
-
-def _iqm_and_ci(values: np.ndarray, picks: Sequence[np.ndarray], confidence: float) -> tuple[float, float, float]:
-    """The IQM of ``values`` and the percentile CI of the IQMs of ``values[p]`` for each replication's indices
-    ``p``; replications of one pooled size are computed together."""
-    stats = np.empty(len(picks))
-    lengths = np.array([p.size for p in picks])
-    for length in np.unique(lengths):
-        rows = np.flatnonzero(lengths == length)
-        stats[rows] = iqm_columns(values[np.stack([picks[r] for r in rows]), None])[:, 0]
+    stats = np.empty(reps)
+    block = max(1, _BLOCK_ELEMENTS // (count + count * int(sizes.max())))  # blocks continue the stream
+    for start in range(0, reps, block):
+        rows = min(block, reps - start)
+        if (sizes == sizes[0]).all():
+            size = int(sizes[0])
+            bounds = np.concatenate([np.full(count, count), np.full(count * size, size)])
+            draws = rng.integers(0, np.broadcast_to(bounds, (rows, bounds.size)))
+            picks = list(starts[draws[:, :count], None] + draws[:, count:].reshape(rows, count, size))
+        else:  # the bounds depend on the data sets drawn: two calls a replication
+            picks = []
+            for _ in range(rows):
+                outer = rng.integers(0, count, size=count)
+                drawn = sizes[outer]
+                picks.append(np.repeat(starts[outer], drawn) + rng.integers(0, np.repeat(drawn, drawn)))
+        stats[start : start + rows] = _pooled_iqms(values, [p.reshape(-1) for p in picks])
     tail = (1.0 - confidence) / 2.0
     low, high = np.quantile(stats, [tail, 1.0 - tail])
     return float(iqm_columns(values[:, None])[0]), float(low), float(high)
+
+
+def _pooled_iqms(values: np.ndarray, picks: Sequence[np.ndarray]) -> np.ndarray:
+    """The IQM of ``values[p]`` for every replication's indices ``p``; those of one pooled size at once."""
+    stats, lengths = np.empty(len(picks)), np.array([p.size for p in picks])
+    for length in np.unique(lengths):
+        rows = np.flatnonzero(lengths == length)
+        stats[rows] = iqm_columns(values[np.stack([picks[r] for r in rows]), None])[:, 0]
+    return stats
 
 
 def ci_exact_note(low: float | None, high: float | None, null: float, p: float | None, alpha: float = 0.05) -> str:
