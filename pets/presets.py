@@ -9,7 +9,7 @@ from typing import Any
 
 from pets.models import MODELS
 
-# Per-env research defaults, following the PETS references (REFERENCE.md section 1); envs without a
+# Per-env research defaults, following PETS (Chua et al., 2018) and its well-known implementations; envs without a
 # published PETS config borrow the nearest one (IDP from InvertedPendulum, Walker2d from Hopper,
 # Ant and Humanoid from HalfCheetah).
 _HALFCHEETAH = {"trials": 300, "planner": {"horizon": 30, "population": 400, "elites": 0.16, "particles": 20}}

@@ -15,6 +15,7 @@ import pytest
 
 from pets.experiments import published, regenerate
 from pets.experiments.cli import main
+from pets.tools.cli import EXIT_DIFFERS
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -53,7 +54,7 @@ def test_check_names_the_first_differing_line_and_report_restores_it(tmp_path, m
         f"{published.RESULTS}/paper_ant_summary.csv: line 3: committed {lines[2][:80]!r}, "
         f"generated {committed.decode().split(chr(10))[2][:80]!r}"
     ]
-    assert main(["report", "--check", "--root", str(root)]) == 1
+    assert main(["report", "--check", "--root", str(root)]) == EXIT_DIFFERS == 1  # as diff
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "paper_ant_summary.csv: line 3" in err[0] and "1 file(s) differ" in err[0], err
     assert main(["report", "--root", str(root)]) == 0

@@ -48,7 +48,7 @@ from pets.experiments.studies.locomotion import runs_table, summary_table
 from pets.experiments.studies.online import study_table
 from pets.experiments.studies.planning import planning_table
 from pets.runs.fileio import atomic_write_bytes
-from pets.tools.cli import fail
+from pets.tools.cli import EXIT_DIFFERS, fail
 
 #: The docs that may hold generated blocks.
 BLOCK_FILES = (
@@ -184,7 +184,7 @@ def report_main(args: argparse.Namespace) -> int:
                     f"run {PROG} report to regenerate)",
                     file=sys.stderr,
                 )
-                return 1
+                return EXIT_DIFFERS
             print(f"{PROG} report --check: {len(published.outputs())} files and the generated blocks are up to date")
             return 0
         changed = write(root)

@@ -1,9 +1,11 @@
 """What every command-line entry point shares: one-line errors and their exit status.
 
 Exit status of every command, run_pets.py, pets.train, pets.collect, pets.evaluate, pets.openloop and
-pets.compare (README, "Exit codes"; :data:`EXIT_CODES` is the one table):
+pets.compare (docs/cli.md, "Exit codes"; :data:`EXIT_CODES` is the one table):
 
 - 0: done;
+- 1 (:data:`EXIT_DIFFERS`): ``pets.compare report --check`` only: a generated file or block differs from what
+  ``report`` makes (as ``diff`` exits 1);
 - 2 (:data:`EXIT_USAGE`): bad input, checked before any long work: a bad option, key or value; a missing,
   corrupt or mismatched file (checkpoint, config.yaml, data set); an output location that cannot be written
   (read-only, under /proc, a file in place of a directory); a run directory in use by another run;
@@ -34,9 +36,12 @@ EXIT_INTERRUPTED = 130
 #: Exit status of work that failed on good input (model training diverged, planning got no finite return, or a
 #: write failed while it ran, e.g. a full disk).
 EXIT_FAILED = 3
+#: Exit status of ``pets.compare report --check`` when a generated file differs from what ``report`` makes.
+EXIT_DIFFERS = 1
 #: Every exit status of the commands and what it means.
 EXIT_CODES = {
     0: "done",
+    EXIT_DIFFERS: "pets.compare report --check: a generated file is out of date",
     EXIT_USAGE: "bad input, one line before any long work",
     EXIT_FAILED: "the work failed on good input (what completed before is kept)",
     EXIT_INTERRUPTED: "interrupted (Ctrl-C)",
