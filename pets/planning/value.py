@@ -27,7 +27,7 @@ class ValueConfig:
     """``value.*``: a learned terminal value for the planner (:class:`ValueFunction`; docs/planning.md)."""
 
     # true: a candidate's return is its horizon rewards plus V(final state) for particles that did not terminate,
-    # V fitted after every trial to the discounted real returns-to-go. false: the horizon rewards only (PETS).
+    # V fitted whenever the model trains to the discounted real returns-to-go. false: the horizon rewards only (PETS).
     enabled: bool = False
     discount: float = 0.99  # of the returns V estimates: they look about 1 / (1 - discount) steps ahead
     hidden_size: int = 64
