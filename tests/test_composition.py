@@ -54,7 +54,7 @@ def test_the_data_set_is_read_from_the_test_files_name():
     ]
 
 
-def test_the_primary_family_is_gem_and_gem_se_against_delta_groupfeat_with_holm_over_the_tests_present():
+def test_the_primary_family_is_gem_and_gem_se_against_delta_groupfeat_with_holm_over_the_registered_four():
     rows = _study(0.9, 1.05) + [{**r, "env": "humanoid"} for r in _study(0.95, 0.97)]
     levels = {"ant": (LEVEL, "given"), "humanoid": (LEVEL, "given")}
     primary = composition.primary_rows(rows, levels)
@@ -71,6 +71,25 @@ def test_the_primary_family_is_gem_and_gem_se_against_delta_groupfeat_with_holm_
     tested = [by[e, m]["p_value_exact"] for e in ("ant", "humanoid") for m in ("gem", "gem-se")]
     assert [by[e, m]["p_value_holm"] for e in ("ant", "humanoid") for m in ("gem", "gem-se")] == holm(tested)
     assert by["ant", "gem"]["ratio_to_delta"] == pytest.approx(0.9)  # every pair 0.9: the IQM is 0.9
+
+
+def test_a_test_of_the_family_not_yet_run_enters_holm_with_p_1():
+    """Ant alone (Humanoid not yet run): Holm over the registered 4, Humanoid's two tests at p = 1 (statsmodels);
+    an upper bound on the Holm p that Ant's tests get once Humanoid's real p-values join, whatever they are."""
+    from statsmodels.stats.multitest import multipletests
+
+    levels = {"ant": (LEVEL, "given"), "humanoid": (LEVEL, "given")}
+    ant = {r["model"]: r for r in composition.primary_rows(_study(0.9, 0.8), levels)}
+    exact = [ant["gem"]["p_value_exact"], ant["gem-se"]["p_value_exact"]]
+    assert max(exact) < 0.05  # every pair lower: both significant alone, so the family's size decides
+    assert [ant["gem"]["p_value_holm"], ant["gem-se"]["p_value_holm"]] == pytest.approx(
+        multipletests([*exact, 1.0, 1.0], method="holm")[1][:2]
+    )
+    assert ant["gem"]["p_value_holm"] > multipletests(exact, method="holm")[1][0]  # not Holm over the 2 present
+    for humanoid in ((0.9, 0.8), (1.2, 1.2)):  # Humanoid's tests significant, then not
+        rows = _study(0.9, 0.8) + [{**r, "env": "humanoid"} for r in _study(*humanoid)]
+        full = {(r["env"], r["model"]): r for r in composition.primary_rows(rows, levels)}
+        assert all(full["ant", m]["p_value_holm"] <= ant[m]["p_value_holm"] for m in ("gem", "gem-se"))
 
 
 def test_rotation_secondary_reads_the_primarys_horizons_and_counts_a_diverged_run_as_every_angle_pi():

@@ -196,12 +196,16 @@ def primary_rows(
     seed: int = 0,
     baseline: str = BASELINE,
     arms: Collection[str] | None = None,
+    family: Collection[tuple[str, str]] = (),
 ) -> list[dict[str, Any]]:
     """The :data:`PRIMARY_COLUMNS` rows (one per env and arm, the baseline first) from per-run rows with ``env``,
     ``model``, ``seed``, ``horizon`` and ``standardized_error``; ``levels`` {env: (level, where it came from)},
     :data:`DEFAULT_LEVEL` for the envs it lacks. Envs without baseline runs or without a tracking horizon get
     no test (their rows say why in ``verdict``). ``baseline``: the arm whose median sets the tracking horizons and
-    that every other arm is paired with; ``arms``: the arms tested (default: every other model of ``rows``)."""
+    that every other arm is paired with; ``arms``: the arms tested (default: every other model of ``rows``).
+    ``family``: the registered tests, ``(env, arm)``; one that has no test yet enters Holm's adjustment with p = 1,
+    an upper bound on the Holm p of every test present (Holm's adjusted p of a test never grows when another test's
+    p falls), so a verdict read before the whole family has run holds at the registered family-wise level."""
     levels = dict(levels or {})
     out: list[dict[str, Any]] = []
     for env, models in _errors(rows).items():
@@ -236,7 +240,8 @@ def primary_rows(
                 )
             out.append(row)
     tested = [i for i, r in enumerate(out) if P_EXACT in r]
-    for i, p in zip(tested, holm([out[i][P_EXACT] for i in tested])):
+    missing = set(family) - {(out[i]["env"], out[i]["model"]) for i in tested}
+    for i, p in zip(tested, holm([out[i][P_EXACT] for i in tested] + [1.0] * len(missing))):
         r = out[i]
         r[P_HOLM] = p
         r["verdict"] = _verdict(r[RATIO[0]], p)
