@@ -79,6 +79,45 @@ def test_the_verdict_is_the_mean_over_seeds_against_the_threshold_with_a_run_wit
     assert partial["verdict"] == "partial" and math.isnan(partial["mean"])
 
 
+def test_a_run_given_up_on_counts_as_zero_where_it_did_not_reach_and_the_verdict_is_read(tmp_path, capsys):
+    """``--crashed RUN``: a run that stopped at 30k env steps (its training diverged) is ``crashed``, keeps its real
+    25k endpoint and counts 0 at 50k and 100k; the verdict is read with it (registered: the worst outcome), where
+    the same run given as a run leaves the env ``partial``."""
+    import yaml
+
+    def run_dir(name: str, seed: int, episodes: int, reward: float) -> Path:
+        d = tmp_path / name
+        d.mkdir()
+        (d / "config.yaml").write_text(yaml.safe_dump({"env": "halfcheetah", "head": "delta", "seed": seed,
+                                                       "max_env_steps": gate.BUDGET}))  # fmt: skip
+        rows = [episode(1000 + 1000 * (i + 1), reward, 1000) for i in range(episodes)]
+        with (d / "metrics.csv").open("w", newline="") as f:
+            writer = csv.DictWriter(f, ["trial", *rows[0], "plan_cpu_s", "cpu_time_s"])
+            writer.writeheader()
+            writer.writerows({"trial": i, "plan_cpu_s": 1.0, "cpu_time_s": 9.0 * i} | r for i, r in enumerate(rows))
+        return d
+
+    done = [run_dir(f"s{seed}", seed, 99, 4000.0) for seed in (0, 1)]  # 100k env steps with the seed data
+    stopped = run_dir("s2", 2, 29, 3500.0)
+    assert gate.main([*map(str, done), "--crashed", str(stopped), "--out", str(tmp_path / "gate")]) == 0
+    rows = list(csv.DictReader((tmp_path / "gate_runs.csv").open()))
+    crashed = rows[-1]
+    assert (crashed["seed"], crashed["status"], crashed["env_steps"]) == ("2", "crashed", "30000")
+    assert float(crashed["reward_25k"]) == pytest.approx(3500.0) and crashed["reward_50k"] == crashed["reward_100k"]
+    assert float(crashed["reward_100k"]) == 0.0
+    (summary,) = gate.summary_rows(rows)
+    assert summary["verdict"] == "not passed" and summary["mean"] == pytest.approx(8000 / 3)  # below 2,800
+    assert gate.main([*map(str, done), str(stopped), "--out", str(tmp_path / "as-run")]) == 0
+    (partial,) = gate.summary_rows(list(csv.DictReader((tmp_path / "as-run_runs.csv").open())))
+    assert partial["verdict"] == "partial"
+    capsys.readouterr()
+    for args in ([str(stopped), "--crashed", str(stopped)], ["--pilots", "--crashed", str(stopped)]):
+        with pytest.raises(SystemExit) as exit_info:
+            gate.main([*args, "--out", str(tmp_path / "bad")])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert exit_info.value.code == 2 and len(err) == 1 and "--crashed" in err[0], err
+
+
 def test_oracle_files_become_rows_and_no_input_is_one_line_exit_2(tmp_path):
     import json
     import sys

@@ -1,8 +1,8 @@
 """The locomotion gate (docs/studies/locomotion_gate.md): does PETS at ``--preset locomotion`` learn to run and
 walk within 100k env steps? The endpoint of one online run, the per-run and summary rows, the verdict.
 
-    python -m pets.experiments.gate RUN_DIR [RUN_DIR ...] [--sac SAC_DATA ...] [--peer PEER_CSV ...] \
-        --out docs/results/locomotion_gate
+    python -m pets.experiments.gate RUN_DIR [RUN_DIR ...] [--crashed RUN_DIR ...] [--sac SAC_DATA ...] \
+        [--peer PEER_CSV ...] --out docs/results/locomotion_gate
     python -m pets.experiments.gate --pilots RUN_DIR [RUN_DIR ...] --out docs/results/locomotion_pilots
 
 Writes the runs' rows and their learning curves (``OUT_runs.csv`` and ``OUT_curves.csv``; pilots: ``OUT.csv`` and
@@ -11,6 +11,8 @@ Writes the runs' rows and their learning curves (``OUT_runs.csv`` and ``OUT_curv
 The endpoint of a run at ``n`` env steps: the mean return of the last :data:`WINDOW` complete episodes (ended by
 a fall or by the episode's step limit, not by the budget) whose last step is at or before ``n`` (the seed data's
 random episodes are not trials and do not count). Reads each run directory's ``config.yaml`` and ``metrics.csv``.
+A run the gate gave up on (``--crashed``: it crashed or diverged and cannot go on) counts as the worst outcome, as
+registered: an endpoint of 0 at every checkpoint it did not reach.
 """
 
 from __future__ import annotations
@@ -32,6 +34,8 @@ THRESHOLDS = {"halfcheetah": 2800.0, "ant": 1170.0, "hopper": 1130.0}
 BUDGET = 100_000
 CHECKPOINTS = (25_000, 50_000, 100_000)
 WINDOW = 5
+#: The status of a run the gate gave up on (``--crashed``): in the verdict with the worst outcome, 0.
+CRASHED = "crashed"
 RUN_COLUMNS = [
     "env",
     "agent",
@@ -94,6 +98,12 @@ def full_length(cfg: Mapping[str, Any]) -> int:
 def run_row(run_dir: Path, agent: str | None = None) -> dict[str, Any]:
     """The :data:`RUN_COLUMNS` row of one run directory (``agent``: default the run's head)."""
     return config_row(*read_run(run_dir), agent=agent)
+
+
+def crashed_row(run_dir: Path) -> dict[str, Any]:
+    """:func:`run_row` of a run the gate gave up on: status ``crashed``, 0 at every checkpoint it did not reach."""
+    row = run_row(run_dir)
+    return row | {k: 0.0 for k in row if k.startswith("reward_") and not math.isfinite(row[k])} | {"status": CRASHED}
 
 
 def config_row(cfg: Mapping[str, Any], rows: Sequence[Mapping[str, Any]], agent: str | None = None) -> dict[str, Any]:
@@ -166,8 +176,8 @@ def endpoint_budget(runs: Sequence[Mapping[str, Any]]) -> int:
 def summary_rows(runs: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
     """Per (env, agent): the endpoint at its budget (:func:`endpoint_budget`) over its runs (mean, IQM with a
     bootstrap CI) and, for the gate's agent ``delta``, the verdict by the pre-registered rule (the mean over the
-    seeds reaches the threshold; a run with no endpoint counts as 0, the worst outcome). ``partial`` while a run is
-    short of the budget."""
+    seeds reaches the threshold; a run with no endpoint or crashed counts as 0, the worst outcome). ``partial``
+    while a run is short of the budget."""
     from pets.experiments.report import csv_number
     from pets.experiments.statistics import iqm_ci
 
@@ -176,7 +186,7 @@ def summary_rows(runs: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
         mine = [r for r in runs if r["env"] == env and r["agent"] == agent]
         at = endpoint_budget(mine)
         final = np.array([csv_number(r[f"reward_{at // 1000}k"]) for r in mine], dtype=np.float64)
-        partial = any(r["status"] != "complete" for r in mine)
+        partial = any(r["status"] not in ("complete", CRASHED) for r in mine)
         scores = np.where(np.isfinite(final), final, 0.0)  # a complete run without an endpoint: the worst
         point, low, high = iqm_ci(scores[:, None]) if not partial else ([math.nan],) * 3
         threshold = THRESHOLDS.get(env, math.nan)
@@ -363,6 +373,14 @@ def main(argv: list[str] | None = None) -> int:
 
     p = OneLineParser(prog="pets.experiments.gate", description=__doc__.splitlines()[0])
     p.add_argument("run_dirs", nargs="*", type=Path, help="online run directories (run_pets.py --out)")
+    p.add_argument(
+        "--crashed",
+        nargs="*",
+        type=Path,
+        default=[],
+        help="run directories the gate gave up on "
+        "(crashed or diverged, cannot go on): counted with the worst outcome, 0",
+    )
     p.add_argument("--sac", nargs="*", type=Path, default=[], help="SAC data sets (pets.collect --policy sac:STEPS)")
     p.add_argument("--peer", nargs="*", type=Path, default=[], help="mbrl-lib runs (peer_mbrl.py learn CSVs)")
     p.add_argument("--out", type=Path, required=True, help="output prefix (see above)")
@@ -371,16 +389,20 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--replace", action="store_true", help=REPLACE_HELP + "; likewise the rows of --oracle files")
     args = p.parse_args(argv)
     keep = () if args.replace else ("run",) if args.pilots else ("env", "agent", "seed")
-    if not (args.run_dirs or args.sac or args.peer or args.oracle):
+    if not (args.run_dirs or args.crashed or args.sac or args.peer or args.oracle):
         p.error("give run directories, --sac data sets, --peer CSVs or --oracle files")
-    missing = [str(d) for d in args.run_dirs if not (d / "config.yaml").is_file()]
+    if args.pilots and args.crashed:
+        p.error("--crashed is for the gate's runs, not --pilots")
+    if set(args.run_dirs) & set(args.crashed):
+        p.error("a run directory is given both as a run and as --crashed; give it once")
+    missing = [str(d) for d in [*args.run_dirs, *args.crashed] if not (d / "config.yaml").is_file()]
     missing += [str(path) for path in [*args.sac, *args.peer, *args.oracle] if not path.is_file()]
     if missing:
         p.error(f"not run directories (no config.yaml) or files: {', '.join(missing)}")
     if args.oracle:
         oracle = [row for path in args.oracle for row in oracle_rows(path)]
         write_csv(Path(f"{args.out}_oracle.csv"), oracle, ORACLE_COLUMNS, () if args.replace else ("env", "source"))
-    if not (args.run_dirs or args.sac or args.peer):
+    if not (args.run_dirs or args.crashed or args.sac or args.peer):
         rows = []
     elif args.pilots:
         rows = [pilot_row(d) for d in args.run_dirs]
@@ -389,9 +411,11 @@ def main(argv: list[str] | None = None) -> int:
         write_csv(Path(f"{args.out}_curves.csv"), curves, PILOT_CURVE_COLUMNS, keep)
     else:
         refs = [sac_run(path) for path in args.sac] + [r for path in args.peer for r in peer_runs(path)]
-        rows = [run_row(d) for d in args.run_dirs] + [reference_row(r) for r in refs]
+        rows = [run_row(d) for d in args.run_dirs] + [crashed_row(d) for d in args.crashed]
+        rows += [reference_row(r) for r in refs]
         write_csv(Path(f"{args.out}_runs.csv"), rows, RUN_COLUMNS, keep)
-        curves = [c for d in args.run_dirs for c in run_curve(d)] + [c for r in refs for c in reference_curve(r)]
+        runs = [*args.run_dirs, *args.crashed]
+        curves = [c for d in runs for c in run_curve(d)] + [c for r in refs for c in reference_curve(r)]
         write_csv(Path(f"{args.out}_curves.csv"), curves, CURVE_COLUMNS, keep)
     for r in rows:
         print("  ".join(f"{k}={cell_text(v)}" for k, v in r.items()), file=sys.stdout)
