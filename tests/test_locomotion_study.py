@@ -290,6 +290,10 @@ def test_the_papers_claim_is_worded_by_the_registered_rule_per_env(tmp_path):
     )
     assert win["ant"].startswith("- ant: **not shown** (the gate: not passed;")
     assert win["hopper"].startswith("- hopper: **not shown** (the gate: not run;")
+    gates.append({"env": "hopper", "agent": "delta", "verdict": "partial"})
+    partial = "- hopper: not yet (the gate: partial; the study runs there once it passes)"
+    assert claim(higher, lower)["hopper"] == partial
+    gates.pop()
     assert claim(lower, higher)["halfcheetah"].startswith("- halfcheetah: **not reproduced** (gem's endpoint against "
                                                           "delta's: lower, Holm p 0.00586;")  # fmt: skip
     mixed = [d + (200 if i % 2 else -200) for i, d in enumerate(delta)]

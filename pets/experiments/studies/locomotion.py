@@ -215,13 +215,16 @@ def claim_lines(summary: Sequence[Mapping[str, str]], gate_summary: Sequence[Map
     2026-11-30): *reproduced* where the paper's GEM (``gem``) ends higher than ``delta`` at family-wise
     :data:`ALPHA` (Holm over the study's tests); *not reproduced* where every arm has its pre-registered pairs and
     it does not (no difference shown, or lower); *not shown* where the gate did not pass (``delta`` below
-    competence: the study does not run there); *not yet* while pairs are missing. Each names the other arms'
-    outcomes beside it."""
+    competence: the study does not run there); *not yet* while pairs are missing or the gate is still running.
+    Each names the other arms' outcomes beside it."""
     gate_verdicts = {r["env"]: r["verdict"] for r in gate_summary if r["agent"] == BASELINE}
     rows = {(r["env"], r["model"]): r for r in summary}
     lines = []
     for env in ENVS:
         gate_verdict = gate_verdicts.get(env, "not run")
+        if gate_verdict == "partial":  # the gate still runs there: the study may yet start
+            lines.append(f"- {env}: not yet (the gate: partial; the study runs there once it passes)")
+            continue
         if gate_verdict != "passed":
             lines.append(f"- {env}: **not shown** (the gate: {gate_verdict}; delta is not shown competent there, so "
                          "the study does not run)")  # fmt: skip
