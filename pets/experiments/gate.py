@@ -373,14 +373,8 @@ def main(argv: list[str] | None = None) -> int:
 
     p = OneLineParser(prog="pets.experiments.gate", description=__doc__.splitlines()[0])
     p.add_argument("run_dirs", nargs="*", type=Path, help="online run directories (run_pets.py --out)")
-    p.add_argument(
-        "--crashed",
-        nargs="*",
-        type=Path,
-        default=[],
-        help="run directories the gate gave up on "
-        "(crashed or diverged, cannot go on): counted with the worst outcome, 0",
-    )
+    crashed = "runs given up on (crashed or diverged, cannot go on): the worst outcome, 0"
+    p.add_argument("--crashed", nargs="*", type=Path, default=[], help=crashed)
     p.add_argument("--sac", nargs="*", type=Path, default=[], help="SAC data sets (pets.collect --policy sac:STEPS)")
     p.add_argument("--peer", nargs="*", type=Path, default=[], help="mbrl-lib runs (peer_mbrl.py learn CSVs)")
     p.add_argument("--out", type=Path, required=True, help="output prefix (see above)")
