@@ -10,11 +10,10 @@ Measured agreement with the simulator: docs/envs.md.
 
 from __future__ import annotations
 
-import re
 from functools import cache
 from typing import Any
 
-from envs.catalogue import GYM_IDS, build
+from envs.catalogue import GYM_IDS, build, catalogue_key
 from envs.custom import custom_spec, file_name, register, registered
 from envs.layout import Group, ObsLayout
 from envs.render import select_gl_backend
@@ -50,9 +49,8 @@ def canonical_name(name: str) -> str:
         raise ValueError(f"env name must be a string, got {type(name).__name__}; valid: {', '.join(names())}")
     if registered(name) is not None:  # your own env: registered, or an import path module:ATTR
         return name
-    key = re.sub(r"[^a-z0-9]", "", name.lower())
-    key = re.sub(r"v5$", "", key) if key not in GYM_IDS else key
-    if key not in GYM_IDS:
+    key = catalogue_key(name)
+    if key is None:
         valid = ", ".join(f"{n} ({g})" for n, g in GYM_IDS.items())
         raise ValueError(
             f"unknown env {name!r}; valid names (or gymnasium ids): {valid}; or your own as package.module:ATTR"

@@ -29,6 +29,7 @@ Index maps (obs_dim; "vel" = MuJoCo qvel entries, clipped to +-10 where noted):
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable
 from functools import partial
 from typing import Any
@@ -268,6 +269,15 @@ GYM_IDS = {
     "ant": "Ant-v5",
     "humanoid": "Humanoid-v5",
 }
+
+
+def catalogue_key(name: str) -> str | None:
+    """The catalogue env ``name`` spells (case, ``_``, ``-``, spaces and a ``-v5`` suffix ignored), else None."""
+    key = re.sub(r"[^a-z0-9]", "", name.lower())
+    key = re.sub(r"v5$", "", key) if key not in GYM_IDS else key
+    return key if key in GYM_IDS else None
+
+
 LAYOUTS: dict[str, Callable[[], ObsLayout]] = {
     "invertedpendulum": pendulum_layout,
     "inverteddoublependulum": double_pendulum_layout,

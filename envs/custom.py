@@ -54,8 +54,11 @@ def custom_spec(
     termination; ``None``: never terminates), for any leading dims. ValueError (one line) for a gym id gymnasium
     cannot make, a layout that does not cover the observation, functions of the wrong shape (on a small, a large
     and a 3-d batch) or that raise, and a reward that is not the env's on the real transitions (a layout with
-    entries swapped, a wrong formula): ``reward_differs=True`` accepts a reward that differs on purpose (shaped).
+    entries swapped, a wrong formula): ``reward_differs=True`` accepts a reward that differs on purpose (shaped),
+    never one that is not finite; and for a name that is not a non-empty string, a layout that is not an
+    ``envs.ObsLayout`` or an ``episode_length`` that is not a positive int.
     """
+    _check_arguments(name, layout, reward_fn, terminated_fn, episode_length)
     try:
         env = gymnasium_make(gym_id, **dict(env_kwargs or {}))
     except Exception as err:  # gymnasium's NameNotFound, DeprecatedEnv, a constructor's TypeError, ...
@@ -91,6 +94,21 @@ def custom_spec(
         reward_fn=reward_fn,
         terminated_fn=terminated_fn,
     )
+
+
+def _check_arguments(name: Any, layout: Any, reward_fn: Any, terminated_fn: Any, episode_length: Any) -> None:
+    """ValueError (one line) for a custom_spec argument of the wrong kind, before gymnasium builds anything."""
+    if not isinstance(name, str) or not name.strip():
+        raise ValueError(f"custom_spec: name must be a non-empty string, got {name!r}")
+    if not isinstance(layout, ObsLayout):
+        raise ValueError(f"{name}: layout must be an envs.ObsLayout, got {type(layout).__name__}")
+    for what, fn in (("reward_fn", reward_fn), ("terminated_fn", terminated_fn or _never)):
+        if not callable(fn):
+            raise ValueError(f"{name}: {what} must be a function (obs, act, next_obs) -> tensor, got {fn!r}")
+    if episode_length is not None and (
+        isinstance(episode_length, bool) or not isinstance(episode_length, (int, np.integer)) or episode_length < 1
+    ):
+        raise ValueError(f"{name}: episode_length must be a positive int (or None: the env's), got {episode_length!r}")
 
 
 #: Real transitions custom_spec steps to check a spec's functions (from reset seed 0, uniformly random actions).
@@ -158,6 +176,8 @@ def check_functions(name: str, reward_fn: RewardFn, terminated_fn: RewardFn, tra
                 raise ValueError(f"{name}: terminated_fn must return a bool tensor, got {out.dtype}")
             if kind == "float" and not out.is_floating_point():
                 raise ValueError(f"{name}: reward_fn must return a float tensor, got {out.dtype}")
+            if kind == "float" and not torch.isfinite(out).all():
+                raise ValueError(f"{name}: reward_fn returned nan or inf on a real transition; a reward must be finite")
 
 
 def check_angles(name: str, layout: ObsLayout, transitions: list[tuple], positions: list[np.ndarray | None]) -> None:
@@ -246,12 +266,15 @@ def file_name(name: str) -> str:
 
 def register(spec: EnvSpec) -> EnvSpec:
     """Make ``spec`` an env name (``spec.name``) in this process; returns it. A catalogue name cannot be taken."""
-    from envs.catalogue import GYM_IDS
+    from envs.catalogue import GYM_IDS, catalogue_key
 
     if not isinstance(spec, EnvSpec):
         raise ValueError(f"register takes an envs.EnvSpec, got {type(spec).__name__}")
-    if spec.name in GYM_IDS:
-        raise ValueError(f"{spec.name!r} is a catalogue env; register yours under another name")
+    if catalogue_key(spec.name) is not None:
+        raise ValueError(
+            f"{spec.name!r} names the catalogue env {catalogue_key(spec.name)} ({GYM_IDS[catalogue_key(spec.name)]}); "
+            "register yours under another name"
+        )
     check_dims(spec)
     _REGISTRY[spec.name] = spec
     return spec
@@ -282,6 +305,8 @@ def registered(name: str) -> EnvSpec | None:
             spec = found()
         except Exception as err:
             raise ValueError(f"env {name}: {attr}() raised {type(err).__name__}: {_line(err)}") from None
+        if not isinstance(spec, EnvSpec):
+            raise ValueError(f"env {name}: {attr}() returned a {type(spec).__name__}, not an envs.EnvSpec")
     else:
         spec = found
     if not isinstance(spec, EnvSpec):

@@ -91,3 +91,38 @@ def test_a_spec_that_does_not_fit_its_env_is_refused_in_one_line():
         envs.custom_spec("p", "Pendulum-v1", layout, lambda o, a, n: o)
     with pytest.raises(ValueError, match="catalogue env"):
         envs.register(envs.custom_spec("reacher", "Pendulum-v1", layout, pendulum_reward))
+
+
+@pytest.mark.parametrize(
+    "change, fragment",
+    [
+        ({"episode_length": -5}, "episode_length must be a positive int (or None: the env's), got -5"),
+        ({"episode_length": 2.5}, "episode_length must be a positive int"),
+        ({"episode_length": True}, "episode_length must be a positive int"),
+        ({"layout": None}, "layout must be an envs.ObsLayout, got NoneType"),
+        ({"name": ""}, "custom_spec: name must be a non-empty string, got ''"),
+        ({"name": 3}, "custom_spec: name must be a non-empty string, got 3"),
+        ({"reward_fn": 3}, "reward_fn must be a function (obs, act, next_obs) -> tensor, got 3"),
+        ({"terminated_fn": "never"}, "terminated_fn must be a function"),
+        ({"reward_fn": lambda o, a, n: pendulum_reward(o, a, n) * torch.nan, "reward_differs": True},
+         "reward_fn returned nan or inf on a real transition"),
+    ],
+)  # fmt: skip
+def test_a_spec_argument_of_the_wrong_kind_is_one_line_before_any_run(change, fragment):
+    """Each was accepted, then failed deep inside a run (a traceback from run_pets.py for a negative episode length,
+    a planning error blaming the model for a NaN reward) or raised an AttributeError; a shaped reward
+    (reward_differs) may differ from the env's, never be non-finite."""
+    layout = ObsLayout(obs_dim=3, groups=(Group("pole", "SO2_cossin", (0, 1)),), velocities=(2,))
+    kwargs = {"name": "p", "gym_id": "Pendulum-v1", "layout": layout, "reward_fn": pendulum_reward, **change}
+    with pytest.raises(ValueError) as err:
+        envs.custom_spec(**kwargs)
+    assert fragment in str(err.value) and "\n" not in str(err.value)
+
+
+def test_a_name_that_spells_a_catalogue_env_cannot_be_registered():
+    """``Reacher`` or ``Reacher-v5`` would have shadowed the catalogue's Reacher for the whole process."""
+    layout = ObsLayout(obs_dim=3, groups=(Group("pole", "SO2_cossin", (0, 1)),), velocities=(2,))
+    for name in ("Reacher", "Reacher-v5", "half_cheetah"):
+        with pytest.raises(ValueError, match=r"names the catalogue env (reacher|halfcheetah) \("):
+            envs.register(envs.custom_spec(name, "Pendulum-v1", layout, pendulum_reward))
+        assert envs.get(name).gym_id in ("Reacher-v5", "HalfCheetah-v5")

@@ -116,6 +116,13 @@ SPEC_ERRORS = {
         "SPEC = envs.custom_spec('p', 'Pendulum-v1', L, pendulum_reward)\n",
         "p: group 'pole' (SO2_cossin) reads its angle the wrong way round",
     ),
+    "returns_none": ("def SPEC():\n    return None\n", "SPEC() returned a NoneType, not an envs.EnvSpec"),
+    "episode_length": (  # accepted before, then a traceback once the run reached its first episode
+        "import envs\nfrom tests.custom_envs import pendulum_reward\nfrom envs import Group, ObsLayout\n"
+        "L = ObsLayout(obs_dim=3, groups=(Group('pole', 'SO2_cossin', (0, 1)),), velocities=(2,))\n"
+        "SPEC = envs.custom_spec('p', 'Pendulum-v1', L, pendulum_reward, episode_length=-5)\n",
+        "p: episode_length must be a positive int (or None: the env's), got -5",
+    ),
     "act_dim": (
         "import dataclasses\nfrom tests.custom_envs import pendulum\n"
         "SPEC = dataclasses.replace(pendulum(), act_dim=2, action_low=(-2.0, -2.0), action_high=(2.0, 2.0))\n",
