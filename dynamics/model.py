@@ -148,6 +148,11 @@ class DynamicsModel(nn.Module):
             raise ValueError(f"observations {tuple(obs0.shape)} and actions {tuple(actions.shape)}: batch dims differ")
         if actions.shape[-2] == 0:
             raise ValueError(f"actions {tuple(actions.shape)} have no steps: a rollout needs a horizon H >= 1")
+        for what, x in (("observations", obs0), ("actions", actions)):
+            if not torch.isfinite(x).all():
+                raise ValueError(f"{what} hold nan or inf; the model predicts from finite inputs only")
+        if generator is not None and not isinstance(generator, torch.Generator):
+            raise ValueError(f"generator must be a torch.Generator (or None), got {type(generator).__name__}")
         batch = obs0.shape[:-1]
         obs0, actions = obs0.reshape(-1, self.obs_dim), actions.reshape(-1, *actions.shape[-2:])
         out = self._rollout(obs0, actions, mode, generator).reshape(*batch, actions.shape[1], self.obs_dim)

@@ -109,8 +109,17 @@ class PETS:
 
     def act(self, obs: np.ndarray) -> np.ndarray:
         """One MPC step: the first action of a plan from ``obs`` (act_dim,), warm-started from the last plan.
-        Call :meth:`reset` at the start of every new episode."""
-        return self._run.agent.act(np.asarray(obs, dtype=np.float32))
+        Call :meth:`reset` at the start of every new episode. ValueError (one line) for anything but a finite
+        observation."""
+        if isinstance(obs, tuple) and len(obs) == 2 and isinstance(obs[1], dict):
+            raise ValueError("act takes the observation, not reset()'s (obs, info) pair: obs, _ = env.reset()")
+        try:
+            x = np.asarray(obs, dtype=np.float32)
+        except (TypeError, ValueError):
+            raise ValueError(f"obs must be an array of numbers, got {type(obs).__name__} {obs!r:.60}") from None
+        if not np.isfinite(x).all():
+            raise ValueError(f"obs holds nan or inf at entries {np.flatnonzero(~np.isfinite(x)).tolist()}")
+        return self._run.agent.act(x)
 
     def reset(self) -> None:
         """Forget the warm start (a new episode)."""
@@ -128,9 +137,12 @@ class PETS:
         from pets.runs.fileio import DirectoryInUse, locked
 
         path = Path(path)
+        if path.exists() and not path.is_dir():
+            raise ConfigError(f"{path} is a file; save to a directory (new, or this run's own)")
         try:
             with locked(path):
-                if (path / rundir.CONFIG_FILE).exists() and path.resolve() not in self._dirs:
+                ours = path.resolve() in self._dirs
+                if not ours and any((path / f).exists() for f in (rundir.CONFIG_FILE, rundir.CHECKPOINT_FILE)):
                     raise ConfigError(
                         f"{path} already holds a run; save to another directory, or continue that run with "
                         f"pets.PETS.load({str(path)!r})"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import warnings
 from collections.abc import Callable
 from pathlib import Path
@@ -25,7 +26,11 @@ from pets.runs.hardware import emulated_bf16_warning
 
 
 def resolve_device(name: str) -> torch.device:
-    """``auto`` picks CUDA when available; asking for CUDA without one is a clear error."""
+    """``auto`` picks CUDA when available; asking for CUDA without one, or for another device, is a clear error."""
+    from pets.config import DEVICES
+
+    if not isinstance(name, str) or not (name in DEVICES or re.fullmatch(r"cuda:\d+", name)):
+        raise ConfigError(f"device must be one of {', '.join(DEVICES)} (or cuda:N), got {name!r}")
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     if name.startswith("cuda") and not torch.cuda.is_available():
@@ -172,7 +177,7 @@ def load_model(run_dir: str | Path, device: str | torch.device = "cpu") -> tuple
     import envs
 
     spec = envs.get(cfg.env)
-    model = make_model(cfg, spec, torch.device(device))
+    model = make_model(cfg, spec, device if isinstance(device, torch.device) else resolve_device(device))
     rundir.load_model_state(model, state)
     model.eval()
     return cfg, spec, model

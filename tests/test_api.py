@@ -91,9 +91,21 @@ def test_predict_is_the_models_own_decoding_and_types_follow_the_input(tmp_path)
     assert isinstance(model.predict(o, a), torch.Tensor)
     with pytest.raises(ValueError, match="expected observations"):
         model.predict(obs[..., :3], act)
+    nan_obs = obs.copy()
+    nan_obs[1, 2, 0] = np.nan
+    for bad in ((nan_obs, act), (obs, np.full_like(act, np.inf))):  # were: nan predictions, no error
+        with pytest.raises(ValueError, match="hold nan or inf; the model predicts from finite inputs only"):
+            model.predict(*bad)
+    with pytest.raises(ValueError, match="generator must be a torch.Generator"):
+        model.predict(obs, act, mode="sample", generator=0)
+    for device, fragment in (("gpu", "device must be one of auto, cpu, cuda"), ("cuda", "no CUDA device")):
+        if device == "cuda" and torch.cuda.is_available():
+            continue  # the machine has one: load_model takes it
+        with pytest.raises(ConfigError, match=fragment):  # were: torch's own RuntimeError / AssertionError
+            pets.load_model(tmp_path / "run", device=device)
 
 
-def test_bad_input_is_one_clear_error():
+def test_bad_input_is_one_clear_error(tmp_path):
     with pytest.raises(ConfigError, match="unknown env 'nope'"):
         pets.PETS("nope")
     with pytest.raises(ConfigError, match="unknown config key 'planner.nope'"):
@@ -104,3 +116,21 @@ def test_bad_input_is_one_clear_error():
         pets.PETS.load("/nonexistent-run")
     with pytest.raises(ValueError, match="trials must be a positive int"):
         pets.PETS("reacher", preset="fast").learn(trials=0)
+    agent = pets.PETS("invertedpendulum", preset="fast", threads=1)
+    obs = np.zeros(4)
+    for bad, fragment in (
+        ((obs, {}), r"act takes the observation, not reset\(\)'s \(obs, info\) pair"),
+        (np.array([0.0, np.nan, 0.0, 0.0]), r"obs holds nan or inf at entries \[1\]"),  # was: blamed the model
+        ("hello", "obs must be an array of numbers, got str"),
+    ):
+        with pytest.raises(ValueError, match=fragment):
+            agent.act(bad)
+    orphan = tmp_path / "orphan"  # a checkpoint without its config.yaml: another run's, never written over
+    orphan.mkdir()
+    (orphan / "checkpoint.pt").write_bytes(b"trials_done=7")
+    with pytest.raises(ConfigError, match="already holds a run"):
+        agent.save(orphan)
+    assert (orphan / "checkpoint.pt").read_bytes() == b"trials_done=7"
+    (tmp_path / "afile").write_text("x")
+    with pytest.raises(ConfigError, match="afile is a file; save to a directory"):  # was: FileExistsError, errno 17
+        agent.save(tmp_path / "afile")

@@ -691,3 +691,35 @@ def test_a_plan_with_some_finite_returns_in_every_iteration_still_plans(cls) -> 
         mostly_nan, generator=torch.Generator().manual_seed(0)
     )
     assert plan.shape == (3, 2) and torch.isfinite(plan).all()
+
+
+def test_a_planner_that_returns_a_bad_plan_or_takes_a_name_is_refused_naming_it() -> None:
+    """A registered planner whose search returns nan (was: nan actions sent to MuJoCo, the run failing later at
+    training without naming the planner) or another shape (was: accepted, broadcast) is refused at the call; a
+    class under a name another holds (``cem``) is refused, the built-in CEM kept."""
+    from pets.planning.planners import PLANNER_CLASSES, CEMPlanner, PlanningFailed, register_planner
+
+    class NanPlanner(RandomShooting):
+        name = "nan-plan"
+
+        def search(self, objective, mu, init_mean, generator):
+            return mu * math.nan
+
+    class FlatPlanner(RandomShooting):
+        name = "flat"
+
+        def search(self, objective, mu, init_mean, generator):
+            return mu[:1, :1]
+
+    f, _ = quadratic(torch.zeros(3, 2))
+    with pytest.raises(PlanningFailed, match="planner 'nan-plan': search returned a plan with nan or inf"):
+        NanPlanner(LOW, HIGH, horizon=3, population=20).plan(f, generator=torch.Generator().manual_seed(0))
+    with pytest.raises(ValueError, match=r"planner 'flat': search returned \(1, 1\), not a plan of shape \(3, 2\)"):
+        FlatPlanner(LOW, HIGH, horizon=3, population=20).plan(f, generator=torch.Generator().manual_seed(0))
+
+    class MyCEM(RandomShooting):
+        name = "cem"
+
+    with pytest.raises(ValueError, match="planner name 'cem' is taken by CEMPlanner; give MyCEM another name"):
+        register_planner(MyCEM)
+    assert PLANNER_CLASSES["cem"] is CEMPlanner and register_planner(CEMPlanner) is CEMPlanner

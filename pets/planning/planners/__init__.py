@@ -74,9 +74,13 @@ PLANNER_CLASSES: dict[str, type[BoxPlanner]] = {}
 
 
 def register_planner(cls: type[BoxPlanner]) -> type[BoxPlanner]:
-    """Add ``cls`` to :data:`PLANNER_CLASSES` under ``cls.name`` (usable as a class decorator); returns it."""
+    """Add ``cls`` to :data:`PLANNER_CLASSES` under ``cls.name`` (usable as a class decorator); returns it.
+    ValueError for a name another class holds (a built-in planner is never replaced behind the config's back)."""
     if not (isinstance(cls, type) and issubclass(cls, BoxPlanner)) or not cls.name:
         raise ValueError(f"a planner must be a BoxPlanner subclass with a name, got {cls!r}")
+    taken = PLANNER_CLASSES.get(cls.name)
+    if taken is not None and taken is not cls:
+        raise ValueError(f"planner name {cls.name!r} is taken by {taken.__name__}; give {cls.__name__} another name")
     PLANNER_CLASSES[cls.name] = cls
     return cls
 

@@ -17,9 +17,9 @@ class PlanningFailed(RuntimeError):
     to rank, so any action would be a random one. Raised instead of returning such a plan."""
 
 
-def check_planned(failed: Tensor) -> None:
-    """PlanningFailed if ``failed`` (a bool scalar on the planner's device, OR-ed over the iterations of one
-    plan call) is true; the call's only host synchronisation for this check."""
+def check_planned(failed: bool) -> None:
+    """PlanningFailed if ``failed`` (OR-ed over the iterations of one plan call: :attr:`Objective.failed`, read
+    with the plan's finiteness in the call's one host synchronisation) is true."""
     if bool(failed):
         raise PlanningFailed(
             "planning failed: every candidate action sequence got a non-finite return (nan/inf), so there is no "
@@ -181,7 +181,7 @@ class NoOptions:
 
 class Objective:
     """The objective of one plan call: values (N,) in the planner's dtype, shape-checked; remembers (on the device,
-    without a synchronisation) whether some call returned no finite value, for :meth:`check`."""
+    without a synchronisation) whether some call returned no finite value (``failed``)."""
 
     def __init__(self, fn: Callable[[Tensor], Tensor], dtype: torch.dtype, device: torch.device) -> None:
         self.fn, self.dtype = fn, dtype
@@ -191,10 +191,6 @@ class Objective:
         values = check_values(self.fn(samples), samples.shape[0], self.dtype)
         self.failed = self.failed | no_finite(values)
         return values
-
-    def check(self) -> None:
-        """PlanningFailed if some call had no finite value (one host synchronisation)."""
-        check_planned(self.failed)
 
 
 class BoxPlanner:
@@ -284,13 +280,20 @@ class BoxPlanner:
 
         init_mean: warm start (H, act_dim), clipped to the bounds; default the middle of the bounds.
         generator: source of all the randomness (on the planner's device).
-        PlanningFailed when every candidate of some iteration got a non-finite return.
+        PlanningFailed when every candidate of some iteration got a non-finite return, or :meth:`search` returned
+        a plan that is not finite; ValueError for a plan of another shape than ``(H, act_dim)``.
         """
         check_generator(generator, self.device)
         mu = initial_mean(init_mean, self.low, self.high, self.horizon, self.act_dim)
         scored = Objective(objective, self.dtype, self.device)
         out = self.search(scored, mu, init_mean, generator)
-        scored.check()
+        if not isinstance(out, Tensor) or out.shape != mu.shape:
+            got = tuple(out.shape) if isinstance(out, Tensor) else type(out).__name__
+            raise ValueError(f"planner {self.name!r}: search returned {got}, not a plan of shape {tuple(mu.shape)}")
+        failed, not_finite = torch.stack((scored.failed, ~torch.isfinite(out).all())).tolist()  # one synchronisation
+        check_planned(failed)
+        if not_finite:
+            raise PlanningFailed(f"planner {self.name!r}: search returned a plan with nan or inf")
         out = self.clip(out)
         self.planned(out)
         return out
