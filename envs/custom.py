@@ -72,8 +72,12 @@ def custom_spec(
         )
     dt = float(getattr(env.unwrapped, "dt", 0.0) or 0.0)
     length = episode_length or (env.spec.max_episode_steps if env.spec and env.spec.max_episode_steps else 1000)
-    transitions, positions = _real_transitions(env, act_space)
-    env.close()
+    try:
+        transitions, positions = _real_transitions(env, act_space)
+    except Exception as err:  # e.g. an env_kwargs value the constructor took but its step cannot use
+        raise ValueError(f"{name}: {gym_id} failed to reset or step ({type(err).__name__}: {_line(err)})") from None
+    finally:
+        env.close()
     terminated_fn = terminated_fn or _never
     check_functions(name, reward_fn, terminated_fn, transitions)
     check_angles(name, layout, transitions, positions)

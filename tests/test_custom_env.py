@@ -106,6 +106,7 @@ def test_a_spec_that_does_not_fit_its_env_is_refused_in_one_line():
         ({"terminated_fn": "never"}, "terminated_fn must be a function"),
         ({"reward_fn": lambda o, a, n: pendulum_reward(o, a, n) * torch.nan, "reward_differs": True},
          "reward_fn returned nan or inf on a real transition"),
+        ({"env_kwargs": {"g": "x"}}, "p: Pendulum-v1 failed to reset or step (TypeError: "),
     ],
 )  # fmt: skip
 def test_a_spec_argument_of_the_wrong_kind_is_one_line_before_any_run(change, fragment):
