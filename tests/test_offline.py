@@ -359,6 +359,8 @@ def test_sample_starts_leave_room_and_are_distinct():
         ("pets.collect", ["--env", "reacher", "--policy", "run:/nonexistent/run", "--out", "x.npz"], "does not exist"),
         ("pets.collect", ["--env", "reacher", "--policy", "smooth-random:1.5", "--out", "x.npz"], "[0, 1)"),
         ("pets.collect", ["--policy", "random", "--out", "x.npz"], "--env is required"),
+        ("pets.collect", ["--env", "reacher", "--policy", "random", "--out", "config.yaml"], "must name an .npz file"),
+        ("pets.collect", ["--env", "reacher", "--policy", "random", "--out", "kept.npz"], "never writes over a file"),
         ("pets.train", ["--data", "/nonexistent.npz", "--model", "delta", "--out", "r"], "does not exist"),
         ("pets.train", ["--data", "/nonexistent.npz", "--model", "mlp", "--out", "r"], "delta, gem"),
         ("pets.evaluate", ["--run", "/nonexistent/run", "--data", "x.npz"], "not a run directory"),
@@ -367,6 +369,7 @@ def test_sample_starts_leave_room_and_are_distinct():
     ],
 )
 def test_bad_input_exits_2_with_one_line(module, args, fragment, tmp_path):
+    (tmp_path / "kept.npz").write_bytes(b"someone's data set")  # was written over without a word
     proc = warm.run(
         [sys.executable, "-m", module, *args],
         cwd=tmp_path,
@@ -378,6 +381,7 @@ def test_bad_input_exits_2_with_one_line(module, args, fragment, tmp_path):
     lines = [line for line in proc.stderr.splitlines() if line.strip()]
     assert proc.returncode == 2 and len(lines) == 1, proc.stderr
     assert lines[0].startswith(f"{module}: error: ") and fragment in lines[0]
+    assert (tmp_path / "kept.npz").read_bytes() == b"someone's data set"
 
 
 def test_bad_data_and_mismatched_env_exit_2(work, delta_run, ip_data, reacher_data):

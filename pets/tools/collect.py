@@ -43,7 +43,7 @@ def build_parser() -> OneLineParser:
     p.add_argument("--deterministic", action="store_true", help="sb3: policies take their mean action")
     p.add_argument("--save-agent", type=Path, help="sac:STEPS only: save the trained agent here (SB3 .zip)")
     p.add_argument("--threads", type=int, default=0, help="torch CPU threads (default 0: torch's default)")
-    p.add_argument("--out", type=Path, required=True, help="output .npz file (written atomically)")
+    p.add_argument("--out", type=Path, required=True, help="output .npz file, new (written atomically)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
 
@@ -108,11 +108,15 @@ def main(argv: list[str] | None = None) -> int:
         fail(PROG, f"SB3 agent {arg} does not exist")
     if kind != "run" and not args.env:
         fail(PROG, "--env is required (except with --policy run:RUN_DIR, which uses the run's env)")
+    if args.out.suffix != ".npz":
+        fail(PROG, f"--out {args.out} must name an .npz file (e.g. {args.out.with_suffix('.npz').name})")
     for option, path in (("--out", args.out), ("--save-agent", args.save_agent)):
         if path is None:
             continue
         if path.is_dir():
             fail(PROG, f"{option} {path} is a directory; give a file name")
+        if path.exists():
+            fail(PROG, f"{option} {path} exists; pets.collect never writes over a file: pick another name or delete it")
         problem = writable_dir_error(path.parent)  # before collecting, not after
         if problem:
             fail(PROG, f"cannot write {option} {path}: {problem}")
