@@ -67,6 +67,41 @@ def test_pets_openloop_refuses_a_planner_too_big_in_one_line(tmp_path):
         assert proc.returncode == 2 and len(lines) == 1 and fragment in lines[0], proc.stderr
 
 
+def test_train_oracle_and_bench_refuse_what_this_machine_cannot_hold_in_one_line(tmp_path):
+    """pets.train (its architectures), pets.oracle (population x horizon) and pets.bench were a 40-line traceback
+    from the allocator; pets.bench's --device cuda without one and an unwritable --json (after the timing) too.
+    pets.train leaves no --out behind."""
+    from tests.processes import collect_random
+
+    data = collect_random(tmp_path / "ip.npz", 1)
+    cases = [
+        (
+            "pets.train",
+            ["--data", data, "--model", "delta", "--out", tmp_path / "t", "model.hidden_size=200000"],
+            "lower model.hidden_size, model.num_layers or model.ensemble_size",
+        ),
+        (
+            "pets.oracle",
+            ["--env", "reacher", "planner.population=10000000", "planner.horizon=100000"],
+            "lower planner.population, planner.particles",
+        ),
+        (
+            "pets.bench",
+            ["--env", "reacher", "--repeats", "1", "planner.population=10000000", "planner.particles=1000"],
+            "lower planner.population, planner.particles",
+        ),
+        ("pets.bench", ["--env", "reacher", "--preset", "fast", "--json", "/proc/b.json"], "cannot write --json"),
+    ]
+    if not __import__("torch").cuda.is_available():
+        cases.append(("pets.bench", ["--env", "reacher", "--device", "cuda"], "torch sees no CUDA device"))
+    for module, args, fragment in cases:
+        proc = warm.run([sys.executable, "-m", module, *map(str, args)], cwd=ROOT, capture_output=True, text=True,
+                        timeout=120)  # fmt: skip
+        lines = [line for line in proc.stderr.splitlines() if line.strip()]
+        assert proc.returncode == 2 and len(lines) == 1 and fragment in lines[0], (module, proc.stderr[-2000:])
+    assert not (tmp_path / "t").exists()
+
+
 def test_the_api_refuses_a_config_too_big_before_allocating():
     with pytest.raises(ConfigError, match="needs about .* GB of host memory"):
         pets.PETS("halfcheetah", model="gem", **{"model.hidden_size": 100_000})

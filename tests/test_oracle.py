@@ -137,6 +137,11 @@ def test_mpc_with_the_true_dynamics_balances_the_pendulum(tmp_path) -> None:
         (["--env", "nope"], "unknown env 'nope'"),
         (["--env", "reacher", "--steps", "0"], "--steps must be >= 1"),
         (["--env", "reacher", "planner.horizon=0"], "planner.horizon must be >= 1"),
+        (
+            ["--env", "reacher", "model.lr=5"],
+            "the key model.lr is not read when planning with the true dynamics",
+        ),
+        (["--env", "reacher", "planner.population=10000000", "planner.horizon=100000"], "GB of host memory"),
     ],
 )
 def test_bad_input_exits_2_with_a_clear_message(argv, message, capsys) -> None:

@@ -121,27 +121,30 @@ def train_offline(
     out = Path(out)
     if (out / rundir.CONFIG_FILE).exists():
         raise ConfigError(f"{out} already holds a run; pick another --out")
+    from pets.data.protocols import get_protocol, split_samples
+
+    cfg = offline_config(
+        env, head_name, overrides, preset=preset, seed=seed, device=device, epochs=epochs, protocol=protocol
+    )
+    proto = get_protocol(protocol)
+    spec = envs.get(cfg.env)
+    obs, act, next_obs = transitions(arrays)
+    if obs.shape[-1] != spec.obs_dim or act.shape[-1] != spec.act_dim:
+        raise ValueError(
+            f"data set has obs_dim {obs.shape[-1]} / act_dim {act.shape[-1]}, but {env} has "
+            f"{spec.obs_dim} / {spec.act_dim}"
+        )
+    fixed = {"model.hidden_size", "model.num_layers"} & set(overrides or {})
+    candidates = [] if fixed else list(proto.architectures(cfg.env))
+    for hidden, layers in candidates or [(cfg.model.hidden_size, cfg.model.num_layers)]:  # one line, no OOM kill
+        sized = cfg.copy()
+        sized.model.hidden_size, sized.model.num_layers = hidden, layers
+        builder.check_memory(sized, spec, steps=len(obs))
+    dev = builder.resolve_device(cfg.device)
     with locked(out):  # one process per run directory (DirectoryInUse for a second one), for the whole training
         if (out / rundir.CONFIG_FILE).exists():  # again: another process may have finished a run there meanwhile
             raise ConfigError(f"{out} already holds a run; pick another --out")
-        from pets.data.protocols import get_protocol, split_samples
-
-        cfg = offline_config(
-            env, head_name, overrides, preset=preset, seed=seed, device=device, epochs=epochs, protocol=protocol
-        )
-        proto = get_protocol(protocol)
-        spec = envs.get(cfg.env)
-        obs, act, next_obs = transitions(arrays)
-        if obs.shape[-1] != spec.obs_dim or act.shape[-1] != spec.act_dim:
-            raise ValueError(
-                f"data set has obs_dim {obs.shape[-1]} / act_dim {act.shape[-1]}, but {env} has "
-                f"{spec.obs_dim} / {spec.act_dim}"
-            )
         train_idx, val_idx = split_samples(len(obs), proto)
-        fixed = {"model.hidden_size", "model.num_layers"} & set(overrides or {})
-        candidates = [] if fixed else list(proto.architectures(cfg.env))
-
-        dev = builder.resolve_device(cfg.device)
         if cfg.threads:  # as the online loop: config key threads (0 = torch's default)
             torch.set_num_threads(cfg.threads)
 

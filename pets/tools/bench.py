@@ -40,6 +40,7 @@ import statistics
 import sys
 import time
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -51,6 +52,7 @@ from pets import builder
 from pets.config import ConfigError, make_config, parse_overrides, validate
 from pets.data.rollout import collect_random
 from pets.models import make_model
+from pets.runs.fileio import writable_dir_error
 from pets.runs.hardware import EMULATED_BF16_SLOWDOWN, cpu_isa, native_bf16
 from pets.tools.cli import OneLineParser, fail
 from pets.tools.measure import (
@@ -306,6 +308,11 @@ def main(argv: list[str] | None = None) -> int:
         overrides = parse_overrides(args.overrides)
         overrides["device"] = args.device
         cfg = make_config(envs.get(args.env).name, args.model, args.preset, overrides)
+        builder.resolve_device(cfg.device)  # --device cuda without one: one line (was a traceback)
+        builder.check_memory(cfg, envs.get(cfg.env), steps=0)  # a planner this machine cannot hold: one line
+        problem = None if args.json is None else writable_dir_error(Path(args.json).resolve().parent)
+        if problem:  # before the timing, not after it
+            raise ConfigError(f"cannot write --json {args.json}: {problem}")
     except (ConfigError, ValueError) as err:
         fail("pets.bench", str(err))
     if cfg.threads > 0:

@@ -165,8 +165,12 @@ def build_parser() -> OneLineParser:
         metavar="RUN_DIR",
         help="add the terminal value this run learned (value.enabled) to the candidates that do not terminate",
     )
-    p.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides (planner.*)")
+    p.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides: planner.*, threads, seed_steps")
     return p
+
+
+#: The config keys besides ``planner.*`` that the oracle reads (the threads; the random steps that scale feedback).
+ORACLE_KEYS = ("threads", "seed_steps")
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -182,11 +186,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     from omegaconf import OmegaConf
 
     import envs
+    from pets.builder import check_memory
     from pets.config import ConfigError, make_config, parse_overrides
 
     try:
-        cfg = make_config(args.env, "delta", args.preset, parse_overrides(args.overrides))
+        overrides = parse_overrides(args.overrides)
+        unused = [k for k in overrides if not k.startswith("planner.") and k not in ORACLE_KEYS]
+        if unused:  # a model or training key would be silently ignored: no model plans here
+            raise ConfigError(
+                f"the key {unused[0]} is not read when planning with the true dynamics; the keys are planner.* and "
+                + ", ".join(ORACLE_KEYS)
+            )
+        cfg = make_config(args.env, "delta", args.preset, overrides)
         spec = envs.get(cfg.env)
+        check_memory(cfg, spec, steps=0)  # population x horizon this machine cannot hold: one line, no OOM kill
     except (ValueError, KeyError) as err:  # ConfigError is a ValueError
         fail(PROG, str(err).strip("'\""))
     if cfg.threads > 0:

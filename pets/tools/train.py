@@ -98,7 +98,7 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, ConfigError) as err:  # ConfigError is a ValueError; named for the reader
         fail(PROG, str(err))
     from pets.learning.trainer import TrainingDiverged
-    from pets.runs.fileio import DirectoryInUse
+    from pets.runs.fileio import DirectoryInUse, remove_if_unused
 
     created = not args.out.exists()
     problem = writable_dir_error(args.out)  # before training, not after
@@ -119,10 +119,12 @@ def main(argv: list[str] | None = None) -> int:
             progress=not args.quiet,
         )
     except TrainingDiverged as err:  # nothing was written: train_offline writes the run only after training
+        remove_if_unused(args.out, created)
         fail(PROG, f"{err}; no run directory was written", EXIT_FAILED)
     except DirectoryInUse as err:
         fail(PROG, f"{err}; wait for it to finish, or pick another --out")
-    except ConfigError as err:  # another process completed a run in --out while this one started
+    except ConfigError as err:  # a config this machine cannot hold; another process completed a run in --out
+        remove_if_unused(args.out, created)  # only a folder this command made and left empty (or with its lock)
         fail(PROG, str(err))
     except OSError as err:  # a full disk: the files written before it are removed, no run is left half-written
         write_failed(PROG, err, "no run was written; free space or pick another --out, then train again")
