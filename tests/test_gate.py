@@ -118,6 +118,46 @@ def test_a_run_given_up_on_counts_as_zero_where_it_did_not_reach_and_the_verdict
         assert exit_info.value.code == 2 and len(err) == 1 and "--crashed" in err[0], err
 
 
+def test_an_input_that_is_not_what_its_option_takes_is_one_line_and_nothing_is_written(tmp_path, capsys):
+    """Each was a traceback (or, for a random-policy data set given as SAC, rows labelled sac): an offline run, a
+    truncated config.yaml, a file that is not pets.oracle's JSON, a data set for --peer; the gate's and the online
+    study's commands read every input before writing, so nothing is written."""
+    from pets.experiments.studies import locomotion
+    from tests.processes import collect_random
+
+    offline = tmp_path / "offline"  # as pets.train writes it: no episodes in metrics.csv
+    offline.mkdir()
+    (offline / "config.yaml").write_text("env: halfcheetah\nhead: delta\nseed: 0\n")
+    (offline / "metrics.csv").write_text(
+        "env_steps,episode_reward,episode_length,terminated,cpu_time_s\n100,nan,nan,nan,1\n"
+    )
+    truncated = tmp_path / "truncated"
+    truncated.mkdir()
+    (truncated / "config.yaml").write_text("env: [halfcheetah\nhead: {")
+    (tmp_path / "o.json").write_text('{"a": 1}')
+    random_data = collect_random(tmp_path / "random.npz", 1)
+    cases = [
+        ([str(offline)], "is not an online run (run_pets.py)"),
+        ([str(truncated)], "config.yaml is not readable YAML"),
+        (["--oracle", str(tmp_path / "o.json")], "is not a pets.oracle --json file"),
+        (["--oracle", str(random_data)], "is not a pets.oracle --json file"),
+        (["--peer", str(random_data)], "not a text CSV file"),
+        (["--sac", str(random_data)], "is not a SAC collection (pets.collect --policy sac:STEPS); its policy: random"),
+        (["--crashed", str(offline)], "is not an online run"),
+    ]
+    capsys.readouterr()
+    for args, fragment in cases:
+        with pytest.raises(SystemExit) as exit_info:
+            gate.main([*args, "--out", str(tmp_path / "gate")])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert exit_info.value.code == 2 and len(err) == 1 and fragment in err[0], (args, err)
+    with pytest.raises(SystemExit) as exit_info:
+        locomotion.main([str(offline), "--out", str(tmp_path / "study.csv")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert exit_info.value.code == 2 and len(err) == 1 and "is not an online run" in err[0], err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["o.json", "offline", "random.npz", "truncated"]
+
+
 def test_oracle_files_become_rows_and_no_input_is_one_line_exit_2(tmp_path):
     import json
     import sys

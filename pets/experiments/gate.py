@@ -78,11 +78,20 @@ def curve(rows: Sequence[Mapping[str, Any]], full_length: int, window: int = WIN
 
 
 def read_run(run_dir: Path) -> tuple[dict[str, Any], list[dict[str, str]]]:
+    """A run directory's config and metrics rows; ValueError (one line) for one that is not an online run's."""
     import yaml
 
-    cfg = yaml.safe_load((run_dir / "config.yaml").read_text())
+    try:
+        cfg = yaml.safe_load((run_dir / "config.yaml").read_text())
+    except (yaml.YAMLError, UnicodeDecodeError) as err:
+        raise ValueError(f"{run_dir}/config.yaml is not readable YAML ({type(err).__name__})") from None
     metrics = run_dir / "metrics.csv"
     rows = list(csv.DictReader(open(metrics, newline=""))) if metrics.is_file() else []
+    episodes = ("env_steps", "episode_reward", "episode_length", "terminated")
+    if not isinstance(cfg, dict) or not {"env", "head", "seed"} <= set(cfg):
+        raise ValueError(f"{run_dir}/config.yaml is not a run's config (no env, head and seed)")
+    if rows and any(r.get(k) in (None, "", "nan") for r in rows for k in episodes):
+        raise ValueError(f"{run_dir} is not an online run (run_pets.py): its metrics.csv has no episode in every row")
     return cfg, rows
 
 
@@ -274,8 +283,11 @@ def oracle_rows(path: Path) -> list[dict[str, Any]]:
     evidence its planner settings were chosen on. The env is in the file's name (``ENV_...json``)."""
     import json
 
-    data = json.loads(path.read_text())
-    p = data["planner"]
+    try:
+        data = json.loads(path.read_text())
+        p, episodes = data["planner"], data["episodes"]
+    except (ValueError, KeyError, TypeError):  # not JSON, another JSON, not text (UnicodeDecodeError is a ValueError)
+        raise ValueError(f"{path} is not a pets.oracle --json file (its planner and episodes)") from None
     return [
         {
             "env": path.stem.split("_")[0],
@@ -292,7 +304,7 @@ def oracle_rows(path: Path) -> list[dict[str, Any]]:
             "reward": float(e["reward"]),
             "fell": int(bool(e["terminated"])),
         }
-        for i, e in enumerate(data["episodes"])
+        for i, e in enumerate(episodes)
     ]
 
 
@@ -368,6 +380,35 @@ REPLACE_HELP = (
 )
 
 
+#: One file :func:`main` writes: ``(path, rows, columns, the key columns whose committed rows it replaces)``.
+Write = tuple[Path, list[dict[str, Any]], list[str], Sequence[str]]
+
+
+def _outputs(args: Any, keep: Sequence[str]) -> tuple[list[Write], list[dict[str, Any]]]:
+    """What :func:`main` writes, read from every input first, and the rows it prints; ValueError (one line) for an
+    input that is not what its option takes."""
+    writes: list[Write] = []
+    if args.oracle:
+        oracle = [row for path in args.oracle for row in oracle_rows(path)]
+        writes.append(
+            (Path(f"{args.out}_oracle.csv"), oracle, ORACLE_COLUMNS, () if args.replace else ("env", "source"))
+        )
+    if not (args.run_dirs or args.crashed or args.sac or args.peer):
+        return writes, []
+    if args.pilots:
+        rows = [pilot_row(d) for d in args.run_dirs]
+        curves = [c for d in args.run_dirs for c in run_curve(d, pilot=True)]
+        writes.append((args.out.with_suffix(".csv"), rows, list(rows[0]), keep))
+        return [*writes, (Path(f"{args.out}_curves.csv"), curves, PILOT_CURVE_COLUMNS, keep)], rows
+    refs = [sac_run(path) for path in args.sac] + [r for path in args.peer for r in peer_runs(path)]
+    rows = [run_row(d) for d in args.run_dirs] + [crashed_row(d) for d in args.crashed]
+    rows += [reference_row(r) for r in refs]
+    runs = [*args.run_dirs, *args.crashed]
+    curves = [c for d in runs for c in run_curve(d)] + [c for r in refs for c in reference_curve(r)]
+    writes.append((Path(f"{args.out}_runs.csv"), rows, RUN_COLUMNS, keep))
+    return [*writes, (Path(f"{args.out}_curves.csv"), curves, CURVE_COLUMNS, keep)], rows
+
+
 def main(argv: list[str] | None = None) -> int:
     from pets.tools.cli import OneLineParser
 
@@ -393,24 +434,12 @@ def main(argv: list[str] | None = None) -> int:
     missing += [str(path) for path in [*args.sac, *args.peer, *args.oracle] if not path.is_file()]
     if missing:
         p.error(f"not run directories (no config.yaml) or files: {', '.join(missing)}")
-    if args.oracle:
-        oracle = [row for path in args.oracle for row in oracle_rows(path)]
-        write_csv(Path(f"{args.out}_oracle.csv"), oracle, ORACLE_COLUMNS, () if args.replace else ("env", "source"))
-    if not (args.run_dirs or args.crashed or args.sac or args.peer):
-        rows = []
-    elif args.pilots:
-        rows = [pilot_row(d) for d in args.run_dirs]
-        write_csv(args.out.with_suffix(".csv"), rows, list(rows[0]), keep)
-        curves = [c for d in args.run_dirs for c in run_curve(d, pilot=True)]
-        write_csv(Path(f"{args.out}_curves.csv"), curves, PILOT_CURVE_COLUMNS, keep)
-    else:
-        refs = [sac_run(path) for path in args.sac] + [r for path in args.peer for r in peer_runs(path)]
-        rows = [run_row(d) for d in args.run_dirs] + [crashed_row(d) for d in args.crashed]
-        rows += [reference_row(r) for r in refs]
-        write_csv(Path(f"{args.out}_runs.csv"), rows, RUN_COLUMNS, keep)
-        runs = [*args.run_dirs, *args.crashed]
-        curves = [c for d in runs for c in run_curve(d)] + [c for r in refs for c in reference_curve(r)]
-        write_csv(Path(f"{args.out}_curves.csv"), curves, CURVE_COLUMNS, keep)
+    try:  # every input read before anything is written: a bad one is one line and leaves the files as they were
+        writes, rows = _outputs(args, keep)
+    except ValueError as err:
+        p.error(str(err))
+    for path, out_rows, columns, keys in writes:
+        write_csv(path, out_rows, columns, keys)
     for r in rows:
         print("  ".join(f"{k}={cell_text(v)}" for k, v in r.items()), file=sys.stdout)
     return 0

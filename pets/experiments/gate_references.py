@@ -42,6 +42,9 @@ def sac_run(path: Path) -> Reference:
     from pets.data.datasets import load_dataset
 
     data = load_dataset(path)
+    if not str(data["policy"] if "policy" in data else "").startswith("sac:"):
+        policy = str(data["policy"]) if "policy" in data else "not recorded"
+        raise ValueError(f"{path} is not a SAC collection (pets.collect --policy sac:STEPS); its policy: {policy}")
     rows, steps = [], 0
     for rew, term, n in zip(data["rew"], data["terminated"], data["lengths"]):
         steps += int(n)

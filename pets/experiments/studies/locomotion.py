@@ -326,7 +326,11 @@ def main(argv: list[str] | None = None) -> int:
     if unknown:
         p.error(f"--crashed names runs not given: {', '.join(unknown)}")
     keep = () if args.replace else ("env", "model", "seed")
-    rows = [run_row(d, crashed=d in args.crashed) for d in args.run_dirs]
+    try:  # every run read before anything is written
+        rows = [run_row(d, crashed=d in args.crashed) for d in args.run_dirs]
+        curves = [c for d in args.run_dirs for c in curve_rows(d)] if args.curves else []
+    except ValueError as e:  # not an online run's directory (gate.read_run)
+        p.error(str(e))
     text = [{c: gate.cell_text(r[c]) for c in RUN_COLUMNS} for r in rows]
     if keep:
         merged = merge_committed(args.out, text, keep, "env_steps")[0]
@@ -338,7 +342,7 @@ def main(argv: list[str] | None = None) -> int:
             p.error(str(e))
     gate.write_csv(args.out, text, RUN_COLUMNS)
     if args.curves:
-        gate.write_csv(args.curves, [c for d in args.run_dirs for c in curve_rows(d)], CURVE_COLUMNS, keep)
+        gate.write_csv(args.curves, curves, CURVE_COLUMNS, keep)
     for r in rows:
         print("  ".join(f"{k}={gate.cell_text(v)}" for k, v in r.items()))
     return 0
