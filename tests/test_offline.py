@@ -395,6 +395,7 @@ def test_bad_data_and_mismatched_env_exit_2(work, delta_run, ip_data, reacher_da
             "unknown config key",
         ),
         ("pets.evaluate", ["--run", delta_run, "--data", ip_data], "invertedpendulum"),
+        ("pets.evaluate", ["--run", delta_run, "--data", work], "is a directory; give a data set file (.npz)"),
         (
             "pets.evaluate",
             ["--run", delta_run, "--data", reacher_data, "--train-data", work / "missing.npz"],
@@ -445,3 +446,10 @@ def test_closed_loop_mpc_with_the_frozen_model_replays_in_the_simulator(delta_ru
     )  # fmt: skip
     assert code.returncode == 0, code.stderr
     assert "closed loop: reacher" in code.stdout and json.loads(out.read_text())["steps"] == 4
+
+
+def test_training_on_too_few_transitions_for_a_holdout_says_so_instead_of_nan(tmp_path):
+    data = tmp_path / "tiny.npz"
+    run("pets.collect", "--env", "reacher", "--policy", "random", "--episodes", 1, "--max-steps", 2, "--out", data)
+    proc = run("pets.train", "--data", data, "--model", "delta", "--out", tmp_path / "run", "--epochs", 1, "--quiet")
+    assert "no holdout error (too few transitions to hold any out" in proc.stdout and "nan" not in proc.stdout

@@ -42,6 +42,8 @@ def test_every_model_learns_one_step_dynamics(env: str) -> None:
         (["--envs", "reacher", "--models", "foo"], "must be one of delta"),
         (["--epochs", "0"], "must be >= 1"),
         (["--envs", "reacher", "model.nope=1"], "unknown config key 'model.nope'"),
+        (["--envs", "reacher", "device=cuda"], "runs on the CPU; device is not one of its keys"),  # was ignored
+        (["--envs", "reacher", "--csv", "/proc/x.csv"], "cannot write --csv /proc/x.csv"),  # was after the work
     ],
 )
 def test_bad_arguments_are_one_line_and_exit_2(argv: list[str], fragment: str, capsys) -> None:

@@ -131,6 +131,7 @@ def test_grid_with_the_truths_root_and_the_cli(runs, tmp_path, capsys):
         (["--size", "10x10"], "--size must be"),
         (["--labels", "a,b"], "--labels has 2 names for 1 runs"),
         (["--episode", "5"], "--episode must be in [0, 1]"),
+        (["--start", "-1"], "--start must be >= 0 (a step of the episode), got -1"),  # was said to exceed the episode
     ],
 )
 def test_bad_input_is_one_line_exit_2(runs, tmp_path, capsys, extra, message):

@@ -66,10 +66,13 @@ def main(argv: list[str] | None = None) -> int:
         fail(PROG, f"--threads must be >= 0 (0: torch's default), got {args.threads}")
     if not (args.run / "config.yaml").is_file():
         fail(PROG, f"{args.run} is not a run directory (no config.yaml)")
-    if not args.data.is_file():
-        fail(PROG, f"data file {args.data} does not exist")
-    if args.train_data is not None and not args.train_data.is_file():
-        fail(PROG, f"train data file {args.train_data} does not exist")
+    for what, path in (("data file", args.data), ("train data file", args.train_data)):
+        if path is not None and not path.is_file():
+            fail(
+                PROG,
+                f"{what} {path} "
+                + ("is a directory; give a data set file (.npz)" if path.is_dir() else "does not exist"),
+            )
     if args.json is not None and args.json.is_dir():
         fail(PROG, f"--json {args.json} is a directory; give a file name")
     problem = None if args.json is None else writable_dir_error(args.json.parent)

@@ -26,7 +26,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from pets.runs.fileio import atomic_write_bytes
+from pets.runs.fileio import atomic_write_bytes, writable_dir_error
 from pets.tools.cli import OneLineParser, fail
 
 PROG = "pets.onestep"
@@ -153,6 +153,11 @@ def main(argv: list[str] | None = None) -> int:
         if min(args.episodes, args.max_steps, args.epochs) < 1 or args.seed < 0:
             raise ValueError("--episodes, --max-steps and --epochs must be >= 1, --seed >= 0")
         overrides = parse_overrides(args.overrides)
+        if "device" in overrides:
+            raise ValueError("pets.onestep runs on the CPU; device is not one of its keys")
+        problem = None if args.csv is None else writable_dir_error(args.csv.resolve().parent)
+        if problem:  # before the training, not after it
+            raise ValueError(f"cannot write --csv {args.csv}: {problem}")
         models = {n: args.models.split(",") if args.models else models_for(envs.get(n)) for n in names}
         for name in names:  # every (env, model) config is valid before anything runs
             for model in models[name]:

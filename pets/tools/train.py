@@ -9,6 +9,7 @@ What it does, and what it writes: :mod:`pets.learning.offline`.
 
 from __future__ import annotations
 
+import math
 import sys
 from pathlib import Path
 
@@ -158,10 +159,15 @@ def _report(out: Path, model: str) -> None:
     row = rundir.read_metrics(out / rundir.METRICS_FILE)[0]
     for c in rundir.load_checkpoint(out)["offline"]["search"]:
         print(f"  hidden layers {c['num_layers']} x {c['hidden_size']}: validation error {c['val_error']:.4g}")
+    val = row["model_val_loss"]
+    holdout = (
+        f"holdout error {val:.4g} (standardised; no change ~ 1)"
+        if math.isfinite(val)
+        else "no holdout error (too few transitions to hold any out: more data gives one)"
+    )
     print(
         f"{out}: {model} model trained on {int(row['env_steps'])} transitions, {int(row['model_epochs'])} "
-        f"epochs, train loss {row['model_train_loss']:.4g}, "
-        f"holdout error {row['model_val_loss']:.4g} (standardised; no change ~ 1)"
+        f"epochs, train loss {row['model_train_loss']:.4g}, {holdout}"
     )
 
 

@@ -230,7 +230,9 @@ def visualize(
     if not 0 <= episode < len(lengths):
         raise ValueError(f"--episode must be in [0, {len(lengths) - 1}], got {episode}")
     horizon = max(steps)
-    if start < 0 or start + horizon > lengths[episode]:
+    if start < 0:
+        raise ValueError(f"--start must be >= 0 (a step of the episode), got {start}")
+    if start + horizon > lengths[episode]:
         raise ValueError(
             f"episode {episode} has {lengths[episode]} steps: --start {start} + the last step {horizon} must not "
             "exceed it; pick an earlier --start, shorter --steps or a longer episode"
