@@ -957,6 +957,21 @@ def test_online_refuses_an_offline_run_directory(offline, capsys):
     assert code == 2 and "is an offline training run" in err
 
 
+def test_offline_refuses_an_online_run_directory_whatever_its_config(tmp_path, capsys):
+    """The other way round: an online comparison's --out given to an offline one with the same settings was taken
+    as its own (the online model evaluated as if trained on the offline data, the online summary replaced)."""
+    run = tmp_path / "runs" / "invertedpendulum-delta-s0"
+    run.mkdir(parents=True)
+    rundir.write_config(run, make_config("invertedpendulum", "delta", "fast", {"seed": 0}))
+    (run / "history.csv").write_text("time,action,trials_done,host,pid\n")
+    (tmp_path / "summary.csv").write_text("the online summary\n")
+    args = ["offline", "--envs", "invertedpendulum", "--models", "delta", "--seeds", 0, "--preset", "fast"]
+    code, _, err = cli(capsys, *args, "--episodes", 2, "--out", tmp_path, *TINY_OFFLINE)
+    lines = err.strip().splitlines()
+    assert code == 2 and len(lines) == 1 and "is an online run (run_pets.py), not an offline one" in lines[0], err
+    assert (tmp_path / "summary.csv").read_text() == "the online summary\n" and not (tmp_path / "data").exists()
+
+
 # --------------------------------------------------------------------------- offline summary on fake evaluations
 FAKE_REQUEST = {"horizons": [1, 5], "starts": 10, "seed": 0, "mode": "mean"}
 NEW_KEYS = [  # pets.evaluate's keys after issue 11 (the summary takes whatever *_error keys the files have)

@@ -268,6 +268,7 @@ def _expected_configs(sweep: _Sweep, proto: Any, configs_only: bool) -> dict[str
     """{run name: the config it must have} of every (env, model, seed, data seed); UsageError for a bad config or
     (unless ``configs_only``) an existing run directory made with another config."""
     from pets.config import ConfigError
+    from pets.experiments.rundirs import refuse_online_run
     from pets.learning.offline import offline_config
 
     configs = {}
@@ -291,6 +292,7 @@ def _expected_configs(sweep: _Sweep, proto: Any, configs_only: bool) -> dict[str
                     configs[run_name(env, model, seed, data_seed=d)] = expected
                     run_dir = sweep.out / "runs" / run_name(env, model, seed, data_seed=d)
                     if not configs_only and (run_dir / "config.yaml").is_file():  # the searched architecture is the
+                        refuse_online_run(run_dir, sweep.out)
                         searched = ("model.hidden_size", "model.num_layers") if proto.architectures(env) else ()
                         ignore = (*NOT_COMPARED, *searched, *left_to_auto(overrides))  # run's own choice
                         check_same_config(run_dir, expected, ignore=ignore)

@@ -150,6 +150,18 @@ def config_differences(run_dir: Path, expected: Any, ignore: Iterable[str] = NOT
     ]
 
 
+def refuse_online_run(run_dir: Path, out: Path) -> None:
+    """UsageError where an offline comparison's run directory is an online run's (run_pets.py keeps its
+    ``history.csv``): its model would be evaluated as if trained on the offline data, its summary replaced."""
+    from pets.runs.rundir import HISTORY_FILE
+
+    if (run_dir / HISTORY_FILE).is_file():
+        raise UsageError(
+            f"{run_dir} is an online run (run_pets.py), not an offline one: --out {out} holds an online comparison; "
+            "pick another --out"
+        )
+
+
 def check_same_config(run_dir: Path, expected: Any, ignore: Iterable[str] = NOT_COMPARED) -> None:
     """UsageError if the run in ``run_dir`` was made with another config than ``expected``."""
     from omegaconf.errors import OmegaConfBaseException
