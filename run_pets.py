@@ -194,6 +194,7 @@ def _main(argv: list[str] | None = None) -> int:
                 _fail(f"model={overrides['model']}: accepted models: {', '.join(HEADS)} (model.* keys set the network)")
             args.model = overrides.pop("model")
         for flag, key in (
+            ("env", "env"),
             ("model", "head"),
             ("trials", "trials"),
             ("seed", "seed"),
@@ -205,7 +206,7 @@ def _main(argv: list[str] | None = None) -> int:
                 continue
             if key in overrides:  # one setting given twice on one line: neither silently wins
                 _fail(f"give {key} once: --{flag} {getattr(args, flag)} or {key}={overrides[key]}, not both")
-            if flag != "model":  # --model is make_config's head argument
+            if flag not in ("env", "model"):  # --env and --model are make_config's own arguments
                 overrides[key] = str(getattr(args, flag))
         if args.config is not None and args.resume is not None:
             _fail("--config starts a new run; --resume DIR takes the run's own config")

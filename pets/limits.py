@@ -42,6 +42,8 @@ SIZE_BOUNDS: dict[str, int] = {
     "value.hidden_size": 1_000_000,
     "value.steps": 1_000_000_000,
 }
+#: The largest seed: numpy's global generator (seeded with it) takes 32 bits.
+MAX_SEED = 2**32 - 1
 BYTES = 4  # float32
 GB = 1024**3
 
@@ -66,6 +68,8 @@ def schedule_problem(cfg: Any) -> str | None:
     ``train_every=N``, and a budget ``max_env_steps`` (at most its bound) above the seed steps."""
     if cfg.seed < 0 or cfg.seed_steps < 0 or cfg.train_every < 0:
         return "seed, seed_steps and train_every must be >= 0"
+    if cfg.seed > MAX_SEED:  # numpy's global seed takes 32 bits
+        return f"seed must be <= {MAX_SEED:,} (2**32 - 1), got {cfg.seed:,}"
     if cfg.episode_length is not None and cfg.episode_length < 1:
         return f"episode_length must be >= 1 or null, got {cfg.episode_length}"
     if cfg.stop_reward is not None and not math.isfinite(cfg.stop_reward):

@@ -127,3 +127,12 @@ def test_a_name_that_spells_a_catalogue_env_cannot_be_registered():
         with pytest.raises(ValueError, match=r"names the catalogue env (reacher|halfcheetah) \("):
             envs.register(envs.custom_spec(name, "Pendulum-v1", layout, pendulum_reward))
         assert envs.get(name).gym_id in ("Reacher-v5", "HalfCheetah-v5")
+
+
+def test_a_video_of_an_env_that_is_not_mujoco_is_one_line_and_leaves_no_directory(tmp_path):
+    """Was an AttributeError traceback (exit 1) and a directory holding only the lock."""
+    proc = cli("--env", PATH, "--video", 1, "--trials", 1, *SMALL, "--out", tmp_path / "run", check=False)
+    lines = error_lines(proc.stderr)
+    assert proc.returncode == 2 and len(lines) == 1, proc.stderr
+    assert "videos are rendered by MuJoCo; " in lines[0] and "is not a MuJoCo env: drop --video" in lines[0]
+    assert not (tmp_path / "run").exists()

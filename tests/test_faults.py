@@ -298,6 +298,7 @@ def test_a_setting_given_twice_or_bad_elites_is_one_line_and_leaves_no_directory
     for extra, fragment in (
         (["--trials", 2, "trials=1"], "give trials once: --trials 2 or trials=1, not both"),
         (["--model", "gem", "head=delta"], "give head once: --model gem or head=delta, not both"),
+        (["env=hopper"], "give env once: --env reacher or env=hopper, not both"),  # was hopper, silently
         (["planner.elites=0"], "planner.elites must be a ratio in (0, 1) of the population or a whole count"),
         (["planner.elites=1000"], "whole count in [1, planner.population=16], got 1000"),
     ):

@@ -24,6 +24,7 @@ TOO_BIG = [
     ("halfcheetah", "seed_steps=10000000000000", "seed_steps must be <= 1,000,000,000"),
     ("halfcheetah", "model.hidden_size=100000", "lower model.hidden_size, model.num_layers or model.ensemble_size"),
     ("humanoid", "seed_steps=999999999", "lower seed_steps, trials or episode_length"),
+    ("invertedpendulum", "seed=4294967296", "seed must be <= 4,294,967,295 (2**32 - 1)"),  # was a traceback
 ]
 
 

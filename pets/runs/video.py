@@ -68,6 +68,11 @@ class EpisodeRecorder:
         from envs.render import Renderer
 
         require_video()
+        inner = env.unwrapped
+        if not (hasattr(inner, "model") and hasattr(inner, "data")):  # what MuJoCo's renderer draws from
+            raise ConfigError(
+                f"videos are rendered by MuJoCo; {spec.name} ({spec.gym_id}) is not a MuJoCo env: drop --video"
+            )
         self.spec, self.env = spec, env
         # RenderingUnavailable without GL; no shadows and reflections: ~9 instead of ~63 ms a frame in software
         self.renderer = Renderer(spec, width, height, model=env.unwrapped.model, effects=False)
