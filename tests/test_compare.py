@@ -1289,6 +1289,10 @@ def test_a_stopped_sweep_starts_no_more_jobs_and_leaves_no_process_running(tmp_p
             "planner.population",
         ),
         (["online", "--envs", "reacher", "--models", "delta", "--trials", 1, "seed=3"], "--seeds"),
+        (
+            ["online", "--envs", "reacher", "--models", "delta", "--trials", 1, "trials=2"],
+            "set by the command itself (--trials)",
+        ),
         (["online", "--envs", "reacher", "--models", "delta", "--trials", 1, "--planners", "cem,ddp"], "accepted: cem"),
         (
             [

@@ -151,12 +151,9 @@ def _shared_overrides(overrides: Sequence[str], planners: Sequence[str] | None) 
     except ConfigError as err:
         raise UsageError(str(err)) from None
     extra.pop("threads", None)  # every run uses the backend's threads
-    for key in ("trials", "seed", "head", "env"):
+    for key, option in (("trials", "--trials"), ("seed", "--seeds"), ("head", "--models"), ("env", "--envs")):
         if key in extra:
-            raise UsageError(
-                f"{key}= is set by the command itself (--{'models' if key == 'head' else key + 's'}); "
-                "do not pass it as an override"
-            )
+            raise UsageError(f"{key}= is set by the command itself ({option}); do not pass it as an override")
     if planners is not None and "planner.name" in extra:
         raise UsageError("give the planner once: --planners or planner.name=, not both")
     if "stop_reward" in extra:
