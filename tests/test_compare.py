@@ -1531,6 +1531,23 @@ def test_headline_rejects_what_is_not_a_summary_in_one_line(fake_offline, tmp_pa
     assert "](../figs/headline_ratio.png)" in out and (tmp_path / "figs" / "headline_ratio.png").is_file()
     code, _, err = cli(capsys, "headline", "--primary", off / "summary.csv", "--out", tmp_path / "h")
     assert code == 2 and "not a primary.csv" in err and "Traceback" not in err
+    (tmp_path / "afile").write_text("x")  # each of these was a traceback, or an empty headline with exit 0
+    with open(off / "summary.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    for r in rows:
+        r["horizon"] = "x1" if r["model"] == "gem" else r["horizon"]  # was int()'s ValueError
+    write_csv(tmp_path / "bad.csv", rows, list(rows[0]))
+    for args, fragment in (
+        (
+            ("--offline", off / "summary.csv", "--out", tmp_path / "afile"),
+            "--out " + str(tmp_path / "afile") + " is a file",
+        ),
+        (("--offline", off / "summary.csv", "--out", tmp_path / "h", "--figures", tmp_path / "afile"), "is a file"),
+        (("--offline", off / "summary.csv", "--out", tmp_path / "h", "--horizon", "0"), "--horizon must be >= 1"),
+        (("--offline", tmp_path / "bad.csv", "--out", tmp_path / "h"), "a summary holds a value that is not"),
+    ):
+        code, _, err = cli(capsys, "headline", *args)
+        assert code == 2 and len(err.strip().splitlines()) == 1 and fragment in err, (args, err)
 
 
 def test_headline_gives_the_primary_endpoint_as_the_files_do(fake_offline, tmp_path):

@@ -149,6 +149,11 @@ def headline_main(args: argparse.Namespace) -> int:
     """``compare headline``: print headline.md; exit 2 with one line on a bad summary file."""
     from pets.experiments.headline import HeadlineError, write_headline
 
+    if args.horizon < 1:
+        fail(PROG, f"--horizon must be >= 1 (a prediction horizon of the summaries), got {args.horizon}")
+    for option, path in (("--out", args.out), ("--figures", args.figures)):
+        if path is not None and path.exists() and not path.is_dir():
+            fail(PROG, f"{option} {path} is a file; give a directory")
     try:
         text = write_headline(
             args.offline,
@@ -165,6 +170,8 @@ def headline_main(args: argparse.Namespace) -> int:
         )
     except HeadlineError as err:
         fail(PROG, str(err))
+    except ValueError as err:  # a cell that is not a number where the summary has numbers
+        fail(PROG, f"a summary holds a value that is not what pets.compare writes there ({err})")
     print(text)
     return 0
 
