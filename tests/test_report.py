@@ -237,3 +237,12 @@ def test_the_runs_coverage_counts_the_committed_rows() -> None:
     assert "| hopper |" in text and "not run at the fast preset" in next(
         line for line in text.split("\n") if line.startswith("| hopper |")
     )
+
+
+def test_report_names_a_committed_input_missing_from_its_root(tmp_path, capsys) -> None:
+    """A docs/results without the committed rows (an empty folder) was a FileNotFoundError traceback."""
+    (tmp_path / "docs" / "results").mkdir(parents=True)
+    with pytest.raises(SystemExit) as exc:
+        main(["report", "--check", "--root", str(tmp_path)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert exc.value.code == 2 and len(err) == 1 and "is missing: report makes its files from a checkout's" in err[0]

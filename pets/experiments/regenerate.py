@@ -190,5 +190,7 @@ def report_main(args: argparse.Namespace) -> int:
         changed = write(root)
     except ValueError as err:  # a ReportError, or a committed input a product cannot read (said in one line)
         fail(f"{PROG} report", str(err))
+    except FileNotFoundError as err:  # a root without the committed rows a product is made from
+        fail(f"{PROG} report", f"{err.filename} is missing: report makes its files from a checkout's committed rows")
     print(f"{PROG} report: {len(changed)} file(s) written{': ' + ', '.join(changed) if changed else ''}")
     return 0
