@@ -33,6 +33,7 @@ from pets.planning.propagation import CANDIDATES, PROPAGATIONS
 from pets.planning.value import ValueConfig
 from pets.presets import ENV_DEFAULTS, HEAD_DEFAULTS, PRESET_ENV_DEFAULTS, PRESETS
 from pets.runs.hardware import CONCRETE_PRECISIONS
+from pets.runs.user_yaml import load_user_yaml
 
 __all__ = ["ConfigError", "FeedbackConfig", "ICEMConfig", "MPPIConfig", "ValueConfig"]  # defined by their owners
 
@@ -203,13 +204,12 @@ def all_keys(cfg: DictConfig | None = None) -> list[str]:
 
 
 def read_config_file(path: str | Path) -> dict[str, Any]:
-    """A config file's settings as dotted keys (``{"planner.horizon": 10}``): a YAML mapping of any subset of the
-    keys, nested (as ``--print-config`` writes it) or dotted. ConfigError (one line) for a missing or unreadable file
-    or one that is not a mapping; the keys and values are checked where they are applied."""
+    """A config file's settings as dotted keys (``{"planner.horizon": 10}``), nested or dotted; ConfigError (one
+    line) for a file not read (:mod:`pets.runs.user_yaml`) or not a mapping; keys and values checked where applied."""
     path = Path(path)
     try:
-        data = yaml.safe_load(path.read_text())
-    except (OSError, yaml.YAMLError, UnicodeDecodeError) as err:  # the last: a binary file
+        data = load_user_yaml(path)  # bounded, no aliases
+    except (OSError, ValueError) as err:  # ValueError: too big, not YAML, binary (UnicodeDecodeError), an alias
         raise ConfigError(f"--config {path}: not a readable YAML file ({str(err).splitlines()[0]})") from None
     if data is None:
         return {}

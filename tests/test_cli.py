@@ -292,6 +292,9 @@ def test_print_config_round_trips_through_config_and_key_value_wins(tmp_path, ca
         ("planner:\n  horizn: 3\n", "unknown config key 'planner.horizn'; did you mean planner.horizon?"),
         ("- a list\n", "expected a mapping of config keys, got a list"),
         ("env: [unclosed\n", "not a readable YAML file"),
+        # a few hundred bytes of nested aliases held the process expanding them (killed after 12 CPU-s)
+        ("a: &a [1, 1, 1]\nb: &b [*a, *a, *a]\nplanner:\n  feedback:\n    features: [*b, *b]\n", "aliases (*name)"),
+        ("seed: 1\n" * 200_000, "over 1,000,000 bytes; a config file is a few KB"),  # /dev/zero was read forever
     ):
         (tmp_path / "bad.yaml").write_text(content)
         code, _, err = _main(capsys, "--env", "reacher", "--config", tmp_path / "bad.yaml", "--print-config")

@@ -81,6 +81,22 @@ def _train_sac(args: argparse.Namespace, spec: Any, steps: int) -> tuple[dict[st
     "nothing was written (the data set is written only when the collection is complete; sac:STEPS goes on from "
     "its checkpoint OUT.sac-checkpoint, written every 10,000 steps, when the same command runs again)",
 )
+def _check_outputs(out: Path, save_agent: Path | None) -> None:
+    """Exit 2 (one line) unless ``--out`` (an .npz) and ``--save-agent`` are new files in writable folders."""
+    if out.suffix != ".npz":
+        fail(PROG, f"--out {out} must name an .npz file (e.g. {out.with_suffix('.npz').name})")
+    for option, path in (("--out", out), ("--save-agent", save_agent)):
+        if path is None:
+            continue
+        if path.is_dir():
+            fail(PROG, f"{option} {path} is a directory; give a file name")
+        if path.exists():
+            fail(PROG, f"{option} {path} exists; pets.collect never writes over a file: pick another name or delete it")
+        problem = writable_dir_error(path.parent)  # before collecting, not after
+        if problem:
+            fail(PROG, f"cannot write {option} {path}: {problem}")
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
@@ -108,18 +124,7 @@ def main(argv: list[str] | None = None) -> int:
         fail(PROG, f"SB3 agent {arg} does not exist")
     if kind != "run" and not args.env:
         fail(PROG, "--env is required (except with --policy run:RUN_DIR, which uses the run's env)")
-    if args.out.suffix != ".npz":
-        fail(PROG, f"--out {args.out} must name an .npz file (e.g. {args.out.with_suffix('.npz').name})")
-    for option, path in (("--out", args.out), ("--save-agent", args.save_agent)):
-        if path is None:
-            continue
-        if path.is_dir():
-            fail(PROG, f"{option} {path} is a directory; give a file name")
-        if path.exists():
-            fail(PROG, f"{option} {path} exists; pets.collect never writes over a file: pick another name or delete it")
-        problem = writable_dir_error(path.parent)  # before collecting, not after
-        if problem:
-            fail(PROG, f"cannot write {option} {path}: {problem}")
+    _check_outputs(args.out, args.save_agent)
     if kind in ("sac", "sb3"):
         from pets.data.sb3 import INSTALL_HINT, require_sb3
 
