@@ -1544,6 +1544,7 @@ def test_headline_rejects_what_is_not_a_summary_in_one_line(fake_offline, tmp_pa
         ),
         (("--offline", off / "summary.csv", "--out", tmp_path / "h", "--figures", tmp_path / "afile"), "is a file"),
         (("--offline", off / "summary.csv", "--out", tmp_path / "h", "--horizon", "0"), "--horizon must be >= 1"),
+        (("--offline", off / "summary.csv", "--out", tmp_path / "h", "--model", "nope"), "--model nope is in none of"),
         (("--offline", tmp_path / "bad.csv", "--out", tmp_path / "h"), "a summary holds a value that is not"),
     ):
         code, _, err = cli(capsys, "headline", *args)

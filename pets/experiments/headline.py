@@ -311,6 +311,9 @@ def write_headline(
             curves[str(path)] = rows
         else:
             on_rows += online_rows(rows, str(path))
+    named = {r["model"] for r in (*off_rows, *on_rows, *plan_rows)}
+    if named and model not in named:  # its plot and planning family would be left out without a word
+        raise HeadlineError(f"--model {model} is in none of the summaries; they compare {', '.join(sorted(named))}")
     figures = out if figures is None else figures
     out.mkdir(parents=True, exist_ok=True)
     figures.mkdir(parents=True, exist_ok=True)
