@@ -118,6 +118,9 @@ class DynamicsModel(nn.Module):
         act = act if isinstance(act, Tensor) else self._as_model_tensor(act, "actions").cpu().numpy()
         if act.ndim == 0:
             raise ValueError(f"expected actions (..., {self.act_dim}), got a single number")
+        obs_shape = tuple(getattr(obs, "shape", np.shape(obs)))
+        if obs_shape[:-1] != tuple(act.shape[:-1]):
+            raise ValueError(f"observations {obs_shape} and actions {tuple(act.shape)}: batch dims differ")
         return self.rollout(obs, act[..., None, :], mode, generator)[..., 0, :]
 
     #: Open-loop rollout modes of :meth:`rollout`.
@@ -145,7 +148,15 @@ class DynamicsModel(nn.Module):
                 f"{tuple(obs0.shape)} and {tuple(actions.shape)}"
             )
         if obs0.shape[:-1] != actions.shape[:-2]:
-            raise ValueError(f"observations {tuple(obs0.shape)} and actions {tuple(actions.shape)}: batch dims differ")
+            missing_h = actions.shape[:-1] == obs0.shape[:-1]  # (K, act_dim) for (K, H, act_dim): no horizon axis
+            raise ValueError(
+                f"observations {tuple(obs0.shape)} and actions {tuple(actions.shape)}: "
+                + (
+                    "actions need a horizon axis, (..., H, act_dim); predict takes one step"
+                    if missing_h
+                    else "batch dims differ"
+                )
+            )
         if actions.shape[-2] == 0:
             raise ValueError(f"actions {tuple(actions.shape)} have no steps: a rollout needs a horizon H >= 1")
         for what, x in (("observations", obs0), ("actions", actions)):

@@ -98,6 +98,10 @@ def test_predict_is_the_models_own_decoding_and_types_follow_the_input(tmp_path)
             model.predict(*bad)
     with pytest.raises(ValueError, match="generator must be a torch.Generator"):
         model.predict(obs, act, mode="sample", generator=0)
+    with pytest.raises(ValueError, match=r"observations \(2, 3, \d+\) and actions \(2, 2, \d+\): batch dims differ"):
+        model.predict(obs, act[:, :2])  # the shapes given, not the internal (..., 1, act_dim)
+    with pytest.raises(ValueError, match=r"actions need a horizon axis, \(\.\.\., H, act_dim\); predict takes one"):
+        model.rollout(obs, act)
     for device, fragment in (("gpu", "device must be one of auto, cpu, cuda"), ("cuda", "no CUDA device")):
         if device == "cuda" and torch.cuda.is_available():
             continue  # the machine has one: load_model takes it
