@@ -266,6 +266,13 @@ def _blank_nan(rows: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
     return [{k: "" if isinstance(v, float) and math.isnan(v) else v for k, v in r.items()} for r in rows]
 
 
+def _check_named(model: str, rows: Sequence[Mapping[str, Any]]) -> None:
+    """HeadlineError where ``--model`` is in none of the rows (its plot and planning family would be left out)."""
+    named = {r["model"] for r in rows}
+    if named and model not in named:
+        raise HeadlineError(f"--model {model} is in none of the summaries; they compare {', '.join(sorted(named))}")
+
+
 def write_headline(
     offline: Sequence[Path],
     online: Sequence[Path],
@@ -311,9 +318,7 @@ def write_headline(
             curves[str(path)] = rows
         else:
             on_rows += online_rows(rows, str(path))
-    named = {r["model"] for r in (*off_rows, *on_rows, *plan_rows)}
-    if named and model not in named:  # its plot and planning family would be left out without a word
-        raise HeadlineError(f"--model {model} is in none of the summaries; they compare {', '.join(sorted(named))}")
+    _check_named(model, (*off_rows, *on_rows, *plan_rows))
     figures = out if figures is None else figures
     out.mkdir(parents=True, exist_ok=True)
     figures.mkdir(parents=True, exist_ok=True)

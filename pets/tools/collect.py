@@ -76,11 +76,6 @@ def _train_sac(args: argparse.Namespace, spec: Any, steps: int) -> tuple[dict[st
     return data, seconds
 
 
-@interruptible(
-    PROG,
-    "nothing was written (the data set is written only when the collection is complete; sac:STEPS goes on from "
-    "its checkpoint OUT.sac-checkpoint, written every 10,000 steps, when the same command runs again)",
-)
 def _check_outputs(out: Path, save_agent: Path | None) -> None:
     """Exit 2 (one line) unless ``--out`` (an .npz) and ``--save-agent`` are new files in writable folders."""
     if out.suffix != ".npz":
@@ -97,6 +92,11 @@ def _check_outputs(out: Path, save_agent: Path | None) -> None:
             fail(PROG, f"cannot write {option} {path}: {problem}")
 
 
+@interruptible(
+    PROG,
+    "nothing was written (the data set is written only when the collection is complete; sac:STEPS goes on from "
+    "its checkpoint OUT.sac-checkpoint, written every 10,000 steps, when the same command runs again)",
+)
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
