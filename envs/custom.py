@@ -274,10 +274,10 @@ def register(spec: EnvSpec) -> EnvSpec:
 
     if not isinstance(spec, EnvSpec):
         raise ValueError(f"register takes an envs.EnvSpec, got {type(spec).__name__}")
-    if catalogue_key(spec.name) is not None:
+    key = catalogue_key(spec.name)
+    if key is not None:
         raise ValueError(
-            f"{spec.name!r} names the catalogue env {catalogue_key(spec.name)} ({GYM_IDS[catalogue_key(spec.name)]}); "
-            "register yours under another name"
+            f"{spec.name!r} names the catalogue env {key} ({GYM_IDS[key]}); register yours under another name"
         )
     check_dims(spec)
     _REGISTRY[spec.name] = spec
