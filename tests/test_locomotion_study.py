@@ -114,6 +114,20 @@ def test_a_crashed_run_enters_the_paired_test_as_zero(tmp_path):
     assert gem["n_seeds"] == 5 and gem["diff_p_signflip"] == pytest.approx(exact)
 
 
+def test_a_crashed_run_is_below_every_run_where_returns_are_negative(tmp_path):
+    """HalfCheetah's returns can be negative: a crashed run then enters as the env's lowest value, not 0, so it
+    loses its pairing (here delta's seed 4 ends at -50, and gem's crashed seed 4 counts as -80, gem's seed 3)."""
+    rows = write_runs(tmp_path / "runs.csv", {"delta": [300.0, 200.0, 100.0, 50.0, -50.0],
+                                              "gem": [310.0, 210.0, 110.0, -80.0, 0.0]})  # fmt: skip
+    rows[-1]["status"] = "crashed"
+    (_, gem) = study.summary_from_runs(rows, reps=100)
+    d = np.array([10.0, 10.0, 10.0, -130.0, -30.0])
+    exact = stats.permutation_test((d,), np.mean, permutation_type="samples", n_resamples=np.inf).pvalue
+    assert gem["n_seeds"] == 5 and gem["diff_p_signflip"] == pytest.approx(exact)
+    assert gem["endpoint_iqm"] == pytest.approx(stats.trim_mean([310.0, 210.0, 110.0, -80.0, -80.0], 0.25))
+    assert gem["auc_iqm"] == pytest.approx(stats.trim_mean([155.0, 105.0, 55.0, -40.0, -40.0], 0.25))
+
+
 def test_the_report_makes_the_summary_and_both_blocks_from_the_runs_file(tmp_path, monkeypatch):
     from pets.experiments import published
 

@@ -10,7 +10,8 @@ Per run (pre-registered): ``endpoint``, the gate's endpoint at the budget (the m
 episodes); secondary: ``auc``, the mean of that moving window at every 1,000 env steps from 10k to the budget (the
 area under the reward curve over its span); ``steps_to_threshold``, the first env step at which the window reaches
 the gate's threshold (NaN if never). A run short of the budget is ``partial`` (still running; left out of the
-summary); a run the study gave up on (``--crashed RUN``) counts as the worst outcome, an endpoint and AUC of 0.
+summary); a run the study gave up on (``--crashed RUN``) is recorded with an endpoint and AUC of 0 and counts as
+the worst outcome: the lower of 0 and the lowest value of any other run on its env (:func:`_runs`).
 ``--identical``: on a planar env ``delta-groupfeat`` is ``gem`` bit for bit, so a seed of it that was not run takes
 ``gem``'s row, marked so (:func:`identical_rows`).
 """
@@ -131,15 +132,22 @@ def identical_rows(rows: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
     return out
 
 
+#: The metrics a crashed run gets the worst outcome of (:func:`_runs`); its other metrics are what it reached.
+WORST_OUTCOME = ("endpoint", "auc")
+
+
 def _runs(rows: Sequence[Mapping[str, str]]) -> list[dict[str, Any]]:
     """The runs the summary counts (complete, crashed, or identical by construction to one that is complete), numbers
-    parsed; a crashed run is not ``diverged`` for the statistics: it enters every one with its worst-outcome values
-    (0), as registered."""
-    out = []
-    for r in rows:
-        if r["status"] in ("complete", "crashed", IDENTICAL_STATUS):
-            run = {m.name: csv_number(r[m.name]) for m in STUDY.metrics}
-            out.append({**run, "env": r["env"], "model": r["model"], "seed": int(r["seed"]), "diverged": None})
+    parsed; a crashed run is not ``diverged`` for the statistics: it enters every one with the worst outcome of each
+    of :data:`WORST_OUTCOME`, the lower of 0 (as registered) and the lowest value of any other run counted on its
+    env (HalfCheetah's returns can be negative; the amendment of 2026-11-30, 12:30 UTC)."""
+    counted = [r for r in rows if r["status"] in ("complete", "crashed", IDENTICAL_STATUS)]
+    out = [{**{m.name: csv_number(r[m.name]) for m in STUDY.metrics}, "env": r["env"], "model": r["model"],
+            "seed": int(r["seed"]), "diverged": None, "crashed": r["status"] == "crashed"}
+           for r in counted]  # fmt: skip
+    for run in (r for r in out if r["crashed"]):
+        others = [r for r in out if r["env"] == run["env"] and not r["crashed"]]
+        run |= {k: min([0.0, *(r[k] for r in others if math.isfinite(r[k]))]) for k in WORST_OUTCOME}
     return out
 
 
