@@ -38,6 +38,15 @@ def test_the_first_command_installs_cpu_torch_and_runs_the_cpu_preset_on_one_thr
     assert "planner:" in proc.stdout and "threads: 1" in proc.stdout
 
 
+def test_ci_runs_the_readmes_test_command():
+    """.ci/run installs and tests exactly as the README's second command says (each of its '&&' parts a line)."""
+    second = re.findall(r"```bash\n(.*?)```", README, re.S)[1].strip()
+    ci = [line.strip() for line in (ROOT / ".ci" / "run").read_text().splitlines()]
+    parts = [part.strip() for part in second.split("&&")]
+    assert all(part in ci for part in parts), [part for part in parts if part not in ci]
+    assert ci.index(parts[0]) < ci.index(parts[1]) < ci.index(parts[2])
+
+
 def test_the_start_line_states_preset_and_device_and_warns_of_research_on_a_cpu(tmp_path):
     proc = cli("--env", "invertedpendulum", "--trials", 1, "--out", tmp_path / "fast", *TINY)
     assert f"run directory: {tmp_path / 'fast'} (preset fast on cpu)" in proc.stderr
