@@ -29,6 +29,7 @@ import torch
 from torch import Tensor
 
 from envs.layout import KIND_WIDTH, Group, ObsLayout
+from gem_head.indexing import put, sel, take
 from gem_head.lie import SO2, SO3, wrap_angle
 
 __all__ = [
@@ -45,28 +46,6 @@ __all__ = [
     "take",
     "put",
 ]
-
-Sel = slice | Tensor
-
-
-def sel(indices: list[int]) -> Sel:
-    """A basic slice when ``indices`` is a non-empty ascending run (a view, no gather), else a long tensor."""
-    if indices and indices == list(range(indices[0], indices[0] + len(indices))):
-        return slice(indices[0], indices[0] + len(indices))
-    return torch.tensor(indices, dtype=torch.long)
-
-
-def take(x: Tensor, s: Sel) -> Tensor:
-    """x[..., s] along the last dim, contiguous (elementwise kernels on strided views are ~10x slower on CPU)."""
-    return x[..., s].contiguous() if isinstance(s, slice) else x.index_select(-1, s)
-
-
-def put(out: Tensor, s: Sel, value: Tensor) -> None:
-    """out[..., s] = value along the last dim (in place)."""
-    if isinstance(s, slice):
-        out[..., s] = value
-    else:
-        out.index_copy_(-1, s, value.to(out.dtype))
 
 
 def apply_right(mul: Callable[[Tensor, Tensor], Tensor], g: Tensor, e: Tensor) -> Tensor:
@@ -422,9 +401,28 @@ CODECS: dict[str, type[GroupCodec]] = {}
 _ADDED_KINDS: set[str] = set()
 
 
+def _check_codec(cls: object) -> None:
+    """Refuse, in one line, a class that is not a complete codec: its attributes, and a non-additive kind's maps."""
+    if not (isinstance(cls, type) and issubclass(cls, GroupCodec)):
+        raise TypeError(f"register_codec takes a subclass of gem_head.codecs.GroupCodec, got {cls!r}")
+    kind, width, dim = (getattr(cls, k, None) for k in ("kind", "width", "tangent_dim"))
+    if not isinstance(kind, str) or not kind:
+        raise ValueError(f"codec {cls.__name__}: set the class attribute kind to its kind's name (a str), got {kind!r}")
+    if not (width is None or (isinstance(width, int) and width >= 1)) or "width" not in dir(cls):
+        raise ValueError(f"codec {kind!r}: width must be the entries per group (an int >= 1) or None, got {width!r}")
+    if not (isinstance(dim, int) and dim >= 1):
+        raise ValueError(f"codec {kind!r}: tangent_dim must be the target slots per unit (an int >= 1), got {dim!r}")
+    missing = [m for m in ("target", "decode") if getattr(cls, m) is getattr(GroupCodec, m) and not cls.additive]
+    if missing:
+        raise ValueError(f"codec {kind!r} is not additive, so it must define {' and '.join(missing)} (the base "
+                         "class's write nothing)")  # fmt: skip
+
+
 def register_codec(cls: type[GroupCodec]) -> type[GroupCodec]:
     """Add ``cls`` under ``cls.kind`` (a decorator too); ``envs.layout.Group`` accepts it from then on (unless a
-    ``composite`` root codec). A kind registered to another class, or of another width in the layout: an error."""
+    ``composite`` root codec). A kind registered to another class, or of another width in the layout, or a class
+    short of a codec's attributes or (not additive) of its ``target`` and ``decode``: an error."""
+    _check_codec(cls)
     known = CODECS.get(cls.kind)
     if known is not None and known is not cls:
         raise ValueError(f"codec kind {cls.kind!r} is already registered to {known.__name__}")

@@ -206,3 +206,33 @@ def test_gradcheck_encode_decode_of_every_codec(env: str, model: type[GemHead], 
     finally:
         if kind == "SO2_deg":
             unregister_codec(kind)
+
+
+@pytest.mark.parametrize(
+    ("attrs", "message"),
+    [
+        ({"width": 1, "tangent_dim": 1}, "set the class attribute kind"),
+        ({"kind": "K", "tangent_dim": 1}, "width must be"),
+        ({"kind": "K", "width": 0, "tangent_dim": 1}, "width must be"),
+        ({"kind": "K", "width": 1, "tangent_dim": 0}, "tangent_dim must be"),
+        ({"kind": "K", "width": 1, "tangent_dim": 1}, "must define target and decode"),
+        ({"kind": "K", "width": 1, "tangent_dim": 1, "target": SO2DegreesCodec.target}, "must define decode"),
+    ],
+)
+def test_an_incomplete_codec_is_refused_at_registration_in_one_line(attrs: dict, message: str) -> None:
+    """A codec without its attributes, or a non-additive one without its maps (the base class's write nothing: a head
+    built on it would return whatever memory its outputs were allocated in), is refused before any layout takes it."""
+    with pytest.raises(ValueError, match=message) as info:
+        register_codec(type("Incomplete", (GroupCodec,), attrs))
+    assert "\n" not in str(info.value) and "K" not in CODECS and "K" not in KIND_WIDTH
+    with pytest.raises(TypeError, match="subclass of gem_head.codecs.GroupCodec"):
+        register_codec(SO2DegreesCodec.target)
+
+
+def test_an_additive_codec_may_keep_the_base_maps() -> None:
+    """An additive kind's entries already hold next - obs and obs + target: the base maps' nothing is right."""
+    cls = type("Plain", (GroupCodec,), {"kind": "Plain1", "width": 1, "tangent_dim": 1, "additive": True})
+    try:
+        assert register_codec(cls) is cls and CODECS["Plain1"] is cls
+    finally:
+        unregister_codec("Plain1")
