@@ -46,6 +46,7 @@ def custom_spec(
     params: Mapping[str, Any] | None = None,
     episode_length: int | None = None,
     reward_differs: bool = False,
+    terminated_differs: bool = False,
 ) -> EnvSpec:
     """An :class:`envs.EnvSpec` for the gymnasium env ``gym_id`` (built once here, to read its action bounds, time
     step and episode length, and to check the layout and the functions on real transitions).
@@ -55,8 +56,11 @@ def custom_spec(
     cannot make, a layout that does not cover the observation, functions of the wrong shape (on a small, a large
     and a 3-d batch) or that raise, and a reward that is not the env's on the real transitions (a layout with
     entries swapped, a wrong formula): ``reward_differs=True`` accepts a reward that differs on purpose (shaped),
-    never one that is not finite; and for a name that is not a non-empty string, a layout that is not an
-    ``envs.ObsLayout`` or an ``episode_length`` that is not a positive int.
+    never one that is not finite; a termination that is not the env's on up to :data:`TERMINATION_STEPS` real steps
+    (``None`` where the env ends episodes; ``terminated_differs=True`` accepts one that differs on purpose); a layout
+    whose angles or velocities are, by the simulator's own ``qpos`` and ``qvel``, the other (:func:`check_angles`);
+    and for a name that is not a non-empty string, a layout that is not an ``envs.ObsLayout`` or an
+    ``episode_length`` that is not a positive int.
     """
     _check_arguments(name, layout, reward_fn, terminated_fn, episode_length)
     try:
@@ -73,16 +77,18 @@ def custom_spec(
     dt = float(getattr(env.unwrapped, "dt", 0.0) or 0.0)
     length = episode_length or (env.spec.max_episode_steps if env.spec and env.spec.max_episode_steps else 1000)
     try:
-        transitions, positions = _real_transitions(env, act_space)
+        probe = _real_transitions(env, act_space)
     except Exception as err:  # e.g. an env_kwargs value the constructor took but its step cannot use
         raise ValueError(f"{name}: {gym_id} failed to reset or step ({type(err).__name__}: {_line(err)})") from None
     finally:
         env.close()
     terminated_fn = terminated_fn or _never
-    check_functions(name, reward_fn, terminated_fn, transitions)
-    check_angles(name, layout, transitions, positions)
+    check_functions(name, reward_fn, terminated_fn, probe.transitions)
+    check_angles(name, layout, probe)
     if not reward_differs:
-        check_reward(name, gym_id, reward_fn, transitions)
+        check_reward(name, gym_id, reward_fn, probe.transitions[:CHECK_STEPS])
+    if not terminated_differs:
+        check_termination(name, gym_id, terminated_fn, probe.transitions, given=terminated_fn is not _never)
     return EnvSpec(
         name=name,
         gym_id=gym_id,
@@ -115,8 +121,10 @@ def _check_arguments(name: Any, layout: Any, reward_fn: Any, terminated_fn: Any,
         raise ValueError(f"{name}: episode_length must be a positive int (or None: the env's), got {episode_length!r}")
 
 
-#: Real transitions custom_spec steps to check a spec's functions (from reset seed 0, uniformly random actions).
+#: Real transitions custom_spec checks a spec's reward on (from reset seed 0, uniformly random actions).
 CHECK_STEPS = 5
+#: Real transitions (the same, on until the episode ends) it checks the termination and the layout's angles on.
+TERMINATION_STEPS = 200
 #: Batch sizes (leading dims) the functions are checked on: a small, a large (as the planner's particles x
 #: candidates) and a 3-d batch.
 CHECK_BATCHES = ((2,), (10_000,), (2, 3))
@@ -128,29 +136,46 @@ def _line(err: BaseException) -> str:
     return text.splitlines()[0] if text else "no message"
 
 
-def _real_transitions(env: Any, act_space: Any) -> tuple[list[tuple], list[np.ndarray | None]]:
-    """:data:`CHECK_STEPS` real transitions ``(obs, act, next_obs, reward)`` of ``env`` (fewer if it ends), and the
-    simulator's positions after each (:func:`_positions`)."""
+@dataclasses.dataclass
+class Probe:
+    """Real steps of the env, from reset seed 0 with uniformly random actions, until it ends or
+    :data:`TERMINATION_STEPS`: ``transitions`` ``(obs, act, next_obs, reward, terminated)`` and the simulator's
+    positions and velocities after each (:func:`_state`; None where it exposes none)."""
+
+    transitions: list[tuple]
+    positions: list[np.ndarray | None]
+    velocities: list[np.ndarray | None]
+
+
+def _real_transitions(env: Any, act_space: Any) -> Probe:
+    """The :class:`Probe` of ``env``."""
     act_space.seed(0)
     obs, _ = env.reset(seed=0)
-    out, positions = [], []
-    for _ in range(CHECK_STEPS):
+    probe = Probe([], [], [])
+    for _ in range(TERMINATION_STEPS):
         act = act_space.sample()
         nxt, reward, terminated, truncated, _ = env.step(act)
-        out.append((obs, act, nxt, float(reward)))
-        positions.append(_positions(env))
+        probe.transitions.append((obs, act, nxt, float(reward), bool(terminated)))
+        for out, state in zip((probe.positions, probe.velocities), _state(env)):
+            out.append(state)
         if terminated or truncated:
             break
         obs = nxt
-    return out, positions
+    return probe
 
 
-def _positions(env: Any) -> np.ndarray | None:
-    """The simulator's generalised positions: MuJoCo's ``qpos``, a classic-control env's ``state`` (Pendulum's
-    ``[theta, theta_dot]``: the angle is among them), else None."""
+def _state(env: Any) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The simulator's generalised positions and velocities: MuJoCo's ``qpos`` and ``qvel``; a classic-control
+    env's ``state`` as its positions (Pendulum's ``[theta, theta_dot]``: the angle is among them), no velocities;
+    else None."""
     inner = env.unwrapped
     data = getattr(inner, "data", None)
-    state = data.qpos if data is not None and hasattr(data, "qpos") else getattr(inner, "state", None)
+    if data is not None and hasattr(data, "qpos"):
+        return _flat(data.qpos), _flat(getattr(data, "qvel", None))
+    return _flat(getattr(inner, "state", None)), None
+
+
+def _flat(state: Any) -> np.ndarray | None:
     try:
         return None if state is None else np.array(state, dtype=np.float64).reshape(-1)
     except (TypeError, ValueError):
@@ -160,7 +185,7 @@ def _positions(env: Any) -> np.ndarray | None:
 def check_functions(name: str, reward_fn: RewardFn, terminated_fn: RewardFn, transitions: list[tuple]) -> None:
     """ValueError (one line) for a reward or termination function that raises, or returns anything but a float
     (reward) or bool (termination) tensor of the inputs' leading dims, on each batch of :data:`CHECK_BATCHES`."""
-    obs, act, nxt, _ = transitions[0]
+    obs, act, nxt = transitions[0][:3]
     for batch in CHECK_BATCHES:
         o, a, n = (torch.as_tensor(x, dtype=torch.float32).expand(*batch, len(x)).contiguous() for x in (obs, act, nxt))
         for what, fn, kind in (("reward_fn", reward_fn, "float"), ("terminated_fn", terminated_fn, "bool")):
@@ -184,17 +209,19 @@ def check_functions(name: str, reward_fn: RewardFn, terminated_fn: RewardFn, tra
                 raise ValueError(f"{name}: reward_fn returned nan or inf on a real transition; a reward must be finite")
 
 
-def check_angles(name: str, layout: ObsLayout, transitions: list[tuple], positions: list[np.ndarray | None]) -> None:
-    """ValueError (one line) where an ``SO2_cossin`` group's entries are not a cosine and a sine (``cos^2 + sin^2``
-    off 1), or are swapped, on the real ``transitions``.
+def check_angles(name: str, layout: ObsLayout, probe: Probe) -> None:
+    """ValueError (one line) where, on the real steps of ``probe``, an ``SO2_cossin`` group's entries are not a
+    cosine and a sine (``cos^2 + sin^2`` off 1) or are swapped, or an angle and a velocity of the layout are the
+    other (:func:`check_kinds`).
 
     A swap keeps ``cos^2 + sin^2 = 1`` and any reward that reads the observation directly, but decodes the angle
     ``atan2(cos, sin) = pi/2 - theta``. Checked against the simulator's own positions after each transition
-    (``positions``: MuJoCo's ``qpos``): refused where the swapped reading equals one of them (mod 2 pi) on every
-    transition and the stated reading equals none. Where the env exposes no positions, or neither reading matches
-    (an angle the simulator does not hold as a coordinate), nothing is decided.
+    (MuJoCo's ``qpos``): refused where the swapped reading equals one of them (mod 2 pi) on every transition and the
+    stated reading equals none. Where the env exposes no positions, or neither reading matches (an angle the
+    simulator does not hold as a coordinate), nothing is decided.
     """
-    nxt = np.array([t[2] for t in transitions], dtype=np.float64)
+    nxt = np.array([t[2] for t in probe.transitions], dtype=np.float64)
+    q = _stacked(probe.positions)
     for group in layout.groups_of("SO2_cossin"):
         c, s = group.indices
         norm = np.hypot(nxt[:, c], nxt[:, s])
@@ -203,29 +230,60 @@ def check_angles(name: str, layout: ObsLayout, transitions: list[tuple], positio
                 f"{name}: group {group.name!r} (SO2_cossin, entries {c}, {s}) is not a cosine and a sine on real "
                 f"observations (cos^2 + sin^2 = {float(norm.min() ** 2):.3g}..{float(norm.max() ** 2):.3g}, not 1)"
             )
-        if any(p is None or len(p) != len(positions[0]) for p in positions):
-            continue
-        q = np.stack(positions)  # (steps, nq)
-        if _is_a_position(q, np.arctan2(nxt[:, c], nxt[:, s])) and not _is_a_position(
-            q, np.arctan2(nxt[:, s], nxt[:, c])
-        ):
+        if q is not None and _matches(q, np.arctan2(nxt[:, c], nxt[:, s]), True) is not None:
+            if _matches(q, np.arctan2(nxt[:, s], nxt[:, c]), True) is None:
+                raise ValueError(
+                    f"{name}: group {group.name!r} (SO2_cossin) reads its angle the wrong way round: the simulator's "
+                    f"angle is atan2(obs[{c}], obs[{s}]), so its indices (cos_index, sin_index) are ({s}, {c}), "
+                    f"not ({c}, {s})"
+                )
+    check_kinds(name, layout, nxt, q, _stacked(probe.velocities))
+
+
+def check_kinds(name: str, layout: ObsLayout, nxt: np.ndarray, q: np.ndarray | None, v: np.ndarray | None) -> None:
+    """ValueError (one line) where an ``SO2_angle`` entry is, on every real step, one of the simulator's velocities
+    ``v`` (``qvel``) and none of its positions ``q``, or a ``velocities`` entry one of its positions and none of its
+    velocities: a layout with an angle and a velocity swapped. Only positive evidence decides (a clipped or derived
+    entry matches neither and passes)."""
+    if q is None or v is None:
+        return
+    for group in layout.groups_of("SO2_angle"):
+        for i in group.indices:
+            j = _matches(v, nxt[:, i], False)
+            if j is not None and _matches(q, nxt[:, i], True) is None:
+                raise ValueError(
+                    f"{name}: group {group.name!r} (SO2_angle) reads entry {i}, which is the simulator's velocity "
+                    f"qvel[{j}] on real steps, not an angle: check the layout's indices"
+                )
+    for i in layout.velocities:
+        j = _matches(q, nxt[:, i], False)
+        if j is not None and _matches(v, nxt[:, i], False) is None:
             raise ValueError(
-                f"{name}: group {group.name!r} (SO2_cossin) reads its angle the wrong way round: the simulator's "
-                f"angle is atan2(obs[{c}], obs[{s}]), so its indices (cos_index, sin_index) are ({s}, {c}), "
-                f"not ({c}, {s})"
+                f"{name}: the layout's velocities include entry {i}, which is the simulator's position qpos[{j}] on "
+                "real steps, not a velocity: check the layout's indices"
             )
 
 
-def _is_a_position(positions: np.ndarray, angle: np.ndarray) -> bool:
-    """Whether ``angle`` (steps,) equals one column of ``positions`` (steps, nq) mod 2 pi on every step (to 1e-3)."""
-    gap = np.abs(np.angle(np.exp(1j * (positions - angle[:, None]))))  # wrapped to [0, pi]
-    return bool((gap < 1e-3).all(axis=0).any())
+def _stacked(states: list[np.ndarray | None]) -> np.ndarray | None:
+    """``states`` as (steps, n), or None where a step has none or their sizes differ."""
+    if not states or any(x is None or len(x) != len(states[0]) for x in states):
+        return None
+    return np.stack(states)
+
+
+def _matches(columns: np.ndarray, value: np.ndarray, angle: bool) -> int | None:
+    """The first column of ``columns`` (steps, n) that equals ``value`` (steps,) on every step to 1e-3 (``angle``:
+    mod 2 pi), or None."""
+    diff = columns - value[:, None]
+    gap = np.abs(np.angle(np.exp(1j * diff))) if angle else np.abs(diff)
+    hit = np.flatnonzero((gap < 1e-3).all(axis=0))
+    return int(hit[0]) if hit.size else None
 
 
 def check_reward(name: str, gym_id: str, reward_fn: RewardFn, transitions: list[tuple]) -> None:
     """ValueError (one line) where ``reward_fn`` is not the env's reward on the real ``transitions`` (to 1e-3
     relative and absolute, the observations being float32)."""
-    for step, (obs, act, nxt, want) in enumerate(transitions):
+    for step, (obs, act, nxt, want, _) in enumerate(transitions):
         o, a, n = (torch.as_tensor(x, dtype=torch.float64)[None] for x in (obs, act, nxt))
         got = float(reward_fn(o, a, n)[0])
         if not abs(got - want) <= 1e-3 * (1.0 + abs(want)):
@@ -234,6 +292,24 @@ def check_reward(name: str, gym_id: str, reward_fn: RewardFn, transitions: list[
                 "from reset seed 0): check the layout (entries swapped?) and the formula, or pass "
                 "reward_differs=True for a reward that differs from the env's on purpose"
             )
+
+
+def check_termination(name: str, gym_id: str, terminated_fn: RewardFn, transitions: list[tuple], given: bool) -> None:
+    """ValueError (one line) where ``terminated_fn`` is not the env's termination on the real ``transitions`` (the
+    first step where they differ; ``given``: False where no function was given, read as never terminating)."""
+    o, a, n = (torch.as_tensor(np.stack([t[k] for t in transitions]), dtype=torch.float64) for k in range(3))
+    want = np.array([t[4] for t in transitions])
+    got = terminated_fn(o, a, n).cpu().numpy().astype(bool)
+    wrong = np.flatnonzero(got != want)
+    if wrong.size:
+        k = int(wrong[0])
+        what = "terminated_fn" if given else "no terminated_fn (never terminates)"
+        says, did = ("ends", "went on") if got[k] else ("goes on", "ended")
+        raise ValueError(
+            f"{name}: {what} says the episode {says} where {gym_id} {did} on a real transition (step {k} from reset "
+            "seed 0, random actions): give the env's termination as terminated_fn, or pass terminated_differs=True "
+            "for one that differs on purpose"
+        )
 
 
 def check_dims(spec: EnvSpec) -> None:

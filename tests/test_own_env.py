@@ -175,19 +175,74 @@ def test_a_layout_with_cos_and_sin_swapped_is_refused_against_mujocos_own_joint_
 
     spec = envs.get(name)
     env = spec.make()
-    transitions, positions = _real_transitions(env, env.action_space)
+    probe = _real_transitions(env, env.action_space)
     env.close()
-    check_angles(name, spec.layout, transitions, positions)
+    check_angles(name, spec.layout, probe)
     for group in spec.layout.groups_of("SO2_cossin"):
         swapped = dataclasses.replace(group, indices=group.indices[::-1])
         layout = dataclasses.replace(
             spec.layout, groups=tuple(swapped if g == group else g for g in spec.layout.groups)
         )
         with pytest.raises(ValueError, match=re.escape(f"(cos_index, sin_index) are {group.indices}")):
-            check_angles(name, layout, transitions, positions)
+            check_angles(name, layout, probe)
     group, (v, *rest) = spec.layout.groups_of("SO2_cossin")[0], spec.layout.velocities  # a velocity read as a cosine
     wrong = dataclasses.replace(group, indices=(v, group.indices[1]))
     groups = tuple(wrong if g == group else g for g in spec.layout.groups)
     layout = dataclasses.replace(spec.layout, groups=groups, velocities=(group.indices[0], *rest))
     with pytest.raises(ValueError, match="is not a cosine and a sine"):
-        check_angles(name, layout, transitions, positions)
+        check_angles(name, layout, probe)
+
+
+def _catalogue_functions(name: str) -> tuple[str, ObsLayout, object, object]:
+    """A catalogue env as a user would write it: its gym id, layout and exact reward and termination."""
+    spec = envs.get(name)
+    return spec.gym_id, spec.layout, spec.reward_fn, spec.terminated_fn
+
+
+def test_the_termination_is_checked_against_the_envs_until_the_episode_ends():
+    """InvertedPendulum ends an episode when the pole tips past 0.2 rad (within a few random steps): a spec that
+    leaves the termination out, or ends every step, is refused; its own exact termination, or a differing one said
+    to differ on purpose, is taken."""
+    gym_id, layout, reward, terminated = _catalogue_functions("invertedpendulum")
+    kwargs = envs.get("invertedpendulum").env_kwargs
+    assert envs.custom_spec("ip", gym_id, layout, reward, terminated, env_kwargs=kwargs).name == "ip"
+    with pytest.raises(ValueError, match=r"no terminated_fn \(never terminates\) says the episode goes on where") as e:
+        envs.custom_spec("ip", gym_id, layout, reward, env_kwargs=kwargs)
+    assert "terminated_differs=True" in str(e.value) and "\n" not in str(e.value)
+
+    def always(obs, act, next_obs):
+        return torch.ones(obs.shape[:-1], dtype=torch.bool)
+
+    with pytest.raises(ValueError, match=r"terminated_fn says the episode ends where .* went on .* \(step 0 "):
+        envs.custom_spec("ip", gym_id, layout, reward, always, env_kwargs=kwargs)
+    spec = envs.custom_spec("ip", gym_id, layout, reward, env_kwargs=kwargs, terminated_differs=True)
+    assert not spec.terminated_fn(torch.zeros(2, 4), torch.zeros(2, 1), torch.zeros(2, 4)).any()
+
+
+@pytest.mark.parametrize("name", envs.names())
+def test_every_catalogue_layout_passes_the_angle_and_velocity_checks_against_mujoco(name):
+    """The catalogue's layouts (checked against MuJoCo's joints in tests/test_envs.py) are what the checks accept."""
+    from envs.custom import _real_transitions, check_angles
+
+    spec = envs.get(name)
+    env = spec.make()
+    probe = _real_transitions(env, env.action_space)
+    env.close()
+    check_angles(name, spec.layout, probe)
+
+
+def test_a_layout_with_an_angle_and_a_velocity_swapped_is_refused_against_mujocos_qpos_and_qvel():
+    """InvertedPendulum's observation is (cart, hinge angle, cart velocity, hinge velocity): a layout that reads the
+    hinge angle from entry 2 and the velocities from entries 0-1 keeps the reward right (it reads obs directly) but
+    would have GEM wrap a velocity; qpos and qvel show the swap."""
+    gym_id, layout, reward, terminated = _catalogue_functions("invertedpendulum")
+    kwargs = envs.get("invertedpendulum").env_kwargs
+    swapped = ObsLayout(obs_dim=4, groups=(Group("cart", "Rn", (3,)), Group("hinge", "SO2_angle", (2,))),
+                        velocities=(0, 1))  # fmt: skip
+    with pytest.raises(
+        ValueError, match=r"group 'hinge' \(SO2_angle\) reads entry 2, which is the simulator's velocity"
+    ):
+        envs.custom_spec("ip", gym_id, swapped, reward, terminated, env_kwargs=kwargs)
+    angle_as_velocity = ObsLayout(obs_dim=4, groups=(Group("cart", "Rn", (0, 2)),), velocities=(1, 3))
+    with pytest.raises(ValueError, match=r"velocities include entry 1, which is the simulator's position qpos\[1\]"):
+        envs.custom_spec("ip", gym_id, angle_as_velocity, reward, terminated, env_kwargs=kwargs)
