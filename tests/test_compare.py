@@ -1625,7 +1625,7 @@ def test_online_rerun_accepts_runs_whose_auto_precision_resolved_elsewhere_and_s
     assert code == 0 and "4 reused" in err
     md = (copy / "summary.md").read_text()
     assert "## The runs used different precisions" in md
-    assert f"- {other} / {other}: 1 runs (invertedpendulum-gem-s1)" in md
+    assert f"- {other} / {other}, compiled training: 1 runs (invertedpendulum-gem-s1)" in md  # the others eager
     mine = "bf16" if other == "fp32" else "fp32"
     code, _, err = cli(capsys, "online", *common, f"planner.precision={mine}", f"model.precision={mine}")
     assert code == 2 and "invertedpendulum-gem-s1 was made with another config" in err
@@ -1645,7 +1645,7 @@ def test_offline_rerun_accepts_runs_whose_auto_precision_resolved_elsewhere_and_
     code, _, err = cli(capsys, *OFFLINE_ARGS, "--out", copy)
     assert code == 0, err
     md = (copy / "prediction.md").read_text()
-    assert f"- {other} / {other}: 1 runs (invertedpendulum-delta-s0)" in md
+    assert f"- {other} / {other}, compiled training: 1 runs (invertedpendulum-delta-s0)" in md
 
 
 def _offline_copy_summarised(offline, tmp_path, data_seeds=(0,)):

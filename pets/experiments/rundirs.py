@@ -107,8 +107,9 @@ def left_to_auto(overrides: Mapping[str, Any]) -> tuple[str, ...]:
 
 
 def precision_note(run_dirs: Iterable[Path]) -> list[str]:
-    """Markdown lines naming the precisions the runs in ``run_dirs`` used, when they are not all the same (else
-    none): set so by an arm, or ``auto`` resolved on machines of different CPU kinds."""
+    """Markdown lines naming the precisions and training paths (``model.compile``) the runs in ``run_dirs`` used,
+    when they are not all the same (else none): set so by an arm, or ``auto`` resolved on machines of different CPU
+    kinds or for runs begun with different trial counts."""
     from omegaconf import OmegaConf
 
     used: dict[str, list[str]] = {}
@@ -117,17 +118,20 @@ def precision_note(run_dirs: Iterable[Path]) -> list[str]:
         if path.is_file():
             cfg = OmegaConf.load(path)
             key = " / ".join(str(OmegaConf.select(cfg, k, default="fp32")) for k in PRECISION_KEYS)
+            key += ", compiled training" if OmegaConf.select(cfg, "model.compile", default=False) else ""
             used.setdefault(key, []).append(Path(run_dir).name)
     if len(used) < 2:
         return []
     return [
-        "## The runs used different precisions",
+        "## The runs used different precisions or training paths",
         "",
-        f"Not every run used the same {' / '.join(PRECISION_KEYS)}. An arm's own overrides may set them on purpose; "
-        "left at auto (the default) they resolve on the machine that starts a run, bf16 on CPUs with native bf16 "
-        "and fp32 elsewhere, so a study spread over machines of different CPU kinds mixes them. bf16 moves "
-        "planned returns by ~6e-4 relative and holdout errors by < 0.1 % (docs/performance.md); for an A/B free "
-        "of it, pass both keys explicitly.",
+        f"Not every run used the same {' / '.join(PRECISION_KEYS)} and model.compile. An arm's own overrides may set "
+        "them on purpose; left at auto (the default) they resolve when a run is begun: bf16 on CPUs with native "
+        "bf16 and fp32 elsewhere, so a study spread over machines of different CPU kinds mixes them; compiled "
+        "training with bf16 there, for runs begun with 10 trials or more, so a study extended with --trials past "
+        "10 mixes them too. Either changes the bits, not the expected outcome: bf16 moves planned returns by "
+        "~6e-4 relative and holdout errors by < 0.1 % (docs/performance.md); for an A/B free of it, pass the "
+        "three keys explicitly.",
         "",
         *[f"- {key}: {len(names)} runs ({', '.join(sorted(names))})" for key, names in sorted(used.items())],
         "",
