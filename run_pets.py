@@ -37,6 +37,20 @@ def _fail(message: str) -> NoReturn:
     fail(PROG, message)
 
 
+def _not_a_run(path: Path) -> str:
+    """Why ``--resume PATH`` is refused: no run there, or a run killed (kill -9) in its first seconds, before it wrote
+    its config, which left only its lock file."""
+    from pets.runs.fileio import LOCK_FILE
+    from pets.runs.rundir import CONFIG_FILE
+
+    if path.is_dir() and [p.name for p in path.iterdir()] == [LOCK_FILE]:
+        return (
+            f"{path} holds no run: the run started there was stopped in its first seconds, before it wrote its "
+            f"{CONFIG_FILE} (nothing was lost); run its command again with --out {path}"
+        )
+    return f"{path} is not a run directory (no {CONFIG_FILE})"
+
+
 def build_parser() -> argparse.ArgumentParser:
     from pets.config import HEADS, PRESETS
 
@@ -216,7 +230,7 @@ def _main(argv: list[str] | None = None) -> int:
                 _fail("--resume DIR takes the run's own config; do not pass --env, --model or --out with it")
             path = args.resume / rundir.CONFIG_FILE
             if not path.exists():
-                _fail(f"{args.resume} is not a run directory (no {rundir.CONFIG_FILE})")
+                _fail(_not_a_run(args.resume))
             if args.preset is not None:
                 _fail(f"--resume DIR takes the run's own config; --preset {args.preset} is refused with it")
             cfg = load_config(str(path))

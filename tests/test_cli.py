@@ -110,6 +110,22 @@ def test_resume_after_kill_matches_uninterrupted_run(tmp_path):
     assert [r["episode_reward"] for r in got] == [r["episode_reward"] for r in want]
 
 
+def test_a_run_killed_before_its_config_is_written_is_named_so_at_resume_and_its_command_reruns_there(tmp_path):
+    """kill -9 in a run's first seconds (building its model and env, before config.yaml) leaves its directory holding
+    only the lock file (the OS lock itself is released): --resume says what happened and what to do, in one line, and
+    the command with --out that directory runs there."""
+    killed = tmp_path / "killed"
+    killed.mkdir()
+    (killed / ".lock").write_text("12345\n")  # what such a kill leaves
+    proc = cli("--resume", killed, check=False)
+    (line,) = error_lines(proc.stderr)
+    assert proc.returncode == 2 and "holds no run" in line and f"--out {killed}" in line, proc.stderr
+    cli("--env", "invertedpendulum", "--trials", 1, *TINY, "--out", killed)
+    assert [int(r["trial"]) for r in rows(killed)] == [0]
+    proc = cli("--resume", tmp_path / "nothing", check=False)
+    assert proc.returncode == 2 and "is not a run directory (no config.yaml)" in proc.stderr
+
+
 def test_resume_can_extend_a_finished_run(tmp_path):
     out = tmp_path / "run"
     cli("--env", "invertedpendulum", "--trials", 1, "--out", out, *TINY)
