@@ -151,7 +151,3 @@ class GemSEHead(GemHead):
 
     def __repr__(self) -> str:
         return super().__repr__().replace("GemHead(", "GemSEHead(", 1)
-
-    def _root_rotation(self, obs: Tensor) -> Tensor:
-        """The root's rotation as a matrix: (..., 2, 2) in the x-z plane (angle -pitch) or (..., 3, 3)."""
-        return self.root_codec.rotation(obs)

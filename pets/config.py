@@ -39,8 +39,6 @@ __all__ = ["ConfigError", "FeedbackConfig", "ICEMConfig", "MPPIConfig", "ValueCo
 
 #: ``--model`` values (config key ``head``): the names of ``pets.models.MODELS``.
 HEADS = tuple(MODELS)
-#: Models without a predictive variance (MSE / Frobenius training, zero sampling noise).
-DETERMINISTIC_HEADS = tuple(name for name, entry in MODELS.items() if entry.deterministic)
 #: ``planner.name`` values: the names of the planner table (``pets.planning.planners.PLANNER_CLASSES``; a live view, so
 #: a planner registered later is accepted too).
 PLANNERS = PLANNER_CLASSES.keys()

@@ -148,7 +148,7 @@ def test_root_rotation_is_mujocos_body_frame(env: str) -> None:
         obs = torch.as_tensor(gym_env.unwrapped._get_obs(), dtype=torch.float64)
         xmat = data.xmat[model.body("torso").id].reshape(3, 3)
         want = xmat[np.ix_([0, 2], [0, 2])] if env == "halfcheetah" else xmat
-        np.testing.assert_allclose(head._root_rotation(obs).numpy(), want, atol=1e-9)
+        np.testing.assert_allclose(head.root_codec.rotation(obs).numpy(), want, atol=1e-9)
     gym_env.close()
 
 

@@ -25,18 +25,20 @@ from gem_head.head import GemHead
 from gem_head.se_root import GemSEHead
 from gem_head.two_stage import TwoStageGemEnsemble, TwoStageGemHead
 from pets import builder
-from pets.config import DETERMINISTIC_HEADS, HEADS, make_config
+from pets.config import HEADS, make_config
 from pets.data.collect import collect
 from pets.data.datasets import save_dataset, transitions
 from pets.learning.evaluation import evaluate
 from pets.learning.offline import train_offline
 from pets.learning.trainer import ModelTrainer
-from pets.models import make_model, models_for
+from pets.models import MODELS, make_model, models_for
 from pets.planning.propagation import TrajectoryEvaluator
 from pets.runs import rundir
 from tests.tiny import TINY_PLANNER
 
 ROOT = Path(__file__).resolve().parents[1]
+#: Models without a predictive variance (MSE / Frobenius training, zero sampling noise).
+DETERMINISTIC = tuple(name for name, entry in MODELS.items() if entry.deterministic)
 ENV = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 CPU = torch.device("cpu")
 SMALL = {
@@ -99,8 +101,8 @@ def test_every_model_builds_trains_and_plans(env, head_name):
         "gem-se": (GemSEHead, GaussianEnsemble),
     }
     assert isinstance(head, kinds[head_name][0]) and type(ens) is kinds[head_name][1] and head.name == head_name
-    assert head.deterministic == ens.deterministic == (head_name in DETERMINISTIC_HEADS)
-    assert cfg.planner.propagation == ("expectation" if head_name in DETERMINISTIC_HEADS else "tsinf")
+    assert head.deterministic == ens.deterministic == (head_name in DETERMINISTIC)
+    assert cfg.planner.propagation == ("expectation" if head_name in DETERMINISTIC else "tsinf")
     obs, act, next_obs = tensors(env)
     trainer = builder.make_trainer(cfg, DynamicsModel(head, ens))
     x = head.inputs(obs, act)
@@ -129,7 +131,7 @@ def test_deterministic_is_declared_by_head_and_network_and_they_agree_with_the_t
     for name, entry in MODELS.items():
         env = "ant" if entry.needs_root else "reacher"
         model = make_model(make_config(env, name, "fast"), envs.get(env), torch.device("cpu"))
-        assert model.deterministic == model.head.deterministic == entry.deterministic == (name in DETERMINISTIC_HEADS)
+        assert model.deterministic == model.head.deterministic == entry.deterministic == (name in DETERMINISTIC)
     layout = envs.get("reacher").layout
     head = DeterministicDeltaHead(layout, 2)
     with pytest.raises(ValueError, match="head 'delta-det' is deterministic but the network GaussianEnsemble is Gauss"):
@@ -391,13 +393,13 @@ def test_groupfeat_equals_gem_on_a_planar_env():
 )
 def test_offline_train_and_evaluate_every_model(env, head_name, tmp_path):
     arrays = data(env, episodes=4, steps=30)
-    extra = {"model.ensemble_size": 1, "model.num_elites": 1} if head_name in DETERMINISTIC_HEADS else {}
+    extra = {"model.ensemble_size": 1, "model.num_elites": 1} if head_name in DETERMINISTIC else {}
     out = train_offline(
         arrays, head_name, tmp_path / "run", {**dict(SMALL), **extra}, preset="fast", seed=0, device="cpu", epochs=3
     )
     cfg, spec, model = builder.load_model(out)
     head, ens = model.head, model.network
-    assert cfg.head == head_name and head.name == head_name and ens.deterministic == (head_name in DETERMINISTIC_HEADS)
+    assert cfg.head == head_name and head.name == head_name and ens.deterministic == (head_name in DETERMINISTIC)
     results = {
         mode: evaluate(out, arrays, horizons=(1, 5, 10), starts=20, mode=mode, device="cpu", log=lambda m: 0)
         for mode in ("mean", "sample")
@@ -406,7 +408,7 @@ def test_offline_train_and_evaluate_every_model(env, head_name, tmp_path):
         assert res["model"] == head_name
         for row in res["horizons"].values():
             assert math.isfinite(row["mean_step_error"]) and row["nonfinite_fraction"] == 0
-    if head_name in DETERMINISTIC_HEADS:  # one member, no noise: sampling is the mean prediction
+    if head_name in DETERMINISTIC:  # one member, no noise: sampling is the mean prediction
         assert results["mean"]["horizons"] == results["sample"]["horizons"]
         o = torch.as_tensor(arrays["obs"][:2, 0], dtype=torch.float32)
         a = torch.as_tensor(arrays["act"][:2, :6], dtype=torch.float32)
@@ -422,7 +424,7 @@ def test_config_heads_and_deterministic_defaults():
     for name in HEADS:
         cfg = make_config("halfcheetah", name)
         assert cfg.head == name
-        assert cfg.planner.propagation == ("expectation" if name in DETERMINISTIC_HEADS else "tsinf")
+        assert cfg.planner.propagation == ("expectation" if name in DETERMINISTIC else "tsinf")
     assert make_config("hopper", "gem2", overrides={"planner.propagation": "tsinf"}).planner.propagation == "tsinf"
     assert make_config("hopper", "delta", overrides={"head": "delta-det"}).planner.propagation == "expectation"
     from pets.config import ConfigError

@@ -1,4 +1,4 @@
-"""CEM planner, truncated-normal sampling and the MPC warm start (pets/planners)."""
+"""CEM planner, truncated-normal sampling and the MPC warm start (pets/planning/planners)."""
 
 from __future__ import annotations
 

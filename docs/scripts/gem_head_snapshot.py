@@ -3,11 +3,12 @@
     python docs/scripts/gem_head_snapshot.py OUT.pt              # write the snapshot
     python docs/scripts/gem_head_snapshot.py OUT.pt --compare REF.pt   # write, then compare with REF byte for byte
 
-Per env of the catalogue (all have groups), on seeded random transitions (``pets.bench.collect_random``) in float32
-and float64: of ``gem`` (compose right and left), ``gem-se`` (envs with a root), ``delta-groupfeat`` and ``gem2``,
-the targets from (obs, next_obs), the decoded prediction of those targets and of perturbed ones, the network inputs,
-the Frobenius loss (with and without a scale) and its gradient, every loss kind, the group matrices, and the
-names and slots the head reports. The comparison prints one line per differing key and exits 1 if any differ.
+Per env of the catalogue (all have groups), on seeded random transitions (``pets.data.rollout.collect_random``) in
+float32 and float64: of ``gem`` (compose right and left), ``gem-se`` (envs with a root), ``delta-groupfeat`` and
+``gem2``, the targets from (obs, next_obs), the decoded prediction of those targets and of perturbed ones, the
+network inputs, the Frobenius loss (with and without a scale) and its gradient, every loss kind, the group matrices,
+and the names and slots the head reports. The comparison prints one line per differing key and exits 1 if any
+differ.
 """
 
 from __future__ import annotations

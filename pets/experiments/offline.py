@@ -11,10 +11,10 @@ count). With ``--data-seeds`` D > 0 also ``ENV-dD-{train,test}.npz``, collected 
 samples, 110k for ``paper``) and keeps every transition as the training data, saves the agent as
 ``DIR/data/ENV-sac.zip`` and rolls it (stochastic policy) for the test episodes: the GEM paper's data.
 
-``--protocol`` (:mod:`pets.protocols`): ``pets`` (default) or ``paper`` (the GEM paper's training; its test
+``--protocol`` (:mod:`pets.data.protocols`): ``pets`` (default) or ``paper`` (the GEM paper's training; its test
 set of 20k samples gives the default ``--test-episodes``, ceil(20000 / episode length)).
 
-Per run: train offline (``pets.train.train_offline``, model seed = the run's seed) unless the
+Per run: train offline (``pets.learning.offline.train_offline``, model seed = the run's seed) unless the
 run directory holds a trained model; evaluate on the test data (``pets.evaluate``, mean mode, the
 same start points for every model and seed of an env: evaluation seed 0; ``standardized_error`` scaled
 by the training data) into ``eval.json`` unless it holds this evaluation already; with ``--openloop``,

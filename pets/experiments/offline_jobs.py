@@ -1,9 +1,9 @@
 """The offline protocol's run jobs: train, evaluate and plan one (env, model, seed) where it lacks that result.
 
-Per run: train offline (``pets.train.train_offline``) unless the run directory holds a trained model; evaluate on
-the test data (``pets.evaluate``) into ``eval.json`` unless it holds this evaluation already; open-loop plan per
-planner into ``openloop_PLANNER.json`` and MPC with the frozen model into ``closedloop_PLANNER.json`` where asked
-(:mod:`pets.experiments.offline`). A job killed part way is redone whole (``config.yaml`` is written last).
+Per run: train offline (``pets.learning.offline.train_offline``) unless the run directory holds a trained model;
+evaluate on the test data (``pets.evaluate``) into ``eval.json`` unless it holds this evaluation already; open-loop
+plan per planner into ``openloop_PLANNER.json`` and MPC with the frozen model into ``closedloop_PLANNER.json`` where
+asked (:mod:`pets.experiments.offline`). A job killed part way is redone whole (``config.yaml`` is written last).
 """
 
 from __future__ import annotations
@@ -66,7 +66,7 @@ def _offline_job(job: Mapping[str, Any]) -> dict[str, Any]:
         )
         result["request"] = request
         atomic_write_bytes(eval_path, (json.dumps(result) + "\n").encode())
-        if load_config(str(run_dir / "config.yaml")).tensorboard:  # per-horizon errors for TensorBoard (pets.tblog)
+        if load_config(str(run_dir / "config.yaml")).tensorboard:  # per-horizon errors, TensorBoard (pets.runs.tblog)
             write_events(run_dir, job["test_data"], result)
         done.append("eval")
     for kind, planner in _planning_tasks(job):

@@ -9,7 +9,7 @@ CI over the seeds both have). Divergence is per horizon
 at that horizon, counted in ``n_diverged`` there, and enters P as error ``+inf`` there; at its other horizons
 it counts normally. The error averaged over the tracking horizons (Fig. 2) counts only the runs that diverged at
 none of them. The metrics are the eval.json keys ending in ``_error`` that every run of the env has
-(``pets.evaluate.METRICS`` first, in that order, then the others alphabetically).
+(``pets.learning.evaluation.METRICS`` first, in that order, then the others alphabetically).
 
 Files:
 

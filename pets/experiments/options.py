@@ -152,7 +152,7 @@ def _add_offline(sub: Any) -> None:
         choices=("pets", "paper"),
         default="pets",
         help="training protocol: pets (bootstrap ensemble, early stopping; default) or paper (the GEM paper's: "
-        "100k/10k split, Adam 5e-4, batch 10, 10k iterations, hidden-layer search; pets.protocols)",
+        "100k/10k split, Adam 5e-4, batch 10, 10k iterations, hidden-layer search; pets.data.protocols)",
     )
     off.add_argument("--horizons", default="1,5,10,25,50", help="prediction horizons (default 1,5,10,25,50)")
     off.add_argument("--starts", type=int, default=1000, help="start points of the evaluation (default 1000)")

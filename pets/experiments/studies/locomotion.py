@@ -81,7 +81,8 @@ def steps_to_threshold(rows: Sequence[Mapping[str, Any]], length: int, threshold
 
 
 def run_row(run_dir: Path, crashed: bool = False) -> dict[str, Any]:
-    """The :data:`RUN_COLUMNS` row of one run directory of the study (``crashed``: the worst outcome)."""
+    """The :data:`RUN_COLUMNS` row of one run directory of the study (``crashed``: recorded as 0; :func:`_runs` makes
+    it the worst outcome)."""
     cfg, rows = gate.read_run(run_dir)
     base = gate.config_row(cfg, rows)
     length, budget = gate.full_length(cfg), int(cfg.get("max_env_steps") or gate.BUDGET)
