@@ -27,7 +27,7 @@ from pets.errors import ConfigError
 from pets.limits import schedule_problem, size_problem
 from pets.models import MODELS, check_root
 from pets.planning.feedback import FeedbackConfig, check_feedback
-from pets.planning.planners import PLANNER_CLASSES, ICEMConfig, MPPIConfig
+from pets.planning.planners import PLANNER_CLASSES, UNREGISTERED, ICEMConfig, MPPIConfig
 from pets.planning.planners.base import check_elites_setting
 from pets.planning.propagation import CANDIDATES, PROPAGATIONS
 from pets.planning.value import ValueConfig
@@ -378,7 +378,7 @@ def _check_planner(cfg: DictConfig) -> None:
     own section (each planner checks its own arguments: one range per argument); a ValueError in one line."""
     name = cfg.planner.name
     if name not in PLANNER_CLASSES:
-        raise ValueError(f"planner.name must be one of {', '.join(PLANNER_CLASSES)}, got {name!r}")
+        raise ValueError(f"planner.name must be one of {', '.join(PLANNER_CLASSES)}, got {name!r}{UNREGISTERED}")
     if PLANNER_CLASSES[name].uses_elites:
         check_elites_setting(cfg.planner.elites, cfg.planner.population)
     for other, cls in PLANNER_CLASSES.items():
@@ -432,6 +432,8 @@ def load_config(path: str) -> DictConfig:
     missing = [key for key in ("env", "head", "model", "planner") if key not in stored]
     if missing:
         raise ConfigError(f"{path} has no {', '.join(missing)} (truncated?); {restore}")
+    if isinstance(stored.planner, DictConfig) and str(stored.planner.get("name")) not in PLANNER_CLASSES:
+        raise ConfigError(f"{path}: its planner {stored.planner.get('name')!r} is not a planner here{UNREGISTERED}")
     try:
         for old, new in DEPRECATED_KEYS.items():  # a config.yaml of gem-pets 0.1 has the flat planner keys
             if OmegaConf.select(stored, old) is not None:

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, make_dataclass
 
 import numpy as np
 import pytest
@@ -608,6 +608,14 @@ def test_a_planner_registered_from_outside_the_package_plans_a_run(tmp_path, mon
     assert run_pets.main([*args, "value.enabled=false"]) == 0
     assert (out / "metrics.csv").read_text().count("\n") == 2  # the header and the one trial
     assert "name: shooting" in (out / "config.yaml").read_text()
+    monkeypatch.delitem(PLANNER_CLASSES, "shooting")  # as in a new process that has not registered it
+    from pets.config import load_config
+
+    with pytest.raises(ConfigError, match="its planner 'shooting' is not a planner here .* register_planner") as err:
+        load_config(str(out / "config.yaml"))  # was: "does not match this version's config schema ... restore it"
+    assert "\n" not in str(err.value)
+    with pytest.raises(ConfigError, match="got 'shooting' .* register_planner before making or opening its runs"):
+        make_config("invertedpendulum", overrides={"planner.name": "shooting"})
 
 
 def test_flat_planner_keys_of_version_0_1_still_work_with_a_warning(tmp_path) -> None:
@@ -723,3 +731,28 @@ def test_a_planner_that_returns_a_bad_plan_or_takes_a_name_is_refused_naming_it(
     with pytest.raises(ValueError, match="planner name 'cem' is taken by CEMPlanner; give MyCEM another name"):
         register_planner(MyCEM)
     assert PLANNER_CLASSES["cem"] is CEMPlanner and register_planner(CEMPlanner) is CEMPlanner
+
+
+def _two_argument_search(self, objective, mu):
+    return mu
+
+
+@pytest.mark.parametrize(
+    ("attrs", "message"),
+    [
+        ({}, r"does not implement search\(objective, mu, init_mean, generator\)"),
+        ({"search": _two_argument_search}, r"search must take \(self, objective, mu, init_mean, generator\)"),
+        ({"search": RandomShooting.search, "Options": dict}, "Options must be a dataclass"),
+        ({"search": RandomShooting.search, "Options": make_dataclass("O", [])}, "needs a checked"),
+        ({"search": RandomShooting.search, "section": int}, "section must be a dataclass or None"),
+    ],
+)
+def test_an_incomplete_planner_is_refused_at_registration_in_one_line(attrs, message) -> None:
+    """A planner without its search, with a search of another signature, or without dataclass Options: refused when
+    registered (was: accepted, then a traceback at its first plan, after the seed episodes and the first training)."""
+    from pets.planning.planners import PLANNER_CLASSES, register_planner
+
+    cls = type("Incomplete", (BoxPlanner,), {"name": "incomplete", **attrs})
+    with pytest.raises(ValueError, match=message) as info:
+        register_planner(cls)
+    assert "\n" not in str(info.value) and "incomplete" not in PLANNER_CLASSES

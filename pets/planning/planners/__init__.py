@@ -45,6 +45,9 @@ weighted by a softmax of the normalised returns.
 
 from __future__ import annotations
 
+import dataclasses
+import inspect
+
 from pets.planning.planners.base import BoxPlanner, Objective, Planner, PlanningFailed, shift_plan, truncated_normal
 from pets.planning.planners.cem import CEMPlanner
 from pets.planning.planners.icem import ICEMConfig, ICEMPlanner, colored_noise
@@ -72,12 +75,41 @@ __all__ = [
 #: ``planner.<name>.*`` sections, their checks; ``pets.config``), so a planner registered later is accepted too.
 PLANNER_CLASSES: dict[str, type[BoxPlanner]] = {}
 
+#: What an unknown ``planner.name`` may be: a planner of one's own, registered in another process.
+UNREGISTERED = (
+    " (a planner of your own is known only in a process that registered it: register_planner before making or "
+    "opening its runs, docs/api.md)"
+)
+
+
+def _check_planner(cls: object) -> None:
+    """ValueError (one line) for a class that is not a complete planner: a ``BoxPlanner`` subclass with a ``name``,
+    its own :meth:`~BoxPlanner.search` taking ``(objective, mu, init_mean, generator)``, and ``Options`` (and a
+    ``section``, if any) dataclasses, ``Options`` with its ``checked()``."""
+    if not (isinstance(cls, type) and issubclass(cls, BoxPlanner)) or not cls.name:
+        raise ValueError(f"a planner must be a BoxPlanner subclass with a name, got {cls!r}")
+    if cls.search is BoxPlanner.search:
+        raise ValueError(f"planner {cls.name!r} does not implement search(objective, mu, init_mean, generator)")
+    try:
+        inspect.signature(cls.search).bind(None, None, None, None, None)
+    except (TypeError, ValueError):
+        raise ValueError(
+            f"planner {cls.name!r}: search must take (self, objective, mu, init_mean, generator), "
+            f"got {inspect.signature(cls.search)}"
+        ) from None
+    if not (dataclasses.is_dataclass(cls.Options) and isinstance(cls.Options, type)):
+        raise ValueError(f"planner {cls.name!r}: Options must be a dataclass (its own arguments), got {cls.Options!r}")
+    if not callable(getattr(cls.Options, "checked", None)):
+        raise ValueError(f"planner {cls.name!r}: Options needs a checked() method that returns it, range-checked")
+    if cls.section is not None and not (dataclasses.is_dataclass(cls.section) and isinstance(cls.section, type)):
+        raise ValueError(f"planner {cls.name!r}: section must be a dataclass or None, got {cls.section!r}")
+
 
 def register_planner(cls: type[BoxPlanner]) -> type[BoxPlanner]:
     """Add ``cls`` to :data:`PLANNER_CLASSES` under ``cls.name`` (usable as a class decorator); returns it.
-    ValueError for a name another class holds (a built-in planner is never replaced behind the config's back)."""
-    if not (isinstance(cls, type) and issubclass(cls, BoxPlanner)) or not cls.name:
-        raise ValueError(f"a planner must be a BoxPlanner subclass with a name, got {cls!r}")
+    ValueError for a class that is not a complete planner (:func:`_check_planner`), or a name another class holds
+    (a built-in planner is never replaced behind the config's back)."""
+    _check_planner(cls)
     taken = PLANNER_CLASSES.get(cls.name)
     if taken is not None and taken is not cls:
         raise ValueError(f"planner name {cls.name!r} is taken by {taken.__name__}; give {cls.__name__} another name")
