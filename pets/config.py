@@ -37,8 +37,8 @@ from pets.runs.user_yaml import load_user_yaml
 
 __all__ = ["ConfigError", "FeedbackConfig", "ICEMConfig", "MPPIConfig", "ValueConfig"]  # defined by their owners
 
-#: ``--model`` values (config key ``head``): the names of ``pets.models.MODELS``.
-HEADS = tuple(MODELS)
+#: ``--model`` values (config key ``head``): the names of ``pets.models.MODELS`` (a live view: ``register_model``).
+HEADS = MODELS.keys()
 #: ``planner.name`` values: the names of the planner table (``pets.planning.planners.PLANNER_CLASSES``; a live view, so
 #: a planner registered later is accepted too).
 PLANNERS = PLANNER_CLASSES.keys()

@@ -81,14 +81,16 @@ def _sizes(cfg: DictConfig) -> dict[str, int]:
     )
 
 
-def _gaussian(cfg: DictConfig, head: DynamicsHead) -> MemberEnsemble:
+def gaussian_ensemble(cfg: DictConfig, head: DynamicsHead) -> MemberEnsemble:
+    """PETS' probabilistic ensemble (mean and log-variance per target) sized by ``cfg.model``, for ``head``."""
     from dynamics.networks import GaussianEnsemble
 
     learn = cfg.model.learn_logvar_bounds
     return GaussianEnsemble(head.input_dim, head.target_dim, learn_logvar_bounds=learn, **_sizes(cfg))
 
 
-def _deterministic(cfg: DictConfig, head: DynamicsHead) -> MemberEnsemble:
+def deterministic_ensemble(cfg: DictConfig, head: DynamicsHead) -> MemberEnsemble:
+    """An ensemble of deterministic networks (MSE training, no variance) sized by ``cfg.model``, for ``head``."""
     from dynamics.networks import DeterministicEnsemble
 
     return DeterministicEnsemble(head.input_dim, head.target_dim, **_sizes(cfg))
@@ -102,15 +104,39 @@ def _two_stage(cfg: DictConfig, head: DynamicsHead) -> MemberEnsemble:
 
 
 MODELS: dict[str, ModelEntry] = {
-    "delta": ModelEntry("PETS: Gaussian ensemble predicting next_obs - obs", False, _delta_head, _gaussian),
-    "gem": ModelEntry("Gaussian ensemble predicting Lie-algebra coefficients + deltas", False, _gem_head, _gaussian),
-    "delta-det": ModelEntry("the paper's deterministic baseline (MSE)", True, _delta_det_head, _deterministic),
+    "delta": ModelEntry("PETS: Gaussian ensemble predicting next_obs - obs", False, _delta_head, gaussian_ensemble),
+    "gem": ModelEntry(
+        "Gaussian ensemble predicting Lie-algebra coefficients + deltas", False, _gem_head, gaussian_ensemble
+    ),
+    "delta-det": ModelEntry("the paper's deterministic baseline (MSE)", True, _delta_det_head, deterministic_ensemble),
     "gem2": ModelEntry("the paper's two-stage GEM (Algorithm 1), deterministic", True, _gem2_head, _two_stage),
-    "delta-groupfeat": ModelEntry("ablation: GEM's input features, delta targets", False, _groupfeat_head, _gaussian),
+    "delta-groupfeat": ModelEntry(
+        "ablation: GEM's input features, delta targets", False, _groupfeat_head, gaussian_ensemble
+    ),
     "gem-se": ModelEntry(
-        "gem with the floating root on SE(2)/SE(3), body-frame twist", False, _gem_se_head, _gaussian, needs_root=True
+        "gem with the floating root on SE(2)/SE(3), body-frame twist",
+        False,
+        _gem_se_head,
+        gaussian_ensemble,
+        needs_root=True,
     ),
 }
+
+
+def register_model(name: str, entry: ModelEntry) -> ModelEntry:
+    """Add a model of your own to :data:`MODELS` under ``name`` (the ``--model`` / ``model=`` value from then on, in
+    this process); returns ``entry``. ValueError (one line) for a name that is not a non-empty string without
+    spaces or ``=``, or that another entry holds (a built-in model is never replaced behind the config's back), and
+    for an ``entry`` that is not a :class:`ModelEntry`."""
+    if not isinstance(name, str) or not name or any(c.isspace() or c in "=,:" for c in name):
+        raise ValueError(f"a model name must be a non-empty string without spaces, '=', ',' or ':', got {name!r}")
+    if not isinstance(entry, ModelEntry):
+        raise ValueError(f"model {name!r}: entry must be a pets.models.ModelEntry, got {type(entry).__name__}")
+    taken = MODELS.get(name)
+    if taken is not None and taken is not entry:
+        raise ValueError(f"model name {name!r} is taken ({taken.summary}); give yours another name")
+    MODELS[name] = entry
+    return entry
 
 
 def check_root(head: str, env: str, compose: str) -> None:

@@ -557,3 +557,31 @@ def test_a_run_with_relu_records_it_and_reloads_the_same_network(tmp_path, capsy
     err = capsys.readouterr().err
     assert stop.value.code == 2 and "model.activation must be one of silu, relu, got 'tanh'" in err
     assert err.count("\n") == 1 and not (tmp_path / "bad").exists()
+
+
+def test_a_model_registered_from_outside_is_a_model_name_everywhere(tmp_path, monkeypatch):
+    """register_model after pets.config is imported (was: only MODELS edited before that import took, as HEADS was
+    a tuple made at import): the config, run_pets.py in the process and the study arguments accept the name; a
+    taken name, a name the command line cannot carry and an entry of another type are refused in one line."""
+    import run_pets
+    from pets.experiments.arguments import parse_models
+    from pets.models import ModelEntry, gaussian_ensemble, register_model
+    from tests.test_cli import TINY
+
+    entry = ModelEntry("delta under my name", False, MODELS["delta"].make_head, gaussian_ensemble)
+    monkeypatch.setitem(MODELS, "mine", entry)  # removed again after the test
+    assert register_model("mine", entry) is entry and "mine" in HEADS
+    assert make_config("invertedpendulum", "mine").head == "mine" and parse_models("delta,mine") == ["delta", "mine"]
+    out = tmp_path / "run"
+    args = ["--env", "invertedpendulum", "--model", "mine", "--trials", "1", "--out", str(out), *TINY]
+    assert run_pets.main(args) == 0
+    assert "head: mine" in (out / "config.yaml").read_text()
+    for name, bad, message in (
+        ("delta", entry, "model name 'delta' is taken"),
+        ("my model", entry, "without spaces"),
+        ("mine2", MODELS["delta"].make_head, "entry must be a pets.models.ModelEntry"),
+    ):
+        with pytest.raises(ValueError, match=message) as err:
+            register_model(name, bad)
+        assert "\n" not in str(err.value)
+    assert MODELS["delta"].summary.startswith("PETS")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+from collections.abc import Collection
 
 from pets.experiments.statistics import MIN_SEEDS
 
@@ -75,7 +76,7 @@ def _check_stems(names: list[str]) -> None:
         seen[stem] = name
 
 
-def _parse_choices(text: str, what: str, accepted: tuple[str, ...]) -> list[str]:
+def _parse_choices(text: str, what: str, accepted: Collection[str]) -> list[str]:
     """Comma-separated names for ``--what``, each one of ``accepted``."""
     names = split_list(text, what)
     bad = [n for n in names if n not in accepted]
