@@ -108,8 +108,8 @@ def custom_spec(
 
 def _check_arguments(name: Any, layout: Any, reward_fn: Any, terminated_fn: Any, episode_length: Any) -> None:
     """ValueError (one line) for a custom_spec argument of the wrong kind, before gymnasium builds anything."""
-    if not isinstance(name, str) or not name.strip():
-        raise ValueError(f"custom_spec: name must be a non-empty string, got {name!r}")
+    if not isinstance(name, str) or not name.strip() or any(c in name for c in ":/\\"):
+        raise ValueError(f"custom_spec: name must be a non-empty string without ':', '/' or '\\', got {name!r}")
     if not isinstance(layout, ObsLayout):
         raise ValueError(f"{name}: layout must be an envs.ObsLayout, got {type(layout).__name__}")
     for what, fn in (("reward_fn", reward_fn), ("terminated_fn", terminated_fn or _never)):
@@ -390,7 +390,8 @@ def registered(name: str) -> EnvSpec | None:
     else:
         spec = found
     if not isinstance(spec, EnvSpec):
-        raise ValueError(f"env {name}: {attr} is a {type(spec).__name__}, not an envs.EnvSpec (or a function of none)")
+        kind = type(spec).__name__
+        raise ValueError(f"env {name}: {attr} is of type {kind}, not an envs.EnvSpec (or a function returning one)")
     check_dims(spec)
     _OWN_NAMES[name] = spec.name
     spec = dataclasses.replace(spec, name=name)  # the path is the name a run directory records

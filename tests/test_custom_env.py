@@ -100,8 +100,10 @@ def test_a_spec_that_does_not_fit_its_env_is_refused_in_one_line():
         ({"episode_length": 2.5}, "episode_length must be a positive int"),
         ({"episode_length": True}, "episode_length must be a positive int"),
         ({"layout": None}, "layout must be an envs.ObsLayout, got NoneType"),
-        ({"name": ""}, "custom_spec: name must be a non-empty string, got ''"),
-        ({"name": 3}, "custom_spec: name must be a non-empty string, got 3"),
+        ({"name": ""}, "custom_spec: name must be a non-empty string without ':', '/' or '\\', got ''"),
+        ({"name": 3}, "custom_spec: name must be a non-empty string"),
+        ({"name": "my:pendulum"}, "without ':'"),  # an import path's separator
+        ({"name": "runs/pendulum"}, "without ':', '/'"),  # run directories are named by it
         ({"reward_fn": 3}, "reward_fn must be a function (obs, act, next_obs) -> tensor, got 3"),
         ({"terminated_fn": "never"}, "terminated_fn must be a function"),
         ({"reward_fn": lambda o, a, n: pendulum_reward(o, a, n) * torch.nan, "reward_differs": True},
