@@ -15,25 +15,19 @@ Under the table, the line "inputs or composition" on the 3D bodies, from the com
 
 from __future__ import annotations
 
-import csv
 import math
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 from pets.experiments.published import NOT_GENERATED, ONLINE, ORIGINAL, PRODUCTS, RAW, RESULTS
-from pets.experiments.report import csv_number, fmt, md_table
+from pets.experiments.report import csv_number, fmt, md_table, read_csv_rows
 from pets.experiments.statistics import ALPHA
 from pets.experiments.studies.base import P_EXACT, P_HOLM, RATIO
 
 MODEL = "gem"
 #: The online study of each env the answer reads (the first of :data:`pets.experiments.published.ONLINE`'s).
 ONLINE_STUDIES = ONLINE[:5]
-
-
-def _rows(path: Path) -> list[dict[str, str]]:
-    with path.open(newline="") as f:
-        return list(csv.DictReader(f))
 
 
 def _p(x: float) -> str:
@@ -63,13 +57,13 @@ def _primary_cell(r: Mapping[str, str]) -> str:
 
 
 def _offline(tree: Path) -> dict[str, str]:
-    rows = _rows(tree / RESULTS / "offline_primary_gem.csv")
+    rows = read_csv_rows(tree / RESULTS / "offline_primary_gem.csv")
     return {r["env"]: _primary_cell(r) for r in rows if r["model"] == MODEL}
 
 
 def _planning(tree: Path) -> dict[str, str]:
     cells = {}
-    for r in _rows(tree / RESULTS / "headline" / "headline_planning.csv"):
+    for r in read_csv_rows(tree / RESULTS / "headline" / "headline_planning.csv"):
         if r["loop"] == "closed" and r["model"] == MODEL:
             diff, holm = csv_number(r["diff_to_delta"]), csv_number(r[P_HOLM])
             num = (diff, csv_number(r["diff_ci_low"]), csv_number(r["diff_ci_high"]))
@@ -91,7 +85,7 @@ def _online(tree: Path) -> dict[str, str]:
 
     cells = {}
     for study in ONLINE_STUDIES:
-        for r in summary_from_runs(_rows(tree / RESULTS / f"{study}_runs.csv")):
+        for r in summary_from_runs(read_csv_rows(tree / RESULTS / f"{study}_runs.csv")):
             if r["model"] == MODEL and not r["planner"]:
                 cells[r["env"]] = _difference_cell(r, study)
     return cells
@@ -102,7 +96,7 @@ def _locomotion(tree: Path) -> dict[str, str]:
     nothing from a partial table, and Holm's family is then whole), from its generated summary."""
     from pets.experiments.studies import locomotion
 
-    rows = _rows(tree / RESULTS / locomotion.SUMMARY)
+    rows = read_csv_rows(tree / RESULTS / locomotion.SUMMARY)
     pairs = {(r["env"], r["model"]): csv_number(r["n_pairs"]) for r in rows}
     whole = {env for env, _ in pairs if all(pairs.get((env, arm)) == len(locomotion.SEEDS) for arm in locomotion.ARMS)}
     return {
@@ -129,7 +123,7 @@ def _inputs_or_composition(tree: Path) -> str:
     """The line "inputs or composition" (issue 53) from the composition study's generated primary family."""
     from pets.experiments.studies import composition
 
-    return composition.answer_line(_rows(tree / RESULTS / composition.OUTPUTS[1]))
+    return composition.answer_line(read_csv_rows(tree / RESULTS / composition.OUTPUTS[1]))
 
 
 #: What a cell says (the legend under the answer table).
@@ -156,7 +150,7 @@ def later_offline_table(tree: Path) -> str:
     rows = [
         [r["env"], r["model"], study.removesuffix("_primary"), _primary_cell(r)]
         for study in LATER_STUDIES
-        for r in _rows(tree / RESULTS / f"{study}.csv")
+        for r in read_csv_rows(tree / RESULTS / f"{study}.csv")
         if r["model"] != "delta"
     ]
     return md_table(["env", "arm", "study", "offline: error arm / delta [95 % CI]"], rows)
@@ -192,13 +186,13 @@ def runs_coverage_table(tree: Path) -> str:
     fast preset with their seeds and trials, counted from the committed per-run rows."""
     online: dict[str, list[str]] = {}
     for study in ONLINE_STUDIES:
-        rows = _rows(tree / RESULTS / f"{study}_runs.csv")
+        rows = read_csv_rows(tree / RESULTS / f"{study}_runs.csv")
         for env in dict.fromkeys(r["env"] for r in rows):
             mine = [r for r in rows if r["env"] == env]
             online.setdefault(env, []).append(f"{_seeds(mine)}; {mine[0]['trials']} trials ({study})")
     table = []
     for study in ORIGINAL:
-        rows = _rows(tree / RESULTS / f"paper_{study}_runs.csv")
+        rows = read_csv_rows(tree / RESULTS / f"paper_{study}_runs.csv")
         env = rows[0]["env"]
         table.append([env, _seeds(rows), "; ".join(online.get(env, ["not run at the fast preset"]))])
     header = [

@@ -16,6 +16,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+from pets.experiments.report import read_csv_rows
 from pets.experiments.studies.planning import ENVS as PLANNING_ENVS
 from pets.experiments.studies.primary import DEFAULT_LEVEL, DEFAULT_SOURCE
 
@@ -65,11 +66,6 @@ def _path(name: str) -> str:
     return f"{RESULTS}/{name}"
 
 
-def _rows(path: str) -> list[dict[str, str]]:
-    with open(path, newline="") as f:
-        return list(csv.DictReader(f))
-
-
 def _levels(envs: Sequence[str], data: bool) -> dict[str, tuple[float, str]]:
     """{env: (level, source)}: the data sets' levels (``data``) or sqrt(2) where the data are not at hand."""
     if not data:
@@ -88,7 +84,7 @@ def _offline_summary(study: str, data_levels: bool, relative: bool = True) -> Pr
         from pets.experiments.report import write_csv
         from pets.experiments.studies.offline import RELATIVE_COLUMNS, SUMMARY_COLUMNS, summary_from_runs
 
-        rows = _rows(runs)
+        rows = read_csv_rows(runs)
         envs = list(dict.fromkeys(r["env"] for r in rows))
         levels = _levels(envs, data_levels or study == "ip")
         summary, rel = [], []
@@ -119,7 +115,7 @@ def _own_comparison() -> Product:
 
         table = []
         for study, path in zip(ORIGINAL, inputs, strict=True):
-            rows = _rows(path)
+            rows = read_csv_rows(path)
             level = _levels([rows[0]["env"]], study == "ip")[rows[0]["env"]][0]
             for model, baseline in OWN_PAIRS:
                 pair = [{**r, "model": BASELINE if r["model"] == baseline else model} for r in rows
@@ -141,7 +137,7 @@ def _per_data_set() -> Product:
         from pets.experiments.report import write_csv
         from pets.experiments.studies.primary import PER_DATA_SET_COLUMNS, per_data_set_rows
 
-        rows = _rows(runs)
+        rows = read_csv_rows(runs)
         levels = _levels(list(dict.fromkeys(r["env"] for r in rows)), True)
         write_csv(Path(out), per_data_set_rows(rows, levels), PER_DATA_SET_COLUMNS)
 
@@ -165,7 +161,7 @@ def _primary(
         from pets.experiments.studies.primary import write_primary_files
 
         keep = None if models is None else {"delta", *models}
-        rows = [r for path in inputs for r in _rows(path) if keep is None or r["model"] in keep]
+        rows = [r for path in inputs for r in read_csv_rows(path) if keep is None or r["model"] in keep]
         envs = list(dict.fromkeys(r["env"] for r in rows))
         levels = _levels(envs, True) if data_levels else {}
         comparisons = [("gem-se", "gem")] if versus else []
@@ -191,7 +187,7 @@ def _online_summary(study: str) -> Product:
         from pets.experiments.report import write_csv
         from pets.experiments.studies.online import SUMMARY_COLUMNS, summary_from_runs
 
-        write_csv(Path(out), summary_from_runs(_rows(runs)), _committed_columns(out, SUMMARY_COLUMNS))
+        write_csv(Path(out), summary_from_runs(read_csv_rows(runs)), _committed_columns(out, SUMMARY_COLUMNS))
 
     return Product(f"online summary {study}", (out,), (runs,), make)
 
@@ -211,7 +207,7 @@ def _gate_summary() -> Product:
     def make() -> None:
         from pets.experiments import gate, gate_published
 
-        gate.write_csv(Path(out), gate.summary_rows(_rows(runs)), gate.SUMMARY_COLUMNS)
+        gate.write_csv(Path(out), gate.summary_rows(read_csv_rows(runs)), gate.SUMMARY_COLUMNS)
         gate_published.write_figures(Path(RESULTS), Path("docs/figures"))
 
     return Product("locomotion gate summary and figures", (out, *figures), (runs, *curves), make)

@@ -103,8 +103,7 @@ def merge_committed(
         new.setdefault(tuple(r[k] for k in key), []).append(dict(r))
     if not path.is_file():
         return [r for group in new.values() for r in group], 0
-    with path.open(newline="") as f:
-        committed = list(csv.DictReader(f))
+    committed = read_csv_rows(path)
     if progress is not None:
         behind = _behind_committed(committed, new, key, progress)
         if behind:
