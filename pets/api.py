@@ -167,12 +167,10 @@ class PETS:
         """A PETS object from a run directory (``save``'s or ``run_pets.py``'s): config, model, buffer and random
         states, so that ``learn`` continues exactly where the run stopped."""
         import pets.runs.rundir as rundir
-        from pets.config import ConfigError, load_config
+        from pets.config import ConfigError, load_run_config
 
         path = Path(path)
-        if not (path / rundir.CONFIG_FILE).exists():
-            raise ConfigError(f"{path} is not a run directory (no {rundir.CONFIG_FILE})")
-        cfg = load_config(str(path / rundir.CONFIG_FILE))
+        cfg = load_run_config(path)
         obj = cls.__new__(cls)
         obj._start(cfg, progress)
         state = rundir.load_checkpoint(path)

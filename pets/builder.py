@@ -164,13 +164,11 @@ def make_planner(
 
 def load_model(run_dir: str | Path, device: str | torch.device = "cpu") -> tuple[DictConfig, EnvSpec, DynamicsModel]:
     """The trained model of a run directory (online or offline): ``(cfg, spec, model)``, in eval mode."""
-    from pets.config import load_config
+    from pets.config import load_run_config
     from pets.runs import rundir
 
     run_dir = Path(run_dir)
-    if not (run_dir / rundir.CONFIG_FILE).exists():
-        raise ConfigError(f"{run_dir} is not a run directory (no {rundir.CONFIG_FILE})")
-    cfg = load_config(str(run_dir / rundir.CONFIG_FILE))
+    cfg = load_run_config(run_dir)
     state = rundir.load_checkpoint(run_dir)
     if state is None:
         raise ConfigError(f"{run_dir} has no {rundir.CHECKPOINT_FILE} yet (no trial completed)")

@@ -27,8 +27,7 @@ from pets.errors import ConfigError
 from pets.limits import schedule_problem, size_problem
 from pets.models import MODELS, check_root
 from pets.planning.feedback import FeedbackConfig, check_feedback
-from pets.planning.planners import PLANNER_CLASSES, UNREGISTERED, ICEMConfig, MPPIConfig
-from pets.planning.planners.base import check_elites_setting
+from pets.planning.planners import PLANNER_CLASSES, UNREGISTERED, ICEMConfig, MPPIConfig, check_planner_config
 from pets.planning.propagation import CANDIDATES, PROPAGATIONS
 from pets.planning.value import ValueConfig
 from pets.presets import ENV_DEFAULTS, HEAD_DEFAULTS, PRESET_ENV_DEFAULTS, PRESETS
@@ -355,7 +354,7 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError(f"video_every must be >= 0 (0: no videos; N: every N-th trial), got {cfg.video_every}")
     try:  # the checks of the model table and the planner table, each in its owner
         check_root(cfg.head, cfg.env, cfg.gem.compose)
-        _check_planner(cfg)
+        check_planner_config(cfg.planner)
     except ValueError as err:
         raise ConfigError(str(err)) from None
     if cfg.planner.replan_every > cfg.planner.horizon:
@@ -371,22 +370,6 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError(f"value.discount must be in (0, 1), got {cfg.value.discount}")
     if problem := schedule_problem(cfg):  # the run's length and when it trains
         raise ConfigError(problem)
-
-
-def _check_planner(cfg: DictConfig) -> None:
-    """``planner.name`` against the planner table, ``planner.elites`` where the planner ranks, and every planner's
-    own section (each planner checks its own arguments: one range per argument); a ValueError in one line."""
-    name = cfg.planner.name
-    if name not in PLANNER_CLASSES:
-        raise ValueError(f"planner.name must be one of {', '.join(PLANNER_CLASSES)}, got {name!r}{UNREGISTERED}")
-    if PLANNER_CLASSES[name].uses_elites:
-        check_elites_setting(cfg.planner.elites, cfg.planner.population)
-    for other, cls in PLANNER_CLASSES.items():
-        if cls.section is not None:
-            try:
-                cls.options(**cfg.planner[other])
-            except ValueError as err:
-                raise ValueError(f"planner.{other}.{err}") from None
 
 
 def make_config(
@@ -418,7 +401,14 @@ def resolve_auto(cfg: DictConfig) -> DictConfig:
     return cfg
 
 
-def load_config(path: str) -> DictConfig:
+def load_run_config(run_dir: str | Path) -> DictConfig:
+    """:func:`load_config` of a run directory's ``config.yaml``; ConfigError for a path that is not a run directory."""
+    if not (Path(run_dir) / "config.yaml").is_file():  # pets.runs.rundir.CONFIG_FILE
+        raise ConfigError(f"{run_dir} is not a run directory (no config.yaml)")
+    return load_config(Path(run_dir) / "config.yaml")
+
+
+def load_config(path: str | Path) -> DictConfig:
     """Load a run's resolved ``config.yaml`` back into the typed schema; ConfigError (one line, with what to do) for
     a file that is not YAML, is empty or truncated (no ``env``, ``head``, ``model`` or ``planner``), or is off the
     schema."""

@@ -163,15 +163,14 @@ def make_policy(text: str, spec: EnvSpec, seed: int = 0, device: str = "auto", d
 
 def run_env_name(run_dir: Path) -> str:
     """The env of a run directory (ValueError if it is not one or has no trained model yet)."""
-    from pets.config import load_config
+    from pets.config import load_run_config
     from pets.runs import rundir
 
     run_dir = Path(run_dir)
-    if not (run_dir / rundir.CONFIG_FILE).is_file():
-        raise ValueError(f"{run_dir} is not a run directory (no {rundir.CONFIG_FILE})")
+    cfg = load_run_config(run_dir)
     if not (run_dir / rundir.CHECKPOINT_FILE).is_file():
         raise ValueError(f"{run_dir} has no {rundir.CHECKPOINT_FILE} yet (no trained model)")
-    return str(load_config(str(run_dir / rundir.CONFIG_FILE)).env)
+    return str(cfg.env)
 
 
 def episode_seeds(seed: int, episode: int) -> tuple[int, np.random.SeedSequence]:

@@ -253,7 +253,7 @@ def load_inputs(
     train_data: str | Path | Mapping[str, np.ndarray] | None = None,
 ) -> dict[str, Any]:
     """Validate the arguments of :func:`evaluate` and load the model and data (ValueError / ConfigError if bad)."""
-    from pets.config import ConfigError, load_config
+    from pets.config import load_run_config
 
     if mode not in MODES:
         raise ValueError(f"mode must be one of {', '.join(MODES)}, got {mode!r}")
@@ -266,10 +266,7 @@ def load_inputs(
     longest = int(np.asarray(arrays["lengths"]).max())
     if min(horizons) > longest:
         raise ValueError(f"every horizon is longer than the longest episode ({longest} steps); use shorter horizons")
-    config_file = Path(run_dir) / "config.yaml"  # pets.runs.rundir.CONFIG_FILE (rundir imports torch)
-    if not config_file.is_file():
-        raise ConfigError(f"{run_dir} is not a run directory (no config.yaml)")
-    run_env = str(load_config(str(config_file)).env)  # env check before the model is built
+    run_env = str(load_run_config(run_dir).env)  # env check before the model is built
     if env_name(arrays) != run_env:
         raise ValueError(f"the data set is from {env_name(arrays)} but run {run_dir} models {run_env}")
     if train_data is None:

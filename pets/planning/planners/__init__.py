@@ -47,8 +47,17 @@ from __future__ import annotations
 
 import dataclasses
 import inspect
+from typing import Any
 
-from pets.planning.planners.base import BoxPlanner, Objective, Planner, PlanningFailed, shift_plan, truncated_normal
+from pets.planning.planners.base import (
+    BoxPlanner,
+    Objective,
+    Planner,
+    PlanningFailed,
+    check_elites_setting,
+    shift_plan,
+    truncated_normal,
+)
 from pets.planning.planners.cem import CEMPlanner
 from pets.planning.planners.icem import ICEMConfig, ICEMPlanner, colored_noise
 from pets.planning.planners.mppi import MPPIConfig, MPPIPlanner, smoothing_matrix
@@ -64,6 +73,7 @@ __all__ = [
     "Objective",
     "Planner",
     "PlanningFailed",
+    "check_planner_config",
     "colored_noise",
     "register_planner",
     "shift_plan",
@@ -119,3 +129,20 @@ def register_planner(cls: type[BoxPlanner]) -> type[BoxPlanner]:
 
 for _planner in (CEMPlanner, ICEMPlanner, MPPIPlanner):
     register_planner(_planner)
+
+
+def check_planner_config(planner: Any) -> None:
+    """The config's ``planner`` section against the table: ``planner.name`` known (a planner of one's own: see
+    :data:`UNREGISTERED`), ``planner.elites`` where the planner ranks, and every planner's own section (each planner
+    checks its own arguments: one range per argument); a ValueError in one line."""
+    name = planner.name
+    if name not in PLANNER_CLASSES:
+        raise ValueError(f"planner.name must be one of {', '.join(PLANNER_CLASSES)}, got {name!r}{UNREGISTERED}")
+    if PLANNER_CLASSES[name].uses_elites:
+        check_elites_setting(planner.elites, planner.population)
+    for other, cls in PLANNER_CLASSES.items():
+        if cls.section is not None:
+            try:
+                cls.options(**planner[other])
+            except ValueError as err:
+                raise ValueError(f"planner.{other}.{err}") from None
