@@ -58,3 +58,18 @@ def test_python_m_pets_compare_still_runs_the_comparison_cli():
         [sys.executable, "-m", "pets.compare", "online", "--help"], cwd=ROOT, capture_output=True, text=True
     )
     assert proc.returncode == 0 and proc.stdout.startswith("usage: pets.compare online")
+
+
+@pytest.mark.parametrize("tool", ["collect", "evaluate", "openloop", "visualize"])
+@pytest.mark.parametrize("value", ["-1", "two"])
+def test_the_tools_threads_option_is_one_check_in_one_line(tool, value, capsys):
+    """``--threads`` of every tool that takes it is pets.tools.cli's (one type, one message), checked before the
+    tool reads any other argument."""
+    main = importlib.import_module(f"pets.tools.{tool}").main
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--threads", value, "x"])
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert (
+        exit_info.value.code == 2
+        and f"argument --threads: must be an int >= 0 (0: torch's default), got '{value}'" in line
+    )

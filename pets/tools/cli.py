@@ -55,6 +55,30 @@ class OneLineParser(argparse.ArgumentParser):
         fail(self.prog, message)
 
 
+def thread_count(text: str) -> int:
+    """The argparse type of ``--threads``: an int >= 0 (0: torch's default)."""
+    try:
+        n = int(text)
+    except ValueError:
+        n = -1
+    if n < 0:
+        raise argparse.ArgumentTypeError(f"must be an int >= 0 (0: torch's default), got {text!r}")
+    return n
+
+
+def add_threads_option(p: argparse.ArgumentParser) -> None:
+    """The tools' ``--threads`` (checked by :func:`thread_count`; :func:`set_threads` applies it)."""
+    p.add_argument("--threads", type=thread_count, default=0, help="torch CPU threads (default 0: torch's default)")
+
+
+def set_threads(n: int) -> None:
+    """torch's CPU threads to ``n`` (0: leave torch's default)."""
+    if n:
+        import torch
+
+        torch.set_num_threads(n)
+
+
 def fail(prog: str, message: str, code: int = EXIT_USAGE) -> NoReturn:
     """Print ``PROG: error: MESSAGE`` (on one line) to stderr and exit with status ``code`` (2: bad input)."""
     line = " ".join(str(message).split()) or "unknown error"

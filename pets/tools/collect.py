@@ -22,7 +22,7 @@ import numpy as np
 from pets.data.collect import collect, collect_sac, make_policy, parse_policy, run_env_name
 from pets.data.datasets import save_dataset
 from pets.runs.fileio import atomic_write_bytes, writable_dir_error
-from pets.tools.cli import OneLineParser, fail, interruptible
+from pets.tools.cli import OneLineParser, add_threads_option, fail, interruptible, set_threads
 
 PROG = "pets.collect"
 
@@ -42,7 +42,7 @@ def build_parser() -> OneLineParser:
     p.add_argument("--device", choices=("cpu", "cuda", "auto"), default="auto", help="device of a run/sb3/sac policy")
     p.add_argument("--deterministic", action="store_true", help="sb3: policies take their mean action")
     p.add_argument("--save-agent", type=Path, help="sac:STEPS only: save the trained agent here (SB3 .zip)")
-    p.add_argument("--threads", type=int, default=0, help="torch CPU threads (default 0: torch's default)")
+    add_threads_option(p)
     p.add_argument("--out", type=Path, required=True, help="output .npz file, new (written atomically)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
@@ -116,8 +116,6 @@ def main(argv: list[str] | None = None) -> int:
         fail(PROG, f"--max-steps must be >= 1, got {args.max_steps}")
     if args.seed < 0:
         fail(PROG, f"--seed must be >= 0, got {args.seed}")
-    if args.threads < 0:
-        fail(PROG, f"--threads must be >= 0 (0: torch's default), got {args.threads}")
     if kind == "run" and not arg.is_dir():
         fail(PROG, f"run directory {arg} does not exist")
     if kind == "sb3" and not arg.is_file():
@@ -138,10 +136,7 @@ def main(argv: list[str] | None = None) -> int:
     import envs
     from pets.config import ConfigError
 
-    if args.threads:
-        import torch
-
-        torch.set_num_threads(args.threads)
+    set_threads(args.threads)
     try:
         name = args.env if args.env else run_env_name(arg)
         spec = envs.get(name)

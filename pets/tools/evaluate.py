@@ -24,7 +24,7 @@ from pets.learning.evaluation import (
     write_events,
 )
 from pets.runs.fileio import writable_dir_error
-from pets.tools.cli import OneLineParser, fail, write_json_result
+from pets.tools.cli import OneLineParser, add_threads_option, fail, set_threads, write_json_result
 
 
 def build_parser() -> OneLineParser:
@@ -43,7 +43,7 @@ def build_parser() -> OneLineParser:
     p.add_argument("--seed", type=int, default=0, help="seed of the start points and of sampling (default 0)")
     p.add_argument("--mode", choices=MODES, default="mean", help="mean (ensemble mean, default) or sample (TS-inf)")
     p.add_argument("--device", choices=("cpu", "cuda", "auto"), default="auto", help="where the model runs")
-    p.add_argument("--threads", type=int, default=0, help="torch CPU threads (default 0: torch's default)")
+    add_threads_option(p)
     p.add_argument("--json", type=Path, help="write the results as JSON here (atomically)")
     p.add_argument(
         "--tensorboard",
@@ -62,8 +62,6 @@ def main(argv: list[str] | None = None) -> int:
         fail(PROG, str(err))
     if args.starts < 1:
         fail(PROG, f"--starts must be >= 1, got {args.starts}")
-    if args.threads < 0:
-        fail(PROG, f"--threads must be >= 0 (0: torch's default), got {args.threads}")
     if not (args.run / "config.yaml").is_file():
         fail(PROG, f"{args.run} is not a run directory (no config.yaml)")
     for what, path in (("data file", args.data), ("train data file", args.train_data)):
@@ -87,10 +85,7 @@ def main(argv: list[str] | None = None) -> int:
         inputs = load_inputs(args.run, args.data, horizons, args.starts, args.mode, args.device, args.train_data)
     except (ValueError, ConfigError, OmegaConfBaseException) as err:  # the last: a config.yaml off the schema
         fail(PROG, str(err))
-    if args.threads:
-        import torch
-
-        torch.set_num_threads(args.threads)
+    set_threads(args.threads)
     result = evaluate_loaded(inputs, args.seed)
     print(format_table(result))
     if args.json is not None:

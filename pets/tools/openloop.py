@@ -23,7 +23,7 @@ from pets.planning.openloop import (
     planning_config,
 )
 from pets.runs.fileio import writable_dir_error
-from pets.tools.cli import EXIT_FAILED, OneLineParser, fail, write_json_result
+from pets.tools.cli import EXIT_FAILED, OneLineParser, add_threads_option, fail, set_threads, write_json_result
 
 PROG = "pets.openloop"
 
@@ -55,7 +55,7 @@ def build_parser() -> OneLineParser:
     p.add_argument("--episodes", type=int, default=DEFAULT_EPISODES, help=f"episodes (default {DEFAULT_EPISODES})")
     p.add_argument("--seed", type=int, default=0, help="seed of the env resets and the planner (default 0)")
     p.add_argument("--device", choices=("cpu", "cuda", "auto"), default="auto", help="where the model runs")
-    p.add_argument("--threads", type=int, default=0, help="torch CPU threads (default 0: torch's default)")
+    add_threads_option(p)
     p.add_argument("--json", type=Path, help="write the result as JSON here (atomically)")
     p.add_argument("--video", type=Path, metavar="DIR", help="write an MP4 of every episode here (episode-N.mp4)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -75,8 +75,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         fail(PROG, f"--episodes must be >= 1, got {args.episodes}")
     if args.seed < 0:
         fail(PROG, f"--seed must be >= 0, got {args.seed}")
-    if args.threads < 0:
-        fail(PROG, f"--threads must be >= 0 (0: torch's default), got {args.threads}")
     if not (args.run / "config.yaml").is_file():
         fail(PROG, f"{args.run} is not a run directory (no config.yaml)")
     if args.json is not None and args.json.is_dir():
@@ -107,10 +105,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise ConfigError(f"{args.run} has no checkpoint.pt yet (no trained model)")
     except (ValueError, OmegaConfBaseException) as err:  # ConfigError is a ValueError
         fail(PROG, str(err))
-    if args.threads:
-        import torch
-
-        torch.set_num_threads(args.threads)
+    set_threads(args.threads)
     from envs.render import RenderingUnavailable
     from pets.planning.planners import PlanningFailed
 

@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from pets.runs.fileio import atomic_write_bytes, writable_dir_error
-from pets.tools.cli import OneLineParser, fail
+from pets.tools.cli import OneLineParser, add_threads_option, fail, set_threads
 
 PROG = "pets.visualize"
 DEFAULT_STEPS = (0, 15, 45)
@@ -273,7 +273,7 @@ def build_parser() -> OneLineParser:
     p.add_argument("--seed", type=int, default=0, help="seed of --mode sample (default 0)")
     p.add_argument("--size", default="240x180", help="panel WIDTHxHEIGHT in pixels (default 240x180)")
     p.add_argument("--device", choices=("cpu", "cuda", "auto"), default="cpu", help="where the models run")
-    p.add_argument("--threads", type=int, default=0, help="torch CPU threads (default 0: torch's default)")
+    add_threads_option(p)
     p.add_argument("--out", type=Path, required=True, help="PNG to write (atomically)")
     return p
 
@@ -285,8 +285,6 @@ def main(argv: list[str] | None = None) -> int:
         size = parse_size(args.size)
     except ValueError as err:
         fail(PROG, str(err))
-    if args.threads < 0:
-        fail(PROG, f"--threads must be >= 0 (0: torch's default), got {args.threads}")
     for run in args.runs:
         if not (run / "config.yaml").is_file():
             fail(PROG, f"{run} is not a run directory (no config.yaml)")
@@ -298,10 +296,7 @@ def main(argv: list[str] | None = None) -> int:
     if problem:
         fail(PROG, f"cannot write --out {args.out}: {problem}")
     labels = None if args.labels is None else [s.strip() for s in args.labels.split(",")]
-    if args.threads:
-        import torch
-
-        torch.set_num_threads(args.threads)
+    set_threads(args.threads)
     from omegaconf.errors import OmegaConfBaseException
 
     from envs.render import RenderingUnavailable
