@@ -17,6 +17,7 @@ from torch import Tensor
 from dynamics.heads import DeltaHead
 from dynamics.model import DynamicsModel
 from envs.layout import Group, ObsLayout
+from pets.planning.particles import PROPAGATION_TABLE
 from pets.planning.propagation import PROPAGATIONS, TrajectoryEvaluator
 
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
@@ -122,6 +123,10 @@ def test_shapes_and_deterministic_linear_returns(device: str, prop: str, n: int,
         assert all(shape == (n, in_dim) for shape, _ in calls)
     else:
         assert all(shape == (m, math.ceil(n * p / m), in_dim) for shape, _ in calls)
+    # what the benchmarks count (pets.tools.bench, measure): each member's rows, the (row, member) pairs (no padding)
+    layout = PROPAGATION_TABLE[prop].layout
+    assert layout.rows_per_member(n, p, m) == calls[0][0][-2]
+    assert ev.model_rows(n, torch.device(device)) == (n * m if prop == "expectation" else n * p)
 
 
 def _member_per_step(obs: Tensor, m: int) -> Tensor:

@@ -46,6 +46,15 @@ class RowLayout:
         """Rows per candidate."""
         return particles
 
+    def rows_per_member(self, candidates: int, particles: int, members: int) -> int:
+        """Rows of each member's block in one model step of ``candidates`` candidates (the padding included)."""
+        return -(-candidates * self.particles(particles) // members)
+
+    def model_rows(self, candidates: int, particles: int, members: int) -> int:
+        """(row, member) pairs one model step computes for ``candidates`` candidates (the padding left out): each
+        row goes through one member."""
+        return candidates * self.particles(particles)
+
     def arrange(self, n_cand: int, p_eff: int, m: int, device: torch.device) -> Rows:
         rows = n_cand * p_eff
         per_member = -(-rows // m)
@@ -109,6 +118,12 @@ class Shared(RowLayout):
 
     def particles(self, particles: int) -> int:
         return 1
+
+    def rows_per_member(self, candidates: int, particles: int, members: int) -> int:
+        return candidates  # every member sees every row
+
+    def model_rows(self, candidates: int, particles: int, members: int) -> int:
+        return candidates * members
 
     def arrange(self, n_cand: int, p_eff: int, m: int, device: torch.device) -> Rows:
         rows = n_cand * p_eff

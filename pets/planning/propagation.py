@@ -216,6 +216,11 @@ class TrajectoryEvaluator:
     def _num_members(self, members: Tensor | None) -> int:
         return int(self.model.ensemble_size) if members is None else members.numel()
 
+    def model_rows(self, candidates: int, device: torch.device) -> int:
+        """(row, member) pairs one model step of ``candidates`` candidates computes (its propagation's layout)."""
+        m = self._num_members(self.members(device))
+        return self._propagation.layout.model_rows(candidates, self.particles, m)
+
     def _check(self, obs0: Tensor, actions: Tensor, generator: torch.Generator | None) -> tuple[Tensor, Tensor]:
         if not isinstance(actions, Tensor) or actions.dim() != 3:
             shape = tuple(actions.shape) if isinstance(actions, Tensor) else type(actions).__name__

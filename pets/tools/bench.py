@@ -106,8 +106,7 @@ class _CountingEvaluator:
     def __call__(self, obs0: Tensor, actions: Tensor, generator: torch.Generator | None = None) -> Tensor:
         ev = self.evaluator
         n, h = actions.shape[:2]
-        per = ev.particles if ev.propagation != "expectation" else ev._num_members(ev.members(actions.device))
-        self.rows += n * h * per
+        self.rows += h * ev.model_rows(n, actions.device)
         return ev(obs0, actions, generator)
 
 

@@ -17,6 +17,8 @@ import torch
 from omegaconf import DictConfig
 from torch import Tensor
 
+from pets.planning.particles import PROPAGATION_TABLE
+
 
 def model_flops_per_row(in_dim: int, out_dim: int, hidden: int, layers: int) -> int:
     """Multiply-adds x 2 of one member's MLP for one input row (output = mean and log-variance)."""
@@ -61,7 +63,7 @@ def kernel_floor(
     """
     p, mdl = cfg.planner, cfg.model
     members = mdl.num_elites
-    rows = p.population if p.propagation == "expectation" else -(-p.population * p.particles // members)
+    rows = PROPAGATION_TABLE[p.propagation].layout.rows_per_member(p.population, p.particles, members)
     dims = [input_dim] + [mdl.hidden_size] * mdl.num_layers + [2 * target_dim]
     gen = torch.Generator(device=device).manual_seed(0)
     steps = p.horizon * p.iterations
