@@ -17,8 +17,9 @@ import time
 import torch
 
 from dynamics import fused
-from pets import bench, builder
+from pets import builder
 from pets.config import make_config, parse_overrides
+from pets.tools import bench
 
 
 def main(argv: list[str] | None = None) -> int:

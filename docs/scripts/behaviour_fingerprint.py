@@ -41,7 +41,8 @@ RUNS: dict[str, tuple[str, str, list[str]]] = {
 }
 RUNS["ip-delta-cem-ts1"][2].append("planner.propagation=ts1")
 RUNS["ip-delta-cem-ts1"][2].append("value.enabled=false")
-#: Columns that differ run to run (timing).
+#: Columns that differ run to run (timing): pets.runs.rundir.TIMING_COLUMNS, written out (this script imports no
+#: pets module: its runs are subprocesses of the checkout it fingerprints).
 TIMING = {"plan_seconds_per_step", "plan_cpu_s", "train_cpu_s", "value_cpu_s", "wall_time_s", "cpu_time_s"}
 
 

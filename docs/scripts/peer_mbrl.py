@@ -311,8 +311,9 @@ def halfcheetah_pair(threads: int) -> dict[str, Any]:
     import numpy as np
     import torch
 
-    from pets import bench
     from pets.config import make_config
+    from pets.data.rollout import collect_random
+    from pets.tools import bench
 
     torch.set_num_threads(threads)
     torch.set_num_interop_threads(threads)
@@ -320,7 +321,7 @@ def halfcheetah_pair(threads: int) -> dict[str, Any]:
     p, m = cfg.planner, cfg.model
     parts = bench.prepare(cfg)  # the project's model, fitted on 400 random transitions (seed cfg.seed)
     spec = parts["spec"]
-    obs, act, nxt = bench.collect_random(spec, 400, cfg.seed)  # the same transitions, for mbrl's model
+    obs, act, nxt = collect_random(spec, 400, cfg.seed)  # the same transitions, for mbrl's model
     obs_m, act_m, nxt_m = halfcheetah_mbrl_data(obs, act, nxt, spec.dt)
     start_m = nxt_m[-2]  # mbrl's observation of the state parts["start"] (= obs[-1] = nxt[-2])
     assert np.array_equal(parts["start"], nxt[-2]), "start state mismatch"
@@ -360,7 +361,7 @@ def halfcheetah_pair(threads: int) -> dict[str, Any]:
 
 
 def plan(args: argparse.Namespace) -> int:
-    from pets import bench
+    from pets.tools import bench
 
     pair = halfcheetah_pair(args.threads)
     mach = machine()

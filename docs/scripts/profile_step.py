@@ -23,8 +23,9 @@ from typing import Any
 import torch
 from torch.profiler import ProfilerActivity, profile, record_function
 
-from pets import bench, builder
+from pets import builder
 from pets.config import make_config, parse_overrides
+from pets.tools import bench
 
 GEMM_OPS = ("aten::baddbmm", "aten::bmm", "aten::addmm", "aten::mm", "mkldnn::_linear_pointwise")
 
