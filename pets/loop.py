@@ -306,7 +306,8 @@ def _run_bar(cfg: DictConfig, pets_run: PETSRun, progress: bool) -> tqdm:
         total, initial, unit = cfg.trials, pets_run.trials_done, "trial"
     else:
         total, initial, unit = cfg.max_env_steps, min(pets_run.env_steps, cfg.max_env_steps), "step"
-    return tqdm(total=total, initial=initial, desc=f"{cfg.env}-{cfg.head}", unit=unit, disable=not progress)
+    desc = f"{envs.file_name(cfg.env)}-{cfg.head}"  # your own env by its spec's name, not its import path
+    return tqdm(total=total, initial=initial, desc=desc, unit=unit, disable=not progress)
 
 
 def run(cfg: DictConfig, run_dir: Path, resume: bool = False, progress: bool = True) -> list[dict[str, Any]]:
