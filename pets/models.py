@@ -160,12 +160,36 @@ def models_for(spec: EnvSpec) -> list[str]:
     return [name for name, entry in MODELS.items() if not entry.needs_root or spec.layout.root is not None]
 
 
+def check_head(name: str, head: DynamicsHead, spec: EnvSpec) -> None:
+    """ConfigError (one line) where ``head``'s maps raise or return other shapes than its declared ``input_dim`` and
+    ``target_dim`` and the env's observation, on a probe batch of 2 (a model of one's own: caught when it is built,
+    not in training after the seed episodes)."""
+    import torch
+
+    from pets.errors import ConfigError
+
+    obs, act = torch.zeros(2, spec.obs_dim), torch.zeros(2, spec.act_dim)
+    maps = (("inputs", lambda: head.inputs(obs, act), head.input_dim),
+            ("targets", lambda: head.targets(obs, obs), head.target_dim),
+            ("next_obs", lambda: head.next_obs(obs, torch.zeros(2, head.target_dim)), spec.obs_dim))  # fmt: skip
+    for what, call, width in maps:
+        try:
+            out = call()
+        except Exception as err:
+            line = (str(err).strip().splitlines() or ["no message"])[0]
+            raise ConfigError(f"model {name!r}: its head's {what} raised {type(err).__name__}: {line}") from None
+        if not isinstance(out, torch.Tensor) or tuple(out.shape) != (2, width):
+            got = tuple(out.shape) if isinstance(out, torch.Tensor) else type(out).__name__
+            raise ConfigError(f"model {name!r}: its head's {what} returned {got} for a batch of 2, not (2, {width})")
+
+
 def make_model(cfg: DictConfig, spec: EnvSpec, device: torch.device) -> DynamicsModel:
     """The model ``cfg.head`` for env ``spec`` on ``device`` (``cfg`` is validated: the name is in :data:`MODELS`)."""
     from dynamics.model import DynamicsModel
 
     entry = MODELS[cfg.head]
     head = entry.make_head(cfg, spec)
+    check_head(cfg.head, head, spec)
     model = DynamicsModel(head, entry.make_network(cfg, head))  # checks that head and network agree
     if model.deterministic != entry.deterministic:  # the table's flag (read without building) is the model's
         raise ValueError(f"MODELS[{cfg.head!r}].deterministic is {entry.deterministic}, the model it builds is not")

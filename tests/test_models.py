@@ -585,3 +585,14 @@ def test_a_model_registered_from_outside_is_a_model_name_everywhere(tmp_path, mo
             register_model(name, bad)
         assert "\n" not in str(err.value)
     assert MODELS["delta"].summary.startswith("PETS")
+
+    class ShortDecode(DeltaHead):  # next_obs one entry short: was a RuntimeError deep in the first training
+        def next_obs(self, obs, target):
+            return super().next_obs(obs, target)[..., :-1]
+
+    short = ModelEntry("a head that decodes one entry short", False, lambda cfg, spec: ShortDecode(spec.layout,
+                       spec.act_dim), gaussian_ensemble)  # fmt: skip
+    monkeypatch.setitem(MODELS, "short", short)
+    spec = envs.get("invertedpendulum")
+    with pytest.raises(ValueError, match=r"model 'short': its head's next_obs returned \(2, 3\) .* not \(2, 4\)"):
+        make_model(make_config("invertedpendulum", "short"), spec, torch.device("cpu"))
