@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from pets.experiments import gate
+from pets.experiments.report import write_rounded_csv
 from tests import warm
 
 
@@ -366,7 +367,7 @@ def test_the_gate_keeps_a_lost_pilot_row_while_its_rerun_is_behind(tmp_path):
     out, curves = tmp_path / "pilots", tmp_path / "pilots_curves.csv"
     trials(12)
     lost = dict(gate.pilot_row(run_dir), env_steps=26000, reward_last5=3222.45)
-    gate.write_csv(out.with_suffix(".csv"), [lost], list(lost))
+    write_rounded_csv(out.with_suffix(".csv"), [lost], list(lost))
     curve = [{"run": run_dir.name, "env": "halfcheetah", "env_steps": n, "reward": 1.0} for n in (10000, 26000)]
     write_csv(curves, curve, gate.PILOT_CURVE_COLUMNS)
     committed = read_csv_rows(out.with_suffix(".csv")), read_csv_rows(curves)

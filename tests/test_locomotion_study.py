@@ -14,6 +14,7 @@ import pytest
 import yaml
 from scipy import stats
 
+from pets.experiments.report import write_rounded_csv
 from pets.experiments.studies import locomotion as study
 from tests import warm
 
@@ -73,7 +74,7 @@ def write_runs(path: Path, finals: dict[str, list[float]], partial: dict[str, in
     for model, seed in (partial or {}).items():
         rows.append(dict.fromkeys(study.RUN_COLUMNS, "") | {"env": "halfcheetah", "model": model, "seed": seed,
                                                              "env_steps": 40_000, "status": "partial"})  # fmt: skip
-    study.gate.write_csv(path, rows, study.RUN_COLUMNS)
+    write_rounded_csv(path, rows, study.RUN_COLUMNS)
     with path.open() as f:
         return list(csv.DictReader(f))
 
@@ -136,7 +137,7 @@ def test_the_report_makes_the_summary_and_both_blocks_from_the_runs_file(tmp_pat
     write_runs(results / study.RUNS, {"delta": [3000.0, 2000.0], "gem": [3500.0, 2100.0]}, {"gem-se": 0})
     runs = [make_run(tmp_path / m, m, s, ramp(3000.0)) for m in ("delta", "gem") for s in (0, 1)]
     curves = [c for run in runs for c in study.curve_rows(run)]
-    study.gate.write_csv(results / study.CURVES, curves, study.CURVE_COLUMNS)
+    write_rounded_csv(results / study.CURVES, curves, study.CURVE_COLUMNS)
     (tmp_path / "docs" / "figures").mkdir()
     monkeypatch.chdir(tmp_path)
     (product,) = [p for p in published.PRODUCTS if p.name == "online locomotion summary"]
@@ -185,7 +186,7 @@ def test_identical_rows_stand_for_delta_groupfeat_on_a_planar_env_and_only_where
     with pytest.raises(ValueError, match="halfcheetah seed 0: delta-groupfeat and gem differ in endpoint"):
         study.identical_rows([*gem.values(), differing])
     path = tmp_path / "runs.csv"
-    study.gate.write_csv(path, [*gem.values(), own, *made], study.RUN_COLUMNS)
+    write_rounded_csv(path, [*gem.values(), own, *made], study.RUN_COLUMNS)
     with path.open() as f:
         summary = {r["model"]: r for r in study.summary_from_runs(list(csv.DictReader(f)))}
     assert summary["delta-groupfeat"]["n_seeds"] == 3 and summary["gem"]["n_seeds"] == 3
@@ -238,8 +239,8 @@ def test_the_figure_draws_delta_groupfeat_only_where_it_is_not_gems_curve(tmp_pa
         for model in ("delta", "gem", "delta-groupfeat"):
             runs.append({"env": env, "model": model, "seed": 0, "status": "complete"})
             points += [{"env": env, "model": model, "seed": 0, "env_steps": n, "reward": 1.0} for n in (1000, 2000)]
-    study.gate.write_csv(tmp_path / study.RUNS, runs, ["env", "model", "seed", "status"])
-    study.gate.write_csv(tmp_path / study.CURVES, points, study.CURVE_COLUMNS)
+    write_rounded_csv(tmp_path / study.RUNS, runs, ["env", "model", "seed", "status"])
+    write_rounded_csv(tmp_path / study.CURVES, points, study.CURVE_COLUMNS)
     drawn = {}
     monkeypatch.setattr(study.curves, "plot_curves", lambda path, arms, **kw: drawn.update(arms))
     study.plot_curves(tmp_path, tmp_path / "figure.png")
@@ -290,7 +291,7 @@ def test_the_papers_claim_is_worded_by_the_registered_rule_per_env(tmp_path):
 
     def claim(gem: list[float], se: list[float]) -> dict[str, str]:
         rows = write_runs(tmp_path / "runs.csv", {"delta": delta, "gem": gem, "delta-groupfeat": gem, "gem-se": se})
-        study.gate.write_csv(tmp_path / "s.csv", study.summary_from_runs(rows, reps=100), study.SUMMARY_COLUMNS)
+        write_rounded_csv(tmp_path / "s.csv", study.summary_from_runs(rows, reps=100), study.SUMMARY_COLUMNS)
         lines = study.claim_lines(read_csv_rows(tmp_path / "s.csv"), gates)
         assert lines[0].startswith("The paper's claim, \"GEM+PETS consistently achieves higher rewards")
         return {line.split(":")[0][2:]: line for line in lines[2:]}

@@ -15,6 +15,7 @@ import sys
 from pathlib import Path
 
 from pets.experiments import gate
+from pets.experiments.report import write_rounded_csv
 
 COLUMNS = ["run", "env", "head", "seed", "trial", "env_steps", "plan_cpu_s", "train_cpu_s", "value_cpu_s", "cpu_s"]
 
@@ -42,7 +43,7 @@ def main() -> None:
     p.add_argument("--out", type=Path, required=True)
     args = p.parse_args()
     new = [row for run_dir in args.runs for row in run_rows(run_dir)]
-    gate.write_csv(args.out, new, COLUMNS, keep=("run",))  # other runs' committed rows kept
+    write_rounded_csv(args.out, new, COLUMNS, keep=("run",))  # other runs' committed rows kept
     print(f"{len(new)} rows of {len(args.runs)} run(s) written to {args.out}")
 
 

@@ -28,6 +28,7 @@ import numpy as np
 
 from pets.experiments.curves import window_points
 from pets.experiments.gate_references import Reference, peer_runs, sac_run
+from pets.experiments.report import cell_text, write_rounded_csv
 
 #: The pre-registered thresholds (Wang et al. 2019, PETS-CEM at 200k env steps), per catalogue env.
 THRESHOLDS = {"halfcheetah": 2800.0, "ant": 1170.0, "hopper": 1130.0}
@@ -326,31 +327,6 @@ def ceiling(rows: Sequence[Mapping[str, Any]]) -> dict[str, float]:
     return {env: float(np.mean(values)) for env, values in out.items()}
 
 
-def write_csv(
-    path: Path, rows: Sequence[Mapping[str, Any]], columns: Sequence[str], keep: Sequence[str] = ()
-) -> list[dict[str, str]]:
-    """The rows with their cells as :func:`cell_text` shows them, written by the experiments' CSV writer. ``keep``
-    (key columns): merged into the committed file, its rows of other keys kept, and a key's committed rows kept
-    while its new rows have fewer env steps (:func:`report.merge_committed`; a line says which). Returns the rows
-    written."""
-    from pets.experiments.report import merge_committed
-    from pets.experiments.report import write_csv as write_rows
-
-    text = [{c: cell_text(r[c]) for c in columns} for r in rows]
-    progress = "env_steps" if "env_steps" in columns else None
-    text = merge_committed(path, text, keep, progress)[0] if keep else text
-    write_rows(path, text, columns)
-    return text
-
-
-def cell_text(v: Any) -> str:
-    if v is None:
-        return ""
-    if isinstance(v, float):
-        return "" if math.isnan(v) else f"{v:.6g}"
-    return str(v)
-
-
 CURVE_COLUMNS = ["env", "agent", "seed", "env_steps", "reward"]
 PILOT_CURVE_COLUMNS = ["run", "env", "env_steps", "reward"]
 
@@ -439,7 +415,7 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as err:
         p.error(str(err))
     for path, out_rows, columns, keys in writes:
-        write_csv(path, out_rows, columns, keys)
+        write_rounded_csv(path, out_rows, columns, keys)
     for r in rows:
         print("  ".join(f"{k}={cell_text(v)}" for k, v in r.items()), file=sys.stdout)
     return 0

@@ -16,7 +16,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from pets.experiments.report import read_csv_rows
+from pets.experiments.report import read_csv_rows, write_rounded_csv
 from pets.experiments.studies.planning import ENVS as PLANNING_ENVS
 from pets.experiments.studies.primary import DEFAULT_LEVEL, DEFAULT_SOURCE
 
@@ -207,7 +207,7 @@ def _gate_summary() -> Product:
     def make() -> None:
         from pets.experiments import gate, gate_published
 
-        gate.write_csv(Path(out), gate.summary_rows(read_csv_rows(runs)), gate.SUMMARY_COLUMNS)
+        write_rounded_csv(Path(out), gate.summary_rows(read_csv_rows(runs)), gate.SUMMARY_COLUMNS)
         gate_published.write_figures(Path(RESULTS), Path("docs/figures"))
 
     return Product("locomotion gate summary and figures", (out, *figures), (runs, *curves), make)

@@ -142,3 +142,26 @@ def _behind_committed(
     for r in committed:
         before.setdefault(tuple(r.get(c, "") for c in key), []).append(r)
     return {k for k, group in new.items() if k in before and reach(group) < reach(before[k])}
+
+
+def write_rounded_csv(
+    path: Path, rows: Sequence[Mapping[str, Any]], columns: Sequence[str], keep: Sequence[str] = ()
+) -> list[dict[str, str]]:
+    """The rows with their cells as :func:`cell_text` shows them, written by :func:`write_csv`. ``keep``
+    (key columns): merged into the committed file, its rows of other keys kept, and a key's committed rows kept
+    while its new rows have fewer env steps (:func:`merge_committed`; a line says which). Returns the rows
+    written."""
+    text = [{c: cell_text(r[c]) for c in columns} for r in rows]
+    progress = "env_steps" if "env_steps" in columns else None
+    text = merge_committed(path, text, keep, progress)[0] if keep else text
+    write_csv(path, text, columns)
+    return text
+
+
+def cell_text(v: Any) -> str:
+    """A cell as the rounded CSVs write it: 6 significant digits, NaN and None empty."""
+    if v is None:
+        return ""
+    if isinstance(v, float):
+        return "" if math.isnan(v) else f"{v:.6g}"
+    return str(v)

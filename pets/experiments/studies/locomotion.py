@@ -27,7 +27,15 @@ from typing import Any
 import numpy as np
 
 from pets.experiments import curves, gate, gate_published
-from pets.experiments.report import csv_number, fmt, fmt_interval, md_table, merge_committed
+from pets.experiments.report import (
+    cell_text,
+    csv_number,
+    fmt,
+    fmt_interval,
+    md_table,
+    merge_committed,
+    write_rounded_csv,
+)
 from pets.experiments.statistics import ALPHA, BASELINE, REPS, iqm_ci, paired_differences, sign_flip_p
 from pets.experiments.studies.base import (
     HIGHER,
@@ -126,7 +134,7 @@ def identical_rows(rows: Sequence[Mapping[str, Any]]) -> list[dict[str, Any]]:
         if mine is None:
             out.append({**r, "model": arm, "cpu_hours": math.nan, "status": IDENTICAL_STATUS})
         elif mine["status"] == "complete":
-            differ = [k for k in _COMPARED if gate.cell_text(mine[k]) != gate.cell_text(r[k])]
+            differ = [k for k in _COMPARED if cell_text(mine[k]) != cell_text(r[k])]
             if differ:
                 raise ValueError(f"{r['env']} seed {r['seed']}: {arm} and {same} differ in {', '.join(differ)}: "
                                  f"not identical, so {arm} must be run")  # fmt: skip
@@ -285,8 +293,8 @@ def write_summary(results: Path) -> None:
     from pets.experiments.report import read_csv_rows
 
     rows = read_csv_rows(results / RUNS)
-    gate.write_csv(results / SUMMARY, summary_from_runs(rows), SUMMARY_COLUMNS)
-    gate.write_csv(results / VERSUS, versus_rows(rows), VERSUS_COLUMNS)
+    write_rounded_csv(results / SUMMARY, summary_from_runs(rows), SUMMARY_COLUMNS)
+    write_rounded_csv(results / VERSUS, versus_rows(rows), VERSUS_COLUMNS)
     plot_curves(results, results.parent / "figures" / FIGURE.name)
 
 
@@ -340,7 +348,7 @@ def main(argv: list[str] | None = None) -> int:
         curves = [c for d in args.run_dirs for c in curve_rows(d)] if args.curves else []
     except ValueError as e:  # not an online run's directory (gate.read_run)
         p.error(str(e))
-    text = [{c: gate.cell_text(r[c]) for c in RUN_COLUMNS} for r in rows]
+    text = [{c: cell_text(r[c]) for c in RUN_COLUMNS} for r in rows]
     if keep:
         merged = merge_committed(args.out, text, keep, "env_steps")[0]
         text = [r for r in merged if r["status"] != IDENTICAL_STATUS]  # derived below
@@ -349,11 +357,11 @@ def main(argv: list[str] | None = None) -> int:
             text += identical_rows(text)
         except ValueError as e:
             p.error(str(e))
-    gate.write_csv(args.out, text, RUN_COLUMNS)
+    write_rounded_csv(args.out, text, RUN_COLUMNS)
     if args.curves:
-        gate.write_csv(args.curves, curves, CURVE_COLUMNS, keep)
+        write_rounded_csv(args.curves, curves, CURVE_COLUMNS, keep)
     for r in rows:
-        print("  ".join(f"{k}={gate.cell_text(v)}" for k, v in r.items()))
+        print("  ".join(f"{k}={cell_text(v)}" for k, v in r.items()))
     return 0
 
 
