@@ -19,6 +19,7 @@ from pets.config import ConfigError
 from pets.learning.trainer import ModelTrainer
 from pets.models import make_model
 from pets.planning.feedback import LinearFeedback
+from pets.planning.particles import CANDIDATE_TABLE
 from pets.planning.planners import PLANNER_CLASSES, Planner
 from pets.planning.propagation import TrajectoryEvaluator, retain_freed_memory
 from pets.planning.value import ValueFunction
@@ -117,24 +118,12 @@ def make_agent(
 
 
 def make_feedback(cfg: DictConfig, spec: EnvSpec, device: torch.device) -> LinearFeedback | None:
-    """The feedback law of ``planner.candidates=feedback`` (pets.planning.feedback), else None."""
-    p = cfg.planner
-    if p.candidates != "feedback":
-        return None
-    f = p.feedback
+    """The law of the config's candidate kind (``planner.candidates=feedback``: pets.planning.feedback), else None."""
+    kind = cfg.planner.candidates
     try:
-        return LinearFeedback(
-            spec.obs_dim,
-            spec.action_low,
-            spec.action_high,
-            horizon=p.horizon,
-            features=None if f.features is None else list(f.features),
-            scale=None if f.scale is None else list(f.scale),
-            bias=f.bias,
-            device=device,
-        )
+        return CANDIDATE_TABLE[kind].make_law(cfg.planner, spec, device)
     except ValueError as err:
-        raise ConfigError(f"planner.feedback: {err} ({spec.name} has {spec.obs_dim} observations)") from None
+        raise ConfigError(f"planner.{kind}: {err} ({spec.name} has {spec.obs_dim} observations)") from None
 
 
 def make_planner(

@@ -26,7 +26,8 @@ from gem_head.head import COMPOSE_MODES, LOSSES
 from pets.errors import ConfigError
 from pets.limits import schedule_problem, size_problem
 from pets.models import MODELS, check_root
-from pets.planning.feedback import FeedbackConfig, check_feedback
+from pets.planning.feedback import FeedbackConfig
+from pets.planning.particles import CANDIDATE_TABLE
 from pets.planning.planners import PLANNER_CLASSES, UNREGISTERED, ICEMConfig, MPPIConfig, check_planner_config
 from pets.planning.propagation import CANDIDATES, PROPAGATIONS
 from pets.planning.value import ValueConfig
@@ -361,11 +362,10 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError(
             f"planner.replan_every ({cfg.planner.replan_every}) must be <= planner.horizon ({cfg.planner.horizon})"
         )
-    if cfg.planner.candidates == "feedback":
-        try:
-            check_feedback(cfg.planner)
-        except ValueError as err:
-            raise ConfigError(str(err)) from None
+    try:
+        CANDIDATE_TABLE[cfg.planner.candidates].check_config(cfg.planner)
+    except ValueError as err:
+        raise ConfigError(str(err)) from None
     if not 0 < cfg.value.discount < 1:
         raise ConfigError(f"value.discount must be in (0, 1), got {cfg.value.discount}")
     if problem := schedule_problem(cfg):  # the run's length and when it trains

@@ -13,6 +13,7 @@ from __future__ import annotations
 from omegaconf import DictConfig
 
 from pets.config import PRESETS
+from pets.planning.particles import CANDIDATE_TABLE
 from pets.planning.planners import PLANNER_CLASSES
 from pets.runs.hardware import resolve_precision
 
@@ -27,7 +28,7 @@ LONG_RUN_HOURS = 3.0
 def faster_options(cfg: DictConfig) -> list[str]:
     """Settings that make planning faster and that ``cfg`` does not use yet."""
     p, fast = cfg.planner, PRESETS["fast"]["planner"]
-    feedback = p.candidates == "feedback"  # a closed-loop horizon of its own (IDP's fast preset), no iCEM for gains
+    feedback = not CANDIDATE_TABLE[p.candidates].searches_actions  # gains: a horizon of their own, no iCEM
     options = []
     if not feedback and p.population * p.particles * p.horizon * p.iterations > (
         fast["population"] * fast["particles"] * fast["horizon"] * fast["iterations"]

@@ -11,19 +11,25 @@ with a :class:`Noise` (whether the next target is sampled from the predicted Gau
 
 A candidate kind (``planner.candidates``, :data:`CANDIDATE_TABLE`) says what a candidate is: :class:`OpenLoop`, an
 action sequence (N, H, act_dim); :class:`FeedbackGains`, the gains (N, rows, act_dim) of a
-:class:`pets.planning.feedback.LinearFeedback` rolled out for its horizon. Both choices are vectorised over all rows: a
+:class:`pets.planning.feedback.LinearFeedback` rolled out for its horizon; each kind owns its checks of the
+config (``check_config``), its law (``make_law``) and whether every planner searches it (``searches_actions``).
+Both choices are vectorised over all rows: a
 strategy adds no Python loop and no host synchronisation.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import torch
 from torch import Tensor
 
 from dynamics.model import DynamicsModel
-from pets.planning.feedback import LinearFeedback
+from pets.planning.feedback import LinearFeedback, check_feedback
+
+if TYPE_CHECKING:
+    from envs import EnvSpec
 
 
 @dataclass(frozen=True)
@@ -189,6 +195,19 @@ PROPAGATION_TABLE: dict[str, Propagation] = {
 class OpenLoop:
     """Candidates are action sequences (N, H, act_dim), read time-major: every step one contiguous (b, A) block."""
 
+    #: Whether a candidate is an action sequence, which every planner searches (False: the gains of a law, which only
+    #: the planners with ``gain_options`` search).
+    searches_actions: ClassVar[bool] = True
+
+    @staticmethod
+    def check_config(planner: Any) -> None:
+        """This kind's checks of the config's ``planner`` section (a ValueError in one line): none."""
+
+    @staticmethod
+    def make_law(planner: Any, spec: EnvSpec, device: torch.device) -> LinearFeedback | None:
+        """The law a candidate of this kind parametrises, from the config's ``planner`` section (None: none)."""
+        return None
+
     def horizon(self, actions: Tensor) -> int:
         return actions.shape[1]
 
@@ -206,6 +225,23 @@ class OpenLoop:
 
 class FeedbackGains(OpenLoop):
     """Candidates are gains (N, rows, act_dim) of the feedback law, each row's action computed from its own state."""
+
+    searches_actions = False
+    check_config = staticmethod(check_feedback)
+
+    @staticmethod
+    def make_law(planner: Any, spec: EnvSpec, device: torch.device) -> LinearFeedback:
+        f = planner.feedback
+        return LinearFeedback(
+            spec.obs_dim,
+            spec.action_low,
+            spec.action_high,
+            horizon=planner.horizon,
+            features=None if f.features is None else list(f.features),
+            scale=None if f.scale is None else list(f.scale),
+            bias=f.bias,
+            device=device,
+        )
 
     def __init__(self, law: LinearFeedback) -> None:
         self.law = law

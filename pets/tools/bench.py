@@ -52,6 +52,8 @@ from pets import builder
 from pets.config import ConfigError, make_config, parse_overrides, validate
 from pets.data.rollout import collect_random
 from pets.models import make_model
+from pets.planning.particles import CANDIDATE_TABLE
+from pets.planning.planners import PLANNER_CLASSES
 from pets.runs.fileio import writable_dir_error
 from pets.runs.hardware import EMULATED_BF16_SLOWDOWN, cpu_isa, native_bf16
 from pets.tools.cli import OneLineParser, fail
@@ -84,8 +86,9 @@ def compare_rows(cfg: DictConfig, bf16: bool = True) -> list[tuple[str, dict[str
     p = cfg.planner
     here = {"name": p.name, "precision": p.precision, "compile": bool(p.compile)}
     rows = [(f"default: {label}" if planner == here else label, planner) for label, planner in COMPARE_ROWS]
-    if p.candidates == "feedback":  # iCEM does not search feedback gains (pets.config)
-        rows = [(label, planner) for label, planner in rows if planner["name"] != "icem"]
+    if not CANDIDATE_TABLE[p.candidates].searches_actions:  # only the planners that search gains (pets.config)
+        bound, std = p.feedback.gain_bound, p.feedback.gain_std
+        rows = [(label, q) for label, q in rows if PLANNER_CLASSES[q["name"]].gain_options(bound, std) is not None]
     if not bf16:
         rows = [(label, planner) for label, planner in rows if planner["precision"] != "bf16" or planner == here]
     label = f"{p.name} {p.precision} {'compiled' if p.compile else 'eager'}"
