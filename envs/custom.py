@@ -260,7 +260,8 @@ def check_kinds(name: str, layout: ObsLayout, nxt: np.ndarray, q: np.ndarray | N
         if j is not None and _matches(v, nxt[:, i], False) is None:
             raise ValueError(
                 f"{name}: the layout's velocities include entry {i}, which is the simulator's position qpos[{j}] on "
-                "real steps, not a velocity: check the layout's indices"
+                "real steps, not a velocity: check the layout's indices (a position that is not an angle belongs in "
+                "an Rn group, or in other)"
             )
 
 
@@ -280,12 +281,22 @@ def _matches(columns: np.ndarray, value: np.ndarray, angle: bool) -> int | None:
     return int(hit[0]) if hit.size else None
 
 
+def _raised_in_float64(name: str, what: str, err: BaseException) -> str:
+    return (
+        f"{name}: {what} raised {type(err).__name__} on real transitions in float64 (the checks compare it with the "
+        f"env's there; make it work in any float dtype): {_line(err)}"
+    )
+
+
 def check_reward(name: str, gym_id: str, reward_fn: RewardFn, transitions: list[tuple]) -> None:
     """ValueError (one line) where ``reward_fn`` is not the env's reward on the real ``transitions`` (to 1e-3
     relative and absolute, the observations being float32)."""
     for step, (obs, act, nxt, want, _) in enumerate(transitions):
         o, a, n = (torch.as_tensor(x, dtype=torch.float64)[None] for x in (obs, act, nxt))
-        got = float(reward_fn(o, a, n)[0])
+        try:
+            got = float(reward_fn(o, a, n)[0])
+        except Exception as err:
+            raise ValueError(_raised_in_float64(name, "reward_fn", err)) from None
         if not abs(got - want) <= 1e-3 * (1.0 + abs(want)):
             raise ValueError(
                 f"{name}: reward_fn gives {got:.6g} where {gym_id} gave {want:.6g} on a real transition (step {step} "
@@ -299,7 +310,10 @@ def check_termination(name: str, gym_id: str, terminated_fn: RewardFn, transitio
     first step where they differ; ``given``: False where no function was given, read as never terminating)."""
     o, a, n = (torch.as_tensor(np.stack([t[k] for t in transitions]), dtype=torch.float64) for k in range(3))
     want = np.array([t[4] for t in transitions])
-    got = terminated_fn(o, a, n).cpu().numpy().astype(bool)
+    try:
+        got = terminated_fn(o, a, n).cpu().numpy().astype(bool)
+    except Exception as err:
+        raise ValueError(_raised_in_float64(name, "terminated_fn", err)) from None
     wrong = np.flatnonzero(got != want)
     if wrong.size:
         k = int(wrong[0])

@@ -422,7 +422,7 @@ def load_config(path: str | Path) -> DictConfig:
     missing = [key for key in ("env", "head", "model", "planner") if key not in stored]
     if missing:
         raise ConfigError(f"{path} has no {', '.join(missing)} (truncated?); {restore}")
-    if isinstance(stored.planner, DictConfig) and str(stored.planner.get("name")) not in PLANNER_CLASSES:
+    if isinstance(stored.planner, DictConfig) and str(stored.planner.get("name", "cem")) not in PLANNER_CLASSES:
         raise ConfigError(f"{path}: its planner {stored.planner.get('name')!r} is not a planner here{UNREGISTERED}")
     try:
         for old, new in DEPRECATED_KEYS.items():  # a config.yaml of gem-pets 0.1 has the flat planner keys

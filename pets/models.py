@@ -126,10 +126,13 @@ MODELS: dict[str, ModelEntry] = {
 def register_model(name: str, entry: ModelEntry) -> ModelEntry:
     """Add a model of your own to :data:`MODELS` under ``name`` (the ``--model`` / ``model=`` value from then on, in
     this process); returns ``entry``. ValueError (one line) for a name that is not a non-empty string without
-    spaces or ``=``, or that another entry holds (a built-in model is never replaced behind the config's back), and
-    for an ``entry`` that is not a :class:`ModelEntry`."""
-    if not isinstance(name, str) or not name or any(c.isspace() or c in "=,:" for c in name):
-        raise ValueError(f"a model name must be a non-empty string without spaces, '=', ',' or ':', got {name!r}")
+    spaces, ``=``, ``,``, ``:``, ``/`` or ``\\`` (the command line and run directories carry it), or that another
+    entry holds (a built-in model is never replaced behind the config's back), and for an ``entry`` that is not a
+    :class:`ModelEntry`."""
+    if not isinstance(name, str) or not name or any(c.isspace() or c in "=,:/\\" for c in name):
+        raise ValueError(
+            f"a model name must be a non-empty string without spaces, '=', ',', ':', '/' or '\\', got {name!r}"
+        )
     if not isinstance(entry, ModelEntry):
         raise ValueError(f"model {name!r}: entry must be a pets.models.ModelEntry, got {type(entry).__name__}")
     taken = MODELS.get(name)
@@ -160,15 +163,28 @@ def models_for(spec: EnvSpec) -> list[str]:
     return [name for name, entry in MODELS.items() if not entry.needs_root or spec.layout.root is not None]
 
 
+def probe_observation(spec: EnvSpec) -> torch.Tensor:
+    """A valid observation of ``spec``'s layout, (obs_dim,): zeros, each rotation the identity (``SO2_cossin``:
+    cos 1; ``SO3_quat``: w = 1, quaternions being (w, x, y, z)), so that normalisations and decompositions of it
+    are defined."""
+    import torch
+
+    obs = torch.zeros(spec.obs_dim)
+    for group in spec.layout.groups:
+        if group.kind in ("SO2_cossin", "SO3_quat"):
+            obs[group.indices[0]] = 1.0
+    return obs
+
+
 def check_head(name: str, head: DynamicsHead, spec: EnvSpec) -> None:
     """ConfigError (one line) where ``head``'s maps raise or return other shapes than its declared ``input_dim`` and
-    ``target_dim`` and the env's observation, on a probe batch of 2 (a model of one's own: caught when it is built,
-    not in training after the seed episodes)."""
+    ``target_dim`` and the env's observation, on a probe batch of 2 (:func:`probe_observation`; a model of one's own:
+    caught when it is built, not in training after the seed episodes)."""
     import torch
 
     from pets.errors import ConfigError
 
-    obs, act = torch.zeros(2, spec.obs_dim), torch.zeros(2, spec.act_dim)
+    obs, act = probe_observation(spec).expand(2, spec.obs_dim), torch.zeros(2, spec.act_dim)
     maps = (("inputs", lambda: head.inputs(obs, act), head.input_dim),
             ("targets", lambda: head.targets(obs, obs), head.target_dim),
             ("next_obs", lambda: head.next_obs(obs, torch.zeros(2, head.target_dim)), spec.obs_dim))  # fmt: skip
@@ -177,10 +193,14 @@ def check_head(name: str, head: DynamicsHead, spec: EnvSpec) -> None:
             out = call()
         except Exception as err:
             line = (str(err).strip().splitlines() or ["no message"])[0]
-            raise ConfigError(f"model {name!r}: its head's {what} raised {type(err).__name__}: {line}") from None
+            raise ConfigError(
+                f"model {name!r}: its head's {what} raised {type(err).__name__} on a probe batch: {line}"
+            ) from None
         if not isinstance(out, torch.Tensor) or tuple(out.shape) != (2, width):
             got = tuple(out.shape) if isinstance(out, torch.Tensor) else type(out).__name__
-            raise ConfigError(f"model {name!r}: its head's {what} returned {got} for a batch of 2, not (2, {width})")
+            raise ConfigError(
+                f"model {name!r}: its head's {what} returned {got} for a probe batch of 2, not (2, {width})"
+            )
 
 
 def make_model(cfg: DictConfig, spec: EnvSpec, device: torch.device) -> DynamicsModel:

@@ -559,7 +559,7 @@ def test_a_run_with_relu_records_it_and_reloads_the_same_network(tmp_path, capsy
     assert err.count("\n") == 1 and not (tmp_path / "bad").exists()
 
 
-def test_a_model_registered_from_outside_is_a_model_name_everywhere(tmp_path, monkeypatch):
+def test_a_model_registered_from_outside_is_a_model_name_everywhere(tmp_path, monkeypatch, request):
     """register_model after pets.config is imported (was: only MODELS edited before that import took, as HEADS was
     a tuple made at import): the config, run_pets.py in the process and the study arguments accept the name; a
     taken name, a name the command line cannot carry and an entry of another type are refused in one line."""
@@ -569,8 +569,9 @@ def test_a_model_registered_from_outside_is_a_model_name_everywhere(tmp_path, mo
     from tests.test_cli import TINY
 
     entry = ModelEntry("delta under my name", False, MODELS["delta"].make_head, gaussian_ensemble)
-    monkeypatch.setitem(MODELS, "mine", entry)  # removed again after the test
-    assert register_model("mine", entry) is entry and "mine" in HEADS
+    assert "mine" not in HEADS
+    request.addfinalizer(lambda: MODELS.pop("mine", None))  # removed again after the test
+    assert register_model("mine", entry) is entry and "mine" in HEADS and MODELS["mine"] is entry
     assert make_config("invertedpendulum", "mine").head == "mine" and parse_models("delta,mine") == ["delta", "mine"]
     out = tmp_path / "run"
     args = ["--env", "invertedpendulum", "--model", "mine", "--trials", "1", "--out", str(out), *TINY]
@@ -579,6 +580,7 @@ def test_a_model_registered_from_outside_is_a_model_name_everywhere(tmp_path, mo
     for name, bad, message in (
         ("delta", entry, "model name 'delta' is taken"),
         ("my model", entry, "without spaces"),
+        ("my/model", entry, "'/'"),  # run directories are named by it
         ("mine2", MODELS["delta"].make_head, "entry must be a pets.models.ModelEntry"),
     ):
         with pytest.raises(ValueError, match=message) as err:
@@ -596,3 +598,15 @@ def test_a_model_registered_from_outside_is_a_model_name_everywhere(tmp_path, mo
     spec = envs.get("invertedpendulum")
     with pytest.raises(ValueError, match=r"model 'short': its head's next_obs returned \(2, 3\) .* not \(2, 4\)"):
         make_model(make_config("invertedpendulum", "short"), spec, torch.device("cpu"))
+
+    class UnitQuaternionInputs(DeltaHead):  # defined only on valid observations: the probe must be one
+        def inputs(self, obs, act):
+            q = obs[..., 3:7]
+            if not torch.all(q.norm(dim=-1) > 0.5):
+                raise ValueError("not a unit quaternion")
+            return super().inputs(obs, act)
+
+    quat = ModelEntry("reads Ant's torso quaternion", False, lambda cfg, spec: UnitQuaternionInputs(spec.layout,
+                      spec.act_dim), gaussian_ensemble)  # fmt: skip
+    monkeypatch.setitem(MODELS, "quat", quat)
+    make_model(make_config("ant", "quat"), envs.get("ant"), torch.device("cpu"))  # was: refused (zeros probe)

@@ -218,6 +218,13 @@ def test_the_termination_is_checked_against_the_envs_until_the_episode_ends():
     spec = envs.custom_spec("ip", gym_id, layout, reward, env_kwargs=kwargs, terminated_differs=True)
     assert not spec.terminated_fn(torch.zeros(2, 4), torch.zeros(2, 1), torch.zeros(2, 4)).any()
 
+    def float32_only(obs, act, next_obs):  # works on the planner's float32, not on the checks' float64
+        return ((next_obs @ torch.ones(4)).abs() > 1e9) | terminated(obs, act, next_obs)
+
+    with pytest.raises(ValueError, match=r"terminated_fn raised RuntimeError on real transitions in float64") as e:
+        envs.custom_spec("ip", gym_id, layout, reward, float32_only, env_kwargs=kwargs)
+    assert "\n" not in str(e.value)
+
 
 @pytest.mark.parametrize("name", envs.names())
 def test_every_catalogue_layout_passes_the_angle_and_velocity_checks_against_mujoco(name):

@@ -616,6 +616,12 @@ def test_a_planner_registered_from_outside_the_package_plans_a_run(tmp_path, mon
     assert "\n" not in str(err.value)
     with pytest.raises(ConfigError, match="got 'shooting' .* register_planner before making or opening its runs"):
         make_config("invertedpendulum", overrides={"planner.name": "shooting"})
+    from omegaconf import OmegaConf
+
+    stored = OmegaConf.load(out / "config.yaml")
+    del stored.planner["name"], stored.planner["shooting"]  # no name: the schema's default, as before
+    OmegaConf.save(stored, out / "config.yaml")
+    assert load_config(str(out / "config.yaml")).planner.name == "cem"
 
 
 def test_flat_planner_keys_of_version_0_1_still_work_with_a_warning(tmp_path) -> None:
