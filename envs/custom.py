@@ -54,8 +54,8 @@ def custom_spec(
     reward_fn, terminated_fn: batched ``(obs, act, next_obs) -> (...)`` torch functions (float reward, bool
     termination; ``None``: never terminates), for any leading dims. ValueError (one line) for a gym id gymnasium
     cannot make, a layout that does not cover the observation, functions of the wrong shape (on a small, a large
-    and a 3-d batch) or that raise, and a reward that is not the env's on the real transitions (a layout with
-    entries swapped, a wrong formula): ``reward_differs=True`` accepts a reward that differs on purpose (shaped),
+    and a 3-d batch) or that raise, and a reward that is not the env's on the real transitions (a wrong formula, or
+    one that reads the wrong entries): ``reward_differs=True`` accepts a reward that differs on purpose (shaped),
     never one that is not finite; a termination that is not the env's on up to :data:`TERMINATION_STEPS` real steps
     (``None`` where the env ends episodes; ``terminated_differs=True`` accepts one that differs on purpose); a layout
     whose angles or velocities are, by the simulator's own ``qpos`` and ``qvel``, the other (:func:`check_angles`);
