@@ -13,8 +13,7 @@ A candidate kind (``planner.candidates``, :data:`CANDIDATE_TABLE`) says what a c
 action sequence (N, H, act_dim); :class:`FeedbackGains`, the gains (N, rows, act_dim) of a
 :class:`pets.planning.feedback.LinearFeedback` rolled out for its horizon; each kind owns its checks of the
 config (``check_config``), its law (``make_law``) and whether every planner searches it (``searches_actions``).
-Both choices are vectorised over all rows: a
-strategy adds no Python loop and no host synchronisation.
+Both choices are vectorised over all rows: a strategy adds no Python loop and no host synchronisation.
 """
 
 from __future__ import annotations
