@@ -12,6 +12,7 @@ Two ways to name it:
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import importlib
 import os
 import re
@@ -384,16 +385,21 @@ def registered(name: str) -> EnvSpec | None:
     module, _, attr = name.partition(":")
     user_folder_importable()
     try:
-        found: Any = getattr(importlib.import_module(module), attr)
+        imported = importlib.import_module(module)
     except ModuleNotFoundError as err:
         raise ValueError(
             f"env {name}: cannot import {attr!r} from {module!r} ({err}); run the command from the folder that holds "
             f"{module.split('.')[0]}.py (or put that folder on PYTHONPATH)"
         ) from None
-    except (ImportError, AttributeError) as err:
+    except ImportError as err:
         raise ValueError(f"env {name}: cannot import {attr!r} from {module!r} ({_line(err)})") from None
     except Exception as err:  # the module raised on import: a RuntimeError, a SyntaxError, a failed custom_spec
         raise ValueError(f"env {name}: importing {module!r} failed ({type(err).__name__}: {_line(err)})") from None
+    if not hasattr(imported, attr):
+        close = difflib.get_close_matches(attr, [n for n in dir(imported) if not n.startswith("_")], n=1)
+        hint = f"; did you mean {module}:{close[0]}?" if close else ""
+        raise ValueError(f"env {name}: cannot import {attr!r} from {module!r} (it has no such name{hint})")
+    found: Any = getattr(imported, attr)
     if isinstance(found, Callable) and not isinstance(found, EnvSpec):
         try:
             spec = found()

@@ -51,6 +51,8 @@ def test_an_import_path_runs_resumes_and_loads_in_a_new_process(tmp_path):
     proc = cli("--env", "tests.custom_envs:NOPE", "--out", tmp_path / "x", check=False)
     lines = error_lines(proc.stderr)
     assert proc.returncode == 2 and len(lines) == 1 and "cannot import 'NOPE' from 'tests.custom_envs'" in lines[0]
+    with pytest.raises(ValueError, match=r"has no such name; did you mean tests\.custom_envs:PENDULUM\?"):
+        envs.get("tests.custom_envs:PENDULM")  # a typo of the attribute
 
 
 def test_pets_compare_offline_takes_the_import_path(tmp_path):
