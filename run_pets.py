@@ -37,20 +37,6 @@ def _fail(message: str) -> NoReturn:
     fail(PROG, message)
 
 
-def _not_a_run(path: Path) -> str:
-    """Why ``--resume PATH`` is refused: no run there, or a run killed (kill -9) in its first seconds, before it wrote
-    its config, which left only its lock file."""
-    from pets.runs.fileio import LOCK_FILE
-    from pets.runs.rundir import CONFIG_FILE
-
-    if path.is_dir() and [p.name for p in path.iterdir()] == [LOCK_FILE]:
-        return (
-            f"{path} holds no run: the run started there was stopped in its first seconds, before it wrote its "
-            f"{CONFIG_FILE} (nothing was lost); run its command again with --out {path}"
-        )
-    return f"{path} is not a run directory (no {CONFIG_FILE})"
-
-
 def build_parser() -> argparse.ArgumentParser:
     from pets.config import HEADS, PRESETS
 
@@ -197,7 +183,7 @@ def _main(argv: list[str] | None = None) -> int:
         from pets.learning.trainer import TrainingDiverged
         from pets.planning.planners import PlanningFailed
         from pets.runs import rundir
-        from pets.runs.fileio import DirectoryInUse, remove_if_unused, writable_dir_error
+        from pets.runs.fileio import DirectoryInUse, remove_if_unused, run_dir_error, writable_dir_error
 
     try:
         overrides = parse_overrides(args.overrides)
@@ -228,12 +214,12 @@ def _main(argv: list[str] | None = None) -> int:
         if args.resume is not None:
             if args.env or args.model or args.out:
                 _fail("--resume DIR takes the run's own config; do not pass --env, --model or --out with it")
-            path = args.resume / rundir.CONFIG_FILE
-            if not path.exists():
-                _fail(_not_a_run(args.resume))
+            problem = run_dir_error(args.resume)
+            if problem:
+                _fail(problem)
             if args.preset is not None:
                 _fail(f"--resume DIR takes the run's own config; --preset {args.preset} is refused with it")
-            cfg = load_config(str(path))
+            cfg = load_config(str(args.resume / rundir.CONFIG_FILE))
             resume_settings(cfg, overrides, args.resume)
             try:  # your own env by its import path: importable from here?
                 envs.get(cfg.env)

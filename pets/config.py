@@ -403,9 +403,11 @@ def resolve_auto(cfg: DictConfig) -> DictConfig:
 
 def load_run_config(run_dir: str | Path) -> DictConfig:
     """:func:`load_config` of a run directory's ``config.yaml``; ConfigError for a path that is not a run directory."""
-    if not (Path(run_dir) / "config.yaml").is_file():  # pets.runs.rundir.CONFIG_FILE
-        raise ConfigError(f"{run_dir} is not a run directory (no config.yaml)")
-    return load_config(Path(run_dir) / "config.yaml")
+    from pets.runs.fileio import CONFIG_FILE, run_dir_error
+
+    if problem := run_dir_error(Path(run_dir)):
+        raise ConfigError(problem)
+    return load_config(Path(run_dir) / CONFIG_FILE)
 
 
 def load_config(path: str | Path) -> DictConfig:

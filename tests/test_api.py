@@ -118,6 +118,10 @@ def test_bad_input_is_one_clear_error(tmp_path):
         pets.PETS("reacher", model="gem-se")
     with pytest.raises(ConfigError, match="not a run directory"):
         pets.PETS.load("/nonexistent-run")
+    (tmp_path / "killed").mkdir()  # a run killed (kill -9) before it wrote its config: only its lock is left
+    (tmp_path / "killed" / ".lock").write_text("12345\n")
+    with pytest.raises(ConfigError, match="holds no run"):
+        pets.PETS.load(tmp_path / "killed")
     with pytest.raises(ValueError, match="trials must be a positive int"):
         pets.PETS("reacher", preset="fast").learn(trials=0)
     agent = pets.PETS("invertedpendulum", preset="fast", threads=1)

@@ -364,12 +364,19 @@ def test_sample_starts_leave_room_and_are_distinct():
         ("pets.train", ["--data", "/nonexistent.npz", "--model", "delta", "--out", "r"], "does not exist"),
         ("pets.train", ["--data", "/nonexistent.npz", "--model", "mlp", "--out", "r"], "delta, gem"),
         ("pets.evaluate", ["--run", "/nonexistent/run", "--data", "x.npz"], "not a run directory"),
+        # a run killed (kill -9) before it wrote its config leaves only its lock: every tool names it so
+        ("pets.evaluate", ["--run", "killed", "--data", "x.npz"], "killed holds no run"),
+        ("pets.openloop", ["--run", "killed"], "killed holds no run"),
+        ("pets.visualize", ["--runs", "killed", "--data", "x.npz", "--out", "x.png"], "killed holds no run"),
+        ("pets.oracle", ["--env", "invertedpendulum", "--value-from", "killed"], "--value-from killed holds no run"),
         ("pets.evaluate", ["--run", "r", "--data", "x.npz", "--horizons", "1,a"], "comma-separated"),
         ("pets.evaluate", ["--run", "r", "--data", "x.npz", "--mode", "median"], "mean"),
     ],
 )
 def test_bad_input_exits_2_with_one_line(module, args, fragment, tmp_path):
     (tmp_path / "kept.npz").write_bytes(b"someone's data set")  # was written over without a word
+    (tmp_path / "killed").mkdir()
+    (tmp_path / "killed" / ".lock").write_text("12345\n")
     proc = warm.run(
         [sys.executable, "-m", module, *args],
         cwd=tmp_path,

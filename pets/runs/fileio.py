@@ -17,6 +17,8 @@ from pathlib import Path
 LOCK_FILE = ".lock"
 #: The suffix of every temporary file this module writes (hidden names: ``.NAME.XXXXXXXX.tmp``).
 TEMP_SUFFIX = ".tmp"
+#: The file that makes a directory a run directory: the run's resolved config, written at its start.
+CONFIG_FILE = "config.yaml"
 
 
 def _file_mode() -> int:
@@ -67,6 +69,20 @@ def writable_dir_error(directory: Path) -> str | None:
     except OSError as err:
         return f"{directory} is not a writable directory ({err.strerror or err})"
     return None
+
+
+def run_dir_error(directory: Path) -> str | None:
+    """Why ``directory`` is not a run directory (no :data:`CONFIG_FILE`), or None if it is. A directory that holds
+    only the lock is named as what it is: a run killed (kill -9) in its first seconds, before it wrote its config."""
+    directory = Path(directory)
+    if (directory / CONFIG_FILE).is_file():
+        return None
+    if directory.is_dir() and [p.name for p in directory.iterdir()] == [LOCK_FILE]:
+        return (
+            f"{directory} holds no run: the run started there was stopped in its first seconds, before it wrote "
+            f"its {CONFIG_FILE} (nothing was lost); run its command again with --out {directory}"
+        )
+    return f"{directory} is not a run directory (no {CONFIG_FILE})"
 
 
 class DirectoryInUse(RuntimeError):

@@ -21,9 +21,8 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from pets.errors import ConfigError
-from pets.runs.fileio import atomic_write_bytes
+from pets.runs.fileio import CONFIG_FILE, atomic_write_bytes
 
-CONFIG_FILE = "config.yaml"
 METRICS_FILE = "metrics.csv"
 CHECKPOINT_FILE = "checkpoint.pt"
 PLOT_FILE = "rewards.png"

@@ -23,7 +23,7 @@ from pets.learning.evaluation import (
     parse_horizons,
     write_events,
 )
-from pets.runs.fileio import writable_dir_error
+from pets.runs.fileio import run_dir_error, writable_dir_error
 from pets.tools.cli import OneLineParser, add_threads_option, fail, set_threads, write_json_result
 
 
@@ -62,8 +62,8 @@ def main(argv: list[str] | None = None) -> int:
         fail(PROG, str(err))
     if args.starts < 1:
         fail(PROG, f"--starts must be >= 1, got {args.starts}")
-    if not (args.run / "config.yaml").is_file():
-        fail(PROG, f"{args.run} is not a run directory (no config.yaml)")
+    if problem := run_dir_error(args.run):
+        fail(PROG, problem)
     for what, path in (("data file", args.data), ("train data file", args.train_data)):
         if path is not None and not path.is_file():
             fail(

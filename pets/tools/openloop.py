@@ -22,7 +22,7 @@ from pets.planning.openloop import (
     open_loop,
     planning_config,
 )
-from pets.runs.fileio import writable_dir_error
+from pets.runs.fileio import run_dir_error, writable_dir_error
 from pets.tools.cli import EXIT_FAILED, OneLineParser, add_threads_option, fail, set_threads, write_json_result
 
 PROG = "pets.openloop"
@@ -75,8 +75,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         fail(PROG, f"--episodes must be >= 1, got {args.episodes}")
     if args.seed < 0:
         fail(PROG, f"--seed must be >= 0, got {args.seed}")
-    if not (args.run / "config.yaml").is_file():
-        fail(PROG, f"{args.run} is not a run directory (no config.yaml)")
+    if problem := run_dir_error(args.run):
+        fail(PROG, problem)
     if args.json is not None and args.json.is_dir():
         fail(PROG, f"--json {args.json} is a directory; give a file name")
     problem = None if args.json is None else writable_dir_error(args.json.parent)

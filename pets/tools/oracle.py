@@ -38,7 +38,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from pets.runs.fileio import atomic_write_bytes, writable_dir_error
+from pets.runs.fileio import atomic_write_bytes, run_dir_error, writable_dir_error
 from pets.tools.cli import OneLineParser, fail
 
 PROG = "pets.oracle"
@@ -239,8 +239,8 @@ def _run_value(run_dir: Path, spec: Any) -> Any:
     from pets.config import ConfigError, load_config
     from pets.runs import rundir
 
-    if not (run_dir / rundir.CONFIG_FILE).is_file():
-        fail(PROG, f"--value-from {run_dir} is not a run directory (no {rundir.CONFIG_FILE})")
+    if problem := run_dir_error(run_dir):
+        fail(PROG, f"--value-from {problem}")
     try:
         run_cfg = load_config(str(run_dir / rundir.CONFIG_FILE))
         if run_cfg.env != spec.name:

@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from pets.runs.fileio import atomic_write_bytes, writable_dir_error
+from pets.runs.fileio import atomic_write_bytes, run_dir_error, writable_dir_error
 from pets.tools.cli import OneLineParser, add_threads_option, fail, set_threads
 
 PROG = "pets.visualize"
@@ -286,8 +286,8 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as err:
         fail(PROG, str(err))
     for run in args.runs:
-        if not (run / "config.yaml").is_file():
-            fail(PROG, f"{run} is not a run directory (no config.yaml)")
+        if problem := run_dir_error(run):
+            fail(PROG, problem)
     if not args.data.is_file():
         fail(PROG, f"data file {args.data} does not exist")
     if args.out.suffix.lower() != ".png":
