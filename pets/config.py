@@ -264,13 +264,17 @@ def config_yaml(cfg: DictConfig | Mapping[str, Any]) -> str:
 
 
 def parse_overrides(items: list[str]) -> dict[str, str]:
-    """Split ``key=value`` strings; a malformed item raises ConfigError."""
+    """Split ``key=value`` strings; ConfigError for a malformed item or a key given twice with different values
+    (neither silently wins)."""
     out: dict[str, str] = {}
     for item in items:
         key, sep, value = item.partition("=")
+        key, value = key.strip(), value.strip()
         if not sep or not key:
             raise ConfigError(f"expected key=value, got {item!r}")
-        out[key.strip()] = value.strip()
+        if out.get(key, value) != value:
+            raise ConfigError(f"{key} is given twice ({key}={out[key]} and {key}={value}); give it once")
+        out[key] = value
     return out
 
 

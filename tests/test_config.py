@@ -88,6 +88,14 @@ def test_malformed_override():
         parse_overrides(["population"])
 
 
+def test_a_key_given_twice_with_different_values_is_refused_not_the_last_taken():
+    with pytest.raises(
+        ConfigError, match=r"planner.horizon is given twice \(planner.horizon=20 and planner.horizon=30\)"
+    ):
+        parse_overrides(["planner.horizon=20", "seed=1", "planner.horizon = 30"])
+    assert parse_overrides(["seed=1", "seed=1"]) == {"seed": "1"}  # no value wins over another
+
+
 def test_saved_config_round_trips(tmp_path):
     cfg = make_config("ant", head="gem", overrides={"episode_length": "200"})
     path = tmp_path / "config.yaml"
