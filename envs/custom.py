@@ -360,7 +360,8 @@ def file_name(name: str) -> str:
 
 
 def register(spec: EnvSpec) -> EnvSpec:
-    """Make ``spec`` an env name (``spec.name``) in this process; returns it. A catalogue name cannot be taken."""
+    """Make ``spec`` an env name (``spec.name``) in this process; returns it. A catalogue name, or a name another
+    spec holds, cannot be taken (a run records its env by name: one name, one env)."""
     from envs.catalogue import GYM_IDS, catalogue_key
 
     if not isinstance(spec, EnvSpec):
@@ -369,6 +370,11 @@ def register(spec: EnvSpec) -> EnvSpec:
     if key is not None:
         raise ValueError(
             f"{spec.name!r} names the catalogue env {key} ({GYM_IDS[key]}); register yours under another name"
+        )
+    taken = _REGISTRY.get(spec.name)
+    if taken is not None and taken != spec:
+        raise ValueError(
+            f"env name {spec.name!r} is registered to another spec in this process; give yours another name"
         )
     check_dims(spec)
     _REGISTRY[spec.name] = spec

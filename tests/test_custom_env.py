@@ -84,6 +84,16 @@ def test_a_registered_spec_through_the_python_api():
     assert agent.trials_done == 1 and agent.config.env == "my-pendulum"
 
 
+def test_a_name_registered_to_another_spec_is_refused_not_replaced():
+    layout = ObsLayout(obs_dim=3, groups=(Group("pole", "SO2_cossin", (0, 1)),), velocities=(2,))
+    first = envs.register(envs.custom_spec("my-pendulum", "Pendulum-v1", layout, pendulum_reward))
+    assert envs.register(first) is first  # the same spec again: nothing changes
+    other = envs.custom_spec("my-pendulum", "Pendulum-v1", layout, pendulum_reward, episode_length=50)
+    with pytest.raises(ValueError, match="'my-pendulum' is registered to another spec in this process"):
+        envs.register(other)
+    assert envs.get("my-pendulum") is first
+
+
 def test_a_spec_that_does_not_fit_its_env_is_refused_in_one_line():
     wide = ObsLayout(obs_dim=4, groups=(Group("pole", "SO2_cossin", (0, 1)),), velocities=(2, 3))
     with pytest.raises(ValueError, match="the layout covers 4 observation entries, Pendulum-v1 has 3"):
