@@ -19,12 +19,13 @@ also re-summarises a finished study with this checkout's code without risking it
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import sys
 from pathlib import Path
 
 from omegaconf import OmegaConf
+
+from pets.experiments.report import read_csv_rows, write_csv
 
 METRICS = ("standardized_error", "translation_error", "rotation_error", "velocity_error", "nonfinite_fraction")
 
@@ -44,13 +45,9 @@ def write_runs(out: Path, snapshot: Path) -> tuple[list[dict], list[dict]]:
             rows.append({**base, "seed": seed, "horizon": int(h), **{m: errors.get(m) for m in METRICS}})
     kept = []
     if snapshot.is_file():
-        with open(snapshot, newline="") as f:
-            kept = [r for r in csv.DictReader(f) if not (out / "data" / r["data"]).is_file()]
+        kept = [r for r in read_csv_rows(snapshot) if not (out / "data" / r["data"]).is_file()]
     merged = sorted(kept + rows, key=lambda r: (r["run"], int(r["horizon"])))
-    with open(snapshot, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=["run", "env", "model", "data", "seed", "horizon", *METRICS])
-        writer.writeheader()
-        writer.writerows(merged)
+    write_csv(snapshot, merged, ["run", "env", "model", "data", "seed", "horizon", *METRICS])  # atomic
     print(f"{snapshot}: {len({r['run'] for r in rows})} finished runs here, {len({r['run'] for r in kept})} kept")
     return rows, evals
 
@@ -66,17 +63,13 @@ def write_levels(out: Path, runs: list[dict], levels: Path) -> None:
 
     kept = {}
     if levels.is_file():
-        with open(levels, newline="") as f:
-            kept = {(r["env"], int(r["data_seed"])): r for r in csv.DictReader(f)}
+        kept = {(r["env"], int(r["data_seed"])): r for r in read_csv_rows(levels)}
     for env, test in sorted({(r["env"], r["data"]) for r in runs}):
         train = out / "data" / test.replace("-test.npz", "-train.npz")
         layout = envs.get(env).layout
         level = no_information_level(load_dataset(train), load_dataset(out / "data" / test), layout)
         kept[(env, data_seed(test))] = {"env": env, "data_seed": data_seed(test), "level": level}
-    with open(levels, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=LEVEL_COLUMNS, lineterminator="\n")
-        writer.writeheader()
-        writer.writerows(kept[k] for k in sorted(kept))
+    write_csv(levels, [kept[k] for k in sorted(kept)], LEVEL_COLUMNS)  # atomic
     print(f"{levels}: {len(kept)} data sets")
 
 
