@@ -346,6 +346,7 @@ def _run_locked(cfg: DictConfig, run_dir: Path, resume: bool, progress: bool) ->
     else:
         rundir.write_config(run_dir, cfg)
     rundir.append_history(run_dir, "resume" if resume else "start", pets_run.trials_done)
+    rundir.record_divergence(run_dir, None)  # a resumed run tries again
     budget_left = None if cfg.max_env_steps is None else cfg.max_env_steps - pets_run.env_steps
     pets_run.cost = CostEstimate(cfg, pets_run.episode_length, cfg.trials - pets_run.trials_done, budget_left)
     if not pets_run.finished() and (line := compile_line(cfg)):  # none when nothing is left (budget spent)
@@ -365,6 +366,9 @@ def _run_locked(cfg: DictConfig, run_dir: Path, resume: bool, progress: bool) ->
             rundir.plot_rewards(run_dir, pets_run.rows, title)
             bar.update(1 if cfg.max_env_steps is None else pets_run.env_steps - bar.n)
             bar.set_postfix(reward=f"{row['episode_reward']:.1f}", steps=row["env_steps"])
+    except (TrainingDiverged, PlanningFailed) as err:  # an outcome of the run: a comparison counts it as the worst
+        rundir.record_divergence(run_dir, str(err))
+        raise
     finally:
         events.close()
         if pets_run.recorder is not None:

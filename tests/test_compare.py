@@ -35,7 +35,7 @@ from pets.experiments.headline import HeadlineError, write_headline
 from pets.experiments.offline import compare_offline
 from pets.experiments.offline_summary import summarise_offline
 from pets.experiments.report import fmt, fmt_interval, write_csv
-from pets.experiments.statistics import REPS, ci_exact_note, holm
+from pets.experiments.statistics import REPS, ci_exact_note, holm, sign_flip_p
 from pets.experiments.studies.offline import SUMMARY_COLUMNS, summary_from_runs
 from pets.experiments.studies.online import STUDY as ONLINE_STUDY
 from pets.experiments.studies.online import SUMMARY_COLUMNS as ONLINE_COLUMNS
@@ -830,7 +830,8 @@ def test_offline_refuses_other_data_or_config_in_the_same_directory(offline, cap
     args = [a if a != 8 else 9 for a in OFFLINE_ARGS]  # --episodes 9
     code, _, err = cli(capsys, *args, "--out", out)
     assert code == 2 and "collected with other settings (episodes: 8 != 9)" in err
-    code, _, err = cli(capsys, *OFFLINE_ARGS, "model.hidden_size=64", "--out", out)
+    wider = [a if a != "model.hidden_size=32" else "model.hidden_size=64" for a in OFFLINE_ARGS]
+    code, _, err = cli(capsys, *wider, "--out", out)
     assert code == 2 and "model.hidden_size: 32 != 64" in err and len(err.strip().splitlines()) == 1
 
 
@@ -1419,6 +1420,31 @@ def test_online_until_threshold_stops_each_run_at_the_mark_and_counts_it_complet
     assert code == 2 and "--until-threshold: no threshold for hopper" in err
     code, _, err = cli(capsys, *[a for a in args if a != "--until-threshold"], "stop_reward=5")
     assert code == 2 and "stop_reward= is set by --until-threshold" in err
+
+
+def test_online_a_run_whose_training_diverges_counts_as_the_worst_outcome_and_is_not_rerun(tmp_path, capsys):
+    """A run that stops because its model training diverged (run_pets exits 3) records why in its directory;
+    the comparison counts it as diverged (the worst outcome in the exact test), not as a missing run, exits 0, and a
+    rerun reuses it instead of training it into the same divergence again."""
+    args = ["online", "--envs", "invertedpendulum", "--models", "delta", "--arm", "gem-lr=gem:model.lr=1e30",
+            "--seeds", "0,1", "--trials", 2, "--out", tmp_path, "--preset", "fast", "--quiet", *TINY]  # fmt: skip
+    code, _, err = cli(capsys, *args)
+    assert code == 0, err
+    for seed in (0, 1):
+        why = (tmp_path / "runs" / f"invertedpendulum-gem-lr-s{seed}" / rundir.DIVERGED_FILE).read_text()
+        assert "model training diverged" in why
+    row = online_row(tmp_path, "invertedpendulum", "gem-lr")
+    assert (row["n_seeds"], row["n_diverged"]) == ("0", "2")
+    finals = [float(r["final_reward"]) for r in csv_rows(tmp_path / "summary_runs.csv") if r["model"] == "delta"]
+    worst = [min(finals) - f for f in finals]  # each diverged run enters as the env's lowest final reward
+    assert float(row["diff_p_signflip"]) == pytest.approx(sign_flip_p(np.array(worst)))
+    md = (tmp_path / "summary.md").read_text()
+    assert (
+        "invertedpendulum-gem-lr-s0: stopped after 0 of 2 trials: training on the seed data before trial 0: model" in md
+    )
+    assert "Missing or incomplete" not in md
+    code, _, err = cli(capsys, *args)
+    assert code == 0 and "4 reused" in err, err
 
 
 def test_online_at_an_env_step_budget_counts_runs_that_end_there_and_leaves_the_cut_episode_out(tmp_path, capsys):

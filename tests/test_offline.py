@@ -91,7 +91,7 @@ def work(tmp_path_factory):
     reacher = ("pets.train", "--data", w / "reacher.npz")
     jobs = {
         "delta": (*reacher, "--model", "delta", "--out", w / "delta", *"--epochs 60 --seed 0 --device cpu".split())
-        + ("--quiet", *TINY_MODEL, "model.hidden_size=64"),
+        + ("--quiet", *(a for a in TINY_MODEL if not a.startswith("model.hidden_size=")), "model.hidden_size=64"),
         "gem": (*reacher, "--model", "gem", "--out", w / "gem", "--epochs", "3", "--quiet", *TINY_MODEL),
         "agent": ("pets.collect", "--policy", f"run:{w / 'online'}", *"--episodes 2 --max-steps 8 --seed 4".split())
         + ("--device", "cpu", "--out", w / "agent.npz", "--quiet"),

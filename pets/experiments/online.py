@@ -40,16 +40,18 @@ from pets.experiments.rundirs import (
 )
 from pets.experiments.runner import online_job, open_backend
 from pets.experiments.studies.online import THRESHOLDS, online_rows, summarise_online
-from pets.runs.rundir import stopped
+from pets.runs.rundir import read_divergence, stopped
 
 
 def online_plan(run_dir: Path, trials: int, stop_reward: float | None = None, max_env_steps: int | None = None) -> str:
-    """``reuse`` (>= trials rows, a trial at ``stop_reward`` or the budget ``max_env_steps`` reached), ``resume``
-    (a run with fewer rows) or ``start`` (no run yet)."""
+    """``reuse`` (>= trials rows, a trial at ``stop_reward`` or the budget ``max_env_steps`` reached, or a run that
+    stopped diverged: the same seed and config diverge again), ``resume`` (a run with fewer rows) or ``start`` (no
+    run yet)."""
     if not (run_dir / "config.yaml").is_file():
         return "start"
     rows = online_rows(run_dir)
-    return "reuse" if len(rows) >= trials or stopped(rows, stop_reward, max_env_steps) else "resume"
+    done = len(rows) >= trials or stopped(rows, stop_reward, max_env_steps) or read_divergence(run_dir) is not None
+    return "reuse" if done else "resume"
 
 
 def start_arguments(
@@ -134,7 +136,8 @@ def compare_online(
         if warning:
             print(warning, file=sys.stderr)
         results = run(jobs, processes=False, progress=progress, desc="online runs")
-    failed = {name: msg for name, (ok, msg) in results.items() if not ok}
+    # A run that stopped diverged is an outcome (counted as the worst), not a failure to rerun.
+    failed = {name: msg for name, (ok, msg) in results.items() if not ok and not read_divergence(out / "runs" / name)}
     summary = summarise_online(
         out, env_names, models, seeds, trials, final_window, failed, planners, until_threshold=until_threshold
     )

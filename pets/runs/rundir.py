@@ -28,6 +28,9 @@ CHECKPOINT_FILE = "checkpoint.pt"
 PLOT_FILE = "rewards.png"
 #: One row per session of a run (start or resume): when, where, and how many trials were done when it began.
 HISTORY_FILE = "history.csv"
+#: Written when a run stops because its model training diverged or no plan had a finite return (its last line: why);
+#: removed when the run is resumed. A comparison counts such a run as diverged: the worst outcome, never dropped.
+DIVERGED_FILE = "diverged.txt"
 HISTORY_COLUMNS = ["time", "action", "trials_done", "host", "pid", "cpu"]
 
 #: model_val_loss: the trainer's holdout error of the selected model after the trial's training;
@@ -86,6 +89,20 @@ def append_history(run_dir: Path, action: str, trials_done: int) -> None:
     writer.writerow([now, action, trials_done, socket.gethostname(), os.getpid(), cpu_name()])
     head, _, new = buf.getvalue().partition("\n")
     atomic_write_bytes(path, f"{head}\n{rows}{new}".encode())
+
+
+def record_divergence(run_dir: Path, why: str | None) -> None:
+    """Record why the run in ``run_dir`` stopped diverged (:data:`DIVERGED_FILE`), or with None clear the record."""
+    if why is None:
+        (run_dir / DIVERGED_FILE).unlink(missing_ok=True)
+    else:
+        atomic_write_bytes(run_dir / DIVERGED_FILE, f"{why}\n".encode())
+
+
+def read_divergence(run_dir: Path) -> str | None:
+    """Why the run in ``run_dir`` stopped diverged (:func:`record_divergence`), or None if it did not."""
+    path = run_dir / DIVERGED_FILE
+    return (path.read_text().strip() or "diverged") if path.is_file() else None
 
 
 def read_history(run_dir: Path) -> list[dict[str, str]]:

@@ -5,7 +5,9 @@ summary from the committed per-run rows (:func:`summary_from_runs`, for ``pets.c
 
 Per run: ``final`` = mean episode reward of the last W trials (W = ``--final-window``, default 3, at
 most N); ``auc`` = mean episode reward over all N trials; the run's wall-clock time and median
-seconds per planning step. A run with a non-finite episode reward is diverged (:func:`reward_divergence`).
+seconds per planning step. A run with a non-finite episode reward is diverged (:func:`reward_divergence`), and so is
+a run that stopped because its model training diverged or no plan had a finite return
+(:func:`pets.runs.rundir.read_divergence`; a rerun reuses it: the same seed and config diverge again).
 Per (env, arm) over the runs that did not diverge (:mod:`pets.experiments.statistics`, the same
 statistics as the offline summary): IQM of final and auc with its 95 % stratified-bootstrap CI; against
 the baseline arm (:data:`BASELINE` with the same planner) P(final > baseline's) with its CI (diverged
@@ -118,8 +120,10 @@ def online_run_stats(
     run without the column) and
     plan_seconds_per_step (median over the planned trials; 0 if every trial was random). ``cut``: the last
     episode was cut by the run's env-step budget (:func:`pets.experiments.rundirs.cut_by_budget`), so it is not in final
-    or auc."""
+    or auc. No rows (a run that stopped before its first trial ended): NaN for every number."""
     use = list(rows)[:trials]
+    if not use:
+        return {"diverged": None, **dict.fromkeys(("final_reward", "auc", *THRESHOLD_KEYS, *COST_KEYS), math.nan)}
     to_threshold = time_to_threshold(use, threshold)
     outcomes = use[:-1] if cut and len(use) > 1 else use
     rewards = np.array([r["episode_reward"] for r in outcomes], dtype=np.float64)
@@ -305,7 +309,7 @@ def _env_runs(
     of each complete run that did not diverge}; adds to ``found``'s lists the per-run rows, the missing and the
     diverged runs and the directories included."""
     from pets.experiments.rundirs import budget_of, cut_by_budget
-    from pets.runs.rundir import stopped
+    from pets.runs.rundir import read_divergence, stopped
 
     runs: dict[str, list[dict[str, Any]]] = {}
     curves: dict[str, list[list[dict[str, float]]]] = {}
@@ -315,7 +319,8 @@ def _env_runs(
             name = run_name(env, model, seed, planner)
             rows, reached = _complete_rows(out / "runs" / name, thresholds.get(env, math.inf), until_threshold)
             budget, length = budget_of(out / "runs" / name)
-            if len(rows) < trials and not reached and not stopped(rows, None, budget):
+            why = read_divergence(out / "runs" / name)
+            if len(rows) < trials and not reached and not stopped(rows, None, budget) and why is None:
                 found["missing"].append(
                     f"{name} ({len(rows)}/{trials} trials"
                     f"{'; failed: ' + failed[name] if failed and name in failed else ''})"
@@ -324,6 +329,8 @@ def _env_runs(
             cut = not reached and cut_by_budget(rows[:trials], budget, length)
             found["budgeted"] += [name] if budget is not None else []
             s = {"seed": seed, **online_run_stats(rows, trials, final_window, thresholds.get(env), cut)}
+            if why is not None:  # stopped diverged (training or planning): the worst outcome, never dropped
+                s["diverged"] = f"stopped after {len(rows)} of {trials} trials: {why}"
             found["per_run"].append({"env": env, "model": model, "planner": planner or "", "trials": trials, **s})
             found["per_run"][-1]["diverged"] = s["diverged"] or ""
             unknown = (*THRESHOLD_KEYS, "cpu_time_s")  # never reached; a run without the CPU column
@@ -395,7 +402,8 @@ def _header(trials: int, w: int, compared: bool, with_planner: bool, until_thres
             if compared
             else ""
         )
-        + " A run with a non-finite episode reward is diverged: counted, left out of the IQMs, CIs and "
+        + " A run with a non-finite episode reward, or one that stopped because its model training diverged or no "
+        "plan had a finite return (its diverged.txt), is diverged: counted, left out of the IQMs, CIs and "
         "differences, and the worst final reward in P. Plan s/step: median seconds per planning step of "
         "a run; wall h: the run's wall-clock hours (planning, simulation, model training); CPU h: its process "
         "CPU hours (what other jobs on the machine do not inflate; - for runs made before the column existed); "
