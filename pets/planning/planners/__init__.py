@@ -85,10 +85,11 @@ __all__ = [
 #: ``planner.<name>.*`` sections, their checks; ``pets.config``), so a planner registered later is accepted too.
 PLANNER_CLASSES: dict[str, type[BoxPlanner]] = {}
 
-#: What an unknown ``planner.name`` may be: a planner of one's own, registered in another process.
+#: What an unknown ``planner.name`` may be: a planner of one's own, registered by a module not imported here.
 UNREGISTERED = (
-    " (a planner of your own is known only in a process that registered it: register_planner before making or "
-    "opening its runs, docs/api.md)"
+    " (a planner of your own is known where the module that calls register_planner is imported: name that module "
+    "in the config key imports, e.g. imports=[my_planner]; in a run's config.yaml: imports: [my_planner]; "
+    "docs/api.md)"
 )
 
 
