@@ -614,7 +614,7 @@ def test_a_planner_registered_from_outside_the_package_plans_a_run(tmp_path, mon
     with pytest.raises(ConfigError, match="its planner 'shooting' is not a planner here .* register_planner") as err:
         load_config(str(out / "config.yaml"))  # was: "does not match this version's config schema ... restore it"
     assert "\n" not in str(err.value)
-    with pytest.raises(ConfigError, match="got 'shooting' .* register_planner before making or opening its runs"):
+    with pytest.raises(ConfigError, match=r"got 'shooting' .* register_planner is imported: .* imports=\[my_planner\]"):
         make_config("invertedpendulum", overrides={"planner.name": "shooting"})
     from omegaconf import OmegaConf
 
