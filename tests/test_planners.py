@@ -751,6 +751,10 @@ def _two_argument_search(self, objective, mu):
         ({"search": RandomShooting.search, "Options": dict}, "Options must be a dataclass"),
         ({"search": RandomShooting.search, "Options": make_dataclass("O", [])}, "needs a checked"),
         ({"search": RandomShooting.search, "section": int}, "section must be a dataclass or None"),
+        (  # was: a TypeError traceback from the config's schema (its section is the dataclass field planner.<name>)
+            {"search": RandomShooting.search, "section": ShootingOptions, "name": "my-planner"},
+            "planner 'my-planner': a planner with a section needs a name that is a Python identifier",
+        ),
     ],
 )
 def test_an_incomplete_planner_is_refused_at_registration_in_one_line(attrs, message) -> None:
