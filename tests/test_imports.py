@@ -15,50 +15,9 @@ from tests import warm
 from tests.test_cli import TINY, cli, error_lines, rows
 
 ROOT = Path(__file__).resolve().parents[1]
-#: A module of the user's: a toy random-shooting planner ``toyshoot`` (with a section ``planner.toyshoot.*``) and
-#: the delta model under the name ``toydelta``.
-EXT = '''"""Registers a planner and a model of my own."""
-
-import math
-from dataclasses import dataclass
-
-import torch
-
-from pets.models import MODELS, ModelEntry, gaussian_ensemble, register_model
-from pets.planning.planners import BoxPlanner, register_planner
-
-
-@dataclass
-class ToyOptions:
-    spread: float = 1.0
-
-    def checked(self):
-        if not 0 < self.spread <= 1:
-            raise ValueError(f"spread must be in (0, 1], got {self.spread}")
-        return self
-
-
-@register_planner
-class ToyShooting(BoxPlanner):
-    name = "toyshoot"
-    Options = ToyOptions
-    section = ToyOptions
-
-    def search(self, objective, mu, init_mean, generator):
-        best, best_value = mu, torch.tensor(-math.inf, device=mu.device)
-        half = self.spread * 0.5 * (self.high - self.low)
-        for _ in range(self.iterations):
-            u = torch.rand((self.population, self.horizon, self.act_dim), generator=generator, dtype=mu.dtype)
-            samples = self.clip(mu + half * (u * 2 - 1))
-            values = torch.nan_to_num(objective(samples), nan=-math.inf)
-            top = int(values.argmax())
-            if values[top] > best_value:
-                best, best_value = samples[top], values[top]
-        return best
-
-
-register_model("toydelta", ModelEntry("delta under my name", False, MODELS["delta"].make_head, gaussian_ensemble))
-'''
+#: A module of the user's (tests/own_planner.py, docs/api.md's example): the planner ``random_shooting`` (with its
+#: section ``planner.random_shooting.*``) and the model ``delta-mine``, written as my_ext.py into the user's folder.
+EXT = (ROOT / "tests" / "own_planner.py").read_text()
 #: Opens the run in a process that has not imported the module: PETS.load and pets.load_model import it again.
 LOAD = """import sys
 
@@ -70,7 +29,13 @@ assert "my_ext" in sys.modules
 model = pets.load_model("run")
 print(agent.trials_done, agent.config.planner.name, agent.config.head, list(agent.config.imports), type(model).__name__)
 """
-OWN = ["--model", "toydelta", "planner.name=toyshoot", "planner.toyshoot.spread=0.5", "value.enabled=false"]
+OWN = [
+    "--model",
+    "delta-mine",
+    "planner.name=random_shooting",
+    "planner.random_shooting.spread=0.5",
+    "value.enabled=false",
+]
 
 
 def run_here(args: list, cwd: Path, script: Path = ROOT / "run_pets.py"):
@@ -100,8 +65,12 @@ def test_own_planner_and_model_from_the_command_line_resume_and_load(folder: Pat
     proc = run_here(args, folder)
     assert proc.returncode == 0, proc.stderr
     written = OmegaConf.load(folder / "run" / "config.yaml")
-    assert list(written.imports) == ["my_ext"] and written.planner.name == "toyshoot" and written.head == "toydelta"
-    assert written.planner.toyshoot.spread == 0.5
+    assert (
+        list(written.imports) == ["my_ext"]
+        and written.planner.name == "random_shooting"
+        and written.head == "delta-mine"
+    )
+    assert written.planner.random_shooting.spread == 0.5
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()
     line = one_line(run_here(["--resume", folder / "run", "--trials", 2], elsewhere))
@@ -111,7 +80,7 @@ def test_own_planner_and_model_from_the_command_line_resume_and_load(folder: Pat
     (elsewhere / "load.py").write_text(LOAD)  # the script's own folder is not the module's
     proc = run_here([], folder, script=elsewhere / "load.py")
     assert proc.returncode == 0, proc.stderr
-    assert proc.stdout.split() == ["2", "toyshoot", "toydelta", "['my_ext']", "DynamicsModel"]
+    assert proc.stdout.split() == ["2", "random_shooting", "delta-mine", "['my_ext']", "DynamicsModel"]
 
 
 def test_one_name_without_brackets_and_a_config_file_take_the_same_list(folder: Path) -> None:
@@ -119,9 +88,9 @@ def test_one_name_without_brackets_and_a_config_file_take_the_same_list(folder: 
     writes the list, a valid --config file."""
     single = run_here(["--env", "invertedpendulum", "--print-config", *OWN, "imports=my_ext"], folder)
     assert single.returncode == 0, single.stderr
-    (folder / "mine.yaml").write_text("imports: [my_ext]\nplanner:\n  name: toyshoot\n")
-    from_file = run_here(["--env", "invertedpendulum", "--print-config", "--model", "toydelta", "--config",
-                          "mine.yaml", "planner.toyshoot.spread=0.5", "value.enabled=false"], folder)  # fmt: skip
+    (folder / "mine.yaml").write_text("imports: [my_ext]\nplanner:\n  name: random_shooting\n")
+    args = ["--env", "invertedpendulum", "--print-config", "--model", "delta-mine", "--config", "mine.yaml"]
+    from_file = run_here([*args, "planner.random_shooting.spread=0.5", "value.enabled=false"], folder)
     assert from_file.returncode == 0, from_file.stderr
     assert single.stdout == from_file.stdout and single.stdout.startswith("imports:\n- my_ext\n")
 
@@ -155,30 +124,20 @@ def test_a_bad_imports_value_or_module_is_one_line_and_exit_2(folder, module, va
 
 def test_an_unknown_planner_or_model_says_imports(folder: Path) -> None:
     """Without the module, the planner and the model are unknown: the line says what to add."""
-    line = one_line(run_here(["--env", "invertedpendulum", "--print-config", "planner.name=toyshoot"], folder))
-    assert "got 'toyshoot' (a planner of your own is known where the module that calls register_planner" in line
+    line = one_line(run_here(["--env", "invertedpendulum", "--print-config", "planner.name=random_shooting"], folder))
+    assert "got 'random_shooting' (a planner of your own is known where the module that calls register_" in line
     assert "imports=[my_planner]" in line
-    line = one_line(run_here(["--env", "invertedpendulum", "--print-config", "--model", "toydelta"], folder))
-    assert line.startswith("run_pets.py: error: --model toydelta: accepted models: delta, gem")
+    line = one_line(run_here(["--env", "invertedpendulum", "--print-config", "--model", "delta-mine"], folder))
+    assert line.startswith("run_pets.py: error: --model delta-mine: accepted models: delta, gem")
     assert "the module that calls register_model is imported" in line and "imports=[my_model]" in line
 
 
 @pytest.fixture
 def registrations(monkeypatch, folder: Path):
-    """In this process, from ``folder``: the planner and model tables, the schema's sections and sys.modules as
-    they were after the test (nothing registered here leaks into other tests)."""
-    from pets.models import MODELS
-    from pets.planning.planners import PLANNER_CLASSES
-
+    """In this process, from ``folder`` (the planner and the model the module registers are gone after the test:
+    tests/conftest.py)."""
     monkeypatch.chdir(folder)
     monkeypatch.setattr(sys, "path", list(sys.path))
-    planners, models = dict(PLANNER_CLASSES), dict(MODELS)
-    yield
-    for table, before in ((PLANNER_CLASSES, planners), (MODELS, models)):
-        table.clear()
-        table.update(before)
-    for name in [n for n in sys.modules if n == "my_ext" or n == "bad"]:
-        del sys.modules[name]
 
 
 def test_make_config_and_load_config_import_first_in_this_process(registrations, tmp_path: Path) -> None:
@@ -186,10 +145,10 @@ def test_make_config_and_load_config_import_first_in_this_process(registrations,
     config.yaml imports before its planner is; a module that fails there names the file."""
     from pets.config import ConfigError, all_keys, config_yaml, load_config, make_config
 
-    assert "planner.toyshoot.spread" not in all_keys()
-    overrides = {"imports": ["my_ext"], "planner.name": "toyshoot", "planner.toyshoot.spread": "0.25"}
-    cfg = make_config("invertedpendulum", "toydelta", "fast", overrides)
-    assert cfg.planner.toyshoot.spread == 0.25 and list(cfg.imports) == ["my_ext"] and "my_ext" in sys.modules
+    assert "planner.random_shooting.spread" not in all_keys()
+    overrides = {"imports": ["my_ext"], "planner.name": "random_shooting", "planner.random_shooting.spread": "0.25"}
+    cfg = make_config("invertedpendulum", "delta-mine", "fast", overrides)
+    assert cfg.planner.random_shooting.spread == 0.25 and list(cfg.imports) == ["my_ext"] and "my_ext" in sys.modules
     (tmp_path / "config.yaml").write_text(config_yaml(cfg))
     assert load_config(tmp_path / "config.yaml") == cfg
     (tmp_path / "config.yaml").write_text(config_yaml(cfg).replace("- my_ext", "- my_ext_gone"))
@@ -231,11 +190,15 @@ def test_a_run_from_before_the_key_loads_and_resumes_as_it_did(tmp_path: Path) -
 def test_pets_compare_passes_imports_to_its_runs(folder: Path) -> None:
     """pets.compare online with a model of one's own: --models takes it after the imports, and every run gets
     imports=[my_ext] (its config.yaml records it)."""
-    cmd = [sys.executable, "-m", "pets.compare", "online", "--envs", "invertedpendulum", "--models", "toydelta",
-           "--seeds", "0", "--trials", "1", "--out", "cmp", *TINY, "planner.name=toyshoot", "value.enabled=false",
-           "imports=[my_ext]"]  # fmt: skip
+    cmd = [sys.executable, "-m", "pets.compare", "online", "--envs", "invertedpendulum", "--models", "delta-mine",
+           "--seeds", "0", "--trials", "1", "--out", "cmp", *TINY, "planner.name=random_shooting",
+           "value.enabled=false", "imports=[my_ext]"]  # fmt: skip
     proc = warm.run(cmd, cwd=folder, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     (run,) = (folder / "cmp" / "runs").iterdir()
     written = OmegaConf.load(run / "config.yaml")
-    assert list(written.imports) == ["my_ext"] and written.head == "toydelta" and written.planner.name == "toyshoot"
+    assert (
+        list(written.imports) == ["my_ext"]
+        and written.head == "delta-mine"
+        and written.planner.name == "random_shooting"
+    )
