@@ -48,7 +48,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--out, run directory in use); 3 the run failed (training diverged, no finite plan, a write failed, e.g. "
         "a full disk; completed trials are kept, --resume continues); 130 interrupted.",
     )
-    p.add_argument("--model", choices=HEADS, help="dynamics model (default: delta); see docs/models.md")
+    p.add_argument(
+        "--model",
+        metavar="MODEL",
+        help=f"dynamics model: {', '.join(HEADS)} (default: delta; docs/models.md), or your own, registered by a "
+        "module given as imports=[MODULE]",
+    )
     p.add_argument(
         "--env",
         help="environment: a catalogue name, a gymnasium id, or your own as package.module:ATTR (docs/api.md)",
@@ -180,19 +185,20 @@ def _main(argv: list[str] | None = None) -> int:
             overrides_with_file,
             parse_overrides,
         )
+        from pets.imports import import_modules
         from pets.learning.trainer import TrainingDiverged
+        from pets.models import UNREGISTERED
         from pets.planning.planners import PlanningFailed
         from pets.runs import rundir
         from pets.runs.fileio import DirectoryInUse, remove_if_unused, run_dir_error, writable_dir_error
 
     try:
         overrides = parse_overrides(args.overrides)
+        model_given = "--model"
         if "model" in overrides:  # pets.compare's spelling, model=NAME, for --model NAME (model.* is the network)
             if args.model is not None:
                 _fail(f"give the model once: --model {args.model} or model={overrides['model']}, not both")
-            if overrides["model"] not in HEADS:
-                _fail(f"model={overrides['model']}: accepted models: {', '.join(HEADS)} (model.* keys set the network)")
-            args.model = overrides.pop("model")
+            args.model, model_given = overrides.pop("model"), "model="
         for flag, key in (
             ("env", "env"),
             ("model", "head"),
@@ -211,6 +217,13 @@ def _main(argv: list[str] | None = None) -> int:
         if args.config is not None and args.resume is not None:
             _fail("--config starts a new run; --resume DIR takes the run's own config")
         overrides, from_file = overrides_with_file(args.config, overrides)  # env and head: --env, --model
+        if args.resume is None:  # your own planners, models and codecs, before the env and the model are looked up
+            overrides["imports"] = import_modules(overrides.get("imports", []))  # a resume: the run's own (load_config)
+            if args.model is not None and args.model not in HEADS:  # checked after the imports: a model may be theirs
+                given, network = f"--model {args.model}", ""
+                if model_given == "model=":
+                    given, network = f"model={args.model}", " (model.* keys set the network)"
+                _fail(f"{given}: accepted models: {', '.join(HEADS)}{network}{UNREGISTERED}")
         if args.resume is not None:
             if args.env or args.model or args.out:
                 _fail("--resume DIR takes the run's own config; do not pass --env, --model or --out with it")

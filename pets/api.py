@@ -29,6 +29,8 @@ class PETS:
     device: ``auto``, ``cpu`` or ``cuda``.
     overrides: any config key (``pets/config.py``), e.g. ``seed_steps=500``; dotted keys as
       ``**{"planner.horizon": 10}``. A bad key or value raises ``pets.config.ConfigError`` naming it.
+      ``imports=["my_planner"]``: modules imported first (your own planners, models, codecs; :mod:`pets.imports`),
+      recorded in the run so that ``PETS.load`` of it imports them again.
     progress: tqdm bars while learning.
     """
 
@@ -45,7 +47,9 @@ class PETS:
     ) -> None:
         import envs
         from pets.config import ConfigError, make_config
+        from pets.imports import import_modules
 
+        overrides["imports"] = import_modules(plain_value(overrides.get("imports", [])))  # before the env: its codecs
         try:
             name = envs.get(env).name
         except ValueError as err:

@@ -24,8 +24,9 @@ from omegaconf import DictConfig, OmegaConf
 from dynamics.networks import ACTIVATIONS
 from gem_head.head import COMPOSE_MODES, LOSSES
 from pets.errors import ConfigError
+from pets.imports import import_modules
 from pets.limits import schedule_problem, size_problem
-from pets.models import MODELS, check_root
+from pets.models import MODELS, check_model
 from pets.planning.feedback import FeedbackConfig
 from pets.planning.particles import CANDIDATE_TABLE
 from pets.planning.planners import PLANNER_CLASSES, UNREGISTERED, ICEMConfig, MPPIConfig, check_planner_config
@@ -117,6 +118,7 @@ class GemConfig:
 
 @dataclass
 class Config:
+    imports: list[str] = field(default_factory=list)  # modules imported first: your own planners, models, codecs
     env: str = "halfcheetah"
     head: str = "delta"
     trials: int = 100
@@ -184,7 +186,6 @@ _POSITIVE_INTS = [
     "value.steps",
 ]
 _CHOICES = {
-    "head": HEADS,
     "planner.candidates": CANDIDATES,
     "planner.propagation": PROPAGATIONS,
     "planner.precision": PRECISIONS,
@@ -358,7 +359,7 @@ def validate(cfg: DictConfig) -> None:
     if cfg.video_every < 0:
         raise ConfigError(f"video_every must be >= 0 (0: no videos; N: every N-th trial), got {cfg.video_every}")
     try:  # the checks of the model table and the planner table, each in its owner
-        check_root(cfg.head, cfg.env, cfg.gem.compose)
+        check_model(cfg.head, cfg.env, cfg.gem.compose)
         check_planner_config(cfg.planner)
     except ValueError as err:
         raise ConfigError(str(err)) from None
@@ -379,17 +380,18 @@ def validate(cfg: DictConfig) -> None:
 def make_config(
     env: str, head: str = "delta", preset: str = "research", overrides: dict[str, Any] | None = None
 ) -> DictConfig:
-    """Resolve the full config for ``env`` (a canonical env name) and validate it."""
+    """Resolve the full config for ``env`` (a canonical env name), ``imports`` imported first, and validate it."""
     if preset not in PRESETS:
         raise ConfigError(f"unknown preset {preset!r}; accepted: {', '.join(PRESETS)}")
-    cfg = schema()
+    overrides = {**(overrides or {}), "imports": import_modules((overrides or {}).get("imports", []))}
+    cfg = schema()  # after the imports: a planner they register adds its section planner.<name>.*
     cfg.env = env
     for defaults in (ENV_DEFAULTS.get(env, {}), PRESETS[preset], PRESET_ENV_DEFAULTS.get((preset, env), {})):
         _merge_nested(cfg, defaults)
     set_value(cfg, "head", head)
-    head = (overrides or {}).get("head", head)  # head=... given as an override picks its defaults too
+    head = overrides.get("head", head)  # head=... given as an override picks its defaults too
     _merge_nested(cfg, HEAD_DEFAULTS.get(head if isinstance(head, str) else "", {}))
-    for key, value in (overrides or {}).items():
+    for key, value in overrides.items():
         set_value(cfg, key, value)
     validate(cfg)
     return resolve_auto(cfg)
@@ -415,9 +417,9 @@ def load_run_config(run_dir: str | Path) -> DictConfig:
 
 
 def load_config(path: str | Path) -> DictConfig:
-    """Load a run's resolved ``config.yaml`` back into the typed schema; ConfigError (one line, with what to do) for
-    a file that is not YAML, is empty or truncated (no ``env``, ``head``, ``model`` or ``planner``), or is off the
-    schema."""
+    """Load a run's resolved ``config.yaml`` into the typed schema, its ``imports`` imported first; ConfigError (one
+    line, with what to do) for a file that is not YAML, is empty or truncated (no ``env``, ``head``, ``model`` or
+    ``planner``), is off the schema, or whose imports fail (:mod:`pets.imports`)."""
     restore = "restore the config.yaml the run was started with (from a copy), or start a new run"
     try:
         stored = OmegaConf.load(path)
@@ -428,6 +430,7 @@ def load_config(path: str | Path) -> DictConfig:
     missing = [key for key in ("env", "head", "model", "planner") if key not in stored]
     if missing:
         raise ConfigError(f"{path} has no {', '.join(missing)} (truncated?); {restore}")
+    import_modules(stored.get("imports", []), where=str(path))  # before its planner, model and codecs are checked
     if isinstance(stored.planner, DictConfig) and str(stored.planner.get("name", "cem")) not in PLANNER_CLASSES:
         raise ConfigError(f"{path}: its planner {stored.planner.get('name')!r} is not a planner here{UNREGISTERED}")
     try:

@@ -142,14 +142,24 @@ def register_model(name: str, entry: ModelEntry) -> ModelEntry:
     return entry
 
 
-def check_root(head: str, env: str, compose: str) -> None:
-    """A model that composes the floating root (``gem-se``) needs an env with one, and the body-frame composition
+#: What an unknown ``head`` (``--model``) may be: a model of one's own, registered by a module not imported here.
+UNREGISTERED = (
+    " (a model of your own is known where the module that calls register_model is imported: name that module in "
+    "the config key imports, e.g. imports=[my_model]; in a run's config.yaml: imports: [my_model]; docs/models.md)"
+)
+
+
+def check_model(head: str, env: str, compose: str) -> None:
+    """``head`` a model of the table (a model of one's own: see :data:`UNREGISTERED`); a model that composes the
+    floating root (``gem-se``) needs an env with one, and the body-frame composition
     (:func:`gem_head.se_root.check_gem_se`, the one place of that rule); a one-line ValueError otherwise (an unknown
-    env or model is reported where it is built or validated)."""
+    env is reported where it is built)."""
     import envs
     from gem_head.se_root import check_gem_se
 
-    if head not in MODELS or not MODELS[head].needs_root:
+    if head not in MODELS:
+        raise ValueError(f"head must be one of {', '.join(MODELS)}, got {head!r}{UNREGISTERED}")
+    if not MODELS[head].needs_root:
         return
     try:
         layout = envs.get(env).layout

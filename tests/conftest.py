@@ -1,4 +1,5 @@
 import os
+import sys
 
 import pytest
 import torch
@@ -27,6 +28,25 @@ def env_names_end_with_their_test():
     yield
     envs.custom._REGISTRY.clear()
     envs.custom._REGISTRY.update(before)
+
+
+@pytest.fixture(autouse=True)
+def planner_and_model_names_end_with_their_test():
+    """Planners and models a test registers (``register_planner``, ``register_model``, a module of the config key
+    ``imports`` such as tests/own_planner.py) are gone after it, and a module imported by the test that registered
+    them is forgotten (a later ``imports`` of it registers them again): no test sees another's names."""
+    from pets.models import MODELS
+    from pets.planning.planners import PLANNER_CLASSES
+
+    planners, models, modules = dict(PLANNER_CLASSES), dict(MODELS), set(sys.modules)
+    yield
+    owners = {cls.__module__ for name, cls in PLANNER_CLASSES.items() if name not in planners}
+    owners |= {entry.make_head.__module__ for name, entry in MODELS.items() if name not in models}
+    for table, before in ((PLANNER_CLASSES, planners), (MODELS, models)):
+        table.clear()
+        table.update(before)
+    for name in owners - modules:  # imported during the test only: never a module another test holds
+        sys.modules.pop(name, None)
 
 
 @pytest.fixture

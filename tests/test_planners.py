@@ -614,7 +614,7 @@ def test_a_planner_registered_from_outside_the_package_plans_a_run(tmp_path, mon
     with pytest.raises(ConfigError, match="its planner 'shooting' is not a planner here .* register_planner") as err:
         load_config(str(out / "config.yaml"))  # was: "does not match this version's config schema ... restore it"
     assert "\n" not in str(err.value)
-    with pytest.raises(ConfigError, match="got 'shooting' .* register_planner before making or opening its runs"):
+    with pytest.raises(ConfigError, match=r"got 'shooting' .* register_planner is imported: .* imports=\[my_planner\]"):
         make_config("invertedpendulum", overrides={"planner.name": "shooting"})
     from omegaconf import OmegaConf
 
@@ -751,6 +751,10 @@ def _two_argument_search(self, objective, mu):
         ({"search": RandomShooting.search, "Options": dict}, "Options must be a dataclass"),
         ({"search": RandomShooting.search, "Options": make_dataclass("O", [])}, "needs a checked"),
         ({"search": RandomShooting.search, "section": int}, "section must be a dataclass or None"),
+        (  # was: a TypeError traceback from the config's schema (its section is the dataclass field planner.<name>)
+            {"search": RandomShooting.search, "section": ShootingOptions, "name": "my-planner"},
+            "planner 'my-planner': a planner with a section needs a name that is a Python identifier",
+        ),
     ],
 )
 def test_an_incomplete_planner_is_refused_at_registration_in_one_line(attrs, message) -> None:

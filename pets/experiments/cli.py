@@ -235,6 +235,7 @@ def _run_mode(args: argparse.Namespace) -> tuple[dict[str, Any], Path]:
     if args.preset not in PRESETS:
         raise UsageError(f"unknown preset {args.preset!r}; accepted: {', '.join(PRESETS)}")
     overrides = overrides_from_line_and_file(args)
+    import_given(overrides)  # before --models, --arm and --planners are looked up: a name may be registered there
     estimate_only = args.estimate and not args.print_config
     if args.out is None and not (args.print_config or estimate_only):
         raise UsageError("--out is required")
@@ -260,6 +261,18 @@ def _run_mode(args: argparse.Namespace) -> tuple[dict[str, Any], Path]:
     if args.mode == "online":
         return _run_online(args, shared), out / "summary.md"
     return _run_offline(args, shared), out / "prediction.md"
+
+
+def import_given(overrides: Sequence[str]) -> None:
+    """Import the modules of an ``imports=[...]`` override (your own models and planners register there; the runs
+    get the override too); UsageError (one line) for a bad value or a module that fails."""
+    from pets.config import ConfigError, parse_overrides
+    from pets.imports import import_modules
+
+    try:
+        import_modules(parse_overrides(list(overrides)).get("imports", []))
+    except ConfigError as err:
+        raise UsageError(str(err)) from None
 
 
 def _parse_arms(texts: Sequence[str]) -> dict[str, tuple[str, dict[str, str]]]:

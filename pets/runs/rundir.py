@@ -205,7 +205,9 @@ def check_resumed_config(run_dir: Path, state: dict[str, Any], cfg: Any) -> None
     """ConfigError when config.yaml no longer says what the checkpoint was written with (an edit after the run
     started: the run would go on with the checkpoint's optimiser state and claim the edited values). Checkpoints
     from before the config was saved in them are not checked; nor is a key in neither the checkpoint nor the file
-    (added to the code after the run started: it takes its default, which keeps what the code did before it)."""
+    (added to the code after the run started: it takes its default, which keeps what the code did before it), nor
+    ``imports`` where the checkpoint has none (a run from before the key: its config.yaml may be given the modules
+    that register its planner or model, which change no result)."""
     import yaml
     from omegaconf import OmegaConf
 
@@ -214,7 +216,8 @@ def check_resumed_config(run_dir: Path, state: dict[str, Any], cfg: Any) -> None
     saved, now = _flat(state["config"]), _flat(OmegaConf.to_container(cfg))
     written = _flat(yaml.safe_load((run_dir / CONFIG_FILE).read_text()) or {})
     keys = saved.keys() | written.keys()
-    changed = sorted(k for k in keys if k not in RESUMABLE_KEYS and saved.get(k) != now.get(k))
+    same = (*RESUMABLE_KEYS, *(() if "imports" in saved else ("imports",)))
+    changed = sorted(k for k in keys if k not in same and saved.get(k) != now.get(k))
     if changed:
         first = changed[0]
         raise ConfigError(

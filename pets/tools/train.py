@@ -56,18 +56,22 @@ def build_parser() -> OneLineParser:
 @interruptible(PROG, "no run was written (a run is written only when its training is complete)")
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_intermixed_args(argv)
-    from pets.config import HEADS
+    from pets.config import HEADS, ConfigError, parse_overrides
+    from pets.imports import import_modules
+    from pets.models import UNREGISTERED
 
+    try:  # your own models register in the modules of imports=[...]: imported before --model is looked up
+        import_modules(parse_overrides(args.overrides).get("imports", []))
+    except ConfigError as err:
+        fail(PROG, str(err))
     if args.model not in HEADS:
-        fail(PROG, f"--model must be one of {', '.join(HEADS)}, got {args.model!r}")
+        fail(PROG, f"--model must be one of {', '.join(HEADS)}, got {args.model!r}{UNREGISTERED}")
     if not args.data.is_file():
         fail(PROG, f"data file {args.data} does not exist")
     if args.epochs is not None and args.epochs < 1:
         fail(PROG, f"--epochs must be >= 1, got {args.epochs}")
     if (args.out / "config.yaml").exists():
         fail(PROG, f"{args.out} already holds a run; pick another --out")
-
-    from pets.config import ConfigError, parse_overrides
 
     try:  # validate everything up front (torch only where needed); errors in training keep their traceback
         overrides = parse_overrides(args.overrides)

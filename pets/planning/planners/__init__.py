@@ -85,17 +85,18 @@ __all__ = [
 #: ``planner.<name>.*`` sections, their checks; ``pets.config``), so a planner registered later is accepted too.
 PLANNER_CLASSES: dict[str, type[BoxPlanner]] = {}
 
-#: What an unknown ``planner.name`` may be: a planner of one's own, registered in another process.
+#: What an unknown ``planner.name`` may be: a planner of one's own, registered by a module not imported here.
 UNREGISTERED = (
-    " (a planner of your own is known only in a process that registered it: register_planner before making or "
-    "opening its runs, docs/api.md)"
+    " (a planner of your own is known where the module that calls register_planner is imported: name that module "
+    "in the config key imports, e.g. imports=[my_planner]; in a run's config.yaml: imports: [my_planner]; "
+    "docs/api.md)"
 )
 
 
 def _check_planner(cls: object) -> None:
     """ValueError (one line) for a class that is not a complete planner: a ``BoxPlanner`` subclass with a ``name``,
     its own :meth:`~BoxPlanner.search` taking ``(objective, mu, init_mean, generator)``, and ``Options`` (and a
-    ``section``, if any) dataclasses, ``Options`` with its ``checked()``."""
+    ``section``, if any, with a name that is an identifier) dataclasses, ``Options`` with its ``checked()``."""
     if not (isinstance(cls, type) and issubclass(cls, BoxPlanner)) or not cls.name:
         raise ValueError(f"a planner must be a BoxPlanner subclass with a name, got {cls!r}")
     if cls.search is BoxPlanner.search:
@@ -113,6 +114,11 @@ def _check_planner(cls: object) -> None:
         raise ValueError(f"planner {cls.name!r}: Options needs a checked() method that returns it, range-checked")
     if cls.section is not None and not (dataclasses.is_dataclass(cls.section) and isinstance(cls.section, type)):
         raise ValueError(f"planner {cls.name!r}: section must be a dataclass or None, got {cls.section!r}")
+    if cls.section is not None and not cls.name.isidentifier():  # its keys planner.<name>.* are a dataclass field
+        raise ValueError(
+            f"planner {cls.name!r}: a planner with a section needs a name that is a Python identifier (its keys are "
+            f"planner.<name>.*), e.g. {cls.name.replace('-', '_')!r}"
+        )
 
 
 def register_planner(cls: type[BoxPlanner]) -> type[BoxPlanner]:

@@ -1,0 +1,204 @@
+"""The config key ``imports`` (pets/imports.py): a planner and a model of your own, registered by a module in your
+folder, from the command line (``imports=[MODULE]``), at ``--resume``, in ``pets.PETS.load`` and ``pets.load_model``
+of a process that never imported the module, and in ``pets.compare``'s runs; a module that is missing or raises is
+one line and exit 2; a run from before the key loads and resumes as it did."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+from omegaconf import OmegaConf
+
+from tests import warm
+from tests.test_cli import TINY, cli, error_lines, rows
+
+ROOT = Path(__file__).resolve().parents[1]
+#: A module of the user's (tests/own_planner.py, docs/api.md's example): the planner ``random_shooting`` (with its
+#: section ``planner.random_shooting.*``) and the model ``delta-mine``, written as my_ext.py into the user's folder.
+EXT = (ROOT / "tests" / "own_planner.py").read_text()
+#: Opens the run in a process that has not imported the module: PETS.load and pets.load_model import it again.
+LOAD = """import sys
+
+assert "my_ext" not in sys.modules
+import pets
+
+agent = pets.PETS.load("run")
+assert "my_ext" in sys.modules
+model = pets.load_model("run")
+print(agent.trials_done, agent.config.planner.name, agent.config.head, list(agent.config.imports), type(model).__name__)
+"""
+OWN = [
+    "--model",
+    "delta-mine",
+    "planner.name=random_shooting",
+    "planner.random_shooting.spread=0.5",
+    "value.enabled=false",
+]
+
+
+def run_here(args: list, cwd: Path, script: Path = ROOT / "run_pets.py"):
+    """``python SCRIPT ARGS`` as a user runs it in ``cwd`` (the module is importable only from there)."""
+    cmd = [sys.executable, str(script), *map(str, args)]
+    return warm.run(cmd, cwd=cwd, capture_output=True, text=True, timeout=300)
+
+
+def one_line(proc) -> str:
+    lines = error_lines(proc.stderr)
+    assert proc.returncode == 2 and len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
+    return lines[0]
+
+
+@pytest.fixture
+def folder(tmp_path: Path) -> Path:
+    me = tmp_path / "me"
+    me.mkdir()
+    (me / "my_ext.py").write_text(EXT)
+    return me
+
+
+def test_own_planner_and_model_from_the_command_line_resume_and_load(folder: Path, tmp_path: Path) -> None:
+    """imports=[my_ext] runs a trial with the module's planner and model; --resume and PETS.load / load_model in a
+    process that never imported it import it again from config.yaml; from another folder, one line says where."""
+    args = ["--env", "invertedpendulum", "--trials", 1, "--out", "run", *TINY, *OWN, "imports=[my_ext]"]
+    proc = run_here(args, folder)
+    assert proc.returncode == 0, proc.stderr
+    written = OmegaConf.load(folder / "run" / "config.yaml")
+    assert (
+        list(written.imports) == ["my_ext"]
+        and written.planner.name == "random_shooting"
+        and written.head == "delta-mine"
+    )
+    assert written.planner.random_shooting.spread == 0.5
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    line = one_line(run_here(["--resume", folder / "run", "--trials", 2], elsewhere))
+    assert "config.yaml: imports: cannot import 'my_ext'" in line and "the folder that holds my_ext.py" in line
+    assert run_here(["--resume", "run", "--trials", 2, "--quiet"], folder).returncode == 0
+    assert [int(r["trial"]) for r in rows(folder / "run")] == [0, 1]
+    (elsewhere / "load.py").write_text(LOAD)  # the script's own folder is not the module's
+    proc = run_here([], folder, script=elsewhere / "load.py")
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.split() == ["2", "random_shooting", "delta-mine", "['my_ext']", "DynamicsModel"]
+
+
+def test_one_name_without_brackets_and_a_config_file_take_the_same_list(folder: Path) -> None:
+    """imports=my_ext (one name) and imports: [my_ext] in a --config file are imports=[my_ext]; --print-config
+    writes the list, a valid --config file."""
+    single = run_here(["--env", "invertedpendulum", "--print-config", *OWN, "imports=my_ext"], folder)
+    assert single.returncode == 0, single.stderr
+    (folder / "mine.yaml").write_text("imports: [my_ext]\nplanner:\n  name: random_shooting\n")
+    args = ["--env", "invertedpendulum", "--print-config", "--model", "delta-mine", "--config", "mine.yaml"]
+    from_file = run_here([*args, "planner.random_shooting.spread=0.5", "value.enabled=false"], folder)
+    assert from_file.returncode == 0, from_file.stderr
+    assert single.stdout == from_file.stdout and single.stdout.startswith("imports:\n- my_ext\n")
+
+
+@pytest.mark.parametrize(
+    "module, value, fragment",
+    [
+        (None, "imports=[nope]", "imports: cannot import 'nope' (No module named 'nope'); run the command from the "
+         "folder that holds nope.py (or put that folder on PYTHONPATH), or drop it from imports"),
+        ("raise RuntimeError('no GPU here')\n", "imports=[bad]",
+         "imports: importing 'bad' failed (RuntimeError: no GPU here); fix the module, or drop it from imports"),
+        ("def (:\n", "imports=bad", "imports: importing 'bad' failed (SyntaxError"),
+        ("import not_installed_dep\n", "imports=[bad]",
+         "importing 'bad' failed (ModuleNotFoundError: No module named 'not_installed_dep'); install what it imports"),
+        ("import sys\nsys.exit(0)\n", "imports=[bad]", "imports: importing 'bad' exited (SystemExit: 0)"),
+        (None, "imports=[1]", "imports must be a list of non-empty module names"),
+        (None, "imports=[my_ext, '']", "imports must be a list of non-empty module names"),
+        (None, "imports={a: 1}", "imports: '{a: 1}' is not a module name"),
+        (None, "imports=null", "imports must be a list of module names"),
+        (None, "imports=[my_ext.py]", "imports: 'my_ext.py' is a file name; give the module name (my_ext)"),
+        (None, "imports=[a b]", "imports: 'a b' is not a module name"),
+        (None, "imports=[a", "imports: '[a' is not a list"),
+    ],
+)  # fmt: skip
+def test_a_bad_imports_value_or_module_is_one_line_and_exit_2(folder, module, value, fragment) -> None:
+    if module is not None:
+        (folder / "bad.py").write_text(module)
+    line = one_line(run_here(["--env", "invertedpendulum", "--trials", 1, "--out", "run", *TINY, value], folder))
+    assert fragment in line and not (folder / "run").exists()
+
+
+def test_an_unknown_planner_or_model_says_imports(folder: Path) -> None:
+    """Without the module, the planner and the model are unknown: the line says what to add."""
+    line = one_line(run_here(["--env", "invertedpendulum", "--print-config", "planner.name=random_shooting"], folder))
+    assert "got 'random_shooting' (a planner of your own is known where the module that calls register_" in line
+    assert "imports=[my_planner]" in line
+    line = one_line(run_here(["--env", "invertedpendulum", "--print-config", "--model", "delta-mine"], folder))
+    assert line.startswith("run_pets.py: error: --model delta-mine: accepted models: delta, gem")
+    assert "the module that calls register_model is imported" in line and "imports=[my_model]" in line
+
+
+@pytest.fixture
+def registrations(monkeypatch, folder: Path):
+    """In this process, from ``folder`` (the planner and the model the module registers are gone after the test:
+    tests/conftest.py)."""
+    monkeypatch.chdir(folder)
+    monkeypatch.setattr(sys, "path", list(sys.path))
+
+
+def test_make_config_and_load_config_import_first_in_this_process(registrations, tmp_path: Path) -> None:
+    """The API's make_config imports before planner.<name>.* keys and the model are checked; load_config of a
+    config.yaml imports before its planner is; a module that fails there names the file."""
+    from pets.config import ConfigError, all_keys, config_yaml, load_config, make_config
+
+    assert "planner.random_shooting.spread" not in all_keys()
+    overrides = {"imports": ["my_ext"], "planner.name": "random_shooting", "planner.random_shooting.spread": "0.25"}
+    cfg = make_config("invertedpendulum", "delta-mine", "fast", overrides)
+    assert cfg.planner.random_shooting.spread == 0.25 and list(cfg.imports) == ["my_ext"] and "my_ext" in sys.modules
+    (tmp_path / "config.yaml").write_text(config_yaml(cfg))
+    assert load_config(tmp_path / "config.yaml") == cfg
+    (tmp_path / "config.yaml").write_text(config_yaml(cfg).replace("- my_ext", "- my_ext_gone"))
+    with pytest.raises(ConfigError, match=r"config\.yaml: imports: cannot import 'my_ext_gone'") as err:
+        load_config(tmp_path / "config.yaml")
+    assert "\n" not in str(err.value)
+    assert list(make_config("invertedpendulum").imports) == []
+
+
+def test_a_run_from_before_the_key_loads_and_resumes_as_it_did(tmp_path: Path) -> None:
+    """A run whose config.yaml and checkpoint have no imports (written before the key existed) resumes; its
+    config.yaml may then be given the key (the modules that register its planner or model) without being called
+    edited, while a run that recorded its imports may not change them."""
+    from pets.config import ConfigError, load_run_config
+    from pets.runs import rundir
+
+    out = tmp_path / "run"
+    cli("--env", "invertedpendulum", "--trials", 1, "--out", out, *TINY)
+    written = OmegaConf.load(out / "config.yaml")
+    del written["imports"]
+    OmegaConf.save(written, out / "config.yaml")
+    state = rundir.load_checkpoint(out)
+    del state["config"]["imports"]
+    rundir.save_checkpoint(out, state)
+    assert "imports" not in (out / "config.yaml").read_text()
+    assert list(load_run_config(out).imports) == []
+    cli("--resume", out, "--trials", 2)
+    assert [int(r["trial"]) for r in rows(out)] == [0, 1]
+    old = rundir.load_checkpoint(out)
+    assert old["config"]["imports"] == []  # the resumed run's checkpoint has the key, at its default
+    del old["config"]["imports"]
+    (out / "config.yaml").write_text("imports: [json]\n" + (out / "config.yaml").read_text())
+    rundir.check_resumed_config(out, old, load_run_config(out))  # not an edit: the checkpoint predates the key
+    recorded = {**old, "config": {**old["config"], "imports": []}}
+    with pytest.raises(ConfigError, match=r"was edited after the run started \(imports: \[\] in the checkpoint"):
+        rundir.check_resumed_config(out, recorded, load_run_config(out))
+
+
+def test_pets_compare_passes_imports_to_its_runs(folder: Path) -> None:
+    """pets.compare online with a model of one's own: --models takes it after the imports, and every run gets
+    imports=[my_ext] (its config.yaml records it)."""
+    cmd = [sys.executable, "-m", "pets.compare", "online", "--envs", "invertedpendulum", "--models", "delta-mine",
+           "--seeds", "0", "--trials", "1", "--out", "cmp", *TINY, "planner.name=random_shooting",
+           "value.enabled=false", "imports=[my_ext]"]  # fmt: skip
+    proc = warm.run(cmd, cwd=folder, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    (run,) = (folder / "cmp" / "runs").iterdir()
+    written = OmegaConf.load(run / "config.yaml")
+    assert (
+        list(written.imports) == ["my_ext"]
+        and written.head == "delta-mine"
+        and written.planner.name == "random_shooting"
+    )
