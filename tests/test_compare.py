@@ -1422,6 +1422,21 @@ def test_online_until_threshold_stops_each_run_at_the_mark_and_counts_it_complet
     assert code == 2 and "stop_reward= is set by --until-threshold" in err
 
 
+@pytest.mark.parametrize("mode", ["online", "offline"])
+def test_a_second_sweep_into_the_same_out_is_refused_in_one_line_while_the_first_works(mode, tmp_path, capsys):
+    """Two commands in one --out would fail each other's runs (each run directory is locked) and overwrite each
+    other's summaries: while one holds OUT's lock, another exits 2 in one line and starts nothing."""
+    from pets.runs.fileio import locked
+
+    args = [mode, "--envs", "invertedpendulum", "--models", "delta", "--seeds", "0", "--out", tmp_path, "--quiet"]
+    args += ["--trials", 1, *TINY] if mode == "online" else ["--episodes", 3, "--test-episodes", 1, *TINY_OFFLINE]
+    with locked(tmp_path):  # the first sweep
+        code, _, err = cli(capsys, *args)
+    assert code == 2 and len(err.strip().splitlines()) == 1, err
+    assert f"{tmp_path} is in use" in err and "one sweep at a time in a directory" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".lock"]
+
+
 def test_online_a_run_whose_training_diverges_counts_as_the_worst_outcome_and_is_not_rerun(tmp_path, capsys):
     """A run that stops because its model training diverged (run_pets exits 3) records why in its directory;
     the comparison counts it as diverged (the worst outcome in the exact test), not as a missing run, exits 0, and a

@@ -49,7 +49,7 @@ from pets.experiments.offline_data import (
 from pets.experiments.offline_jobs import CLOSED, OPEN, offline_job, offline_todo
 from pets.experiments.offline_summary import summarise_offline
 from pets.experiments.rundirs import NOT_COMPARED, check_out_writable, check_same_config, left_to_auto, run_name
-from pets.experiments.runner import open_backend
+from pets.experiments.runner import open_backend, sweep_lock
 from pets.experiments.studies.planning import summarise_openloop
 
 #: Seed of the start points of the prediction-error evaluation (the same for every model and seed).
@@ -150,31 +150,30 @@ def compare_offline(
     if configs_only:
         return {"configs": configs}
     check_out_writable(out)  # after every argument is checked: bad input leaves no directory behind
-    requests = _requests(horizons, starts, openloop_steps, openloop_episodes, closedloop_steps, planner_overrides)
-    jobs, pending = _jobs(sweep, requests, list(planners) if openloop else [], list(planners) if closedloop else [])
-    total = len(env_names) * len(models) * len(seeds) * len(data_seeds)
-    alone = backend.kind == "local" and backend.workers == 1  # a job's own progress bar only when it runs here
-    with open_backend(backend, out, needed=bool(jobs)) as run:  # Ray: connected and checked before any work
-        data_actions, data_jobs = _data_sets(
-            sweep, policy, steps, episodes, test_episodes, proto, max_steps, progress and alone, backend.threads
-        )
-        data_failed = _run_data_jobs(run, data_jobs, data_actions, progress)
-        if data_failed:  # the runs of a data set that could not be made fail with the reason; the others go on
-            jobs = [job for job in jobs if (job[2][0]["env"], job[2][0]["data_seed"]) not in data_failed]
-        _say_what_runs(total, len(jobs), backend, data_actions, len(seeds))
-        results = run(jobs, processes=True, progress=progress, desc="offline runs")
-    for (env, d), message in data_failed.items():
-        for model in models:
-            for seed in seeds:
-                results[run_name(env, model, seed, data_seed=d)] = (False, f"no data: {message}")
-    failed = {name: msg for name, (ok, msg) in results.items() if not ok}
-    done = {name: res["done"] for name, (ok, res) in results.items() if ok}
-    summary = summarise_offline(out, env_names, models, seeds, requests["eval"], failed, data_seeds=data_seeds)
-    if openloop:
-        summarise_openloop(out, env_names, models, seeds, planners, requests["openloop"])
-    if closedloop:
-        summarise_openloop(out, env_names, models, seeds, planners, requests["closedloop"], kind=CLOSED)
-    return {"data": data_actions, "todo": pending, "done": done, "failed": failed, "summary": summary}
+    with sweep_lock(out):  # one sweep at a time in OUT: a second command is refused, never interleaved
+        requests = _requests(horizons, starts, openloop_steps, openloop_episodes, closedloop_steps, planner_overrides)
+        jobs, pending = _jobs(sweep, requests, list(planners) if openloop else [], list(planners) if closedloop else [])
+        total = len(env_names) * len(models) * len(seeds) * len(data_seeds)
+        alone = backend.kind == "local" and backend.workers == 1  # a job's own progress bar only when it runs here
+        with open_backend(backend, out, needed=bool(jobs)) as run:  # Ray: connected and checked before any work
+            data_actions, data_jobs = _data_sets(
+                sweep, policy, steps, episodes, test_episodes, proto, max_steps, progress and alone, backend.threads
+            )
+            data_failed = _run_data_jobs(run, data_jobs, data_actions, progress)
+            if data_failed:  # the runs of a data set that could not be made fail with the reason; the others go on
+                jobs = [job for job in jobs if (job[2][0]["env"], job[2][0]["data_seed"]) not in data_failed]
+            _say_what_runs(total, len(jobs), backend, data_actions, len(seeds))
+            results = run(jobs, processes=True, progress=progress, desc="offline runs")
+        for (env, d), message in data_failed.items():
+            results |= {run_name(env, m, s, data_seed=d): (False, f"no data: {message}") for m in models for s in seeds}
+        failed = {name: msg for name, (ok, msg) in results.items() if not ok}
+        done = {name: res["done"] for name, (ok, res) in results.items() if ok}
+        summary = summarise_offline(out, env_names, models, seeds, requests["eval"], failed, data_seeds=data_seeds)
+        if openloop:
+            summarise_openloop(out, env_names, models, seeds, planners, requests["openloop"])
+        if closedloop:
+            summarise_openloop(out, env_names, models, seeds, planners, requests["closedloop"], kind=CLOSED)
+        return {"data": data_actions, "todo": pending, "done": done, "failed": failed, "summary": summary}
 
 
 def _protocol_and_policy(protocol: str, policy: str) -> tuple[Any, str, int | None]:

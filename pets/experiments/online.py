@@ -38,7 +38,7 @@ from pets.experiments.rundirs import (
     online_arms,
     run_name,
 )
-from pets.experiments.runner import online_job, open_backend
+from pets.experiments.runner import online_job, open_backend, sweep_lock
 from pets.experiments.studies.online import THRESHOLDS, online_rows, summarise_online
 from pets.runs.rundir import read_divergence, stopped
 
@@ -125,23 +125,24 @@ def compare_online(
     if configs_only:
         return {"configs": configs}
     check_out_writable(out)  # after every argument is checked: bad input leaves no directory behind
-    counts = {a: sum(1 for v in actions.values() if v == a) for a in ("reuse", "resume", "start")}
-    with open_backend(backend, out, needed=bool(jobs)) as run:
-        print(
-            f"{PROG}: {len(actions)} runs: {counts['reuse']} reused, {counts['resume']} to resume, "
-            f"{counts['start']} to start ({backend.describe()})",
-            file=sys.stderr,
+    with sweep_lock(out):  # one sweep at a time in OUT: a second command is refused, never interleaved
+        counts = {a: sum(1 for v in actions.values() if v == a) for a in ("reuse", "resume", "start")}
+        with open_backend(backend, out, needed=bool(jobs)) as run:
+            print(
+                f"{PROG}: {len(actions)} runs: {counts['reuse']} reused, {counts['resume']} to resume, "
+                f"{counts['start']} to start ({backend.describe()})",
+                file=sys.stderr,
+            )
+            warning = few_seeds_warning(len(seeds))
+            if warning:
+                print(warning, file=sys.stderr)
+            results = run(jobs, processes=False, progress=progress, desc="online runs")
+        # A run that stopped diverged is an outcome (counted as the worst), not a failure to rerun.
+        failed = {n: msg for n, (ok, msg) in results.items() if not ok and not read_divergence(out / "runs" / n)}
+        summary = summarise_online(
+            out, env_names, models, seeds, trials, final_window, failed, planners, until_threshold=until_threshold
         )
-        warning = few_seeds_warning(len(seeds))
-        if warning:
-            print(warning, file=sys.stderr)
-        results = run(jobs, processes=False, progress=progress, desc="online runs")
-    # A run that stopped diverged is an outcome (counted as the worst), not a failure to rerun.
-    failed = {name: msg for name, (ok, msg) in results.items() if not ok and not read_divergence(out / "runs" / name)}
-    summary = summarise_online(
-        out, env_names, models, seeds, trials, final_window, failed, planners, until_threshold=until_threshold
-    )
-    return {"actions": actions, "failed": failed, "summary": summary}
+        return {"actions": actions, "failed": failed, "summary": summary}
 
 
 def _shared_overrides(overrides: Sequence[str], planners: Sequence[str] | None) -> dict[str, str]:

@@ -16,7 +16,9 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
+from pets.experiments.arguments import UsageError
 from pets.experiments.backend import Backend, Jobs, Results, StatusLines, one_line
+from pets.runs.fileio import DirectoryInUse, locked
 
 #: The repository root: where run_pets.py is and where the runs' subprocesses start.
 ROOT = Path(__file__).resolve().parents[2]
@@ -28,6 +30,18 @@ STOP_GRACE_SECONDS = 10.0
 _children: set[subprocess.Popen] = set()
 _children_lock = threading.Lock()
 _interrupted = threading.Event()
+
+
+@contextmanager
+def sweep_lock(out: Path) -> Iterator[None]:
+    """Hold ``out``'s lock (:func:`pets.runs.fileio.locked`) while a sweep runs and writes its summaries; UsageError
+    (one line) while another command holds it: two sweeps in one directory would fail each other's runs (every run
+    directory is locked) and overwrite each other's summaries."""
+    try:
+        with locked(out):
+            yield
+    except DirectoryInUse as err:
+        raise UsageError(f"{err}; one sweep at a time in a directory: wait for it, or pick another --out") from None
 
 
 @contextmanager
