@@ -39,13 +39,13 @@ def resolve_device(name: str) -> torch.device:
     return torch.device(name)
 
 
-def check_memory(cfg: DictConfig, spec: EnvSpec, steps: int | None = None) -> None:
-    """ConfigError (one line) where the config's estimated memory exceeds what this machine can still allocate
-    (:func:`pets.limits.memory_problem`), before anything is allocated."""
+def check_memory(cfg: DictConfig, spec: EnvSpec, steps: int | None = None, copies: int = 1) -> None:
+    """ConfigError (one line) where the config's estimated memory (``copies`` runs of it at once) exceeds what this
+    machine can still allocate (:func:`pets.limits.memory_problem`), before anything is allocated."""
     from pets.limits import memory_problem
 
     device = str(resolve_device(cfg.device))
-    problem = memory_problem(cfg, spec.obs_dim, spec.act_dim, spec.episode_length, device, steps)
+    problem = memory_problem(cfg, spec.obs_dim, spec.act_dim, spec.episode_length, device, steps, copies)
     if problem:
         raise ConfigError(problem)
 

@@ -120,3 +120,37 @@ def test_every_bound_is_above_what_the_presets_use():
             for part in key.split("."):
                 value = value[part]
             assert value is None or value <= most // 100, (key, value)
+
+
+def test_pets_compare_refuses_runs_that_do_not_fit_at_once_before_any_starts(tmp_path, monkeypatch, capsys):
+    """pets.compare online checks the memory of the runs to do before it starts one (exit 2, one line, no --out),
+    --workers K of them at once: a sweep whose runs fit one by one but not K together is refused too."""
+    import envs
+    from pets.config import make_config
+    from pets.experiments.cli import main
+    from pets.limits import memory_needs
+
+    def no_run(*args, **kwargs):
+        raise AssertionError("a run would start: the memory was not checked before")
+
+    monkeypatch.setattr("pets.experiments.online.open_backend", no_run)
+    args = ["online", "--envs", "halfcheetah", "--models", "delta,gem", "--seeds", "0", "--trials", "2", "--quiet"]
+    args += ["--preset", "research"]
+    with pytest.raises(SystemExit) as info:
+        main([*args, "--out", str(tmp_path / "big"), "model.hidden_size=100000"])
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and len(err.strip().splitlines()) == 1, err
+    assert "halfcheetah-delta-s0: this config needs about" in err and not (tmp_path / "big").exists()
+
+    spec = envs.get("halfcheetah")
+    one = max(
+        sum(n.bytes for n in memory_needs(make_config("halfcheetah", m, "research", {"trials": 2}), *dims, 1000))
+        for m in ("delta", "gem")
+        for dims in [(spec.obs_dim, spec.act_dim)]
+    )
+    monkeypatch.setattr("pets.limits.available_bytes", lambda device: 1.5 * one)  # room for one run, not two
+    with pytest.raises(SystemExit) as info:
+        main([*args, "--workers", "2", "--out", str(tmp_path / "two")])
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and "2 runs of this config at once need" in err and "--workers" in err, err
+    assert not (tmp_path / "two").exists()

@@ -14,6 +14,7 @@ from pets.experiments import offline_estimate as est
 from pets.experiments.cli import main
 from pets.runs import rundir
 from pets.tools.cli import EXIT_FAILED
+from tests.tiny import replacing
 
 SWEEP = ["offline", "--envs", "invertedpendulum", "--models", "delta", "--seeds", "0,1", "--protocol", "paper"]
 SWEEP += ["--policy", "sac:200", "--test-episodes", "2", "--max-steps", "30", "--starts", "20", "--horizons", "1,5"]
@@ -106,7 +107,7 @@ def test_estimate_before_a_real_sweep_counts_its_data_and_searched_architectures
     (out / "runs" / "invertedpendulum-delta-s1" / "config.yaml").unlink()  # a run to train again, its data there
     monkeypatch.setattr(est, "_grad_seconds", lambda cfg: 0.001)
     with pytest.raises(SystemExit) as exit_info:  # another config: refused, as the sweep itself refuses it
-        main([*SWEEP, "--out", str(out), "--estimate", "model.iterations=30"])
+        main([*replacing(SWEEP, "model.iterations=30"), "--out", str(out), "--estimate"])
     assert exit_info.value.code == 2 and "model.iterations: 20 != 30" in capsys.readouterr().err
     assert main([*SWEEP, "--out", str(out), "--estimate"]) == 0
     lines = capsys.readouterr().out.splitlines()

@@ -9,6 +9,7 @@ import torch
 import envs
 from pets import oracle
 from tests.test_cli import TINY, cli
+from tests.tiny import replacing
 
 
 def _stepped_return(env, actions: np.ndarray) -> float:
@@ -92,8 +93,8 @@ def test_terminal_value_is_added_at_the_real_last_state_of_the_sequences_that_su
 def test_value_from_a_run_plans_with_that_runs_value(tmp_path) -> None:
     """--value-from RUN_DIR: the true dynamics with the terminal value a run learned; recorded in --json."""
     run = tmp_path / "run"
-    cli("--env", "invertedpendulum", "--seed", 3, *TINY, "value.enabled=true", "value.steps=50", "--trials", 1,
-        "--out", run)  # fmt: skip
+    tiny = replacing(TINY, "value.steps=50")
+    cli("--env", "invertedpendulum", "--seed", 3, *tiny, "value.enabled=true", "--trials", 1, "--out", run)
     out = tmp_path / "oracle.json"
     argv = ["--env", "invertedpendulum", "--preset", "fast", "--steps", "20", "--json", str(out), "--quiet"]
     assert oracle.main([*argv, "--value-from", str(run)]) == 0

@@ -145,9 +145,11 @@ def test_sweep_on_a_cluster_started_with_ray_start_gives_the_local_backends_metr
         assert metrics(online / "local" / "runs" / name) == metrics(out / "runs" / name), name
 
 
-def test_killed_ray_worker_run_resumes_from_its_checkpoint_with_the_same_metrics(tmp_path):
-    """SIGKILL to the Ray worker running a run after its first trial: Ray retries the task, the run resumes from
-    its checkpoint (history.csv: start at 0, resume at >= 1 trials) and ends with the uninterrupted run's metrics."""
+@pytest.mark.parametrize("victim", ["worker", "run"])
+def test_killed_ray_worker_run_resumes_from_its_checkpoint_with_the_same_metrics(victim, tmp_path):
+    """SIGKILL to the Ray worker running a run after its first trial, or to the run's own process (as the kernel's
+    out-of-memory killer picks the process that holds the memory): Ray retries the task, the run resumes from its
+    checkpoint (history.csv: start at 0, resume at >= 1 trials) and ends with the uninterrupted run's metrics."""
     args = ["online", "--envs", "invertedpendulum", "--models", "gem", "--seeds", "3", "--trials", 5]
     args += ["--preset", "fast", "--quiet", *TINY]
     assert main(argv(args, tmp_path / "local")) == 0
@@ -167,7 +169,7 @@ def test_killed_ray_worker_run_resumes_from_its_checkpoint_with_the_same_metrics
         if (run_dir / rundir.METRICS_FILE).is_file() and len(metrics(run_dir)) >= 1:
             worker = int(log.read_text().split(" pid ")[1].split(")")[0])
             run = children(worker)
-            os.kill(worker, signal.SIGKILL)
+            os.kill(worker if victim == "worker" else run[0], signal.SIGKILL)
             killed = (worker, run)
             break
         time.sleep(0.02)

@@ -17,6 +17,7 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 from pets.runs import rundir
 from pets.runs.tblog import TRIAL_TAGS
 from tests.test_cli import ROOT, TINY, cli, error_lines
+from tests.tiny import replacing
 
 
 def rows(run_dir: Path) -> list[dict[str, str]]:
@@ -163,7 +164,16 @@ def test_metrics_split_each_trials_cpu_into_planning_training_and_the_value(tmp_
     terminal-value fit; together never more than the trial's share of the cumulative cpu_time_s; the value's is 0
     without a value, positive with one; trial 0's training includes the seed data's."""
     with_value, without = tmp_path / "value", tmp_path / "plain"
-    cli("--env", "invertedpendulum", "--trials", 2, "value.enabled=true", "value.steps=50", "--out", with_value, *TINY)
+    cli(
+        "--env",
+        "invertedpendulum",
+        "--trials",
+        2,
+        "value.enabled=true",
+        "--out",
+        with_value,
+        *replacing(TINY, "value.steps=50"),
+    )
     cli("--env", "invertedpendulum", "--trials", 2, "value.enabled=false", "--out", without, *TINY)
     for run_dir, valued in ((with_value, True), (without, False)):
         before = 0.0

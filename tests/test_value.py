@@ -18,6 +18,7 @@ from pets.planning.propagation import PROPAGATIONS, TrajectoryEvaluator
 from pets.planning.value import ValueFunction, episode_ends, returns_to_go
 from tests.test_cli import TINY, cli, rows
 from tests.test_propagation import OBS_DIM, FakeEnsemble, first_action_terminates, make_head, unit_reward
+from tests.tiny import replacing
 
 
 def discounted_cumsum(x: np.ndarray, discount: float) -> np.ndarray:
@@ -101,7 +102,7 @@ def test_config_checks_the_discount() -> None:
 
 def test_run_with_value_resumes_to_the_same_metrics(tmp_path) -> None:
     """The value's weights and generator are in the checkpoint: 1 trial + resume to 3 = 3 trials in one go."""
-    args = ["--env", "invertedpendulum", "--seed", 3, *TINY, "value.enabled=true", "value.steps=50"]
+    args = ["--env", "invertedpendulum", "--seed", 3, *replacing(TINY, "value.steps=50"), "value.enabled=true"]
     cli(*args, "--trials", 3, "--out", tmp_path / "ref")
     cli(*args, "--trials", 1, "--out", tmp_path / "split")
     cli("--resume", tmp_path / "split", "--trials", 3)

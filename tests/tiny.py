@@ -10,3 +10,9 @@ TINY_MODEL = [
     "model.num_elites=2",
     "value.steps=20",
 ]
+
+
+def replacing(overrides: list[str], *new: str) -> list[str]:
+    """``overrides`` with each key of ``new`` given its new value (a key given twice is refused)."""
+    keys = {item.partition("=")[0] for item in new}
+    return [item for item in overrides if item.partition("=")[0] not in keys] + list(new)

@@ -83,8 +83,8 @@ class StatusLines:
         self.bar.update(1)
 
     def retried(self, name: str, attempt: int, where: str) -> None:
-        """A run started again after its worker or node was lost (always a line)."""
-        self.write(f"{name} retried (attempt {attempt}, {where}): its worker or node was lost")
+        """A run started again after its worker or node was lost, or its process was killed (always a line)."""
+        self.write(f"{name} retried (attempt {attempt}, {where}): its worker or node was lost, or its process killed")
 
     def close(self) -> Results:
         self.bar.close()

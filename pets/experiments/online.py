@@ -124,6 +124,8 @@ def compare_online(
         return {"estimate": projected(configs, actions, out, backend.workers if backend.kind == "local" else None)}
     if configs_only:
         return {"configs": configs}
+    if backend.kind == "local":  # Ray's nodes check their own memory, run by run
+        _check_memory(configs, actions, backend.workers)
     check_out_writable(out)  # after every argument is checked: bad input leaves no directory behind
     with sweep_lock(out):  # one sweep at a time in OUT: a second command is refused, never interleaved
         counts = {a: sum(1 for v in actions.values() if v == a) for a in ("reuse", "resume", "start")}
@@ -220,6 +222,21 @@ def _plan_runs(
                 log = str(out / "logs" / f"{name}.log")
                 jobs.append((name, online_job, (str(run_dir), args, trials, log, threads)))
     return jobs, actions, configs
+
+
+def _check_memory(configs: Mapping[str, Any], actions: Mapping[str, str], workers: int) -> None:
+    """UsageError (one line) before any run starts where the runs to do, ``workers`` of them at once, would not fit
+    in this machine's free memory (each run checks itself again when it starts)."""
+    import envs
+    from pets.builder import check_memory
+    from pets.config import ConfigError
+
+    todo = [name for name, action in actions.items() if action != "reuse"]
+    for name in todo:
+        try:
+            check_memory(configs[name], envs.get(configs[name].env), copies=min(workers, len(todo)))
+        except ConfigError as err:
+            raise UsageError(f"{name}: {err}") from None
 
 
 def _checked_action(run_dir: Path, trials: int, expected: Any, arm_extra: Mapping[str, str]) -> str:

@@ -19,6 +19,7 @@ from typing import Any
 
 from pets.experiments.arguments import UsageError
 from pets.experiments.backend import Backend, Jobs, Results, StatusLines, one_line
+from pets.experiments.runner import RunKilled
 
 #: Seconds between two looks at the tasks (status lines of retries appear within this).
 POLL_S = 1.0
@@ -180,7 +181,7 @@ def run_tasks(ray: Any, jobs: Jobs, backend: Backend, *, progress: bool, desc: s
         return {}
     board = ray.remote(num_cpus=0)(_Attempts).remote()
     task = ray.remote(_attempt).options(
-        num_cpus=backend.threads, num_gpus=backend.gpus, max_retries=backend.max_retries, retry_exceptions=False
+        num_cpus=backend.threads, num_gpus=backend.gpus, max_retries=backend.max_retries, retry_exceptions=[RunKilled]
     )
     status = StatusLines(len(jobs), desc, progress)
     pending = {task.remote(board, name, fn, args): name for name, fn, args in jobs}

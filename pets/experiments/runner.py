@@ -180,8 +180,16 @@ def run_logged(command: Sequence[str], log: Path, threads: int = 1) -> int:
                 _children.discard(proc)
     if proc.returncode != 0:
         lines = [line for line in log.read_text(errors="replace").splitlines() if line.strip()]
-        raise RuntimeError(f"exit {proc.returncode}; log {log}; last line: {lines[-1] if lines else ''}")
+        killed = proc.returncode < 0 and not _interrupted.is_set()  # a signal from outside the sweep
+        raise (RunKilled if killed else RuntimeError)(
+            f"exit {proc.returncode}; log {log}; last line: {lines[-1] if lines else ''}"
+        )
     return proc.returncode
+
+
+class RunKilled(RuntimeError):
+    """A run's process was killed by a signal from outside the sweep (the kernel's out-of-memory killer, a
+    scheduler): on Ray its task is retried and the run resumes, as when its worker dies (docs/cluster.md)."""
 
 
 def wait_until_unlocked(run_dir: Path, timeout: float = 60.0) -> None:
