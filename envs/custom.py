@@ -372,7 +372,7 @@ def register(spec: EnvSpec) -> EnvSpec:
             f"{spec.name!r} names the catalogue env {key} ({GYM_IDS[key]}); register yours under another name"
         )
     taken = _REGISTRY.get(spec.name)
-    if taken is not None and taken != spec:
+    if taken is not None and taken is not spec:
         raise ValueError(
             f"env name {spec.name!r} is registered to another spec in this process; give yours another name"
         )

@@ -39,13 +39,15 @@ def resolve_device(name: str) -> torch.device:
     return torch.device(name)
 
 
-def check_memory(cfg: DictConfig, spec: EnvSpec, steps: int | None = None, copies: int = 1) -> None:
-    """ConfigError (one line) where the config's estimated memory (``copies`` runs of it at once) exceeds what this
-    machine can still allocate (:func:`pets.limits.memory_problem`), before anything is allocated."""
+def check_memory(
+    cfg: DictConfig, spec: EnvSpec, steps: int | None = None, beside: tuple[int, float] = (0, 0.0)
+) -> None:
+    """ConfigError (one line) where the config's estimated memory exceeds what this machine can still allocate
+    (:func:`pets.limits.memory_problem`; ``beside``: other runs at the same time), before anything is allocated."""
     from pets.limits import memory_problem
 
     device = str(resolve_device(cfg.device))
-    problem = memory_problem(cfg, spec.obs_dim, spec.act_dim, spec.episode_length, device, steps, copies)
+    problem = memory_problem(cfg, spec.obs_dim, spec.act_dim, spec.episode_length, device, steps, beside)
     if problem:
         raise ConfigError(problem)
 

@@ -39,8 +39,8 @@ def module_names(value: Any) -> list[str]:
     """The module names of an ``imports`` value: a list of names (a tuple or an omegaconf list too), its
     command-line text ``[a, b]``, or one name as a string; ConfigError (one line) for anything else (a number, a
     mapping, an empty or non-string item, a file name or path instead of a module name)."""
-    if isinstance(value, str) and value.strip().lower() in ("", "null", "none", "~"):
-        value = None  # imports=[] for none
+    if value is None or isinstance(value, str) and value.strip().lower() in ("", "null", "none", "~"):
+        value = []  # imports=, imports=null: none, as imports=[]
     if isinstance(value, str):
         text = value.strip()
         try:

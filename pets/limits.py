@@ -155,11 +155,17 @@ def _cgroup_room() -> float | None:
 
 
 def memory_problem(
-    cfg: Any, obs_dim: int, act_dim: int, length: int, device: str, steps: int | None = None, copies: int = 1
+    cfg: Any,
+    obs_dim: int,
+    act_dim: int,
+    length: int,
+    device: str,
+    steps: int | None = None,
+    beside: tuple[int, float] = (0, 0.0),
 ) -> str | None:
-    """One line refusing a config whose estimated memory (:func:`memory_needs`; ``copies`` runs of it at once)
-    exceeds what this machine can still allocate, naming the largest part and its keys; None when it fits or the
-    free memory cannot be read."""
+    """One line refusing a config whose estimated memory (:func:`memory_needs`) exceeds what this machine can still
+    allocate, naming the largest part and its keys; None when it fits or the free memory cannot be read.
+    ``beside``: (how many other runs, their bytes of host memory) that run at the same time."""
     needs = memory_needs(cfg, obs_dim, act_dim, length, steps)
     on_device = device.startswith("cuda")
     host = [n for n in needs if n.host or not on_device]
@@ -167,15 +173,16 @@ def memory_problem(
         if not parts:
             continue
         room = available_bytes(device if where == "GPU" else "cpu")
-        total = copies * sum(n.bytes for n in parts)
-        if room is None or total <= room:
+        own = sum(n.bytes for n in parts)
+        others, more = beside if where == "host" else (0, 0.0)
+        if room is None or own + more <= room:
             continue
         biggest = max(parts, key=lambda n: n.bytes)
-        keys = KEYS[biggest.part] + (" or the runs at once (--workers)" if copies > 1 else "")
-        what = "this config needs" if copies == 1 else f"{copies} runs of this config at once need"
+        at_once = f", {(own + more) / GB:,.1f} GB with the {others} other run(s) at once (--workers)" if others else ""
         return (
-            f"{what} about {total / GB:,.1f} GB of {where} memory ({', '.join(map(str, parts))}"
-            f"{' each' if copies > 1 else ''}), more than the {room / GB:,.1f} GB this machine has free; lower {keys}"
+            f"this config needs about {own / GB:,.1f} GB of {where} memory ({', '.join(map(str, parts))}){at_once}, "
+            f"more than the {room / GB:,.1f} GB this machine has free; lower {KEYS[biggest.part]}"
+            + (" or --workers" if others else "")
         )
     return None
 

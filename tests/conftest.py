@@ -1,5 +1,6 @@
 import os
 import sys
+from pathlib import Path
 
 import pytest
 import torch
@@ -7,6 +8,8 @@ import torch
 import envs.custom
 from pets.runs import hardware
 from tests.threads import one_thread
+
+ROOT = Path(__file__).resolve().parents[1]
 
 #: The real threshold of ``model.compile=auto`` (pets.runs.hardware), for the tests of auto itself.
 AUTO_COMPILE_MIN_TRIALS = hardware.AUTO_COMPILE_MIN_TRIALS
@@ -40,13 +43,26 @@ def planner_and_model_names_end_with_their_test():
 
     planners, models, modules = dict(PLANNER_CLASSES), dict(MODELS), set(sys.modules)
     yield
-    owners = {cls.__module__ for name, cls in PLANNER_CLASSES.items() if name not in planners}
-    owners |= {entry.make_head.__module__ for name, entry in MODELS.items() if name not in models}
+    registered = PLANNER_CLASSES.keys() != planners.keys() or MODELS.keys() != models.keys()
     for table, before in ((PLANNER_CLASSES, planners), (MODELS, models)):
         table.clear()
         table.update(before)
-    for name in owners - modules:  # imported during the test only: never a module another test holds
-        sys.modules.pop(name, None)
+    if registered:  # forget the user's modules imported during the test only (a model may reuse a built-in head,
+        for name in set(sys.modules) - modules:  # so its entry does not name its module); never another test's
+            if _users_module(sys.modules.get(name)):
+                sys.modules.pop(name, None)
+
+
+def _users_module(module: object) -> bool:
+    """A module of a user's folder or of tests/ (not the library's, nor an installed or standard one)."""
+    path = str(getattr(module, "__file__", None) or "")
+    library = [str(ROOT / package) for package in ("pets", "envs", "gem_head", "dynamics")]
+    return (
+        bool(path)
+        and "site-packages" not in path
+        and not path.startswith(sys.base_prefix)
+        and not any(path.startswith(folder) for folder in library)
+    )
 
 
 @pytest.fixture

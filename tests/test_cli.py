@@ -129,8 +129,10 @@ def test_a_run_killed_before_its_config_is_written_is_named_so_at_resume_and_its
 def test_resume_can_extend_a_finished_run(tmp_path):
     out = tmp_path / "run"
     cli("--env", "invertedpendulum", "--trials", 1, "--out", out, *TINY)
+    (out / "diverged.txt").write_text("trial 1: model training diverged\n")  # as a run that stopped diverged has
     cli("--resume", out, "--trials", 2)
     assert [int(r["trial"]) for r in rows(out)] == [0, 1]
+    assert not (out / "diverged.txt").exists()  # a resumed run tries again: its record of a divergence is cleared
 
 
 @pytest.mark.parametrize(

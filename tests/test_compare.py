@@ -1460,6 +1460,17 @@ def test_online_a_run_whose_training_diverges_counts_as_the_worst_outcome_and_is
     assert "Missing or incomplete" not in md
     code, _, err = cli(capsys, *args)
     assert code == 0 and "4 reused" in err, err
+    # a divergence after the trials summarised does not count (a run extended past them, then diverged)
+    delta = tmp_path / "runs" / "invertedpendulum-delta-s0"
+    rundir.record_divergence(delta, "trial 5: model training diverged (a later extension)")
+    code, _, err = cli(capsys, *args)
+    assert code == 0 and online_row(tmp_path, "invertedpendulum", "delta")["n_diverged"] == "0", err
+    rundir.record_divergence(delta, None)
+    # a run made before the config key imports: the line says what to add to its config.yaml
+    written = (delta / "config.yaml").read_text()
+    (delta / "config.yaml").write_text("\n".join(x for x in written.splitlines() if not x.startswith("imports:")))
+    code, _, err = cli(capsys, *args, "imports=[json]")
+    assert code == 2 and "was made before the config key imports; add `imports: ['json']` to its config.yaml" in err
 
 
 def test_online_at_an_env_step_budget_counts_runs_that_end_there_and_leaves_the_cut_episode_out(tmp_path, capsys):

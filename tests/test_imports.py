@@ -109,7 +109,6 @@ def test_one_name_without_brackets_and_a_config_file_take_the_same_list(folder: 
         (None, "imports=[1]", "imports must be a list of non-empty module names"),
         (None, "imports=[my_ext, '']", "imports must be a list of non-empty module names"),
         (None, "imports={a: 1}", "imports: '{a: 1}' is not a module name"),
-        (None, "imports=null", "imports must be a list of module names"),
         (None, "imports=[my_ext.py]", "imports: 'my_ext.py' is a file name; give the module name (my_ext)"),
         (None, "imports=[a b]", "imports: 'a b' is not a module name"),
         (None, "imports=[a", "imports: '[a' is not a list"),
@@ -202,3 +201,11 @@ def test_pets_compare_passes_imports_to_its_runs(folder: Path) -> None:
         and written.head == "delta-mine"
         and written.planner.name == "random_shooting"
     )
+
+
+def test_no_modules_is_an_empty_list_however_it_is_written() -> None:
+    from pets.imports import module_names
+
+    for empty in ("", "null", "[]", None, []):
+        assert module_names(empty) == []
+    assert module_names("json") == ["json"] and module_names("[json, os.path]") == ["json", "os.path"]

@@ -4,6 +4,7 @@ pets.openloop and the Python API, and a run refused that way leaves no directory
 
 from __future__ import annotations
 
+import re
 import sys
 import time
 
@@ -140,17 +141,18 @@ def test_pets_compare_refuses_runs_that_do_not_fit_at_once_before_any_starts(tmp
         main([*args, "--out", str(tmp_path / "big"), "model.hidden_size=100000"])
     err = capsys.readouterr().err
     assert info.value.code == 2 and len(err.strip().splitlines()) == 1, err
-    assert "halfcheetah-delta-s0: this config needs about" in err and not (tmp_path / "big").exists()
+    assert re.search(r"halfcheetah-(delta|gem)-s0: this config needs about", err) and not (tmp_path / "big").exists()
 
     spec = envs.get("halfcheetah")
-    one = max(
-        sum(n.bytes for n in memory_needs(make_config("halfcheetah", m, "research", {"trials": 2}), *dims, 1000))
-        for m in ("delta", "gem")
-        for dims in [(spec.obs_dim, spec.act_dim)]
-    )
+    cfg = make_config("halfcheetah", "gem", "research", {"trials": 2})
+    one = sum(n.bytes for n in memory_needs(cfg, spec.obs_dim, spec.act_dim, spec.episode_length))
     monkeypatch.setattr("pets.limits.available_bytes", lambda device: 1.5 * one)  # room for one run, not two
+    two = ["online", "--envs", "halfcheetah", "--models", "gem", "--seeds", "0,1", "--trials", "2", "--quiet"]
     with pytest.raises(SystemExit) as info:
-        main([*args, "--workers", "2", "--out", str(tmp_path / "two")])
+        main([*two, "--preset", "research", "--workers", "2", "--out", str(tmp_path / "two")])
     err = capsys.readouterr().err
-    assert info.value.code == 2 and "2 runs of this config at once need" in err and "--workers" in err, err
+    assert info.value.code == 2 and len(err.strip().splitlines()) == 1, err
+    assert "with the 1 other run(s) at once (--workers)" in err and err.rstrip().endswith("or --workers"), err
     assert not (tmp_path / "two").exists()
+    with pytest.raises(AssertionError, match="a run would start"):  # one at a time fits: the sweep would start
+        main([*two, "--preset", "research", "--workers", "1", "--out", str(tmp_path / "one")])

@@ -225,18 +225,28 @@ def _plan_runs(
 
 
 def _check_memory(configs: Mapping[str, Any], actions: Mapping[str, str], workers: int) -> None:
-    """UsageError (one line) before any run starts where the runs to do, ``workers`` of them at once, would not fit
-    in this machine's free memory (each run checks itself again when it starts)."""
+    """UsageError (one line) before any run starts where the largest run to do, beside the next ``workers - 1``
+    largest (those that can run with it), would not fit in this machine's free memory; CPU runs only (a GPU's free
+    memory is not read from this process: each run checks itself when it starts)."""
     import envs
-    from pets.builder import check_memory
+    from pets.builder import check_memory, resolve_device
     from pets.config import ConfigError
+    from pets.limits import memory_needs
 
-    todo = [name for name, action in actions.items() if action != "reuse"]
-    for name in todo:
+    todo = [n for n, a in actions.items() if a != "reuse" and str(resolve_device(configs[n].device)) == "cpu"]
+    specs = {n: envs.get(configs[n].env) for n in todo}
+    need = {
+        n: sum(x.bytes for x in memory_needs(configs[n], specs[n].obs_dim, specs[n].act_dim, specs[n].episode_length))
+        for n in todo
+    }
+    largest = sorted(todo, key=need.__getitem__, reverse=True)[: max(workers, 1)]
+    if largest:
         try:
-            check_memory(configs[name], envs.get(configs[name].env), copies=min(workers, len(todo)))
+            check_memory(
+                configs[largest[0]], specs[largest[0]], beside=(len(largest) - 1, sum(map(need.get, largest[1:])))
+            )
         except ConfigError as err:
-            raise UsageError(f"{name}: {err}") from None
+            raise UsageError(f"{largest[0]}: {err}") from None
 
 
 def _checked_action(run_dir: Path, trials: int, expected: Any, arm_extra: Mapping[str, str]) -> str:

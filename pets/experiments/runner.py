@@ -12,7 +12,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor, as_completed
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -37,11 +37,15 @@ def sweep_lock(out: Path) -> Iterator[None]:
     """Hold ``out``'s lock (:func:`pets.runs.fileio.locked`) while a sweep runs and writes its summaries; UsageError
     (one line) while another command holds it: two sweeps in one directory would fail each other's runs (every run
     directory is locked) and overwrite each other's summaries."""
-    try:
-        with locked(out):
-            yield
-    except DirectoryInUse as err:
-        raise UsageError(f"{err}; one sweep at a time in a directory: wait for it, or pick another --out") from None
+    with ExitStack() as stack:
+        try:
+            stack.enter_context(locked(out))
+        except DirectoryInUse as err:
+            raise UsageError(
+                f"{out} is in use by another command (process {err.holder}); one sweep at a time in a directory: "
+                "wait for it, or pick another --out"
+            ) from None
+        yield
 
 
 @contextmanager
@@ -180,7 +184,8 @@ def run_logged(command: Sequence[str], log: Path, threads: int = 1) -> int:
                 _children.discard(proc)
     if proc.returncode != 0:
         lines = [line for line in log.read_text(errors="replace").splitlines() if line.strip()]
-        killed = proc.returncode < 0 and not _interrupted.is_set()  # a signal from outside the sweep
+        # SIGKILL or SIGTERM from outside the sweep (the OOM killer, a scheduler); a crash (SIGSEGV) is the run's own
+        killed = -proc.returncode in (signal.SIGKILL, signal.SIGTERM) and not _interrupted.is_set()
         raise (RunKilled if killed else RuntimeError)(
             f"exit {proc.returncode}; log {log}; last line: {lines[-1] if lines else ''}"
         )
@@ -195,8 +200,6 @@ class RunKilled(RuntimeError):
 def wait_until_unlocked(run_dir: Path, timeout: float = 60.0) -> None:
     """Wait (up to ``timeout`` s) until no process holds ``run_dir``'s lock (:func:`pets.runs.fileio.locked`): a run
     killed with its worker releases it when the kernel has reaped it, which may be just after the retry starts."""
-    from pets.runs.fileio import DirectoryInUse, locked
-
     deadline = time.monotonic() + timeout
     while True:
         try:

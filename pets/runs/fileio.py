@@ -86,7 +86,11 @@ def run_dir_error(directory: Path) -> str | None:
 
 
 class DirectoryInUse(RuntimeError):
-    """Another process holds the lock of a run directory."""
+    """Another process (``holder``: its pid, or ``unknown``) holds the lock of a directory."""
+
+    def __init__(self, message: str, holder: str = "unknown") -> None:
+        super().__init__(message)
+        self.holder = holder
 
 
 @contextmanager
@@ -105,7 +109,7 @@ def locked(directory: Path) -> Iterator[None]:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             holder = os.read(fd, 64).decode(errors="replace").strip() or "unknown"
-            raise DirectoryInUse(f"{directory} is in use by another run (process {holder})") from None
+            raise DirectoryInUse(f"{directory} is in use by another run (process {holder})", holder) from None
         try:  # who holds it, for the message of a second run; the lock holds without it (a full disk)
             os.ftruncate(fd, 0)
             os.write(fd, f"{os.getpid()}\n".encode())

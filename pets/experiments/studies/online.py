@@ -14,7 +14,8 @@ the baseline arm (:data:`BASELINE` with the same planner) P(final > baseline's) 
 runs: the worst final) and the IQM [CI] of the per-seed difference of final rewards, with the exact paired
 sign-flip p-value of its mean (``diff_p_signflip``; a diverged run enters as the env's lowest final reward) and
 Holm's adjustment of those p-values over every arm-vs-baseline test of the summary (``diff_p_holm``). Diverged runs
-are counted (``n_diverged``), never averaged in; the cost columns are means over all complete runs.
+are counted (``n_diverged``), never averaged in; the cost columns are means over all complete runs (a run that
+stopped diverged ran only part of its trials: not in them).
 
 Time to threshold (:data:`THRESHOLDS`, per env): the wall-clock minutes (``wall_time_s`` of the first trial
 whose episode reward reaches the threshold, i.e. at the end of that trial, its model training included), the
@@ -319,8 +320,9 @@ def _env_runs(
             name = run_name(env, model, seed, planner)
             rows, reached = _complete_rows(out / "runs" / name, thresholds.get(env, math.inf), until_threshold)
             budget, length = budget_of(out / "runs" / name)
-            why = read_divergence(out / "runs" / name)
-            if len(rows) < trials and not reached and not stopped(rows, None, budget) and why is None:
+            short = len(rows) < trials and not reached  # a divergence after the trials summarised does not count
+            why = read_divergence(out / "runs" / name) if short else None
+            if short and not stopped(rows, None, budget) and why is None:
                 found["missing"].append(
                     f"{name} ({len(rows)}/{trials} trials"
                     f"{'; failed: ' + failed[name] if failed and name in failed else ''})"
@@ -329,11 +331,12 @@ def _env_runs(
             cut = not reached and cut_by_budget(rows[:trials], budget, length)
             found["budgeted"] += [name] if budget is not None else []
             s = {"seed": seed, **online_run_stats(rows, trials, final_window, thresholds.get(env), cut)}
-            if why is not None:  # stopped diverged (training or planning): the worst outcome, never dropped
+            if why is not None:  # stopped diverged (training or planning): the worst outcome, never dropped; its
+                s |= dict.fromkeys(COST_KEYS, math.nan)  # cost is of the trials it ran: not in the cost means
                 s["diverged"] = f"stopped after {len(rows)} of {trials} trials: {why}"
             found["per_run"].append({"env": env, "model": model, "planner": planner or "", "trials": trials, **s})
             found["per_run"][-1]["diverged"] = s["diverged"] or ""
-            unknown = (*THRESHOLD_KEYS, "cpu_time_s")  # never reached; a run without the CPU column
+            unknown = (*THRESHOLD_KEYS, *COST_KEYS)  # never reached; a run without the CPU column; stopped diverged
             found["per_run"][-1].update({k: "" for k in unknown if not math.isfinite(s[k])})
             runs.setdefault(label, []).append(s)
             found["included"].append(out / "runs" / name)
