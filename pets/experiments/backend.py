@@ -17,6 +17,11 @@ Results = dict[str, tuple[bool, Any]]
 BACKENDS = ("local", "ray")
 
 
+class RunKilled(RuntimeError):
+    """A run's process was killed by a signal from outside the sweep (the kernel's out-of-memory killer, a
+    scheduler): on Ray its task is retried and the run resumes, as when its worker dies (docs/cluster.md)."""
+
+
 @dataclass(frozen=True)
 class Backend:
     """Where the runs of a comparison run, and with how many CPU threads each.

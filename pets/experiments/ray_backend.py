@@ -18,8 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from pets.experiments.arguments import UsageError
-from pets.experiments.backend import Backend, Jobs, Results, StatusLines, one_line
-from pets.experiments.runner import RunKilled
+from pets.experiments.backend import Backend, Jobs, Results, RunKilled, StatusLines, one_line
 
 #: Seconds between two looks at the tasks (status lines of retries appear within this).
 POLL_S = 1.0

@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from pets.experiments.arguments import UsageError
-from pets.experiments.backend import Backend, Jobs, Results, StatusLines, one_line
+from pets.experiments.backend import Backend, Jobs, Results, RunKilled, StatusLines, one_line
 from pets.runs.fileio import DirectoryInUse, locked
 
 #: The repository root: where run_pets.py is and where the runs' subprocesses start.
@@ -190,11 +190,6 @@ def run_logged(command: Sequence[str], log: Path, threads: int = 1) -> int:
             f"exit {proc.returncode}; log {log}; last line: {lines[-1] if lines else ''}"
         )
     return proc.returncode
-
-
-class RunKilled(RuntimeError):
-    """A run's process was killed by a signal from outside the sweep (the kernel's out-of-memory killer, a
-    scheduler): on Ray its task is retried and the run resumes, as when its worker dies (docs/cluster.md)."""
 
 
 def wait_until_unlocked(run_dir: Path, timeout: float = 60.0) -> None:

@@ -3,34 +3,33 @@ summary columns, :data:`SUMMARY_COLUMNS`, follow from it), a run's numbers from 
 (:func:`online_run_stats`), the summary of a comparison's run directories (:func:`summarise_online`) and the same
 summary from the committed per-run rows (:func:`summary_from_runs`, for ``pets.compare report``).
 
-Per run: ``final`` = mean episode reward of the last W trials (W = ``--final-window``, default 3, at
-most N); ``auc`` = mean episode reward over all N trials; the run's wall-clock time and median
-seconds per planning step. A run with a non-finite episode reward is diverged (:func:`reward_divergence`), and so is
-a run that stopped because its model training diverged or no plan had a finite return
-(:func:`pets.runs.rundir.read_divergence`; a rerun reuses it: the same seed and config diverge again).
-Per (env, arm) over the runs that did not diverge (:mod:`pets.experiments.statistics`, the same
-statistics as the offline summary): IQM of final and auc with its 95 % stratified-bootstrap CI; against
-the baseline arm (:data:`BASELINE` with the same planner) P(final > baseline's) with its CI (diverged
-runs: the worst final) and the IQM [CI] of the per-seed difference of final rewards, with the exact paired
-sign-flip p-value of its mean (``diff_p_signflip``; a diverged run enters as the env's lowest final reward) and
-Holm's adjustment of those p-values over every arm-vs-baseline test of the summary (``diff_p_holm``). Diverged runs
-are counted (``n_diverged``), never averaged in; the cost columns are means over all complete runs (a run that
+Per run: ``final`` = mean episode reward of the last W trials (W = ``--final-window``, default 3, at most N); ``auc``
+= mean episode reward over all N trials; the run's wall-clock time and median seconds per planning step. A run with a
+non-finite episode reward is diverged (:func:`reward_divergence`), and so is a run that stopped because its model
+training diverged or no plan had a finite return (:func:`pets.runs.rundir.read_divergence`; a rerun reuses it: the
+same seed and config diverge again). Per (env, arm) over the runs that did not diverge
+(:mod:`pets.experiments.statistics`, the same statistics as the offline summary): IQM of final and auc with its 95 %
+stratified-bootstrap CI; against the baseline arm (:data:`BASELINE` with the same planner) P(final > baseline's) with
+its CI (diverged runs: the worst final) and the IQM [CI] of the per-seed difference of final rewards, with the exact
+paired sign-flip p-value of its mean (``diff_p_signflip``; a diverged run enters as the env's lowest final reward)
+and Holm's adjustment of those p-values over every arm-vs-baseline test of the summary (``diff_p_holm``). Diverged
+runs are counted (``n_diverged``), never averaged in; the cost columns are means over all complete runs (a run that
 stopped diverged ran only part of its trials: not in them).
 
-Time to threshold (:data:`THRESHOLDS`, per env): the wall-clock minutes (``wall_time_s`` of the first trial
-whose episode reward reaches the threshold, i.e. at the end of that trial, its model training included), the
-env steps and the process CPU minutes (``cpu_time_s``; empty for runs made before the column) until then. Per
-arm over the runs that did not diverge: ``n_reached`` of ``n_seeds`` reached it (counted), and the IQM [CI] of
-each over the runs that reached it (never averaged with the ones that did not). Against the baseline,
-``p_fewer_steps``: P(the arm needs fewer env steps to the threshold than the baseline) with its CI, a run that
-never reached it (or diverged) counting as the most steps.
+Time to threshold (:data:`THRESHOLDS`, per env): the wall-clock minutes (``wall_time_s`` of the first trial whose
+episode reward reaches the threshold, i.e. at the end of that trial, its model training included), the env steps and
+the process CPU minutes (``cpu_time_s``; empty for runs made before the column) until then. Per arm over the runs
+that did not diverge: ``n_reached`` of ``n_seeds`` reached it (counted), and the IQM [CI] of each over the runs that
+reached it (never averaged with the ones that did not). Against the baseline, ``p_fewer_steps``: P(the arm needs
+fewer env steps to the threshold than the baseline) with its CI, a run that never reached it (or diverged) counting
+as the most steps.
 
-Files: ``summary.md``, ``summary.csv`` (per env and arm, :data:`SUMMARY_COLUMNS`; the baseline columns
-empty for the baseline itself and where it has no run), ``summary_runs.csv`` (per run, with
-``diverged``), ``rewards_ENV.png`` (episode reward vs env steps per arm: every seed's curve interpolated
-linearly onto a common grid of 200 env-step values over the range all its seeds cover, then the IQM
-over seeds with its CI band at each grid point; the raw curves faintly behind) and ``walltime_ENV.png``
-(the same against the run's wall-clock hours: reward per unit of compute).
+Files: ``summary.md``, ``summary.csv`` (per env and arm, :data:`SUMMARY_COLUMNS`; the baseline columns empty for the
+baseline itself and where it has no run), ``summary_runs.csv`` (per run, with ``diverged``), ``rewards_ENV.png``
+(episode reward vs env steps per arm: every seed's curve interpolated linearly onto a common grid of 200 env-step
+values over the range all its seeds cover, then the IQM over seeds with its CI band at each grid point; the raw
+curves faintly behind) and ``walltime_ENV.png`` (the same against the run's wall-clock hours: reward per unit of
+compute).
 """
 
 from __future__ import annotations
@@ -58,6 +57,7 @@ from pets.experiments.studies.base import (
     table_cells,
     table_header,
 )
+from pets.experiments.studies.online_text import runs_sections, summary_header
 from pets.runs.fileio import atomic_write_bytes
 
 #: Reward thresholds of the time-to-threshold columns (``docs/performance.md``): InvertedPendulum's maximum
@@ -284,11 +284,11 @@ def summarise_online(
     write_csv(out / "summary.csv", summary, SUMMARY_COLUMNS)
     write_csv(out / "summary_runs.csv", found["per_run"], RUN_COLUMNS)
     text = (
-        _header(trials, w, compared, planners is not None, until_threshold, bool(found["budgeted"]))
+        summary_header(trials, w, compared, planners is not None, until_threshold, bool(found["budgeted"]))
         + text
         + precision_note(found["included"])
     )
-    text += _runs_sections(found["diverged"], found["missing"])
+    text += runs_sections(found["diverged"], found["missing"])
     atomic_write_bytes(out / "summary.md", "\n".join(text).encode())
     return summary
 
@@ -375,57 +375,6 @@ def _plot_env(
     plot_online(
         out / f"walltime_{env_stem(env)}.png", env, curves, colors, x_key="wall_time_s", diverged=n_div, reps=reps
     )
-
-
-def _header(trials: int, w: int, compared: bool, with_planner: bool, until_threshold: bool, budget: bool) -> list[str]:
-    """The top of summary.md: what the columns mean (``budget``: some run has an env-step budget)."""
-    base_name = BASELINE if not with_planner else f"{BASELINE} with the same planner"
-    if until_threshold:
-        runs_line = f"# Online comparison (runs to the threshold, at most {trials} trials each)"
-        span = "the trials up to the one that reached the threshold (or all, if none did)"
-    elif budget:
-        runs_line, span = f"# Online comparison (runs to their env-step budget, at most {trials} trials)", "all trials"
-    else:
-        runs_line, span = f"# Online comparison ({trials} trials per run)", f"all {trials} trials"
-    cut = " An episode cut by a run's env-step budget (max_env_steps) is in neither." if budget else ""
-    return [
-        runs_line,
-        "",
-        f"final = mean episode reward of the last {w} trial{'s' if w > 1 else ''} of each run; "
-        f"AUC = mean episode reward over {span}.{cut} Per arm: the interquartile mean (IQM) over seeds "
-        "with its 95 % stratified-bootstrap CI in brackets (rliable)."
-        + (
-            f" P(final > {BASELINE}'s): the probability that a random seed of the arm ends with a higher final "
-            f"reward than a random seed of {base_name} (ties count half), with its CI. final - {BASELINE}: IQM "
-            "[CI] of the per-seed difference of the final rewards over the seeds both arms have (same seed: "
-            "the same random seed data and env reset seeds). p (sign-flip): the exact paired permutation p-value of "
-            f"the mean final - {BASELINE} over the seeds both arms ran, a diverged run entered as the env's lowest "
-            "final reward (at 5 pairs it cannot go below 0.0625); p (Holm): Holm's adjustment over every "
-            "arm-vs-baseline test of this summary (envs x arms)."
-            if compared
-            else ""
-        )
-        + " A run with a non-finite episode reward, or one that stopped because its model training diverged or no "
-        "plan had a finite return (its diverged.txt), is diverged: counted, left out of the IQMs, CIs and "
-        "differences, and the worst final reward in P. Plan s/step: median seconds per planning step of "
-        "a run; wall h: the run's wall-clock hours (planning, simulation, model training); CPU h: its process "
-        "CPU hours (what other jobs on the machine do not inflate; - for runs made before the column existed); "
-        "each the mean over the complete runs, diverged ones included. To threshold: how many of the runs that "
-        "did not diverge reached the env's reward threshold, and over those that did the IQM [CI] of the "
-        "wall-clock minutes, env steps and process CPU minutes until the end of the first trial that reached it "
-        "(the others counted, not averaged in).",
-        "",
-    ]
-
-
-def _runs_sections(diverged_runs: Sequence[str], missing: Sequence[str]) -> list[str]:
-    """Markdown of the diverged runs and of the missing or incomplete ones."""
-    text = []
-    if diverged_runs:
-        text += ["## Diverged runs (counted, not in the IQMs)", ""] + [f"- {d}" for d in diverged_runs] + [""]
-    if missing:
-        text += ["## Missing or incomplete runs (not in the statistics)", ""] + [f"- {m}" for m in missing] + [""]
-    return text
 
 
 def _env_section(
