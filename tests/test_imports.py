@@ -203,6 +203,21 @@ def test_pets_compare_passes_imports_to_its_runs(folder: Path) -> None:
     )
 
 
+def test_pets_compare_offline_trains_a_model_of_ones_own_in_its_worker_processes(folder: Path) -> None:
+    """pets.compare offline with a model of one's own and --workers 2: the spawned workers import the module from
+    the runs' config (delta-mine is delta bit for bit: the ratio is 1)."""
+    cmd = [sys.executable, "-m", "pets.compare", "offline", "--envs", "invertedpendulum", "--models",
+           "delta,delta-mine", "--seeds", "0", "--episodes", "3", "--test-episodes", "1", "--horizons", "1,2",
+           "--starts", "10", "--preset", "fast", "--device", "cpu", "--quiet", "--workers", "2", "--out", "off",
+           "imports=[my_ext]", "model.max_epochs=2", "model.hidden_size=32", "model.ensemble_size=2",
+           "model.num_elites=2", "model.batch_size=32"]  # fmt: skip
+    proc = warm.run(cmd, cwd=folder, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    written = OmegaConf.load(folder / "off" / "runs" / "invertedpendulum-delta-mine-s0" / "config.yaml")
+    assert list(written.imports) == ["my_ext"] and written.head == "delta-mine"
+    assert "| invertedpendulum | 1 2 | delta-mine | 1 | 0 |" in proc.stdout
+
+
 def test_no_modules_is_an_empty_list_however_it_is_written() -> None:
     from pets.imports import module_names
 
