@@ -5,6 +5,7 @@ one line and exit 2; a run from before the key loads and resumes as it did."""
 
 from __future__ import annotations
 
+import subprocess
 import sys
 from pathlib import Path
 
@@ -216,6 +217,25 @@ def test_pets_compare_offline_trains_a_model_of_ones_own_in_its_worker_processes
     written = OmegaConf.load(folder / "off" / "runs" / "invertedpendulum-delta-mine-s0" / "config.yaml")
     assert list(written.imports) == ["my_ext"] and written.head == "delta-mine"
     assert "| invertedpendulum | 1 2 | delta-mine | 1 | 0 |" in proc.stdout
+
+
+def test_pets_train_and_pets_evaluate_with_a_model_of_ones_own(folder: Path) -> None:
+    """pets.train takes --model of one's own after imports=[my_ext] and records it; pets.evaluate of that run, in a
+    new process, imports the module again from the run's config.yaml."""
+
+    def run(*args: str) -> subprocess.CompletedProcess:
+        return warm.run([sys.executable, "-m", *args], cwd=folder, capture_output=True, text=True, timeout=300)
+
+    proc = run("pets.collect", "--env", "invertedpendulum", "--policy", "random", "--episodes", "3", "--max-steps",
+               "30", "--out", "d.npz", "--quiet")  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    proc = run("pets.train", "--data", "d.npz", "--model", "delta-mine", "--out", "t", "--epochs", "2", "--quiet",
+               "imports=[my_ext]", "model.hidden_size=32", "model.ensemble_size=2", "model.num_elites=2")  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    written = OmegaConf.load(folder / "t" / "config.yaml")
+    assert list(written.imports) == ["my_ext"] and written.head == "delta-mine"
+    proc = run("pets.evaluate", "--run", "t", "--data", "d.npz", "--horizons", "1,2", "--starts", "5")
+    assert proc.returncode == 0 and "delta-mine" in proc.stdout, proc.stdout + proc.stderr
 
 
 def test_no_modules_is_an_empty_list_however_it_is_written() -> None:
