@@ -191,17 +191,20 @@ def test_pets_compare_passes_imports_to_its_runs(folder: Path) -> None:
     """pets.compare online with a model of one's own: --models takes it after the imports, and every run gets
     imports=[my_ext] (its config.yaml records it)."""
     cmd = [sys.executable, "-m", "pets.compare", "online", "--envs", "invertedpendulum", "--models", "delta-mine",
-           "--seeds", "0", "--trials", "1", "--out", "cmp", *TINY, "planner.name=random_shooting",
-           "value.enabled=false", "imports=[my_ext]"]  # fmt: skip
+           "--arm", "mine-h3=delta-mine:planner.horizon=3", "--seeds", "0", "--trials", "1", "--out", "cmp", *TINY,
+           "planner.name=random_shooting", "value.enabled=false", "imports=[my_ext]"]  # fmt: skip
     proc = warm.run(cmd, cwd=folder, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stdout + proc.stderr
-    (run,) = (folder / "cmp" / "runs").iterdir()
-    written = OmegaConf.load(run / "config.yaml")
-    assert (
-        list(written.imports) == ["my_ext"]
-        and written.head == "delta-mine"
-        and written.planner.name == "random_shooting"
-    )
+    runs = sorted((folder / "cmp" / "runs").iterdir())
+    assert [r.name for r in runs] == ["invertedpendulum-delta-mine-s0", "invertedpendulum-mine-h3-s0"]
+    for run in runs:  # the arm of one's own model too (--arm is read after the imports)
+        written = OmegaConf.load(run / "config.yaml")
+        assert (
+            list(written.imports) == ["my_ext"]
+            and written.head == "delta-mine"
+            and written.planner.name == "random_shooting"
+        )
+    assert OmegaConf.load(runs[1] / "config.yaml").planner.horizon == 3
 
 
 def test_pets_compare_offline_trains_a_model_of_ones_own_in_its_worker_processes(folder: Path) -> None:
