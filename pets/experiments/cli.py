@@ -61,7 +61,7 @@ from pets.experiments.backend import Backend
 from pets.experiments.offline import compare_offline
 from pets.experiments.online import compare_online
 from pets.experiments.options import build_parser
-from pets.tools.cli import EXIT_FAILED, EXIT_INTERRUPTED, OneLineParser, fail
+from pets.tools.cli import EXIT_FAILED, EXIT_INTERRUPTED, OneLineParser, fail, import_given
 
 
 def make_backend(args: argparse.Namespace) -> Backend:
@@ -230,12 +230,15 @@ def _parse(parser: OneLineParser, argv: Sequence[str] | None) -> argparse.Namesp
 def _run_mode(args: argparse.Namespace) -> tuple[dict[str, Any], Path]:
     """Check the arguments of a run mode and run it: ``(its result, the report it wrote)``; UsageError for bad
     input."""
-    from pets.config import PRESETS
+    from pets.config import PRESETS, ConfigError
 
     if args.preset not in PRESETS:
         raise UsageError(f"unknown preset {args.preset!r}; accepted: {', '.join(PRESETS)}")
     overrides = overrides_from_line_and_file(args)
-    import_given(overrides)  # before --models, --arm and --planners are looked up: a name may be registered there
+    try:  # before --models, --arm and --planners are looked up: a name may be registered there
+        import_given(list(overrides))
+    except ConfigError as err:
+        raise UsageError(str(err)) from None
     estimate_only = args.estimate and not args.print_config
     if args.out is None and not (args.print_config or estimate_only):
         raise UsageError("--out is required")
@@ -261,18 +264,6 @@ def _run_mode(args: argparse.Namespace) -> tuple[dict[str, Any], Path]:
     if args.mode == "online":
         return _run_online(args, shared), out / "summary.md"
     return _run_offline(args, shared), out / "prediction.md"
-
-
-def import_given(overrides: Sequence[str]) -> None:
-    """Import the modules of an ``imports=[...]`` override (your own models and planners register there; the runs
-    get the override too); UsageError (one line) for a bad value or a module that fails."""
-    from pets.config import ConfigError, parse_overrides
-    from pets.imports import import_modules
-
-    try:
-        import_modules(parse_overrides(list(overrides)).get("imports", []))
-    except ConfigError as err:
-        raise UsageError(str(err)) from None
 
 
 def _parse_arms(texts: Sequence[str]) -> dict[str, tuple[str, dict[str, str]]]:

@@ -79,6 +79,16 @@ def set_threads(n: int) -> None:
         torch.set_num_threads(n)
 
 
+def import_given(overrides: list[str]) -> None:
+    """Import the modules an ``imports=[...]`` item of a command's ``key=value`` overrides names, before the command
+    looks up ``--model`` and planner names (your own register there; the runs get the override too); ConfigError
+    (one line) for a bad value or a module that fails (:mod:`pets.imports`)."""
+    from pets.config import parse_overrides
+    from pets.imports import import_modules
+
+    import_modules(parse_overrides(overrides).get("imports", []))
+
+
 def fail(prog: str, message: str, code: int = EXIT_USAGE) -> NoReturn:
     """Print ``PROG: error: MESSAGE`` (on one line) to stderr and exit with status ``code`` (2: bad input)."""
     line = " ".join(str(message).split()) or "unknown error"

@@ -16,7 +16,7 @@ from pathlib import Path
 from pets.data.datasets import env_name, load_dataset
 from pets.learning.offline import OFFLINE_DEFAULTS, offline_config, train_offline
 from pets.runs.fileio import writable_dir_error
-from pets.tools.cli import EXIT_FAILED, EXIT_INTERRUPTED, OneLineParser, fail, interruptible, write_failed
+from pets.tools.cli import EXIT_FAILED, EXIT_INTERRUPTED, OneLineParser, fail, import_given, interruptible, write_failed
 
 PROG = "pets.train"
 
@@ -57,11 +57,10 @@ def build_parser() -> OneLineParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_intermixed_args(argv)
     from pets.config import HEADS, ConfigError, parse_overrides
-    from pets.imports import import_modules
     from pets.models import UNREGISTERED
 
     try:  # your own models register in the modules of imports=[...]: imported before --model is looked up
-        import_modules(parse_overrides(args.overrides).get("imports", []))
+        import_given(args.overrides)
     except ConfigError as err:
         fail(PROG, str(err))
     if args.model not in HEADS:
