@@ -166,16 +166,11 @@ def refuse_online_run(run_dir: Path, out: Path) -> None:
         )
 
 
-def _written(run_dir: Path) -> dict[str, Any]:
-    """The keys of a run's config.yaml as written (not filled with the schema's defaults)."""
-    import yaml
-
-    return yaml.safe_load((run_dir / "config.yaml").read_text()) or {}
-
-
 def check_same_config(run_dir: Path, expected: Any, ignore: Iterable[str] = NOT_COMPARED) -> None:
     """UsageError if the run in ``run_dir`` was made with another config than ``expected``."""
     from omegaconf.errors import OmegaConfBaseException
+
+    from pets.runs.rundir import written_config
 
     try:
         diff = config_differences(run_dir, expected, ignore)
@@ -184,7 +179,7 @@ def check_same_config(run_dir: Path, expected: Any, ignore: Iterable[str] = NOT_
             f"{run_dir}/config.yaml cannot be read ({str(err).splitlines()[0]}); "
             "move that run directory away or pick another --out"
         ) from None
-    if diff and diff[0].startswith("imports:") and "imports" not in _written(run_dir):
+    if diff and diff[0].startswith("imports:") and "imports" not in written_config(run_dir):
         raise UsageError(  # a run made before the key, by a script that imported the modules itself
             f"{run_dir} was made before the config key imports; add `imports: {list(expected.imports)}` to its "
             "config.yaml (docs/api.md), or pick another --out"

@@ -91,6 +91,14 @@ def append_history(run_dir: Path, action: str, trials_done: int) -> None:
     atomic_write_bytes(path, f"{head}\n{rows}{new}".encode())
 
 
+def written_config(run_dir: Path) -> dict[str, Any]:
+    """A run's config.yaml as written (nested dicts; a key added to the schema after the run is absent, not filled
+    with its default)."""
+    import yaml
+
+    return yaml.safe_load((run_dir / CONFIG_FILE).read_text()) or {}
+
+
 def record_divergence(run_dir: Path, why: str | None) -> None:
     """Record why the run in ``run_dir`` stopped diverged (:data:`DIVERGED_FILE`), or with None clear the record."""
     if why is None:
@@ -208,13 +216,12 @@ def check_resumed_config(run_dir: Path, state: dict[str, Any], cfg: Any) -> None
     (added to the code after the run started: it takes its default, which keeps what the code did before it), nor
     ``imports`` where the checkpoint has none (a run from before the key: its config.yaml may be given the modules
     that register its planner or model, which change no result)."""
-    import yaml
     from omegaconf import OmegaConf
 
     if not isinstance(state.get("config"), dict):
         return
     saved, now = _flat(state["config"]), _flat(OmegaConf.to_container(cfg))
-    written = _flat(yaml.safe_load((run_dir / CONFIG_FILE).read_text()) or {})
+    written = _flat(written_config(run_dir))
     keys = saved.keys() | written.keys()
     same = (*RESUMABLE_KEYS, *(() if "imports" in saved else ("imports",)))
     changed = sorted(k for k in keys if k not in same and saved.get(k) != now.get(k))
