@@ -319,3 +319,24 @@ def test_the_papers_claim_is_worded_by_the_registered_rule_per_env(tmp_path):
     assert claim(higher[:9], higher)["halfcheetah"] == (
         "- halfcheetah: not yet (pairs of 10 per arm: delta-groupfeat 9, gem 9, gem-se 10; no verdict is read before)"
     )
+
+
+def test_the_figure_draws_every_arm_over_the_seeds_all_arms_have_complete(tmp_path, monkeypatch):
+    """While the study runs, an arm with a seed another arm lacks (complete) is drawn without it: the lines compare
+    the same seeds (here seeds 0-1; gem's seed 2 and delta's partial seed 2 are left out)."""
+    runs, points = [], []
+    for model, seeds in (("delta", (0, 1)), ("gem", (0, 1, 2)), ("gem-se", (0, 1, 2))):
+        for seed in seeds:
+            runs.append({"env": "halfcheetah", "model": model, "seed": seed, "status": "complete"})
+            points += [{"env": "halfcheetah", "model": model, "seed": seed, "env_steps": 1000, "reward": 1.0}]
+    runs.append({"env": "halfcheetah", "model": "delta", "seed": 2, "status": "partial"})
+    write_rounded_csv(tmp_path / study.RUNS, runs, ["env", "model", "seed", "status"])
+    write_rounded_csv(tmp_path / study.CURVES, points, study.CURVE_COLUMNS)
+    drawn = {}
+    monkeypatch.setattr(study.curves, "plot_curves", lambda path, arms, **kw: drawn.update(arms))
+    study.plot_curves(tmp_path, tmp_path / "figure.png")
+    assert {arm: sorted(members) for arm, members in drawn["halfcheetah"].items()} == {
+        "delta": ["0", "1"],
+        "gem": ["0", "1"],
+        "gem-se": ["0", "1"],
+    }

@@ -53,6 +53,16 @@ def complete_curves(runs: Path, points: Path, label: str, keep: Container[str] |
     return group_curves((r for r in read_csv_rows(points) if key(r) in done), label, "seed")
 
 
+def paired_members(curves: Curves) -> Curves:
+    """``curves`` with each env's lines cut to the members (seeds) that every line of the env has: while a paired
+    study runs, its arms are drawn over the same seeds."""
+    out: Curves = {}
+    for env, lines in curves.items():
+        common = set.intersection(*(set(members) for members in lines.values())) if lines else set()
+        out[env] = {label: {m: p for m, p in members.items() if m in common} for label, members in lines.items()}
+    return out
+
+
 def plot_curves(
     path: Path,
     curves: Curves,

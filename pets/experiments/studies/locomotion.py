@@ -277,11 +277,14 @@ def plot_curves(results: Path, figure: Path) -> None:
     with a 95 % bootstrap band (seeds resampled as whole curves), the gate's threshold dashed, the ceiling (the
     true-dynamics MPC of the preset's planner, ``locomotion_oracle.csv``) dotted and SAC's mean curve at the same
     budget (the gate's reference runs, ``locomotion_gate_curves.csv``) dash-dotted. On a planar env
-    ``delta-groupfeat`` is not drawn: its curve is ``gem``'s (:data:`IDENTICAL`), which is drawn."""
+    ``delta-groupfeat`` is not drawn: its curve is ``gem``'s (:data:`IDENTICAL`), which is drawn. Every arm of an
+    env is drawn over the seeds complete in all of its arms (:func:`pets.experiments.curves.paired_members`), so
+    the lines of a study still running compare the same seeds."""
     arms = curves.complete_curves(results / RUNS, results / CURVES, "model")
     for env, lines in arms.items():
         if planar(env):
             lines.pop(IDENTICAL[0], None)
+    arms = curves.paired_members(arms)
     curves.plot_curves(figure, arms, thresholds=gate.THRESHOLDS,
                        ceiling=gate_published.committed_ceiling(results / "locomotion_oracle.csv"), first=BASELINE,
                        ylabel=f"return, last {gate.WINDOW} episodes (95 % CI)",
