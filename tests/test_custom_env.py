@@ -73,6 +73,9 @@ def test_pets_compare_offline_takes_the_import_path(tmp_path):
         progress=False,
     )
     assert not result["failed"] and set(result["done"]) == {"pendulum-delta-s0", "pendulum-gem-s0"}  # no colon
+    # the summary finds the runs' evaluations (their request names the data file by the spec's name)
+    assert {(r["env"], r["model"]) for r in result["summary"]} == {(PATH, "delta"), (PATH, "gem")}
+    assert "Missing runs" not in (tmp_path / "prediction.md").read_text()
 
 
 def test_a_registered_spec_through_the_python_api():
