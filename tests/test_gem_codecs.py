@@ -101,8 +101,10 @@ def test_a_kind_registered_from_outside_is_one_codec_and_one_entry(degrees_kind:
 
 
 def test_registering_a_kind_makes_layouts_accept_it_and_unregistering_removes_it() -> None:
-    with pytest.raises(ValueError, match="unknown kind"):
+    with pytest.raises(ValueError, match="unknown kind") as info:
         Group("hinge", "SO2_deg", (0,))
+    assert "module that calls gem_head.codecs.register_codec is imported" in str(info.value)  # what to do
+    assert "imports=[my_codec]" in str(info.value) and "\n" not in str(info.value)
     register_codec(SO2DegreesCodec)
     try:
         assert KIND_WIDTH["SO2_deg"] == 1 and Group("hinge", "SO2_deg", (0,)).kind == "SO2_deg"
