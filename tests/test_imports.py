@@ -161,7 +161,7 @@ def test_make_config_and_load_config_import_first_in_this_process(registrations,
 def test_a_run_from_before_the_key_loads_and_resumes_as_it_did(tmp_path: Path) -> None:
     """A run whose config.yaml and checkpoint have no imports (written before the key existed) resumes; its
     config.yaml may then be given the key (the modules that register its planner or model) without being called
-    edited, while a run that recorded its imports may not change them."""
+    edited, while a run that recorded its imports may not drop one."""
     from pets.config import ConfigError, load_run_config
     from pets.runs import rundir
 
@@ -182,8 +182,8 @@ def test_a_run_from_before_the_key_loads_and_resumes_as_it_did(tmp_path: Path) -
     del old["config"]["imports"]
     (out / "config.yaml").write_text("imports: [json]\n" + (out / "config.yaml").read_text())
     rundir.check_resumed_config(out, old, load_run_config(out))  # not an edit: the checkpoint predates the key
-    recorded = {**old, "config": {**old["config"], "imports": []}}
-    with pytest.raises(ConfigError, match=r"was edited after the run started \(imports: \[\] in the checkpoint"):
+    recorded = {**old, "config": {**old["config"], "imports": ["os"]}}  # a module recorded, then dropped
+    with pytest.raises(ConfigError, match=r"was edited after the run started \(imports: \['os'\] in the checkpoint"):
         rundir.check_resumed_config(out, recorded, load_run_config(out))
 
 
@@ -247,3 +247,33 @@ def test_no_modules_is_an_empty_list_however_it_is_written() -> None:
     for empty in ("", "null", "[]", None, []):
         assert module_names(empty) == []
     assert module_names("json") == ["json"] and module_names("[json, os.path]") == ["json", "os.path"]
+
+
+def test_a_model_registered_by_a_module_the_api_process_imported_itself_reopens_once_config_yaml_names_it(
+    registrations, folder: Path, monkeypatch
+) -> None:
+    """pets.PETS with a model whose module the script imported itself (not through imports) records imports: [];
+    a new process cannot know the model (one line naming imports), and once config.yaml names the module (adding
+    modules to imports is not an edit; dropping one is: test_a_run_from_before_the_key_loads_and_resumes_as_it_did)
+    --resume and PETS.load / load_model reopen the run."""
+    import pets
+
+    monkeypatch.syspath_prepend(str(folder))
+    import my_ext  # noqa: F401  (the script's own import: registers delta-mine in this process only)
+
+    tiny = {k: v for k, _, v in (item.partition("=") for item in TINY if "=" in item)}
+    agent = pets.PETS("invertedpendulum", model="delta-mine", preset="fast", seed=0, **tiny, **{"value.enabled": False})
+    agent.learn(trials=1)
+    agent.save("run")
+    written = OmegaConf.load(folder / "run" / "config.yaml")
+    assert list(written.imports) == [] and written.head == "delta-mine"
+    line = one_line(run_here(["--resume", "run", "--trials", 2, "--quiet"], folder))
+    assert "its planner 'random_shooting' is not a planner here" in line and "imports: [my_planner]" in line
+    written.imports = ["my_ext"]
+    OmegaConf.save(written, folder / "run" / "config.yaml")
+    assert run_here(["--resume", "run", "--trials", 2, "--quiet"], folder).returncode == 0
+    assert [int(r["trial"]) for r in rows(folder / "run")] == [0, 1]
+    (folder / "load.py").write_text(LOAD)
+    proc = run_here([], folder, script=folder / "load.py")
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.split() == ["2", "mppi", "delta-mine", "['my_ext']", "DynamicsModel"]
