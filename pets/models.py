@@ -220,7 +220,7 @@ def make_model(cfg: DictConfig, spec: EnvSpec, device: torch.device) -> Dynamics
     entry = MODELS[cfg.head]
     head = entry.make_head(cfg, spec)
     check_head(cfg.head, head, spec)
-    model = DynamicsModel(head, entry.make_network(cfg, head))  # checks that head and network agree
+    model = DynamicsModel(head, entry.make_network(cfg, head), name=cfg.head)  # checks that head and network agree
     if model.deterministic != entry.deterministic:  # the table's flag (read without building) is the model's
         raise ValueError(f"MODELS[{cfg.head!r}].deterministic is {entry.deterministic}, the model it builds is not")
     return model.to(device)

@@ -577,6 +577,7 @@ def test_a_model_registered_from_outside_is_a_model_name_everywhere(tmp_path, mo
     args = ["--env", "invertedpendulum", "--model", "mine", "--trials", "1", "--out", str(out), *TINY]
     assert run_pets.main(args) == 0
     assert "head: mine" in (out / "config.yaml").read_text()
+    assert builder.load_model(out)[2].name == "mine"  # the registered name, not the reused head's ("delta")
     for name, bad, message in (
         ("delta", entry, "model name 'delta' is taken"),
         ("my model", entry, "without spaces"),
