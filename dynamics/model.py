@@ -22,7 +22,8 @@ class DynamicsModel(nn.Module):
     rebuilt from the config).
     """
 
-    def __init__(self, head: DynamicsHead, network: MemberEnsemble) -> None:
+    def __init__(self, head: DynamicsHead, network: MemberEnsemble, name: str | None = None) -> None:
+        """``name``: the model's name (``--model``; ``pets.models.make_model`` passes it), else the head's."""
         super().__init__()
         if head.input_dim != network.in_dim or head.target_dim != network.out_dim:
             raise ValueError(
@@ -38,11 +39,13 @@ class DynamicsModel(nn.Module):
             )
         self.head = head
         self.network = network
+        self._name = name
 
     # ------------------------------------------------------------------ facts
     @property
     def name(self) -> str:
-        return self.head.name
+        """The model's ``--model`` name (a model of one's own: its registered name, whatever head it reuses)."""
+        return self._name or self.head.name
 
     @property
     def obs_dim(self) -> int:

@@ -55,7 +55,12 @@ class Group:
 
     def __post_init__(self) -> None:
         if self.kind not in KIND_WIDTH:
-            raise ValueError(f"group {self.name!r}: unknown kind {self.kind!r}; accepted: {sorted(KIND_WIDTH)}")
+            raise ValueError(
+                f"group {self.name!r}: unknown kind {self.kind!r}; accepted: {sorted(KIND_WIDTH)} (a kind of your own "
+                "is known once the module that calls gem_head.codecs.register_codec is imported: import it in the "
+                "module that builds this layout, or name it in the config key imports, e.g. imports=[my_codec]; "
+                "docs/models.md)"
+            )
         width = KIND_WIDTH[self.kind]
         if width is None and len(self.indices) < 1 or width is not None and len(self.indices) != width:
             raise ValueError(

@@ -14,9 +14,8 @@ below is a handful of batched tensor ops whatever the number of units. Per codec
 ``additive`` codecs (``Rn``, ``SO2_angle``), whose group product adds the observed coordinates, get ``next - obs``
 in their slots (``obs + target`` in their entries) at once, in contiguous runs, before their fix-ups run.
 
-``CODECS`` maps a kind name to its codec class, in the order the kinds' features enter the network; a new kind is
-one subclass of :class:`GroupCodec` and one ``register_codec`` call (which lets ``envs.layout.Group`` accept it).
-The root codecs of ``gem-se`` (``SE2``, ``SE3``) live in ``gem_head.se_root``.
+``CODECS`` maps a kind to its codec class, in the order the kinds' features enter the network; a new kind is one
+``GroupCodec`` subclass and one ``register_codec`` call; ``gem-se``'s root codecs live in ``gem_head.se_root``.
 """
 
 from __future__ import annotations
@@ -413,9 +412,11 @@ def _check_codec(cls: object) -> None:
     if not (isinstance(dim, int) and dim >= 1):
         raise ValueError(f"codec {kind!r}: tangent_dim must be the target slots per unit (an int >= 1), got {dim!r}")
     missing = [m for m in ("target", "decode") if getattr(cls, m) is getattr(GroupCodec, m) and not cls.additive]
+    base_angle = cls.rotation_angle.__func__ is GroupCodec.rotation_angle.__func__
+    missing += ["rotation_angle"] * (cls.is_rotation and base_angle)
     if missing:
-        raise ValueError(f"codec {kind!r} is not additive, so it must define {' and '.join(missing)} (the base "
-                         "class's write nothing)")  # fmt: skip
+        raise ValueError(f"codec {kind!r} must define {' and '.join(missing)} (a kind that is not additive: the base "
+                         "class's maps write nothing; with is_rotation: the evaluation's rotation error)")  # fmt: skip
 
 
 def register_codec(cls: type[GroupCodec]) -> type[GroupCodec]:

@@ -29,7 +29,7 @@ from pets.limits import schedule_problem, size_problem
 from pets.models import MODELS, check_model
 from pets.planning.feedback import FeedbackConfig
 from pets.planning.particles import CANDIDATE_TABLE
-from pets.planning.planners import PLANNER_CLASSES, UNREGISTERED, ICEMConfig, MPPIConfig, check_planner_config
+from pets.planning.planners import PLANNER_CLASSES, ICEMConfig, MPPIConfig, check_planner_config, unknown_planner
 from pets.planning.propagation import CANDIDATES, PROPAGATIONS
 from pets.planning.value import ValueConfig
 from pets.presets import ENV_DEFAULTS, HEAD_DEFAULTS, PRESET_ENV_DEFAULTS, PRESETS
@@ -40,8 +40,7 @@ __all__ = ["ConfigError", "FeedbackConfig", "ICEMConfig", "MPPIConfig", "ValueCo
 
 #: ``--model`` values (config key ``head``): the names of ``pets.models.MODELS`` (a live view: ``register_model``).
 HEADS = MODELS.keys()
-#: ``planner.name`` values: the names of the planner table (``pets.planning.planners.PLANNER_CLASSES``; a live view, so
-#: a planner registered later is accepted too).
+#: ``planner.name`` values: the names of ``pets.planning.planners.PLANNER_CLASSES`` (a live view: ``register_planner``).
 PLANNERS = PLANNER_CLASSES.keys()
 AUTO_BOOL_KEYS = ("model.compile",)  # their ``auto`` is null until resolve_auto makes it true or false
 PRECISIONS = ("auto", *CONCRETE_PRECISIONS)  # auto: resolved by make_config / load_config (pets.runs.hardware)
@@ -431,8 +430,8 @@ def load_config(path: str | Path) -> DictConfig:
     if missing:
         raise ConfigError(f"{path} has no {', '.join(missing)} (truncated?); {restore}")
     import_modules(stored.get("imports", []), where=str(path))  # before its planner, model and codecs are checked
-    if isinstance(stored.planner, DictConfig) and str(stored.planner.get("name", "cem")) not in PLANNER_CLASSES:
-        raise ConfigError(f"{path}: its planner {stored.planner.get('name')!r} is not a planner here{UNREGISTERED}")
+    if isinstance(stored.planner, DictConfig) and (problem := unknown_planner(stored.planner, schema().planner)):
+        raise ConfigError(f"{path}: {problem}")  # its name, or a section of a planner of one's own
     try:
         for old, new in DEPRECATED_KEYS.items():  # a config.yaml of gem-pets 0.1 has the flat planner keys
             if OmegaConf.select(stored, old) is not None:

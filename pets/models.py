@@ -215,12 +215,24 @@ def check_head(name: str, head: DynamicsHead, spec: EnvSpec) -> None:
 
 def make_model(cfg: DictConfig, spec: EnvSpec, device: torch.device) -> DynamicsModel:
     """The model ``cfg.head`` for env ``spec`` on ``device`` (``cfg`` is validated: the name is in :data:`MODELS`)."""
+    from dynamics.heads import DynamicsHead
     from dynamics.model import DynamicsModel
+    from pets.errors import ConfigError
 
-    entry = MODELS[cfg.head]
+    entry, name = MODELS[cfg.head], cfg.head
     head = entry.make_head(cfg, spec)
-    check_head(cfg.head, head, spec)
-    model = DynamicsModel(head, entry.make_network(cfg, head))  # checks that head and network agree
+    if not isinstance(head, DynamicsHead):  # a model of one's own: one line, not an AttributeError in the probe
+        raise ConfigError(
+            f"model {name!r}: make_head returned {type(head).__name__}, not a dynamics.heads.DynamicsHead"
+        )
+    check_head(name, head, spec)
+    try:
+        model = DynamicsModel(head, entry.make_network(cfg, head), name=name)  # checks that head and network agree
+    except ValueError as err:
+        raise ConfigError(f"model {name!r}: {err}") from None
     if model.deterministic != entry.deterministic:  # the table's flag (read without building) is the model's
-        raise ValueError(f"MODELS[{cfg.head!r}].deterministic is {entry.deterministic}, the model it builds is not")
+        raise ConfigError(
+            f"model {name!r}: its ModelEntry says deterministic={entry.deterministic}, but its head and network are "
+            f"{'not ' * entry.deterministic}deterministic"
+        )
     return model.to(device)

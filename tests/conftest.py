@@ -34,19 +34,24 @@ def env_names_end_with_their_test():
 
 
 @pytest.fixture(autouse=True)
-def planner_and_model_names_end_with_their_test():
-    """Planners and models a test registers (``register_planner``, ``register_model``, a module of the config key
-    ``imports`` such as tests/own_planner.py) are gone after it, and a module imported by the test that registered
-    them is forgotten (a later ``imports`` of it registers them again): no test sees another's names."""
+def planner_model_and_codec_names_end_with_their_test():
+    """Planners, models and codec kinds a test registers (``register_planner``, ``register_model``,
+    ``register_codec``, a module of the config key ``imports`` such as tests/own_planner.py or tests/own_codec.py)
+    are gone after it, and a module imported by the test that registered them is forgotten (a later ``imports`` of
+    it registers them again): no test sees another's names."""
+    from envs.layout import KIND_WIDTH
+    from gem_head.codecs import _ADDED_KINDS, CODECS
     from pets.models import MODELS
     from pets.planning.planners import PLANNER_CLASSES
 
-    planners, models, modules = dict(PLANNER_CLASSES), dict(MODELS), set(sys.modules)
+    tables = (PLANNER_CLASSES, MODELS, CODECS, KIND_WIDTH)
+    before, added, modules = [dict(table) for table in tables], set(_ADDED_KINDS), set(sys.modules)
     yield
-    registered = PLANNER_CLASSES.keys() != planners.keys() or MODELS.keys() != models.keys()
-    for table, before in ((PLANNER_CLASSES, planners), (MODELS, models)):
+    registered = any(table.keys() != old.keys() for table, old in zip(tables, before, strict=True))
+    for table, old in zip(tables, before, strict=True):
         table.clear()
-        table.update(before)
+        table.update(old)
+    _ADDED_KINDS.intersection_update(added)
     if registered:  # forget the user's modules imported during the test only (a model may reuse a built-in head,
         for name in set(sys.modules) - modules:  # so its entry does not name its module); never another test's
             if _users_module(sys.modules.get(name)):

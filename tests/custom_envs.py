@@ -26,3 +26,11 @@ def pendulum() -> envs.EnvSpec:
 
 #: ``--env tests.custom_envs:PENDULUM`` (a function returning the spec works as well: ``tests.custom_envs:pendulum``).
 PENDULUM = pendulum()
+
+
+def wrapped_pendulum() -> envs.EnvSpec:
+    """InvertedPendulum with its hinge of the kind ``SO2_wrapped``, a codec of one's own (tests/own_codec.py), which
+    this module does not import: ``--env tests.custom_envs:wrapped_pendulum imports=[tests.own_codec]``."""
+    ip = envs.get("invertedpendulum")
+    layout = ObsLayout(4, (Group("cart", "Rn", (0,)), Group("hinge", "SO2_wrapped", (1,))), velocities=(2, 3))
+    return envs.custom_spec("ip-wrapped", "InvertedPendulum-v5", layout, ip.reward, ip.terminated)

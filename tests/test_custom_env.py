@@ -73,6 +73,9 @@ def test_pets_compare_offline_takes_the_import_path(tmp_path):
         progress=False,
     )
     assert not result["failed"] and set(result["done"]) == {"pendulum-delta-s0", "pendulum-gem-s0"}  # no colon
+    # the summary finds the runs' evaluations (their request names the data file by the spec's name)
+    assert {(r["env"], r["model"]) for r in result["summary"]} == {(PATH, "delta"), (PATH, "gem")}
+    assert "Missing runs" not in (tmp_path / "prediction.md").read_text()
 
 
 def test_a_registered_spec_through_the_python_api():
@@ -150,3 +153,14 @@ def test_a_video_of_an_env_that_is_not_mujoco_is_one_line_and_leaves_no_director
     assert proc.returncode == 2 and len(lines) == 1, proc.stderr
     assert "videos are rendered by MuJoCo; " in lines[0] and "is not a MuJoCo env: drop --video" in lines[0]
     assert not (tmp_path / "run").exists()
+
+
+def test_pets_collect_takes_the_import_path_as_its_help_says(tmp_path):
+    """pets.collect --env module:ATTR collects the spec's env (its --help says so), the file names the path."""
+    from pets.data.datasets import load_dataset
+    from pets.tools.collect import build_parser, main
+
+    assert "module:ATTR" in build_parser().format_help()
+    out = tmp_path / "d.npz"
+    assert main(["--env", PATH, "--policy", "random", "--episodes", "1", "--max-steps", "5", "--out", str(out)]) == 0
+    assert str(load_dataset(out)["env"]) == PATH

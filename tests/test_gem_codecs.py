@@ -101,8 +101,10 @@ def test_a_kind_registered_from_outside_is_one_codec_and_one_entry(degrees_kind:
 
 
 def test_registering_a_kind_makes_layouts_accept_it_and_unregistering_removes_it() -> None:
-    with pytest.raises(ValueError, match="unknown kind"):
+    with pytest.raises(ValueError, match="unknown kind") as info:
         Group("hinge", "SO2_deg", (0,))
+    assert "module that calls gem_head.codecs.register_codec is imported" in str(info.value)  # what to do
+    assert "imports=[my_codec]" in str(info.value) and "\n" not in str(info.value)
     register_codec(SO2DegreesCodec)
     try:
         assert KIND_WIDTH["SO2_deg"] == 1 and Group("hinge", "SO2_deg", (0,)).kind == "SO2_deg"
@@ -217,11 +219,14 @@ def test_gradcheck_encode_decode_of_every_codec(env: str, model: type[GemHead], 
         ({"kind": "K", "width": 1, "tangent_dim": 0}, "tangent_dim must be"),
         ({"kind": "K", "width": 1, "tangent_dim": 1}, "must define target and decode"),
         ({"kind": "K", "width": 1, "tangent_dim": 1, "target": SO2DegreesCodec.target}, "must define decode"),
+        ({"kind": "K", "width": 1, "tangent_dim": 1, "additive": True, "is_rotation": True},
+         "must define rotation_angle"),
     ],
-)
+)  # fmt: skip
 def test_an_incomplete_codec_is_refused_at_registration_in_one_line(attrs: dict, message: str) -> None:
     """A codec without its attributes, or a non-additive one without its maps (the base class's write nothing: a head
-    built on it would return whatever memory its outputs were allocated in), is refused before any layout takes it."""
+    built on it would return whatever memory its outputs were allocated in), or a rotation without its evaluation's
+    rotation_angle (pets.evaluate would raise NotImplementedError), is refused before any layout takes it."""
     with pytest.raises(ValueError, match=message) as info:
         register_codec(type("Incomplete", (GroupCodec,), attrs))
     assert "\n" not in str(info.value) and "K" not in CODECS and "K" not in KIND_WIDTH

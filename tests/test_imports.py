@@ -5,6 +5,8 @@ one line and exit 2; a run from before the key loads and resumes as it did."""
 
 from __future__ import annotations
 
+import json
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -29,6 +31,24 @@ agent = pets.PETS.load("run")
 assert "my_ext" in sys.modules
 model = pets.load_model("run")
 print(agent.trials_done, agent.config.planner.name, agent.config.head, list(agent.config.imports), type(model).__name__)
+"""
+#: A codec of the user's (tests/own_codec.py, docs/models.md's example): the kind SO2_wrapped, written as my_codec.py,
+#: and an env module of the user's whose layout uses that kind and does not import the codec's module itself.
+CODEC = (ROOT / "tests" / "own_codec.py").read_text()
+WRAPPED_ENV = """import envs
+from envs import Group, ObsLayout
+
+IP = envs.get("invertedpendulum")
+LAYOUT = ObsLayout(4, (Group("cart", "Rn", (0,)), Group("hinge", "SO2_wrapped", (1,))), velocities=(2, 3))
+SPEC = envs.custom_spec("ip-wrapped", "InvertedPendulum-v5", LAYOUT, IP.reward, IP.terminated)
+"""
+#: Opens the codec's run in a new process: the head is built on the codec, whose decoding wraps the angle.
+LOAD_CODEC = """import math, torch
+import pets
+
+agent, model = pets.PETS.load("run"), pets.load_model("run")
+nxt = model.head.next_obs(torch.tensor([[0.0, 3.0, 0.0, 0.0]]), torch.tensor([[0.0, 1.0, 0.0, 0.0]]))
+print(agent.trials_done, [type(c).__name__ for c in model.head.codecs], round(float(nxt[0, 1]), 4))
 """
 OWN = [
     "--model",
@@ -161,7 +181,7 @@ def test_make_config_and_load_config_import_first_in_this_process(registrations,
 def test_a_run_from_before_the_key_loads_and_resumes_as_it_did(tmp_path: Path) -> None:
     """A run whose config.yaml and checkpoint have no imports (written before the key existed) resumes; its
     config.yaml may then be given the key (the modules that register its planner or model) without being called
-    edited, while a run that recorded its imports may not change them."""
+    edited, while a run that recorded its imports may not drop one."""
     from pets.config import ConfigError, load_run_config
     from pets.runs import rundir
 
@@ -182,8 +202,8 @@ def test_a_run_from_before_the_key_loads_and_resumes_as_it_did(tmp_path: Path) -
     del old["config"]["imports"]
     (out / "config.yaml").write_text("imports: [json]\n" + (out / "config.yaml").read_text())
     rundir.check_resumed_config(out, old, load_run_config(out))  # not an edit: the checkpoint predates the key
-    recorded = {**old, "config": {**old["config"], "imports": []}}
-    with pytest.raises(ConfigError, match=r"was edited after the run started \(imports: \[\] in the checkpoint"):
+    recorded = {**old, "config": {**old["config"], "imports": ["os"]}}  # a module recorded, then dropped
+    with pytest.raises(ConfigError, match=r"was edited after the run started \(imports: \['os'\] in the checkpoint"):
         rundir.check_resumed_config(out, recorded, load_run_config(out))
 
 
@@ -247,3 +267,77 @@ def test_no_modules_is_an_empty_list_however_it_is_written() -> None:
     for empty in ("", "null", "[]", None, []):
         assert module_names(empty) == []
     assert module_names("json") == ["json"] and module_names("[json, os.path]") == ["json", "os.path"]
+
+
+def test_a_model_registered_by_a_module_the_api_process_imported_itself_reopens_once_config_yaml_names_it(
+    registrations, folder: Path, monkeypatch
+) -> None:
+    """pets.PETS with a model whose module the script imported itself (not through imports) records imports: [];
+    a new process cannot know the model (one line naming imports), and once config.yaml names the module (adding
+    modules to imports is not an edit; dropping one is: test_a_run_from_before_the_key_loads_and_resumes_as_it_did)
+    --resume and PETS.load / load_model reopen the run."""
+    import pets
+
+    monkeypatch.syspath_prepend(str(folder))
+    import my_ext  # noqa: F401  (the script's own import: registers delta-mine in this process only)
+
+    tiny = {k: v for k, _, v in (item.partition("=") for item in TINY if "=" in item)}
+    agent = pets.PETS("invertedpendulum", model="delta-mine", preset="fast", seed=0, **tiny, **{"value.enabled": False})
+    agent.learn(trials=1)
+    agent.save("run")
+    written = OmegaConf.load(folder / "run" / "config.yaml")
+    assert list(written.imports) == [] and written.head == "delta-mine"
+    line = one_line(run_here(["--resume", "run", "--trials", 2, "--quiet"], folder))
+    assert "its planner 'random_shooting' is not a planner here" in line and "imports: [my_planner]" in line
+    written.imports = ["my_ext"]
+    OmegaConf.save(written, folder / "run" / "config.yaml")
+    assert run_here(["--resume", "run", "--trials", 2, "--quiet"], folder).returncode == 0
+    assert [int(r["trial"]) for r in rows(folder / "run")] == [0, 1]
+    (folder / "load.py").write_text(LOAD)
+    proc = run_here([], folder, script=folder / "load.py")
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.split() == ["2", "mppi", "delta-mine", "['my_ext']", "DynamicsModel"]
+
+
+def test_a_codec_of_ones_own_from_imports_runs_resumes_loads_collects_and_evaluates(folder: Path) -> None:
+    """--env my_env:SPEC, whose layout uses the kind SO2_wrapped, with imports=[my_codec] (the module that registers
+    the codec) runs a gem trial on the codec; without imports, one line that says imports=[my_codec]; --resume,
+    PETS.load / load_model, pets.collect --policy run: and pets.evaluate in new processes import it again."""
+    (folder / "my_codec.py").write_text(CODEC)
+    (folder / "my_env.py").write_text(WRAPPED_ENV)
+    args = ["--env", "my_env:SPEC", "--model", "gem", "--trials", 1, "--out", "run", *TINY, "value.enabled=false"]
+    line = one_line(run_here(args, folder))
+    assert "unknown kind 'SO2_wrapped'" in line and "imports=[my_codec]" in line and not (folder / "run").exists()
+    proc = run_here([*args, "imports=[my_codec]"], folder)
+    assert proc.returncode == 0, proc.stderr
+    written = OmegaConf.load(folder / "run" / "config.yaml")
+    assert list(written.imports) == ["my_codec"] and written.env == "my_env:SPEC" and written.head == "gem"
+    assert run_here(["--resume", "run", "--trials", 2, "--quiet"], folder).returncode == 0
+    assert [int(r["trial"]) for r in rows(folder / "run")] == [0, 1]
+    (folder / "load.py").write_text(LOAD_CODEC)
+    proc = run_here([], folder, script=folder / "load.py")
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.split() == ["2", "['RnCodec',", "'SO2WrappedCodec']", str(round(4.0 - 2 * math.pi, 4))]
+
+    def tool(*cmd: str) -> subprocess.CompletedProcess:
+        return warm.run([sys.executable, "-m", *cmd], cwd=folder, capture_output=True, text=True, timeout=300)
+
+    proc = tool("pets.collect", "--policy", "run:run", "--episodes", "2", "--max-steps", "20", "--out", "d.npz")
+    assert proc.returncode == 0, proc.stderr
+    proc = tool("pets.evaluate", "--run", "run", "--data", "d.npz", "--horizons", "1,2", "--starts", "4", "--json", "e")
+    assert proc.returncode == 0, proc.stderr
+    result = json.loads((folder / "e").read_text())
+    assert result["env"] == "my_env:SPEC" and math.isfinite(result["horizons"]["2"]["rotation_error"])
+    assert result["horizons"]["2"]["rotation_error"] > 0
+
+
+def test_a_codec_of_ones_own_from_imports_in_the_python_api(registrations, folder: Path) -> None:
+    """pets.PETS(..., imports=["my_codec"]) imports the codec's module before the env's layout is built: the model's
+    head runs on the codec, and the config records the module."""
+    import pets
+
+    (folder / "my_codec.py").write_text(CODEC)
+    (folder / "my_env.py").write_text(WRAPPED_ENV)
+    agent = pets.PETS("my_env:SPEC", model="gem", preset="fast", imports=["my_codec"], **{"model.compile": False})
+    assert [c.kind for c in agent.model.head.codecs] == ["Rn", "SO2_wrapped"]
+    assert list(agent.config.imports) == ["my_codec"] and agent.config.env == "my_env:SPEC"

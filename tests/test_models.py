@@ -577,6 +577,7 @@ def test_a_model_registered_from_outside_is_a_model_name_everywhere(tmp_path, mo
     args = ["--env", "invertedpendulum", "--model", "mine", "--trials", "1", "--out", str(out), *TINY]
     assert run_pets.main(args) == 0
     assert "head: mine" in (out / "config.yaml").read_text()
+    assert builder.load_model(out)[2].name == "mine"  # the registered name, not the reused head's ("delta")
     for name, bad, message in (
         ("delta", entry, "model name 'delta' is taken"),
         ("my model", entry, "without spaces"),
@@ -610,3 +611,33 @@ def test_a_model_registered_from_outside_is_a_model_name_everywhere(tmp_path, mo
                       spec.act_dim), gaussian_ensemble)  # fmt: skip
     monkeypatch.setitem(MODELS, "quat", quat)
     make_model(make_config("ant", "quat"), envs.get("ant"), torch.device("cpu"))  # was: refused (zeros probe)
+
+
+@pytest.mark.parametrize(
+    ("make_head", "make_network", "deterministic", "message"),
+    [
+        (lambda cfg, spec: None, "gaussian", False, "make_head returned NoneType, not a dynamics.heads.DynamicsHead"),
+        (lambda cfg, spec: DeltaHead(spec.layout, spec.act_dim), "deterministic", False,
+         "head 'delta' is Gaussian but the network DeterministicEnsemble is deterministic"),
+        (lambda cfg, spec: DeltaHead(spec.layout, spec.act_dim), "gaussian", True,
+         "its ModelEntry says deterministic=True, but its head and network are not deterministic"),
+    ],
+)  # fmt: skip
+def test_an_entry_whose_parts_do_not_fit_is_one_line_and_exit_2(
+    make_head, make_network, deterministic, message, tmp_path, monkeypatch, capsys
+) -> None:
+    """A ModelEntry of one's own whose make_head returns no head, whose head and network disagree on being
+    deterministic, or whose flag is not what it builds: one line naming the model, exit 2 and no run directory (was
+    a traceback and exit 1)."""
+    import run_pets
+    from pets.models import ModelEntry, deterministic_ensemble, gaussian_ensemble
+    from tests.test_cli import TINY
+
+    network = {"gaussian": gaussian_ensemble, "deterministic": deterministic_ensemble}[make_network]
+    monkeypatch.setitem(MODELS, "unfit", ModelEntry("parts that do not fit", deterministic, make_head, network))
+    out = tmp_path / "run"
+    with pytest.raises(SystemExit) as exit_:
+        run_pets.main(["--env", "invertedpendulum", "--model", "unfit", "--trials", "1", "--out", str(out), *TINY])
+    assert exit_.value.code == 2
+    lines = [line for line in capsys.readouterr().err.splitlines() if line and not line.startswith("run directory:")]
+    assert len(lines) == 1 and f"model 'unfit': {message}" in lines[0] and not out.exists()

@@ -88,8 +88,11 @@ from pets.runs.fileio import atomic_write_bytes
 
 
 def test_label(env: str, data_seed: int) -> str:
-    """The ``data`` entry of an evaluation request on data set ``data_seed`` (pets.experiments.offline.data_paths)."""
-    return f"data/{env}-d{data_seed}-test.npz" if data_seed else f"data/{env}-test.npz"
+    """The ``data`` entry of an evaluation request on data set ``data_seed``: the test file's name as
+    :func:`pets.experiments.offline_data.data_paths` writes it (an import path ``module:ATTR`` by its spec's name)."""
+    from pets.experiments.offline_data import data_paths
+
+    return f"data/{data_paths(Path('data'), env, data_seed)[1].name}"
 
 
 def load_evals(

@@ -214,8 +214,9 @@ def check_resumed_config(run_dir: Path, state: dict[str, Any], cfg: Any) -> None
     started: the run would go on with the checkpoint's optimiser state and claim the edited values). Checkpoints
     from before the config was saved in them are not checked; nor is a key in neither the checkpoint nor the file
     (added to the code after the run started: it takes its default, which keeps what the code did before it), nor
-    ``imports`` where the checkpoint has none (a run from before the key: its config.yaml may be given the modules
-    that register its planner or model, which change no result)."""
+    ``imports`` that keeps every module the checkpoint records and adds others (a run from before the key, or one
+    whose model or planner was registered by a module the process imported itself: its config.yaml may be given the
+    modules that register them, which change no result)."""
     from omegaconf import OmegaConf
 
     if not isinstance(state.get("config"), dict):
@@ -223,14 +224,16 @@ def check_resumed_config(run_dir: Path, state: dict[str, Any], cfg: Any) -> None
     saved, now = _flat(state["config"]), _flat(OmegaConf.to_container(cfg))
     written = _flat(written_config(run_dir))
     keys = saved.keys() | written.keys()
-    same = (*RESUMABLE_KEYS, *(() if "imports" in saved else ("imports",)))
+    added = set(saved.get("imports") or []) <= set(now.get("imports") or [])
+    same = (*RESUMABLE_KEYS, *(("imports",) if added else ()))
     changed = sorted(k for k in keys if k not in same and saved.get(k) != now.get(k))
     if changed:
         first = changed[0]
         raise ConfigError(
             f"{run_dir / CONFIG_FILE} was edited after the run started ({first}: {saved.get(first)!r} in the "
             f"checkpoint, {now.get(first)!r} in config.yaml; keys edited: {', '.join(changed)}); put back the config "
-            "the run was started with (a resume may change only --trials), or start a new run"
+            "the run was started with (a resume may change only trials and threads, and add modules to imports), "
+            "or start a new run"
         )
 
 

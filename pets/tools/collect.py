@@ -29,7 +29,7 @@ PROG = "pets.collect"
 
 def build_parser() -> OneLineParser:
     p = OneLineParser(prog=PROG, description="Collect trajectories from a catalogue env into an .npz data set.")
-    p.add_argument("--env", help="environment (catalogue name or gymnasium id); optional with --policy run:DIR")
+    p.add_argument("--env", help="env (catalogue name, gymnasium id or module:ATTR); optional with --policy run:DIR")
     p.add_argument(
         "--policy",
         required=True,

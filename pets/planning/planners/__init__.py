@@ -152,3 +152,14 @@ def check_planner_config(planner: Any) -> None:
                 cls.options(**planner[other])
             except ValueError as err:
                 raise ValueError(f"planner.{other}.{err}") from None
+
+
+def unknown_planner(planner: Any, schema_keys: Any) -> str | None:
+    """What is wrong (from "its planner", with :data:`UNREGISTERED`) where a stored ``planner`` section (a run's
+    config.yaml) names a planner the table lacks, by its ``name`` or by a sub-section that is not in ``schema_keys``
+    (this process's ``planner`` keys: a process that registered a planner with a section writes that section into
+    every config it makes, whatever planner the run uses); None where it names none."""
+    name = str(planner.get("name", "cem"))
+    sections = [key for key, value in planner.items() if hasattr(value, "keys") and key not in schema_keys]
+    unknown = [name] * (name not in PLANNER_CLASSES) + [key for key in sections if key != name]
+    return f"its planner {unknown[0]!r} is not a planner here{UNREGISTERED}" if unknown else None
