@@ -260,3 +260,7 @@ def test_sigterm_stops_a_compare_sweep_as_ctrl_c_does(tmp_path, sigint):
     assert said == ["pets.compare: interrupted; rerun the same command to continue"], proc.stderr
     time.sleep(0.5)
     assert not [pid for pid in running if alive(pid)]
+    # The run stopped on the sweep's SIGINT, as on Ctrl-C, not killed after the grace period: in the background it
+    # ignored SIGINT, inherited from the sweep, and was killed 10 s later (ended by SIGKILL, mid-trial).
+    log = (out / "logs" / "invertedpendulum-delta-s0.log").read_text()
+    assert "interrupted" in log.strip().splitlines()[-1], log
