@@ -1328,6 +1328,31 @@ def test_bad_input_exits_2_with_one_line(args, fragment, capsys, tmp_path):
     assert not (tmp_path / "never").exists()
 
 
+def test_a_file_of_its_own_that_cannot_be_written_is_one_line_and_exit_3_the_runs_kept(tmp_path, capsys):
+    """A summary or headline file pets.compare could not write (a full disk; here a directory in its way) ended the
+    command with an OSError traceback (exit 1) after its runs had finished; now one line naming the file, exit 3,
+    the runs kept, and the same command reruns to write it."""
+    out, headline = tmp_path / "cmp", tmp_path / "headline"
+    for blocked in (out / "summary.md", headline / "headline.md"):
+        blocked.mkdir(parents=True)
+    advice = "what was finished is kept: free space (or clear that path), then rerun the same command"
+    args = ["online", "--envs", "invertedpendulum", "--models", "delta", "--seeds", 0, "--trials", 1, "--out", out]
+    args += ["--preset", "fast", "--quiet", *TINY]
+    code, _, err = cli(capsys, *args)
+    said = [line for line in err.splitlines() if "error" in line or "Traceback" in line]
+    assert code == EXIT_FAILED, err
+    assert said == [f"pets.compare: error: writing {out / 'summary.md'} failed (Is a directory); {advice}"]
+    assert len(rundir.read_metrics(out / "runs" / "invertedpendulum-delta-s0" / "metrics.csv")) == 1
+    (out / "summary.md").rmdir()
+    assert cli(capsys, *args)[0] == 0 and (out / "summary.md").is_file()
+    offline = ROOT / "docs" / "results" / "paper_ip_summary.csv"
+    code, _, err = cli(capsys, "headline", "--offline", offline, "--online", out / "summary.csv", "--out", headline)
+    said = [line for line in err.splitlines() if "error" in line or "Traceback" in line]
+    assert code == EXIT_FAILED and said == [
+        f"pets.compare: error: writing {headline / 'headline.md'} failed (Is a directory); {advice}"
+    ]
+
+
 def test_models_come_from_config_heads_at_run_time(monkeypatch):
     from pets import config
 

@@ -34,13 +34,14 @@ _FILE_MODE = _file_mode()
 def atomic_write_bytes(path: Path, data: bytes) -> None:
     """Write ``data`` to ``path`` through a uniquely named temporary file in the same directory and ``os.replace``;
     the temporary file is removed if the write fails (a full disk leaves nothing behind). An OSError names
-    ``path`` when the OS did not name a file (ENOSPC from ``write``)."""
+    ``path``, where the OS named no file (ENOSPC from ``write``) or the temporary one (``os.replace`` onto a
+    directory), which is gone by then."""
     path = Path(path)
     try:
         _write_replace(path, data)
     except OSError as err:
-        if err.filename is None:
-            err.filename = str(path)
+        if err.filename is None or Path(err.filename).name.endswith(TEMP_SUFFIX):
+            err.filename, err.filename2 = str(path), None
         raise
 
 
