@@ -367,6 +367,23 @@ def test_online_diverged_run_is_counted_not_averaged_in(fake_online):
     assert runs["reacher", "gem", "3"]["diverged"] == "" and len(runs) == 14 + 4
 
 
+def test_a_damaged_divergence_record_still_counts_its_run_as_diverged(tmp_path):
+    """A run's diverged.txt holding bytes that are not text (a damaged disk) stopped pets.compare online with a
+    UnicodeDecodeError traceback, before its runs and in its summary; the file's presence is the record: the run is
+    counted diverged, with the readable part of its reason."""
+    for seed in range(2):
+        fake_run(tmp_path, "reacher", "delta", seed, fake_rewards("delta", seed))
+        fake_run(tmp_path, "reacher", "gem", seed, fake_rewards("gem", seed)[: 2 if seed == 0 else FAKE_TRIALS])
+    run = tmp_path / "runs" / "reacher-gem-s0"
+    (run / rundir.DIVERGED_FILE).write_bytes(b"\xff\xfe model training diverged at trial 2\n")
+    assert rundir.read_divergence(run).endswith("model training diverged at trial 2")
+    summarise_online(tmp_path, ["reacher"], ["delta", "gem"], range(2), FAKE_TRIALS, FAKE_WINDOW, reps=50)
+    r = online_row(tmp_path, "reacher", "gem")
+    assert (r["n_seeds"], r["n_diverged"]) == ("1", "1")
+    runs = {(r["model"], r["seed"]): r for r in csv_rows(tmp_path / "summary_runs.csv")}
+    assert runs["gem", "0"]["diverged"].endswith("model training diverged at trial 2")
+
+
 def test_online_p_improvement_higher_reward_wins_and_paired_differences(fake_online):
     out, _ = fake_online
     delta = {s: fake_finals("delta", s) for s in range(4)}

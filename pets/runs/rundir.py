@@ -109,9 +109,10 @@ def record_divergence(run_dir: Path, why: str | None) -> None:
 
 
 def read_divergence(run_dir: Path) -> str | None:
-    """Why the run in ``run_dir`` stopped diverged (:func:`record_divergence`), or None if it did not."""
+    """Why the run in ``run_dir`` stopped diverged (:func:`record_divergence`), or None if it did not. The file's
+    presence is the record: damaged bytes in it (not text) read as they can, never an error."""
     path = run_dir / DIVERGED_FILE
-    return (path.read_text().strip() or "diverged") if path.is_file() else None
+    return (path.read_text(errors="replace").strip() or "diverged") if path.is_file() else None
 
 
 def read_history(run_dir: Path) -> list[dict[str, str]]:
