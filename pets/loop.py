@@ -28,7 +28,7 @@ import envs
 from pets import builder
 from pets.config import ConfigError
 from pets.data.buffer import ReplayBuffer
-from pets.data.rollout import Episode, MPCPolicy, RandomPolicy, run_episode, run_steps
+from pets.data.rollout import EnvFailed, Episode, MPCPolicy, RandomPolicy, run_episode, run_steps
 from pets.learning.trainer import TrainingDiverged, TrainResult
 from pets.models import make_model
 from pets.planning.cost import CostEstimate, compile_line
@@ -209,14 +209,17 @@ class PETSRun:
     def collect_seed_data(self) -> None:
         """``seed_steps`` uniformly random steps over as many episodes as needed, then the first training."""
         seeds = (self._episode_seed(SEED_PHASE + i) for i in itertools.count())
-        episodes = run_steps(
-            self.env,
-            self.random_policy,
-            self.cfg.seed_steps,
-            max_steps=self.episode_length,
-            reset_seeds=seeds,
-            rng=self.np_rng,
-        )
+        try:
+            episodes = run_steps(
+                self.env,
+                self.random_policy,
+                self.cfg.seed_steps,
+                max_steps=self.episode_length,
+                reset_seeds=seeds,
+                rng=self.np_rng,
+            )
+        except EnvFailed as err:
+            raise EnvFailed(f"the random steps before trial 0 (seed_steps): {err}") from None
         for episode in episodes:
             self._add(episode)
             self.env_steps += len(episode)
@@ -267,6 +270,8 @@ class PETSRun:
             )
         except PlanningFailed as err:  # name where it happened; the trials before it are checkpointed
             raise PlanningFailed(f"trial {trial}, step {steps}: {err}") from None
+        except EnvFailed as err:  # the env's own step names itself
+            raise EnvFailed(f"trial {trial}: {err}") from None
         finally:
             bar.close()
         self._add(episode, added)
