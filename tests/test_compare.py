@@ -1637,6 +1637,12 @@ def test_headline_rejects_what_is_not_a_summary_in_one_line(fake_offline, tmp_pa
             "--out " + str(tmp_path / "afile") + " is a file",
         ),
         (("--offline", off / "summary.csv", "--out", tmp_path / "h", "--figures", tmp_path / "afile"), "is a file"),
+        # below a file: was an OSError traceback once the headline was made
+        (("--offline", off / "summary.csv", "--out", tmp_path / "afile" / "h"), f"{tmp_path / 'afile'} is a file"),
+        (
+            ("--offline", off / "summary.csv", "--out", tmp_path / "h", "--figures", tmp_path / "afile" / "f"),
+            f"--figures {tmp_path / 'afile' / 'f'} cannot be made: {tmp_path / 'afile'} is a file; give a directory",
+        ),
         (("--offline", off / "summary.csv", "--out", tmp_path / "h", "--horizon", "0"), "--horizon must be >= 1"),
         (("--offline", off / "summary.csv", "--out", tmp_path / "h", "--model", "nope"), "--model nope is in none of"),
         (("--offline", tmp_path / "bad.csv", "--out", tmp_path / "h"), "a summary holds a value that is not"),

@@ -153,8 +153,14 @@ def headline_main(args: argparse.Namespace) -> int:
     if args.horizon < 1:
         fail(PROG, f"--horizon must be >= 1 (a prediction horizon of the summaries), got {args.horizon}")
     for option, path in (("--out", args.out), ("--figures", args.figures)):
-        if path is not None and path.exists() and not path.is_dir():
-            fail(PROG, f"{option} {path} is a file; give a directory")
+        below = None if path is None else next(p for p in (path, *path.parents) if p.exists())  # what is there
+        if below is not None and not below.is_dir():
+            fail(
+                PROG,
+                f"{option} {path} is a file; give a directory"
+                if below == path
+                else f"{option} {path} cannot be made: {below} is a file; give a directory",
+            )
     try:
         text = write_headline(
             args.offline,
