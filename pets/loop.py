@@ -35,7 +35,7 @@ from pets.planning.cost import CostEstimate, compile_line
 from pets.planning.planners import PlanningFailed
 from pets.planning.value import episode_ends, returns_to_go
 from pets.runs import rundir
-from pets.runs.fileio import locked
+from pets.runs.fileio import locked, new_run_dir_error
 from pets.runs.tblog import ScalarLog
 from pets.runs.video import EpisodeRecorder, trial_video_path
 
@@ -317,7 +317,11 @@ def _run_bar(cfg: DictConfig, pets_run: PETSRun, progress: bool) -> tqdm:
 
 def run(cfg: DictConfig, run_dir: Path, resume: bool = False, progress: bool = True) -> list[dict[str, Any]]:
     """Run (or continue) the PETS loop in ``run_dir`` until ``cfg.trials`` trials are done, a trial's reward
-    reaches ``cfg.stop_reward`` or the env-step budget ``cfg.max_env_steps`` is spent (:meth:`PETSRun.finished`)."""
+    reaches ``cfg.stop_reward`` or the env-step budget ``cfg.max_env_steps`` is spent (:meth:`PETSRun.finished`).
+    A new run needs a new or empty ``run_dir`` (ConfigError for one that holds other files: they would be written over
+    or mixed with the run's)."""
+    if not resume and not (run_dir / rundir.CONFIG_FILE).exists() and (problem := new_run_dir_error(run_dir)):
+        raise ConfigError(problem)
     with locked(run_dir):  # one process per run directory; DirectoryInUse for a second one
         if not resume and (run_dir / rundir.CONFIG_FILE).exists():
             raise ConfigError(

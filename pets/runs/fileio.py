@@ -86,6 +86,21 @@ def run_dir_error(directory: Path) -> str | None:
     return f"{directory} is not a run directory (no {CONFIG_FILE})"
 
 
+def new_run_dir_error(directory: Path, advice: str = "pick a new or empty --out") -> str | None:
+    """Why a new run cannot start in ``directory`` though it holds no run (no :data:`CONFIG_FILE`): it holds other
+    files, which the run would write over or mix with its own; None where it is new, empty, or holds only the lock and
+    temporary files (a run stopped in its first seconds, which its command starts again there)."""
+    directory = Path(directory)
+    if not directory.is_dir():
+        return None
+    names = (p.name for p in directory.iterdir())
+    other = sorted(n for n in names if n != LOCK_FILE and not (n.startswith(".") and n.endswith(TEMP_SUFFIX)))
+    if not other:
+        return None
+    shown = ", ".join(other[:3]) + (f" and {len(other) - 3} more" if len(other) > 3 else "")
+    return f"{directory} is not empty and holds no run ({shown}): a new run would write its files among them; {advice}"
+
+
 class DirectoryInUse(RuntimeError):
     """Another process (``holder``: its pid, or ``unknown``) holds the lock of a directory."""
 
