@@ -185,6 +185,7 @@ def _main(argv: list[str] | None = None) -> int:
             overrides_with_file,
             parse_overrides,
         )
+        from pets.data.rollout import EnvFailed
         from pets.imports import import_modules
         from pets.learning.trainer import TrainingDiverged
         from pets.models import UNREGISTERED
@@ -284,7 +285,7 @@ def _main(argv: list[str] | None = None) -> int:
         write_failed(PROG, err, "no trial was completed; free space, then start the run again")
     except DirectoryInUse as err:
         _fail(f"{err}; wait for it to finish" + ("" if args.resume else ", or pick another --out"))
-    except (TrainingDiverged, PlanningFailed) as err:  # the trials completed before it stay in the run directory
+    except (TrainingDiverged, PlanningFailed, EnvFailed) as err:  # the trials completed before it stay in the run dir
         kept = f"the trials completed before it are kept in {run_dir}"
         if not (Path(run_dir) / rundir.CHECKPOINT_FILE).exists():
             kept = "no trial was completed"

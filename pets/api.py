@@ -138,11 +138,14 @@ class PETS:
         run; ``DirectoryInUse`` while a command runs in it (its lock is taken for the write)."""
         import pets.runs.rundir as rundir
         from pets.config import ConfigError
-        from pets.runs.fileio import DirectoryInUse, locked
+        from pets.runs.fileio import DirectoryInUse, locked, new_run_dir_error
 
         path = Path(path)
         if path.exists() and not path.is_dir():
             raise ConfigError(f"{path} is a file; save to a directory (new, or this run's own)")
+        run_files = any((path / f).exists() for f in (rundir.CONFIG_FILE, rundir.CHECKPOINT_FILE))
+        if not run_files and (problem := new_run_dir_error(path, "save to a new directory")):
+            raise ConfigError(problem)  # a folder of other files: a run's files would be written over or among them
         try:
             with locked(path):
                 ours = path.resolve() in self._dirs

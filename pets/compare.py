@@ -17,4 +17,4 @@ def main(argv: list[str] | None = None) -> int:
 if __name__ == "__main__":
     from pets.tools.cli import run_command
 
-    run_command("pets.compare", main)
+    run_command("pets.compare", main, sigterm=True)  # SIGTERM stops the sweep as Ctrl-C does

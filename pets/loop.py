@@ -28,14 +28,14 @@ import envs
 from pets import builder
 from pets.config import ConfigError
 from pets.data.buffer import ReplayBuffer
-from pets.data.rollout import Episode, MPCPolicy, RandomPolicy, run_episode, run_steps
+from pets.data.rollout import EnvFailed, Episode, MPCPolicy, RandomPolicy, run_episode, run_steps
 from pets.learning.trainer import TrainingDiverged, TrainResult
 from pets.models import make_model
 from pets.planning.cost import CostEstimate, compile_line
 from pets.planning.planners import PlanningFailed
 from pets.planning.value import episode_ends, returns_to_go
 from pets.runs import rundir
-from pets.runs.fileio import locked
+from pets.runs.fileio import locked, new_run_dir_error
 from pets.runs.tblog import ScalarLog
 from pets.runs.video import EpisodeRecorder, trial_video_path
 
@@ -209,14 +209,17 @@ class PETSRun:
     def collect_seed_data(self) -> None:
         """``seed_steps`` uniformly random steps over as many episodes as needed, then the first training."""
         seeds = (self._episode_seed(SEED_PHASE + i) for i in itertools.count())
-        episodes = run_steps(
-            self.env,
-            self.random_policy,
-            self.cfg.seed_steps,
-            max_steps=self.episode_length,
-            reset_seeds=seeds,
-            rng=self.np_rng,
-        )
+        try:
+            episodes = run_steps(
+                self.env,
+                self.random_policy,
+                self.cfg.seed_steps,
+                max_steps=self.episode_length,
+                reset_seeds=seeds,
+                rng=self.np_rng,
+            )
+        except EnvFailed as err:
+            raise EnvFailed(f"the random steps before trial 0 (seed_steps): {err}") from None
         for episode in episodes:
             self._add(episode)
             self.env_steps += len(episode)
@@ -267,6 +270,8 @@ class PETSRun:
             )
         except PlanningFailed as err:  # name where it happened; the trials before it are checkpointed
             raise PlanningFailed(f"trial {trial}, step {steps}: {err}") from None
+        except EnvFailed as err:  # the env's own step names itself
+            raise EnvFailed(f"trial {trial}: {err}") from None
         finally:
             bar.close()
         self._add(episode, added)
@@ -312,7 +317,11 @@ def _run_bar(cfg: DictConfig, pets_run: PETSRun, progress: bool) -> tqdm:
 
 def run(cfg: DictConfig, run_dir: Path, resume: bool = False, progress: bool = True) -> list[dict[str, Any]]:
     """Run (or continue) the PETS loop in ``run_dir`` until ``cfg.trials`` trials are done, a trial's reward
-    reaches ``cfg.stop_reward`` or the env-step budget ``cfg.max_env_steps`` is spent (:meth:`PETSRun.finished`)."""
+    reaches ``cfg.stop_reward`` or the env-step budget ``cfg.max_env_steps`` is spent (:meth:`PETSRun.finished`).
+    A new run needs a new or empty ``run_dir`` (ConfigError for one that holds other files: they would be written over
+    or mixed with the run's)."""
+    if not resume and not (run_dir / rundir.CONFIG_FILE).exists() and (problem := new_run_dir_error(run_dir)):
+        raise ConfigError(problem)
     with locked(run_dir):  # one process per run directory; DirectoryInUse for a second one
         if not resume and (run_dir / rundir.CONFIG_FILE).exists():
             raise ConfigError(

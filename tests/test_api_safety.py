@@ -84,6 +84,18 @@ def test_save_over_another_run_is_refused_and_that_run_is_untouched(tmp_path, tr
     assert _files(other) == before
 
 
+def test_save_into_a_folder_of_other_files_is_refused_and_touches_nothing(tmp_path, trained):
+    """save wrote a run into any folder without a run's config.yaml or checkpoint.pt: one's own metrics.csv there
+    was written over."""
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "metrics.csv").write_text("my own numbers\n")
+    with pytest.raises(ConfigError, match=r"is not empty and holds no run \(metrics.csv\).*save to a new directory$"):
+        trained.save(mine)
+    assert sorted(p.name for p in mine.iterdir()) == ["metrics.csv"]  # not even a lock file
+    assert (mine / "metrics.csv").read_text() == "my own numbers\n"
+
+
 def test_save_again_where_it_saved_or_was_loaded_from_is_allowed(tmp_path, trained):
     run = trained.save(tmp_path / "mine")
     trained.save(run)  # the same object again: its own run

@@ -161,6 +161,30 @@ def test_existing_run_directory_is_not_overwritten(tmp_path):
     assert proc.returncode == 2 and "--resume" in proc.stderr
 
 
+def test_a_new_run_or_training_in_a_folder_of_other_files_is_refused_and_touches_nothing(tmp_path):
+    """run_pets.py and pets.train wrote a new run into any existing --out that held no config.yaml: a folder of one's
+    own files (its metrics.csv written over), or a pets.compare output (a run mixed into the sweep's summaries).
+    A new run now needs a new or empty --out, or one left with only its lock by a run killed in its first seconds."""
+    from tests.processes import collect_random
+
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "metrics.csv").write_text("my own numbers\n")
+    (mine / "notes.txt").write_text("mine\n")
+    data = collect_random(tmp_path / "d.npz", 2)
+    fragment = f"{mine} is not empty and holds no run (metrics.csv, notes.txt): a new run would write its files among"
+    for command in (
+        [sys.executable, str(ROOT / "run_pets.py"), "--env", "invertedpendulum", "--trials", 1, *TINY],
+        [sys.executable, "-m", "pets.train", "--data", data, "--model", "delta", "--quiet", "model.max_epochs=2"],
+    ):
+        argv = [str(a) for a in [*command, "--out", mine]]
+        proc = warm.run(argv, cwd=ROOT, capture_output=True, text=True, timeout=300)
+        lines = error_lines(proc.stderr)
+        assert proc.returncode == 2 and len(lines) == 1 and fragment in lines[0], proc.stderr
+        assert sorted(p.name for p in mine.iterdir()) == ["metrics.csv", "notes.txt"]  # not even a lock file
+        assert (mine / "metrics.csv").read_text() == "my own numbers\n"
+
+
 @pytest.mark.parametrize("env", ["walker2d", "ant", "humanoid"])
 def test_online_training_selects_a_trained_model(tmp_path, env):
     """Issue 18: after every trial's training the selected model is a trained one."""

@@ -367,6 +367,23 @@ def test_online_diverged_run_is_counted_not_averaged_in(fake_online):
     assert runs["reacher", "gem", "3"]["diverged"] == "" and len(runs) == 14 + 4
 
 
+def test_a_damaged_divergence_record_still_counts_its_run_as_diverged(tmp_path):
+    """A run's diverged.txt holding bytes that are not text (a damaged disk) stopped pets.compare online with a
+    UnicodeDecodeError traceback, before its runs and in its summary; the file's presence is the record: the run is
+    counted diverged, with the readable part of its reason."""
+    for seed in range(2):
+        fake_run(tmp_path, "reacher", "delta", seed, fake_rewards("delta", seed))
+        fake_run(tmp_path, "reacher", "gem", seed, fake_rewards("gem", seed)[: 2 if seed == 0 else FAKE_TRIALS])
+    run = tmp_path / "runs" / "reacher-gem-s0"
+    (run / rundir.DIVERGED_FILE).write_bytes(b"\xff\xfe model training diverged at trial 2\n")
+    assert rundir.read_divergence(run).endswith("model training diverged at trial 2")
+    summarise_online(tmp_path, ["reacher"], ["delta", "gem"], range(2), FAKE_TRIALS, FAKE_WINDOW, reps=50)
+    r = online_row(tmp_path, "reacher", "gem")
+    assert (r["n_seeds"], r["n_diverged"]) == ("1", "1")
+    runs = {(r["model"], r["seed"]): r for r in csv_rows(tmp_path / "summary_runs.csv")}
+    assert runs["gem", "0"]["diverged"].endswith("model training diverged at trial 2")
+
+
 def test_online_p_improvement_higher_reward_wins_and_paired_differences(fake_online):
     out, _ = fake_online
     delta = {s: fake_finals("delta", s) for s in range(4)}
@@ -1328,6 +1345,31 @@ def test_bad_input_exits_2_with_one_line(args, fragment, capsys, tmp_path):
     assert not (tmp_path / "never").exists()
 
 
+def test_a_file_of_its_own_that_cannot_be_written_is_one_line_and_exit_3_the_runs_kept(tmp_path, capsys):
+    """A summary or headline file pets.compare could not write (a full disk; here a directory in its way) ended the
+    command with an OSError traceback (exit 1) after its runs had finished; now one line naming the file, exit 3,
+    the runs kept, and the same command reruns to write it."""
+    out, headline = tmp_path / "cmp", tmp_path / "headline"
+    for blocked in (out / "summary.md", headline / "headline.md"):
+        blocked.mkdir(parents=True)
+    advice = "what was finished is kept: free space (or clear that path), then rerun the same command"
+    args = ["online", "--envs", "invertedpendulum", "--models", "delta", "--seeds", 0, "--trials", 1, "--out", out]
+    args += ["--preset", "fast", "--quiet", *TINY]
+    code, _, err = cli(capsys, *args)
+    said = [line for line in err.splitlines() if "error" in line or "Traceback" in line]
+    assert code == EXIT_FAILED, err
+    assert said == [f"pets.compare: error: writing {out / 'summary.md'} failed (Is a directory); {advice}"]
+    assert len(rundir.read_metrics(out / "runs" / "invertedpendulum-delta-s0" / "metrics.csv")) == 1
+    (out / "summary.md").rmdir()
+    assert cli(capsys, *args)[0] == 0 and (out / "summary.md").is_file()
+    offline = ROOT / "docs" / "results" / "paper_ip_summary.csv"
+    code, _, err = cli(capsys, "headline", "--offline", offline, "--online", out / "summary.csv", "--out", headline)
+    said = [line for line in err.splitlines() if "error" in line or "Traceback" in line]
+    assert code == EXIT_FAILED and said == [
+        f"pets.compare: error: writing {headline / 'headline.md'} failed (Is a directory); {advice}"
+    ]
+
+
 def test_models_come_from_config_heads_at_run_time(monkeypatch):
     from pets import config
 
@@ -1595,6 +1637,12 @@ def test_headline_rejects_what_is_not_a_summary_in_one_line(fake_offline, tmp_pa
             "--out " + str(tmp_path / "afile") + " is a file",
         ),
         (("--offline", off / "summary.csv", "--out", tmp_path / "h", "--figures", tmp_path / "afile"), "is a file"),
+        # below a file: was an OSError traceback once the headline was made
+        (("--offline", off / "summary.csv", "--out", tmp_path / "afile" / "h"), f"{tmp_path / 'afile'} is a file"),
+        (
+            ("--offline", off / "summary.csv", "--out", tmp_path / "h", "--figures", tmp_path / "afile" / "f"),
+            f"--figures {tmp_path / 'afile' / 'f'} cannot be made: {tmp_path / 'afile'} is a file; give a directory",
+        ),
         (("--offline", off / "summary.csv", "--out", tmp_path / "h", "--horizon", "0"), "--horizon must be >= 1"),
         (("--offline", off / "summary.csv", "--out", tmp_path / "h", "--model", "nope"), "--model nope is in none of"),
         (("--offline", tmp_path / "bad.csv", "--out", tmp_path / "h"), "a summary holds a value that is not"),

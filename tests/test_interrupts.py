@@ -14,35 +14,42 @@ from pathlib import Path
 import pytest
 
 from pets.tools.cli import NOTHING_WRITTEN
-from tests.processes import alive, collect_random, cpu_seconds, default_sigint
+from tests.processes import alive, children, collect_random, cpu_seconds, default_sigint
 from tests.test_cli import ROOT, TINY, error_lines
 
 #: The process CPU seconds at which SIGINT is sent: in the imports (torch takes ~1-2 s), then later.
 MOMENTS = (0.3, 1.0, 2.5, 4.5)
 
 
-def _interrupted(argv: list[str], cpu: float, cwd: Path) -> subprocess.CompletedProcess:
-    """Run ``python ARGV`` in ``cwd``; SIGINT once it has used ``cpu`` CPU seconds (unless it ended first)."""
+def _signalled(
+    argv: list[str], cwd: Path, ready, sig: int = signal.SIGINT, preexec_fn=default_sigint
+) -> subprocess.CompletedProcess:
+    """Run ``python ARGV`` in ``cwd``; send ``sig`` once ``ready(pid)`` (unless it ended first, or after 300 s)."""
     proc = subprocess.Popen(
         [sys.executable, *argv],
         cwd=cwd,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
-        preexec_fn=default_sigint,
+        preexec_fn=preexec_fn,
     )
     try:
         deadline = time.monotonic() + 300
-        while proc.poll() is None and cpu_seconds(proc.pid) < cpu and time.monotonic() < deadline:
+        while proc.poll() is None and not ready(proc.pid) and time.monotonic() < deadline:
             time.sleep(0.02)
         if proc.poll() is None and alive(proc.pid):
-            proc.send_signal(signal.SIGINT)
+            proc.send_signal(sig)
         out, err = proc.communicate(timeout=120)
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.communicate()
     return subprocess.CompletedProcess(argv, proc.returncode, out, err)
+
+
+def _interrupted(argv: list[str], cpu: float, cwd: Path) -> subprocess.CompletedProcess:
+    """Run ``python ARGV`` in ``cwd``; SIGINT once it has used ``cpu`` CPU seconds (unless it ended first)."""
+    return _signalled(argv, cwd, lambda pid: cpu_seconds(pid) >= cpu)
 
 
 def _check(proc: subprocess.CompletedProcess) -> None:
@@ -223,3 +230,37 @@ def test_an_interrupt_while_the_command_imports_says_that_nothing_was_written(tm
 @pytest.fixture(scope="module")
 def data_set(tmp_path_factory) -> Path:
     return collect_random(tmp_path_factory.mktemp("data") / "ip.npz", 20)
+
+
+def _sigint_ignored() -> None:
+    """``preexec_fn`` of a command started as a shell starts one in the background (``cmd &``, nohup): SIGINT
+    ignored."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+@pytest.mark.parametrize("sigint", [default_sigint, _sigint_ignored], ids=["foreground", "background"])
+def test_sigterm_stops_a_compare_sweep_as_ctrl_c_does(tmp_path, sigint):
+    """SIGTERM to ``pets.compare`` (``kill``, a scheduler's stop; docs/experiments.md) stops the sweep as Ctrl-C does:
+    its one line and exit 130, its run stopped, none left computing. It was exit 143 by the signal without a word.
+    Started in the background, where SIGINT is ignored, SIGTERM is the one way to stop it, and it must still work."""
+    out = tmp_path / "cmp"
+    run = out / "runs" / "invertedpendulum-delta-s0"
+    argv = ["online", "--envs", "invertedpendulum", "--models", "delta", "--seeds", "0", "--trials", "3"]
+    running: list[int] = []
+
+    def run_under_way(pid: int) -> bool:
+        running[:] = children(pid)
+        return bool(running) and (run / "config.yaml").is_file()
+
+    argv = ["-m", "pets.compare", *argv, "--out", str(out), *TINY]
+    proc = _signalled(argv, ROOT, run_under_way, signal.SIGTERM, preexec_fn=sigint)
+    assert running, "the sweep's run did not start"
+    assert proc.returncode == 130 and "Traceback" not in proc.stderr, (proc.returncode, proc.stderr)
+    said = [line for line in error_lines(proc.stderr) if "interrupted" in line]
+    assert said == ["pets.compare: interrupted; rerun the same command to continue"], proc.stderr
+    time.sleep(0.5)
+    assert not [pid for pid in running if alive(pid)]
+    # The run stopped on the sweep's SIGINT, as on Ctrl-C, not killed after the grace period: in the background it
+    # ignored SIGINT, inherited from the sweep, and was killed 10 s later (ended by SIGKILL, mid-trial).
+    log = (out / "logs" / "invertedpendulum-delta-s0.log").read_text()
+    assert "interrupted" in log.strip().splitlines()[-1], log

@@ -363,6 +363,8 @@ def test_sample_starts_leave_room_and_are_distinct():
         ("pets.collect", ["--env", "reacher", "--policy", "random", "--out", "kept.npz"], "never writes over a file"),
         ("pets.train", ["--data", "/nonexistent.npz", "--model", "delta", "--out", "r"], "does not exist"),
         ("pets.train", ["--data", "/nonexistent.npz", "--model", "mlp", "--out", "r"], "delta, gem"),
+        # a directory given as the data set was said not to exist
+        ("pets.train", ["--data", "killed", "--model", "delta", "--out", "r"], "killed is a directory; give a data"),
         ("pets.evaluate", ["--run", "/nonexistent/run", "--data", "x.npz"], "not a run directory"),
         # a run killed (kill -9) before it wrote its config leaves only its lock: every tool names it so
         ("pets.evaluate", ["--run", "killed", "--data", "x.npz"], "killed holds no run"),
@@ -389,6 +391,16 @@ def test_bad_input_exits_2_with_one_line(module, args, fragment, tmp_path):
     assert proc.returncode == 2 and len(lines) == 1, proc.stderr
     assert lines[0].startswith(f"{module}: error: ") and fragment in lines[0]
     assert (tmp_path / "kept.npz").read_bytes() == b"someone's data set"
+
+
+def test_a_directory_given_as_a_data_set_is_named_as_a_directory(tmp_path):
+    """load_dataset (pets.train, pets.visualize, the API) said a directory given as the data set did not exist."""
+    from pets.data.datasets import load_dataset
+
+    with pytest.raises(ValueError, match=r"^data file .* is a directory; give a data set file \(\.npz\)$"):
+        load_dataset(tmp_path)
+    with pytest.raises(ValueError, match=r"^data file .*none\.npz does not exist$"):
+        load_dataset(tmp_path / "none.npz")
 
 
 def test_bad_data_and_mismatched_env_exit_2(work, delta_run, ip_data, reacher_data):

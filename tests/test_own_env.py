@@ -253,3 +253,64 @@ def test_a_layout_with_an_angle_and_a_velocity_swapped_is_refused_against_mujoco
     angle_as_velocity = ObsLayout(obs_dim=4, groups=(Group("cart", "Rn", (0, 2)),), velocities=(1, 3))
     with pytest.raises(ValueError, match=r"velocities include entry 1, which is the simulator's position qpos\[1\]"):
         envs.custom_spec("ip", gym_id, angle_as_velocity, reward, terminated, env_kwargs=kwargs)
+
+
+FAILING_MODULE = """
+import gymnasium
+import numpy as np
+
+import envs
+from envs import Group, ObsLayout
+from mypend import pendulum_reward
+
+MODE, AFTER = {mode!r}, {after}
+READY = False  # the spec's checks step it too: it fails only in the run
+
+
+class Failing(gymnasium.Wrapper):
+    def __init__(self, env):
+        super().__init__(env)
+        self.steps = 0
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        self.steps += 1
+        if READY and self.steps > AFTER:
+            if MODE == "raise":
+                raise RuntimeError("simulator blew up")
+            obs = {{"nan": obs * np.nan, "shape": np.concatenate([obs, obs])}}.get(MODE, obs)
+            reward = float("inf") if MODE == "reward" else reward
+        return obs, reward, terminated, truncated, info
+
+
+gymnasium.register("Failing-v0", entry_point=lambda **kw: Failing(gymnasium.make("Pendulum-v1", **kw).unwrapped))
+LAYOUT = ObsLayout(obs_dim=3, groups=(Group("pole", "SO2_cossin", (0, 1)),), velocities=(2,))
+SPEC = envs.custom_spec("failing", "Failing-v0", LAYOUT, pendulum_reward, episode_length=200)
+READY = True
+"""
+SEED_STEPS = "the random steps before trial 0 (seed_steps): the env's step 11 of the episode"
+
+
+@pytest.mark.parametrize(
+    "mode, after, said",
+    [
+        ("raise", 60, "trial 0: the env's step 11 of the episode raised RuntimeError: simulator blew up"),
+        ("nan", 30, f"{SEED_STEPS} returned a non-finite observation (nan or inf)"),
+        ("shape", 30, f"{SEED_STEPS} returned an observation of shape (6,), its reset one of (3,)"),
+        ("reward", 30, f"{SEED_STEPS} returned a non-finite reward (inf)"),
+    ],
+)
+def test_your_env_that_fails_during_the_run_is_one_line_and_exit_3(tmp_path, mode, after, said):
+    """Your env's step raising, or returning an observation of another shape, mid-run, was a traceback (exit 1); a
+    nan observation became "the dynamics model predicts non-finite states" (and a replay buffer the resume refuses as
+    damaged), a nan or inf reward a run that ended "done" with a nan episode reward, which pets.compare counts as a
+    diverged run. Each is now one line naming the step, exit 3, and not recorded as the model's divergence."""
+    me = _user_folder(tmp_path, failing=FAILING_MODULE.format(mode=mode, after=after))
+    run = me / "run"
+    proc = _command(
+        ["--env", "failing:SPEC", "--model", "delta", "--trials", "1", "--out", "run", "--quiet", *SMALL], me
+    )
+    lines = [line for line in proc.stderr.splitlines() if line.strip() and not line.startswith("run directory:")]
+    assert proc.returncode == 3 and "Traceback" not in proc.stderr, proc.stderr
+    assert len(lines) == 1 and lines[0].startswith(f"run_pets.py: error: {said}; "), lines
+    assert (run / "config.yaml").is_file() and not (run / "diverged.txt").exists()

@@ -67,11 +67,20 @@ def save_dataset(path: str | Path, data: Mapping[str, np.ndarray]) -> Path:
     return path
 
 
+def missing_data_file(path: Path, what: str = "data file") -> str | None:
+    """Why ``path`` is no data set file to read (a directory, or nothing there), or None if it is a file."""
+    if Path(path).is_file():
+        return None
+    return f"{what} {path} " + (
+        "is a directory; give a data set file (.npz)" if Path(path).is_dir() else "does not exist"
+    )
+
+
 def load_dataset(path: str | Path) -> dict[str, np.ndarray]:
     """Read and validate a data set file; ValueError (one line) if it is missing or malformed."""
     path = Path(path)
-    if not path.is_file():
-        raise ValueError(f"data file {path} does not exist")
+    if problem := missing_data_file(path):
+        raise ValueError(problem)
     if not zipfile.is_zipfile(path):  # numpy would call any other file "pickled (object) data"
         raise ValueError(f"{path} is not an .npz archive; data sets are written by pets.collect")
     try:

@@ -17,6 +17,43 @@ import numpy as np
 from envs import EnvSpec
 
 
+class EnvFailed(RuntimeError):
+    """The env's ``reset`` or ``step`` raised, or returned an observation of another shape or a non-finite observation
+    or reward (a user's own env, ``--env module:SPEC``): the env's fault, not the model's or the planner's. One line,
+    naming the step."""
+
+
+def _checked(where: str, shape: tuple[int, ...] | None, call: Callable[..., Any], *args: Any, **kwargs: Any) -> tuple:
+    """What ``call(*args, **kwargs)`` (the env's ``reset`` or ``step``) returned, checked: :class:`EnvFailed` for an
+    exception, a result that is not ``(obs, info)`` or ``(obs, reward, terminated, truncated, info)``, an observation
+    that is not of ``shape`` (None: any) or not finite, or a reward that is not a finite number. ``where``: the
+    step it was, for the message."""
+    try:
+        out = call(*args, **kwargs)
+    except Exception as err:  # the user's code: any error; a Ctrl-C is no Exception
+        text = str(err).strip().splitlines()
+        raise EnvFailed(f"the env's {where} raised {type(err).__name__}: {text[0] if text else 'no message'}") from None
+    size = 2 if where == "reset" else 5
+    if not isinstance(out, tuple) or len(out) != size:
+        kind = "(obs, info)" if size == 2 else "(obs, reward, terminated, truncated, info)"
+        raise EnvFailed(f"the env's {where} returned {type(out).__name__} {_short(out)}, not gymnasium's {kind}")
+    try:
+        obs, reward = np.asarray(out[0], np.float64), float(out[1]) if size == 5 else 0.0
+    except (TypeError, ValueError) as err:
+        raise EnvFailed(f"the env's {where} returned an observation or reward that is not numbers ({err})") from None
+    if shape is not None and obs.shape != shape:
+        raise EnvFailed(f"the env's {where} returned an observation of shape {obs.shape}, its reset one of {shape}")
+    if not np.isfinite(obs).all() or not np.isfinite(reward):
+        what = "observation (nan or inf)" if not np.isfinite(obs).all() else f"reward ({reward})"
+        raise EnvFailed(f"the env's {where} returned a non-finite {what}")
+    return out
+
+
+def _short(value: Any) -> str:
+    text = " ".join(repr(value).split())
+    return text if len(text) <= 80 else text[:77] + "..."
+
+
 class Policy(Protocol):
     """What :func:`run_episode` drives: ``reset`` at the start of every episode, then ``act`` once per step."""
 
@@ -106,10 +143,11 @@ def run_episode(
 
     Actions are ``policy.act(obs)`` as float64 arrays of the action space's shape. ``on_step(so_far)`` runs after
     every step with the episode so far (views, valid during the call). The reward sum is taken step by step.
+    :class:`EnvFailed` where the env raises or returns an observation of another shape, or a non-finite one or reward.
     """
     if isinstance(max_steps, bool) or not isinstance(max_steps, int) or max_steps < 1:
         raise ValueError(f"max_steps must be a positive int, got {max_steps!r}")
-    obs, _ = env.reset(seed=reset_seed)
+    obs, _ = _checked("reset", None, env.reset, seed=reset_seed)
     policy.reset(np.random.default_rng() if rng is None else rng)
     act_shape, obs_shape = env.action_space.shape, np.shape(obs)
     obs_arr = np.empty((max_steps, *obs_shape))
@@ -126,7 +164,7 @@ def run_episode(
 
     for t in range(max_steps):
         action = np.asarray(policy.act(obs), np.float64).reshape(act_shape)
-        next_obs, reward, term, trunc, _ = env.step(action)
+        next_obs, reward, term, trunc, _ = _checked(f"step {t + 1} of the episode", obs_shape, env.step, action)
         obs_arr[t], act_arr[t], next_arr[t] = obs, action, next_obs
         rewards[t] = float(reward)
         total += float(reward)

@@ -32,7 +32,8 @@ Everything is resumable: rerunning a command reuses finished work and runs only 
 A run directory that was made with a different config than the command asks for (other
 overrides, preset, ...; the trial count aside) is an error (exit 2): results of different configs
 are never mixed. Bad lists, envs, models or keys exit 2 with one line; a failed run is reported,
-the others go on, the summary covers the finished runs, and the exit status is 1.
+the others go on, the summary covers the finished runs, and the exit status is 3; so is a summary, table or
+figure that could not be written (a full disk), in one line naming it.
 
 The options: :mod:`pets.experiments.options`. The modes: :mod:`pets.experiments.online` and
 :mod:`pets.experiments.offline`; the files they write: :mod:`pets.experiments.studies.online` and
@@ -61,7 +62,7 @@ from pets.experiments.backend import Backend
 from pets.experiments.offline import compare_offline
 from pets.experiments.online import compare_online
 from pets.experiments.options import build_parser
-from pets.tools.cli import EXIT_FAILED, EXIT_INTERRUPTED, OneLineParser, fail, import_given
+from pets.tools.cli import EXIT_FAILED, EXIT_INTERRUPTED, OneLineParser, fail, import_given, write_failed
 
 
 def make_backend(args: argparse.Namespace) -> Backend:
@@ -152,8 +153,14 @@ def headline_main(args: argparse.Namespace) -> int:
     if args.horizon < 1:
         fail(PROG, f"--horizon must be >= 1 (a prediction horizon of the summaries), got {args.horizon}")
     for option, path in (("--out", args.out), ("--figures", args.figures)):
-        if path is not None and path.exists() and not path.is_dir():
-            fail(PROG, f"{option} {path} is a file; give a directory")
+        below = None if path is None else next(p for p in (path, *path.parents) if p.exists())  # what is there
+        if below is not None and not below.is_dir():
+            fail(
+                PROG,
+                f"{option} {path} is a file; give a directory"
+                if below == path
+                else f"{option} {path} cannot be made: {below} is a file; give a directory",
+            )
     try:
         text = write_headline(
             args.offline,
@@ -177,8 +184,19 @@ def headline_main(args: argparse.Namespace) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run ``compare`` with ``argv`` and print the report; 0, 1 (a run failed) or exit 2 (bad input)."""
+    """Run ``compare`` with ``argv`` and print the report; 0, 3 (a run failed), exit 2 (bad input) or exit 3 with one
+    line where a file of the command's own could not be written (a full disk: the finished runs are kept)."""
     args = _parse(build_parser(), argv)
+    try:
+        return _main(args)
+    except OSError as err:  # the runs' own failures are reported per run: this is a summary, table or figure
+        write_failed(
+            PROG, err, "what was finished is kept: free space (or clear that path), then rerun the same command"
+        )
+
+
+def _main(args: argparse.Namespace) -> int:
+    """:func:`main` with the parsed arguments."""
     if args.mode == "headline":
         return headline_main(args)
     if args.mode == "report":

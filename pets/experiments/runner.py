@@ -155,6 +155,18 @@ def _die_with_parent() -> None:  # pragma: no cover - runs in the child or pool 
     ctypes.CDLL(None).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
 
 
+def _sigint_default() -> None:  # pragma: no cover - runs in the child
+    """SIGINT back to its default in a run's process, which a sweep started in the background (``&``, nohup: SIGINT
+    ignored, inherited through exec) would pass on: :func:`_stop_sweep` stops the runs with SIGINT."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+def _run_child() -> None:  # pragma: no cover - runs in the child
+    """``preexec_fn`` of a run's process on Linux: :func:`_sigint_default` and :func:`_die_with_parent`."""
+    _sigint_default()
+    _die_with_parent()
+
+
 def run_logged(command: Sequence[str], log: Path, threads: int = 1) -> int:
     """Run ``command`` with ``threads`` CPU threads, appending its output to ``log``; raise if it fails. It starts in
     the repository with the current folder on PYTHONPATH (a user's env ``--envs mymodule:SPEC`` imports there)."""
@@ -174,7 +186,7 @@ def run_logged(command: Sequence[str], log: Path, threads: int = 1) -> int:
                 stderr=subprocess.STDOUT,
                 cwd=ROOT,
                 env=child_environment({**os.environ, **thread_env(threads)}),  # your env imports from your folder
-                preexec_fn=_die_with_parent if sys.platform == "linux" else None,
+                preexec_fn=_run_child if sys.platform == "linux" else _sigint_default,
             )
             _children.add(proc)
         try:

@@ -47,7 +47,7 @@ from typing import Any
 import numpy as np
 
 from pets.data.datasets import check_dataset, env_name, load_dataset, transitions
-from pets.runs.fileio import locked
+from pets.runs.fileio import locked, new_run_dir_error
 
 #: Offline defaults, applied before the user's overrides (see the module docstring).
 OFFLINE_DEFAULTS: dict[str, Any] = {"model.max_epochs": 300, "model.patience": 20}
@@ -121,6 +121,8 @@ def train_offline(
     out = Path(out)
     if (out / rundir.CONFIG_FILE).exists():
         raise ConfigError(f"{out} already holds a run; pick another --out")
+    if problem := new_run_dir_error(out):
+        raise ConfigError(problem)
     from pets.data.protocols import get_protocol, split_samples
 
     cfg = offline_config(

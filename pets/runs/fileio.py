@@ -34,13 +34,14 @@ _FILE_MODE = _file_mode()
 def atomic_write_bytes(path: Path, data: bytes) -> None:
     """Write ``data`` to ``path`` through a uniquely named temporary file in the same directory and ``os.replace``;
     the temporary file is removed if the write fails (a full disk leaves nothing behind). An OSError names
-    ``path`` when the OS did not name a file (ENOSPC from ``write``)."""
+    ``path``, where the OS named no file (ENOSPC from ``write``) or the temporary one (``os.replace`` onto a
+    directory), which is gone by then."""
     path = Path(path)
     try:
         _write_replace(path, data)
     except OSError as err:
-        if err.filename is None:
-            err.filename = str(path)
+        if err.filename is None or Path(err.filename).name.endswith(TEMP_SUFFIX):
+            err.filename, err.filename2 = str(path), None
         raise
 
 
@@ -83,6 +84,21 @@ def run_dir_error(directory: Path) -> str | None:
             f"its {CONFIG_FILE} (nothing was lost); run its command again with --out {directory}"
         )
     return f"{directory} is not a run directory (no {CONFIG_FILE})"
+
+
+def new_run_dir_error(directory: Path, advice: str = "pick a new or empty --out") -> str | None:
+    """Why a new run cannot start in ``directory`` though it holds no run (no :data:`CONFIG_FILE`): it holds other
+    files, which the run would write over or mix with its own; None where it is new, empty, or holds only the lock and
+    temporary files (a run stopped in its first seconds, which its command starts again there)."""
+    directory = Path(directory)
+    if not directory.is_dir():
+        return None
+    names = (p.name for p in directory.iterdir())
+    other = sorted(n for n in names if n != LOCK_FILE and not (n.startswith(".") and n.endswith(TEMP_SUFFIX)))
+    if not other:
+        return None
+    shown = ", ".join(other[:3]) + (f" and {len(other) - 3} more" if len(other) > 3 else "")
+    return f"{directory} is not empty and holds no run ({shown}): a new run would write its files among them; {advice}"
 
 
 class DirectoryInUse(RuntimeError):

@@ -77,11 +77,12 @@ def write_metrics(run_dir: Path, rows: list[dict[str, Any]]) -> None:
 def append_history(run_dir: Path, action: str, trials_done: int) -> None:
     """Add this session (``start`` or ``resume`` at ``trials_done`` trials) to history.csv: a resumed run shows
     that it went on from its checkpoint, not from trial 0, and the CPU of every session names the machine behind
-    its CPU-hours (a history written before the ``cpu`` column gets it, empty in its old rows)."""
+    its CPU-hours (a history written before the ``cpu`` column gets it, empty in its old rows). A damaged history
+    (bytes that are not text) keeps its rows as they read, never stopping the run: it only records the sessions."""
     from pets.runs.hardware import cpu_name
 
     path = run_dir / HISTORY_FILE
-    _, _, rows = (path.read_text() if path.is_file() else "").partition("\n")  # the header is written anew
+    _, _, rows = (path.read_text(errors="replace") if path.is_file() else "").partition("\n")  # header anew
     buf = io.StringIO()
     writer = csv.writer(buf, lineterminator="\n")
     writer.writerow(HISTORY_COLUMNS)
@@ -108,9 +109,10 @@ def record_divergence(run_dir: Path, why: str | None) -> None:
 
 
 def read_divergence(run_dir: Path) -> str | None:
-    """Why the run in ``run_dir`` stopped diverged (:func:`record_divergence`), or None if it did not."""
+    """Why the run in ``run_dir`` stopped diverged (:func:`record_divergence`), or None if it did not. The file's
+    presence is the record: damaged bytes in it (not text) read as they can, never an error."""
     path = run_dir / DIVERGED_FILE
-    return (path.read_text().strip() or "diverged") if path.is_file() else None
+    return (path.read_text(errors="replace").strip() or "diverged") if path.is_file() else None
 
 
 def read_history(run_dir: Path) -> list[dict[str, str]]:
@@ -118,7 +120,7 @@ def read_history(run_dir: Path) -> list[dict[str, str]]:
     path = run_dir / HISTORY_FILE
     if not path.is_file():
         return []
-    with open(path, newline="") as f:
+    with open(path, newline="", errors="replace") as f:  # damaged bytes: the rows as they read
         return list(csv.DictReader(f))
 
 
@@ -261,7 +263,7 @@ def recorded_trials(run_dir: Path) -> int:
         pass
     try:
         done = [int(row.get("trials_done") or 0) for row in read_history(run_dir)]
-    except (OSError, csv.Error, UnicodeDecodeError, ValueError):
+    except (OSError, csv.Error, ValueError):
         done = []
     return max([count, *done])
 

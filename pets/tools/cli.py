@@ -12,7 +12,7 @@ pets.compare (docs/cli.md, "Exit codes"; :data:`EXIT_CODES` is the one table):
 - 3 (:data:`EXIT_FAILED`): the work failed on good input: model training diverged, planning got no finite
   return, or a write failed while it ran (a full disk); the run keeps what it completed before; for
   pets.compare, some of its runs failed (the summary covers the others);
-- 130 (:data:`EXIT_INTERRUPTED`): interrupted (Ctrl-C).
+- 130 (:data:`EXIT_INTERRUPTED`): interrupted (Ctrl-C; for pets.compare also SIGTERM).
 
 Each error is one stderr line ``PROG: error: MESSAGE`` that says what to do.
 """
@@ -44,7 +44,7 @@ EXIT_CODES = {
     EXIT_DIFFERS: "pets.compare report --check: a generated file is out of date",
     EXIT_USAGE: "bad input, one line before any long work",
     EXIT_FAILED: "the work failed on good input (what completed before is kept)",
-    EXIT_INTERRUPTED: "interrupted (Ctrl-C)",
+    EXIT_INTERRUPTED: "interrupted (Ctrl-C; pets.compare: SIGTERM too)",
 }
 
 
@@ -175,22 +175,27 @@ def import_main(module: str) -> Callable[[], int | None]:
 UNCUTTABLE_IMPORTS = ("numpy", "mujoco")
 
 
-def run_command(prog: str, main: Callable[[], int | None], kept: str = "") -> NoReturn:
+def run_command(prog: str, main: Callable[[], int | None], kept: str = "", sigterm: bool = False) -> NoReturn:
     """Run a command's ``main`` as the process and exit with its status. Ctrl-C at any moment, the command's
     imports included (``main`` imports the command's module), is one stderr line ``PROG: interrupted; KEPT`` and exit
     130, never a traceback (before the command's own code began, KEPT is :data:`NOTHING_WRITTEN`); a Ctrl-C once
     ``main`` has returned (the process ending) is ignored: the process exits with the command's status, never by
-    the signal (-2)."""
+    the signal (-2). ``sigterm``: SIGTERM is a Ctrl-C too (pets.compare: a sweep stopped by ``kill`` or a scheduler
+    stops its runs as on Ctrl-C and says so), instead of the process ending at once, silently, by the signal."""
     import importlib
 
     sys.unraisablehook = _interrupt_again(sys.unraisablehook)
+    stops = (signal.SIGINT, signal.SIGTERM) if sigterm else (signal.SIGINT,)
+    if sigterm:
+        signal.signal(signal.SIGTERM, _as_ctrl_c)
     try:
         with interrupts_deferred(InterruptedWhileStarting):
             for name in UNCUTTABLE_IMPORTS:
                 importlib.import_module(name)
         code = main()
     except KeyboardInterrupt as stop:
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        for signum in stops:
+            signal.signal(signum, signal.SIG_IGN)
         said = NOTHING_WRITTEN if isinstance(stop, InterruptedWhileStarting) else kept
         print(f"\n{prog}: interrupted" + (f"; {said}" if said else ""), file=sys.stderr)
         code = EXIT_INTERRUPTED
@@ -199,9 +204,20 @@ def run_command(prog: str, main: Callable[[], int | None], kept: str = "") -> No
     # The work is over: a Ctrl-C while the process ends (pools, threads, files closing) is ignored. A Python handler
     # would not do: the interpreter's finalisation puts SIGINT back to its default, and the process would end by the
     # signal (-2), while an ignored signal stays ignored to the end.
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    for signum in stops:
+        signal.signal(signum, signal.SIG_IGN)
     _forget_handled_interrupt(code)
     sys.exit(code)
+
+
+def _as_ctrl_c(signum: int, frame: Any) -> None:
+    """A SIGTERM handler: what Ctrl-C does at that moment (SIGINT's handler: deferred while importing), and a
+    KeyboardInterrupt where SIGINT is ignored (a command started in the background by a shell, or with nohup, where
+    SIGTERM is the one way to stop it). Once the command is over, SIGTERM is ignored as SIGINT is."""
+    handler = signal.getsignal(signal.SIGINT)
+    if not callable(handler):
+        raise KeyboardInterrupt
+    handler(signal.SIGINT, frame)
 
 
 def _interrupt_again(hook: Callable[[Any], object]) -> Callable[[Any], object]:

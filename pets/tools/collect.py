@@ -146,12 +146,13 @@ def main(argv: list[str] | None = None) -> int:
     if kind == "sac":
         data, seconds = _train_sac(args, spec, arg)
     else:
+        from pets.data.rollout import EnvFailed
         from pets.planning.planners import PlanningFailed
         from pets.tools.cli import EXIT_FAILED
 
         try:
             data = collect(spec, policy, episodes, args.seed, args.max_steps, progress=not args.quiet)
-        except PlanningFailed as err:  # a run: policy whose model predicts non-finite states
+        except (PlanningFailed, EnvFailed) as err:  # a run: policy whose model predicts non-finite states; your env
             fail(PROG, f"{policy.name}: {err}; nothing was written", EXIT_FAILED)
     from pets.tools.cli import write_failed
 

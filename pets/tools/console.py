@@ -22,18 +22,19 @@ def _tool(name: str) -> Callable[[], NoReturn]:
     return script
 
 
-def _command(prog: str, module: str) -> Callable[[], NoReturn]:
-    """The console script of ``module.main`` (imported with Ctrl-C deferred)."""
+def _command(prog: str, module: str, sigterm: bool = False) -> Callable[[], NoReturn]:
+    """The console script of ``module.main`` (imported with Ctrl-C deferred; ``sigterm``: SIGTERM is a Ctrl-C)."""
 
     def script() -> NoReturn:
-        run_command(prog, lambda: import_main(module)())
+        run_command(prog, lambda: import_main(module)(), sigterm=sigterm)
 
     script.__doc__ = f"``{prog}``: ``{module}.main``."
     return script
 
 
 run_pets = _command("run_pets.py", "run_pets")
-compare = _command("pets.compare", "pets.compare")  # its main imports pets.experiments with Ctrl-C deferred
+# pets.compare: its main imports pets.experiments with Ctrl-C deferred; SIGTERM stops its sweep as Ctrl-C does
+compare = _command("pets.compare", "pets.compare", sigterm=True)
 collect = _tool("collect")
 train = _tool("train")
 evaluate = _tool("evaluate")

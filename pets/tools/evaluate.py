@@ -64,13 +64,11 @@ def main(argv: list[str] | None = None) -> int:
         fail(PROG, f"--starts must be >= 1, got {args.starts}")
     if problem := run_dir_error(args.run):
         fail(PROG, problem)
+    from pets.data.datasets import missing_data_file
+
     for what, path in (("data file", args.data), ("train data file", args.train_data)):
-        if path is not None and not path.is_file():
-            fail(
-                PROG,
-                f"{what} {path} "
-                + ("is a directory; give a data set file (.npz)" if path.is_dir() else "does not exist"),
-            )
+        if path is not None and (problem := missing_data_file(path, what)):
+            fail(PROG, problem)
     if args.json is not None and args.json.is_dir():
         fail(PROG, f"--json {args.json} is a directory; give a file name")
     problem = None if args.json is None else writable_dir_error(args.json.parent)

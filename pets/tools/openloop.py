@@ -107,6 +107,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         fail(PROG, str(err))
     set_threads(args.threads)
     from envs.render import RenderingUnavailable
+    from pets.data.rollout import EnvFailed
     from pets.planning.planners import PlanningFailed
 
     try:
@@ -124,7 +125,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         )
     except (ConfigError, RenderingUnavailable) as err:  # e.g. device=cuda without CUDA; no headless GL for --video
         fail(PROG, str(err))
-    except PlanningFailed as err:  # the run's model predicts non-finite states
+    except (PlanningFailed, EnvFailed) as err:  # the run's model predicts non-finite states; your env failed
         fail(PROG, f"{args.run}: {err}", EXIT_FAILED)
     print(format_table(result))
     if args.json is not None:

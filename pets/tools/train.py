@@ -13,7 +13,7 @@ import math
 import sys
 from pathlib import Path
 
-from pets.data.datasets import env_name, load_dataset
+from pets.data.datasets import env_name, load_dataset, missing_data_file
 from pets.learning.offline import OFFLINE_DEFAULTS, offline_config, train_offline
 from pets.runs.fileio import writable_dir_error
 from pets.tools.cli import EXIT_FAILED, EXIT_INTERRUPTED, OneLineParser, fail, import_given, interruptible, write_failed
@@ -65,8 +65,8 @@ def main(argv: list[str] | None = None) -> int:
         fail(PROG, str(err))
     if args.model not in HEADS:
         fail(PROG, f"--model must be one of {', '.join(HEADS)}, got {args.model!r}{UNREGISTERED}")
-    if not args.data.is_file():
-        fail(PROG, f"data file {args.data} does not exist")
+    if problem := missing_data_file(args.data):
+        fail(PROG, problem)
     if args.epochs is not None and args.epochs < 1:
         fail(PROG, f"--epochs must be >= 1, got {args.epochs}")
     if (args.out / "config.yaml").exists():

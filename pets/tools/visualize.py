@@ -288,8 +288,10 @@ def main(argv: list[str] | None = None) -> int:
     for run in args.runs:
         if problem := run_dir_error(run):
             fail(PROG, problem)
-    if not args.data.is_file():
-        fail(PROG, f"data file {args.data} does not exist")
+    from pets.data.datasets import missing_data_file
+
+    if problem := missing_data_file(args.data):
+        fail(PROG, problem)
     if args.out.suffix.lower() != ".png":
         fail(PROG, f"--out must name a .png file, got {args.out}")
     problem = writable_dir_error(args.out.parent)
