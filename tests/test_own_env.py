@@ -314,3 +314,54 @@ def test_your_env_that_fails_during_the_run_is_one_line_and_exit_3(tmp_path, mod
     assert proc.returncode == 3 and "Traceback" not in proc.stderr, proc.stderr
     assert len(lines) == 1 and lines[0].startswith(f"run_pets.py: error: {said}; "), lines
     assert (run / "config.yaml").is_file() and not (run / "diverged.txt").exists()
+
+
+ORACLE_MODULE = """
+import gymnasium
+
+import envs
+
+READY = False  # the spec's checks step it too: it fails only in the episode
+
+
+class Failing(gymnasium.Wrapper):
+    def __init__(self, env):
+        super().__init__(env)
+        self.steps = 0
+
+    def step(self, action):
+        out = self.env.step(action)
+        self.steps += 1
+        if READY and self.steps > 3:
+            raise RuntimeError("simulator blew up")
+        return out
+
+
+gymnasium.register("FailingIP-v0", entry_point=lambda **kw: Failing(gymnasium.make("InvertedPendulum-v5", **kw)))
+IP = envs.get("invertedpendulum")
+SPEC = envs.custom_spec("failing_ip", "FailingIP-v0", IP.layout, IP.reward_fn, IP.terminated_fn, episode_length=50)
+READY = True
+"""
+ORACLE_SMALL = ["--steps", "10", "--episodes", "1", "planner.population=8", "planner.horizon=3", "threads=1"]
+
+
+def test_the_oracle_refuses_your_env_of_another_simulator_in_one_line(tmp_path):
+    """pets.oracle sets a copy of MuJoCo to the live env's state; a Pendulum (not MuJoCo) was an AttributeError
+    traceback at its first planning step."""
+    me = _user_folder(tmp_path, failing=FAILING_MODULE.format(mode="raise", after=1000))
+    proc = _command(["pets.oracle", "--env", "failing:SPEC", *ORACLE_SMALL], me, module=True)
+    assert _one_error(proc) == (
+        "pets.oracle: error: the env PendulumEnv is not a MuJoCo env (no data.qpos and set_state): pets.oracle scores "
+        "each candidate on a copy of the simulator set to the live env's state"
+    )
+
+
+def test_the_oracle_on_your_env_that_fails_mid_episode_is_one_line_and_exit_3(tmp_path):
+    """Your MuJoCo env's step raising mid-episode under pets.oracle: one line naming the episode and step, exit 3."""
+    me = _user_folder(tmp_path, failing_ip=ORACLE_MODULE)
+    proc = _command(["pets.oracle", "--env", "failing_ip:SPEC", *ORACLE_SMALL], me, module=True)
+    errors = [line for line in proc.stderr.splitlines() if "error" in line]
+    assert proc.returncode == 3 and "Traceback" not in proc.stderr, proc.stderr
+    assert errors == [
+        "pets.oracle: error: episode 0: the env's step 4 of the episode raised RuntimeError: simulator blew up"
+    ]

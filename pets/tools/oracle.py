@@ -39,9 +39,19 @@ import torch
 from torch import Tensor
 
 from pets.runs.fileio import atomic_write_bytes, run_dir_error, writable_dir_error
-from pets.tools.cli import OneLineParser, fail
+from pets.tools.cli import EXIT_FAILED, OneLineParser, fail
 
 PROG = "pets.oracle"
+
+
+def not_mujoco(env: Any) -> str | None:
+    """Why ``env`` (unwrapped) cannot be the oracle's simulator (a user's env of another simulator), or None."""
+    if hasattr(env, "data") and hasattr(env, "set_state"):
+        return None
+    return (
+        f"the env {type(env).__name__} is not a MuJoCo env (no data.qpos and set_state): pets.oracle scores each "
+        "candidate on a copy of the simulator set to the live env's state"
+    )
 
 
 class SimulatorEvaluator:
@@ -64,7 +74,11 @@ class SimulatorEvaluator:
         termination_penalty: float = 0.0,
         terminal_value: Callable[[Tensor], Tensor] | None = None,
     ) -> None:
+        from pets.config import ConfigError
+
         self.env = env.unwrapped
+        if problem := not_mujoco(self.env):
+            raise ConfigError(problem)
         self.feedback = feedback
         self.termination_penalty = termination_penalty
         self.terminal_value = terminal_value
@@ -188,6 +202,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     import envs
     from pets.builder import check_memory
     from pets.config import ConfigError, make_config, parse_overrides
+    from pets.data.rollout import EnvFailed
 
     try:
         overrides = parse_overrides(args.overrides)
@@ -199,6 +214,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             )
         cfg = make_config(args.env, "delta", args.preset, overrides)
         spec = envs.get(cfg.env)
+        if problem := not_mujoco(spec.make().unwrapped):  # before any work: one line
+            raise ConfigError(problem)
         check_memory(cfg, spec, steps=0)  # population x horizon this machine cannot hold: one line, no OOM kill
     except (ValueError, KeyError) as err:  # ConfigError is a ValueError
         fail(PROG, str(err).strip("'\""))
@@ -218,6 +235,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             result = run_episode(cfg, spec, args.seed, episode, args.steps, value)
         except ConfigError as err:
             fail(PROG, str(err))
+        except EnvFailed as err:  # your env's step raised or returned what is not an observation: one line, exit 3
+            fail(PROG, f"episode {episode}: {err}", EXIT_FAILED)
         results.append(result)
         if not args.quiet:
             extra = f", max |cart x| {result['max_abs_cart_x']:.2f}" if "max_abs_cart_x" in result else ""
