@@ -320,27 +320,13 @@ ORACLE_MODULE = """
 import gymnasium
 
 import envs
+import failing  # FAILING_MODULE's wrapper, here around a MuJoCo env
 
-READY = False  # the spec's checks step it too: it fails only in the episode
-
-
-class Failing(gymnasium.Wrapper):
-    def __init__(self, env):
-        super().__init__(env)
-        self.steps = 0
-
-    def step(self, action):
-        out = self.env.step(action)
-        self.steps += 1
-        if READY and self.steps > 3:
-            raise RuntimeError("simulator blew up")
-        return out
-
-
-gymnasium.register("FailingIP-v0", entry_point=lambda **kw: Failing(gymnasium.make("InvertedPendulum-v5", **kw)))
+failing.READY = False  # the spec's checks step it too: it fails only in the episode
+gymnasium.register("FailingIP-v0", entry_point=lambda **kw: failing.Failing(gymnasium.make("InvertedPendulum-v5")))
 IP = envs.get("invertedpendulum")
 SPEC = envs.custom_spec("failing_ip", "FailingIP-v0", IP.layout, IP.reward_fn, IP.terminated_fn, episode_length=50)
-READY = True
+failing.READY = True
 """
 ORACLE_SMALL = ["--steps", "10", "--episodes", "1", "planner.population=8", "planner.horizon=3", "threads=1"]
 
@@ -358,7 +344,7 @@ def test_the_oracle_refuses_your_env_of_another_simulator_in_one_line(tmp_path):
 
 def test_the_oracle_on_your_env_that_fails_mid_episode_is_one_line_and_exit_3(tmp_path):
     """Your MuJoCo env's step raising mid-episode under pets.oracle: one line naming the episode and step, exit 3."""
-    me = _user_folder(tmp_path, failing_ip=ORACLE_MODULE)
+    me = _user_folder(tmp_path, failing=FAILING_MODULE.format(mode="raise", after=3), failing_ip=ORACLE_MODULE)
     proc = _command(["pets.oracle", "--env", "failing_ip:SPEC", *ORACLE_SMALL], me, module=True)
     errors = [line for line in proc.stderr.splitlines() if "error" in line]
     assert proc.returncode == 3 and "Traceback" not in proc.stderr, proc.stderr
