@@ -950,6 +950,27 @@ def test_overrides_anywhere_on_the_line_and_cuda_refused_up_front(tmp_path, monk
         assert not (tmp_path / "b").exists()
 
 
+def test_a_repeated_override_in_one_value_is_taken_threads_too(tmp_path, capsys):
+    """threads=2 threads=2 (and threads=2 threads=02) is one value, as a repeat of any other key is
+    (planner.horizon=5 planner.horizon=05): each run gets 2 threads; threads=2 threads=3 is refused in one line, as
+    --threads 2 threads=2 is (the option and the key, not both)."""
+    from pets.experiments.options import build_parser
+
+    base = ["online", "--envs", "reacher", "--models", "delta", "--seeds", "0", "--trials", "1", "--preset", "fast"]
+    base += ["--out", str(tmp_path / "a")]
+    for repeat in (["threads=2", "threads=2"], ["threads=2", "threads=02"]):
+        assert cli_module._parse(build_parser(), [*base, *repeat]).threads == 2
+        code, out, err = cli(capsys, *base, "--print-config", *repeat, "planner.horizon=5", "planner.horizon=05")
+        assert code == 0 and "  horizon: 5\n" in out, err
+    for refused, line in (
+        (["threads=2", "threads=3"], "threads is given twice (threads=2 and threads=3); give it once"),
+        (["threads=2", "--threads", "2"], "give the threads once: --threads N or threads=N, not both"),
+    ):
+        code, _, err = cli(capsys, *base, *refused)
+        assert code == 2 and len(err.strip().splitlines()) == 1 and line in err, err
+    assert not (tmp_path / "a").exists()
+
+
 def test_online_refuses_an_offline_run_directory(offline, capsys):
     out, _ = offline  # same config as the offline runs (trials aside): only the run kind differs
     code, _, err = cli(

@@ -234,10 +234,15 @@ def _parse(parser: OneLineParser, argv: Sequence[str] | None) -> argparse.Namesp
         args.overrides = [*args.overrides, *extra]
     given = [a for a in getattr(args, "overrides", []) if a.partition("=")[0].strip() == "threads"]
     if given and hasattr(args, "threads"):  # run_pets.py's spelling, threads=N, for --threads N
+        from pets.config import ConfigError, parse_overrides
+
         line = list(sys.argv[1:] if argv is None else argv)
-        value = given[-1].partition("=")[2].strip()
-        if any(a == "--threads" or a.startswith("--threads=") for a in line) or len(given) > 1:
+        if any(a == "--threads" or a.startswith("--threads=") for a in line):
             parser.error(f"give the threads once: --threads N or threads=N, not both, got {' '.join(given)}")
+        try:  # threads=2 threads=2 is one value, as any key's repeat; threads=2 threads=3 is refused
+            value = parse_overrides(given)["threads"]
+        except ConfigError as err:
+            parser.error(str(err))
         if not value.isdigit() or int(value) < 1:
             parser.error(f"threads must be a positive int (CPU threads per run), got {value!r}")
         args.threads = int(value)
