@@ -12,6 +12,7 @@ import json
 import math
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -969,6 +970,31 @@ def test_a_repeated_override_in_one_value_is_taken_threads_too(tmp_path, capsys)
         code, _, err = cli(capsys, *base, *refused)
         assert code == 2 and len(err.strip().splitlines()) == 1 and line in err, err
     assert not (tmp_path / "a").exists()
+
+
+def test_a_file_or_other_files_where_a_run_directory_is_made_are_refused_before_any_run(tmp_path, capsys):
+    """OUT/runs/ENV-MODEL-sSEED that is a file (or OUT/runs that is), or a folder of other files, is exit 2 and one
+    line naming it before any run starts (the run failed as it started, exit 3, after the runs before it)."""
+    out = tmp_path / "cmp"
+    base = ["online", "--envs", "invertedpendulum", "--models", "gem,delta", "--seeds", "0", "--trials", "1", "--out",
+            out, "--preset", "fast", "--quiet", *TINY]  # fmt: skip
+    run = out / "runs" / "invertedpendulum-delta-s0"
+    run.parent.mkdir(parents=True)
+    run.write_text("not a run\n")
+    code, _, err = cli(capsys, *base)
+    lines = err.strip().splitlines()
+    assert code == 2 and lines == [f"pets.compare: error: {run} is a file, not the run directory of a run to start; "
+                                   "move or delete it"]  # fmt: skip
+    run.unlink()
+    run.mkdir()
+    (run / "notes.txt").write_text("mine\n")
+    code, _, err = cli(capsys, *base)
+    assert code == 2 and f"{run} is not empty and holds no run (notes.txt)" in err and len(err.splitlines()) == 1
+    shutil.rmtree(out / "runs")
+    (out / "runs").write_text("not a folder\n")
+    code, _, err = cli(capsys, *base)
+    assert code == 2 and f"{out / 'runs'} is a file, not the folder of the run directories" in err
+    assert sorted(p.name for p in out.iterdir()) == ["runs"]  # no log, lock or summary: nothing ran
 
 
 def test_online_refuses_an_offline_run_directory(offline, capsys):

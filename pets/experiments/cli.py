@@ -31,7 +31,8 @@ Ray task (:mod:`pets.experiments.ray_backend`, docs/cluster.md); the files are t
 Everything is resumable: rerunning a command reuses finished work and runs only what is missing.
 A run directory that was made with a different config than the command asks for (other
 overrides, preset, ...; the trial count aside) is an error (exit 2): results of different configs
-are never mixed. Bad lists, envs, models or keys exit 2 with one line; a failed run is reported,
+are never mixed; so is the directory of a run to start that is a file or holds other files (before any run).
+Bad lists, envs, models or keys exit 2 with one line; a failed run is reported,
 the others go on, the summary covers the finished runs, and the exit status is 3; so is a summary, table or
 figure that could not be written (a full disk), in one line naming it.
 
