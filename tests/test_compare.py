@@ -1399,13 +1399,16 @@ def test_a_file_of_its_own_that_cannot_be_written_is_one_line_and_exit_3_the_run
     out, headline = tmp_path / "cmp", tmp_path / "headline"
     for blocked in (out / "summary.md", headline / "headline.md"):
         blocked.mkdir(parents=True)
-    advice = "what was finished is kept: free space (or clear that path), then rerun the same command"
+    advice = (  # not "free space": a directory is in the way
+        "it is a directory, not a file; what was finished is kept: move or delete that directory, then rerun the "
+        "same command"
+    )
     args = ["online", "--envs", "invertedpendulum", "--models", "delta", "--seeds", 0, "--trials", 1, "--out", out]
     args += ["--preset", "fast", "--quiet", *TINY]
     code, _, err = cli(capsys, *args)
     said = [line for line in err.splitlines() if "error" in line or "Traceback" in line]
     assert code == EXIT_FAILED, err
-    assert said == [f"pets.compare: error: writing {out / 'summary.md'} failed (Is a directory); {advice}"]
+    assert said == [f"pets.compare: error: writing {out / 'summary.md'} failed (Is a directory): {advice}"]
     assert len(rundir.read_metrics(out / "runs" / "invertedpendulum-delta-s0" / "metrics.csv")) == 1
     (out / "summary.md").rmdir()
     assert cli(capsys, *args)[0] == 0 and (out / "summary.md").is_file()
@@ -1413,7 +1416,7 @@ def test_a_file_of_its_own_that_cannot_be_written_is_one_line_and_exit_3_the_run
     code, _, err = cli(capsys, "headline", "--offline", offline, "--online", out / "summary.csv", "--out", headline)
     said = [line for line in err.splitlines() if "error" in line or "Traceback" in line]
     assert code == EXIT_FAILED and said == [
-        f"pets.compare: error: writing {headline / 'headline.md'} failed (Is a directory); {advice}"
+        f"pets.compare: error: writing {headline / 'headline.md'} failed (Is a directory): {advice}"
     ]
 
 

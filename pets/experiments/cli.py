@@ -191,9 +191,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return _main(args)
     except OSError as err:  # the runs' own failures are reported per run: this is a summary, table or figure
-        write_failed(
-            PROG, err, "what was finished is kept: free space (or clear that path), then rerun the same command"
-        )
+        write_failed(PROG, err, "what was finished is kept: free space, then rerun the same command")
 
 
 def _main(args: argparse.Namespace) -> int:
