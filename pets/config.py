@@ -166,24 +166,11 @@ def _schema_keys(sections: tuple[tuple[str, type], ...]) -> tuple[str, ...]:
     return tuple(all_keys(OmegaConf.structured(_schema_class(sections))))
 
 
-_POSITIVE_INTS = [
-    "trials",
-    "model.ensemble_size",
-    "model.num_elites",
-    "model.hidden_size",
-    "model.num_layers",
-    "model.batch_size",
-    "model.max_epochs",
-    "model.patience",
-    "model.max_holdout",
-    "planner.population",
-    "planner.iterations",
-    "planner.horizon",
-    "planner.particles",
-    "planner.replan_every",
-    "value.hidden_size",
-    "value.steps",
-]
+_POSITIVE_INTS = (
+    "trials model.ensemble_size model.num_elites model.hidden_size model.num_layers model.batch_size model.max_epochs "
+    "model.patience model.max_holdout planner.population planner.iterations planner.horizon planner.particles "
+    "planner.replan_every value.hidden_size value.steps"
+).split()
 _CHOICES = {
     "planner.candidates": CANDIDATES,
     "planner.propagation": PROPAGATIONS,
@@ -265,17 +252,29 @@ def config_yaml(cfg: DictConfig | Mapping[str, Any]) -> str:
 
 def parse_overrides(items: list[str]) -> dict[str, str]:
     """Split ``key=value`` strings; ConfigError for a malformed item or a key given twice with different values
-    (neither silently wins)."""
+    (neither silently wins). Values are compared as the key's type parses them (``5`` and ``05``, ``1e3`` and
+    ``1000.0`` of a float are one value; the first text is kept); a key the schema does not know (yet: a planner
+    section of ``imports``) or a value it refuses compares as text."""
     out: dict[str, str] = {}
     for item in items:
         key, sep, value = item.partition("=")
         key, value = key.strip(), value.strip()
         if not sep or not key:
             raise ConfigError(f"expected key=value, got {item!r}")
-        if out.get(key, value) != value:
+        if out.get(key, value) != value and _parsed(key, out[key]) != _parsed(key, value):
             raise ConfigError(f"{key} is given twice ({key}={out[key]} and {key}={value}); give it once")
-        out[key] = value
+        out.setdefault(key, value)
     return out
+
+
+def _parsed(key: str, text: str) -> Any:
+    """``text`` as ``key=text`` sets it in the schema, or ``text`` itself where the schema refuses it."""
+    cfg, key = schema(), DEPRECATED_KEYS.get(key, key)
+    try:
+        set_value(cfg, key, text)
+    except ConfigError:
+        return text
+    return OmegaConf.select(cfg, key)
 
 
 #: Flat planner keys of gem-pets 0.1 -> their nested names (still accepted, with a warning).

@@ -12,6 +12,7 @@ import json
 import math
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -950,6 +951,52 @@ def test_overrides_anywhere_on_the_line_and_cuda_refused_up_front(tmp_path, monk
         assert not (tmp_path / "b").exists()
 
 
+def test_a_repeated_override_in_one_value_is_taken_threads_too(tmp_path, capsys):
+    """threads=2 threads=2 (and threads=2 threads=02) is one value, as a repeat of any other key is
+    (planner.horizon=5 planner.horizon=05): each run gets 2 threads; threads=2 threads=3 is refused in one line, as
+    --threads 2 threads=2 is (the option and the key, not both)."""
+    from pets.experiments.options import build_parser
+
+    base = ["online", "--envs", "reacher", "--models", "delta", "--seeds", "0", "--trials", "1", "--preset", "fast"]
+    base += ["--out", str(tmp_path / "a")]
+    for repeat in (["threads=2", "threads=2"], ["threads=2", "threads=02"]):
+        assert cli_module._parse(build_parser(), [*base, *repeat]).threads == 2
+        code, out, err = cli(capsys, *base, "--print-config", *repeat, "planner.horizon=5", "planner.horizon=05")
+        assert code == 0 and "  horizon: 5\n" in out, err
+    for refused, line in (
+        (["threads=2", "threads=3"], "threads is given twice (threads=2 and threads=3); give it once"),
+        (["threads=2", "--threads", "2"], "give the threads once: --threads N or threads=N, not both"),
+    ):
+        code, _, err = cli(capsys, *base, *refused)
+        assert code == 2 and len(err.strip().splitlines()) == 1 and line in err, err
+    assert not (tmp_path / "a").exists()
+
+
+def test_a_file_or_other_files_where_a_run_directory_is_made_are_refused_before_any_run(tmp_path, capsys):
+    """OUT/runs/ENV-MODEL-sSEED that is a file (or OUT/runs that is), or a folder of other files, is exit 2 and one
+    line naming it before any run starts (the run failed as it started, exit 3, after the runs before it)."""
+    out = tmp_path / "cmp"
+    base = ["online", "--envs", "invertedpendulum", "--models", "gem,delta", "--seeds", "0", "--trials", "1", "--out",
+            out, "--preset", "fast", "--quiet", *TINY]  # fmt: skip
+    run = out / "runs" / "invertedpendulum-delta-s0"
+    run.parent.mkdir(parents=True)
+    run.write_text("not a run\n")
+    code, _, err = cli(capsys, *base)
+    lines = err.strip().splitlines()
+    assert code == 2 and lines == [f"pets.compare: error: {run} is a file, not the run directory of a run to start; "
+                                   "move or delete it"]  # fmt: skip
+    run.unlink()
+    run.mkdir()
+    (run / "notes.txt").write_text("mine\n")
+    code, _, err = cli(capsys, *base)
+    assert code == 2 and f"{run} is not empty and holds no run (notes.txt)" in err and len(err.splitlines()) == 1
+    shutil.rmtree(out / "runs")
+    (out / "runs").write_text("not a folder\n")
+    code, _, err = cli(capsys, *base)
+    assert code == 2 and f"{out / 'runs'} is a file, not the folder of the run directories" in err
+    assert sorted(p.name for p in out.iterdir()) == ["runs"]  # no log, lock or summary: nothing ran
+
+
 def test_online_refuses_an_offline_run_directory(offline, capsys):
     out, _ = offline  # same config as the offline runs (trials aside): only the run kind differs
     code, _, err = cli(
@@ -1352,13 +1399,16 @@ def test_a_file_of_its_own_that_cannot_be_written_is_one_line_and_exit_3_the_run
     out, headline = tmp_path / "cmp", tmp_path / "headline"
     for blocked in (out / "summary.md", headline / "headline.md"):
         blocked.mkdir(parents=True)
-    advice = "what was finished is kept: free space (or clear that path), then rerun the same command"
+    advice = (  # not "free space": a directory is in the way
+        "it is a directory, not a file; what was finished is kept: move or delete that directory, then rerun the "
+        "same command"
+    )
     args = ["online", "--envs", "invertedpendulum", "--models", "delta", "--seeds", 0, "--trials", 1, "--out", out]
     args += ["--preset", "fast", "--quiet", *TINY]
     code, _, err = cli(capsys, *args)
     said = [line for line in err.splitlines() if "error" in line or "Traceback" in line]
     assert code == EXIT_FAILED, err
-    assert said == [f"pets.compare: error: writing {out / 'summary.md'} failed (Is a directory); {advice}"]
+    assert said == [f"pets.compare: error: writing {out / 'summary.md'} failed (Is a directory): {advice}"]
     assert len(rundir.read_metrics(out / "runs" / "invertedpendulum-delta-s0" / "metrics.csv")) == 1
     (out / "summary.md").rmdir()
     assert cli(capsys, *args)[0] == 0 and (out / "summary.md").is_file()
@@ -1366,7 +1416,7 @@ def test_a_file_of_its_own_that_cannot_be_written_is_one_line_and_exit_3_the_run
     code, _, err = cli(capsys, "headline", "--offline", offline, "--online", out / "summary.csv", "--out", headline)
     said = [line for line in err.splitlines() if "error" in line or "Traceback" in line]
     assert code == EXIT_FAILED and said == [
-        f"pets.compare: error: writing {headline / 'headline.md'} failed (Is a directory); {advice}"
+        f"pets.compare: error: writing {headline / 'headline.md'} failed (Is a directory): {advice}"
     ]
 
 

@@ -1,5 +1,7 @@
 """Config: defaults, per-env defaults, presets, typed key=value overrides and clear errors."""
 
+import re
+
 import pytest
 from omegaconf import OmegaConf
 
@@ -94,6 +96,31 @@ def test_a_key_given_twice_with_different_values_is_refused_not_the_last_taken()
     ):
         parse_overrides(["planner.horizon=20", "seed=1", "planner.horizon = 30"])
     assert parse_overrides(["seed=1", "seed=1"]) == {"seed": "1"}  # no value wins over another
+
+
+def test_a_key_given_twice_in_two_spellings_of_one_value_is_that_value() -> None:
+    """The repeat is compared as the key's type parses it, not as text: 5 and 05 of an int, 1e3 and 1000 of a
+    float, true and True, null and None are one value (the first text is kept); values that differ once parsed, a
+    value the key's type refuses, and a key the schema does not know (a planner section before its imports) are
+    refused."""
+    assert parse_overrides(["planner.horizon=5", "seed=1", "planner.horizon=05"]) == {
+        "planner.horizon": "5",
+        "seed": "1",
+    }
+    assert parse_overrides(["stop_reward=1e3", "stop_reward=1000"]) == {"stop_reward": "1e3"}
+    assert parse_overrides(["tensorboard=true", "tensorboard=True", "episode_length=null", "episode_length=None"]) == {
+        "tensorboard": "true",
+        "episode_length": "null",
+    }
+    assert (
+        make_config("reacher", overrides=parse_overrides(["planner.horizon=5", "planner.horizon=05"])).planner.horizon
+        == 5
+    )
+    for a, b in [("planner.horizon=5", "planner.horizon=6"), ("planner.horizon=1e3", "planner.horizon=1000"),
+                 ("stop_reward=1e3", "stop_reward=1001"), ("env=05", "env=5"),
+                 ("planner.random_shooting.spread=0.5", "planner.random_shooting.spread=.5")]:  # fmt: skip
+        with pytest.raises(ConfigError, match=re.escape(f"is given twice ({a} and {b}); give it once")):
+            parse_overrides([a, b])
 
 
 def test_saved_config_round_trips(tmp_path):

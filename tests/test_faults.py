@@ -764,3 +764,35 @@ def test_metrics_written_before_the_cpu_column_read_back_with_nan(tmp_path) -> N
     stats = online_run_stats(read, 2, 1, threshold=4.0)
     assert stats["minutes_to_threshold"] == 3.0 / 60 and math.isnan(stats["cpu_minutes_to_threshold"])
     assert math.isnan(stats["cpu_time_s"])
+
+
+def test_a_directory_in_the_way_of_a_runs_file_says_so_not_free_space(tmp_path: Path, capsys) -> None:
+    """A run whose history.csv, diverged.txt or .lock was made a directory: --resume fails writing it, exit 3, in one
+    line that names the directory in the way and says to move it (freeing space would not help); once it is moved,
+    --resume finishes. A file in the way of a folder on a written path (ENOTDIR) is named the same way."""
+    run = tmp_path / "run"
+    cli("--env", "invertedpendulum", "--trials", 1, "--out", run, *TINY)
+    for name in (rundir.HISTORY_FILE, rundir.DIVERGED_FILE, ".lock"):
+        copy = tmp_path / f"run-{name.strip('.').replace('.', '-')}"
+        shutil.copytree(run, copy)
+        (copy / name).unlink(missing_ok=True)
+        (copy / name).mkdir()
+        proc = cli("--resume", copy, "--trials", 2, "--quiet", check=False)
+        assert proc.returncode == 3 and error_lines(proc.stderr) == [
+            f"run_pets.py: error: writing {copy / name} failed (Is a directory): it is a directory, not a file; the "
+            f"trials completed before it are kept: move or delete that directory, then --resume {copy}"
+        ], proc.stderr
+    (copy / ".lock").rmdir()
+    assert cli("--resume", copy, "--trials", 2, "--quiet").returncode == 0 and len(rows(copy)) == 2
+    from pets.tools.cli import write_failed
+
+    (tmp_path / "videos").write_text("a file\n")
+    with pytest.raises(OSError) as failed:
+        (tmp_path / "videos" / "trial-0000.mp4").write_bytes(b"")
+    with pytest.raises(SystemExit) as exited:
+        write_failed("run_pets.py", failed.value, "no trial was completed; free space, then start the run again")
+    assert exited.value.code == 3 and capsys.readouterr().err == (
+        f"run_pets.py: error: writing {tmp_path / 'videos' / 'trial-0000.mp4'} failed (Not a directory): "
+        f"{tmp_path / 'videos'} is a file, not a folder; no trial was completed; move or delete that file, then start "
+        "the run again\n"
+    )

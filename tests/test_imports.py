@@ -341,3 +341,26 @@ def test_a_codec_of_ones_own_from_imports_in_the_python_api(registrations, folde
     agent = pets.PETS("my_env:SPEC", model="gem", preset="fast", imports=["my_codec"], **{"model.compile": False})
     assert [c.kind for c in agent.model.head.codecs] == ["Rn", "SO2_wrapped"]
     assert list(agent.config.imports) == ["my_codec"] and agent.config.env == "my_env:SPEC"
+
+
+def test_pets_collect_env_takes_imports_for_a_codec_its_module_does_not_import(tmp_path: Path) -> None:
+    """pets.collect --env tests.custom_envs:wrapped_pendulum (a layout of the kind SO2_wrapped; its module does not
+    import tests.own_codec) collects with imports=[tests.own_codec], before or after the options; without it, one
+    line that says imports=[my_codec]; another config key is one line naming it; nothing is written on refusal."""
+    out = tmp_path / "d.npz"
+
+    def collect(*extra: str) -> subprocess.CompletedProcess:
+        cmd = [sys.executable, "-m", "pets.collect", "--env", "tests.custom_envs:wrapped_pendulum", "--policy",
+               "random", "--episodes", "2", "--max-steps", "10", "--quiet", *extra]  # fmt: skip
+        return warm.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
+
+    line = one_line(collect("--out", str(out)))
+    assert "unknown kind 'SO2_wrapped'" in line and "imports=[my_codec]" in line and not out.exists()
+    line = one_line(collect("--out", str(out), "imports=[tests.own_codec]", "seed=1"))
+    assert "takes one config key, imports=[MODULE,...], got seed=1" in line and "--seed" in line and not out.exists()
+    proc = collect("imports=[tests.own_codec]", "--out", str(out))
+    assert proc.returncode == 0, proc.stderr
+    from pets.data.datasets import load_dataset
+
+    data = load_dataset(out)
+    assert str(data["env"]) == "tests.custom_envs:wrapped_pendulum" and len(data["lengths"]) == 2

@@ -31,7 +31,8 @@ Ray task (:mod:`pets.experiments.ray_backend`, docs/cluster.md); the files are t
 Everything is resumable: rerunning a command reuses finished work and runs only what is missing.
 A run directory that was made with a different config than the command asks for (other
 overrides, preset, ...; the trial count aside) is an error (exit 2): results of different configs
-are never mixed. Bad lists, envs, models or keys exit 2 with one line; a failed run is reported,
+are never mixed; so is the directory of a run to start that is a file or holds other files (before any run).
+Bad lists, envs, models or keys exit 2 with one line; a failed run is reported,
 the others go on, the summary covers the finished runs, and the exit status is 3; so is a summary, table or
 figure that could not be written (a full disk), in one line naming it.
 
@@ -190,9 +191,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return _main(args)
     except OSError as err:  # the runs' own failures are reported per run: this is a summary, table or figure
-        write_failed(
-            PROG, err, "what was finished is kept: free space (or clear that path), then rerun the same command"
-        )
+        write_failed(PROG, err, "what was finished is kept: free space, then rerun the same command")
 
 
 def _main(args: argparse.Namespace) -> int:
@@ -234,10 +233,15 @@ def _parse(parser: OneLineParser, argv: Sequence[str] | None) -> argparse.Namesp
         args.overrides = [*args.overrides, *extra]
     given = [a for a in getattr(args, "overrides", []) if a.partition("=")[0].strip() == "threads"]
     if given and hasattr(args, "threads"):  # run_pets.py's spelling, threads=N, for --threads N
+        from pets.config import ConfigError, parse_overrides
+
         line = list(sys.argv[1:] if argv is None else argv)
-        value = given[-1].partition("=")[2].strip()
-        if any(a == "--threads" or a.startswith("--threads=") for a in line) or len(given) > 1:
+        if any(a == "--threads" or a.startswith("--threads=") for a in line):
             parser.error(f"give the threads once: --threads N or threads=N, not both, got {' '.join(given)}")
+        try:  # threads=2 threads=2 is one value, as any key's repeat; threads=2 threads=3 is refused
+            value = parse_overrides(given)["threads"]
+        except ConfigError as err:
+            parser.error(str(err))
         if not value.isdigit() or int(value) < 1:
             parser.error(f"threads must be a positive int (CPU threads per run), got {value!r}")
         args.threads = int(value)

@@ -20,6 +20,7 @@ Each error is one stderr line ``PROG: error: MESSAGE`` that says what to do.
 from __future__ import annotations
 
 import argparse
+import errno
 import functools
 import json
 import signal
@@ -97,8 +98,25 @@ def fail(prog: str, message: str, code: int = EXIT_USAGE) -> NoReturn:
 
 
 def write_failed(prog: str, err: OSError, advice: str) -> NoReturn:
-    """Exit :data:`EXIT_FAILED` with one line naming the file whose write failed, why, and ``advice``."""
-    fail(prog, f"writing {err.filename or 'a file'} failed ({err.strerror or err}); {advice}", EXIT_FAILED)
+    """Exit :data:`EXIT_FAILED` with one line naming the file whose write failed, why, and ``advice``: what is kept
+    and what to do, written for a full disk (``free space, then ...``). Where a directory is in the way of the file
+    (EISDIR) or a file is in the way of a folder on its path (ENOTDIR), the line names it, and ``free space`` in
+    ``advice`` becomes what to move."""
+    line = f"writing {err.filename or 'a file'} failed ({err.strerror or err})"
+    if err.errno in (errno.EISDIR, errno.ENOTDIR):
+        problem, fix = _in_the_way(err)
+        line, advice = f"{line}: {problem}", advice.replace("free space", fix)
+    fail(prog, f"{line}; {advice}", EXIT_FAILED)
+
+
+def _in_the_way(err: OSError) -> tuple[str, str]:
+    """What is in the way of a write that failed with EISDIR or ENOTDIR, and what to do about it."""
+    if err.errno == errno.EISDIR:
+        return "it is a directory, not a file", "move or delete that directory"
+    path = Path(err.filename or "")
+    file = next((p for p in path.parents if p.is_file()), None)  # the folder on the path that is a file
+    where = f"{file} is a file, not a folder" if file else "a file is in the way of a folder on its path"
+    return where, "move or delete that file"
 
 
 def write_json_result(prog: str, path: Path, result: Any) -> None:

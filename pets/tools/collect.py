@@ -2,11 +2,13 @@
 
     python -m pets.collect --env ENV --policy random|smooth-random[:BETA]|run:RUN_DIR|sb3:AGENT.zip
                            [--episodes N] [--seed S] [--max-steps T] [--device D] [--deterministic] [--quiet]
-                           --out FILE.npz
+                           --out FILE.npz [imports=[MODULE,...]]
     python -m pets.collect --env ENV --policy sac:STEPS [--seed S] [--max-steps T] [--save-agent SAC.zip]
-                           --out FILE.npz
+                           --out FILE.npz [imports=[MODULE,...]]
 
-What it does, and what it writes: :mod:`pets.data.collect`.
+What it does, and what it writes: :mod:`pets.data.collect`. Of the config keys it takes ``imports`` only (modules
+imported before the env is built, e.g. one that registers the group codec of ``--env my_env:SPEC``'s layout,
+:mod:`pets.imports`); its other settings are its options.
 """
 
 from __future__ import annotations
@@ -45,7 +47,32 @@ def build_parser() -> OneLineParser:
     add_threads_option(p)
     p.add_argument("--out", type=Path, required=True, help="output .npz file, new (written atomically)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument(
+        "overrides",
+        nargs="*",
+        metavar="imports=[MODULE,...]",
+        help="modules imported before the env is built (your own codecs, models, planners register there)",
+    )
     return p
+
+
+def _import_given(items: list[str]) -> None:
+    """Import the modules of ``imports=[...]``, the one config key pets.collect takes; exit 2 (one line) for
+    another key or a module that fails."""
+    from pets.config import ConfigError, parse_overrides
+    from pets.imports import import_modules
+
+    try:
+        given = parse_overrides(items)
+        other = [f"{key}={value}" for key, value in given.items() if key != "imports"]
+        if other:
+            raise ConfigError(
+                f"pets.collect takes one config key, imports=[MODULE,...], got {' '.join(other)}; its other settings "
+                "are options (--seed, --max-steps, --device, --threads)"
+            )
+        import_modules(given.get("imports", []))
+    except ConfigError as err:
+        fail(PROG, str(err))
 
 
 def _train_sac(args: argparse.Namespace, spec: Any, steps: int) -> tuple[dict[str, np.ndarray], float]:
@@ -98,7 +125,7 @@ def _check_outputs(out: Path, save_agent: Path | None) -> None:
     "its checkpoint OUT.sac-checkpoint, written every 10,000 steps, when the same command runs again)",
 )
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    args = build_parser().parse_intermixed_args(argv)
     try:
         kind, arg = parse_policy(args.policy)
     except ValueError as err:
@@ -137,6 +164,7 @@ def main(argv: list[str] | None = None) -> int:
     from pets.config import ConfigError
 
     set_threads(args.threads)
+    _import_given(args.overrides)  # before the env: its layout may use a codec such a module registers
     try:
         name = args.env if args.env else run_env_name(arg)
         spec = envs.get(name)
