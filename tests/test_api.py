@@ -14,6 +14,7 @@ import torch
 import pets
 from pets.config import ConfigError
 from pets.runs import rundir
+from tests.test_cli import cli, rows
 from tests.threads import one_thread
 
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "api.md"
@@ -55,6 +56,21 @@ def test_a_saved_and_loaded_object_continues_as_the_one_never_saved(tmp_path):
     assert strip[0] == strip[1] and b.trials_done == 2
     for p, q in zip(a.model.state_dict().values(), b.model.state_dict().values()):
         assert torch.equal(p, q)
+
+
+def test_learn_gives_run_pets_metrics_of_the_same_settings_seed_and_trials(tmp_path):
+    """docs/api.md: ``PETS(..., seed=S, trials=N).learn()`` gives ``run_pets.py --seed S --trials N`` with the same
+    settings, every column of metrics.csv but the timings bit for bit."""
+    settings = {**TINY, "value.steps": 20}
+    keys = [f"{key}={value}" for key, value in settings.items()]
+    run = tmp_path / "run"
+    args = ["--env", "invertedpendulum", "--model", "delta", "--preset", "fast", "--seed", 4, "--trials", 2]
+    cli(*args, "--out", run, "--quiet", "threads=1", *keys)
+    with one_thread():
+        api = pets.PETS("invertedpendulum", model="delta", preset="fast", seed=4, trials=2, **settings).learn()
+    timing = rundir.TIMING_COLUMNS
+    want = [{k: v for k, v in row.items() if k not in timing} for row in rows(run)]
+    assert [{k: str(v) for k, v in row.items() if k not in timing} for row in api.history] == want
 
 
 def test_learn_stops_where_the_run_is_done_as_run_pets_does():
