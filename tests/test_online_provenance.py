@@ -3,7 +3,11 @@ that wrote it and the machines its runs ran on (from each run's history.csv)."""
 
 from __future__ import annotations
 
+import csv
 import socket
+
+import numpy as np
+import scipy.stats
 
 from pets.experiments.cli import command_line
 from pets.experiments.studies.online import summarise_online
@@ -43,3 +47,19 @@ def test_summary_md_names_the_seeds_the_command_and_the_machines(tmp_path):
     summarise_online(tmp_path, ["reacher"], ["delta", "gem"], [3, 7, 8], 3, 2, reps=50)
     md = (tmp_path / "summary.md").read_text()
     assert "- command:" not in md and "- machines (runs/RUN/history.csv): not recorded" in md
+
+
+def test_summary_md_says_the_sign_flip_p_is_two_sided_and_it_is(tmp_path):
+    finals = {"delta": [5.0, 1.0, 4.0, 2.0, 3.0], "gem": [6.0, 3.0, 4.5, 5.0, 2.5]}
+    for model, values in finals.items():
+        for seed, v in enumerate(values):
+            _run(tmp_path, model, seed, [0.0, v])
+    summarise_online(tmp_path, ["reacher"], ["delta", "gem"], range(5), 2, 1, reps=50)
+    diff = np.subtract(finals["gem"], finals["delta"])
+    two_sided = scipy.stats.permutation_test(
+        (diff,), np.mean, permutation_type="samples", n_resamples=np.inf, alternative="two-sided"
+    ).pvalue
+    with open(tmp_path / "summary.csv", newline="") as f:
+        gem = next(r for r in csv.DictReader(f) if r["model"] == "gem")
+    assert float(gem["diff_p_signflip"]) == two_sided == 0.1875  # one-sided (greater) would be 0.09375
+    assert "p (sign-flip): the exact two-sided paired permutation p-value" in (tmp_path / "summary.md").read_text()

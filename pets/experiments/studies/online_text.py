@@ -32,10 +32,10 @@ def summary_header(
             f" P(final > {BASELINE}'s): the probability that a random seed of the arm ends with a higher final "
             f"reward than a random seed of {base_name} (ties count half), with its CI. final - {BASELINE}: IQM "
             "[CI] of the per-seed difference of the final rewards over the seeds both arms have (same seed: "
-            "the same random seed data and env reset seeds). p (sign-flip): the exact paired permutation p-value of "
-            f"the mean final - {BASELINE} over the seeds both arms ran, a diverged run entered as the env's lowest "
-            "final reward (at 5 pairs it cannot go below 0.0625); p (Holm): Holm's adjustment over every "
-            "arm-vs-baseline test of this summary (envs x arms)."
+            "the same random seed data and env reset seeds). p (sign-flip): the exact two-sided paired permutation "
+            f"p-value of the mean final - {BASELINE} over the seeds both arms ran (each pair's sign flipped), a "
+            "diverged run entered as the env's lowest final reward (at 5 pairs it cannot go below 0.0625); p (Holm): "
+            "Holm's adjustment over every arm-vs-baseline test of this summary (envs x arms)."
             if compared
             else ""
         )
