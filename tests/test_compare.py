@@ -166,6 +166,9 @@ def test_online_rerun_reuses_everything(online):
         assert snapshot(out / "runs" / name) == snap, name  # nothing was touched
         assert len(rows) == 2
     assert steps["third"]["summary"] == steps["second"]["summary"]
+    assert steps["third"]["md"] == steps["second"]["md"]  # byte for byte, the command line it names included
+    line = f"online --models delta,gem --seeds 0,1 --trials 2 --envs invertedpendulum --out {out} --workers 2"
+    assert f"- command: `python -m pets.compare {line} --preset fast --quiet {' '.join(TINY)}`" in steps["third"]["md"]
     assert sum(1 for _ in (out / "logs").iterdir()) == 5  # 4 runs + the broken one, no new logs
 
 

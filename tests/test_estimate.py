@@ -27,6 +27,9 @@ def test_a_runs_planned_and_gradient_steps_follow_its_budget_and_schedule():
     assert est.run_shape(epochs, 1000) == (99_000, None)  # training by epochs: not projected
     trials = make_config("invertedpendulum", "delta", "fast", {"trials": 7, "model.iterations": 50})
     assert est.run_shape(trials, 200) == (1400, 7 * 50)  # no budget: trials x length, one training after each
+    # resumed after 3 trials that ended early (50 steps each): its 4 trials left, not the 7 x 200 less the steps done
+    assert est.run_shape(trials, 200, steps_done=trials.seed_steps + 150, trials_done=3) == (800, 4 * 50)
+    assert est.run_shape(loco, 1000, steps_done=50_000, trials_done=20) == (50_000, 50_000)  # the budget binds
 
 
 def test_the_projection_multiplies_the_measured_steps_and_skips_reused_runs(tmp_path):
@@ -76,7 +79,8 @@ def test_estimate_measures_on_this_machine_counts_a_resumed_run_by_what_is_left_
     monkeypatch.setattr(est, "_measure", lambda cfg: (0.01, 0.001))  # measured above: only the count matters now
     assert main([*SWEEP, "--trials", "4", "--out", str(out), "--estimate", *TINY]) == 0
     row = capsys.readouterr().out.splitlines()[2].split(" | ")
-    assert row[1:3] == ["1", f"{120 - (done - 100):,}"]  # what is left of the planned steps (seed data apart)
+    assert row[1:3] == ["1", "60"]  # what is left: 2 trials of 30 steps, however long the first 2 were
+    assert done - 100 <= 60  # (they ended at or before 30 steps each)
 
 
 def test_without_out_every_run_is_to_do_and_no_directory_is_looked_at(tmp_path, monkeypatch, capsys):

@@ -188,10 +188,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Run ``compare`` with ``argv`` and print the report; 0, 3 (a run failed), exit 2 (bad input) or exit 3 with one
     line where a file of the command's own could not be written (a full disk: the finished runs are kept)."""
     args = _parse(build_parser(), argv)
+    args.command_line = command_line(sys.argv[1:] if argv is None else argv)
     try:
         return _main(args)
     except OSError as err:  # the runs' own failures are reported per run: this is a summary, table or figure
         write_failed(PROG, err, "what was finished is kept: free space, then rerun the same command")
+
+
+def command_line(argv: Sequence[str]) -> str:
+    """The command ``argv`` (``pets.compare``'s arguments) as a shell line, as the summaries name it."""
+    import shlex
+
+    return shlex.join(["python", "-m", "pets.compare", *argv])
 
 
 def _main(args: argparse.Namespace) -> int:
@@ -323,6 +331,7 @@ def _run_online(args: argparse.Namespace, shared: dict[str, Any]) -> dict[str, A
         planners=None if args.planners is None else parse_planners(args.planners),
         until_threshold=args.until_threshold,
         estimate=args.estimate and not args.print_config,
+        command=getattr(args, "command_line", None),
     )
 
 
@@ -354,4 +363,5 @@ def _run_offline(args: argparse.Namespace, shared: dict[str, Any]) -> dict[str, 
         protocol=args.protocol,
         data_seeds=parse_seeds(args.data_seeds, "--data-seeds"),
         estimate=args.estimate and not args.print_config,
+        command=getattr(args, "command_line", None),
     )

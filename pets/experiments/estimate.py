@@ -63,13 +63,16 @@ def train_step_seconds(cfg: DictConfig, parts: Mapping[str, Any]) -> float:
     return statistics.median(times[1:])
 
 
-def run_shape(cfg: DictConfig, episode_length: int, steps_done: int = 0) -> tuple[int, int | None]:
-    """``(planned env steps left, gradient steps left or None)`` of a run that has ``steps_done`` env steps
-    (seed data included); None: training by epochs, not projected."""
-    planned = cfg.trials * episode_length
+def run_shape(
+    cfg: DictConfig, episode_length: int, steps_done: int = 0, trials_done: int = 0
+) -> tuple[int, int | None]:
+    """``(planned env steps left, gradient steps left or None)`` of a run that has ``trials_done`` trials and
+    ``steps_done`` env steps (seed data included); None: training by epochs, not projected. What is left is its
+    trials to do at ``episode_length`` each (episodes that ended early do not make the next ones longer), within
+    its env-step budget if it has one."""
+    left = max(0, cfg.trials - trials_done) * episode_length
     if cfg.max_env_steps is not None:
-        planned = min(planned, cfg.max_env_steps - cfg.seed_steps)
-    left = max(0, planned - max(0, steps_done - cfg.seed_steps))
+        left = min(left, max(0, cfg.max_env_steps - max(steps_done, cfg.seed_steps)))
     if cfg.model.iterations == 0:
         return left, None
     trainings = (left // cfg.train_every if cfg.train_every else 0) + (
@@ -132,8 +135,8 @@ def estimate(
         if builder.resolve_device(cfg.device).type == "cuda":
             unit = "hours"  # the device's wall time, as measured there
         length = cfg.episode_length or envs.get(cfg.env).episode_length
-        done = int(online_rows(out / "runs" / name)[-1]["env_steps"]) if actions.get(name) == "resume" else 0
-        steps, grads = run_shape(cfg, length, done)
+        rows = online_rows(out / "runs" / name) if actions.get(name) == "resume" else []
+        steps, grads = run_shape(cfg, length, int(rows[-1]["env_steps"]) if rows else 0, len(rows))
         arm = arms[key]
         arm.runs, arm.steps = arm.runs + 1, arm.steps + steps
         arm.grads = None if grads is None or arm.grads is None else arm.grads + grads

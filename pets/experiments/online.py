@@ -94,6 +94,7 @@ def compare_online(
     until_threshold: bool = False,
     configs_only: bool = False,
     estimate: bool = False,
+    command: str | None = None,
 ) -> dict[str, Any]:
     """Run (or reuse/resume) every online run, then write the summary. Returns ``{"actions", "failed",
     "summary"}``. UsageError for bad settings or a run directory with another config.
@@ -106,7 +107,7 @@ def compare_online(
     looking at ``out`` or running anything (``--print-config``).
     ``estimate``: return ``{"estimate": text}``, the CPU-hours of the runs still to do measured on this machine
     (:mod:`pets.experiments.estimate`), without running or writing anything (``--estimate``); with
-    ``configs_only``, of every run, ``out`` not looked at.
+    ``configs_only``, of every run, ``out`` not looked at. ``command``: the command line, named in summary.md.
     """
     backend = backend or Backend()
     if trials < 1 or final_window < 1:
@@ -142,8 +143,9 @@ def compare_online(
         # A run that stopped diverged is an outcome (counted as the worst), not a failure to rerun.
         failed = {n: msg for n, (ok, msg) in results.items() if not ok and not read_divergence(out / "runs" / n)}
         summary = summarise_online(
-            out, env_names, models, seeds, trials, final_window, failed, planners, until_threshold=until_threshold
-        )
+            out, env_names, models, seeds, trials, final_window, failed, planners, until_threshold=until_threshold,
+            command=command,
+        )  # fmt: skip
         return {"actions": actions, "failed": failed, "summary": summary}
 
 

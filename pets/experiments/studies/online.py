@@ -57,7 +57,7 @@ from pets.experiments.studies.base import (
     table_cells,
     table_header,
 )
-from pets.experiments.studies.online_text import runs_sections, summary_header
+from pets.experiments.studies.online_text import provenance_lines, runs_sections, summary_header
 from pets.runs.fileio import atomic_write_bytes
 
 #: Reward thresholds of the time-to-threshold columns (``docs/performance.md``): InvertedPendulum's maximum
@@ -255,11 +255,13 @@ def summarise_online(
     reps: int = REPS,
     thresholds: Mapping[str, float] = THRESHOLDS,
     until_threshold: bool = False,
+    command: str | None = None,
 ) -> list[dict[str, Any]]:
     """Write summary.md, summary.csv, summary_runs.csv, rewards_ENV.png and walltime_ENV.png (module
     docstring) from the complete runs; returns the summary.csv rows. ``thresholds``: the reward threshold
     per env of the time-to-threshold columns (an env without one gets none). ``until_threshold``: a run that
-    reached its env's threshold is complete with fewer rows (``pets.compare online --until-threshold``)."""
+    reached its env's threshold is complete with fewer rows (``pets.compare online --until-threshold``).
+    ``command``: the command line that made the summary, named in summary.md with the seeds and machines."""
     out = Path(out)
     found: dict[str, list] = {"per_run": [], "missing": [], "diverged": [], "included": [], "budgeted": []}
     summary, text = [], []
@@ -285,6 +287,7 @@ def summarise_online(
     write_csv(out / "summary_runs.csv", found["per_run"], RUN_COLUMNS)
     text = (
         summary_header(trials, w, compared, planners is not None, until_threshold, bool(found["budgeted"]))
+        + provenance_lines(list(seeds), found["included"], command)
         + text
         + precision_note(found["included"])
     )

@@ -3,7 +3,8 @@ diverged and of the missing runs (:func:`pets.experiments.studies.online.summari
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
+from pathlib import Path
 
 from pets.experiments.statistics import BASELINE
 
@@ -31,10 +32,10 @@ def summary_header(
             f" P(final > {BASELINE}'s): the probability that a random seed of the arm ends with a higher final "
             f"reward than a random seed of {base_name} (ties count half), with its CI. final - {BASELINE}: IQM "
             "[CI] of the per-seed difference of the final rewards over the seeds both arms have (same seed: "
-            "the same random seed data and env reset seeds). p (sign-flip): the exact paired permutation p-value of "
-            f"the mean final - {BASELINE} over the seeds both arms ran, a diverged run entered as the env's lowest "
-            "final reward (at 5 pairs it cannot go below 0.0625); p (Holm): Holm's adjustment over every "
-            "arm-vs-baseline test of this summary (envs x arms)."
+            "the same random seed data and env reset seeds). p (sign-flip): the exact two-sided paired permutation "
+            f"p-value of the mean final - {BASELINE} over the seeds both arms ran (each pair's sign flipped), a "
+            "diverged run entered as the env's lowest final reward (at 5 pairs it cannot go below 0.0625); p (Holm): "
+            "Holm's adjustment over every arm-vs-baseline test of this summary (envs x arms)."
             if compared
             else ""
         )
@@ -60,3 +61,28 @@ def runs_sections(diverged_runs: Sequence[str], missing: Sequence[str]) -> list[
     if missing:
         text += ["## Missing or incomplete runs (not in the statistics)", ""] + [f"- {m}" for m in missing] + [""]
     return text
+
+
+def provenance_lines(seeds: Sequence[int], run_dirs: Iterable[Path], command: str | None = None) -> list[str]:
+    """Markdown of what a reader needs to redo the comparison: the seeds, the command that wrote the summary (when
+    given), where each run's settings are, and the machines the runs ran on (their history.csv's ``host`` and
+    ``cpu``: a run resumed on another machine counts on each)."""
+    from pets.runs.rundir import read_history
+
+    machines: dict[str, int] = {}
+    for run_dir in run_dirs:
+        history = read_history(run_dir)
+        for machine in {f"{h.get('host') or '?'} ({h.get('cpu') or 'CPU not recorded'})" for h in history}:
+            machines[machine] = machines.get(machine, 0) + 1
+    ran_on = "; ".join(f"{m}: {n} run{'s' if n > 1 else ''}" for m, n in sorted(machines.items()))
+    return [
+        "## How the runs were made",
+        "",
+        f"- seeds: {', '.join(str(s) for s in seeds)} ({len(seeds)}; an arm's run is paired with {BASELINE}'s run "
+        "of the same seed)",
+        *([f"- command: `{command}`"] if command else []),
+        "- settings: each run's resolved config in runs/RUN/config.yaml, its run_pets.py command on the first line "
+        "of logs/RUN.log",
+        f"- machines (runs/RUN/history.csv): {ran_on or 'not recorded'}",
+        "",
+    ]
