@@ -1037,6 +1037,31 @@ def test_offline_refuses_an_online_run_directory_whatever_its_config(tmp_path, c
     assert (tmp_path / "summary.csv").read_text() == "the online summary\n" and not (tmp_path / "data").exists()
 
 
+def test_offline_refuses_a_run_or_data_path_it_cannot_use_before_any_work(tmp_path, capsys):
+    """As online: OUT/runs/ENV-MODEL-sSEED that is a file (or OUT/runs is), or a folder of other files, and OUT/data
+    that is a file or a data file that is a folder, are exit 2 and one line naming them before any data is collected
+    or run trained (each failed as its job started, exit 3 with an OSError, and the sweep went on)."""
+    out = tmp_path / "off"
+    base = ["offline", "--envs", "invertedpendulum", "--models", "delta", "--seeds", 0, "--episodes", 2, "--out", out,
+            "--preset", "fast", "--device", "cpu", "--quiet", *TINY_OFFLINE]  # fmt: skip
+    run, data = out / "runs" / "invertedpendulum-delta-s0", out / "data"
+    cases = [
+        (run, "file", f"{run} is a file, not the run directory of a run to start; move or delete it"),
+        (run.parent, "file", f"{run.parent} is a file, not the folder of the run directories; move or delete it"),
+        (run / "notes.txt", "file", f"{run} is not empty and holds no run (notes.txt)"),
+        (data, "file", f"{data} is a file, not the folder of the data sets; move or delete it"),
+        (data / "invertedpendulum-test.npz", "dir", f"{data / 'invertedpendulum-test.npz'} is a directory, not a data"),
+    ]
+    for path, kind, message in cases:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.mkdir() if kind == "dir" else path.write_text("mine\n")
+        code, _, err = cli(capsys, *base)
+        assert code == 2 and len(err.strip().splitlines()) == 1 and message in err, (path, err)
+        assert {p.relative_to(out) for p in out.rglob("*")} == {p.relative_to(out) for p in [*path.parents, path]
+                                                                if out in p.parents}, path  # fmt: skip
+        shutil.rmtree(out)
+
+
 # --------------------------------------------------------------------------- offline summary on fake evaluations
 FAKE_REQUEST = {"horizons": [1, 5], "starts": 10, "seed": 0, "mode": "mean"}
 NEW_KEYS = [  # pets.evaluate's keys after issue 11 (the summary takes whatever *_error keys the files have)

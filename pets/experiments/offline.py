@@ -38,6 +38,7 @@ from pets.experiments.backend import Backend
 from pets.experiments.offline_data import (
     EXISTING,
     OPENLOOP_SEED,
+    check_data_paths,
     collect_data,
     collect_seeds,
     data_paths,
@@ -46,9 +47,9 @@ from pets.experiments.offline_data import (
     sac_agent_path,
     sac_steps,
 )
-from pets.experiments.offline_jobs import CLOSED, OPEN, offline_job, offline_todo
+from pets.experiments.offline_jobs import CLOSED, OPEN, check_run_dir, offline_job, offline_todo
 from pets.experiments.offline_summary import summarise_offline
-from pets.experiments.rundirs import NOT_COMPARED, check_out_writable, check_same_config, left_to_auto, run_name
+from pets.experiments.rundirs import NOT_COMPARED, check_out_writable, left_to_auto, run_name
 from pets.experiments.runner import open_backend, sweep_lock
 from pets.experiments.studies.planning import summarise_openloop
 
@@ -149,6 +150,7 @@ def compare_offline(
         return {"estimate": text}
     if configs_only:
         return {"configs": configs}
+    check_data_paths(out / "data", env_names, data_seeds)
     check_out_writable(out)  # after every argument is checked: bad input leaves no directory behind
     with sweep_lock(out):  # one sweep at a time in OUT: a second command is refused, never interleaved
         requests = _requests(horizons, starts, openloop_steps, openloop_episodes, closedloop_steps, planner_overrides)
@@ -265,9 +267,8 @@ def _checked_data_seeds(data_seeds: Sequence[int]) -> list[int]:
 
 def _expected_configs(sweep: _Sweep, proto: Any, configs_only: bool) -> dict[str, Any]:
     """{run name: the config it must have} of every (env, model, seed, data seed); UsageError for a bad config or
-    (unless ``configs_only``) an existing run directory made with another config."""
+    (unless ``configs_only``) a run directory its job cannot use (:func:`check_run_dir`)."""
     from pets.config import ConfigError
-    from pets.experiments.rundirs import refuse_online_run
     from pets.learning.offline import offline_config
 
     configs = {}
@@ -290,11 +291,10 @@ def _expected_configs(sweep: _Sweep, proto: Any, configs_only: bool) -> dict[str
                 for d in sweep.data_seeds:
                     configs[run_name(env, model, seed, data_seed=d)] = expected
                     run_dir = sweep.out / "runs" / run_name(env, model, seed, data_seed=d)
-                    if not configs_only and (run_dir / "config.yaml").is_file():  # the searched architecture is the
-                        refuse_online_run(run_dir, sweep.out)
+                    if not configs_only:  # the searched architecture is the run's own choice
                         searched = ("model.hidden_size", "model.num_layers") if proto.architectures(env) else ()
-                        ignore = (*NOT_COMPARED, *searched, *left_to_auto(overrides))  # run's own choice
-                        check_same_config(run_dir, expected, ignore=ignore)
+                        ignore = (*NOT_COMPARED, *searched, *left_to_auto(overrides))
+                        check_run_dir(run_dir, sweep.out, expected, ignore)
     return configs
 
 
@@ -437,8 +437,7 @@ def _data_sets(
 
 
 def _run_data_jobs(run: Any, jobs: list, actions: dict[str, str], progress: bool) -> dict[tuple[str, int], str]:
-    """Run the data jobs, adding the files they collected to ``actions``; ``{(env, data seed): why}`` of those
-    that failed."""
+    """Run the data jobs, adding their files to ``actions``; ``{(env, data seed): why}`` of those that failed."""
     failed = {}
     for name, (ok, value) in run(jobs, processes=True, progress=progress, desc="data sets").items():
         if ok:

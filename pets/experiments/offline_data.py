@@ -83,6 +83,16 @@ def expected_policy_name(policy: str) -> str:
     return "random" if kind == "random" else f"smooth-random:{(DEFAULT_BETA if arg is None else arg):g}"
 
 
+def check_data_paths(data_dir: Path, env_names: Sequence[str], data_seeds: Sequence[int]) -> None:
+    """UsageError, before any work, where a data file cannot be read or made: ``data_dir`` (``OUT/data``) or a data
+    file's path is something else than a folder or a file (collecting there failed after the runs' checks)."""
+    if data_dir.exists() and not data_dir.is_dir():
+        raise UsageError(f"{data_dir} is a file, not the folder of the data sets; move or delete it")
+    for path in (path for env in env_names for d in data_seeds for path in data_paths(data_dir, env, d)):
+        if path.exists() and not path.is_file():
+            raise UsageError(f"{path} is a directory, not a data set file; move or delete it")
+
+
 def prepare_data(
     path: Path, env: str, policy: str, episodes: int, seed: int, max_steps: int | None, progress: bool = False
 ) -> str:

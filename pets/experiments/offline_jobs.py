@@ -9,11 +9,11 @@ asked (:mod:`pets.experiments.offline`). A job killed part way is redone whole (
 from __future__ import annotations
 
 import json
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from pets.experiments.rundirs import json_matches
+from pets.experiments.rundirs import check_new_run_dir, check_same_config, json_matches, refuse_online_run
 from pets.runs.fileio import atomic_write_bytes
 
 
@@ -98,6 +98,17 @@ OPEN, CLOSED = "openloop", "closedloop"
 def _planning_tasks(job: Mapping[str, Any]) -> list[tuple[str, str]]:
     """(kind, planner) of every planning result ``job`` asks for."""
     return [(OPEN, p) for p in job["planners"]] + [(CLOSED, p) for p in job.get("closed_planners", [])]
+
+
+def check_run_dir(run_dir: Path, out: Path, expected: Any, ignore: Sequence[str]) -> None:
+    """UsageError, before any run, for a run directory its job cannot use: one holding an online run or a run made
+    with another config than ``expected`` (``ignore``: the keys not compared), or, for a run to train, one that is a
+    file (or ``OUT/runs`` is) or holds other files."""
+    if (run_dir / "config.yaml").is_file():
+        refuse_online_run(run_dir, out)
+        check_same_config(run_dir, expected, ignore=ignore)
+    else:
+        check_new_run_dir(run_dir)
 
 
 def offline_todo(job: Mapping[str, Any]) -> list[str]:
