@@ -1062,6 +1062,23 @@ def test_offline_refuses_a_run_or_data_path_it_cannot_use_before_any_work(tmp_pa
         shutil.rmtree(out)
 
 
+def test_offline_redoes_a_run_whose_job_was_killed_as_it_wrote_the_run(tmp_path, capsys):
+    """A job killed (kill -9) while its training wrote the run leaves the run's files without config.yaml (written
+    last): the same command trains that run again, as the module promises, instead of failing it for holding files."""
+    out = tmp_path / "off"
+    args = ["offline", "--envs", "invertedpendulum", "--models", "delta", "--seeds", 0, "--episodes", 3,
+            "--test-episodes", 2, "--horizons", "1,3", "--starts", 10, "--out", out, "--preset", "fast", "--device",
+            "cpu", "--quiet", *TINY_OFFLINE]  # fmt: skip
+    assert cli(capsys, *args)[0] == 0
+    run = out / "runs" / "invertedpendulum-delta-s0"
+    for name in ("config.yaml", "eval.json", "eval"):  # what the job writes after the training's own files
+        shutil.rmtree(run / name) if (run / name).is_dir() else (run / name).unlink()
+    assert {"checkpoint.pt", "metrics.csv"} <= {p.name for p in run.iterdir()}
+    code, _, err = cli(capsys, *args)
+    assert code == 0 and "0 reused, 1 with work to do" in err, err
+    assert (run / "config.yaml").is_file() and json.loads((run / "eval.json").read_text())["request"]["starts"] == 10
+
+
 # --------------------------------------------------------------------------- offline summary on fake evaluations
 FAKE_REQUEST = {"horizons": [1, 5], "starts": 10, "seed": 0, "mode": "mean"}
 NEW_KEYS = [  # pets.evaluate's keys after issue 11 (the summary takes whatever *_error keys the files have)

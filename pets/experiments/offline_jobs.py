@@ -35,11 +35,16 @@ def offline_job(job: Mapping[str, Any]) -> dict[str, Any]:
 def _offline_job(job: Mapping[str, Any]) -> dict[str, Any]:
     from pets.config import load_config
     from pets.learning.evaluation import evaluate, write_events
-    from pets.learning.offline import train_offline
+    from pets.learning.offline import killed_training_files, train_offline
     from pets.planning.openloop import open_loop
+    from pets.runs.fileio import locked
 
     run_dir, done = Path(job["run_dir"]), []
     if not (run_dir / "config.yaml").is_file():
+        if killed_training_files(run_dir):  # a job killed (kill -9) as it wrote the run: redone whole
+            with locked(run_dir):
+                for path in killed_training_files(run_dir):
+                    path.unlink()
         train_offline(
             job["train_data"],
             job["model"],
@@ -103,11 +108,13 @@ def _planning_tasks(job: Mapping[str, Any]) -> list[tuple[str, str]]:
 def check_run_dir(run_dir: Path, out: Path, expected: Any, ignore: Sequence[str]) -> None:
     """UsageError, before any run, for a run directory its job cannot use: one holding an online run or a run made
     with another config than ``expected`` (``ignore``: the keys not compared), or, for a run to train, one that is a
-    file (or ``OUT/runs`` is) or holds other files."""
+    file (or ``OUT/runs`` is) or holds other files than those of a job killed as it wrote the run (redone whole)."""
+    from pets.learning.offline import killed_training_files
+
     if (run_dir / "config.yaml").is_file():
         refuse_online_run(run_dir, out)
         check_same_config(run_dir, expected, ignore=ignore)
-    else:
+    elif not killed_training_files(run_dir):
         check_new_run_dir(run_dir)
 
 
