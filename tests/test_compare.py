@@ -1389,6 +1389,8 @@ def test_a_stopped_sweep_starts_no_more_jobs_and_leaves_no_process_running(tmp_p
         (["online", "--envs", "reacher,Reacher-v5", "--models", "delta", "--trials", 1], "names 'reacher' twice"),
         (["offline", "--envs", "reacher", "--models", "delta,gem,delta"], "--models names 'delta' twice"),
         (["offline", "--envs", "reacher", "--models", "delta", "--data-seeds", "2,2"], "--data-seeds names 2 twice"),
+        # data set D collects with seed 100 D + 1: past 2**32 - 1 its collection failed after the checks
+        (["offline", "--envs", "reacher", "--models", "delta", "--data-seeds", "0,42949673"], "must be <= 42,949,672"),
         (["online", "--envs", "reacher", "--models", "delta", "--trials", 1, "--planners", "cem,cem"], "'cem' twice"),
         (["online", "--envs", "reacher", "--models", "delta", "--trials", 0], "must be >= 1"),
         (

@@ -39,6 +39,7 @@ from pets.experiments.offline_data import (
     EXISTING,
     OPENLOOP_SEED,
     check_data_paths,
+    checked_data_seeds,
     collect_data,
     collect_seeds,
     data_paths,
@@ -132,7 +133,7 @@ def compare_offline(
     expected_policy_name(policy)
     extra = _shared_overrides(overrides, backend.threads)
     out = Path(out).resolve()
-    data_seeds = _checked_data_seeds(data_seeds)
+    data_seeds = checked_data_seeds(data_seeds)
     sweep = _Sweep(out, env_names, models, seeds, data_seeds, arms or {}, extra, preset, protocol, device)
     configs = _expected_configs(sweep, proto, configs_only)
     _check_planner_overrides(configs, planners, planner_overrides, openloop, closedloop)
@@ -255,14 +256,6 @@ def _shared_overrides(overrides: Sequence[str], threads: int) -> dict[str, str]:
             raise UsageError(f"{key}= is set by the command itself; do not pass it as an override")
     extra["threads"] = str(threads)
     return extra
-
-
-def _checked_data_seeds(data_seeds: Sequence[int]) -> list[int]:
-    """The data seeds without repeats, in order; UsageError if none or one is negative."""
-    data_seeds = list(dict.fromkeys(int(d) for d in data_seeds))
-    if not data_seeds or min(data_seeds) < 0:
-        raise UsageError(f"--data-seeds must be ints >= 0, got {data_seeds}")
-    return data_seeds
 
 
 def _expected_configs(sweep: _Sweep, proto: Any, configs_only: bool) -> dict[str, Any]:
