@@ -1419,7 +1419,11 @@ def test_a_stopped_sweep_starts_no_more_jobs_and_leaves_no_process_running(tmp_p
             "--planners or planner.name=",
         ),
         (["offline", "--envs", "reacher", "--models", "delta", "--horizons", "1,a"], "comma-separated"),
-        (["offline", "--envs", "reacher", "--models", "delta", "--planners", "cem,ddp"], "accepted: cem"),
+        (["offline", "--envs", "reacher", "--models", "delta", "--openloop", "--planners", "cem,ddp"], "accepted: cem"),
+        # planning options without the planning they set planned nothing and said nothing
+        (["offline", "--envs", "reacher", "--models", "delta", "--planners", "mppi"], "--planners sets the planning"),
+        (["offline", "--envs", "reacher", "--models", "delta", "--openloop", "--closedloop-steps", 9], "--closedloop,"),
+        (["offline", "--envs", "reacher", "--models", "delta", "--closedloop", "--openloop-steps", 9], "--openloop,"),
         (
             ["offline", "--envs", "reacher", "--models", "delta", "--policy", "run:x"],
             "smooth-random[:BETA], sac[:STEPS] or existing",
