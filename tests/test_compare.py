@@ -878,9 +878,9 @@ def test_offline_existing_policy_takes_the_data_files_as_they_are(offline, tmp_p
     assert code == 2 and "--policy existing needs the data file" in err
 
 
-def test_offline_data_collected_as_backend_jobs_and_a_failed_env_fails_only_its_runs(tmp_path, monkeypatch):
+def test_offline_data_collected_as_backend_jobs_and_a_failed_env_fails_only_its_runs(tmp_path, monkeypatch, capsys):
     """Missing data sets are jobs of the backend (one per env); an env whose collection fails fails its runs with the
-    reason ("no data: ..."), the other env's runs go on."""
+    reason ("no data: ..."), the other env's runs go on; the status line counts them as such (was: as reused)."""
     import pets.data.collect
 
     real = pets.data.collect.collect
@@ -909,6 +909,7 @@ def test_offline_data_collected_as_backend_jobs_and_a_failed_env_fails_only_its_
     assert result["failed"] == {"reacher-delta-s0": "no data: RuntimeError: simulated collection failure"}
     assert result["done"] == {"invertedpendulum-delta-s0": ["train", "eval"]}
     assert not (tmp_path / "data" / "reacher-train.npz").exists()
+    assert "2 runs: 0 reused, 1 with work to do, 1 without their data set (failed) (" in capsys.readouterr().err
 
 
 def test_online_runs_start_seed_major_so_a_sweep_cut_short_is_paired(tmp_path, monkeypatch):

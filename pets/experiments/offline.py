@@ -165,7 +165,7 @@ def compare_offline(
             data_failed = _run_data_jobs(run, data_jobs, data_actions, progress)
             if data_failed:  # the runs of a data set that could not be made fail with the reason; the others go on
                 jobs = [job for job in jobs if (job[2][0]["env"], job[2][0]["data_seed"]) not in data_failed]
-            _say_what_runs(total, len(jobs), backend, data_actions, len(seeds))
+            _say_what_runs(total, (len(pending), len(jobs)), backend, data_actions, len(seeds))
             results = run(jobs, processes=True, progress=progress, desc="offline runs")
         for (env, d), message in data_failed.items():
             results |= {run_name(env, m, s, data_seed=d): (False, f"no data: {message}") for m in models for s in seeds}
@@ -195,11 +195,13 @@ def _protocol_and_policy(protocol: str, policy: str) -> tuple[Any, str, int | No
     return proto, policy, steps
 
 
-def _say_what_runs(total: int, n_jobs: int, backend: Backend, data_actions: Mapping[str, str], n_seeds: int) -> None:
-    """The status line on stderr (runs reused, runs with work to do, the data files) and the few-seeds warning."""
+def _say_what_runs(total: int, jobs: tuple[int, int], backend: Backend, data: Mapping[str, str], n_seeds: int) -> None:
+    """The status line on stderr (runs reused, runs with work to do, those whose data set could not be made, the data
+    files) and the few-seeds warning. ``jobs``: the runs with work to do, and of them those whose data are there."""
+    no_data = f", {jobs[0] - jobs[1]} without their data set (failed)" if jobs[0] > jobs[1] else ""
     print(
-        f"{PROG}: {total} runs: {total - n_jobs} reused, {n_jobs} with work to do "
-        f"({backend.describe()}); data: " + ", ".join(f"{k} {v}" for k, v in data_actions.items()),
+        f"{PROG}: {total} runs: {total - jobs[0]} reused, {jobs[1]} with work to do{no_data} "
+        f"({backend.describe()}); data: " + ", ".join(f"{k} {v}" for k, v in data.items()),
         file=sys.stderr,
     )
     warning = few_seeds_warning(n_seeds)
