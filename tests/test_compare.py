@@ -1080,6 +1080,21 @@ def test_offline_redoes_a_run_whose_job_was_killed_as_it_wrote_the_run(tmp_path,
     assert (run / "config.yaml").is_file() and json.loads((run / "eval.json").read_text())["request"]["starts"] == 10
 
 
+def test_offline_refuses_a_trained_run_without_its_checkpoint_before_any_work(tmp_path, capsys):
+    """A run whose checkpoint.pt is gone (deleted, as a damaged checkpoint's message advises) failed its evaluation at
+    every rerun with "no trial completed", an online run's words; it is exit 2, one line saying how to train it
+    again, and nothing is written."""
+    run = tmp_path / "runs" / "invertedpendulum-delta-s0"
+    run.mkdir(parents=True)
+    rundir.write_config(run, make_config("invertedpendulum", "delta", "fast", {"seed": 0}))
+    args = ["offline", "--envs", "invertedpendulum", "--models", "delta", "--seeds", 0, "--preset", "fast"]
+    code, _, err = cli(capsys, *args, "--episodes", 2, "--out", tmp_path, *TINY_OFFLINE)
+    lines = err.strip().splitlines()
+    assert code == 2 and len(lines) == 1, err
+    assert f"{run} holds a trained run's config.yaml but no checkpoint.pt" in lines[0] and "delete the run" in lines[0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["runs"] and [p.name for p in run.iterdir()] == ["config.yaml"]
+
+
 # --------------------------------------------------------------------------- offline summary on fake evaluations
 FAKE_REQUEST = {"horizons": [1, 5], "starts": 10, "seed": 0, "mode": "mean"}
 NEW_KEYS = [  # pets.evaluate's keys after issue 11 (the summary takes whatever *_error keys the files have)

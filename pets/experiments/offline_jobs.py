@@ -13,6 +13,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from pets.experiments.arguments import UsageError
 from pets.experiments.rundirs import check_new_run_dir, check_same_config, json_matches, refuse_online_run
 from pets.runs.fileio import atomic_write_bytes
 
@@ -106,13 +107,19 @@ def _planning_tasks(job: Mapping[str, Any]) -> list[tuple[str, str]]:
 
 
 def check_run_dir(run_dir: Path, out: Path, expected: Any, ignore: Sequence[str]) -> None:
-    """UsageError, before any run, for a run directory its job cannot use: one holding an online run or a run made
-    with another config than ``expected`` (``ignore``: the keys not compared), or, for a run to train, one that is a
-    file (or ``OUT/runs`` is) or holds other files than those of a job killed as it wrote the run (redone whole)."""
+    """UsageError, before any run, for a run directory its job cannot use: one holding an online run, a trained run
+    without its checkpoint or a run made with another config than ``expected`` (``ignore``: the keys not compared),
+    or, for a run to train, one that is a file (or ``OUT/runs`` is) or holds other files than those of a job killed
+    as it wrote the run (redone whole)."""
     from pets.learning.offline import killed_training_files
 
     if (run_dir / "config.yaml").is_file():
         refuse_online_run(run_dir, out)
+        if not (run_dir / "checkpoint.pt").is_file():  # its evaluation failed "no trial completed" at every rerun
+            raise UsageError(
+                f"{run_dir} holds a trained run's config.yaml but no checkpoint.pt: its model is gone; delete the "
+                "run directory to train it again"
+            )
         check_same_config(run_dir, expected, ignore=ignore)
     elif not killed_training_files(run_dir):
         check_new_run_dir(run_dir)
