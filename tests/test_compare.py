@@ -881,9 +881,9 @@ def test_offline_existing_policy_takes_the_data_files_as_they_are(offline, tmp_p
     assert code == 2 and "--policy existing needs the data file" in err
 
 
-def test_offline_data_collected_as_backend_jobs_and_a_failed_env_fails_only_its_runs(tmp_path, monkeypatch):
+def test_offline_data_collected_as_backend_jobs_and_a_failed_env_fails_only_its_runs(tmp_path, monkeypatch, capsys):
     """Missing data sets are jobs of the backend (one per env); an env whose collection fails fails its runs with the
-    reason ("no data: ..."), the other env's runs go on."""
+    reason ("no data: ..."), the other env's runs go on; the status line counts them as such (was: as reused)."""
     import pets.data.collect
 
     real = pets.data.collect.collect
@@ -912,6 +912,7 @@ def test_offline_data_collected_as_backend_jobs_and_a_failed_env_fails_only_its_
     assert result["failed"] == {"reacher-delta-s0": "no data: RuntimeError: simulated collection failure"}
     assert result["done"] == {"invertedpendulum-delta-s0": ["train", "eval"]}
     assert not (tmp_path / "data" / "reacher-train.npz").exists()
+    assert "2 runs: 0 reused, 1 with work to do, 1 without their data set (failed) (" in capsys.readouterr().err
 
 
 def test_online_runs_start_seed_major_so_a_sweep_cut_short_is_paired(tmp_path, monkeypatch):
@@ -1038,6 +1039,63 @@ def test_offline_refuses_an_online_run_directory_whatever_its_config(tmp_path, c
     lines = err.strip().splitlines()
     assert code == 2 and len(lines) == 1 and "is an online run (run_pets.py), not an offline one" in lines[0], err
     assert (tmp_path / "summary.csv").read_text() == "the online summary\n" and not (tmp_path / "data").exists()
+
+
+def test_offline_refuses_a_run_or_data_path_it_cannot_use_before_any_work(tmp_path, capsys):
+    """As online: OUT/runs/ENV-MODEL-sSEED that is a file (or OUT/runs is), or a folder of other files, and OUT/data
+    that is a file or a data file that is a folder, are exit 2 and one line naming them before any data is collected
+    or run trained (each failed as its job started, exit 3 with an OSError, and the sweep went on)."""
+    out = tmp_path / "off"
+    base = ["offline", "--envs", "invertedpendulum", "--models", "delta", "--seeds", 0, "--episodes", 2, "--out", out,
+            "--preset", "fast", "--device", "cpu", "--quiet", *TINY_OFFLINE]  # fmt: skip
+    run, data = out / "runs" / "invertedpendulum-delta-s0", out / "data"
+    cases = [
+        (run, "file", f"{run} is a file, not the run directory of a run to start; move or delete it"),
+        (run.parent, "file", f"{run.parent} is a file, not the folder of the run directories; move or delete it"),
+        (run / "notes.txt", "file", f"{run} is not empty and holds no run (notes.txt)"),
+        (data, "file", f"{data} is a file, not the folder of the data sets; move or delete it"),
+        (data / "invertedpendulum-test.npz", "dir", f"{data / 'invertedpendulum-test.npz'} is a directory, not a data"),
+    ]
+    for path, kind, message in cases:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.mkdir() if kind == "dir" else path.write_text("mine\n")
+        code, _, err = cli(capsys, *base)
+        assert code == 2 and len(err.strip().splitlines()) == 1 and message in err, (path, err)
+        assert {p.relative_to(out) for p in out.rglob("*")} == {p.relative_to(out) for p in [*path.parents, path]
+                                                                if out in p.parents}, path  # fmt: skip
+        shutil.rmtree(out)
+
+
+def test_offline_redoes_a_run_whose_job_was_killed_as_it_wrote_the_run(tmp_path, capsys):
+    """A job killed (kill -9) while its training wrote the run leaves the run's files without config.yaml (written
+    last): the same command trains that run again, as the module promises, instead of failing it for holding files."""
+    out = tmp_path / "off"
+    args = ["offline", "--envs", "invertedpendulum", "--models", "delta", "--seeds", 0, "--episodes", 3,
+            "--test-episodes", 2, "--horizons", "1,3", "--starts", 10, "--out", out, "--preset", "fast", "--device",
+            "cpu", "--quiet", *TINY_OFFLINE]  # fmt: skip
+    assert cli(capsys, *args)[0] == 0
+    run = out / "runs" / "invertedpendulum-delta-s0"
+    for name in ("config.yaml", "eval.json", "eval"):  # what the job writes after the training's own files
+        shutil.rmtree(run / name) if (run / name).is_dir() else (run / name).unlink()
+    assert {"checkpoint.pt", "metrics.csv"} <= {p.name for p in run.iterdir()}
+    code, _, err = cli(capsys, *args)
+    assert code == 0 and "0 reused, 1 with work to do" in err, err
+    assert (run / "config.yaml").is_file() and json.loads((run / "eval.json").read_text())["request"]["starts"] == 10
+
+
+def test_offline_refuses_a_trained_run_without_its_checkpoint_before_any_work(tmp_path, capsys):
+    """A run whose checkpoint.pt is gone (deleted, as a damaged checkpoint's message advises) failed its evaluation at
+    every rerun with "no trial completed", an online run's words; it is exit 2, one line saying how to train it
+    again, and nothing is written."""
+    run = tmp_path / "runs" / "invertedpendulum-delta-s0"
+    run.mkdir(parents=True)
+    rundir.write_config(run, make_config("invertedpendulum", "delta", "fast", {"seed": 0}))
+    args = ["offline", "--envs", "invertedpendulum", "--models", "delta", "--seeds", 0, "--preset", "fast"]
+    code, _, err = cli(capsys, *args, "--episodes", 2, "--out", tmp_path, *TINY_OFFLINE)
+    lines = err.strip().splitlines()
+    assert code == 2 and len(lines) == 1, err
+    assert f"{run} holds a trained run's config.yaml but no checkpoint.pt" in lines[0] and "delete the run" in lines[0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["runs"] and [p.name for p in run.iterdir()] == ["config.yaml"]
 
 
 # --------------------------------------------------------------------------- offline summary on fake evaluations
@@ -1350,6 +1408,8 @@ def test_a_stopped_sweep_starts_no_more_jobs_and_leaves_no_process_running(tmp_p
         (["online", "--envs", "reacher,Reacher-v5", "--models", "delta", "--trials", 1], "names 'reacher' twice"),
         (["offline", "--envs", "reacher", "--models", "delta,gem,delta"], "--models names 'delta' twice"),
         (["offline", "--envs", "reacher", "--models", "delta", "--data-seeds", "2,2"], "--data-seeds names 2 twice"),
+        # data set D collects with seed 100 D + 1: past 2**32 - 1 its collection failed after the checks
+        (["offline", "--envs", "reacher", "--models", "delta", "--data-seeds", "0,42949673"], "must be <= 42,949,672"),
         (["online", "--envs", "reacher", "--models", "delta", "--trials", 1, "--planners", "cem,cem"], "'cem' twice"),
         (["online", "--envs", "reacher", "--models", "delta", "--trials", 0], "must be >= 1"),
         (
@@ -1378,7 +1438,11 @@ def test_a_stopped_sweep_starts_no_more_jobs_and_leaves_no_process_running(tmp_p
             "--planners or planner.name=",
         ),
         (["offline", "--envs", "reacher", "--models", "delta", "--horizons", "1,a"], "comma-separated"),
-        (["offline", "--envs", "reacher", "--models", "delta", "--planners", "cem,ddp"], "accepted: cem"),
+        (["offline", "--envs", "reacher", "--models", "delta", "--openloop", "--planners", "cem,ddp"], "accepted: cem"),
+        # planning options without the planning they set planned nothing and said nothing
+        (["offline", "--envs", "reacher", "--models", "delta", "--planners", "mppi"], "--planners sets the planning"),
+        (["offline", "--envs", "reacher", "--models", "delta", "--openloop", "--closedloop-steps", 9], "--closedloop,"),
+        (["offline", "--envs", "reacher", "--models", "delta", "--closedloop", "--openloop-steps", 9], "--openloop,"),
         (
             ["offline", "--envs", "reacher", "--models", "delta", "--policy", "run:x"],
             "smooth-random[:BETA], sac[:STEPS] or existing",

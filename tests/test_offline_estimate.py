@@ -5,6 +5,7 @@ having searched), the CPU-hours from per-step figures measured on this machine; 
 from __future__ import annotations
 
 import json
+import shutil
 
 import pytest
 
@@ -104,7 +105,13 @@ def test_estimate_before_a_real_sweep_counts_its_data_and_searched_architectures
     assert sum(map(sum, executed)) <= 20 and all(len(e) == 1 for e in executed)  # episodes that fall end early
     assert main([*SWEEP, "--out", str(out), "--estimate", *plan]) == 0
     assert capsys.readouterr().out.startswith("nothing to train, plan or collect")
-    (out / "runs" / "invertedpendulum-delta-s1" / "config.yaml").unlink()  # a run to train again, its data there
+    run = out / "runs" / "invertedpendulum-delta-s1"  # a job killed as it wrote the run: a run to train again
+    for path in run.iterdir():  # what it wrote after the training's checkpoint, metrics and curves is not there
+        if path.is_dir():
+            shutil.rmtree(path)
+        elif path.name not in ("checkpoint.pt", "metrics.csv", "learning_curve.csv", ".lock"):
+            if not path.name.startswith("events.out.tfevents."):
+                path.unlink()
     monkeypatch.setattr(est, "_grad_seconds", lambda cfg: 0.001)
     with pytest.raises(SystemExit) as exit_info:  # another config: refused, as the sweep itself refuses it
         main([*replacing(SWEEP, "model.iterations=30"), "--out", str(out), "--estimate"])

@@ -39,6 +39,7 @@ def _small_tree(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, names: set[str]
     shutil.copytree(ROOT / published.RESULTS, tmp_path / published.RESULTS)
     monkeypatch.setattr(published, "PRODUCTS", tuple(p for p in published.PRODUCTS if p.name in names))
     monkeypatch.setattr(regenerate, "BLOCK_FILES", ())
+    monkeypatch.setattr(regenerate, "BLOCKS", {})
     return tmp_path
 
 
@@ -66,6 +67,23 @@ def test_a_missing_output_is_named(tmp_path, monkeypatch) -> None:
     root = _small_tree(tmp_path, monkeypatch, {"online summary online_ip_fast_10seeds"})
     (root / published.RESULTS / "online_ip_fast_10seeds_summary.csv").unlink()
     assert regenerate.check(root) == [f"{published.RESULTS}/online_ip_fast_10seeds_summary.csv: not committed"]
+
+
+def test_check_names_a_generated_block_removed_with_its_markers_or_its_file(tmp_path, monkeypatch) -> None:
+    """A block deleted with its markers (or the page that held it) was never rendered, so never compared: --check
+    passed. It is named, as a differing file is."""
+    root = _small_tree(tmp_path, monkeypatch, set())
+    monkeypatch.setattr(regenerate, "BLOCK_FILES", ("page.md",))
+    monkeypatch.setitem(regenerate.BLOCKS, "demo", lambda tree: "| a |\n|---|\n| 1 |\n")
+    page = root / "page.md"
+    page.write_text("intro\n<!-- report:demo -->\n| a |\n|---|\n| 1 |\n<!-- /report:demo -->\nend\n")
+    assert regenerate.check(root) == []
+    page.write_text("intro\nend\n")
+    missing = ["<!-- report:demo -->: in none of page.md; restore the block with its markers"]
+    assert regenerate.check(root) == missing
+    assert main(["report", "--check", "--root", str(root)]) == EXIT_DIFFERS
+    page.unlink()
+    assert regenerate.check(root) == missing
 
 
 def test_blocks_are_rendered_between_their_markers_only(tmp_path, monkeypatch) -> None:

@@ -343,6 +343,7 @@ def _run_offline(args: argparse.Namespace, shared: dict[str, Any]) -> dict[str, 
         horizons = parse_horizons(args.horizons)
     except ValueError as err:
         raise UsageError(str(err)) from None
+    _planning_options(args)
     planners = parse_planners(args.planners)
     return compare_offline(
         **shared,
@@ -365,3 +366,24 @@ def _run_offline(args: argparse.Namespace, shared: dict[str, Any]) -> dict[str, 
         estimate=args.estimate and not args.print_config,
         command=getattr(args, "command_line", None),
     )
+
+
+#: ``compare offline``'s planning options: (flag, attribute, default, the loop it sets; None: either).
+_PLANNING_OPTIONS = (
+    ("--planners", "planners", "cem,mppi", None),
+    ("--openloop-steps", "openloop_steps", 50, "--openloop"),
+    ("--openloop-episodes", "openloop_episodes", 5, None),
+    ("--closedloop-steps", "closedloop_steps", 300, "--closedloop"),
+)
+
+
+def _planning_options(args: argparse.Namespace) -> None:
+    """Set the planning options not given to their defaults; UsageError for one given without the planning it sets
+    (``--planners cem`` without ``--openloop`` or ``--closedloop`` planned nothing and said nothing)."""
+    asked = {"--openloop": args.openloop, "--closedloop": args.closedloop}
+    for flag, attr, default, loop in _PLANNING_OPTIONS:
+        if getattr(args, attr) is None:
+            setattr(args, attr, default)
+        elif not (asked[loop] if loop else any(asked.values())):
+            loops = loop or "--openloop or --closedloop"
+            raise UsageError(f"{flag} sets the planning of {loops}, not asked for: give {loops} or leave it out")

@@ -38,6 +38,8 @@ from pets.experiments.backend import Backend
 from pets.experiments.offline_data import (
     EXISTING,
     OPENLOOP_SEED,
+    check_data_paths,
+    checked_data_seeds,
     collect_data,
     collect_seeds,
     data_paths,
@@ -46,9 +48,9 @@ from pets.experiments.offline_data import (
     sac_agent_path,
     sac_steps,
 )
-from pets.experiments.offline_jobs import CLOSED, OPEN, offline_job, offline_todo
+from pets.experiments.offline_jobs import CLOSED, OPEN, check_run_dir, offline_job, offline_todo
 from pets.experiments.offline_summary import summarise_offline
-from pets.experiments.rundirs import NOT_COMPARED, check_out_writable, check_same_config, left_to_auto, run_name
+from pets.experiments.rundirs import NOT_COMPARED, check_out_writable, left_to_auto, run_name
 from pets.experiments.runner import open_backend, sweep_lock
 from pets.experiments.studies.planning import summarise_openloop
 
@@ -131,7 +133,7 @@ def compare_offline(
     expected_policy_name(policy)
     extra = _shared_overrides(overrides, backend.threads)
     out = Path(out).resolve()
-    data_seeds = _checked_data_seeds(data_seeds)
+    data_seeds = checked_data_seeds(data_seeds)
     sweep = _Sweep(out, env_names, models, seeds, data_seeds, arms or {}, extra, preset, protocol, device)
     configs = _expected_configs(sweep, proto, configs_only)
     _check_planner_overrides(configs, planners, planner_overrides, openloop, closedloop)
@@ -149,6 +151,7 @@ def compare_offline(
         return {"estimate": text}
     if configs_only:
         return {"configs": configs}
+    check_data_paths(out / "data", env_names, data_seeds)
     check_out_writable(out)  # after every argument is checked: bad input leaves no directory behind
     with sweep_lock(out):  # one sweep at a time in OUT: a second command is refused, never interleaved
         requests = _requests(horizons, starts, openloop_steps, openloop_episodes, closedloop_steps, planner_overrides)
@@ -162,7 +165,7 @@ def compare_offline(
             data_failed = _run_data_jobs(run, data_jobs, data_actions, progress)
             if data_failed:  # the runs of a data set that could not be made fail with the reason; the others go on
                 jobs = [job for job in jobs if (job[2][0]["env"], job[2][0]["data_seed"]) not in data_failed]
-            _say_what_runs(total, len(jobs), backend, data_actions, len(seeds))
+            _say_what_runs(total, (len(pending), len(jobs)), backend, data_actions, len(seeds))
             results = run(jobs, processes=True, progress=progress, desc="offline runs")
         for (env, d), message in data_failed.items():
             results |= {run_name(env, m, s, data_seed=d): (False, f"no data: {message}") for m in models for s in seeds}
@@ -192,11 +195,13 @@ def _protocol_and_policy(protocol: str, policy: str) -> tuple[Any, str, int | No
     return proto, policy, steps
 
 
-def _say_what_runs(total: int, n_jobs: int, backend: Backend, data_actions: Mapping[str, str], n_seeds: int) -> None:
-    """The status line on stderr (runs reused, runs with work to do, the data files) and the few-seeds warning."""
+def _say_what_runs(total: int, jobs: tuple[int, int], backend: Backend, data: Mapping[str, str], n_seeds: int) -> None:
+    """The status line on stderr (runs reused, runs with work to do, those whose data set could not be made, the data
+    files) and the few-seeds warning. ``jobs``: the runs with work to do, and of them those whose data are there."""
+    no_data = f", {jobs[0] - jobs[1]} without their data set (failed)" if jobs[0] > jobs[1] else ""
     print(
-        f"{PROG}: {total} runs: {total - n_jobs} reused, {n_jobs} with work to do "
-        f"({backend.describe()}); data: " + ", ".join(f"{k} {v}" for k, v in data_actions.items()),
+        f"{PROG}: {total} runs: {total - jobs[0]} reused, {jobs[1]} with work to do{no_data} "
+        f"({backend.describe()}); data: " + ", ".join(f"{k} {v}" for k, v in data.items()),
         file=sys.stderr,
     )
     warning = few_seeds_warning(n_seeds)
@@ -255,19 +260,10 @@ def _shared_overrides(overrides: Sequence[str], threads: int) -> dict[str, str]:
     return extra
 
 
-def _checked_data_seeds(data_seeds: Sequence[int]) -> list[int]:
-    """The data seeds without repeats, in order; UsageError if none or one is negative."""
-    data_seeds = list(dict.fromkeys(int(d) for d in data_seeds))
-    if not data_seeds or min(data_seeds) < 0:
-        raise UsageError(f"--data-seeds must be ints >= 0, got {data_seeds}")
-    return data_seeds
-
-
 def _expected_configs(sweep: _Sweep, proto: Any, configs_only: bool) -> dict[str, Any]:
     """{run name: the config it must have} of every (env, model, seed, data seed); UsageError for a bad config or
-    (unless ``configs_only``) an existing run directory made with another config."""
+    (unless ``configs_only``) a run directory its job cannot use (:func:`check_run_dir`)."""
     from pets.config import ConfigError
-    from pets.experiments.rundirs import refuse_online_run
     from pets.learning.offline import offline_config
 
     configs = {}
@@ -290,11 +286,10 @@ def _expected_configs(sweep: _Sweep, proto: Any, configs_only: bool) -> dict[str
                 for d in sweep.data_seeds:
                     configs[run_name(env, model, seed, data_seed=d)] = expected
                     run_dir = sweep.out / "runs" / run_name(env, model, seed, data_seed=d)
-                    if not configs_only and (run_dir / "config.yaml").is_file():  # the searched architecture is the
-                        refuse_online_run(run_dir, sweep.out)
+                    if not configs_only:  # the searched architecture is the run's own choice
                         searched = ("model.hidden_size", "model.num_layers") if proto.architectures(env) else ()
-                        ignore = (*NOT_COMPARED, *searched, *left_to_auto(overrides))  # run's own choice
-                        check_same_config(run_dir, expected, ignore=ignore)
+                        ignore = (*NOT_COMPARED, *searched, *left_to_auto(overrides))
+                        check_run_dir(run_dir, sweep.out, expected, ignore)
     return configs
 
 
@@ -437,8 +432,7 @@ def _data_sets(
 
 
 def _run_data_jobs(run: Any, jobs: list, actions: dict[str, str], progress: bool) -> dict[tuple[str, int], str]:
-    """Run the data jobs, adding the files they collected to ``actions``; ``{(env, data seed): why}`` of those
-    that failed."""
+    """Run the data jobs, adding their files to ``actions``; ``{(env, data seed): why}`` of those that failed."""
     failed = {}
     for name, (ok, value) in run(jobs, processes=True, progress=progress, desc="data sets").items():
         if ok:

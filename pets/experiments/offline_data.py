@@ -38,6 +38,23 @@ def collect_seeds(data_seed: int = 0) -> tuple[int, int]:
     return data_seed * DATA_SEED_STRIDE + TRAIN_DATA_SEED, data_seed * DATA_SEED_STRIDE + TEST_DATA_SEED
 
 
+def checked_data_seeds(data_seeds: Sequence[int]) -> list[int]:
+    """The data seeds without repeats, in order; UsageError if none, or one is negative or makes a collection seed
+    past numpy's and SB3's 32 bits (:func:`collect_seeds`: data set D collects with 100 D and 100 D + 1)."""
+    from pets.limits import MAX_SEED
+
+    data_seeds = list(dict.fromkeys(int(d) for d in data_seeds))
+    if not data_seeds or min(data_seeds) < 0:
+        raise UsageError(f"--data-seeds must be ints >= 0, got {data_seeds}")
+    largest = (MAX_SEED - TEST_DATA_SEED) // DATA_SEED_STRIDE
+    if max(data_seeds) > largest:
+        raise UsageError(
+            f"--data-seeds must be <= {largest:,} (data set D collects with seed {DATA_SEED_STRIDE} D + "
+            f"{TEST_DATA_SEED}, at most 2**32 - 1), got {max(data_seeds):,}"
+        )
+    return data_seeds
+
+
 def sac_agent_path(train_path: Path) -> Path:
     """Where the SAC agent of a training data file lives: ``ENV[-dD]-sac.zip`` beside it."""
     return train_path.with_name(train_path.name.replace("-train.npz", "-sac.zip"))
@@ -81,6 +98,16 @@ def expected_policy_name(policy: str) -> str:
             "collect agent data with pets.collect --policy run:RUN_DIR into DIR/data and use existing)"
         )
     return "random" if kind == "random" else f"smooth-random:{(DEFAULT_BETA if arg is None else arg):g}"
+
+
+def check_data_paths(data_dir: Path, env_names: Sequence[str], data_seeds: Sequence[int]) -> None:
+    """UsageError, before any work, where a data file cannot be read or made: ``data_dir`` (``OUT/data``) or a data
+    file's path is something else than a folder or a file (collecting there failed after the runs' checks)."""
+    if data_dir.exists() and not data_dir.is_dir():
+        raise UsageError(f"{data_dir} is a file, not the folder of the data sets; move or delete it")
+    for path in (path for env in env_names for d in data_seeds for path in data_paths(data_dir, env, d)):
+        if path.exists() and not path.is_file():
+            raise UsageError(f"{path} is a directory, not a data set file; move or delete it")
 
 
 def prepare_data(

@@ -9,11 +9,12 @@ asked (:mod:`pets.experiments.offline`). A job killed part way is redone whole (
 from __future__ import annotations
 
 import json
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from pets.experiments.rundirs import json_matches
+from pets.experiments.arguments import UsageError
+from pets.experiments.rundirs import check_new_run_dir, check_same_config, json_matches, refuse_online_run
 from pets.runs.fileio import atomic_write_bytes
 
 
@@ -35,11 +36,16 @@ def offline_job(job: Mapping[str, Any]) -> dict[str, Any]:
 def _offline_job(job: Mapping[str, Any]) -> dict[str, Any]:
     from pets.config import load_config
     from pets.learning.evaluation import evaluate, write_events
-    from pets.learning.offline import train_offline
+    from pets.learning.offline import killed_training_files, train_offline
     from pets.planning.openloop import open_loop
+    from pets.runs.fileio import locked
 
     run_dir, done = Path(job["run_dir"]), []
     if not (run_dir / "config.yaml").is_file():
+        if killed_training_files(run_dir):  # a job killed (kill -9) as it wrote the run: redone whole
+            with locked(run_dir):
+                for path in killed_training_files(run_dir):
+                    path.unlink()
         train_offline(
             job["train_data"],
             job["model"],
@@ -98,6 +104,25 @@ OPEN, CLOSED = "openloop", "closedloop"
 def _planning_tasks(job: Mapping[str, Any]) -> list[tuple[str, str]]:
     """(kind, planner) of every planning result ``job`` asks for."""
     return [(OPEN, p) for p in job["planners"]] + [(CLOSED, p) for p in job.get("closed_planners", [])]
+
+
+def check_run_dir(run_dir: Path, out: Path, expected: Any, ignore: Sequence[str]) -> None:
+    """UsageError, before any run, for a run directory its job cannot use: one holding an online run, a trained run
+    without its checkpoint or a run made with another config than ``expected`` (``ignore``: the keys not compared),
+    or, for a run to train, one that is a file (or ``OUT/runs`` is) or holds other files than those of a job killed
+    as it wrote the run (redone whole)."""
+    from pets.learning.offline import killed_training_files
+
+    if (run_dir / "config.yaml").is_file():
+        refuse_online_run(run_dir, out)
+        if not (run_dir / "checkpoint.pt").is_file():  # its evaluation failed "no trial completed" at every rerun
+            raise UsageError(
+                f"{run_dir} holds a trained run's config.yaml but no checkpoint.pt: its model is gone; delete the "
+                "run directory to train it again"
+            )
+        check_same_config(run_dir, expected, ignore=ignore)
+    elif not killed_training_files(run_dir):
+        check_new_run_dir(run_dir)
 
 
 def offline_todo(job: Mapping[str, Any]) -> list[str]:

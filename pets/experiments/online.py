@@ -32,6 +32,7 @@ from pets.experiments.arguments import PROG, UsageError, few_seeds_warning
 from pets.experiments.backend import Backend
 from pets.experiments.rundirs import (
     NOT_COMPARED,
+    check_new_run_dir,
     check_out_writable,
     check_same_config,
     left_to_auto,
@@ -255,16 +256,9 @@ def _checked_action(run_dir: Path, trials: int, expected: Any, arm_extra: Mappin
     """:func:`online_plan` of a run; UsageError if its directory holds another config or an offline run, or, for a
     run to start, is a file (or ``OUT/runs`` is) or holds other files: refused before any run starts, not failed as
     the run starts."""
-    from pets.runs.fileio import new_run_dir_error
-
     action = online_plan(run_dir, trials, expected.stop_reward, expected.max_env_steps)
     if action == "start":
-        if run_dir.parent.is_file():  # OUT/runs
-            raise UsageError(f"{run_dir.parent} is a file, not the folder of the run directories; move or delete it")
-        if run_dir.is_file():
-            raise UsageError(f"{run_dir} is a file, not the run directory of a run to start; move or delete it")
-        if problem := new_run_dir_error(run_dir, "move its files away, or pick another --out"):
-            raise UsageError(problem)
+        check_new_run_dir(run_dir)
     else:
         check_same_config(run_dir, expected, ignore=(*NOT_COMPARED, *left_to_auto(arm_extra)))
         if any(math.isnan(r["trial"]) for r in online_rows(run_dir)):

@@ -157,16 +157,16 @@ def _add_offline(sub: Any) -> None:
     off.add_argument("--horizons", default="1,5,10,25,50", help="prediction horizons (default 1,5,10,25,50)")
     off.add_argument("--starts", type=int, default=1000, help="start points of the evaluation (default 1000)")
     off.add_argument("--openloop", action="store_true", help="also plan open loop with every trained model")
-    off.add_argument("--planners", default="cem,mppi", help="open-loop planners (default cem,mppi)")
-    off.add_argument("--openloop-steps", type=int, default=50, help="open-loop plan length (default 50)")
-    off.add_argument("--openloop-episodes", type=int, default=5, help="open-loop episodes per run (default 5)")
+    off.add_argument("--planners", default=None, help="open-loop planners (default cem,mppi)")
+    off.add_argument("--openloop-steps", type=int, default=None, help="open-loop plan length (default 50)")
+    off.add_argument("--openloop-episodes", type=int, default=None, help="open-loop episodes per run (default 5)")
     off.add_argument(
         "--closedloop",
         action="store_true",
         help="also drive MPC with every trained model, frozen (the run's planner per --planners, the open-loop "
         "episodes' seeds; closedloop.csv, paired to delta)",
     )
-    off.add_argument("--closedloop-steps", type=int, default=300, help="closed-loop steps per episode (default 300)")
+    off.add_argument("--closedloop-steps", type=int, default=None, help="closed-loop steps per episode (default 300)")
     off.add_argument(
         "--planner-overrides",
         default="",

@@ -149,13 +149,27 @@ def _generated(root: Path, tree: Path) -> Iterator[tuple[str, bytes | None, byte
 
 
 def check(root: Path) -> list[str]:
-    """One line per generated file that differs from what is committed under ``root`` (empty: none does)."""
+    """One line per generated file that differs from what is committed under ``root`` and per generated block that
+    no block file holds any more (empty: none)."""
     with generated_tree(root) as tree:
         return [
             f"{path}: not committed" if old is None else f"{path}: {_first_difference(old, new)}"
             for path, old, new in _generated(root, tree)
             if old != new
-        ]
+        ] + _removed_blocks(root)
+
+
+def _removed_blocks(root: Path) -> list[str]:
+    """One line per name of :data:`BLOCKS` whose markers are in none of the :data:`BLOCK_FILES` under ``root`` (the
+    block deleted with its markers, or its file gone): a block never rendered was never checked either."""
+    found = set()
+    for path in (root / name for name in BLOCK_FILES):
+        found |= set(re.findall(r"<!-- report:([\w-]+) -->", path.read_text())) if path.is_file() else set()
+    return [
+        f"<!-- report:{name} -->: in none of {', '.join(BLOCK_FILES)}; restore the block with its markers"
+        for name in BLOCKS
+        if name not in found
+    ]
 
 
 def write(root: Path) -> list[str]:

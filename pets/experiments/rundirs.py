@@ -22,6 +22,19 @@ def check_out_writable(out: Path) -> None:
         raise UsageError(f"--out: {problem}; pick another --out")
 
 
+def check_new_run_dir(run_dir: Path) -> None:
+    """UsageError where a run to start cannot be made in ``run_dir``: it or ``OUT/runs`` is a file, or it holds other
+    files; refused before any run starts, not failed as the run starts."""
+    from pets.runs.fileio import new_run_dir_error
+
+    if run_dir.parent.is_file():  # OUT/runs
+        raise UsageError(f"{run_dir.parent} is a file, not the folder of the run directories; move or delete it")
+    if run_dir.is_file():
+        raise UsageError(f"{run_dir} is a file, not the run directory of a run to start; move or delete it")
+    if problem := new_run_dir_error(run_dir, "move its files away, or pick another --out"):
+        raise UsageError(problem)
+
+
 def env_stem(env: str) -> str:
     """An env's name in file and directory names: an import path ``module:ATTR`` by its spec's name (a colon breaks
     scp, rsync, Windows and TensorBoard; ``envs.file_name``), a catalogue name as it is."""

@@ -244,6 +244,23 @@ def _run_state(
     return state, row
 
 
+def killed_training_files(out: Path) -> list[Path]:
+    """The files a training killed (kill -9) while it wrote its run left in ``out``: :func:`_write_run` writes the
+    run's files, then config.yaml; where ``out`` has no config.yaml and holds nothing but those files (the lock and
+    temporary files aside), they are returned, to be removed before the training runs again; [] otherwise."""
+    from pets.runs.fileio import LOCK_FILE, TEMP_SUFFIX
+    from pets.runs.rundir import CHECKPOINT_FILE, CONFIG_FILE, METRICS_FILE
+
+    out = Path(out)
+    if not out.is_dir() or (out / CONFIG_FILE).exists():
+        return []
+    skipped = {LOCK_FILE} | {p.name for p in out.glob(f".*{TEMP_SUFFIX}")}
+    paths = [p for p in out.iterdir() if p.name not in skipped]
+    run_files = (CHECKPOINT_FILE, METRICS_FILE, CURVE_FILE)
+    ok = all(p.is_file() and (p.name in run_files or p.name.startswith("events.out.tfevents.")) for p in paths)
+    return paths if ok else []
+
+
 def _write_run(out: Path, state: dict[str, Any], row: dict[str, Any], cfg: Any, curve: list[tuple]) -> None:
     """Write the run's files, config.yaml last (a directory with config.yaml is a complete run); if a write fails
     (a full disk) or Ctrl-C comes, the run's files are removed again and the error propagates (the caller holds the
