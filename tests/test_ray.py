@@ -31,7 +31,12 @@ from tests.test_compare import OFFLINE_ARGS, TINY
 CLOCK = set(rundir.TIMING_COLUMNS)
 ONLINE = ["online", "--envs", "invertedpendulum", "--models", "delta,gem", "--seeds", "0", "--trials", 2]
 ONLINE += ["--preset", "fast", "--quiet", *TINY]
-OFFLINE = [a for a in OFFLINE_ARGS if a not in ("--openloop",)]
+PLANNING = ("--planners", "--openloop-steps", "--openloop-episodes")  # with a value each; without --openloop: refused
+OFFLINE = [
+    a
+    for i, a in enumerate(OFFLINE_ARGS)
+    if a != "--openloop" and a not in PLANNING and OFFLINE_ARGS[i - 1] not in PLANNING
+]
 OFFLINE[OFFLINE.index("--seeds") + 1] = "0"  # one run per model: two tasks in parallel on two CPUs
 
 
