@@ -857,7 +857,8 @@ def test_offline_refuses_other_data_or_config_in_the_same_directory(offline, cap
 
 
 def test_offline_existing_policy_takes_the_data_files_as_they_are(offline, tmp_path, capsys):
-    out, _ = offline
+    out = tmp_path / "sweep"  # a copy: its new horizons would leave the shared sweep's runs work to do
+    shutil.copytree(offline[0], out)
     result = compare_offline(
         ["invertedpendulum"],
         ["delta"],
@@ -876,7 +877,7 @@ def test_offline_existing_policy_takes_the_data_files_as_they_are(offline, tmp_p
     assert result["data"] == {"invertedpendulum-train.npz": "reused", "invertedpendulum-test.npz": "reused"}
     assert result["failed"] == {} and all("train" not in todo for todo in result["todo"].values())
     code, _, err = cli(
-        capsys, "offline", "--envs", "reacher", "--models", "delta", "--policy", "existing", "--out", tmp_path
+        capsys, "offline", "--envs", "reacher", "--models", "delta", "--policy", "existing", "--out", tmp_path / "new"
     )
     assert code == 2 and "--policy existing needs the data file" in err
 
