@@ -43,7 +43,8 @@ P_EXACT, P_HOLM = "p_value_exact", "p_value_holm"
 class Group:
     """Metrics bootstrapped together (one stratified bootstrap over the same runs). ``reached``: the group is over
     the runs where its first metric is finite (counted in ``n_reached``; the env's ``threshold`` column before it),
-    and its comparisons with the baseline exist only where the env has a threshold. ``missing``: a table cell
+    and its comparisons with the baseline exist only where the env has a threshold and a run of the arm or of the
+    baseline reached it. ``missing``: a table cell
     without a value."""
 
     name: str
@@ -161,12 +162,20 @@ def arm_statistics(
         base = baselines.get(arm)
         if base is not None and base in runs:
             for m in study.metrics:
-                if m.versus and not (m.group and m.group.reached and not threshold):
+                if m.versus and not (m.group and m.group.reached and not _any_reached(m, runs, arm, base, threshold)):
                     s.update(_versus(m, runs[arm], runs[base], reps=reps, seed=seed))
                 if m.paired:
                     s.update(_paired(m, runs, good, arm, base, reps=reps, seed=seed))
         out[arm] = {k: _finite(v) if isinstance(v, float) else v for k, v in s.items()}
     return out
+
+
+def _any_reached(
+    m: Metric, runs: Mapping[str, Sequence[Mapping[str, Any]]], arm: str, base: str, threshold: bool
+) -> bool:
+    """Whether the env has a threshold and a run of ``arm`` or ``base`` that did not diverge reached it (``m``
+    finite): where neither did, P(the arm is better) is not measured (not "0.5, all ties")."""
+    return threshold and any(not r["diverged"] and math.isfinite(r[m.name]) for a in (arm, base) for r in runs[a])
 
 
 def _versus(m: Metric, arm: Sequence[Mapping[str, Any]], base: Sequence[Mapping[str, Any]], **kw: Any) -> dict:

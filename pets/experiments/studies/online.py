@@ -22,7 +22,7 @@ the process CPU minutes (``cpu_time_s``; empty for runs made before the column) 
 that did not diverge: ``n_reached`` of ``n_seeds`` reached it (counted), and the IQM [CI] of each over the runs that
 reached it (never averaged with the ones that did not). Against the baseline, ``p_fewer_steps``: P(the arm needs
 fewer env steps to the threshold than the baseline) with its CI, a run that never reached it (or diverged) counting
-as the most steps.
+as the most steps; empty where no run of either reached it (not measured).
 
 Files: ``summary.md``, ``summary.csv`` (per env and arm, :data:`SUMMARY_COLUMNS`; the baseline columns empty for the
 baseline itself and where it has no run), ``summary_runs.csv`` (per run, with ``diverged``), ``rewards_ENV.png``
