@@ -24,6 +24,7 @@ from pets.tools.cli import (
     fail,
     interrupts_deferred,
     run_command,
+    stopped,
     write_failed,
 )
 
@@ -46,7 +47,8 @@ def build_parser() -> argparse.ArgumentParser:
         epilog="Any config key can be overridden as key=value, e.g. planner.population=200. Exit status: 0 done; "
         "2 bad input (one line, before any work: bad option or value, corrupt or mismatched checkpoint, unwritable "
         "--out, run directory in use); 3 the run failed (training diverged, no finite plan, a write failed, e.g. "
-        "a full disk; completed trials are kept, --resume continues); 130 interrupted.",
+        "a full disk; completed trials are kept, --resume continues); 130 interrupted (Ctrl-C); 143 stopped by "
+        "SIGTERM (completed trials are kept, --resume continues).",
     )
     p.add_argument(
         "--model",
@@ -166,8 +168,18 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return _main(argv)
     except KeyboardInterrupt:
-        print(f"\n{PROG}: interrupted", file=sys.stderr)
+        print(f"\n{PROG}: {stopped()} before the run began", file=sys.stderr)
         return EXIT_INTERRUPTED
+
+
+def stopped_line(run_dir: Path) -> str:
+    """The one line of a run stopped once it began (Ctrl-C, SIGTERM): its directory, the completed trials it keeps and
+    the command that continues it."""
+    from pets.runs import rundir
+
+    done = rundir.recorded_trials(run_dir)
+    kept = f"keeps its {done} completed trial{'' if done == 1 else 's'}" if done else "has completed no trial yet"
+    return f"{PROG}: {stopped()}; the run in {run_dir} {kept}; continue with: python run_pets.py --resume {run_dir}"
 
 
 def _main(argv: list[str] | None = None) -> int:
@@ -293,9 +305,9 @@ def _main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         if not (Path(run_dir) / rundir.CONFIG_FILE).exists():  # before the run began: nothing to resume
             remove_if_unused(Path(run_dir), created)
-            print(f"\n{PROG}: interrupted before the run began; nothing was written", file=sys.stderr)
+            print(f"\n{PROG}: {stopped()} before the run began; nothing was written", file=sys.stderr)
         else:
-            print(f"\ninterrupted; continue with: python run_pets.py --resume {run_dir}", file=sys.stderr)
+            print(f"\n{stopped_line(Path(run_dir))}", file=sys.stderr)
         return EXIT_INTERRUPTED
     if rows:
         last = rows[-1]

@@ -43,12 +43,14 @@ def test_console_script_resolves_and_its_help_exits_0(name, capsys, monkeypatch)
     module, function = SCRIPTS[name].split(":")
     script = getattr(importlib.import_module(module), function)
     monkeypatch.setattr(sys, "argv", [name, "--help"])
-    handler = signal.getsignal(signal.SIGINT)  # run_command ignores Ctrl-C once the command is over
+    # run_command ignores Ctrl-C and SIGTERM once the command is over: this process gets its handlers back
+    handlers = {signum: signal.getsignal(signum) for signum in (signal.SIGINT, signal.SIGTERM)}
     try:
         with pytest.raises(SystemExit) as exit_info:
             script()
     finally:
-        signal.signal(signal.SIGINT, handler)
+        for signum, handler in handlers.items():
+            signal.signal(signum, handler)
     assert exit_info.value.code == 0
     assert "usage:" in capsys.readouterr().out
 

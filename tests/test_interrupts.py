@@ -8,14 +8,16 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
 import pytest
 
+from pets.runs import rundir
 from pets.tools.cli import NOTHING_WRITTEN
 from tests.processes import alive, children, collect_random, cpu_seconds, default_sigint
-from tests.test_cli import ROOT, TINY, error_lines
+from tests.test_cli import ROOT, TINY, cli, error_lines, rows
 
 #: The process CPU seconds at which SIGINT is sent: in the imports (torch takes ~1-2 s), then later.
 MOMENTS = (0.3, 1.0, 2.5, 4.5)
@@ -264,3 +266,99 @@ def test_sigterm_stops_a_compare_sweep_as_ctrl_c_does(tmp_path, sigint):
     # ignored SIGINT, inherited from the sweep, and was killed 10 s later (ended by SIGKILL, mid-trial).
     log = (out / "logs" / "invertedpendulum-delta-s0.log").read_text()
     assert "interrupted" in log.strip().splitlines()[-1], log
+
+
+#: The run the SIGTERM tests stop and resume: 4 short trials.
+SIGTERM_RUN = ["--env", "invertedpendulum", "--trials", "4", "--seed", "11", *TINY]
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(tmp_path_factory) -> Path:
+    """An uninterrupted run of :data:`SIGTERM_RUN`."""
+    out = tmp_path_factory.mktemp("uninterrupted") / "run"
+    cli(*SIGTERM_RUN, "--out", out)
+    return out
+
+
+def _computed(run: Path) -> list[dict[str, str]]:
+    """metrics.csv without the columns that measure time."""
+    return [{k: v for k, v in row.items() if k not in rundir.TIMING_COLUMNS} for row in rows(run)]
+
+
+@pytest.mark.parametrize("sigint", [default_sigint, _sigint_ignored], ids=["foreground", "background"])
+def test_sigterm_stops_run_pets_with_one_line_and_143_and_the_run_resumes_to_the_same_metrics(
+    tmp_path, uninterrupted, sigint
+):
+    """SIGTERM (``kill``, a scheduler's stop) to run_pets.py after its first trial: one line naming the run, the
+    trials it keeps and the command that continues it, no traceback, and the process ends by SIGTERM (143:
+    pets.compare counts it as killed from outside, Ray retries it); --resume then ends with the uninterrupted run's
+    metrics. It ended at once by the signal without a word. In the background, SIGINT ignored, it must work the
+    same."""
+    run = tmp_path / "run"
+    argv = [str(ROOT / "run_pets.py"), *SIGTERM_RUN, "--out", str(run)]
+    proc = _signalled(argv, ROOT, lambda pid: (run / "metrics.csv").is_file(), signal.SIGTERM, preexec_fn=sigint)
+    assert proc.returncode == -signal.SIGTERM, (proc.returncode, proc.stderr)
+    done = len(rows(run))
+    assert 1 <= done < 4, "the run finished before SIGTERM; make it longer"
+    trials = f"{done} completed trial{'' if done == 1 else 's'}"
+    assert error_lines(proc.stderr) == [
+        f"run_pets.py: stopped by SIGTERM; the run in {run} keeps its {trials}; "
+        f"continue with: python run_pets.py --resume {run}"
+    ], proc.stderr
+    assert "done:" not in proc.stdout and not list(run.glob(".*.tmp"))
+    assert "done: 4 trials" in cli("--resume", run).stdout
+    assert _computed(run) == _computed(uninterrupted)
+
+
+def test_sigterm_stops_a_tool_with_one_line_and_143_leaving_nothing_half_written(tmp_path):
+    """SIGTERM to pets.collect while it collects: its one line (as for Ctrl-C, saying SIGTERM), no traceback, the
+    process ends by SIGTERM (143), and no data set, not even a temporary file, is left."""
+    out = tmp_path / "data.npz"
+    argv = ["-m", "pets.collect", "--env", "invertedpendulum", "--policy", "random", "--episodes", "100000"]
+    argv += ["--threads", "1", "--out", str(out), "--quiet"]
+    proc = _signalled(argv, ROOT, lambda pid: cpu_seconds(pid) > 5.0, signal.SIGTERM)  # past its imports (~3 s)
+    assert proc.returncode == -signal.SIGTERM, (proc.returncode, proc.stderr)
+    (line,) = error_lines(proc.stderr)
+    assert line.startswith("pets.collect: stopped by SIGTERM; nothing was written (the data set is written only"), line
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("starting", [False, True], ids=["working", "importing"])
+def test_a_command_stopped_by_sigterm_counts_as_killed_from_outside_in_a_sweep(tmp_path, starting):
+    """pets.compare retries a run whose process was killed from outside (on Ray; :class:`RunKilled`): a command
+    stopped by SIGTERM, while it works or while it imports, says so in one line and still ends by the signal, so
+    pets.compare's runner (local and Ray) counts it as killed, not failed. A SIGTERM from the sweep itself would not."""
+    from pets.experiments.backend import RunKilled
+    from pets.experiments.runner import run_logged
+
+    ready, probe = tmp_path / "ready", tmp_path / "probe.py"
+    (tmp_path / "slow_tool.py").write_text(  # SIGTERM once it is ready: while it imports (held to the import's end)
+        f"import pathlib, time\nREADY = pathlib.Path({str(ready)!r})\n"
+        + ("READY.touch()\ntime.sleep(2)\n" if starting else "")
+        + "def main():\n    READY.touch()\n    time.sleep(30)\n    return 0\n"
+    )
+    probe.write_text(
+        f"import sys\nsys.path.insert(0, {str(tmp_path)!r})\n"
+        "from pets.tools.cli import import_main, run_command\n"
+        "run_command('probe', lambda: import_main('slow_tool')(), 'what it finished is kept')\n"
+    )
+    log, failure = tmp_path / "probe.log", []
+
+    def sweep_job() -> None:
+        try:
+            run_logged([sys.executable, str(probe)], log)
+        except Exception as err:  # what the sweep's job raises
+            failure.append(err)
+
+    job = threading.Thread(target=sweep_job)
+    job.start()
+    deadline = time.monotonic() + 120
+    while not ready.exists() and job.is_alive() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    (child,) = [pid for pid in children(os.getpid()) if str(probe) in Path(f"/proc/{pid}/cmdline").read_text()]
+    os.kill(child, signal.SIGTERM)
+    job.join(60)
+    assert not job.is_alive() and len(failure) == 1 and isinstance(failure[0], RunKilled), failure
+    said = "nothing was written (it stopped while starting)" if starting else "what it finished is kept"
+    assert f"exit -15; log {log}; last line: probe: stopped by SIGTERM; {said}" in str(failure[0])
+    assert "Traceback" not in log.read_text()

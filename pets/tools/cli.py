@@ -12,7 +12,10 @@ pets.compare (docs/cli.md, "Exit codes"; :data:`EXIT_CODES` is the one table):
 - 3 (:data:`EXIT_FAILED`): the work failed on good input: model training diverged, planning got no finite
   return, or a write failed while it ran (a full disk); the run keeps what it completed before; for
   pets.compare, some of its runs failed (the summary covers the others);
-- 130 (:data:`EXIT_INTERRUPTED`): interrupted (Ctrl-C; for pets.compare also SIGTERM).
+- 130 (:data:`EXIT_INTERRUPTED`): interrupted (Ctrl-C; for pets.compare also SIGTERM);
+- 143 (:data:`EXIT_TERMINATED`, 128 + SIGTERM): stopped by SIGTERM (``kill``, a scheduler's stop), every command
+  but pets.compare: one line as for Ctrl-C, then the process ends by the signal itself, so pets.compare counts the
+  run as killed from outside (its Ray backend retries it).
 
 Each error is one stderr line ``PROG: error: MESSAGE`` that says what to do.
 """
@@ -25,6 +28,7 @@ import functools
 import json
 import signal
 import sys
+import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -34,6 +38,8 @@ from typing import Any, NoReturn
 EXIT_USAGE = 2
 #: Exit status after Ctrl-C (128 + SIGINT), as the shells report it.
 EXIT_INTERRUPTED = 130
+#: Exit status after SIGTERM (128 + SIGTERM): the process ends by the signal, after its one line (not pets.compare).
+EXIT_TERMINATED = 143
 #: Exit status of work that failed on good input (model training diverged, planning got no finite return, or a
 #: write failed while it ran, e.g. a full disk).
 EXIT_FAILED = 3
@@ -46,7 +52,16 @@ EXIT_CODES = {
     EXIT_USAGE: "bad input, one line before any long work",
     EXIT_FAILED: "the work failed on good input (what completed before is kept)",
     EXIT_INTERRUPTED: "interrupted (Ctrl-C; pets.compare: SIGTERM too)",
+    EXIT_TERMINATED: "stopped by SIGTERM, by the signal itself (not pets.compare); what completed before is kept",
 }
+
+#: Set by the SIGTERM handler of :func:`run_command` (not pets.compare's): the command is stopping on SIGTERM.
+_terminated = threading.Event()
+
+
+def stopped() -> str:
+    """How the command was stopped, for its one line: ``interrupted`` (Ctrl-C) or ``stopped by SIGTERM``."""
+    return "stopped by SIGTERM" if _terminated.is_set() else "interrupted"
 
 
 class OneLineParser(argparse.ArgumentParser):
@@ -131,8 +146,9 @@ def write_json_result(prog: str, path: Path, result: Any) -> None:
 
 
 def interruptible(prog: str, kept: str) -> Callable[[Callable[..., int]], Callable[..., int]]:
-    """A ``main`` that turns Ctrl-C (KeyboardInterrupt) into one stderr line ``PROG: interrupted; KEPT`` and exit
-    status 130, instead of a traceback. ``kept`` says what the interrupted command leaves behind."""
+    """A ``main`` that turns Ctrl-C (KeyboardInterrupt) into one stderr line ``PROG: interrupted; KEPT`` (after SIGTERM:
+    ``stopped by SIGTERM``) and exit status 130, instead of a traceback. ``kept`` says what the interrupted command
+    leaves behind."""
 
     def wrap(main: Callable[..., int]) -> Callable[..., int]:
         @functools.wraps(main)
@@ -140,7 +156,7 @@ def interruptible(prog: str, kept: str) -> Callable[[Callable[..., int]], Callab
             try:
                 return main(*args, **kwargs)
             except KeyboardInterrupt:
-                print(f"\n{prog}: interrupted; {kept}", file=sys.stderr)
+                print(f"\n{prog}: {stopped()}; {kept}", file=sys.stderr)
                 return EXIT_INTERRUPTED
 
         return wrapped
@@ -150,12 +166,10 @@ def interruptible(prog: str, kept: str) -> Callable[[Callable[..., int]], Callab
 
 @contextmanager
 def interrupts_deferred(raises: type[KeyboardInterrupt] = KeyboardInterrupt) -> Iterator[None]:
-    """Hold a Ctrl-C that comes inside the block until the block ends, then raise ``raises``: imports and
+    """Hold a Ctrl-C (or SIGTERM) that comes inside the block until the block ends, then raise ``raises``: imports and
     setup are never cut half-way (a module left half-imported breaks the next import of it, e.g. with a
     RecursionError, and libraries that catch too much can swallow the interrupt). Outside the main thread, where
     signals cannot be handled, it does nothing."""
-    import threading
-
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -198,14 +212,15 @@ def run_command(prog: str, main: Callable[[], int | None], kept: str = "", sigte
     imports included (``main`` imports the command's module), is one stderr line ``PROG: interrupted; KEPT`` and exit
     130, never a traceback (before the command's own code began, KEPT is :data:`NOTHING_WRITTEN`); a Ctrl-C once
     ``main`` has returned (the process ending) is ignored: the process exits with the command's status, never by
-    the signal (-2). ``sigterm``: SIGTERM is a Ctrl-C too (pets.compare: a sweep stopped by ``kill`` or a scheduler
-    stops its runs as on Ctrl-C and says so), instead of the process ending at once, silently, by the signal."""
+    the signal (-2). SIGTERM stops the command as Ctrl-C does, its line saying ``stopped by SIGTERM``, and then ends
+    the process by SIGTERM (exit status 143: pets.compare counts its run as killed from outside, Ray retries it),
+    instead of the process ending at once, silently. ``sigterm``: SIGTERM is a Ctrl-C, exit 130 (pets.compare: a sweep
+    stopped by ``kill`` or a scheduler stops its runs as on Ctrl-C and says so)."""
     import importlib
 
     sys.unraisablehook = _interrupt_again(sys.unraisablehook)
-    stops = (signal.SIGINT, signal.SIGTERM) if sigterm else (signal.SIGINT,)
-    if sigterm:
-        signal.signal(signal.SIGTERM, _as_ctrl_c)
+    stops = (signal.SIGINT, signal.SIGTERM)
+    signal.signal(signal.SIGTERM, _as_ctrl_c if sigterm else _terminate)
     try:
         with interrupts_deferred(InterruptedWhileStarting):
             for name in UNCUTTABLE_IMPORTS:
@@ -215,7 +230,7 @@ def run_command(prog: str, main: Callable[[], int | None], kept: str = "", sigte
         for signum in stops:
             signal.signal(signum, signal.SIG_IGN)
         said = NOTHING_WRITTEN if isinstance(stop, InterruptedWhileStarting) else kept
-        print(f"\n{prog}: interrupted" + (f"; {said}" if said else ""), file=sys.stderr)
+        print(f"\n{prog}: {stopped()}" + (f"; {said}" if said else ""), file=sys.stderr)
         code = EXIT_INTERRUPTED
     except SystemExit as done:  # fail(): its line is printed
         code = done.code
@@ -224,8 +239,34 @@ def run_command(prog: str, main: Callable[[], int | None], kept: str = "", sigte
     # signal (-2), while an ignored signal stays ignored to the end.
     for signum in stops:
         signal.signal(signum, signal.SIG_IGN)
+    if code == EXIT_INTERRUPTED and _terminated.is_set():
+        _end_by_sigterm()
     _forget_handled_interrupt(code)
     sys.exit(code)
+
+
+def _terminate(signum: int, frame: Any) -> None:
+    """The SIGTERM handler of a command (not pets.compare's): the command stops as on Ctrl-C (:func:`_as_ctrl_c`), its
+    line says SIGTERM, and :func:`run_command` then ends the process by SIGTERM."""
+    _terminated.set()
+    _as_ctrl_c(signum, frame)
+
+
+def _end_by_sigterm() -> NoReturn:
+    """End the process by SIGTERM once the command has stopped and said so (exit status 143; ``-15`` to
+    :mod:`subprocess`), as it would have ended without the handler: pets.compare counts the run as killed from outside
+    (its Ray backend retries it). The exit handlers run first; the interpreter's finalisation is skipped, as the
+    signal's."""
+    import atexit
+    import os
+
+    atexit._run_exitfuncs()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, [signal.SIGTERM])
+    signal.raise_signal(signal.SIGTERM)
+    os._exit(EXIT_TERMINATED)  # not reached: the signal ends the process
 
 
 def _as_ctrl_c(signum: int, frame: Any) -> None:
@@ -243,14 +284,14 @@ def _interrupt_again(hook: Callable[[Any], object]) -> Callable[[Any], object]:
     import's module-lock callback, a ``__del__``): Python cannot raise there, so it would print "Exception ignored"
     with a traceback and go on as if no Ctrl-C had come. Any other unraisable exception goes to ``hook``."""
     import _thread
-    import threading
     import time
 
     main = threading.main_thread().ident
 
     def interrupt_soon() -> None:  # once the main thread is out of the hook, where it would be ignored again
         time.sleep(0.01)
-        signal.pthread_kill(main, signal.SIGINT)  # a real signal: it ends a sleep or a wait; ignored once ending
+        again = signal.SIGTERM if _terminated.is_set() else signal.SIGINT  # SIGINT may be ignored (nohup)
+        signal.pthread_kill(main, again)  # a real signal: it ends a sleep or a wait; ignored once ending
 
     def hook_or_interrupt(unraisable: Any) -> object:
         if issubclass(unraisable.exc_type, KeyboardInterrupt):

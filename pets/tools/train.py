@@ -16,7 +16,16 @@ from pathlib import Path
 from pets.data.datasets import env_name, load_dataset, missing_data_file
 from pets.learning.offline import OFFLINE_DEFAULTS, offline_config, train_offline
 from pets.runs.fileio import writable_dir_error
-from pets.tools.cli import EXIT_FAILED, EXIT_INTERRUPTED, OneLineParser, fail, import_given, interruptible, write_failed
+from pets.tools.cli import (
+    EXIT_FAILED,
+    EXIT_INTERRUPTED,
+    OneLineParser,
+    fail,
+    import_given,
+    interruptible,
+    stopped,
+    write_failed,
+)
 
 PROG = "pets.train"
 
@@ -142,16 +151,17 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _interrupted(out: Path, created: bool) -> int:
-    """Ctrl-C during training or its report: one line saying whether the run in ``out`` is complete (written before
-    the interrupt) or was not written (nothing of it is left; a folder this command made is removed)."""
+    """Ctrl-C or SIGTERM during training or its report: one line saying whether the run in ``out`` is complete
+    (written before the interrupt) or was not written (nothing of it is left; a folder this command made is
+    removed)."""
     from pets.runs import rundir
     from pets.runs.fileio import remove_if_unused
 
     if (out / rundir.CONFIG_FILE).exists():
-        print(f"\n{PROG}: interrupted; the run in {out} was complete before it", file=sys.stderr)
+        print(f"\n{PROG}: {stopped()}; the run in {out} was complete before it", file=sys.stderr)
     else:
         remove_if_unused(out, created)
-        print(f"\n{PROG}: interrupted; no run was written (a run is written only when complete)", file=sys.stderr)
+        print(f"\n{PROG}: {stopped()}; no run was written (a run is written only when complete)", file=sys.stderr)
     return EXIT_INTERRUPTED
 
 
