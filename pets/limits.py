@@ -109,9 +109,12 @@ def memory_needs(cfg: Any, obs_dim: int, act_dim: int, length: int, steps: int |
     h = m.hidden_size
     params = m.ensemble_size * (width * h + (m.num_layers - 1) * h**2 + 4 * h * obs_dim)
     candidates = p.population * p.particles
+    transitions = rows * (2 * obs_dim + act_dim) * BYTES
     return [
-        # numpy buffer + its tensors on the device + the normalised training inputs and targets
-        Need("replay buffer", 3.0 * rows * (2 * obs_dim + act_dim) * BYTES, host=True),
+        # the numpy buffer (host memory on every device)
+        Need("replay buffer", transitions, host=True),
+        # its tensors on the model's device + the normalised training inputs and targets (on a GPU, GPU memory)
+        Need("training data", 2.0 * transitions, host=False),
         # weights, gradients and Adam's two moments
         Need("model weights", 4.0 * params * BYTES, host=False),
         # a minibatch's activations through every layer of every member, kept for the backward pass
@@ -126,12 +129,14 @@ def memory_needs(cfg: Any, obs_dim: int, act_dim: int, length: int, steps: int |
 
 
 def available_bytes(device: str) -> float | None:
-    """Memory that can still be allocated: the GPU's free memory for a CUDA device, else the host's (MemAvailable,
-    or a cgroup's limit where lower); None where it cannot be read."""
+    """Memory that can still be allocated: the free memory of the GPU ``device`` names (``cuda:N``; ``cuda``: the
+    current one) for a CUDA device, else the host's (MemAvailable, or a cgroup's limit where lower); None where it
+    cannot be read."""
     if device.startswith("cuda"):
         import torch
 
-        return float(torch.cuda.mem_get_info()[0])
+        index = torch.device(device).index
+        return float(torch.cuda.mem_get_info(torch.cuda.current_device() if index is None else index)[0])
     try:
         meminfo = Path("/proc/meminfo").read_text()
     except OSError:
@@ -164,8 +169,9 @@ def memory_problem(
     beside: tuple[int, float] = (0, 0.0),
 ) -> str | None:
     """One line refusing a config whose estimated memory (:func:`memory_needs`) exceeds what this machine can still
-    allocate, naming the largest part and its keys; None when it fits or the free memory cannot be read.
-    ``beside``: (how many other runs, their bytes of host memory) that run at the same time."""
+    allocate, naming the memory (host, or the GPU ``device``), the largest part and its keys; None when it fits or the
+    free memory cannot be read. On a CUDA device the parts on the GPU are checked against its free memory, the rest
+    against the host's. ``beside``: (how many other runs, their bytes of host memory) that run at the same time."""
     needs = memory_needs(cfg, obs_dim, act_dim, length, steps)
     on_device = device.startswith("cuda")
     host = [n for n in needs if n.host or not on_device]
@@ -179,10 +185,11 @@ def memory_problem(
             continue
         biggest = max(parts, key=lambda n: n.bytes)
         at_once = f", {(own + more) / GB:,.1f} GB with the {others} other run(s) at once (--workers)" if others else ""
+        holder = "this machine" if where == "host" else f"the GPU ({device})"
         return (
             f"this config needs about {own / GB:,.1f} GB of {where} memory ({', '.join(map(str, parts))}){at_once}, "
-            f"more than the {room / GB:,.1f} GB this machine has free; lower {KEYS[biggest.part]}"
-            + (" or --workers" if others else "")
+            f"more than the {room / GB:,.1f} GB {holder} has free; "
+            f"lower {KEYS[biggest.part]}" + (" or --workers" if others else "")
         )
     return None
 
@@ -190,6 +197,7 @@ def memory_problem(
 #: The keys that size each part of :func:`memory_needs`.
 KEYS = {
     "replay buffer": "seed_steps, trials or episode_length",
+    "training data": "seed_steps, trials or episode_length",
     "model weights": "model.hidden_size, model.num_layers or model.ensemble_size",
     "training": "model.batch_size, model.hidden_size or model.ensemble_size",
     "planning": "planner.population, planner.particles, planner.horizon or model.hidden_size",

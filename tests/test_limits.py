@@ -156,3 +156,66 @@ def test_pets_compare_refuses_runs_that_do_not_fit_at_once_before_any_starts(tmp
     assert not (tmp_path / "two").exists()
     with pytest.raises(AssertionError, match="a run would start"):  # one at a time fits: the sweep would start
         main([*two, "--preset", "research", "--workers", "1", "--out", str(tmp_path / "one")])
+
+
+def test_on_a_cuda_device_the_gpu_parts_are_checked_against_the_gpus_free_memory_the_rest_against_the_hosts(
+    monkeypatch,
+):
+    """The CUDA branch on a machine without one: torch.cuda reports a GPU with the free memory the test sets. The
+    model, its training data and the planner must fit in the GPU's free memory, the numpy replay buffer in the
+    host's; each refusal names the memory that is short. The training data (the buffer's tensors and the normalised
+    inputs, on the GPU) was counted in host memory, so a GPU too small for it was not refused."""
+    import torch
+
+    import envs
+    from pets.builder import check_memory
+    from pets.config import make_config
+    from pets.limits import GB, KEYS, available_bytes, memory_needs
+
+    spec = envs.get("halfcheetah")
+    cfg = {on: make_config("halfcheetah", "gem", "research", {"seed_steps": 50_000_000, "device": on}) for on in
+           ("cuda", "cpu")}  # fmt: skip
+    needs = memory_needs(cfg["cuda"], spec.obs_dim, spec.act_dim, spec.episode_length)
+    host, gpu = [n for n in needs if n.host], [n for n in needs if not n.host]
+    on_host, on_gpu = sum(n.bytes for n in host), sum(n.bytes for n in gpu)
+    assert [n.part for n in host] == ["replay buffer"] and max(gpu, key=lambda n: n.bytes).part == "training data"
+    assert on_gpu > on_host > 4 * GB
+    free, asked = {"gpu": 0.0, "host": 0.0}, []
+
+    def mem_get_info(device: object = None) -> tuple[int, int]:
+        asked.append(device)
+        return int(free["gpu"]), int(141 * GB)
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "current_device", lambda: 0)
+    monkeypatch.setattr(torch.cuda, "mem_get_info", mem_get_info)
+    monkeypatch.setattr(  # the host's free memory as the test sets it; a GPU's through the real CUDA branch
+        "pets.limits.available_bytes", lambda device: free["host"] if device == "cpu" else available_bytes(device)
+    )
+
+    def refusal(gpu_free: float, host_free: float, device: str = "cuda") -> str | None:
+        free.update(gpu=gpu_free, host=host_free)
+        try:
+            check_memory(cfg[device], spec)
+        except ConfigError as err:
+            return str(err)
+        return None
+
+    # Each side just fits: refused neither way (before, the training data was added to the host's part).
+    assert refusal(1.01 * on_gpu, 1.01 * on_host) is None
+    assert asked == [0]  # the current GPU's free memory (device=cuda), read once
+    assert refusal(0.5 * on_gpu, 10 * (on_host + on_gpu)) == (
+        f"this config needs about {on_gpu / GB:,.1f} GB of GPU memory ({', '.join(map(str, gpu))}), more than the "
+        f"{0.5 * on_gpu / GB:,.1f} GB the GPU (cuda) has free; lower {KEYS['training data']}"
+    )
+    assert refusal(10 * on_gpu, 0.5 * on_host) == (
+        f"this config needs about {on_host / GB:,.1f} GB of host memory ({host[0]}), more than the "
+        f"{0.5 * on_host / GB:,.1f} GB this machine has free; lower {KEYS['replay buffer']}"
+    )
+    # On the CPU every part is in host memory: the room that held the buffer alone does not hold them all.
+    on_cpu = refusal(0.0, 1.01 * on_host, device="cpu")
+    assert on_cpu is not None and on_cpu.startswith(
+        f"this config needs about {(on_host + on_gpu) / GB:,.1f} GB of host"
+    )
+    asked.clear()
+    assert available_bytes("cuda:1") == 0.0 and asked == [1]  # cuda:N: that GPU's, not the current one's
