@@ -70,7 +70,7 @@ def _offline_job(job: Mapping[str, Any]) -> dict[str, Any]:
             log=lambda message: None,
             train_data=job["train_data"],
         )
-        result["request"] = request
+        result["request"], result["machines"] = request, _machines(eval_path, "train" in done)
         atomic_write_bytes(eval_path, (json.dumps(result) + "\n").encode())
         if load_config(str(run_dir / "config.yaml")).tensorboard:  # per-horizon errors, TensorBoard (pets.runs.tblog)
             write_events(run_dir, job["test_data"], result)
@@ -94,6 +94,25 @@ def _offline_job(job: Mapping[str, Any]) -> dict[str, Any]:
             atomic_write_bytes(path, (json.dumps(result) + "\n").encode())
             done.append(f"{kind}_{planner}")
     return {"name": run_dir.name, "done": done}
+
+
+def _machines(eval_path: Path, trained: bool) -> dict[str, str | None]:
+    """Where the run was trained and evaluated (:func:`pets.experiments.report.machine_label`) for its eval.json:
+    this machine, the training's kept from the eval.json before where the run was not trained here (None if
+    unknown)."""
+    import socket
+
+    from pets.experiments.report import machine_label
+    from pets.runs.hardware import cpu_name
+
+    here = machine_label(socket.gethostname(), cpu_name())
+    before = None
+    if not trained and eval_path.is_file():
+        try:
+            before = (json.loads(eval_path.read_text()).get("machines") or {}).get("train")
+        except (ValueError, AttributeError):  # a damaged or older eval.json: the training's machine is unknown
+            before = None
+    return {"train": here if trained else before, "eval": here}
 
 
 #: The planning kinds of the offline mode: open-loop plans (``--openloop``) and MPC with the frozen model

@@ -57,7 +57,7 @@ from pets.experiments.studies.base import (
     table_cells,
     table_header,
 )
-from pets.experiments.studies.online_text import provenance_lines, runs_sections, summary_header
+from pets.experiments.studies.online_text import online_provenance, runs_sections, summary_header
 from pets.runs.fileio import atomic_write_bytes
 
 #: Reward thresholds of the time-to-threshold columns (``docs/performance.md``): InvertedPendulum's maximum
@@ -287,7 +287,7 @@ def summarise_online(
     write_csv(out / "summary_runs.csv", found["per_run"], RUN_COLUMNS)
     text = (
         summary_header(trials, w, compared, planners is not None, until_threshold, bool(found["budgeted"]))
-        + provenance_lines(list(seeds), found["included"], command)
+        + online_provenance(list(seeds), found["included"], command)
         + text
         + precision_note(found["included"])
     )
