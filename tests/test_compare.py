@@ -35,7 +35,9 @@ from pets.experiments.cli import EXIT_FAILED, main
 from pets.experiments.headline import HeadlineError, write_headline
 from pets.experiments.offline import compare_offline
 from pets.experiments.offline_summary import summarise_offline
+from pets.experiments.online import compare_online
 from pets.experiments.report import fmt, fmt_interval, write_csv
+from pets.experiments.rundirs import arm_run_dir
 from pets.experiments.statistics import REPS, ci_exact_note, holm, sign_flip_p
 from pets.experiments.studies.offline import SUMMARY_COLUMNS, summary_from_runs
 from pets.experiments.studies.online import STUDY as ONLINE_STUDY
@@ -253,6 +255,37 @@ def test_online_planners_axis_runs_every_model_planner_pair(tmp_path, capsys):
     ]
     assert "| model | planner | seeds |" in printed and "| delta | icem | 1 |" in printed
     assert (tmp_path / "walltime_invertedpendulum.png").stat().st_size > 10_000
+
+
+def test_one_planner_reuses_the_runs_made_without_planners_where_their_config_is_the_same(tmp_path, capsys):
+    """``--planners mppi`` (the fast preset's planner of invertedpendulum) on a sweep run without the flag: the
+    same runs, reused, not run again as ENV-MODEL-mppi-sSEED; a run made without the flag with another planner is not
+    this arm's, and one with this planner but another config is refused (one line, exit 2), never reused."""
+    base = ["online", "--envs", "invertedpendulum", "--models", "delta", "--seeds", "0,1", "--trials", 2, "--preset",
+            "fast", "--out", tmp_path, "--quiet", *TINY]  # fmt: skip
+    configs = compare_online(["invertedpendulum"], ["delta"], [0, 1], 2, tmp_path, preset="fast", overrides=TINY,
+                             configs_only=True)["configs"]  # fmt: skip
+    for seed, rewards in ((0, [1.0, 2.0]), (1, [3.0, 5.0])):
+        run = tmp_path / "runs" / f"invertedpendulum-delta-s{seed}"
+        fake_run(tmp_path, "invertedpendulum", "delta", seed, rewards)
+        rundir.write_config(run, configs[run.name])
+    code, _, err = cli(capsys, *base, "--planners", "mppi")
+    assert code == 0 and "2 runs: 2 reused, 0 to resume, 0 to start" in err, err
+    assert sorted(p.name for p in (tmp_path / "runs").iterdir()) == [
+        "invertedpendulum-delta-s0",
+        "invertedpendulum-delta-s1",
+    ]
+    (row,) = csv_rows(tmp_path / "summary.csv")
+    assert (row["model"], row["planner"], row["n_seeds"], float(row["final_iqm"])) == ("delta", "mppi", "2", 2.75)
+    runs = tmp_path / "runs"
+    assert arm_run_dir(runs, "invertedpendulum", "delta", 0, "cem") == runs / "invertedpendulum-delta-cem-s0"
+    changed = load_config(str(runs / "invertedpendulum-delta-s1" / "config.yaml"))
+    changed.planner.horizon += 1
+    rundir.write_config(runs / "invertedpendulum-delta-s1", changed)
+    code, _, err = cli(capsys, *base, "--planners", "mppi")
+    lines = err.strip().splitlines()
+    assert code == 2 and len(lines) == 1 and "invertedpendulum-delta-s1 was made with another config" in lines[0], err
+    assert "planner.horizon" in lines[0] and len(list(runs.iterdir())) == 2
 
 
 # --------------------------------------------------------------------------- online summary on fake runs
