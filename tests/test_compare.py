@@ -1100,15 +1100,20 @@ def test_offline_refuses_a_run_or_data_path_it_cannot_use_before_any_work(tmp_pa
         shutil.rmtree(out)
 
 
-def test_offline_redoes_a_run_whose_job_was_killed_as_it_wrote_the_run(tmp_path, capsys):
-    """A job killed (kill -9) while its training wrote the run leaves the run's files without config.yaml (written
-    last): the same command trains that run again, as the module promises, instead of failing it for holding files."""
+def one_offline_run(tmp_path, capsys):
+    """``(args, run directory)`` of a tiny offline sweep of one run, made with ``pets.compare ARGS``."""
     out = tmp_path / "off"
     args = ["offline", "--envs", "invertedpendulum", "--models", "delta", "--seeds", 0, "--episodes", 3,
             "--test-episodes", 2, "--horizons", "1,3", "--starts", 10, "--out", out, "--preset", "fast", "--device",
             "cpu", "--quiet", *TINY_OFFLINE]  # fmt: skip
     assert cli(capsys, *args)[0] == 0
-    run = out / "runs" / "invertedpendulum-delta-s0"
+    return args, out / "runs" / "invertedpendulum-delta-s0"
+
+
+def test_offline_redoes_a_run_whose_job_was_killed_as_it_wrote_the_run(tmp_path, capsys):
+    """A job killed (kill -9) while its training wrote the run leaves the run's files without config.yaml (written
+    last): the same command trains that run again, as the module promises, instead of failing it for holding files."""
+    args, run = one_offline_run(tmp_path, capsys)
     for name in ("config.yaml", "eval.json", "eval"):  # what the job writes after the training's own files
         shutil.rmtree(run / name) if (run / name).is_dir() else (run / name).unlink()
     assert {"checkpoint.pt", "metrics.csv"} <= {p.name for p in run.iterdir()}
@@ -1130,6 +1135,32 @@ def test_offline_refuses_a_trained_run_without_its_checkpoint_before_any_work(tm
     assert code == 2 and len(lines) == 1, err
     assert f"{run} holds a trained run's config.yaml but no checkpoint.pt" in lines[0] and "delete the run" in lines[0]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["runs"] and [p.name for p in run.iterdir()] == ["config.yaml"]
+
+
+def test_offline_refuses_a_damaged_checkpoint_it_would_load_before_any_work(tmp_path, capsys):
+    """A trained run whose checkpoint.pt is cut off or has bytes changed failed (exit 3) only when its job came, maybe
+    hours into a sweep; a run to evaluate or plan with it is exit 2, one line naming the file and what to do, before
+    any work. A run reused as it is (its checkpoint not loaded) is not refused."""
+    args, run = one_offline_run(tmp_path, capsys)
+    checkpoint, whole = run / "checkpoint.pt", (run / "checkpoint.pt").read_bytes()
+    evaluation = (run / "eval.json").read_bytes()
+    middle = len(whole) // 2
+    damaged = {
+        "cut off": whole[:middle],
+        "changed": whole[:middle] + bytes([whole[middle] ^ 0xFF]) + whole[middle + 1 :],
+    }
+    new_horizons = [*args[: args.index("--horizons") + 1], "1,2", *args[args.index("--horizons") + 2 :]]
+    for kind, data in damaged.items():
+        checkpoint.write_bytes(data)
+        code, _, err = cli(capsys, *new_horizons)
+        lines = err.strip().splitlines()
+        assert code == 2 and len(lines) == 1, (kind, err)
+        assert f"{checkpoint} is damaged (" in lines[0] and "delete the run directory to train it again" in lines[0]
+        assert (run / "eval.json").read_bytes() == evaluation, kind
+        code, _, err = cli(capsys, *args)  # nothing to do with the model: reused
+        assert code == 0 and "1 reused, 0 with work to do" in err, (kind, err)
+    checkpoint.write_bytes(whole)
+    assert cli(capsys, *new_horizons)[0] == 0
 
 
 # --------------------------------------------------------------------------- offline summary on fake evaluations

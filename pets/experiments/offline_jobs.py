@@ -145,7 +145,8 @@ def check_run_dir(run_dir: Path, out: Path, expected: Any, ignore: Sequence[str]
 
 
 def offline_todo(job: Mapping[str, Any]) -> list[str]:
-    """What :func:`offline_job` would do for ``job`` now: a subset of train, eval, openloop_PLANNER."""
+    """What :func:`offline_job` would do for ``job`` now: a subset of train, eval, openloop_PLANNER; UsageError where
+    that is to evaluate or plan with a trained model whose checkpoint.pt is damaged (:func:`check_checkpoint`)."""
     run_dir = Path(job["run_dir"])
     todo = [] if (run_dir / "config.yaml").is_file() else ["train"]
     if todo or not json_matches(run_dir / "eval.json", job["eval_request"]):
@@ -156,4 +157,28 @@ def offline_todo(job: Mapping[str, Any]) -> list[str]:
         if todo[:1] == ["train"]
         or not json_matches(run_dir / f"{kind}_{p}.json", {**job[f"{kind}_request"], "planner": p})
     ]
+    if todo and todo[0] != "train":
+        check_checkpoint(run_dir)
     return todo
+
+
+def check_checkpoint(run_dir: Path) -> None:
+    """UsageError, before any work, where a trained run's checkpoint.pt is not a whole torch file: not a zip
+    archive, cut off, or with bytes that fail their CRC (the file read once, not unpickled as torch.load would)."""
+    import zipfile
+
+    from pets.runs.rundir import CHECKPOINT_FILE
+
+    path = run_dir / CHECKPOINT_FILE
+    try:
+        with zipfile.ZipFile(path) as archive:
+            bad = archive.testzip()
+            pickled = any(name.endswith("/data.pkl") for name in archive.namelist())
+        why = f"{bad} fails its CRC" if bad else None if pickled else "no data.pkl in it"
+    except (OSError, zipfile.BadZipFile, EOFError, ValueError) as err:  # cut off, not a zip, a damaged entry
+        why = str(err).splitlines()[0] if str(err) else type(err).__name__
+    if why:
+        raise UsageError(
+            f"{path} is damaged ({why}): its model cannot be evaluated or planned with; restore it from a copy, or "
+            "delete the run directory to train it again"
+        )
