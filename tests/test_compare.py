@@ -35,7 +35,9 @@ from pets.experiments.cli import EXIT_FAILED, main
 from pets.experiments.headline import HeadlineError, write_headline
 from pets.experiments.offline import compare_offline
 from pets.experiments.offline_summary import summarise_offline
+from pets.experiments.online import compare_online
 from pets.experiments.report import fmt, fmt_interval, write_csv
+from pets.experiments.rundirs import arm_run_dir
 from pets.experiments.statistics import REPS, ci_exact_note, holm, sign_flip_p
 from pets.experiments.studies.offline import SUMMARY_COLUMNS, summary_from_runs
 from pets.experiments.studies.online import STUDY as ONLINE_STUDY
@@ -253,6 +255,37 @@ def test_online_planners_axis_runs_every_model_planner_pair(tmp_path, capsys):
     ]
     assert "| model | planner | seeds |" in printed and "| delta | icem | 1 |" in printed
     assert (tmp_path / "walltime_invertedpendulum.png").stat().st_size > 10_000
+
+
+def test_one_planner_reuses_the_runs_made_without_planners_where_their_config_is_the_same(tmp_path, capsys):
+    """``--planners mppi`` (the fast preset's planner of invertedpendulum) on a sweep run without the flag: the
+    same runs, reused, not run again as ENV-MODEL-mppi-sSEED; a run made without the flag with another planner is not
+    this arm's, and one with this planner but another config is refused (one line, exit 2), never reused."""
+    base = ["online", "--envs", "invertedpendulum", "--models", "delta", "--seeds", "0,1", "--trials", 2, "--preset",
+            "fast", "--out", tmp_path, "--quiet", *TINY]  # fmt: skip
+    configs = compare_online(["invertedpendulum"], ["delta"], [0, 1], 2, tmp_path, preset="fast", overrides=TINY,
+                             configs_only=True)["configs"]  # fmt: skip
+    for seed, rewards in ((0, [1.0, 2.0]), (1, [3.0, 5.0])):
+        run = tmp_path / "runs" / f"invertedpendulum-delta-s{seed}"
+        fake_run(tmp_path, "invertedpendulum", "delta", seed, rewards)
+        rundir.write_config(run, configs[run.name])
+    code, _, err = cli(capsys, *base, "--planners", "mppi")
+    assert code == 0 and "2 runs: 2 reused, 0 to resume, 0 to start" in err, err
+    assert sorted(p.name for p in (tmp_path / "runs").iterdir()) == [
+        "invertedpendulum-delta-s0",
+        "invertedpendulum-delta-s1",
+    ]
+    (row,) = csv_rows(tmp_path / "summary.csv")
+    assert (row["model"], row["planner"], row["n_seeds"], float(row["final_iqm"])) == ("delta", "mppi", "2", 2.75)
+    runs = tmp_path / "runs"
+    assert arm_run_dir(runs, "invertedpendulum", "delta", 0, "cem") == runs / "invertedpendulum-delta-cem-s0"
+    changed = load_config(str(runs / "invertedpendulum-delta-s1" / "config.yaml"))
+    changed.planner.horizon += 1
+    rundir.write_config(runs / "invertedpendulum-delta-s1", changed)
+    code, _, err = cli(capsys, *base, "--planners", "mppi")
+    lines = err.strip().splitlines()
+    assert code == 2 and len(lines) == 1 and "invertedpendulum-delta-s1 was made with another config" in lines[0], err
+    assert "planner.horizon" in lines[0] and len(list(runs.iterdir())) == 2
 
 
 # --------------------------------------------------------------------------- online summary on fake runs
@@ -1067,15 +1100,20 @@ def test_offline_refuses_a_run_or_data_path_it_cannot_use_before_any_work(tmp_pa
         shutil.rmtree(out)
 
 
-def test_offline_redoes_a_run_whose_job_was_killed_as_it_wrote_the_run(tmp_path, capsys):
-    """A job killed (kill -9) while its training wrote the run leaves the run's files without config.yaml (written
-    last): the same command trains that run again, as the module promises, instead of failing it for holding files."""
+def one_offline_run(tmp_path, capsys):
+    """``(args, run directory)`` of a tiny offline sweep of one run, made with ``pets.compare ARGS``."""
     out = tmp_path / "off"
     args = ["offline", "--envs", "invertedpendulum", "--models", "delta", "--seeds", 0, "--episodes", 3,
             "--test-episodes", 2, "--horizons", "1,3", "--starts", 10, "--out", out, "--preset", "fast", "--device",
             "cpu", "--quiet", *TINY_OFFLINE]  # fmt: skip
     assert cli(capsys, *args)[0] == 0
-    run = out / "runs" / "invertedpendulum-delta-s0"
+    return args, out / "runs" / "invertedpendulum-delta-s0"
+
+
+def test_offline_redoes_a_run_whose_job_was_killed_as_it_wrote_the_run(tmp_path, capsys):
+    """A job killed (kill -9) while its training wrote the run leaves the run's files without config.yaml (written
+    last): the same command trains that run again, as the module promises, instead of failing it for holding files."""
+    args, run = one_offline_run(tmp_path, capsys)
     for name in ("config.yaml", "eval.json", "eval"):  # what the job writes after the training's own files
         shutil.rmtree(run / name) if (run / name).is_dir() else (run / name).unlink()
     assert {"checkpoint.pt", "metrics.csv"} <= {p.name for p in run.iterdir()}
@@ -1097,6 +1135,32 @@ def test_offline_refuses_a_trained_run_without_its_checkpoint_before_any_work(tm
     assert code == 2 and len(lines) == 1, err
     assert f"{run} holds a trained run's config.yaml but no checkpoint.pt" in lines[0] and "delete the run" in lines[0]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["runs"] and [p.name for p in run.iterdir()] == ["config.yaml"]
+
+
+def test_offline_refuses_a_damaged_checkpoint_it_would_load_before_any_work(tmp_path, capsys):
+    """A trained run whose checkpoint.pt is cut off or has bytes changed failed (exit 3) only when its job came, maybe
+    hours into a sweep; a run to evaluate or plan with it is exit 2, one line naming the file and what to do, before
+    any work. A run reused as it is (its checkpoint not loaded) is not refused."""
+    args, run = one_offline_run(tmp_path, capsys)
+    checkpoint, whole = run / "checkpoint.pt", (run / "checkpoint.pt").read_bytes()
+    evaluation = (run / "eval.json").read_bytes()
+    middle = len(whole) // 2
+    damaged = {
+        "cut off": whole[:middle],
+        "changed": whole[:middle] + bytes([whole[middle] ^ 0xFF]) + whole[middle + 1 :],
+    }
+    new_horizons = [*args[: args.index("--horizons") + 1], "1,2", *args[args.index("--horizons") + 2 :]]
+    for kind, data in damaged.items():
+        checkpoint.write_bytes(data)
+        code, _, err = cli(capsys, *new_horizons)
+        lines = err.strip().splitlines()
+        assert code == 2 and len(lines) == 1, (kind, err)
+        assert f"{checkpoint} is damaged (" in lines[0] and "delete the run directory to train it again" in lines[0]
+        assert (run / "eval.json").read_bytes() == evaluation, kind
+        code, _, err = cli(capsys, *args)  # nothing to do with the model: reused
+        assert code == 0 and "1 reused, 0 with work to do" in err, (kind, err)
+    checkpoint.write_bytes(whole)
+    assert cli(capsys, *new_horizons)[0] == 0
 
 
 # --------------------------------------------------------------------------- offline summary on fake evaluations

@@ -364,6 +364,7 @@ def _run_offline(args: argparse.Namespace, shared: dict[str, Any]) -> dict[str, 
         protocol=args.protocol,
         data_seeds=parse_seeds(args.data_seeds, "--data-seeds"),
         estimate=args.estimate and not args.print_config,
+        command=getattr(args, "command_line", None),
     )
 
 

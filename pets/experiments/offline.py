@@ -108,6 +108,7 @@ def compare_offline(
     configs_only: bool = False,
     data_seeds: Sequence[int] = (0,),
     estimate: bool = False,
+    command: str | None = None,
 ) -> dict[str, Any]:
     """Collect, train, evaluate (and open-loop plan) everything missing, then write the summaries.
 
@@ -123,6 +124,7 @@ def compare_offline(
     (:func:`data_paths`, :func:`collect_seeds`); runs pair by (data seed, seed).
     ``planner_overrides``: ``planner.*`` settings of the open- and closed-loop planning (``--planner-overrides``),
     applied over each run's own planner config and recorded in the request, so that other settings plan anew.
+    ``command``: the command line, named in prediction.md.
 
     Returns ``{"data": {file: collected|reused}, "todo": {run: [what was missing]}, "done": {run: [what was
     done]}, "failed": {run: message}, "summary"}``; runs absent from "todo" were reused as they were.
@@ -171,11 +173,11 @@ def compare_offline(
             results |= {run_name(env, m, s, data_seed=d): (False, f"no data: {message}") for m in models for s in seeds}
         failed = {name: msg for name, (ok, msg) in results.items() if not ok}
         done = {name: res["done"] for name, (ok, res) in results.items() if ok}
-        summary = summarise_offline(out, env_names, models, seeds, requests["eval"], failed, data_seeds=data_seeds)
-        if openloop:
-            summarise_openloop(out, env_names, models, seeds, planners, requests["openloop"])
-        if closedloop:
-            summarise_openloop(out, env_names, models, seeds, planners, requests["closedloop"], kind=CLOSED)
+        summary = summarise_offline(
+            out, env_names, models, seeds, requests["eval"], failed, data_seeds=data_seeds, command=command
+        )
+        for kind in [OPEN] * openloop + [CLOSED] * closedloop:  # openloop.md, closedloop.md
+            summarise_openloop(out, env_names, models, seeds, planners, requests[kind], kind=kind)
         return {"data": data_actions, "todo": pending, "done": done, "failed": failed, "summary": summary}
 
 

@@ -70,7 +70,7 @@ def _offline_job(job: Mapping[str, Any]) -> dict[str, Any]:
             log=lambda message: None,
             train_data=job["train_data"],
         )
-        result["request"] = request
+        result["request"], result["machines"] = request, _machines(eval_path, "train" in done)
         atomic_write_bytes(eval_path, (json.dumps(result) + "\n").encode())
         if load_config(str(run_dir / "config.yaml")).tensorboard:  # per-horizon errors, TensorBoard (pets.runs.tblog)
             write_events(run_dir, job["test_data"], result)
@@ -94,6 +94,25 @@ def _offline_job(job: Mapping[str, Any]) -> dict[str, Any]:
             atomic_write_bytes(path, (json.dumps(result) + "\n").encode())
             done.append(f"{kind}_{planner}")
     return {"name": run_dir.name, "done": done}
+
+
+def _machines(eval_path: Path, trained: bool) -> dict[str, str | None]:
+    """Where the run was trained and evaluated (:func:`pets.experiments.report.machine_label`) for its eval.json:
+    this machine, the training's kept from the eval.json before where the run was not trained here (None if
+    unknown)."""
+    import socket
+
+    from pets.experiments.report import machine_label
+    from pets.runs.hardware import cpu_name
+
+    here = machine_label(socket.gethostname(), cpu_name())
+    before = None
+    if not trained and eval_path.is_file():
+        try:
+            before = (json.loads(eval_path.read_text()).get("machines") or {}).get("train")
+        except (ValueError, AttributeError):  # a damaged or older eval.json: the training's machine is unknown
+            before = None
+    return {"train": here if trained else before, "eval": here}
 
 
 #: The planning kinds of the offline mode: open-loop plans (``--openloop``) and MPC with the frozen model
@@ -126,7 +145,8 @@ def check_run_dir(run_dir: Path, out: Path, expected: Any, ignore: Sequence[str]
 
 
 def offline_todo(job: Mapping[str, Any]) -> list[str]:
-    """What :func:`offline_job` would do for ``job`` now: a subset of train, eval, openloop_PLANNER."""
+    """What :func:`offline_job` would do for ``job`` now: a subset of train, eval, openloop_PLANNER; UsageError where
+    that is to evaluate or plan with a trained model whose checkpoint.pt is damaged (:func:`check_checkpoint`)."""
     run_dir = Path(job["run_dir"])
     todo = [] if (run_dir / "config.yaml").is_file() else ["train"]
     if todo or not json_matches(run_dir / "eval.json", job["eval_request"]):
@@ -137,4 +157,28 @@ def offline_todo(job: Mapping[str, Any]) -> list[str]:
         if todo[:1] == ["train"]
         or not json_matches(run_dir / f"{kind}_{p}.json", {**job[f"{kind}_request"], "planner": p})
     ]
+    if todo and todo[0] != "train":
+        check_checkpoint(run_dir)
     return todo
+
+
+def check_checkpoint(run_dir: Path) -> None:
+    """UsageError, before any work, where a trained run's checkpoint.pt is not a whole torch file: not a zip
+    archive, cut off, or with bytes that fail their CRC (the file read once, not unpickled as torch.load would)."""
+    import zipfile
+
+    from pets.runs.rundir import CHECKPOINT_FILE
+
+    path = run_dir / CHECKPOINT_FILE
+    try:
+        with zipfile.ZipFile(path) as archive:
+            bad = archive.testzip()
+            pickled = any(name.endswith("/data.pkl") for name in archive.namelist())
+        why = f"{bad} fails its CRC" if bad else None if pickled else "no data.pkl in it"
+    except (OSError, zipfile.BadZipFile, EOFError, ValueError) as err:  # cut off, not a zip, a damaged entry
+        why = str(err).splitlines()[0] if str(err) else type(err).__name__
+    if why:
+        raise UsageError(
+            f"{path} is damaged ({why}): its model cannot be evaluated or planned with; restore it from a copy, or "
+            "delete the run directory to train it again"
+        )

@@ -32,9 +32,10 @@ Files:
   ``prediction.md``; ``past_level.csv``: per env, model and horizon the runs at or past the level (how models fail).
 - ``prediction_runs.csv``: every run and horizon with all its metrics and a ``diverged`` column
   (empty, or why the run counts as diverged at that horizon).
-- ``prediction.md``: per env a table per metric (mean_step_error, standardized_error, and
-  rotation_error where the env has rotations): per model its seeds and per horizon IQM [CI] with the
-  runs diverged there ("(k diverged)", or "all diverged"), and P against delta; the Fig. 2 table; the
+- ``prediction.md``: the seeds, the command and the machines (each run's eval.json ``machines``, where it was
+  trained and evaluated: :func:`offline_provenance`); per env a table per metric (mean_step_error,
+  standardized_error, and rotation_error where the env has rotations): per model its seeds and per horizon IQM
+  [CI] with the runs diverged there ("(k diverged)", or "all diverged"), and P against delta; the Fig. 2 table; the
   diverged runs with their horizons; the missing runs.
 - ``relative_error.png`` (Fig. 2 as the paper normalises it), ``ratio_to_delta.png`` (Fig. 2 as the
   paired ratio to delta with its CI) and ``absolute_error_ENV.png`` (Fig. 3: IQM of the error vs
@@ -56,7 +57,7 @@ from pathlib import Path
 from typing import Any
 
 from pets.experiments.plots import plot_absolute, plot_ratio, plot_relative
-from pets.experiments.report import fmt_interval, md_table, write_csv
+from pets.experiments.report import fmt_interval, md_table, provenance_lines, write_csv
 from pets.experiments.rundirs import env_stem, json_matches, precision_note, run_name
 from pets.experiments.statistics import BASELINE, MIN_SEEDS, REPS, SMALL_SAMPLE_NOTE
 from pets.experiments.studies.offline import (
@@ -127,12 +128,15 @@ def summarise_offline(
     *,
     reps: int = REPS,
     data_seeds: Sequence[int] = (0,),
+    command: str | None = None,
 ) -> list[dict[str, Any]]:
     """Write summary.csv, relative_error.csv, prediction_runs.csv, prediction.md and the figures (module
-    docstring) from the runs' eval.json files; returns the summary.csv rows."""
+    docstring) from the runs' eval.json files; returns the summary.csv rows. ``command``: the command line that made
+    the summary, named in prediction.md with the seeds and machines."""
     out = Path(out)
     summary, relative_rows, per_run, diverged_runs, text = [], [], [], [], []
     included: list[Path] = []
+    machines: list[list[str]] = []
     run_columns: list[str] = []
     fig2: dict[str, dict[str, dict[str, Any]]] = {}
     levels: dict[str, tuple[float, str]] = {}
@@ -146,6 +150,7 @@ def summarise_offline(
         included += [
             out / "runs" / run_name(env, m, e["seed"], data_seed=e["data_seed"]) for m in env_models for e in evals[m]
         ]
+        machines += [[m for m in (e.get("machines") or {}).values() if isinstance(m, str)] for e in runs]
         common, metrics = shared_horizons_and_metrics(runs)
         if not common or not metrics:
             text += [f"## {env}", "", "No horizon or error metric that every run has: no statistics.", ""]
@@ -164,7 +169,12 @@ def summarise_offline(
     primary = primary_rows(per_run, levels, reps=reps)
     write_csv(out / "primary.csv", primary, PRIMARY_COLUMNS)
     write_csv(out / "past_level.csv", past_level_rows(per_run, levels), PAST_LEVEL_COLUMNS)
-    text = prediction_header() + primary_markdown(primary) + text
+    text = (
+        prediction_header()
+        + primary_markdown(primary)
+        + offline_provenance(seeds, data_seeds, machines, command)
+        + text
+    )
     if fig2:
         plot_relative(out / "relative_error.png", fig2)
         has_ratio = any(r[RATIO[0]] is not None for vals in fig2.values() for r in vals.values())
@@ -384,6 +394,24 @@ def _fig2_row(env: str, m: str, r: Mapping[str, Any]) -> list[str]:
         "-" if r[N_PAIRS] is None else str(r[N_PAIRS]),
         "-" if m == BASELINE else _fmt_p(r),
     ]
+
+
+def offline_provenance(
+    seeds: Sequence[int], data_seeds: Sequence[int], machines: Sequence[Sequence[str]], command: str | None
+) -> list[str]:
+    """:func:`pets.experiments.report.provenance_lines` of an offline comparison: the machines each run was trained
+    and evaluated on, from its eval.json (``machines``: per run summarised)."""
+    listed = f"{', '.join(map(str, seeds))} ({len(seeds)})"
+    if len(data_seeds) > 1:
+        listed += f" on the data sets {', '.join(map(str, data_seeds))} ({len(data_seeds)})"
+    paired = "data set and seed" if len(data_seeds) > 1 else "seed"
+    return provenance_lines(
+        f"{listed}; a model's run is paired with {BASELINE}'s run of the same {paired}",
+        command,
+        "each run's resolved config in runs/RUN/config.yaml, the data sets in data/",
+        machines,
+        "runs/RUN/eval.json, where each run was trained and evaluated",
+    )
 
 
 def runs_sections(diverged_runs: Sequence[str], missing: Sequence[str], failed: Mapping[str, str] | None) -> list[str]:

@@ -15,8 +15,9 @@ time-to-threshold columns are then the answer, and its final / AUC columns cover
 
 ``--planners P1,P2`` makes the planner a second axis: every (model, planner) pair is an arm with
 its runs in ``DIR/runs/ENV-MODEL-PLANNER-sSEED`` (``planner.name=P`` for the run), and the tables
-and plots show ``MODEL+PLANNER``. Wall-clock figures compare fairly only between runs that shared
-the machine alike (one worker per core, no other load).
+and plots show ``MODEL+PLANNER``; the run made without ``--planners`` (``ENV-MODEL-sSEED``) is the arm's where that
+directory is absent and it ran the planner (:func:`pets.experiments.rundirs.arm_run_dir`). Wall-clock figures
+compare fairly only between runs that shared the machine alike (one worker per core, no other load).
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ from pets.experiments.arguments import PROG, UsageError, few_seeds_warning
 from pets.experiments.backend import Backend
 from pets.experiments.rundirs import (
     NOT_COMPARED,
+    arm_run_dir,
     check_new_run_dir,
     check_out_writable,
     check_same_config,
@@ -207,8 +209,10 @@ def _plan_runs(
         for seed, (model, planner) in itertools.product(seeds, online_arms(models, planners)):
             head, own = (arms or {}).get(model, (model, {}))
             arm_extra = {**extra, **own, **stop, **({} if planner is None else {"planner.name": planner})}
-            name = run_name(env, model, seed, planner)
-            run_dir = out / "runs" / name
+            run_dir = out / "runs" / run_name(env, model, seed, planner)
+            if not configs_only:  # the arm's run made without --planners is this run (reused, or refused if it differs)
+                run_dir = arm_run_dir(out / "runs", env, model, seed, planner)
+            name = run_dir.name
             try:
                 expected = make_config(
                     env, head, preset, {**arm_extra, "seed": seed, "trials": trials, "threads": threads}

@@ -165,3 +165,30 @@ def cell_text(v: Any) -> str:
     if isinstance(v, float):
         return "" if math.isnan(v) else f"{v:.6g}"
     return str(v)
+
+
+def machine_label(host: str | None, cpu: str | None) -> str:
+    """A machine as the summaries name it: ``host (CPU)``, ``?`` / ``CPU not recorded`` where unknown."""
+    return f"{host or '?'} ({cpu or 'CPU not recorded'})"
+
+
+def provenance_lines(
+    seeds: str, command: str | None, settings: str, machines: Iterable[Iterable[str]], source: str
+) -> list[str]:
+    """Markdown of what a reader needs to redo a comparison: its ``seeds`` (as listed), the command that wrote the
+    summary (when given), where each run's ``settings`` are and the machines the runs ran on (``machines``: each
+    run's :func:`machine_label` s, a run on several counting on each; ``source``: the files that record them)."""
+    count: dict[str, int] = {}
+    for labels in machines:
+        for label in set(labels):
+            count[label] = count.get(label, 0) + 1
+    ran_on = "; ".join(f"{m}: {n} run{'s' if n > 1 else ''}" for m, n in sorted(count.items()))
+    return [
+        "## How the runs were made",
+        "",
+        f"- seeds: {seeds}",
+        *([f"- command: `{command}`"] if command else []),
+        f"- settings: {settings}",
+        f"- machines ({source}): {ran_on or 'not recorded'}",
+        "",
+    ]

@@ -53,6 +53,25 @@ def run_name(env: str, model: str, seed: int, planner: str | None = None, data_s
     return f"{env}-{model}{data}-s{seed}" if planner is None else f"{env}-{model}-{planner}{data}-s{seed}"
 
 
+def arm_run_dir(runs: Path, env: str, model: str, seed: int, planner: str | None) -> Path:
+    """The run directory of an arm's seed in ``runs`` (``OUT/runs``): :func:`run_name`'s, but where planners are
+    compared and that does not exist, the run of the model and seed made without ``--planners`` (ENV-MODEL-sSEED)
+    when its config.yaml names this planner: the same run, reused (or refused if its config differs otherwise), not
+    run again under a new name."""
+    named = Path(runs) / run_name(env, model, seed, planner)
+    plain = Path(runs) / run_name(env, model, seed)
+    if planner is None or named.exists() or not (plain / "config.yaml").is_file():
+        return named
+    import yaml
+
+    try:
+        cfg = yaml.safe_load((plain / "config.yaml").read_text())
+    except (OSError, ValueError, yaml.YAMLError):  # unreadable: not this arm's run (the plain arm refuses it)
+        return named
+    ran = cfg.get("planner") if isinstance(cfg, dict) else None
+    return plain if isinstance(ran, dict) and ran.get("name") == planner else named
+
+
 def budget_of(run_dir: Path) -> tuple[int | None, int]:
     """A run's env-step budget (``max_env_steps``; None: none) and its episodes' step limit, from its config.yaml
     (``(None, 0)`` without one)."""

@@ -43,7 +43,7 @@ import numpy as np
 
 from pets.experiments.plots import arm_colors, model_colors, plot_online
 from pets.experiments.report import csv_number, disagreement_lines, md_table, write_csv
-from pets.experiments.rundirs import arm_label, env_stem, online_arms, precision_note, run_name
+from pets.experiments.rundirs import arm_label, arm_run_dir, env_stem, online_arms, precision_note
 from pets.experiments.statistics import BASELINE, MIN_SEEDS, REPS, SMALL_SAMPLE_NOTE
 from pets.experiments.studies.base import (
     HIGHER,
@@ -57,7 +57,7 @@ from pets.experiments.studies.base import (
     table_cells,
     table_header,
 )
-from pets.experiments.studies.online_text import provenance_lines, runs_sections, summary_header
+from pets.experiments.studies.online_text import online_provenance, runs_sections, summary_header
 from pets.runs.fileio import atomic_write_bytes
 
 #: Reward thresholds of the time-to-threshold columns (``docs/performance.md``): InvertedPendulum's maximum
@@ -287,7 +287,7 @@ def summarise_online(
     write_csv(out / "summary_runs.csv", found["per_run"], RUN_COLUMNS)
     text = (
         summary_header(trials, w, compared, planners is not None, until_threshold, bool(found["budgeted"]))
-        + provenance_lines(list(seeds), found["included"], command)
+        + online_provenance(list(seeds), found["included"], command)
         + text
         + precision_note(found["included"])
     )
@@ -320,11 +320,12 @@ def _env_runs(
     for model, planner in arms:
         label = labels[(model, planner)]
         for seed in seeds:
-            name = run_name(env, model, seed, planner)
-            rows, reached = _complete_rows(out / "runs" / name, thresholds.get(env, math.inf), until_threshold)
-            budget, length = budget_of(out / "runs" / name)
+            run_dir = arm_run_dir(out / "runs", env, model, seed, planner)  # as the sweep found it
+            name = run_dir.name
+            rows, reached = _complete_rows(run_dir, thresholds.get(env, math.inf), until_threshold)
+            budget, length = budget_of(run_dir)
             short = len(rows) < trials and not reached  # a divergence after the trials summarised does not count
-            why = read_divergence(out / "runs" / name) if short else None
+            why = read_divergence(run_dir) if short else None
             if short and not stopped(rows, None, budget) and why is None:
                 found["missing"].append(
                     f"{name} ({len(rows)}/{trials} trials"
@@ -342,7 +343,7 @@ def _env_runs(
             unknown = (*THRESHOLD_KEYS, *COST_KEYS)  # never reached; a run without the CPU column; stopped diverged
             found["per_run"][-1].update({k: "" for k in unknown if not math.isfinite(s[k])})
             runs.setdefault(label, []).append(s)
-            found["included"].append(out / "runs" / name)
+            found["included"].append(run_dir)
             curves.setdefault(label, [])
             if s["diverged"]:
                 found["diverged"].append(f"{name}: {s['diverged']}")

@@ -6,6 +6,7 @@ from __future__ import annotations
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 
+from pets.experiments.report import machine_label, provenance_lines
 from pets.experiments.statistics import BASELINE
 
 
@@ -63,26 +64,16 @@ def runs_sections(diverged_runs: Sequence[str], missing: Sequence[str]) -> list[
     return text
 
 
-def provenance_lines(seeds: Sequence[int], run_dirs: Iterable[Path], command: str | None = None) -> list[str]:
-    """Markdown of what a reader needs to redo the comparison: the seeds, the command that wrote the summary (when
-    given), where each run's settings are, and the machines the runs ran on (their history.csv's ``host`` and
-    ``cpu``: a run resumed on another machine counts on each)."""
+def online_provenance(seeds: Sequence[int], run_dirs: Iterable[Path], command: str | None = None) -> list[str]:
+    """:func:`pets.experiments.report.provenance_lines` of an online comparison: the machines from each run's
+    history.csv (its ``host`` and ``cpu``: a run resumed on another machine counts on each)."""
     from pets.runs.rundir import read_history
 
-    machines: dict[str, int] = {}
-    for run_dir in run_dirs:
-        history = read_history(run_dir)
-        for machine in {f"{h.get('host') or '?'} ({h.get('cpu') or 'CPU not recorded'})" for h in history}:
-            machines[machine] = machines.get(machine, 0) + 1
-    ran_on = "; ".join(f"{m}: {n} run{'s' if n > 1 else ''}" for m, n in sorted(machines.items()))
-    return [
-        "## How the runs were made",
-        "",
-        f"- seeds: {', '.join(str(s) for s in seeds)} ({len(seeds)}; an arm's run is paired with {BASELINE}'s run "
-        "of the same seed)",
-        *([f"- command: `{command}`"] if command else []),
-        "- settings: each run's resolved config in runs/RUN/config.yaml, its run_pets.py command on the first line "
-        "of logs/RUN.log",
-        f"- machines (runs/RUN/history.csv): {ran_on or 'not recorded'}",
-        "",
-    ]
+    return provenance_lines(
+        f"{', '.join(str(s) for s in seeds)} ({len(seeds)}; an arm's run is paired with {BASELINE}'s run of the same "
+        "seed)",
+        command,
+        "each run's resolved config in runs/RUN/config.yaml, its run_pets.py command on the first line of logs/RUN.log",
+        ([machine_label(h.get("host"), h.get("cpu")) for h in read_history(run_dir)] for run_dir in run_dirs),
+        "runs/RUN/history.csv",
+    )
