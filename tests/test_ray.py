@@ -150,17 +150,27 @@ def test_sweep_on_a_cluster_started_with_ray_start_gives_the_local_backends_metr
         assert metrics(online / "local" / "runs" / name) == metrics(out / "runs" / name), name
 
 
+#: The run the killed-worker tests kill: 5 trials, so that the kill after the first one leaves some to resume.
+KILLED = ["online", "--envs", "invertedpendulum", "--models", "gem", "--seeds", "3", "--trials", 5]
+KILLED += ["--preset", "fast", "--quiet", *TINY]
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(tmp_path_factory) -> Path:
+    """The killed run's ground truth, made once for both victims: the same run on the local backend, not killed."""
+    out = tmp_path_factory.mktemp("ray-uninterrupted")
+    assert main(argv(KILLED, out)) == 0
+    return out / "runs" / "invertedpendulum-gem-s3"
+
+
 @pytest.mark.parametrize("victim", ["worker", "run"])
-def test_killed_ray_worker_run_resumes_from_its_checkpoint_with_the_same_metrics(victim, tmp_path):
+def test_killed_ray_worker_run_resumes_from_its_checkpoint_with_the_same_metrics(victim, uninterrupted, tmp_path):
     """SIGKILL to the Ray worker running a run after its first trial, or to the run's own process (as the kernel's
     out-of-memory killer picks the process that holds the memory): Ray retries the task, the run resumes from its
     checkpoint (history.csv: start at 0, resume at >= 1 trials) and ends with the uninterrupted run's metrics."""
-    args = ["online", "--envs", "invertedpendulum", "--models", "gem", "--seeds", "3", "--trials", 5]
-    args += ["--preset", "fast", "--quiet", *TINY]
-    assert main(argv(args, tmp_path / "local")) == 0
     out = tmp_path / "ray"
     driver = subprocess.Popen(
-        [sys.executable, "-m", "pets.compare", *argv(args, out, "--backend", "ray")],
+        [sys.executable, "-m", "pets.compare", *argv(KILLED, out, "--backend", "ray")],
         cwd=ROOT,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
@@ -189,7 +199,7 @@ def test_killed_ray_worker_run_resumes_from_its_checkpoint_with_the_same_metrics
     history = rundir.read_history(run_dir)
     assert [h["action"] for h in history] == ["start", "resume"]
     assert history[0]["trials_done"] == "0" and 1 <= int(history[1]["trials_done"]) < 5  # resumed, not restarted
-    assert metrics(run_dir) == metrics(tmp_path / "local" / "runs" / "invertedpendulum-gem-s3")
+    assert metrics(run_dir) == metrics(uninterrupted)
     assert len(metrics(run_dir)) == 5 and "# Online comparison" in stdout
 
 
