@@ -62,7 +62,7 @@ def test_python_m_pets_compare_still_runs_the_comparison_cli():
     assert proc.returncode == 0 and proc.stdout.startswith("usage: pets.compare online")
 
 
-@pytest.mark.parametrize("tool", ["collect", "evaluate", "openloop", "visualize"])
+@pytest.mark.parametrize("tool", ["collect", "evaluate", "openloop", "visualize", "bench_layers"])
 @pytest.mark.parametrize("value", ["-1", "two"])
 def test_the_tools_threads_option_is_one_check_in_one_line(tool, value, capsys):
     """``--threads`` of every tool that takes it is pets.tools.cli's (one type, one message), checked before the

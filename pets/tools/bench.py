@@ -14,8 +14,9 @@ none of these; where bf16 is emulated the bf16 rows are left out), the configure
 ``model.activation`` (relu, or silu; the same weights, so its cost, not its accuracy), then the kernel
 floor at the config's shapes (:func:`kernel_floor`: the model's GEMMs + bias alone, fp32 and bf16, and bf16
 with SiLU); the rows take turns within each repeat, so a change in machine load hits all of them alike.
-Use ``threads=1`` on a shared machine. The header names the CPU's bf16 ISA (AMX, AVX-512 BF16 or none;
-:mod:`pets.runs.hardware`).
+Use ``threads=1`` on a shared machine. The header names the machine (CPU model and bf16 ISA: AMX, AVX-512 BF16 or
+none, :mod:`pets.runs.hardware`; usable CPUs, torch threads, torch and Python versions, the GPU;
+:func:`pets.tools.measure.machine`) and the command.
 
 Columns: wall and process-CPU seconds per step (CPU time is the steadier figure on a loaded
 machine; with one thread it is close to the compute time), model GFLOP per step (counted from the
@@ -29,13 +30,13 @@ the figure is VmHWM after the step minus VmRSS before it: the step's peak workin
 weights and earlier state excluded), elsewhere the growth of ``ru_maxrss`` (0 once an earlier,
 larger peak happened).
 ``--json FILE`` writes the precise row's ``seconds_per_step``, ``model_gflops``, ``peak_gflops``
-(fp32) and ``model_gflop_per_step``, plus every row under ``rows``.
+(fp32) and ``model_gflop_per_step``, plus every row under ``rows`` and the machine and command under ``machine``.
 """
 
 from __future__ import annotations
 
+import argparse
 import contextlib
-import json
 import statistics
 import sys
 import time
@@ -56,10 +57,13 @@ from pets.planning.particles import CANDIDATE_TABLE
 from pets.planning.planners import PLANNER_CLASSES
 from pets.runs.fileio import writable_dir_error
 from pets.runs.hardware import EMULATED_BF16_SLOWDOWN, cpu_isa, native_bf16
-from pets.tools.cli import OneLineParser, fail
+from pets.tools.cli import OneLineParser, fail, import_given, positive_int, write_json_result
 from pets.tools.measure import (
     PeakMemory,
+    command_line,
     kernel_floor,
+    machine,
+    machine_line,
     matmul_peak_gflops,
     model_flops_per_row,
     sync,
@@ -287,47 +291,60 @@ def _print_rows(rows: list[dict[str, Any]], repeats: int) -> None:
         )
 
 
-def main(argv: list[str] | None = None) -> int:
+def _arguments(argv: list[str] | None) -> tuple[argparse.Namespace, DictConfig]:
+    """The options and the config, every check done before any timing; bad input exits 2 with one line."""
     from pets.config import HEADS, PRESETS
+    from pets.models import UNREGISTERED
 
     ap = OneLineParser(prog="pets.bench", description=__doc__.splitlines()[0])
-    ap.add_argument("--env", default="halfcheetah")
-    ap.add_argument("--model", choices=HEADS, default="delta")
+    ap.add_argument("--env", default="halfcheetah", help="a catalogue name, a gymnasium id or package.module:ATTR")
+    ap.add_argument("--model", default="delta", help=f"dynamics model: {', '.join(HEADS)} or your own (imports=[...])")
     ap.add_argument("--preset", choices=tuple(PRESETS), default="research")
     ap.add_argument("--device", choices=("cpu", "cuda", "auto"), default="cpu")
-    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--repeats", type=positive_int, default=5, help="timed steps per row (default 5; medians)")
     ap.add_argument(
         "--compare",
         action="store_true",
         help="time eager fp32 / compiled / bf16 / compiled+bf16 CEM, iCEM and MPPI in one run",
     )
-    ap.add_argument("--json", metavar="FILE", help="also write the figures as JSON")
-    ap.add_argument("overrides", nargs="*", metavar="key=value")
+    ap.add_argument("--json", metavar="FILE", help="also write the figures (and the machine) as JSON")
+    ap.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides, e.g. threads=1")
     args = ap.parse_intermixed_args(argv)
     try:
-        if args.repeats < 1:
-            raise ConfigError(f"--repeats must be >= 1, got {args.repeats}")
+        import_given(args.overrides)  # your own models register there: before --model is looked up
+        if args.model not in HEADS:
+            raise ConfigError(f"--model must be one of {', '.join(HEADS)}, got {args.model!r}{UNREGISTERED}")
         overrides = parse_overrides(args.overrides)
         overrides["device"] = args.device
         cfg = make_config(envs.get(args.env).name, args.model, args.preset, overrides)
         builder.resolve_device(cfg.device)  # --device cuda without one: one line (was a traceback)
         builder.check_memory(cfg, envs.get(cfg.env), steps=0)  # a planner this machine cannot hold: one line
+        if args.json is not None and Path(args.json).is_dir():
+            raise ConfigError(
+                f"--json {args.json} is a directory; give a file name, e.g. {Path(args.json) / 'bench.json'}"
+            )
         problem = None if args.json is None else writable_dir_error(Path(args.json).resolve().parent)
         if problem:  # before the timing, not after it
             raise ConfigError(f"cannot write --json {args.json}: {problem}")
     except (ConfigError, ValueError) as err:
         fail("pets.bench", str(err))
+    return args, cfg
+
+
+def main(argv: list[str] | None = None) -> int:
+    args, cfg = _arguments(argv)
     if cfg.threads > 0:
         torch.set_num_threads(cfg.threads)
     p = cfg.planner
     print(
-        f"{cfg.env} / {cfg.head} on {cfg.device} ({torch.get_num_threads()} threads): population {p.population}, "
+        f"{cfg.env} / {cfg.head} on {cfg.device}: population {p.population}, "
         f"{p.particles} particles, horizon {p.horizon}, {p.iterations} iterations, ensemble {cfg.model.ensemble_size}"
         f"x{cfg.model.num_layers}x{cfg.model.hidden_size}, propagation {p.propagation}"
     )
-    gpu = f", GPU: {torch.cuda.get_device_name()}" if builder.resolve_device(cfg.device).type == "cuda" else ""
+    where = {**machine(builder.resolve_device(cfg.device)), "command": command_line("pets.bench", argv)}
+    print(f"{machine_line(where)}\ncommand: {where['command']}")
     print(
-        f"CPU bf16 ISA: {cpu_isa()}{gpu}; the default path here (planner.precision=auto resolved, "
+        f"CPU bf16 ISA: {cpu_isa()}; the default path here (planner.precision=auto resolved, "
         f"planner.compile={str(p.compile).lower()}): {p.name} {p.precision} {'compiled' if p.compile else 'eager'}"
     )
     if args.compare:
@@ -367,8 +384,7 @@ def main(argv: list[str] | None = None) -> int:
             f"{peak:.1f} GFLOP/s); peak memory of a step {res['peak_memory_mib']:.1f} MiB"
         )
     if args.json:
-        with open(args.json, "w") as f:
-            json.dump(res, f, indent=2)
+        write_json_result("pets.bench", Path(args.json), {**res, "machine": where})
     return 0
 
 

@@ -1,7 +1,7 @@
 """Model-training benchmark: epochs per second and holdout error of two training paths, one process.
 
-    python -m pets.bench_train [--env halfcheetah] [--model delta] [--preset research] [--transitions 5000]
-                               [--epochs 5] [--repeats 3] [--compile] [key=value ...]
+    python -m pets.bench_train [--env halfcheetah] [--model delta] [--preset research] [--device auto]
+                               [--transitions 5000] [--epochs 5] [--repeats 3] [--compile] [key=value ...]
 
 Trains the configured ensemble (``model.*``; research: 7 x 4 x 200, batch 256) on ``--transitions`` random
 transitions for exactly ``--epochs`` epochs (no early stopping) per row, ``--repeats`` times with the rows
@@ -10,11 +10,13 @@ bf16 autocast (eager); with ``--compile``, the eager step against ``model.compil
 ``model.precision``. The compiled row keeps one trainer per repeat's model but compiles once per process (a
 warm-up training first, timed apart: the one-off compile cost). Prints per row the median epochs per second by
 wall clock and by process CPU time (``time.process_time``: what a loaded machine does not inflate), and the final
-holdout error (``ModelTrainer``'s standardised one-step error), then the ratios.
+holdout error (``ModelTrainer``'s standardised one-step error), then the ratios; first, the machine and the command
+(:func:`pets.tools.measure.machine`). ``--transitions`` must leave a holdout row (``model.holdout_ratio``).
 """
 
 from __future__ import annotations
 
+import argparse
 import statistics
 import sys
 import time
@@ -30,8 +32,10 @@ from pets.config import ConfigError, make_config, parse_overrides
 from pets.data.rollout import collect_random
 from pets.learning.trainer import ModelTrainer
 from pets.models import make_model
-from pets.runs.hardware import cpu_isa
-from pets.tools.cli import OneLineParser, fail
+from pets.tools.cli import OneLineParser, fail, import_given, positive_int
+from pets.tools.measure import command_line, machine, machine_line
+
+PROG = "pets.bench_train"
 
 
 @dataclass(frozen=True)
@@ -73,25 +77,45 @@ def train_once(
     return time.perf_counter() - t0, time.process_time() - c0, result.val_loss
 
 
-def main(argv: list[str] | None = None) -> int:
+def _arguments(argv: list[str] | None) -> tuple[argparse.Namespace, DictConfig]:
+    """The options and the config, every check done before any training; bad input exits 2 with one line."""
     from pets.config import HEADS, PRESETS
+    from pets.models import UNREGISTERED
 
-    ap = OneLineParser(prog="pets.bench_train", description=__doc__.splitlines()[0])
-    ap.add_argument("--env", default="halfcheetah")
-    ap.add_argument("--model", choices=HEADS, default="delta")
+    ap = OneLineParser(prog=PROG, description=__doc__.splitlines()[0])
+    ap.add_argument("--env", default="halfcheetah", help="a catalogue name, a gymnasium id or package.module:ATTR")
+    ap.add_argument("--model", default="delta", help=f"dynamics model: {', '.join(HEADS)} or your own (imports=[...])")
     ap.add_argument("--preset", choices=tuple(PRESETS), default="research")
-    ap.add_argument("--transitions", type=int, default=5000)
-    ap.add_argument("--epochs", type=int, default=5)
-    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--device", choices=("cpu", "cuda", "auto"), help="training device (default: the config's, auto)")
+    ap.add_argument("--transitions", type=positive_int, default=5000, help="random transitions to train on")
+    ap.add_argument("--epochs", type=positive_int, default=5, help="epochs per training (no early stopping)")
+    ap.add_argument("--repeats", type=positive_int, default=3, help="trainings per row (default 3; medians)")
     ap.add_argument("--compile", action="store_true", help="eager against model.compile=true (else fp32 vs bf16)")
-    ap.add_argument("overrides", nargs="*", metavar="key=value")
+    ap.add_argument("overrides", nargs="*", metavar="key=value", help="config overrides, e.g. threads=1")
     args = ap.parse_intermixed_args(argv)
     try:
-        if min(args.transitions, args.epochs, args.repeats) < 1:
-            raise ConfigError("--transitions, --epochs and --repeats must be >= 1")
-        cfg = make_config(envs.get(args.env).name, args.model, args.preset, parse_overrides(args.overrides))
+        import_given(args.overrides)  # your own models register there: before --model is looked up
+        if args.model not in HEADS:
+            raise ConfigError(f"--model must be one of {', '.join(HEADS)}, got {args.model!r}{UNREGISTERED}")
+        overrides = parse_overrides(args.overrides)
+        if args.device is not None:
+            overrides["device"] = args.device
+        cfg = make_config(envs.get(args.env).name, args.model, args.preset, overrides)
+        builder.resolve_device(cfg.device)  # cuda without one: one line
+        m = cfg.model
+        if min(int(args.transitions * m.holdout_ratio), m.max_holdout) < 1:  # pets.learning.sampling.split_holdout
+            raise ConfigError(
+                f"--transitions {args.transitions} leaves no holdout rows at model.holdout_ratio={m.holdout_ratio}, "
+                f"model.max_holdout={m.max_holdout}: the holdout error could not be measured; give more "
+                "--transitions or a larger model.holdout_ratio"
+            )
     except (ConfigError, ValueError) as err:
-        fail("pets.bench_train", str(err))
+        fail(PROG, str(err))
+    return args, cfg
+
+
+def main(argv: list[str] | None = None) -> int:
+    args, cfg = _arguments(argv)
     if cfg.threads > 0:
         torch.set_num_threads(cfg.threads)
     spec = envs.get(cfg.env)
@@ -100,8 +124,10 @@ def main(argv: list[str] | None = None) -> int:
         rows = [Row(f"eager {m.precision}", m.precision, False), Row(f"compiled {m.precision}", m.precision, True)]
     else:
         rows = [Row("fp32", "fp32", False), Row("bf16", "bf16", False)]
+    device = builder.resolve_device(cfg.device)
+    print(f"{machine_line(machine(device))}\ncommand: {command_line(PROG, argv)}")
     print(
-        f"{cfg.env} / {cfg.head} on {cfg.device} ({torch.get_num_threads()} threads, CPU: {cpu_isa()}): ensemble "
+        f"{cfg.env} / {cfg.head} on {device}: ensemble "
         f"{m.ensemble_size}x{m.num_layers}x{m.hidden_size}, batch {m.batch_size}, {args.transitions} transitions, "
         f"{args.epochs} epochs"
     )

@@ -82,6 +82,17 @@ def thread_count(text: str) -> int:
     return n
 
 
+def positive_int(text: str) -> int:
+    """The argparse type of a count that must be at least one (``--repeats``, ``--epochs``, ...)."""
+    try:
+        n = int(text)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"must be an int >= 1, got {text!r}")
+    return n
+
+
 def add_threads_option(p: argparse.ArgumentParser) -> None:
     """The tools' ``--threads`` (checked by :func:`thread_count`; :func:`set_threads` applies it)."""
     p.add_argument("--threads", type=thread_count, default=0, help="torch CPU threads (default 0: torch's default)")

@@ -1,4 +1,5 @@
-"""Measuring primitives of the benchmarks: median wall seconds, GEMM peaks, the model-kernel floor, peak memory.
+"""Measuring primitives of the benchmarks: median wall seconds, GEMM peaks, the model-kernel floor, peak memory, and
+the machine and command every benchmark names with its figures.
 
 :mod:`pets.tools.bench` builds its rows from these; nothing here builds a model, a planner or a run
 (:func:`kernel_floor` only reads the config's shapes).
@@ -7,17 +8,55 @@
 from __future__ import annotations
 
 import ctypes
+import os
+import platform
 import resource
+import shlex
 import statistics
+import sys
 import time
 from collections.abc import Callable
 from functools import partial
+from typing import Any
 
 import torch
 from omegaconf import DictConfig
 from torch import Tensor
 
 from pets.planning.particles import PROPAGATION_TABLE
+from pets.runs.hardware import cpu_name
+
+
+def machine(device: torch.device) -> dict[str, Any]:
+    """What the figures were measured on: the CPU's model and bf16 ISA, the CPUs this process may use, torch's
+    threads, the torch and Python versions, and the GPU where ``device`` is CUDA."""
+    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    info: dict[str, Any] = {
+        "cpu": cpu_name(),
+        "cpus": cpus,
+        "threads": torch.get_num_threads(),
+        "torch": torch.__version__,
+        "python": platform.python_version(),
+    }
+    if device.type == "cuda":
+        info["gpu"] = torch.cuda.get_device_name(device)
+    return info
+
+
+def machine_line(info: dict[str, Any]) -> str:
+    """:func:`machine`'s dict as the line a benchmark prints first."""
+    threads = f"{info['threads']} torch thread{'s' if info['threads'] != 1 else ''}"
+    gpu = f", GPU {info['gpu']}" if "gpu" in info else ""
+    return (
+        f"machine: {info['cpu']}, {info['cpus']} CPUs usable, {threads}, torch {info['torch']}, "
+        f"Python {info['python']}{gpu}"
+    )
+
+
+def command_line(prog: str, argv: list[str] | None = None) -> str:
+    """The command that made the figures, ``python -m PROG ARGS`` (``argv``: the arguments given to ``main``; None:
+    the process's own)."""
+    return shlex.join(["python", "-m", prog, *(sys.argv[1:] if argv is None else argv)])
 
 
 def model_flops_per_row(in_dim: int, out_dim: int, hidden: int, layers: int) -> int:
