@@ -5,6 +5,8 @@ figures name the machine and the command that made them."""
 from __future__ import annotations
 
 import json
+import re
+import shlex
 import sys
 
 import pytest
@@ -87,3 +89,37 @@ def test_bench_train_and_bench_layers_name_the_machine(capsys):
         assert bench_layers.main(["--rows", "4", "--repeats", "1"]) == 0
     printed = capsys.readouterr().out
     assert printed.startswith("machine: ") and "1 torch thread" in printed and "rows per member     4" in printed
+
+
+def documented_bench_commands() -> list[tuple[str, str, list[str]]]:
+    """``(file, tool, argv)`` of every ``python -m pets.bench`` / ``pets.bench_train`` line in the docs' bash blocks
+    (as tests/test_docs_commands.py reads them: placeholders left out, comments cut)."""
+    from tests.test_docs_commands import DOCS, PLACEHOLDER
+
+    found = []
+    for doc in DOCS:
+        for block in re.findall(r"```bash\n(.*?)```", doc.read_text(), re.S):
+            for line in block.replace("\\\n", " ").splitlines():
+                start = re.match(r"\s*python -m pets\.(bench|bench_train) ", line)
+                argv = shlex.split(line[start.end() :].split(" #")[0]) if start else []
+                if start and not any(PLACEHOLDER.fullmatch(a) for a in argv):
+                    found.append((doc.relative_to(ROOT).as_posix(), start.group(1), argv))
+    return found
+
+
+def test_the_documented_bench_commands_pass_their_checks(tmp_path, monkeypatch):
+    """Every documented benchmark command parses and passes the checks made before any timing (config, memory,
+    device, --json); a CUDA one is checked with --device cpu where torch sees no CUDA device."""
+    from pets.tools import bench, bench_train
+
+    commands = documented_bench_commands()
+    assert len(commands) >= 4
+    monkeypatch.chdir(tmp_path)  # a --json FILE is only probed, never written
+    for doc, tool, argv in commands:
+        if not torch.cuda.is_available():
+            argv = [a if a != "cuda" else "cpu" for a in argv]
+        try:
+            {"bench": bench, "bench_train": bench_train}[tool]._arguments(argv)
+        except SystemExit as exit_:
+            pytest.fail(f"{doc}: python -m pets.{tool} {shlex.join(argv)}: exit {exit_.code}")
+    assert list(tmp_path.iterdir()) == []
