@@ -143,6 +143,21 @@ def test_bad_input_is_one_line_exit_2(runs, tmp_path, capsys, extra, message):
     assert not (tmp_path / "f.png").exists()
 
 
+def test_the_documented_command_renders_headless(runs, tmp_path):
+    """``python -m pets.visualize`` in a fresh process with no display and no MUJOCO_GL (the suite's own is set by
+    ``import envs``): the command picks the backend before mujoco is imported (mujoco reads it once, on import)."""
+    data, run = runs["halfcheetah"]
+    environ = {k: v for k, v in os.environ.items() if k not in ("MUJOCO_GL", "DISPLAY", "WAYLAND_DISPLAY")}
+    environ.update(PYTHONPATH=str(ROOT), OMP_NUM_THREADS="1")
+    out = tmp_path / "f.png"
+    args = ["--runs", str(run), "--data", str(data), "--steps", "0,3", "--size", "64x48", "--out", str(out)]
+    proc = subprocess.run(
+        [sys.executable, "-m", "pets.visualize", *args], env=environ, capture_output=True, text=True, timeout=120
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert iio.imread(out).shape[1] == visualize.LABEL_W + 2 * 64
+
+
 @pytest.mark.skipif(bool(os.environ.get("DISPLAY")), reason="with a display, glfw can render")
 def test_no_usable_gl_is_one_line_exit_2(runs, tmp_path):
     """MUJOCO_GL=glfw without a display: no offscreen context, one line that names the install, exit 2."""

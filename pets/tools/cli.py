@@ -203,8 +203,9 @@ def import_main(module: str) -> Callable[[], int | None]:
 #: Libraries a Ctrl-C must never cut while they import, imported by :func:`run_command` before the command runs.
 #: numpy: an interrupt inside its import can be swallowed and leave it half-imported, and the next ``np.linalg``
 #: recurses until RecursionError. mujoco: an interrupt inside its extensions' initialisation becomes an ImportError
-#: ("initialization failed"), which gymnasium reports as "MuJoCo is not installed" with a traceback.
-UNCUTTABLE_IMPORTS = ("numpy", "mujoco")
+#: ("initialization failed"), which gymnasium reports as "MuJoCo is not installed" with a traceback. envs before
+#: mujoco: ``import envs`` sets the headless ``MUJOCO_GL``, which mujoco reads once, on import (or nothing renders).
+UNCUTTABLE_IMPORTS = ("numpy", "envs", "mujoco")
 
 
 def run_command(prog: str, main: Callable[[], int | None], kept: str = "", sigterm: bool = False) -> NoReturn:
