@@ -100,7 +100,8 @@ CAMERAS: dict[str, Camera] = {
 
 
 class Renderer:
-    """Offscreen RGB frames ``(height, width, 3)`` uint8 of one catalogue env with its :data:`CAMERAS` camera.
+    """Offscreen RGB frames ``(height, width, 3)`` uint8 of one MuJoCo env: a catalogue env with its :data:`CAMERAS`
+    camera, your own with MuJoCo's default free camera (fixed, on the whole model).
 
     ``frame(qpos, root)`` renders a state given by ``qpos`` (velocities are irrelevant to a picture);
     ``frame_of(data)`` renders a live ``MjData`` (an env's ``unwrapped.data``). ``root`` (x, y, z): the root
@@ -125,7 +126,7 @@ class Renderer:
         self.model.vis.global_.offheight = max(self.model.vis.global_.offheight, height)
         self.data = mujoco.MjData(self.model)
         self.spec, self.width, self.height = spec, width, height
-        self.config = CAMERAS[spec.name]
+        self.config = CAMERAS.get(spec.name)  # None: your own env (videos), MuJoCo's default free camera
         try:
             with warnings.catch_warnings():  # glfw warns before it fails without a display: the error says it all
                 warnings.simplefilter("ignore")
@@ -141,9 +142,10 @@ class Renderer:
             self._renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
             self._renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
         self.camera = mujoco.MjvCamera()
-        mujoco.mjv_defaultFreeCamera(self.model, self.camera)
-        self.camera.distance, self.camera.elevation = self.config.distance, self.config.elevation
-        self.camera.azimuth = self.config.azimuth
+        mujoco.mjv_defaultFreeCamera(self.model, self.camera)  # the whole model, from its extent
+        if self.config is not None:
+            self.camera.distance, self.camera.elevation = self.config.distance, self.config.elevation
+            self.camera.azimuth = self.config.azimuth
 
     def root(self, qpos: np.ndarray) -> np.ndarray:
         """The world position (x, y, z) of the root body (MuJoCo body 1) at ``qpos``."""
@@ -164,10 +166,11 @@ class Renderer:
 
     def frame_of(self, data: Any, root: np.ndarray | None = None) -> np.ndarray:
         """The frame of a live ``MjData`` of this env's model."""
-        lookat = np.array(self.config.lookat, dtype=np.float64)
-        axes = list(self.config.track)
-        lookat[axes] += (data.xpos[1] if root is None else np.asarray(root))[axes]
-        self.camera.lookat[:] = lookat
+        if self.config is not None:
+            lookat = np.array(self.config.lookat, dtype=np.float64)
+            axes = list(self.config.track)
+            lookat[axes] += (data.xpos[1] if root is None else np.asarray(root))[axes]
+            self.camera.lookat[:] = lookat
         self._renderer.update_scene(data, self.camera)
         return self._renderer.render().copy()
 
