@@ -74,6 +74,17 @@ class RenderingUnavailable(RuntimeError):
     """MuJoCo could not open an offscreen GL context; the message says what to install."""
 
 
+def gl_failure(err: BaseException, what: str = "cannot render offscreen") -> str:
+    """The one-line message of MuJoCo's GL failing: ``what`` failed, with which ``MUJOCO_GL`` and error, and the
+    headless backend to use instead with its install."""
+    reason = " ".join(str(err).split())[:200]
+    return (
+        f"MuJoCo {what} (MUJOCO_GL={os.environ.get('MUJOCO_GL', 'unset')}: {type(err).__name__}: {reason}); "
+        "without a display use MUJOCO_GL=egl (or leave it unset) with the headless GL libraries installed "
+        f"(Debian/Ubuntu: {APT_INSTALL})"
+    )
+
+
 @dataclass(frozen=True)
 class Camera:
     """A free camera: distance, elevation and azimuth (degrees), a look-at point, and ``track``: the world axes
@@ -132,12 +143,7 @@ class Renderer:
                 warnings.simplefilter("ignore")
                 self._renderer = mujoco.Renderer(self.model, height, width)
         except Exception as err:  # ImportError, RuntimeError, mujoco.FatalError: no usable GL context
-            reason = " ".join(str(err).split())[:200]
-            raise RenderingUnavailable(
-                f"MuJoCo cannot render offscreen (MUJOCO_GL={os.environ.get('MUJOCO_GL', 'unset')}: "
-                f"{type(err).__name__}: {reason}); without a display use MUJOCO_GL=egl (or leave it unset) with the "
-                f"headless GL libraries installed (Debian/Ubuntu: {APT_INSTALL})"
-            ) from None
+            raise RenderingUnavailable(gl_failure(err)) from None
         if not effects:  # shadows and reflections: most of a frame's time on a software renderer (~7x here)
             self._renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
             self._renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0

@@ -218,6 +218,20 @@ def test_the_documented_command_renders_headless(runs, tmp_path):
     assert iio.imread(out).shape[1] == visualize.LABEL_W + 2 * 64
 
 
+def test_a_mujoco_gl_that_mujoco_cannot_load_is_one_line_exit_2(tmp_path):
+    """``import mujoco`` loads the backend of a MUJOCO_GL one set: an invalid value (as a backend whose library is
+    missing) made every command a traceback, exit 1."""
+    environ = {**os.environ, "MUJOCO_GL": "no-such-backend", "PYTHONPATH": str(ROOT)}
+    args = ["--runs", str(tmp_path), "--data", str(tmp_path / "d.npz"), "--out", str(tmp_path / "f.png")]
+    proc = subprocess.run(
+        [sys.executable, "-m", "pets.visualize", *args], env=environ, capture_output=True, text=True, timeout=120
+    )
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert proc.returncode == 2 and len(lines) == 1, proc.stderr
+    assert "MuJoCo cannot be imported (MUJOCO_GL=no-such-backend: RuntimeError" in lines[0]
+    assert "apt-get install -y libegl1" in lines[0]
+
+
 @pytest.mark.skipif(bool(os.environ.get("DISPLAY")), reason="with a display, glfw can render")
 def test_no_usable_gl_is_one_line_exit_2(runs, tmp_path):
     """MUJOCO_GL=glfw without a display: no offscreen context, one line that names the install, exit 2."""
