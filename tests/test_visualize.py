@@ -113,6 +113,13 @@ def test_grid_truth_vs_a_wrong_model(runs, tmp_path, name):
     assert ("Root x, y" if name == "ant" else "Root x") in result["caption"]
 
 
+def test_the_caption_names_the_seed_of_sampled_predictions(runs, tmp_path):
+    """--mode sample draws with --seed: the caption says which, as it says the data, episode and start."""
+    data, run = runs["halfcheetah"]
+    result = visualize.visualize([run], data, tmp_path / "s.png", [0, 3], mode="sample", seed=7, size=SIZE)
+    assert "open-loop predictions (sample, seed 7) with the recorded actions" in result["caption"]
+
+
 def test_grid_with_the_truths_root_and_the_cli(runs, tmp_path, capsys):
     data, run = runs["halfcheetah"]
     out = tmp_path / "fig.png"

@@ -255,8 +255,9 @@ def visualize(
     rows = [truth, *(states for _, states in predictions)]
     frames = render_rows(spec, rows, steps, root, size)
     diverged = [label for label, (_, s) in zip(labels, predictions) if not np.isfinite(s[: horizon + 1]).all()]
+    draws = f"sample, seed {seed}" if mode == "sample" else mode  # TS-inf draws: the seed makes the figure
     caption = (
-        f"{spec.gym_id}, {Path(data).name} episode {episode} from step {start}: open-loop predictions ({mode}) with "
+        f"{spec.gym_id}, {Path(data).name} episode {episode} from step {start}: open-loop predictions ({draws}) with "
         f"the recorded actions.{root_note(spec, root)}"
         + (f" Non-finite predictions (black): {', '.join(s.splitlines()[0] for s in diverged)}." if diverged else "")
     )
