@@ -74,6 +74,17 @@ class RenderingUnavailable(RuntimeError):
     """MuJoCo could not open an offscreen GL context; the message says what to install."""
 
 
+def gl_failure(err: BaseException, what: str = "cannot render offscreen") -> str:
+    """The one-line message of MuJoCo's GL failing: ``what`` failed, with which ``MUJOCO_GL`` and error, and the
+    headless backend to use instead with its install."""
+    reason = " ".join(str(err).split())[:200]
+    return (
+        f"MuJoCo {what} (MUJOCO_GL={os.environ.get('MUJOCO_GL', 'unset')}: {type(err).__name__}: {reason}); "
+        "without a display use MUJOCO_GL=egl (or leave it unset) with the headless GL libraries installed "
+        f"(Debian/Ubuntu: {APT_INSTALL})"
+    )
+
+
 @dataclass(frozen=True)
 class Camera:
     """A free camera: distance, elevation and azimuth (degrees), a look-at point, and ``track``: the world axes
@@ -100,7 +111,8 @@ CAMERAS: dict[str, Camera] = {
 
 
 class Renderer:
-    """Offscreen RGB frames ``(height, width, 3)`` uint8 of one catalogue env with its :data:`CAMERAS` camera.
+    """Offscreen RGB frames ``(height, width, 3)`` uint8 of one MuJoCo env: a catalogue env with its :data:`CAMERAS`
+    camera, your own with MuJoCo's default free camera (fixed, on the whole model).
 
     ``frame(qpos, root)`` renders a state given by ``qpos`` (velocities are irrelevant to a picture);
     ``frame_of(data)`` renders a live ``MjData`` (an env's ``unwrapped.data``). ``root`` (x, y, z): the root
@@ -125,25 +137,21 @@ class Renderer:
         self.model.vis.global_.offheight = max(self.model.vis.global_.offheight, height)
         self.data = mujoco.MjData(self.model)
         self.spec, self.width, self.height = spec, width, height
-        self.config = CAMERAS[spec.name]
+        self.config = CAMERAS.get(spec.name)  # None: your own env (videos), MuJoCo's default free camera
         try:
             with warnings.catch_warnings():  # glfw warns before it fails without a display: the error says it all
                 warnings.simplefilter("ignore")
                 self._renderer = mujoco.Renderer(self.model, height, width)
         except Exception as err:  # ImportError, RuntimeError, mujoco.FatalError: no usable GL context
-            reason = " ".join(str(err).split())[:200]
-            raise RenderingUnavailable(
-                f"MuJoCo cannot render offscreen (MUJOCO_GL={os.environ.get('MUJOCO_GL', 'unset')}: "
-                f"{type(err).__name__}: {reason}); without a display use MUJOCO_GL=egl (or leave it unset) with the "
-                f"headless GL libraries installed (Debian/Ubuntu: {APT_INSTALL})"
-            ) from None
+            raise RenderingUnavailable(gl_failure(err)) from None
         if not effects:  # shadows and reflections: most of a frame's time on a software renderer (~7x here)
             self._renderer.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = 0
             self._renderer.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = 0
         self.camera = mujoco.MjvCamera()
-        mujoco.mjv_defaultFreeCamera(self.model, self.camera)
-        self.camera.distance, self.camera.elevation = self.config.distance, self.config.elevation
-        self.camera.azimuth = self.config.azimuth
+        mujoco.mjv_defaultFreeCamera(self.model, self.camera)  # the whole model, from its extent
+        if self.config is not None:
+            self.camera.distance, self.camera.elevation = self.config.distance, self.config.elevation
+            self.camera.azimuth = self.config.azimuth
 
     def root(self, qpos: np.ndarray) -> np.ndarray:
         """The world position (x, y, z) of the root body (MuJoCo body 1) at ``qpos``."""
@@ -164,10 +172,11 @@ class Renderer:
 
     def frame_of(self, data: Any, root: np.ndarray | None = None) -> np.ndarray:
         """The frame of a live ``MjData`` of this env's model."""
-        lookat = np.array(self.config.lookat, dtype=np.float64)
-        axes = list(self.config.track)
-        lookat[axes] += (data.xpos[1] if root is None else np.asarray(root))[axes]
-        self.camera.lookat[:] = lookat
+        if self.config is not None:
+            lookat = np.array(self.config.lookat, dtype=np.float64)
+            axes = list(self.config.track)
+            lookat[axes] += (data.xpos[1] if root is None else np.asarray(root))[axes]
+            self.camera.lookat[:] = lookat
         self._renderer.update_scene(data, self.camera)
         return self._renderer.render().copy()
 

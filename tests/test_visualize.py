@@ -3,6 +3,7 @@ grid of pets.visualize (real renders of the truth and of real trained models, re
 
 from __future__ import annotations
 
+import errno
 import os
 import subprocess
 import sys
@@ -23,6 +24,7 @@ from tests.tiny import TINY_MODEL
 ROOT = Path(__file__).resolve().parents[1]
 SIZE = (64, 48)  # panel width, height
 STEPS = [0, 5, 15]
+OWN_ENV = "tests.custom_envs:PENDULUM"  # your own env, not MuJoCo
 
 
 def test_gl_backend_is_chosen_only_when_unset_and_headless():
@@ -111,6 +113,13 @@ def test_grid_truth_vs_a_wrong_model(runs, tmp_path, name):
     assert ("Root x, y" if name == "ant" else "Root x") in result["caption"]
 
 
+def test_the_caption_names_the_seed_of_sampled_predictions(runs, tmp_path):
+    """--mode sample draws with --seed: the caption says which, as it says the data, episode and start."""
+    data, run = runs["halfcheetah"]
+    result = visualize.visualize([run], data, tmp_path / "s.png", [0, 3], mode="sample", seed=7, size=SIZE)
+    assert "open-loop predictions (sample, seed 7) with the recorded actions" in result["caption"]
+
+
 def test_grid_with_the_truths_root_and_the_cli(runs, tmp_path, capsys):
     data, run = runs["halfcheetah"]
     out = tmp_path / "fig.png"
@@ -125,6 +134,7 @@ def test_grid_with_the_truths_root_and_the_cli(runs, tmp_path, capsys):
 @pytest.mark.parametrize(
     "extra, message",
     [
+        (["--labels", ""], "--labels has an empty name: ''"),  # was a row without a name
         (["--steps", "0,100"], "episode 0 has 40 steps"),
         (["--steps", "0,-1"], "--steps must be"),
         (["--env", "ant"], "does not match the data set"),
@@ -141,6 +151,92 @@ def test_bad_input_is_one_line_exit_2(runs, tmp_path, capsys, extra, message):
     err = capsys.readouterr().err.strip().splitlines()
     assert exit_info.value.code == 2 and len(err) == 1 and message in err[0], err
     assert not (tmp_path / "f.png").exists()
+
+
+def test_out_that_is_a_directory_is_one_line_exit_2_before_any_work(runs, tmp_path, capsys):
+    """Was a traceback (IsADirectoryError, exit 1) after the models had run and the frames were rendered."""
+    data, run = runs["halfcheetah"]
+    (tmp_path / "f.png").mkdir()
+    with pytest.raises(SystemExit) as exit_info:
+        visualize.main(["--runs", str(run), "--data", str(data), "--out", str(tmp_path / "f.png")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert exit_info.value.code == 2 and err == [
+        f"pets.visualize: error: --out {tmp_path / 'f.png'} is a directory; give a file name"
+    ]
+
+
+def test_a_failed_write_is_one_line_exit_3(runs, tmp_path, capsys, monkeypatch):
+    """A full disk while the PNG is written: one line naming the file, exit 3 (was a traceback, exit 1)."""
+    data, run = runs["halfcheetah"]
+
+    def full_disk(path: Path, data: bytes) -> None:
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr(visualize, "atomic_write_bytes", full_disk)
+    out = tmp_path / "f.png"
+    argv = ["--runs", str(run), "--data", str(data), "--steps", "0,3", "--size", "64x48", "--out", str(out)]
+    with pytest.raises(SystemExit) as exit_info:
+        visualize.main(argv)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert exit_info.value.code == 3 and len(err) == 1, err
+    assert f"writing {out} failed (No space left on device); no figure was written" in err[0]
+
+
+def test_a_data_set_of_your_own_env_is_refused_in_one_line(tmp_path, capsys):
+    """``module:ATTR`` envs have no camera and no known qpos: one line, exit 2, before any model is loaded (was a
+    traceback: KeyError for a MuJoCo env, AttributeError for another)."""
+    data = save_dataset(tmp_path / "own.npz", collect(envs.get(OWN_ENV), "random", 1, seed=0, max_steps=5))
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.yaml").write_text(f"env: {OWN_ENV}\n")  # never read: the data set's env is refused first
+    with pytest.raises(SystemExit) as exit_info:
+        visualize.main(["--runs", str(run), "--data", str(data), "--steps", "0,1", "--out", str(tmp_path / "f.png")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert exit_info.value.code == 2 and len(err) == 1, err
+    assert f"the data set is from your own env {OWN_ENV}: pets.visualize draws the catalogue envs only" in err[0]
+    assert not (tmp_path / "f.png").exists()
+
+
+def test_your_own_mujoco_env_renders_with_mujocos_default_camera():
+    """Videos of your own MuJoCo env (``run_pets.py --video``): no camera in CAMERAS, so MuJoCo's default free camera
+    (was a KeyError traceback)."""
+    ip = envs.get("invertedpendulum")
+    spec = envs.custom_spec("my-pendulum", "InvertedPendulum-v5", ip.layout, ip.reward, ip.terminated)
+    env = spec.make()
+    env.reset(seed=0)
+    with Renderer(spec, *SIZE, model=env.unwrapped.model, effects=False) as renderer:
+        frame = renderer.frame_of(env.unwrapped.data)
+    env.close()
+    assert frame.shape == (SIZE[1], SIZE[0], 3) and frame.std() > 5
+
+
+def test_the_documented_command_renders_headless(runs, tmp_path):
+    """``python -m pets.visualize`` in a fresh process with no display and no MUJOCO_GL (the suite's own is set by
+    ``import envs``): the command picks the backend before mujoco is imported (mujoco reads it once, on import)."""
+    data, run = runs["halfcheetah"]
+    environ = {k: v for k, v in os.environ.items() if k not in ("MUJOCO_GL", "DISPLAY", "WAYLAND_DISPLAY")}
+    environ.update(PYTHONPATH=str(ROOT), OMP_NUM_THREADS="1")
+    out = tmp_path / "f.png"
+    args = ["--runs", str(run), "--data", str(data), "--steps", "0,3", "--size", "64x48", "--out", str(out)]
+    proc = subprocess.run(
+        [sys.executable, "-m", "pets.visualize", *args], env=environ, capture_output=True, text=True, timeout=120
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert iio.imread(out).shape[1] == visualize.LABEL_W + 2 * 64
+
+
+def test_a_mujoco_gl_that_mujoco_cannot_load_is_one_line_exit_2(tmp_path):
+    """``import mujoco`` loads the backend of a MUJOCO_GL one set: an invalid value (as a backend whose library is
+    missing) made every command a traceback, exit 1."""
+    environ = {**os.environ, "MUJOCO_GL": "no-such-backend", "PYTHONPATH": str(ROOT)}
+    args = ["--runs", str(tmp_path), "--data", str(tmp_path / "d.npz"), "--out", str(tmp_path / "f.png")]
+    proc = subprocess.run(
+        [sys.executable, "-m", "pets.visualize", *args], env=environ, capture_output=True, text=True, timeout=120
+    )
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert proc.returncode == 2 and len(lines) == 1, proc.stderr
+    assert "MuJoCo cannot be imported (MUJOCO_GL=no-such-backend: RuntimeError" in lines[0]
+    assert "apt-get install -y libegl1" in lines[0]
 
 
 @pytest.mark.skipif(bool(os.environ.get("DISPLAY")), reason="with a display, glfw can render")

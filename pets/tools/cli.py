@@ -214,8 +214,9 @@ def import_main(module: str) -> Callable[[], int | None]:
 #: Libraries a Ctrl-C must never cut while they import, imported by :func:`run_command` before the command runs.
 #: numpy: an interrupt inside its import can be swallowed and leave it half-imported, and the next ``np.linalg``
 #: recurses until RecursionError. mujoco: an interrupt inside its extensions' initialisation becomes an ImportError
-#: ("initialization failed"), which gymnasium reports as "MuJoCo is not installed" with a traceback.
-UNCUTTABLE_IMPORTS = ("numpy", "mujoco")
+#: ("initialization failed"), which gymnasium reports as "MuJoCo is not installed" with a traceback. envs before
+#: mujoco: ``import envs`` sets the headless ``MUJOCO_GL``, which mujoco reads once, on import (or nothing renders).
+UNCUTTABLE_IMPORTS = ("numpy", "envs", "mujoco")
 
 
 def run_command(prog: str, main: Callable[[], int | None], kept: str = "", sigterm: bool = False) -> NoReturn:
@@ -227,15 +228,13 @@ def run_command(prog: str, main: Callable[[], int | None], kept: str = "", sigte
     the process by SIGTERM (exit status 143: pets.compare counts its run as killed from outside, Ray retries it),
     instead of the process ending at once, silently. ``sigterm``: SIGTERM is a Ctrl-C, exit 130 (pets.compare: a sweep
     stopped by ``kill`` or a scheduler stops its runs as on Ctrl-C and says so)."""
-    import importlib
-
     sys.unraisablehook = _interrupt_again(sys.unraisablehook)
     stops = (signal.SIGINT, signal.SIGTERM)
     signal.signal(signal.SIGTERM, _as_ctrl_c if sigterm else _terminate)
     try:
         with interrupts_deferred(InterruptedWhileStarting):
             for name in UNCUTTABLE_IMPORTS:
-                importlib.import_module(name)
+                _import_first(prog, name)
         code = main()
     except KeyboardInterrupt as stop:
         for signum in stops:
@@ -254,6 +253,22 @@ def run_command(prog: str, main: Callable[[], int | None], kept: str = "", sigte
         _end_by_sigterm()
     _forget_handled_interrupt(code)
     sys.exit(code)
+
+
+def _import_first(prog: str, name: str) -> None:
+    """Import one of :data:`UNCUTTABLE_IMPORTS`; mujoco failing with a ``MUJOCO_GL`` set (an invalid value, a backend
+    whose library is missing: ``import mujoco`` loads it) is one line and exit 2, never a traceback."""
+    import importlib
+    import os
+
+    try:
+        importlib.import_module(name)
+    except Exception as err:
+        if name != "mujoco" or not os.environ.get("MUJOCO_GL"):
+            raise
+        from envs.render import gl_failure
+
+        fail(prog, gl_failure(err, "cannot be imported"))
 
 
 def _terminate(signum: int, frame: Any) -> None:

@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from pets.runs.fileio import atomic_write_bytes, run_dir_error, writable_dir_error
-from pets.tools.cli import OneLineParser, add_threads_option, fail, set_threads
+from pets.tools.cli import OneLineParser, add_threads_option, fail, set_threads, write_failed
 
 PROG = "pets.visualize"
 DEFAULT_STEPS = (0, 15, 45)
@@ -209,10 +209,12 @@ def visualize(
 ) -> dict[str, Any]:
     """Render the grid (module docstring) to ``out``; returns ``{"frames", "labels", "caption", "size"}``.
 
-    ValueError / ConfigError (one-line messages) for bad input: a data set of another env than a run's, an episode
-    too short for the steps, a label count that does not match the runs.
+    ValueError / ConfigError (one-line messages) for bad input: a data set of another env than a run's or of your own
+    env (``module:ATTR``: no camera, no known qpos), an episode too short for the steps, labels that do not match
+    the runs.
     """
     import envs
+    from envs.render import CAMERAS
     from pets.config import load_config
     from pets.data.datasets import env_name, load_dataset
 
@@ -220,12 +222,19 @@ def visualize(
     data_env = env_name(arrays)
     if env is not None and envs.get(env).name != data_env:
         raise ValueError(f"--env {env} does not match the data set, which is from {data_env}")
+    if data_env not in CAMERAS:  # a model's predicted observations become a picture through the catalogue's qpos
+        raise ValueError(
+            f"the data set is from your own env {data_env}: pets.visualize draws the catalogue envs only "
+            f"({', '.join(CAMERAS)}), whose observations hold the whole qpos (docs/visualize.md)"
+        )
     for run in run_dirs:
         run_env = str(load_config(str(Path(run) / "config.yaml")).env)
         if run_env != data_env:
             raise ValueError(f"run {run} models {run_env} but the data set is from {data_env}")
     if labels is not None and len(labels) != len(run_dirs):
         raise ValueError(f"--labels has {len(labels)} names for {len(run_dirs)} runs")
+    if labels is not None and not all(label.strip() for label in labels):
+        raise ValueError(f"--labels has an empty name: {','.join(labels)!r}; give one name per run")
     lengths = np.asarray(arrays["lengths"])
     if not 0 <= episode < len(lengths):
         raise ValueError(f"--episode must be in [0, {len(lengths) - 1}], got {episode}")
@@ -246,8 +255,9 @@ def visualize(
     rows = [truth, *(states for _, states in predictions)]
     frames = render_rows(spec, rows, steps, root, size)
     diverged = [label for label, (_, s) in zip(labels, predictions) if not np.isfinite(s[: horizon + 1]).all()]
+    draws = f"sample, seed {seed}" if mode == "sample" else mode  # TS-inf draws: the seed makes the figure
     caption = (
-        f"{spec.gym_id}, {Path(data).name} episode {episode} from step {start}: open-loop predictions ({mode}) with "
+        f"{spec.gym_id}, {Path(data).name} episode {episode} from step {start}: open-loop predictions ({draws}) with "
         f"the recorded actions.{root_note(spec, root)}"
         + (f" Non-finite predictions (black): {', '.join(s.splitlines()[0] for s in diverged)}." if diverged else "")
     )
@@ -294,6 +304,8 @@ def main(argv: list[str] | None = None) -> int:
         fail(PROG, problem)
     if args.out.suffix.lower() != ".png":
         fail(PROG, f"--out must name a .png file, got {args.out}")
+    if args.out.is_dir():
+        fail(PROG, f"--out {args.out} is a directory; give a file name")
     problem = writable_dir_error(args.out.parent)
     if problem:
         fail(PROG, f"cannot write --out {args.out}: {problem}")
@@ -323,6 +335,8 @@ def main(argv: list[str] | None = None) -> int:
         fail(PROG, str(err))
     except RenderingUnavailable as err:  # no usable headless GL here (as device=cuda without CUDA: exit 2)
         fail(PROG, str(err))
+    except OSError as err:  # writing the figure failed (a full disk): the temporary file is removed
+        write_failed(PROG, err, "no figure was written; free space or pick another --out")
     width, height = result["size"]
     print(f"{args.out}: {len(result['labels'])} rows x {len(steps)} steps, {width}x{height} pixels")
     return 0
