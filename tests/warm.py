@@ -35,7 +35,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 #: Modules the commands import; the server imports them once.
 WARM_MODULES = tuple(
-    "torch torch._dynamo numpy mujoco envs pets.config pets.loop pets.compare pets.collect pets.train pets.evaluate"
+    "torch torch._dynamo numpy envs mujoco pets.config pets.loop pets.compare pets.collect pets.train pets.evaluate"
     " pets.openloop".split()
 )
 #: Environment variables read at start-up (by Python, OpenMP, MKL, CUDA, MuJoCo's GL choice, the loader).
