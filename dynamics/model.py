@@ -121,7 +121,13 @@ class DynamicsModel(nn.Module):
         act = act if isinstance(act, Tensor) else self._as_model_tensor(act, "actions").cpu().numpy()
         if act.ndim == 0:
             raise ValueError(f"expected actions (..., {self.act_dim}), got a single number")
-        obs_shape = tuple(getattr(obs, "shape", np.shape(obs)))
+        obs = obs if isinstance(obs, Tensor) else self._as_model_tensor(obs, "observations").cpu().numpy()
+        obs_shape = tuple(obs.shape)
+        if obs_shape[-1:] != (self.obs_dim,) or act.shape[-1] != self.act_dim:  # the shapes given, not rollout's
+            raise ValueError(
+                f"expected observations (..., {self.obs_dim}) and actions (..., {self.act_dim}), got "
+                f"{obs_shape} and {tuple(act.shape)}"
+            )
         if obs_shape[:-1] != tuple(act.shape[:-1]):
             raise ValueError(f"observations {obs_shape} and actions {tuple(act.shape)}: batch dims differ")
         return self.rollout(obs, act[..., None, :], mode, generator)[..., 0, :]
@@ -145,7 +151,7 @@ class DynamicsModel(nn.Module):
             raise ValueError(f"mode must be one of {self.ROLLOUT_MODES}, got {mode!r}")
         numpy_in = not isinstance(obs0, Tensor)
         obs0, actions = self._as_model_tensor(obs0, "observations"), self._as_model_tensor(actions, "actions")
-        if obs0.shape[-1] != self.obs_dim or actions.shape[-1] != self.act_dim or actions.dim() < 2:
+        if obs0.dim() < 1 or actions.dim() < 2 or obs0.shape[-1] != self.obs_dim or actions.shape[-1] != self.act_dim:
             raise ValueError(
                 f"expected observations (..., {self.obs_dim}) and actions (..., H, {self.act_dim}), got "
                 f"{tuple(obs0.shape)} and {tuple(actions.shape)}"

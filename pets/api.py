@@ -8,13 +8,18 @@ continue what the other started: ``PETS.load(DIR)`` or ``run_pets.py --resume DI
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+import torch
 
 from dynamics.model import DynamicsModel
+
+if TYPE_CHECKING:
+    from pets.loop import PETSRun
 
 __all__ = ["PETS", "load_model"]
 
@@ -65,6 +70,8 @@ class PETS:
         resolve_device(cfg.device)
         self._run = PETSRun(cfg)
         self.progress = progress
+        #: The planner's random state of :meth:`act`, apart from learning's (``plan_gen``): acting leaves it as is.
+        self._act_state = torch.Generator(device=self._run.device).manual_seed(cfg.seed + 5).get_state()
         #: The run directories this object was loaded from or saved to: ``save`` may write there again.
         self._dirs: set[Path] = set()
 
@@ -94,7 +101,7 @@ class PETS:
         agent followed by training on all data; the first is preceded by ``seed_steps`` random steps. Fewer where
         the run is done first, as ``run_pets.py`` stops: its env-step budget ``max_env_steps`` spent (``--preset
         locomotion``) or a trial at ``stop_reward``. ``callback(row)`` gets every trial's row; returning ``False``
-        stops. Returns ``self``."""
+        stops. A trial that Ctrl-C or an error stops is undone (``learn`` again replays it). Returns ``self``."""
         if isinstance(trials, np.integer):
             trials = int(trials)
         if trials is not None and (isinstance(trials, bool) or not isinstance(trials, int) or trials < 1):
@@ -106,24 +113,51 @@ class PETS:
         run, cfg = self._run, self.config
         target = cfg.trials if trials is None else run.trials_done + trials
         while run.trials_done < target and not stopped(run.rows, cfg.stop_reward, cfg.max_env_steps):
-            row = run.run_trial(progress=self.progress)
+            before = _snapshot(run)
+            try:
+                row = run.run_trial(progress=self.progress)
+            except BaseException:  # Ctrl-C or a failure: the trial is undone; learning again replays it from its start
+                run.load_state_dict(before)
+                raise
             if callback is not None and callback(dict(row)) is False:
                 break
         return self
 
-    def act(self, obs: np.ndarray) -> np.ndarray:
-        """One MPC step: the first action of a plan from ``obs`` (act_dim,), warm-started from the last plan.
-        Call :meth:`reset` at the start of every new episode. ValueError (one line) for anything but a finite
-        observation."""
+    def act(self, obs: Any) -> np.ndarray:
+        """One MPC step: the first action (act_dim,) of a plan from one observation ``obs`` (obs_dim,) (numpy, a list
+        or a torch tensor), warm-started from the last plan. Call :meth:`reset` at the start of every new episode.
+        Its random draws are a stream of its own (from ``seed``): acting between ``learn`` calls leaves what they learn
+        as it was. ValueError (one line) for anything but one finite observation."""
+        x = self._observation(obs)
+        gen = self._run.plan_gen
+        learning = gen.get_state()
+        gen.set_state(self._act_state)
+        try:
+            return self._run.agent.act(x)
+        finally:
+            self._act_state = gen.get_state()
+            gen.set_state(learning)
+
+    def _observation(self, obs: Any) -> np.ndarray:
+        """``obs`` as one float32 observation (obs_dim,); ValueError (one line) naming what is wrong with it."""
         if isinstance(obs, tuple) and len(obs) == 2 and isinstance(obs[1], dict):
             raise ValueError("act takes the observation, not reset()'s (obs, info) pair: obs, _ = env.reset()")
+        if isinstance(obs, torch.Tensor):
+            obs = obs.detach().cpu()
         try:
-            x = np.asarray(obs, dtype=np.float32)
-        except (TypeError, ValueError):
-            raise ValueError(f"obs must be an array of numbers, got {type(obs).__name__} {obs!r:.60}") from None
+            x = np.asarray(obs)
+        except (TypeError, ValueError):  # a ragged list
+            x = np.asarray(None)
+        if x.dtype.kind not in "biuf":  # None, strings, objects, complex numbers
+            raise ValueError(f"obs must be an array of numbers, got {type(obs).__name__} {obs!r:.60}")
+        want = (self._run.spec.obs_dim,)
+        if x.shape != want:
+            batch = " (act takes one observation, not a batch)" if x.ndim > 1 and x.shape[-1:] == want else ""
+            raise ValueError(f"obs must have shape {want}, the env's observation, got {x.shape}{batch}")
+        x = x.astype(np.float32)
         if not np.isfinite(x).all():
             raise ValueError(f"obs holds nan or inf at entries {np.flatnonzero(~np.isfinite(x)).tolist()}")
-        return self._run.agent.act(x)
+        return x
 
     def reset(self) -> None:
         """Forget the warm start (a new episode)."""
@@ -201,6 +235,14 @@ class PETS:
     def __repr__(self) -> str:
         c = self.config
         return f"PETS(env={c.env!r}, model={c.head!r}, trials_done={self.trials_done}, seed={c.seed})"
+
+
+def _snapshot(run: PETSRun) -> dict[str, Any]:
+    """``run.state_dict()`` as it is now, to restore after an interrupted trial: copies, but for the replay buffer's
+    arrays, which a trial replaces and never writes into."""
+    state = run.state_dict()
+    buffer = state.pop("buffer")
+    return {**copy.deepcopy(state), "buffer": dict(buffer)}
 
 
 def plain_value(value: Any) -> Any:

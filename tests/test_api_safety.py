@@ -145,3 +145,71 @@ def test_a_callback_that_is_not_callable_fails_before_any_work():
     with pytest.raises(ValueError, match="callback must be a function"):
         agent.learn(trials=1, callback=5)
     assert time.perf_counter() - start < 1 and agent.trials_done == 0 and len(agent._run.buffer) == 0
+
+
+def _learned(agent: pets.PETS) -> list[dict]:
+    return [{k: v for k, v in row.items() if k not in rundir.TIMING_COLUMNS} for row in agent.history]
+
+
+def test_a_trial_interrupted_by_ctrl_c_is_undone_and_learning_again_replays_it(trained):
+    """A KeyboardInterrupt in the middle of learn left the trial's data in the buffer and its training half done,
+    with trials_done as before: learning again planned with an untrained model or added the episode twice."""
+    agent = _agent()
+    train, calls = agent._run.trainer.train, []
+
+    def interrupted(*args, **kwargs):  # the seed data's training passes, trial 0's is interrupted
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return train(*args, **kwargs)
+
+    agent._run.trainer.train = interrupted
+    with one_thread(), pytest.raises(KeyboardInterrupt):
+        agent.learn(trials=1)
+    assert agent.trials_done == 0 and len(agent._run.buffer) == 0 and agent._run.env_steps == 0
+    agent._run.trainer.train = train
+    with one_thread():
+        agent.learn(trials=1)
+    assert _learned(agent) == _learned(trained)
+    for p, q in zip(agent.model.state_dict().values(), trained.model.state_dict().values()):
+        assert torch.equal(p, q)
+
+
+def test_acting_between_learn_calls_leaves_what_they_learn_as_it_was():
+    """act drew from the planner's generator that learning uses: a look at the agent between two learn calls
+    changed the second call's metrics."""
+    with one_thread():
+        looked = _agent().learn(trials=1)
+        for _ in range(2):
+            looked.act(np.zeros(4))
+        looked.learn(trials=1)
+        assert _learned(looked) == _learned(_agent().learn(trials=2))
+
+
+def test_act_refuses_an_observation_of_another_shape_or_not_of_numbers(trained):
+    """A wrong width was refused deep in the planner ("obs0 must have shape"), and not at all at a step between
+    replans; a batch the same; None was "obs holds nan or inf"; complex numbers lost their imaginary part."""
+    for bad, fragment in (
+        (np.zeros(3), r"obs must have shape \(4,\), the env's observation, got \(3,\)$"),
+        (np.zeros((2, 4)), r"got \(2, 4\) \(act takes one observation, not a batch\)"),
+        (None, "obs must be an array of numbers, got NoneType"),
+        (np.zeros(4, dtype=complex), "obs must be an array of numbers, got ndarray"),
+        ([[0.0], [0.0, 1.0]], "obs must be an array of numbers, got list"),
+    ):
+        with pytest.raises(ValueError, match=fragment):
+            trained.act(bad)
+    with one_thread():
+        for good in ([0.0] * 4, torch.zeros(4, requires_grad=True), np.zeros(4, dtype=np.int64)):
+            assert trained.act(good).shape == (1,)
+
+
+def test_predict_and_rollout_name_the_shapes_given(trained):
+    """predict named its internal (3, 1, 1) for actions (3, 1); rollout of a single number raised IndexError."""
+    model = trained.model
+    with pytest.raises(
+        ValueError, match=r"observations \(\.\.\., 4\) and actions \(\.\.\., 1\), got \(3, 5\) and \(3, 1\)"
+    ):
+        model.predict(np.zeros((3, 5)), np.zeros((3, 1)))
+    for obs, act in ((np.zeros(4), 5.0), (0.0, np.zeros((2, 1)))):
+        with pytest.raises(ValueError, match=r"expected observations \(\.\.\., 4\) and actions \(\.\.\., H, 1\)"):
+            model.rollout(obs, act)
