@@ -780,3 +780,42 @@ def test_a_model_broken_for_every_row_gives_nan_returns_and_the_planner_raises(p
     planner = CEMPlanner([-1.0] * ACT_DIM, [1.0] * ACT_DIM, horizon=5, population=8, iterations=2)
     with pytest.raises(PlanningFailed):
         planner.plan(lambda a: ev(obs0, a, gen), generator=gen)
+
+
+def test_the_propagation_table_is_the_config_choice_list(tmp_path, monkeypatch) -> None:
+    """A mode registered by a module of ``imports`` (TS1 under another name) is a ``planner.propagation`` of the
+    config and of the evaluator, and returns what TS1 returns; a taken name or a value that is not a mode: refused."""
+    import sys
+
+    from pets.config import ConfigError, make_config
+    from pets.planning.particles import Gaussian, MemberMajor, Propagation, Shuffled, register_propagation
+
+    assert tuple(PROPAGATIONS) == tuple(PROPAGATION_TABLE) == ("ts1", "tsinf", "expectation", "members")
+    with pytest.raises(ConfigError, match="planner.propagation must be one of ts1, tsinf, expectation, members"):
+        make_config("invertedpendulum", preset="fast", overrides={"planner.propagation": "ts1_again"})
+    (tmp_path / "my_mode.py").write_text(
+        "from pets.planning.particles import Gaussian, Propagation, Shuffled, register_propagation\n"
+        "register_propagation('ts1_again', Propagation(Shuffled(), Gaussian()))\n"
+    )
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "path", list(sys.path))
+    cfg = make_config(
+        "invertedpendulum", preset="fast", overrides={"imports": ["my_mode"], "planner.propagation": "ts1_again"}
+    )
+    assert cfg.planner.propagation == "ts1_again" and "ts1_again" in PROPAGATIONS
+    ens = FakeEnsemble(member_offsets(3), logvar=-2.0)
+    actions = torch.rand(4, 5, ACT_DIM, generator=torch.Generator().manual_seed(3)) * 2 - 1
+    returns = [
+        TrajectoryEvaluator(DynamicsModel(make_head(), ens), reward_fn, None, particles=6, propagation=prop)(
+            torch.zeros(OBS_DIM), actions, torch.Generator().manual_seed(0)
+        )
+        for prop in ("ts1", "ts1_again")
+    ]
+    assert torch.equal(*returns)
+    register_propagation("ts1_again", Propagation(Shuffled(), Gaussian()))  # the module imported again: the same
+    with pytest.raises(ValueError, match="propagation name 'tsinf' is taken \\(MemberMajor, Gaussian\\)"):
+        register_propagation("tsinf", Propagation(Shuffled(), Gaussian()))
+    with pytest.raises(ValueError, match="must be a Propagation\\(RowLayout, Noise\\)"):
+        register_propagation("mine", Propagation(MemberMajor(), "gaussian"))  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="unknown propagation 'nope'; accepted: ts1, tsinf, expectation, members, "):
+        TrajectoryEvaluator(DynamicsModel(make_head(), ens), reward_fn, None, propagation="nope")

@@ -9,6 +9,8 @@ with a :class:`Noise` (whether the next target is sampled from the predicted Gau
 - ``members``: :class:`MemberMajor` rows, :class:`NoNoise` (each row follows its member's mean);
 - ``expectation``: :class:`Shared` rows (one per candidate, every member sees it, their means averaged), no noise.
 
+A mode of one's own is one :func:`register_propagation` call, in a module named in the config key ``imports``.
+
 A candidate kind (``planner.candidates``, :data:`CANDIDATE_TABLE`) says what a candidate is: :class:`OpenLoop`, an
 action sequence (N, H, act_dim); :class:`FeedbackGains`, the gains (N, rows, act_dim) of a
 :class:`pets.planning.feedback.LinearFeedback` rolled out for its horizon; each kind owns its checks of the
@@ -189,6 +191,28 @@ PROPAGATION_TABLE: dict[str, Propagation] = {
     "expectation": Propagation(Shared(), NoNoise()),
     "members": Propagation(MemberMajor(), NoNoise()),
 }
+
+
+def _parts(propagation: Propagation) -> tuple[str, str]:
+    """The names of a mode's strategy classes."""
+    return type(propagation.layout).__qualname__, type(propagation.noise).__qualname__
+
+
+def register_propagation(name: str, propagation: Propagation) -> Propagation:
+    """Add ``propagation`` to :data:`PROPAGATION_TABLE` under ``name`` (a ``planner.propagation`` value from then
+    on, from a module in the config key ``imports`` too); returns it. ValueError (one line) for a name that is not a
+    non-empty str, one another mode holds, or a value that is not a :class:`Propagation` of a :class:`RowLayout`
+    and a :class:`Noise`."""
+    if not isinstance(name, str) or not name:
+        raise ValueError(f"a propagation's name must be a non-empty str, got {name!r}")
+    ok = isinstance(propagation, Propagation) and isinstance(propagation.layout, RowLayout)
+    if not (ok and isinstance(propagation.noise, Noise)):
+        raise ValueError(f"propagation {name!r} must be a Propagation(RowLayout, Noise), got {propagation!r}")
+    taken = PROPAGATION_TABLE.get(name)
+    if taken is not None and _parts(taken) != _parts(propagation):  # the same strategies again: a module re-imported
+        raise ValueError(f"propagation name {name!r} is taken ({', '.join(_parts(taken))}); give yours another name")
+    PROPAGATION_TABLE[name] = propagation
+    return propagation
 
 
 class OpenLoop:

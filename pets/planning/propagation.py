@@ -82,10 +82,13 @@ from pets.planning.feedback import LinearFeedback
 from pets.planning.particles import CANDIDATE_TABLE, PROPAGATION_TABLE, FeedbackGains, OpenLoop
 from pets.runs.hardware import CONCRETE_PRECISIONS as PRECISIONS
 
-#: ``planner.propagation``: how particles go through the ensemble (the module docstring; ``pets.planning.particles``).
-PROPAGATIONS = tuple(PROPAGATION_TABLE)
+#: ``planner.propagation``: how particles go through the ensemble (the module docstring; ``pets.planning.particles``);
+#: a live view of the table, so a mode added by ``register_propagation`` (``imports``) is accepted too.
+PROPAGATIONS = PROPAGATION_TABLE.keys()
 #: ``planner.candidates``: what a planner's candidate is, an action sequence (PETS) or the gains of a linear
-#: feedback law (``pets.planning.feedback``; ``pets.planning.particles``).
+#: feedback law (``pets.planning.feedback``; ``pets.planning.particles``). A snapshot on purpose: the evaluator,
+#: the planner and the agent pick their kind by whether there is a feedback law, so a kind added to the table later
+#: would be accepted by the config and then ignored.
 CANDIDATES = tuple(CANDIDATE_TABLE)
 
 #: ``fn(obs, act, next_obs) -> (...,)`` batched torch reward / termination function.
@@ -169,7 +172,7 @@ class TrajectoryEvaluator:
         feedback: LinearFeedback | None = None,
     ) -> None:
         if propagation not in PROPAGATIONS:
-            raise ValueError(f"unknown propagation {propagation!r}; accepted: {PROPAGATIONS}")
+            raise ValueError(f"unknown propagation {propagation!r}; accepted: {', '.join(PROPAGATIONS)}")
         if isinstance(particles, bool) or not isinstance(particles, int) or particles < 1:
             raise ValueError(f"particles must be a positive int, got {particles!r}")
         if not callable(reward_fn):
