@@ -1,6 +1,6 @@
 """The ``pets.openloop`` command: open-loop planning with a trained model, or MPC with it frozen.
 
-    python -m pets.openloop --run RUN_DIR [--planner cem|mppi|icem] [--steps 50] [--episodes K] [--seed S]
+    python -m pets.openloop --run RUN_DIR [--planner NAME] [--steps 50] [--episodes K] [--seed S]
                             [--closed-loop] [--device D] [--threads T] [--json OUT] [--video DIR]
                             [planner.KEY=VALUE ...]
 
@@ -40,7 +40,12 @@ def build_parser() -> OneLineParser:
         epilog="Planner settings can be overridden as planner.KEY=VALUE, e.g. planner.population=200.",
     )
     p.add_argument("--run", type=Path, required=True, help="run directory (run_pets.py or pets.train)")
-    p.add_argument("--planner", default="cem", help="planner: cem (default), mppi or icem")
+    p.add_argument(
+        "--planner",
+        default="cem",
+        help="planner (planner.name; default cem): a name of the planner table, one registered by a module of the "
+        "run's imports included (a name it lacks is refused with the accepted ones)",
+    )
     p.add_argument(
         "--steps",
         type=int,
