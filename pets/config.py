@@ -2,7 +2,7 @@
 `key=value` overrides.
 
 Resolution order (later wins): ``Config`` defaults -> ``ENV_DEFAULTS[env]`` -> ``PRESETS[preset]``
--> ``PRESET_ENV_DEFAULTS[(preset, env)]`` -> ``HEAD_DEFAULTS[head]`` -> command-line ``key=value`` overrides.
+-> ``PRESET_ENV_DEFAULTS[(preset, env)]`` -> ``head_defaults(head)`` -> command-line ``key=value`` overrides.
 Values are parsed against the declared field types (``trials=00143`` is 143, never the YAML-octal 99), then
 range-checked.
 """
@@ -32,7 +32,7 @@ from pets.planning.particles import CANDIDATE_TABLE
 from pets.planning.planners import PLANNER_CLASSES, ICEMConfig, MPPIConfig, check_planner_config, unknown_planner
 from pets.planning.propagation import CANDIDATES, PROPAGATIONS
 from pets.planning.value import ValueConfig
-from pets.presets import ENV_DEFAULTS, HEAD_DEFAULTS, PRESET_ENV_DEFAULTS, PRESETS
+from pets.presets import ENV_DEFAULTS, PRESET_ENV_DEFAULTS, PRESETS, head_defaults
 from pets.runs.hardware import CONCRETE_PRECISIONS
 from pets.runs.user_yaml import load_user_yaml
 
@@ -388,7 +388,7 @@ def make_config(
         _merge_nested(cfg, defaults)
     set_value(cfg, "head", head)
     head = overrides.get("head", head)  # head=... given as an override picks its defaults too
-    _merge_nested(cfg, HEAD_DEFAULTS.get(head if isinstance(head, str) else "", {}))
+    _merge_nested(cfg, head_defaults(head) if isinstance(head, str) else {})
     for key, value in overrides.items():
         set_value(cfg, key, value)
     validate(cfg)

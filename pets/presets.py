@@ -1,7 +1,7 @@
 """The configuration's defaults below the command line: per-env research defaults, per-model defaults, the
 presets and their per-env amendments. :func:`pets.config.make_config` applies them in the order ``Config``
 defaults -> ``ENV_DEFAULTS[env]`` -> ``PRESETS[preset]`` -> ``PRESET_ENV_DEFAULTS[(preset, env)]`` ->
-``HEAD_DEFAULTS[head]`` -> ``key=value`` overrides."""
+``head_defaults(head)`` -> ``key=value`` overrides."""
 
 from __future__ import annotations
 
@@ -26,11 +26,14 @@ ENV_DEFAULTS: dict[str, dict[str, Any]] = {
     "humanoid": _HALFCHEETAH,
 }
 
-# Per-model defaults: the deterministic models (delta-det, gem2) average their members' predictions, as the
-# paper's ensembles do, which is PETS' expectation propagation (pets.models explains; tsinf also works).
-HEAD_DEFAULTS: dict[str, dict[str, Any]] = {
-    name: {"planner": {"propagation": "expectation"}} for name, entry in MODELS.items() if entry.deterministic
-}
+
+def head_defaults(head: str) -> dict[str, Any]:
+    """Per-model defaults, read from the model table when the config is made (a model registered from ``imports``
+    too): a deterministic model (delta-det, gem2) averages its members' predictions, as the paper's ensembles do,
+    which is PETS' expectation propagation (pets.models explains; tsinf also works)."""
+    entry = MODELS.get(head)
+    return {"planner": {"propagation": "expectation"}} if entry is not None and entry.deterministic else {}
+
 
 # A CPU-friendly preset: ~20x fewer model evaluations per planning step than the research defaults.
 PRESETS: dict[str, dict[str, Any]] = {

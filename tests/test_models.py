@@ -559,6 +559,22 @@ def test_a_run_with_relu_records_it_and_reloads_the_same_network(tmp_path, capsy
     assert err.count("\n") == 1 and not (tmp_path / "bad").exists()
 
 
+def test_a_deterministic_model_registered_from_outside_gets_the_deterministic_defaults(request):
+    """A model registered as deterministic after pets.config is imported plans by expectation by default, as
+    delta-det and gem2 do (the per-model defaults were a table made at import: it got ts1); a given propagation
+    still wins, and a probabilistic one keeps the preset's."""
+    from pets.models import ModelEntry, register_model
+
+    request.addfinalizer(lambda: MODELS.pop("mydet", None))
+    det = MODELS["delta-det"]
+    register_model("mydet", ModelEntry("delta-det under my name", True, det.make_head, det.make_network))
+    assert make_config("invertedpendulum", "mydet").planner.propagation == "expectation"
+    assert make_config("invertedpendulum", "delta-det").planner.propagation == "expectation"
+    given = make_config("invertedpendulum", "mydet", overrides={"planner.propagation": "tsinf"})
+    assert given.planner.propagation == "tsinf"
+    assert make_config("invertedpendulum", "delta").planner.propagation != "expectation"  # the preset's (tsinf)
+
+
 def test_a_model_registered_from_outside_is_a_model_name_everywhere(tmp_path, monkeypatch, request):
     """register_model after pets.config is imported (was: only MODELS edited before that import took, as HEADS was
     a tuple made at import): the config, run_pets.py in the process and the study arguments accept the name; a
