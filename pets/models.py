@@ -149,6 +149,14 @@ UNREGISTERED = (
 )
 
 
+def unknown_model(name: str, option: str = "--model") -> str | None:
+    """The one line refusing ``name`` given as ``option`` where it is not a model of the table (with
+    :data:`UNREGISTERED`); None for a known one."""
+    if name in MODELS:
+        return None
+    return f"{option} must be one of {', '.join(MODELS)}, got {name!r}{UNREGISTERED}"
+
+
 def check_model(head: str, env: str, compose: str) -> None:
     """``head`` a model of the table (a model of one's own: see :data:`UNREGISTERED`); a model that composes the
     floating root (``gem-se``) needs an env with one, and the body-frame composition
@@ -157,8 +165,8 @@ def check_model(head: str, env: str, compose: str) -> None:
     import envs
     from gem_head.se_root import check_gem_se
 
-    if head not in MODELS:
-        raise ValueError(f"head must be one of {', '.join(MODELS)}, got {head!r}{UNREGISTERED}")
+    if problem := unknown_model(head, "head"):
+        raise ValueError(problem)
     if not MODELS[head].needs_root:
         return
     try:

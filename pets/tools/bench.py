@@ -294,7 +294,7 @@ def _print_rows(rows: list[dict[str, Any]], repeats: int) -> None:
 def _arguments(argv: list[str] | None) -> tuple[argparse.Namespace, DictConfig]:
     """The options and the config, every check done before any timing; bad input exits 2 with one line."""
     from pets.config import HEADS, PRESETS
-    from pets.models import UNREGISTERED
+    from pets.models import unknown_model
 
     ap = OneLineParser(prog="pets.bench", description=__doc__.splitlines()[0])
     ap.add_argument("--env", default="halfcheetah", help="a catalogue name, a gymnasium id or package.module:ATTR")
@@ -312,8 +312,8 @@ def _arguments(argv: list[str] | None) -> tuple[argparse.Namespace, DictConfig]:
     args = ap.parse_intermixed_args(argv)
     try:
         import_given(args.overrides)  # your own models register there: before --model is looked up
-        if args.model not in HEADS:
-            raise ConfigError(f"--model must be one of {', '.join(HEADS)}, got {args.model!r}{UNREGISTERED}")
+        if problem := unknown_model(args.model):
+            raise ConfigError(problem)
         overrides = parse_overrides(args.overrides)
         overrides["device"] = args.device
         cfg = make_config(envs.get(args.env).name, args.model, args.preset, overrides)

@@ -65,15 +65,15 @@ def build_parser() -> OneLineParser:
 @interruptible(PROG, "no run was written (a run is written only when its training is complete)")
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_intermixed_args(argv)
-    from pets.config import HEADS, ConfigError, parse_overrides
-    from pets.models import UNREGISTERED
+    from pets.config import ConfigError, parse_overrides
+    from pets.models import unknown_model
 
     try:  # your own models register in the modules of imports=[...]: imported before --model is looked up
         import_given(args.overrides)
     except ConfigError as err:
         fail(PROG, str(err))
-    if args.model not in HEADS:
-        fail(PROG, f"--model must be one of {', '.join(HEADS)}, got {args.model!r}{UNREGISTERED}")
+    if problem := unknown_model(args.model):
+        fail(PROG, problem)
     if problem := missing_data_file(args.data):
         fail(PROG, problem)
     if args.epochs is not None and args.epochs < 1:
