@@ -164,19 +164,27 @@ def _probe(tmp_path: Path, source: str, **kwargs: object) -> subprocess.Complete
 
 @pytest.mark.parametrize(
     "handled, status, mark",
-    [("return 130", 130, True), ("return 0", 0, True), ("raise", 130, True), ("return 130", 130, False)],
+    [
+        ("return 130", 130, True),
+        ("return 0", 0, True),
+        ("raise", 130, True),
+        ("return 130", 130, False),
+        ("return 0", 0, False),
+        ("return 'no model'", 1, False),
+    ],
 )
 def test_an_interrupt_the_command_handled_ends_with_its_status_not_by_the_signal(tmp_path, handled, status, mark):
     """``python -m``: a KeyboardInterrupt that passed through code run by ``exec`` of a string (as a dataclass's
     generated methods are) makes CPython end the process by SIGINT (-2) once it exits, unless run_command clears
-    that mark; where the mark is out of reach (``mark`` False: Python 3.12+), an interrupted command exits at once."""
+    that mark; where the mark is out of reach (``mark`` False: Python 3.12+), a command that a Ctrl-C reached exits
+    at once with its status (before, one that returned another status than 130 ended by SIGINT there)."""
     hide = "" if mark else "import ctypes\nctypes.c_int.in_dll = lambda *a: (_ for _ in ()).throw(ValueError('no'))\n"
     proc = _probe(
         tmp_path,
         hide + "from pets.tools.cli import run_command\n"
         "def main():\n"
         "    try:\n"
-        "        exec('raise KeyboardInterrupt')\n"
+        "        exec('import signal; signal.raise_signal(signal.SIGINT)')  # a Ctrl-C inside exec'd code\n"
         "    except KeyboardInterrupt:\n"
         f"        {handled}\n"
         "run_command('probe', main)\n",

@@ -57,6 +57,8 @@ EXIT_CODES = {
 
 #: Set by the SIGTERM handler of :func:`run_command` (not pets.compare's): the command is stopping on SIGTERM.
 _terminated = threading.Event()
+#: A Ctrl-C (or SIGTERM as one) reached the command: see :func:`_forget_handled_interrupt`.
+_interrupted = threading.Event()
 
 
 def stopped() -> str:
@@ -191,6 +193,7 @@ def interrupts_deferred(raises: type[KeyboardInterrupt] = KeyboardInterrupt) -> 
     finally:
         signal.signal(signal.SIGINT, previous)
     if caught:
+        _interrupted.set()
         raise raises
 
 
@@ -231,6 +234,8 @@ def run_command(prog: str, main: Callable[[], int | None], kept: str = "", sigte
     sys.unraisablehook = _interrupt_again(sys.unraisablehook)
     stops = (signal.SIGINT, signal.SIGTERM)
     signal.signal(signal.SIGTERM, _as_ctrl_c if sigterm else _terminate)
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # not where it is ignored (nohup)
+        signal.signal(signal.SIGINT, _ctrl_c)
     try:
         with interrupts_deferred(InterruptedWhileStarting):
             for name in UNCUTTABLE_IMPORTS:
@@ -295,10 +300,17 @@ def _end_by_sigterm() -> NoReturn:
     os._exit(EXIT_TERMINATED)  # not reached: the signal ends the process
 
 
+def _ctrl_c(signum: int, frame: Any) -> None:
+    """The SIGINT handler of a command: Python's own (KeyboardInterrupt), noting that a Ctrl-C came."""
+    _interrupted.set()
+    raise KeyboardInterrupt
+
+
 def _as_ctrl_c(signum: int, frame: Any) -> None:
     """A SIGTERM handler: what Ctrl-C does at that moment (SIGINT's handler: deferred while importing), and a
     KeyboardInterrupt where SIGINT is ignored (a command started in the background by a shell, or with nohup, where
     SIGTERM is the one way to stop it). Once the command is over, SIGTERM is ignored as SIGINT is."""
+    _interrupted.set()
     handler = signal.getsignal(signal.SIGINT)
     if not callable(handler):
         raise KeyboardInterrupt
@@ -333,18 +345,20 @@ def _forget_handled_interrupt(code: int | str | None) -> None:
     run by ``exec`` of a string (dataclasses, namedtuples and torch's imports run many), even when the command then
     catches it, and ends the process by SIGINT (-2) instead of its exit status. The command returned a status, so it
     handled any: clear the mark (a C global up to Python 3.11; from 3.12 it sits in the runtime state, out of reach:
-    an interrupted command then exits at once after the exit handlers instead)."""
+    a command that a Ctrl-C reached then exits at once with its status, after the exit handlers, instead)."""
     import ctypes
 
     try:
         ctypes.c_int.in_dll(ctypes.pythonapi, "_Py_UnhandledKeyboardInterrupt").value = 0
     except ValueError:  # not a symbol of this Python
-        if code != EXIT_INTERRUPTED:
+        if code != EXIT_INTERRUPTED and not _interrupted.is_set():
             return
         import atexit
         import os
 
+        if code is not None and not isinstance(code, int):  # as sys.exit(text): the text, then status 1
+            print(code, file=sys.stderr)
         atexit._run_exitfuncs()
         sys.stdout.flush()
         sys.stderr.flush()
-        os._exit(EXIT_INTERRUPTED)
+        os._exit(code if isinstance(code, int) else 0 if code is None else 1)
