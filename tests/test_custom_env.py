@@ -155,6 +155,20 @@ def test_a_video_of_an_env_that_is_not_mujoco_is_one_line_and_leaves_no_director
     assert not (tmp_path / "run").exists()
 
 
+def test_a_video_of_an_env_that_is_not_mujoco_says_drop_video_even_without_imageio(monkeypatch):
+    """The env's kind is checked first: without the viz extra the line said to install imageio, which would not
+    help (seen on a machine without imageio-ffmpeg, 2026-12-01)."""
+    import sys
+
+    from pets.errors import ConfigError
+    from pets.runs.video import EpisodeRecorder
+
+    monkeypatch.setitem(sys.modules, "imageio_ffmpeg", None)  # as if not installed: its import fails
+    spec = envs.get(PATH)
+    with pytest.raises(ConfigError, match="is not a MuJoCo env: drop --video"):
+        EpisodeRecorder(spec, spec.make())
+
+
 def test_pets_collect_takes_the_import_path_as_its_help_says(tmp_path):
     """pets.collect --env module:ATTR collects the spec's env (its --help says so), the file names the path."""
     from pets.data.datasets import load_dataset

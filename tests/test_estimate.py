@@ -33,8 +33,10 @@ def test_a_runs_planned_and_gradient_steps_follow_its_budget_and_schedule():
 
 
 def test_the_projection_multiplies_the_measured_steps_and_skips_reused_runs(tmp_path):
-    cfgs = {f"halfcheetah-{m}-s{s}": make_config("halfcheetah", m, "locomotion", {"seed": s})
-            for m in ("delta", "gem") for s in (0, 1)}  # fmt: skip
+    def loco(head: str, **over: object):  # on the CPU: a CUDA run's projection is in hours of wall time
+        return make_config("halfcheetah", head, "locomotion", {"device": "cpu", **over})
+
+    cfgs = {f"halfcheetah-{m}-s{s}": loco(m, seed=s) for m in ("delta", "gem") for s in (0, 1)}
     seen = []
 
     def measure(cfg):
@@ -51,12 +53,12 @@ def test_the_projection_multiplies_the_measured_steps_and_skips_reused_runs(tmp_
     assert lines[5].startswith("3 runs, about 17.6 CPU-hours (8.8 h of wall time on 2 worker(s))")
     everything = dict.fromkeys(cfgs, "reuse")
     assert est.estimate(cfgs, everything, tmp_path, 2, measure).startswith("nothing to run")
-    epochs = {"halfcheetah-delta-s0": make_config("halfcheetah", "delta", "locomotion", {"model.iterations": 0})}
+    epochs = {"halfcheetah-delta-s0": loco("delta", **{"model.iterations": 0})}
     text = est.estimate(epochs, {}, tmp_path, None, lambda cfg: (0.1, None))
     assert "| 2.75 (0.1 s a step) | not projected (epochs) | 2.75 |" in text and "wall time" not in text  # Ray
     assert "training by epochs not included; the value fit" in text and "measured eager" not in text
     assert "\n\n1 run, about 2.75 CPU-hours, measured" in text
-    sparse = {"halfcheetah-delta-s0": make_config("halfcheetah", "delta", "locomotion", {"planner.replan_every": 5})}
+    sparse = {"halfcheetah-delta-s0": loco("delta", **{"planner.replan_every": 5})}
     text = est.estimate(sparse, {}, tmp_path, 1, lambda cfg: (0.1, 0.02))  # one plan per 5 env steps: 19,800 plans
     assert "| halfcheetah-delta | 1 | 99,000 | 0.55 (0.1 s a step) | 0.55 (0.02 s a step) | 1.1 |" in text
 

@@ -740,7 +740,7 @@ def test_the_checkpoint_keeps_the_keys_of_before_the_parts_protocol_and_round_tr
         cfg = make_config(env, preset="fast", overrides={"threads": 1, "model.hidden_size": 8})
         run = loop.PETSRun(cfg)
         run.trials_done, run.rows = 2, [{"trial": 0}, {"trial": 1}]
-        torch.rand(3, generator=run.plan_gen)
+        torch.rand(3, generator=run.plan_gen, device=run.plan_gen.device)
         state = run.state_dict()
         assert list(state) == keys + extra
         other = loop.PETSRun(cfg)

@@ -11,6 +11,7 @@ import shlex
 import sys
 
 import numpy as np
+import torch
 
 from pets.runs import rundir
 from tests import warm
@@ -49,7 +50,8 @@ def test_ci_runs_the_readmes_test_command():
 
 def test_the_start_line_states_preset_and_device_and_warns_of_research_on_a_cpu(tmp_path):
     proc = cli("--env", "invertedpendulum", "--trials", 1, "--out", tmp_path / "fast", *TINY)
-    assert f"run directory: {tmp_path / 'fast'} (preset fast on cpu)" in proc.stderr
+    auto = "cuda" if torch.cuda.is_available() else "cpu"  # device auto
+    assert f"run directory: {tmp_path / 'fast'} (preset fast on {auto})" in proc.stderr
     feedback = ["planner.candidates=feedback", "planner.feedback.features=[0,99]", "planner.replan_every=1"]
     proc = cli("--env", "halfcheetah", "--device", "cpu", "--out", tmp_path / "research", *feedback, check=False)
     assert "(preset research on cpu; the PETS papers' planner, slow on a CPU: --preset fast" in proc.stderr

@@ -105,8 +105,9 @@ def test_train_oracle_and_bench_refuse_what_this_machine_cannot_hold_in_one_line
 
 
 def test_the_api_refuses_a_config_too_big_before_allocating():
+    # device=cpu: with auto on a CUDA machine the model is on the GPU, and the refusal names the GPU's memory
     with pytest.raises(ConfigError, match="needs about .* GB of host memory"):
-        pets.PETS("halfcheetah", model="gem", **{"model.hidden_size": 100_000})
+        pets.PETS("halfcheetah", model="gem", device="cpu", **{"model.hidden_size": 100_000})
     with pytest.raises(ConfigError, match="planner.population must be <= "):
         pets.PETS("halfcheetah", **{"planner.population": 10**12})
 
@@ -124,8 +125,9 @@ def test_every_bound_is_above_what_the_presets_use():
 
 
 def test_pets_compare_refuses_runs_that_do_not_fit_at_once_before_any_starts(tmp_path, monkeypatch, capsys):
-    """pets.compare online checks the memory of the runs to do before it starts one (exit 2, one line, no --out),
-    --workers K of them at once: a sweep whose runs fit one by one but not K together is refused too."""
+    """pets.compare online checks the memory of the CPU runs to do before it starts one (exit 2, one line, no --out),
+    --workers K of them at once: a sweep whose runs fit one by one but not K together is refused too. --device cpu:
+    a CUDA run checks the GPU's memory itself as it starts (the sweep's process reads no GPU)."""
     import envs
     from pets.config import make_config
     from pets.experiments.cli import main
@@ -136,7 +138,7 @@ def test_pets_compare_refuses_runs_that_do_not_fit_at_once_before_any_starts(tmp
 
     monkeypatch.setattr("pets.experiments.online.open_backend", no_run)
     args = ["online", "--envs", "halfcheetah", "--models", "delta,gem", "--seeds", "0", "--trials", "2", "--quiet"]
-    args += ["--preset", "research"]
+    args += ["--preset", "research", "--device", "cpu"]
     with pytest.raises(SystemExit) as info:
         main([*args, "--out", str(tmp_path / "big"), "model.hidden_size=100000"])
     err = capsys.readouterr().err
@@ -148,6 +150,7 @@ def test_pets_compare_refuses_runs_that_do_not_fit_at_once_before_any_starts(tmp
     one = sum(n.bytes for n in memory_needs(cfg, spec.obs_dim, spec.act_dim, spec.episode_length))
     monkeypatch.setattr("pets.limits.available_bytes", lambda device: 1.5 * one)  # room for one run, not two
     two = ["online", "--envs", "halfcheetah", "--models", "gem", "--seeds", "0,1", "--trials", "2", "--quiet"]
+    two += ["--device", "cpu"]
     with pytest.raises(SystemExit) as info:
         main([*two, "--preset", "research", "--workers", "2", "--out", str(tmp_path / "two")])
     err = capsys.readouterr().err

@@ -101,8 +101,8 @@ def test_value_from_a_run_plans_with_that_runs_value(tmp_path) -> None:
     record = json.loads(out.read_text())
     assert record["value_from"] == str(run) and record["episodes"][0]["steps"] == 20
     value = oracle._run_value(run, envs.get("invertedpendulum"))
-    weights = torch.load(run / "checkpoint.pt", weights_only=False)["value"]["net.0.weight"]
-    assert torch.equal(value.net[0].weight, weights)
+    weights = torch.load(run / "checkpoint.pt", map_location="cpu", weights_only=False)["value"]["net.0.weight"]
+    assert torch.equal(value.net[0].weight.cpu(), weights)
 
 
 def test_value_from_refuses_what_holds_no_value_of_this_env(tmp_path, capsys) -> None:
@@ -150,3 +150,14 @@ def test_bad_input_exits_2_with_a_clear_message(argv, message, capsys) -> None:
         oracle.main(argv)
     assert exc.value.code == 2
     assert message in capsys.readouterr().err
+
+
+def test_the_memory_check_reads_the_hosts_memory_where_torch_sees_a_gpu(capsys, monkeypatch) -> None:
+    """The oracle plans on the CPU: on a machine with a GPU (device auto is CUDA) its memory check read the GPU's
+    free memory (seen on an H200, 2026-12-01). Here torch.cuda reports a GPU with no free memory."""
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "mem_get_info", lambda *device: (0, 141 * 1024**3))
+    with pytest.raises(SystemExit) as exc:
+        oracle.main(["--env", "reacher", "planner.population=10000000", "planner.horizon=100000"])
+    err = capsys.readouterr().err
+    assert exc.value.code == 2 and "GB of host memory" in err, err

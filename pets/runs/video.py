@@ -67,12 +67,12 @@ class EpisodeRecorder:
     def __init__(self, spec: Any, env: Any, width: int = WIDTH, height: int = HEIGHT) -> None:
         from envs.render import Renderer
 
-        require_video()
         inner = env.unwrapped
         if not (hasattr(inner, "model") and hasattr(inner, "data")):  # what MuJoCo's renderer draws from
-            raise ConfigError(
+            raise ConfigError(  # first: installing imageio would not help
                 f"videos are rendered by MuJoCo; {spec.name} ({spec.gym_id}) is not a MuJoCo env: drop --video"
             )
+        require_video()
         self.spec, self.env = spec, env
         # RenderingUnavailable without GL; no shadows and reflections: ~9 instead of ~63 ms a frame in software
         self.renderer = Renderer(spec, width, height, model=env.unwrapped.model, effects=False)

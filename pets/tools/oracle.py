@@ -212,7 +212,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 f"the key {unused[0]} is not read when planning with the true dynamics; the keys are planner.* and "
                 + ", ".join(ORACLE_KEYS)
             )
-        cfg = make_config(args.env, "delta", args.preset, overrides)
+        cfg = make_config(args.env, "delta", args.preset, {**overrides, "device": "cpu"})  # it plans on the CPU
         spec = envs.get(cfg.env)
         if problem := not_mujoco(spec.make().unwrapped):  # before any work: one line
             raise ConfigError(problem)
