@@ -174,7 +174,7 @@ class PETS:
         from pets.config import ConfigError
         from pets.runs.fileio import DirectoryInUse, locked, new_run_dir_error
 
-        path = Path(path)
+        path = _directory(path, "PETS.save")
         if path.exists() and not path.is_dir():
             raise ConfigError(f"{path} is a file; save to a directory (new, or this run's own)")
         run_files = any((path / f).exists() for f in (rundir.CONFIG_FILE, rundir.CHECKPOINT_FILE))
@@ -210,7 +210,7 @@ class PETS:
         import pets.runs.rundir as rundir
         from pets.config import ConfigError, load_run_config
 
-        path = Path(path)
+        path = _directory(path, "PETS.load")
         cfg = load_run_config(path)
         obj = cls.__new__(cls)
         obj._start(cfg, progress)
@@ -260,4 +260,18 @@ def load_model(path: str | Path, device: str = "cpu") -> DynamicsModel:
     ``model.predict(obs, act)`` and ``model.rollout(obs, actions)`` take numpy arrays or tensors."""
     from pets.builder import load_model as load
 
-    return load(path, device)[2]
+    return load(_directory(path, "pets.load_model"), device)[2]
+
+
+def _directory(path: Any, caller: str) -> Path:
+    """``path`` as a Path: TypeError (one line) for what is not a path, ConfigError for an empty one (it would be the
+    working directory)."""
+    import os
+
+    from pets.config import ConfigError
+
+    if not isinstance(path, str | os.PathLike):
+        raise TypeError(f"{caller} takes a run directory (str or pathlib.Path), got {type(path).__name__} {path!r}")
+    if not os.fspath(path):
+        raise ConfigError(f"{caller} got an empty path; name the run directory")
+    return Path(path)

@@ -109,6 +109,30 @@ def test_save_again_where_it_saved_or_was_loaded_from_is_allowed(tmp_path, train
         trained.save(run)  # the older object would undo that trial
 
 
+def test_a_path_that_is_not_one_is_named_in_one_line_and_nothing_is_written(tmp_path, trained, monkeypatch):
+    """save(None) was "expected str, bytes or os.PathLike object, not NoneType", and save("") wrote into the working
+    directory (or refused it for holding other files)."""
+    monkeypatch.chdir(tmp_path)
+    for bad, kind in ((None, "NoneType None"), (3, "int 3")):
+        for call, name in (
+            (trained.save, "PETS.save"),
+            (pets.PETS.load, "PETS.load"),
+            (pets.load_model, "pets.load_model"),
+        ):
+            with pytest.raises(
+                TypeError, match=f"^{name} takes a run directory \\(str or pathlib.Path\\), got {kind}$"
+            ):
+                call(bad)
+    for call, name in (
+        (trained.save, "PETS.save"),
+        (pets.PETS.load, "PETS.load"),
+        (pets.load_model, "pets.load_model"),
+    ):
+        with pytest.raises(ConfigError, match=f"^{name} got an empty path; name the run directory$"):
+            call("")
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_load_refuses_a_checkpoint_with_nan_in_its_buffer_and_a_missing_checkpoint(tmp_path, trained):
     run = trained.save(tmp_path / "nan")
     state = rundir.load_checkpoint(run)
