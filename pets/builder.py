@@ -19,7 +19,7 @@ from pets.config import ConfigError
 from pets.learning.trainer import ModelTrainer
 from pets.models import make_model
 from pets.planning.feedback import LinearFeedback
-from pets.planning.particles import CANDIDATE_TABLE
+from pets.planning.particles import CANDIDATE_TABLE, OpenLoop
 from pets.planning.planners import PLANNER_CLASSES, Planner
 from pets.planning.propagation import TrajectoryEvaluator, retain_freed_memory
 from pets.planning.value import ValueFunction
@@ -92,7 +92,8 @@ def make_agent(
     warn_if_emulated("planner.precision", p.precision, device)
     if device.type == "cpu":
         retain_freed_memory()
-    feedback = make_feedback(cfg, spec, device)
+    candidates = make_candidates(cfg, spec, device)
+    feedback = candidates.law
     evaluator = TrajectoryEvaluator(
         model,
         spec.reward,
@@ -104,7 +105,7 @@ def make_agent(
         terminal_value=value,
         termination_penalty=p.termination_penalty,
         risk_aversion=p.risk_aversion,
-        feedback=feedback,
+        candidates=candidates,
     )
     planner = make_planner(cfg, spec, device, feedback)
     return MPCAgent(
@@ -121,9 +122,15 @@ def make_agent(
 
 def make_feedback(cfg: DictConfig, spec: EnvSpec, device: torch.device) -> LinearFeedback | None:
     """The law of the config's candidate kind (``planner.candidates=feedback``: pets.planning.feedback), else None."""
+    return make_candidates(cfg, spec, device).law
+
+
+def make_candidates(cfg: DictConfig, spec: EnvSpec, device: torch.device) -> OpenLoop:
+    """The strategy of the config's candidate kind (``planner.candidates``, ``pets.planning.particles``; one of
+    ``register_candidates`` too: its ``build``) with its law (None for action sequences), for the evaluator."""
     kind = cfg.planner.candidates
     try:
-        return CANDIDATE_TABLE[kind].make_law(cfg.planner, spec, device)
+        return CANDIDATE_TABLE[kind].build(cfg.planner, spec, device)
     except ValueError as err:
         raise ConfigError(f"planner.{kind}: {err} ({spec.name} has {spec.obs_dim} observations)") from None
 

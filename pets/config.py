@@ -28,7 +28,7 @@ from pets.imports import import_modules
 from pets.limits import schedule_problem, size_problem
 from pets.models import MODELS, check_model
 from pets.planning.feedback import FeedbackConfig
-from pets.planning.particles import CANDIDATE_TABLE
+from pets.planning.particles import CANDIDATE_TABLE, unknown_candidates
 from pets.planning.planners import PLANNER_CLASSES, ICEMConfig, MPPIConfig, check_planner_config, unknown_planner
 from pets.planning.propagation import CANDIDATES, PROPAGATIONS
 from pets.planning.value import ValueConfig
@@ -97,9 +97,8 @@ class PlannerConfig:
     # k >= 0: a candidate's return is its particles' mean return minus k x their standard deviation (pessimism
     # against the model's spread, docs/planning.md); 0: the mean, as in PETS
     risk_aversion: float = 0.0
-    # The settings of one planner only, planner.<name>.* (used when planner.name is that planner), are added by
-    # schema() from the planner table (pets.planning.planners.PLANNER_CLASSES: each class's `section`)
-    feedback: FeedbackConfig = field(default_factory=FeedbackConfig)
+    # The settings of one planner or candidate kind only, planner.<name>.* (feedback's: planner.feedback.*), are
+    # added by schema() from their tables (PLANNER_CLASSES, CANDIDATE_TABLE: each class's `section`)
     # Speed of the rollouts (docs/performance.md)
     # auto | fp32 | bf16: the ensemble's matmuls under bfloat16 autocast (state, sampling and returns fp32); auto:
     # bf16 where the hardware has native bf16 matmuls (pets.runs.hardware), else fp32, the precise path.
@@ -143,21 +142,24 @@ class Config:
 @cache
 def _schema_class(sections: tuple[tuple[str, type], ...]) -> type:
     """:class:`Config` whose ``planner`` has the fields ``sections`` (name, dataclass) besides the shared ones."""
-    clash = [name for name, _ in sections if name in {item.name for item in fields(PlannerConfig)}]
+    names = [name for name, _ in sections]
+    clash = [name for name in names if name in {item.name for item in fields(PlannerConfig)} or names.count(name) > 1]
     if clash:
-        raise ConfigError(f"planner {clash[0]!r} has a section but planner.{clash[0]} is a shared planner setting")
+        raise ConfigError(f"planner.{clash[0]} is the section of a planner or kind and another setting or section")
     own = [(name, section, field(default_factory=section)) for name, section in sections]
     planner = make_dataclass("PlannerConfig", own, bases=(PlannerConfig,))
     return make_dataclass("Config", [("planner", planner, field(default_factory=planner))], bases=(Config,))
 
 
 def _sections() -> tuple[tuple[str, type], ...]:
-    return tuple((name, cls.section) for name, cls in PLANNER_CLASSES.items() if cls.section is not None)
+    owners = (*PLANNER_CLASSES.items(), *CANDIDATE_TABLE.items())
+    return tuple((name, cls.section) for name, cls in owners if cls.section is not None)
 
 
 def schema() -> DictConfig:
-    """The typed config at its defaults: :class:`Config` with the section ``planner.<name>.*`` of every planner in
-    the table that has one (``pets.planning.planners``: the class's ``section``)."""
+    """The typed config at its defaults: :class:`Config` with the section ``planner.<name>.*`` of every planner and
+    every candidate kind in their tables that has one (``pets.planning.planners``, ``pets.planning.particles``: the
+    class's ``section``)."""
     return OmegaConf.structured(_schema_class(_sections()))
 
 
@@ -429,8 +431,9 @@ def load_config(path: str | Path) -> DictConfig:
     if missing:
         raise ConfigError(f"{path} has no {', '.join(missing)} (truncated?); {restore}")
     import_modules(stored.get("imports", []), where=str(path))  # before its planner, model and codecs are checked
-    if isinstance(stored.planner, DictConfig) and (problem := unknown_planner(stored.planner, schema().planner)):
-        raise ConfigError(f"{path}: {problem}")  # its name, or a section of a planner of one's own
+    planner = stored.planner if isinstance(stored.planner, DictConfig) else {}
+    if problem := unknown_candidates(planner) or unknown_planner(planner, schema().planner):
+        raise ConfigError(f"{path}: {problem}")  # its kind, its planner's name, or a section of a planner of one's own
     try:
         for old, new in DEPRECATED_KEYS.items():  # a config.yaml of gem-pets 0.1 has the flat planner keys
             if OmegaConf.select(stored, old) is not None:

@@ -14,20 +14,22 @@ A mode of one's own is one :func:`register_propagation` call, in a module named 
 A candidate kind (``planner.candidates``, :data:`CANDIDATE_TABLE`) says what a candidate is: :class:`OpenLoop`, an
 action sequence (N, H, act_dim); :class:`FeedbackGains`, the gains (N, rows, act_dim) of a
 :class:`pets.planning.feedback.LinearFeedback` rolled out for its horizon; each kind owns its checks of the
-config (``check_config``), its law (``make_law``) and whether every planner searches it (``searches_actions``).
+config (``check_config``), its law (``make_law``), whether every planner searches it (``searches_actions``) and its
+own settings (``section``: a dataclass, the config's ``planner.<kind>.*``, as a planner's). A kind of one's own is one
+:func:`register_candidates` call, in a module named in the config key ``imports``.
 Both choices are vectorised over all rows: a strategy adds no Python loop and no host synchronisation.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, is_dataclass
 from typing import TYPE_CHECKING, Any, ClassVar
 
 import torch
 from torch import Tensor
 
 from dynamics.model import DynamicsModel
-from pets.planning.feedback import LinearFeedback, check_feedback
+from pets.planning.feedback import FeedbackConfig, LinearFeedback, check_feedback
 
 if TYPE_CHECKING:
     from envs import EnvSpec
@@ -221,6 +223,18 @@ class OpenLoop:
     #: Whether a candidate is an action sequence, which every planner searches (False: the gains of a law, which only
     #: the planners with ``gain_options`` search).
     searches_actions: ClassVar[bool] = True
+    #: The dataclass of this kind's own settings, the config's ``planner.<kind>.*`` (None: none).
+    section: ClassVar[type | None] = None
+    law: LinearFeedback | None = None
+
+    def __init__(self, law: LinearFeedback | None = None) -> None:
+        self.law = law  # what make_law built: None for a kind of action sequences
+
+    @classmethod
+    def build(cls, planner: Any, spec: EnvSpec, device: torch.device) -> OpenLoop:
+        """This kind's strategy for the config's ``planner`` section: ``cls(make_law(...))``; a kind whose rollout
+        reads settings of its own (its ``section``, ``planner.<kind>``) overrides it."""
+        return cls(cls.make_law(planner, spec, device))
 
     @staticmethod
     def check_config(planner: Any) -> None:
@@ -250,6 +264,7 @@ class FeedbackGains(OpenLoop):
     """Candidates are gains (N, rows, act_dim) of the feedback law, each row's action computed from its own state."""
 
     searches_actions = False
+    section = FeedbackConfig
     check_config = staticmethod(check_feedback)
 
     @staticmethod
@@ -288,3 +303,34 @@ class FeedbackGains(OpenLoop):
 
 #: ``planner.candidates``: each kind's strategy class.
 CANDIDATE_TABLE: dict[str, type[OpenLoop]] = {"open_loop": OpenLoop, "feedback": FeedbackGains}
+
+
+def register_candidates(name: str, kind: type[OpenLoop]) -> type[OpenLoop]:
+    """Add ``kind`` to :data:`CANDIDATE_TABLE` under ``name`` (a ``planner.candidates`` value from then on, from a
+    module in the config key ``imports`` too; its ``section``, if any, is ``planner.<name>.*``); returns it.
+    ValueError (one line) for a name that is not an identifier, one another kind holds, or a class that is not an
+    :class:`OpenLoop` (or a subclass) whose ``section`` is None or a dataclass."""
+    if not isinstance(name, str) or not name.isidentifier():
+        raise ValueError(f"a candidate kind's name must be an identifier (a config key), got {name!r}")
+    if not (isinstance(kind, type) and issubclass(kind, OpenLoop)):
+        raise ValueError(f"candidate kind {name!r} must be a subclass of particles.OpenLoop, got {kind!r}")
+    if kind.section is not None and not is_dataclass(kind.section):
+        raise ValueError(f"candidate kind {name!r}: its section must be a dataclass or None, got {kind.section!r}")
+    taken = CANDIDATE_TABLE.get(name)
+    if taken is not None and taken.__qualname__ != kind.__qualname__:  # the same class again: a module re-imported
+        raise ValueError(f"candidate kind {name!r} is taken ({taken.__qualname__}); give yours another name")
+    CANDIDATE_TABLE[name] = kind
+    return kind
+
+
+def unknown_candidates(planner: Any) -> str | None:
+    """What is wrong (from "its candidate kind") where a stored ``planner`` section (a run's config.yaml) names a
+    candidate kind the table lacks; None where it names none (no ``candidates``: ``open_loop``)."""
+    kind = str(planner.get("candidates", "open_loop"))
+    if kind in CANDIDATE_TABLE:
+        return None
+    return (
+        f"its candidate kind {kind!r} is not a kind here (a kind of your own is known where the module that calls "
+        "register_candidates is imported: name that module in the config key imports, e.g. imports=[my_kind]; in a "
+        "run's config.yaml: imports: [my_kind]; docs/api.md)"
+    )

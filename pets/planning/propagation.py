@@ -86,10 +86,9 @@ from pets.runs.hardware import CONCRETE_PRECISIONS as PRECISIONS
 #: a live view of the table, so a mode added by ``register_propagation`` (``imports``) is accepted too.
 PROPAGATIONS = PROPAGATION_TABLE.keys()
 #: ``planner.candidates``: what a planner's candidate is, an action sequence (PETS) or the gains of a linear
-#: feedback law (``pets.planning.feedback``; ``pets.planning.particles``). A snapshot on purpose: the evaluator,
-#: the planner and the agent pick their kind by whether there is a feedback law, so a kind added to the table later
-#: would be accepted by the config and then ignored.
-CANDIDATES = tuple(CANDIDATE_TABLE)
+#: feedback law (``pets.planning.feedback``; ``pets.planning.particles``); a live view of the table, so a kind added
+#: by ``register_candidates`` (``imports``) is accepted too (the evaluator rolls out the kind the builder made).
+CANDIDATES = CANDIDATE_TABLE.keys()
 
 #: ``fn(obs, act, next_obs) -> (...,)`` batched torch reward / termination function.
 TransitionFn = Callable[[Tensor, Tensor, Tensor], Tensor]
@@ -151,6 +150,9 @@ class TrajectoryEvaluator:
     feedback: a :class:`pets.planning.feedback.LinearFeedback`: candidates are then gains (N, rows, act_dim), rolled out
       for ``feedback.horizon`` steps with each particle's action computed from its own predicted state; None:
       candidates are action sequences (N, H, act_dim).
+    candidates: the candidate kind's strategy (an instance of a class of ``pets.planning.particles.CANDIDATE_TABLE``,
+      its law its ``law``), instead of ``feedback``; None: :class:`~pets.planning.particles.FeedbackGains` of
+      ``feedback``, or :class:`~pets.planning.particles.OpenLoop` without one.
     """
 
     def __init__(
@@ -170,7 +172,10 @@ class TrajectoryEvaluator:
         termination_penalty: float = 0.0,
         risk_aversion: float = 0.0,
         feedback: LinearFeedback | None = None,
+        candidates: OpenLoop | None = None,
     ) -> None:
+        if candidates is not None and (feedback is not None or not isinstance(candidates, OpenLoop)):
+            raise ValueError(f"candidates must be a candidate kind (an OpenLoop) without feedback, got {candidates!r}")
         if propagation not in PROPAGATIONS:
             raise ValueError(f"unknown propagation {propagation!r}; accepted: {', '.join(PROPAGATIONS)}")
         if isinstance(particles, bool) or not isinstance(particles, int) or particles < 1:
@@ -200,9 +205,11 @@ class TrajectoryEvaluator:
         if not math.isfinite(risk_aversion) or risk_aversion < 0:
             raise ValueError(f"risk_aversion must be a finite number >= 0, got {risk_aversion!r}")
         self.risk_aversion = float(risk_aversion)
-        self.feedback = feedback
+        if candidates is None:
+            candidates = OpenLoop() if feedback is None else FeedbackGains(feedback)
+        self.feedback = candidates.law
         self._propagation = PROPAGATION_TABLE[propagation]
-        self._candidates = OpenLoop() if feedback is None else FeedbackGains(feedback)
+        self._candidates = candidates
         self._compiled_step: Callable | None = None
         self._compile_failed = False
 
