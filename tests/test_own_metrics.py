@@ -7,6 +7,7 @@ start points, and the evaluation without the metric (the built-in numbers do not
 import csv
 import json
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -221,3 +222,41 @@ def test_a_metric_of_the_wrong_shape_is_named(study, monkeypatch):
         ValueError, match=r"metric 'total_abs_error' \(.*Total\) must return a tensor of shape \(\d+, 3\)"
     ):
         evaluate(run_dir, data, [1, 3], starts=10, device="cpu")
+
+
+def test_a_metric_added_to_the_module_later_re_evaluates_the_runs_without_retraining(study, tmp_path, monkeypatch):
+    """The same imports, the module now registering a second metric: pets.compare offline in the same --out redoes
+    the evaluations (their request names the metrics), not the training, and summarises both."""
+    folder, out, _ = study
+    shutil.copytree(out, tmp_path / "out")
+    (tmp_path / "my_metric.py").write_text(
+        MY_METRIC + "register_metric('sum_abs_error', lambda pred, true, layout: (pred - true).abs().sum(-1))\n"
+    )
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.delitem(sys.modules, "my_metric")  # a new process would import the edited module
+    before = eval_json(tmp_path / "out", 0)
+    result = compare_offline(
+        ["invertedpendulum"],
+        ["delta"],
+        [0, 1],
+        tmp_path / "out",
+        episodes=8,
+        test_episodes=4,
+        horizons=[int(h) for h in HORIZONS],
+        starts=20,
+        preset="fast",
+        device="cpu",
+        overrides=[*TINY_OFFLINE, "imports=[my_metric]"],
+        progress=False,
+    )
+    assert result["failed"] == {} and all(done == ["eval"] for done in result["done"].values()), result["done"]
+    after = eval_json(tmp_path / "out", 0)
+    assert after["request"]["metrics"] == ["max_abs_error", "sum_abs_error"] and before["request"]["metrics"] == [
+        "max_abs_error"
+    ]
+    for h in HORIZONS:
+        assert tuple(after["horizons"][h])[-3:] == ("max_abs_error", "sum_abs_error", "nonfinite_fraction")
+        assert after["horizons"][h]["max_abs_error"] == pytest.approx(before["horizons"][h]["max_abs_error"], rel=1e-6)
+    metrics = {r["metric"] for r in csv_rows(tmp_path / "out" / "summary.csv")}
+    assert {"max_abs_error", "sum_abs_error", "mean_step_error"} <= metrics
