@@ -13,8 +13,10 @@ A metric is a function (or any callable, an instance of a small class too) and o
 ``fn(pred, true, layout)``: the batched rollout ``pred`` and the truth ``true``, float64 tensors of shape
 ``(starts, steps, obs_dim)`` (``pred[:, k - 1]`` the prediction k steps after the start), and the env's
 :class:`envs.layout.ObsLayout`; it returns the error of every (start, step), shape ``(starts, steps)``, and gets
-copies (it may change them in place). The helpers of :mod:`pets.learning.evaluation` take the same arguments
-(``step_errors``, ``entry_differences``, ``rotation_angles``, ``layout_parts``).
+copies (it may change them in place). Keep it finite where the prediction is: pets.compare offline counts a run
+as diverged at a horizon where any value of its evaluation is not finite. The helpers of
+:mod:`pets.learning.evaluation` take the same arguments (``step_errors``, ``entry_differences``,
+``rotation_angles``, ``layout_parts``).
 
 Named in the config key ``imports`` (``imports=[my_metric]`` given to ``pets.train``, ``run_pets.py`` or
 ``pets.compare offline``), the module is imported again wherever the run is loaded, ``pets.evaluate`` included,
