@@ -1,5 +1,6 @@
 """The config key ``imports``: modules imported before a config is checked, where your own planners
-(``register_planner``), models (``register_model``) and group codecs (``register_codec``) register themselves.
+(``register_planner``), models (``register_model``), group codecs (``register_codec``) and error metrics of
+``pets.evaluate`` (``register_metric``) register themselves.
 
 ``imports=[my_planner]`` on the command line (or ``imports=my_planner``, one name), ``imports: [my_planner]`` in a
 ``--config`` file, ``imports=["my_planner"]`` in the Python API. A run's ``config.yaml`` records the list, so

@@ -35,18 +35,19 @@ def env_names_end_with_their_test():
 
 @pytest.fixture(autouse=True)
 def planner_model_and_codec_names_end_with_their_test():
-    """Planners, models, codec kinds, propagation modes and candidate kinds a test registers (``register_planner``,
-    ``register_model``, ``register_codec``, ``register_propagation``, ``register_candidates``, a module of the config
-    key ``imports`` such as tests/own_planner.py or tests/own_codec.py) are gone after it, and a module imported by
-    the test that registered them is forgotten (a later ``imports`` of it registers them again): no test sees
-    another's names."""
+    """Planners, models, codec kinds, propagation modes, candidate kinds and error metrics a test registers
+    (``register_planner``, ``register_model``, ``register_codec``, ``register_propagation``, ``register_candidates``,
+    ``register_metric``, a module of the config key ``imports`` such as tests/own_planner.py or tests/own_codec.py)
+    are gone after it, and a module imported by the test that registered them is forgotten (a later ``imports`` of
+    it registers them again): no test sees another's names."""
     from envs.layout import KIND_WIDTH
     from gem_head.codecs import _ADDED_KINDS, CODECS
+    from pets.learning.error_metrics import METRIC_TABLE
     from pets.models import MODELS
     from pets.planning.particles import CANDIDATE_TABLE, PROPAGATION_TABLE
     from pets.planning.planners import PLANNER_CLASSES
 
-    tables = (PLANNER_CLASSES, MODELS, CODECS, KIND_WIDTH, PROPAGATION_TABLE, CANDIDATE_TABLE)
+    tables = (PLANNER_CLASSES, MODELS, CODECS, KIND_WIDTH, PROPAGATION_TABLE, CANDIDATE_TABLE, METRIC_TABLE)
     before, added, modules = [dict(table) for table in tables], set(_ADDED_KINDS), set(sys.modules)
     yield
     registered = any(table.keys() != old.keys() for table, old in zip(tables, before, strict=True))

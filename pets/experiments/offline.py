@@ -53,6 +53,7 @@ from pets.experiments.offline_summary import summarise_offline
 from pets.experiments.rundirs import NOT_COMPARED, check_out_writable, left_to_auto, run_name
 from pets.experiments.runner import open_backend, sweep_lock
 from pets.experiments.studies.planning import summarise_openloop
+from pets.learning.error_metrics import own_metric_names
 
 #: Seed of the start points of the prediction-error evaluation (the same for every model and seed).
 EVAL_SEED = 0
@@ -329,8 +330,8 @@ def _requests(
     planner_overrides: Mapping[str, str] | None = None,
 ) -> dict[str, dict[str, Any]]:
     """What a run's eval.json, openloop_PLANNER.json and closedloop_PLANNER.json must have been made with:
-    ``{"eval", "openloop", "closedloop"}`` (the planner overrides only where given, so that results made without
-    them still match)."""
+    ``{"eval", "openloop", "closedloop"}`` (the planner overrides and the error metrics of one's own only where
+    given, so that results made without them still match)."""
     eval_request = {
         "horizons": sorted(set(int(h) for h in horizons)),
         "starts": starts,
@@ -339,6 +340,7 @@ def _requests(
         # standardized_error is scaled by the training data's observation std (eval.json files from before
         # this key was added standardized by the test data, without the per-part errors: they are redone)
         "standardized_by": "train data",
+        **({"metrics": list(own)} if (own := own_metric_names()) else {}),  # one's own (imports): redone without
     }
     planning = {"overrides": dict(planner_overrides)} if planner_overrides else {}
     openloop_request = {"steps": openloop_steps, "episodes": openloop_episodes, "seed": OPENLOOP_SEED, **planning}

@@ -37,7 +37,8 @@ Step-wise errors (:func:`step_errors`, the same for every head) of a prediction 
 Per horizon h: ``mean_step_error`` = mean over starts and over k = 1..h of ``e_k`` (the paper's average
 step-wise error), ``final_step_error`` = mean over starts of ``e_h``; ``translation_error``,
 ``rotation_error``, ``velocity_error``, ``other_error``, ``derived_error``, ``standardized_error`` = the same
-average as ``mean_step_error`` of each; ``nonfinite_fraction``: the share of (start, step) pairs whose
+average as ``mean_step_error`` of each (so is a metric of one's own: :func:`register_metric`,
+:mod:`pets.learning.error_metrics`); ``nonfinite_fraction``: the share of (start, step) pairs whose
 prediction is not finite (a diverging model: those make the averages inf/NaN, reported as such, never hidden).
 """
 
@@ -51,6 +52,13 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from pets.data.datasets import env_name, load_dataset
+from pets.learning.error_metrics import (  # noqa: F401 (register_metric: a metric of one's own)
+    HORIZON_KEYS,
+    METRICS,
+    PARTS,
+    own_step_errors,
+    register_metric,
+)
 
 if TYPE_CHECKING:
     from torch import Tensor
@@ -61,17 +69,8 @@ PROG = "pets.evaluate"
 DEFAULT_HORIZONS = (1, 5, 10, 25, 50)
 DEFAULT_STARTS = 1000
 MODES = ("mean", "sample")
-#: The parts of an observation that get an error of their own (:func:`layout_parts`).
-PARTS = ("translation", "rotation", "velocity", "other", "derived")
-#: The error metrics per horizon (JSON keys, and the columns of the text table).
-METRICS = (
-    "mean_step_error",
-    "final_step_error",
-    *(f"{part}_error" for part in PARTS),
-    "standardized_error",
-)
-#: Every key of a horizon's JSON entry.
-HORIZON_KEYS = (*METRICS, "nonfinite_fraction")
+# PARTS, METRICS (the built-in ones) and HORIZON_KEYS: pets.learning.error_metrics (a registered metric's key comes
+# after the built-in metrics, before nonfinite_fraction)
 #: Standard deviations below this count as 1 in ``standardized_error`` (constant entries of the training data).
 MIN_STD = 1e-8
 
@@ -347,6 +346,7 @@ def evaluate_loaded(inputs: Mapping[str, Any], seed: int = 0, log: Any = None) -
     pred = pred.double()  # (K, H, obs_dim)
     errs = step_errors(pred, true_obs[:, 1:], spec.layout, inputs["obs_std"])  # each (K, H)
     finite = torch.isfinite(pred).all(dim=-1)
+    own = own_step_errors(pred, true_obs[:, 1:], spec.layout)  # the registered metrics, each (K, H)
 
     results: dict[str, dict[str, float]] = {}
     for h in horizons:
@@ -356,6 +356,8 @@ def evaluate_loaded(inputs: Mapping[str, Any], seed: int = 0, log: Any = None) -
         }
         for part in (*PARTS, "standardized"):
             row[f"{part}_error"] = float(errs[part][:, :h].mean())
+        for name, err in own.items():
+            row[name] = float(err[:, :h].mean())
         row["nonfinite_fraction"] = float((~finite[:, :h]).double().mean())
         results[str(h)] = row
     return {
@@ -374,12 +376,14 @@ def evaluate_loaded(inputs: Mapping[str, Any], seed: int = 0, log: Any = None) -
 
 
 def format_table(result: Mapping[str, Any]) -> str:
-    """The per-horizon errors as a fixed-width text table."""
-    widths = [max(12, len(m)) for m in METRICS]
-    head = f"{'horizon':>7}  " + "  ".join(f"{m:>{w}}" for m, w in zip(METRICS, widths))
+    """The per-horizon errors as a fixed-width text table: the built-in metrics, then the registered ones."""
+    first = next(iter(result["horizons"].values()), {})
+    names = (*METRICS, *(k for k in first if k not in HORIZON_KEYS))
+    widths = [max(12, len(m)) for m in names]
+    head = f"{'horizon':>7}  " + "  ".join(f"{m:>{w}}" for m, w in zip(names, widths))
     lines = [f"{result['env']} / {result['model']} / {result['mode']} / {result['starts']} starts", head]
     for h, row in result["horizons"].items():
-        lines.append(f"{h:>7}  " + "  ".join(f"{row[m]:>{w}.6g}" for m, w in zip(METRICS, widths)))
+        lines.append(f"{h:>7}  " + "  ".join(f"{row[m]:>{w}.6g}" for m, w in zip(names, widths)))
     return "\n".join(lines)
 
 
