@@ -44,6 +44,24 @@ register_metric("max_abs_error", max_abs_error)
 """
 
 
+def _tiny_study(out: Path) -> dict:
+    """pets.compare offline of delta, seeds 0 and 1, on a tiny InvertedPendulum data set, importing my_metric."""
+    return compare_offline(
+        ["invertedpendulum"],
+        ["delta"],
+        [0, 1],
+        out,
+        episodes=8,
+        test_episodes=4,
+        horizons=[int(h) for h in HORIZONS],
+        starts=20,
+        preset="fast",
+        device="cpu",
+        overrides=[*TINY_OFFLINE, "imports=[my_metric]"],
+        progress=False,
+    )
+
+
 @pytest.fixture(scope="module")
 def study(tmp_path_factory):
     """pets.compare offline of delta, seeds 0 and 1, with imports=[my_metric] (my_metric.py in the user's folder,
@@ -54,20 +72,7 @@ def study(tmp_path_factory):
     with pytest.MonkeyPatch.context() as mp:
         mp.chdir(folder)
         mp.syspath_prepend(str(folder))
-        result = compare_offline(
-            ["invertedpendulum"],
-            ["delta"],
-            [0, 1],
-            folder / "out",
-            episodes=8,
-            test_episodes=4,
-            horizons=[int(h) for h in HORIZONS],
-            starts=20,
-            preset="fast",
-            device="cpu",
-            overrides=[*TINY_OFFLINE, "imports=[my_metric]"],
-            progress=False,
-        )
+        result = _tiny_study(folder / "out")
         yield folder, folder / "out", result
     error_metrics.METRIC_TABLE.clear()
     error_metrics.METRIC_TABLE.update(before)
@@ -236,20 +241,7 @@ def test_a_metric_added_to_the_module_later_re_evaluates_the_runs_without_retrai
     monkeypatch.syspath_prepend(str(tmp_path))
     monkeypatch.delitem(sys.modules, "my_metric")  # a new process would import the edited module
     before = eval_json(tmp_path / "out", 0)
-    result = compare_offline(
-        ["invertedpendulum"],
-        ["delta"],
-        [0, 1],
-        tmp_path / "out",
-        episodes=8,
-        test_episodes=4,
-        horizons=[int(h) for h in HORIZONS],
-        starts=20,
-        preset="fast",
-        device="cpu",
-        overrides=[*TINY_OFFLINE, "imports=[my_metric]"],
-        progress=False,
-    )
+    result = _tiny_study(tmp_path / "out")
     assert result["failed"] == {} and all(done == ["eval"] for done in result["done"].values()), result["done"]
     after = eval_json(tmp_path / "out", 0)
     assert after["request"]["metrics"] == ["max_abs_error", "sum_abs_error"] and before["request"]["metrics"] == [
