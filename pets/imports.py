@@ -107,3 +107,10 @@ def _import(name: str) -> None:
             f"imports: importing {name!r} failed ({type(err).__name__}: {_line(err)}); fix the module, or drop it "
             "from imports"
         ) from None
+
+
+def definition(obj: Any) -> str:
+    """Where ``obj`` (a class or a function; an instance: its class) is defined, ``module.qualname``: a module of
+    ``imports`` imported again registers the same definition again, as new objects, which a table accepts."""
+    owner = obj if hasattr(obj, "__qualname__") else type(obj)
+    return f"{getattr(owner, '__module__', '')}.{getattr(owner, '__qualname__', '')}"

@@ -154,7 +154,13 @@ def test_a_taken_name_or_a_class_that_is_not_a_kind_is_refused() -> None:
     with pytest.raises(ValueError, match=r"its section must be a dataclass or None"):
         register_candidates("mine", Mine)
     assert register_candidates("feedback", FeedbackGains) is FeedbackGains  # the same class again: a re-import
-    assert tuple(CANDIDATE_TABLE) == ("open_loop", "feedback")
+    Mine.section = None
+    again = type("Mine", (OpenLoop,), {"__module__": Mine.__module__, "__qualname__": Mine.__qualname__})
+    assert register_candidates("mine", Mine) is Mine and register_candidates("mine", again) is again  # re-imported
+    other = type("Mine", (OpenLoop,), {"__module__": "my_other_kinds", "__qualname__": Mine.__qualname__})
+    with pytest.raises(ValueError, match=r"^candidate kind 'mine' is taken \(.*Mine\)"):  # another module's Mine
+        register_candidates("mine", other)
+    assert tuple(CANDIDATE_TABLE) == ("open_loop", "feedback", "mine")
 
 
 @pytest.mark.parametrize("name", ["horizon", "mppi"])

@@ -31,6 +31,8 @@ import re
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
+from pets.imports import definition
+
 if TYPE_CHECKING:
     from torch import Tensor
 
@@ -55,12 +57,6 @@ METRIC_TABLE: dict[str, MetricFn] = {}
 _NAME = re.compile(r"[a-z][a-z0-9_]*_error")
 
 
-def _origin(fn: object) -> tuple[str, str]:
-    """Where a metric was defined: its module and name (a class's, for an instance of one)."""
-    owner = fn if hasattr(fn, "__qualname__") else type(fn)
-    return str(getattr(owner, "__module__", "")), str(getattr(owner, "__qualname__", ""))
-
-
 def register_metric(name: str, fn: MetricFn) -> MetricFn:
     """Add the error metric ``fn`` under ``name`` (its ``eval.json`` key and table column; see the module
     docstring); returns ``fn``. ValueError (one line) for a name that is not lower-case letters, digits and
@@ -77,9 +73,8 @@ def register_metric(name: str, fn: MetricFn) -> MetricFn:
     if not callable(fn):
         raise ValueError(f"metric {name!r} must be a callable fn(pred, true, layout), got {fn!r}")
     taken = METRIC_TABLE.get(name)
-    if taken is not None and _origin(taken) != _origin(fn):
-        where = ".".join(_origin(taken))
-        raise ValueError(f"metric name {name!r} is taken (registered by {where}); give yours another name")
+    if taken is not None and definition(taken) != definition(fn):
+        raise ValueError(f"metric name {name!r} is taken (registered by {definition(taken)}); give yours another name")
     METRIC_TABLE[name] = fn
     return fn
 
@@ -101,7 +96,7 @@ def own_step_errors(pred: Tensor, true: Tensor, layout: ObsLayout) -> dict[str, 
         if not isinstance(value, torch.Tensor) or tuple(value.shape) != tuple(pred.shape[:-1]):
             got = tuple(value.shape) if isinstance(value, torch.Tensor) else type(value).__name__
             raise ValueError(
-                f"metric {name!r} ({'.'.join(_origin(fn))}) must return a tensor of shape {tuple(pred.shape[:-1])} "
+                f"metric {name!r} ({definition(fn)}) must return a tensor of shape {tuple(pred.shape[:-1])} "
                 f"(one error per start and step), got {got}"
             )
         errors[name] = value.to(torch.float64)

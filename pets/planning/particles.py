@@ -29,6 +29,7 @@ import torch
 from torch import Tensor
 
 from dynamics.model import DynamicsModel
+from pets.imports import definition
 from pets.planning.feedback import FeedbackConfig, LinearFeedback, check_feedback
 
 if TYPE_CHECKING:
@@ -196,8 +197,8 @@ PROPAGATION_TABLE: dict[str, Propagation] = {
 
 
 def _parts(propagation: Propagation) -> tuple[str, str]:
-    """The names of a mode's strategy classes."""
-    return type(propagation.layout).__qualname__, type(propagation.noise).__qualname__
+    """Where a mode's strategies are defined (:func:`pets.imports.definition`)."""
+    return definition(propagation.layout), definition(propagation.noise)
 
 
 def register_propagation(name: str, propagation: Propagation) -> Propagation:
@@ -212,7 +213,8 @@ def register_propagation(name: str, propagation: Propagation) -> Propagation:
         raise ValueError(f"propagation {name!r} must be a Propagation(RowLayout, Noise), got {propagation!r}")
     taken = PROPAGATION_TABLE.get(name)
     if taken is not None and _parts(taken) != _parts(propagation):  # the same strategies again: a module re-imported
-        raise ValueError(f"propagation name {name!r} is taken ({', '.join(_parts(taken))}); give yours another name")
+        names = ", ".join(type(part).__qualname__ for part in (taken.layout, taken.noise))
+        raise ValueError(f"propagation name {name!r} is taken ({names}); give yours another name")
     PROPAGATION_TABLE[name] = propagation
     return propagation
 
@@ -317,7 +319,7 @@ def register_candidates(name: str, kind: type[OpenLoop]) -> type[OpenLoop]:
     if kind.section is not None and not is_dataclass(kind.section):
         raise ValueError(f"candidate kind {name!r}: its section must be a dataclass or None, got {kind.section!r}")
     taken = CANDIDATE_TABLE.get(name)
-    if taken is not None and taken.__qualname__ != kind.__qualname__:  # the same class again: a module re-imported
+    if taken is not None and definition(taken) != definition(kind):  # the same class again: a module re-imported
         raise ValueError(f"candidate kind {name!r} is taken ({taken.__qualname__}); give yours another name")
     CANDIDATE_TABLE[name] = kind
     return kind
