@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # CUDA check of gem-se (issue 32): the gem-se and codec tests on every device, training and evaluation on DEV and
 # on the CPU, and two short online runs on DEV. DEV=cuda (default) or cpu for a dry run. On a machine without the
-# project installed, wheels in .whl/ are installed into /tmp/site first (docs/performance.md, "gem-se on CUDA").
+# project installed, wheels in .whl/ are installed first (cuda_check_setup.sh) (docs/performance.md, "gem-se on CUDA").
 source "$(dirname "$0")/cuda_check_setup.sh"
 echo "== pytest (gem-se, codecs: every device; propagation -k cuda)"
 timeout 200 python3 -m pytest -q -p no:cacheprovider tests/test_gem_se.py tests/test_gem_codecs.py 2>&1 | tail -4

@@ -3,7 +3,7 @@
 # locomotion-preset runs (2,500 env steps: the random seed episodes, two trainings, ~1,500 planned steps) on DEV
 # and on the CPU side by side: Ant at pilot v8's settings (horizon 10, no value, risk aversion 1) and HalfCheetah
 # with gem at the preset (terminal value on). DEV=cuda (default) or cpu for a dry run. On a machine without the
-# project installed, wheels in .whl/ are installed into /tmp/site first (docs/performance.md). STEPS (2500) and
+# project installed, wheels in .whl/ are installed first (cuda_check_setup.sh) (docs/performance.md). STEPS (2500) and
 # PYTEST (1; 0 skips the tests) shorten a dry run.
 STEPS=${STEPS:-2500}
 source "$(dirname "$0")/cuda_check_setup.sh"

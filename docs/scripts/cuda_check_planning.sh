@@ -2,7 +2,7 @@
 # CUDA check of planning with a pre-trained model (issue 38): the planner tests on every device, then open-loop and
 # closed-loop planning with frozen models trained on a CPU (RUNS: run directories with checkpoint.pt and
 # config.yaml), on DEV and on the CPU, the same seed. DEV=cuda (default) or cpu for a dry run. On a machine without
-# the project installed, wheels in .whl/ are installed into /tmp/site first (docs/performance.md).
+# the project installed, wheels in .whl/ are installed first (cuda_check_setup.sh) (docs/performance.md).
 source "$(dirname "$0")/cuda_check_setup.sh"
 RUNS=${RUNS:-results/gpucheck}
 FAST="planner.population=100 planner.particles=5 planner.horizon=15 planner.iterations=3 planner.elites=0.1"

@@ -4,10 +4,8 @@
 # paths end to end: the memory check with the GPU's real free memory, `pets.bench --device cuda` naming the GPU, and a
 # short run on CUDA resumed after SIGTERM. Without Ray there (tests/test_ray.py is left out) and without imageio's
 # ffmpeg plugin (the one MP4 test is left out). EGL's libraries from .gl/ are unpacked first where present (the
-# device README). The wheels of .whl/ go into the interpreter's own environment too: tests that start a process
-# with a PYTHONPATH of their own (your env's folder) would not see /tmp/site. WORKERS (14), SUITE_S (300), TESTS
-# (tests) and DIST (loadfile) size the pytest run (PYTEST=0 skips it); E2E=0 skips the rest; DEV=cpu: a dry run.
-[ -d .whl ] && [ "${DEV:-cuda}" = cuda ] && python3 -m pip install -q --no-index --no-deps --no-compile .whl/*.whl
+# device README). WORKERS (14), SUITE_S (300), TESTS (tests) and DIST (loadfile) size the pytest run (PYTEST=0
+# skips it); E2E=0 skips the rest; DEV=cpu: a dry run.
 source "$(dirname "$0")/cuda_check_setup.sh"
 if [ -d .gl ]; then for f in .gl/*.deb; do dpkg -x "$f" /; done; ldconfig; fi
 export MUJOCO_GL=egl
