@@ -130,6 +130,37 @@ def test_every_committed_result_is_generated_raw_or_excluded_with_its_reason() -
     assert all((ROOT / p).exists() for p in declared), sorted(p for p in declared if not (ROOT / p).exists())
 
 
+def test_every_study_unit_is_in_the_one_table_and_report_reads_all_of_it() -> None:
+    """A study declares what it publishes in its own module (``PUBLICATION``); every such unit is in
+    :data:`published.PUBLICATIONS`, and report makes, reads and checks each unit's products, rows, blocks and pages."""
+    import importlib
+
+    package = ROOT / "pets" / "experiments"
+    declaring = [
+        ".".join(path.relative_to(ROOT).with_suffix("").parts)
+        for path in sorted(package.rglob("*.py"))
+        if "\nPUBLICATION = Publication(" in path.read_text()
+    ]
+    assert len(declaring) >= 3, declaring  # the gate, the online locomotion and the composition studies at least
+    for name in declaring:
+        assert importlib.import_module(name).PUBLICATION in published.PUBLICATIONS, f"{name}: not in PUBLICATIONS"
+    for unit in published.PUBLICATIONS:
+        assert all(p in published.PRODUCTS for p in unit.products), unit.name
+        assert set(unit.raw) <= set(published.RAW) and set(unit.not_generated) <= set(published.NOT_GENERATED)
+        assert all(regenerate.BLOCKS[name] is render for name, render in unit.blocks.items()), unit.name
+        assert set(unit.pages) <= set(regenerate.BLOCK_FILES), unit.name
+    names = [unit.name for unit in published.PUBLICATIONS]
+    assert len(set(names)) == len(names), names
+
+
+def test_a_block_name_declared_by_two_studies_is_refused() -> None:
+    from pets.experiments.publication import Publication
+
+    twin = Publication("twin", blocks={"composition": lambda tree: ""})
+    with pytest.raises(ValueError, match="composition of the study 'twin' are declared twice"):
+        regenerate.declared_blocks([*published.PUBLICATIONS, twin])
+
+
 def test_report_refuses_a_root_without_results(tmp_path, capsys) -> None:
     with pytest.raises(SystemExit) as exc:
         main(["report", "--check", "--root", str(tmp_path)])

@@ -17,7 +17,8 @@ import numpy as np
 import envs
 from pets.experiments import gate
 from pets.experiments.curves import Curves, complete_curves, group_curves, plot_curves
-from pets.experiments.report import csv_number, fmt, md_table, read_csv_rows
+from pets.experiments.publication import FIGURES, Product, Publication, results_path
+from pets.experiments.report import csv_number, fmt, md_table, read_csv_rows, write_rounded_csv
 from pets.presets import PRESETS
 
 RESULTS = Path("docs") / "results"
@@ -266,3 +267,64 @@ def write_figures(results: Path, figures: Path) -> None:
     pilots = group_curves(read_csv_rows(results / "locomotion_pilots_curves.csv"), "run", "run")
     plot_curves(figures / "locomotion_pilots.png", pilots, thresholds=gate.THRESHOLDS, ceiling=ceil,
                 ylabel=f"return, last {gate.WINDOW} episodes")  # fmt: skip
+
+
+def write_summary(results: Path, figures: Path) -> None:
+    """``locomotion_gate_summary.csv`` (the verdict per env) from ``locomotion_gate_runs.csv`` (one row per run,
+    ``python -m pets.experiments.gate RUN_DIR ... --out docs/results/locomotion_gate``), and the figures."""
+    rows = read_csv_rows(results / "locomotion_gate_runs.csv")
+    write_rounded_csv(results / "locomotion_gate_summary.csv", gate.summary_rows(rows), gate.SUMMARY_COLUMNS)
+    write_figures(results, figures)
+
+
+#: The gate's committed rows: its runs and curves, the pilots (and the ablation's runs among them), the
+#: true-dynamics episodes, mbrl-lib's runs beside it and the diagnosis files (docs/studies/locomotion_gate.md).
+RAW = tuple(
+    results_path(name)
+    for name in (
+        *("locomotion_pilots.csv", "locomotion_oracle.csv", "locomotion_episode_ends.csv"),
+        *("locomotion_gate_runs.csv", "locomotion_gate_curves.csv"),
+        *(f"peer_gate_halfcheetah_s{seed}.csv" for seed in range(3)),
+        *("locomotion_pilots_curves.csv", "locomotion_cost_breakdown.csv", "locomotion_frozen_planning.csv"),
+        *("locomotion_reward_prediction.csv", "locomotion_fall_prediction.csv"),
+    )
+)
+#: What the gate publishes (:mod:`pets.experiments.publication`).
+PUBLICATION = Publication(
+    "locomotion gate",
+    raw=RAW,
+    products=(
+        Product(
+            "locomotion gate summary and figures",
+            (
+                results_path("locomotion_gate_summary.csv"),
+                f"{FIGURES}/locomotion_gate.png",
+                f"{FIGURES}/locomotion_pilots.png",
+            ),  # fmt: skip
+            tuple(
+                results_path(n)
+                for n in (
+                    "locomotion_gate_runs.csv",
+                    "locomotion_gate_curves.csv",
+                    "locomotion_pilots_curves.csv",
+                    "locomotion_oracle.csv",
+                )
+            ),  # fmt: skip
+            lambda: write_summary(RESULTS, Path(FIGURES)),
+        ),
+    ),
+    blocks={
+        "locomotion-oracle": oracle_table,
+        "locomotion-pilots": pilots_table,
+        "locomotion-episode-ends": episode_ends_table,
+        "locomotion-frozen-planning": frozen_planning_table,
+        "locomotion-fall-prediction": fall_prediction_table,
+        "locomotion-reward-prediction": reward_prediction_table,
+        "locomotion-gate": gate_table,
+        "locomotion-ablation": ablation_table,
+        "locomotion-peer": peer_table,
+        "locomotion-compute": compute_table,
+        "locomotion-cost": cost_table,
+    },
+    pages=("docs/studies/locomotion_gate.md",),
+)

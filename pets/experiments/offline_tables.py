@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pets.experiments.published import RESULTS
+from pets.experiments.publication import RESULTS
 from pets.experiments.report import csv_number, fmt, fmt_interval, md_table, read_csv_rows
 from pets.experiments.statistics import BASELINE
 from pets.experiments.studies.offline import INTERVAL, N_DIVERGED, N_SEEDS, P_EXACT, RATIO, STUDY

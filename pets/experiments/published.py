@@ -1,7 +1,11 @@
-"""What ``pets.compare report`` publishes: every generated file under docs/ with the committed per-seed rows it is
-made from and the code that makes it (:data:`PRODUCTS`), the committed per-seed data (:data:`RAW`), and the
-committed summaries it does not make, each with its reason (:data:`NOT_GENERATED`). Paths are relative to the
-repository root; the products run with that root (or a copy of its docs/results) as the working directory.
+"""What ``pets.compare report`` publishes: the one table of the studies' units (:data:`PUBLICATIONS`, each a
+:class:`pets.experiments.publication.Publication`: a study's committed per-seed rows, the files made from them, the
+doc blocks rendered from those and the committed summaries it does not make, each with why), and the units of the
+studies made before a study declared its own in its module (the offline, online and planning studies, the
+headline). Everything report makes and checks is read from :data:`PUBLICATIONS`: :data:`PRODUCTS`, :data:`RAW`,
+:data:`NOT_GENERATED` and (in :mod:`pets.experiments.regenerate`) the blocks. A new study declares ``PUBLICATION``
+in its own module and adds one line to :data:`PUBLICATIONS`. Paths are relative to the repository root; the
+products run with that root (or a copy of its docs/results) as the working directory.
 
 The code is the code that made the committed files: :func:`pets.experiments.studies.offline.summary_from_runs`
 (``docs/scripts/resummarise_offline.py``), :func:`pets.experiments.studies.primary.write_primary_files`
@@ -12,15 +16,19 @@ The code is the code that made the committed files: :func:`pets.experiments.stud
 from __future__ import annotations
 
 import csv
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+import functools
+from collections.abc import Sequence
 from pathlib import Path
 
-from pets.experiments.report import read_csv_rows, write_rounded_csv
+from pets.experiments import gate_published, offline_tables
+from pets.experiments.publication import RESULTS, Product, Publication
+from pets.experiments.report import read_csv_rows
+from pets.experiments.studies import composition, locomotion
+from pets.experiments.studies.online import study_table
 from pets.experiments.studies.planning import ENVS as PLANNING_ENVS
+from pets.experiments.studies.planning import planning_table
 from pets.experiments.studies.primary import DEFAULT_LEVEL, DEFAULT_SOURCE
 
-RESULTS = "docs/results"
 #: The no-information level of each env's data set, computed from the data sets (not in the repository) by the
 #: studies that made them anew (``primary.csv``'s ``level``; InvertedPendulum's also for its original study).
 DATA_LEVELS = {
@@ -50,16 +58,6 @@ ONLINE = (
     "time_to_solve_ip_compiled",
     "time_to_solve_reacher_compiled",
 )
-
-
-@dataclass(frozen=True)
-class Product:
-    """Files ``outputs`` that ``make()`` writes (relative to the working directory) from committed ``inputs``."""
-
-    name: str
-    outputs: tuple[str, ...]
-    inputs: tuple[str, ...]
-    make: Callable[[], None]
 
 
 def _path(name: str) -> str:
@@ -192,53 +190,6 @@ def _online_summary(study: str) -> Product:
     return Product(f"online summary {study}", (out,), (runs,), make)
 
 
-def _gate_summary() -> Product:
-    """``locomotion_gate_summary.csv`` (the verdict per env) from ``locomotion_gate_runs.csv`` (one row per run,
-    ``python -m pets.experiments.gate RUN_DIR ... --out docs/results/locomotion_gate``), and the gate's and the
-    pilots' figures from their committed curve rows."""
-    runs, out = _path("locomotion_gate_runs.csv"), _path("locomotion_gate_summary.csv")
-    curves = (
-        _path("locomotion_gate_curves.csv"),
-        _path("locomotion_pilots_curves.csv"),
-        _path("locomotion_oracle.csv"),
-    )
-    figures = ("docs/figures/locomotion_gate.png", "docs/figures/locomotion_pilots.png")
-
-    def make() -> None:
-        from pets.experiments import gate, gate_published
-
-        write_rounded_csv(Path(out), gate.summary_rows(read_csv_rows(runs)), gate.SUMMARY_COLUMNS)
-        gate_published.write_figures(Path(RESULTS), Path("docs/figures"))
-
-    return Product("locomotion gate summary and figures", (out, *figures), (runs, *curves), make)
-
-
-def _locomotion_summary() -> Product:
-    """The online locomotion study's summary and secondary comparisons from its committed run rows."""
-    from pets.experiments.studies import locomotion
-
-    runs = _path(locomotion.RUNS)
-
-    def make() -> None:
-        locomotion.write_summary(Path(RESULTS))
-
-    outputs = (_path(locomotion.SUMMARY), _path(locomotion.VERSUS), str(locomotion.FIGURE))
-    inputs = (runs, _path(locomotion.CURVES), _path("locomotion_oracle.csv"))
-    return Product("online locomotion summary", outputs, inputs, make)
-
-
-def _composition() -> Product:
-    """The composition study's summary, primary family, secondary endpoints and figure from its committed runs and
-    data sets' levels (:mod:`pets.experiments.studies.composition`)."""
-    from pets.experiments.studies import composition
-
-    def make() -> None:
-        composition.write_products(Path(RESULTS), Path("docs/figures"))
-
-    outputs = (*(_path(n) for n in composition.OUTPUTS), f"docs/figures/{composition.FIGURE}")
-    return Product("composition study", outputs, (_path(composition.RUNS), _path(composition.LEVELS)), make)
-
-
 def _headline() -> Product:
     """docs/results/headline (``pets.compare headline`` with docs/results.md's command) and its figures."""
     offline = [_path(f"paper_{e}_summary.csv") for e in ORIGINAL]
@@ -269,107 +220,134 @@ def _headline() -> Product:
     return Product("headline", outputs, inputs, make)
 
 
-#: Every generated file, in the order they are made (a product's inputs are made before it).
-PRODUCTS: tuple[Product, ...] = (
-    *(_offline_summary(e, data_levels=False) for e in ORIGINAL),
-    _own_comparison(),
-    _offline_summary("data3", data_levels=True),
-    _per_data_set(),
-    _offline_summary("50k", data_levels=True),
-    _offline_summary("gemse_partial", data_levels=True, relative=False),
-    _primary("offline_primary_gem", PRIMARY_ORDER, data_levels=False, models={"gem"}),
-    _primary("offline_primary_all_arms", PRIMARY_ORDER, data_levels=False),
-    _primary("paper_data3_primary", ["data3"], data_levels=True, past_level="paper_data3_past_level.csv"),
-    _primary("paper_50k_primary", ["50k"], data_levels=True, past_level="paper_50k_past_level.csv"),
-    _primary("paper_gemse_primary", ["gemse"], data_levels=True, versus="paper_gemse_primary_versus.csv"),
-    _primary("paper_ip_primary", ["ip"], data_levels=True, primary="", past_level="paper_ip_past_level.csv"),
-    _primary(
-        "paper_gemse_partial_primary",
-        ["gemse_partial"],
-        data_levels=True,
-        past_level="",
-        versus="paper_gemse_partial_versus.csv",
-    ),
-    *(_online_summary(s) for s in ONLINE),
-    _headline(),
-    _gate_summary(),
-    _locomotion_summary(),
-    _composition(),
-)
-
 _CRLF = "written with CRLF line ends by the CSV writer of its date; today's code gives the same values with LF ends"
 _PLANNING = (
     "the planning study's per-seed results (open and closed loop) are not committed, only its summaries, so they "
     "cannot be regenerated (and its p-values not recomputed) from docs/results"
 )
-#: Committed summaries report does not make, each with why (``report --check`` names them, never skips silently).
-NOT_GENERATED: dict[str, str] = {
-    **{
-        _path(f"{kind}_{e}{ext}"): _PLANNING
-        for kind in ("openloop", "planning")
-        for e in PLANNING_ENVS
-        for ext in (".md", "_summary.csv")
-    },  # fmt: skip
-    _path("planning_walker2d_cem.md"): _PLANNING,
-    _path("planning_walker2d_cem_summary.csv"): _PLANNING,
-    _path("paper_gemse_summary.csv"): _CRLF,
-    _path("online_idp_replan5_summary.csv"): _CRLF,
-    _path("online_reacher_replan5_summary.csv"): _CRLF,
-    _path("paper_ip_primary.csv"): (
-        "written by pets.compare offline before the ci_exact_note column; today's code gives the same values and "
-        "that column (its past-level file is generated)"
-    ),
-    _path("paper_idp_h50_per_horizon.csv"): (
-        "per-horizon statistics in an older column set (p_ci_low, no n_diverged or exact p) by a command not kept "
-        "in the repository; its per-run rows (paper_idp_h50_runs.csv) are committed"
-    ),
-    _path("onestep_before_issue18.csv"): "one-step errors per dimension of trained models that are not committed",
-    _path("onestep_after_issue18.csv"): "one-step errors per dimension of trained models that are not committed",
-    **{
-        _path(f"peer_learning_{e}_summary.csv"): "docs/scripts/peer_mbrl.py summarise (CRLF line ends); not in report"
-        for e in ("invertedpendulum", "reacher")
+_GEMSE_ENVS = ("halfcheetah", "hopper", "walker2d", "ant", "humanoid")
+
+#: The planning study (docs/results.md, "Planning"): its summaries only are committed.
+PLANNING = Publication(
+    "planning",
+    blocks={"planning": planning_table},
+    not_generated={
+        **{
+            _path(f"{kind}_{e}{ext}"): _PLANNING
+            for kind in ("openloop", "planning")
+            for e in PLANNING_ENVS
+            for ext in (".md", "_summary.csv")
+        },  # fmt: skip
+        _path("planning_walker2d_cem.md"): _PLANNING,
+        _path("planning_walker2d_cem_summary.csv"): _PLANNING,
     },
-}
-#: Committed per-seed (or per-trial) data: what summaries are made from, nothing to regenerate.
-RAW: tuple[str, ...] = (
-    *(_path(f"paper_{s}_runs.csv") for s in (*ORIGINAL, "data3", "50k", "gemse", "gemse_partial", "idp_h50")),
-    *(_path(f"{s}_runs.csv") for s in (*ONLINE, "online_idp_replan5", "online_reacher_replan5")),
-    *(_path(f"{s}_runs.csv") for s in ("time_to_solve_ip", "time_to_solve_reacher")),
-    *(_path(f"{s}_runs.csv") for s in ("ip_fast_5seeds", "ip_fast_ablation", "ip_fast_diagnosis", "ip_fast_value")),
-    *(_path(f"{s}_runs.csv") for s in ("idp_feedback_ablation", "idp_feedback_fast")),
-    _path("online_ant_metrics"),
-    _path("online_replan5_metrics"),
-    _path("time_to_solve_halfcheetah_compiled_metrics"),
-    _path("learning_curves_50k.csv"),
-    _path("learning_curves_paper.csv"),
-    _path("peer_learning_invertedpendulum.csv"),
-    _path("peer_learning_reacher.csv"),
-    _path("peer_planning_step.csv"),
-    # the locomotion gate (pets.experiments.gate): pilot runs, one row each, the true-dynamics episodes, and how
-    # the Ant pilots' episodes ended (docs/scripts/episode_ends.py)
-    _path("locomotion_pilots.csv"),
-    _path("locomotion_oracle.csv"),
-    _path("locomotion_episode_ends.csv"),
-    _path("locomotion_gate_runs.csv"),
-    _path("locomotion_gate_curves.csv"),
-    # mbrl-lib's PETS beside the gate (peer_mbrl.py learn --arms mbrl-lib): one row per trial, a file per seed
-    _path("peer_gate_halfcheetah_s0.csv"),
-    _path("peer_gate_halfcheetah_s1.csv"),
-    _path("peer_gate_halfcheetah_s2.csv"),
-    _path("locomotion_pilots_curves.csv"),
-    # where a locomotion-preset run's CPU goes, per trial (docs/scripts/cost_breakdown.py)
-    _path("locomotion_cost_breakdown.csv"),
-    # what a pilot's learned model does, frozen (docs/scripts/frozen_model_checks.py)
-    _path("locomotion_frozen_planning.csv"),
-    _path("locomotion_reward_prediction.csv"),
-    _path("locomotion_fall_prediction.csv"),
-    # the composition study (docs/studies/composition.md): one row per finished run and horizon; its data sets' levels
-    _path("composition_runs.csv"),
-    _path("composition_levels.csv"),
-    # the online locomotion study (docs/studies/online_locomotion.md): one row per run, complete, partial or crashed
-    _path("online_locomotion_runs.csv"),
-    _path("online_locomotion_curves.csv"),
 )
+#: The offline studies of the paper's protocol: the original 8, the 3-data-set, 50k and gem-se studies.
+OFFLINE = Publication(
+    "offline",
+    raw=(
+        *(_path(f"paper_{s}_runs.csv") for s in (*ORIGINAL, "data3", "50k", "gemse", "gemse_partial", "idp_h50")),
+        _path("learning_curves_50k.csv"),
+        _path("learning_curves_paper.csv"),
+    ),
+    products=(
+        *(_offline_summary(e, data_levels=False) for e in ORIGINAL),
+        _own_comparison(),
+        _offline_summary("data3", data_levels=True),
+        _per_data_set(),
+        _offline_summary("50k", data_levels=True),
+        _offline_summary("gemse_partial", data_levels=True, relative=False),
+        _primary("offline_primary_gem", PRIMARY_ORDER, data_levels=False, models={"gem"}),
+        _primary("offline_primary_all_arms", PRIMARY_ORDER, data_levels=False),
+        _primary("paper_data3_primary", ["data3"], data_levels=True, past_level="paper_data3_past_level.csv"),
+        _primary("paper_50k_primary", ["50k"], data_levels=True, past_level="paper_50k_past_level.csv"),
+        _primary("paper_gemse_primary", ["gemse"], data_levels=True, versus="paper_gemse_primary_versus.csv"),
+        _primary("paper_ip_primary", ["ip"], data_levels=True, primary="", past_level="paper_ip_past_level.csv"),
+        _primary(
+            "paper_gemse_partial_primary",
+            ["gemse_partial"],
+            data_levels=True,
+            past_level="",
+            versus="paper_gemse_partial_versus.csv",
+        ),
+    ),
+    blocks={
+        **{f"offline-paper-{s}": functools.partial(offline_tables.paper_table, study=s) for s in ORIGINAL},
+        "offline-paper-own": offline_tables.own_comparison_table,
+        "offline-gemse-versus": functools.partial(offline_tables.versus_table, study="gemse"),
+        **{
+            f"offline-gemse-{e}": functools.partial(
+                offline_tables.paper_table, study="gemse", env=e, metrics=offline_tables.GEMSE_METRICS
+            )
+            for e in _GEMSE_ENVS
+        },
+        "offline-data-sets": offline_tables.data_sets_table,
+        "offline-learning-curves": offline_tables.curves_table,
+    },
+    not_generated={
+        _path("paper_gemse_summary.csv"): _CRLF,
+        _path("paper_ip_primary.csv"): (
+            "written by pets.compare offline before the ci_exact_note column; today's code gives the same values "
+            "and that column (its past-level file is generated)"
+        ),
+        _path("paper_idp_h50_per_horizon.csv"): (
+            "per-horizon statistics in an older column set (p_ci_low, no n_diverged or exact p) by a command not "
+            "kept in the repository; its per-run rows (paper_idp_h50_runs.csv) are committed"
+        ),
+        _path("onestep_before_issue18.csv"): "one-step errors per dimension of trained models that are not committed",
+        _path("onestep_after_issue18.csv"): "one-step errors per dimension of trained models that are not committed",
+    },
+)
+_REPLAN5 = ("online_idp_replan5", "online_reacher_replan5")
+#: The online studies at the fast presets, their ablations and the time-to-solve studies; mbrl-lib beside them.
+ONLINE_FAST = Publication(
+    "online (fast presets)",
+    raw=(
+        *(_path(f"{s}_runs.csv") for s in (*ONLINE, *_REPLAN5)),
+        *(_path(f"{s}_runs.csv") for s in ("time_to_solve_ip", "time_to_solve_reacher")),
+        *(_path(f"{s}_runs.csv") for s in ("ip_fast_5seeds", "ip_fast_ablation", "ip_fast_diagnosis")),
+        *(_path(f"{s}_runs.csv") for s in ("ip_fast_value", "idp_feedback_ablation", "idp_feedback_fast")),
+        _path("online_ant_metrics"),
+        _path("online_replan5_metrics"),
+        _path("time_to_solve_halfcheetah_compiled_metrics"),
+        _path("peer_learning_invertedpendulum.csv"),
+        _path("peer_learning_reacher.csv"),
+        _path("peer_planning_step.csv"),
+    ),
+    products=tuple(_online_summary(s) for s in ONLINE),
+    blocks={
+        **{f"online-{s}": functools.partial(study_table, study=s) for s in ONLINE if "time_to_solve" not in s},
+        "online-replan5": functools.partial(study_table, study=_REPLAN5),
+    },
+    not_generated={
+        _path("online_idp_replan5_summary.csv"): _CRLF,
+        _path("online_reacher_replan5_summary.csv"): _CRLF,
+        **{
+            _path(f"peer_learning_{e}_summary.csv"): "docs/scripts/peer_mbrl.py summarise (CRLF line ends); not in "
+            "report"
+            for e in ("invertedpendulum", "reacher")
+        },
+    },
+)
+#: The headline across the studies (``pets.compare headline``).
+HEADLINE = Publication("headline", products=(_headline(),))
+
+#: Every study's unit, in the order report makes their products (a product's inputs are made before it).
+PUBLICATIONS: tuple[Publication, ...] = (
+    PLANNING,
+    OFFLINE,
+    ONLINE_FAST,
+    HEADLINE,
+    gate_published.PUBLICATION,
+    locomotion.PUBLICATION,
+    composition.PUBLICATION,
+)
+#: Every generated file's product, in the order they are made.
+PRODUCTS: tuple[Product, ...] = tuple(p for unit in PUBLICATIONS for p in unit.products)
+#: Committed summaries report does not make, each with why (``report --check`` names them, never skips silently).
+NOT_GENERATED: dict[str, str] = {path: why for unit in PUBLICATIONS for path, why in unit.not_generated.items()}
+#: Committed per-seed (or per-trial) data: what summaries are made from, nothing to regenerate.
+RAW: tuple[str, ...] = tuple(path for unit in PUBLICATIONS for path in unit.raw)
 
 
 def outputs() -> list[str]:

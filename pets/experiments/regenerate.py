@@ -11,83 +11,48 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import functools
 import re
 import shutil
 import sys
 import tempfile
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 
 from pets.experiments import published
 from pets.experiments.answer import answer_table, coverage_table, later_offline_table, runs_coverage_table
 from pets.experiments.arguments import PROG
-from pets.experiments.gate_published import (
-    ablation_table,
-    compute_table,
-    cost_table,
-    episode_ends_table,
-    fall_prediction_table,
-    frozen_planning_table,
-    gate_table,
-    oracle_table,
-    peer_table,
-    pilots_table,
-    reward_prediction_table,
-)
-from pets.experiments.offline_tables import (
-    GEMSE_METRICS,
-    curves_table,
-    data_sets_table,
-    own_comparison_table,
-    paper_table,
-    versus_table,
-)
-from pets.experiments.studies import composition
-from pets.experiments.studies.locomotion import runs_table, summary_table
-from pets.experiments.studies.online import study_table
-from pets.experiments.studies.planning import planning_table
+from pets.experiments.publication import Publication
 from pets.runs.fileio import atomic_write_bytes
 from pets.tools.cli import EXIT_DIFFERS, fail
 
-#: The docs that may hold generated blocks.
+#: The docs that may hold generated blocks: these, and each study's own pages (its unit's ``pages``).
 BLOCK_FILES = (
     *("README.md", "docs/results.md", "docs/experiments.md", "docs/planning.md"),
-    *("docs/studies/locomotion_gate.md", "docs/studies/online_locomotion.md", "docs/studies/composition.md"),
+    *(page for unit in published.PUBLICATIONS for page in unit.pages),
 )
-#: Block name -> its content, rendered from a tree (the repository or its generated copy).
-BLOCKS: dict[str, Callable[[Path], str]] = {
+#: Report's own blocks (across the studies): name -> its content, rendered from a tree (the repository or its
+#: generated copy).
+OWN_BLOCKS: dict[str, Callable[[Path], str]] = {
     "answer": answer_table,
     "later-offline": later_offline_table,
-    **{f"offline-paper-{s}": functools.partial(paper_table, study=s) for s in published.ORIGINAL},
-    "offline-paper-own": own_comparison_table,
-    "offline-gemse-versus": functools.partial(versus_table, study="gemse"),
-    **{
-        f"offline-gemse-{e}": functools.partial(paper_table, study="gemse", env=e, metrics=GEMSE_METRICS)
-        for e in ("halfcheetah", "hopper", "walker2d", "ant", "humanoid")
-    },
-    "offline-data-sets": data_sets_table,
-    "offline-learning-curves": curves_table,
-    "planning": planning_table,
-    **{f"online-{s}": functools.partial(study_table, study=s) for s in published.ONLINE if "time_to_solve" not in s},
-    "online-replan5": functools.partial(study_table, study=("online_idp_replan5", "online_reacher_replan5")),
     "coverage": coverage_table,
     "runs-coverage": runs_coverage_table,
-    "locomotion-oracle": oracle_table,
-    "locomotion-pilots": pilots_table,
-    "locomotion-episode-ends": episode_ends_table,
-    "locomotion-frozen-planning": frozen_planning_table,
-    "locomotion-fall-prediction": fall_prediction_table,
-    "locomotion-reward-prediction": reward_prediction_table,
-    "locomotion-gate": gate_table,
-    "locomotion-ablation": ablation_table,
-    "locomotion-peer": peer_table,
-    "locomotion-compute": compute_table,
-    "locomotion-cost": cost_table,
-    "online-locomotion-runs": runs_table,
-    "online-locomotion": summary_table,
-    "composition": composition.study_table,
 }
+
+
+def declared_blocks(units: Iterable[Publication]) -> dict[str, Callable[[Path], str]]:
+    """:data:`OWN_BLOCKS` and every unit's blocks by name; ValueError where a name is declared twice."""
+    blocks = dict(OWN_BLOCKS)
+    for unit in units:
+        twice = sorted(set(blocks) & set(unit.blocks))
+        if twice:
+            raise ValueError(f"the generated block(s) {', '.join(twice)} of the study {unit.name!r} are declared twice")
+        blocks.update(unit.blocks)
+    return blocks
+
+
+#: Every generated block: name -> its content, rendered from a tree.
+BLOCKS = declared_blocks(published.PUBLICATIONS)
 _BLOCK = re.compile(r"(<!-- report:(?P<name>[\w-]+) -->\n)(?P<body>.*?)(<!-- /report:(?P=name) -->)", re.DOTALL)
 
 

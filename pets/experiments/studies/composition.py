@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from pets.experiments.publication import FIGURES, RESULTS, Product, Publication, results_path
 from pets.experiments.report import fmt, fmt_interval, md_table
 from pets.experiments.statistics import sign_flip_p
 from pets.experiments.studies import primary as offline_primary
@@ -305,10 +306,28 @@ def study_table(tree: Path) -> str:
     def numbers(path: Path) -> list[dict[str, Any]]:
         return [{k: v if "horizons" in k else value(v) for k, v in r.items()} for r in read_csv_rows(path)]
 
-    results = tree / "docs" / "results"
+    results = tree / RESULTS
     primary, secondary = (numbers(results / name) for name in OUTPUTS[1:3])
     for r in (*primary, *secondary):
         for k in ("n_pairs", "n_data_sets", "n_lower"):
             if r.get(k) is not None:
                 r[k] = int(r[k])
     return markdown(primary, secondary)
+
+
+#: What the study publishes (:mod:`pets.experiments.publication`): its summary, primary family, secondary endpoints
+#: and figure from its committed runs and data sets' levels, and the block of its page.
+PUBLICATION = Publication(
+    "composition",
+    raw=(results_path(RUNS), results_path(LEVELS)),
+    products=(
+        Product(
+            "composition study",
+            (*(results_path(n) for n in OUTPUTS), f"{FIGURES}/{FIGURE}"),
+            (results_path(RUNS), results_path(LEVELS)),
+            lambda: write_products(Path(RESULTS), Path(FIGURES)),
+        ),
+    ),
+    blocks={"composition": study_table},
+    pages=("docs/studies/composition.md",),
+)

@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from pets.experiments import curves, gate, gate_published
+from pets.experiments.publication import Product, Publication, results_path
 from pets.experiments.report import (
     cell_text,
     csv_number,
@@ -325,6 +326,24 @@ def _value(key: str, text: str) -> Any:
     if key.startswith("n_"):
         return None if math.isnan(value) else int(value)
     return None if math.isnan(value) else value
+
+
+#: What the study publishes (:mod:`pets.experiments.publication`): its summary, secondary comparisons and figure
+#: from its committed run rows and curves, and the two blocks of its page.
+PUBLICATION = Publication(
+    "online locomotion",
+    raw=(results_path(RUNS), results_path(CURVES)),
+    products=(
+        Product(
+            "online locomotion summary",
+            (results_path(SUMMARY), results_path(VERSUS), str(FIGURE)),
+            (results_path(RUNS), results_path(CURVES), results_path("locomotion_oracle.csv")),
+            lambda: write_summary(RESULTS),
+        ),
+    ),
+    blocks={"online-locomotion-runs": runs_table, "online-locomotion": summary_table},
+    pages=("docs/studies/online_locomotion.md",),
+)
 
 
 def main(argv: list[str] | None = None) -> int:
