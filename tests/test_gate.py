@@ -248,6 +248,8 @@ def test_the_summary_and_the_docs_block_are_made_from_the_committed_runs_csv(tmp
 
 
 def test_the_ablation_block_names_each_arm_by_its_overrides_and_pairs_complete_seeds(tmp_path):
+    """Each arm's endpoints, and against the full preset over the seeds both have complete: the mean
+    difference, the pairs below it and the exact sign-flip p."""
     from pets.experiments.gate_published import ablation_table
     from pets.experiments.report import write_csv
 
@@ -264,9 +266,11 @@ def test_the_ablation_block_names_each_arm_by_its_overrides_and_pairs_complete_s
     ]  # fmt: skip
     write_csv(results / "locomotion_pilots.csv", rows, list(rows[0]))
     lines = ablation_table(tmp_path).splitlines()
-    assert lines[2] == "| full preset | 3000 | 2000 | not run | 2500 | - |"
-    assert lines[3] == "| without the value | 1500 | 1600 | partial (40k) | 1550 | -950 (2 pairs) |"
-    assert lines[4] == "| epoch training | not run | 2500 | not run | 2500 | 500 (1 pair) |" and len(lines) == 5
+    assert lines[2] == "| full preset | 3000 | 2000 | not run | 2500 | - | - | - |"
+    # -1500 and -400: of the 4 sign patterns, 2 have a mean as far from 0 (exact p 0.5); one pair: p 1
+    assert lines[3] == "| without the value | 1500 | 1600 | partial (40k) | 1550 | -950 (2 pairs) | 2 of 2 | 0.5 |"
+    assert lines[4] == "| epoch training | not run | 2500 | not run | 2500 | 500 (1 pair) | 0 of 1 | 1 |"
+    assert len(lines) == 5
 
 
 def test_committed_curves_keep_complete_runs_of_the_agents_asked_for(tmp_path):

@@ -19,6 +19,7 @@ from pets.experiments import gate
 from pets.experiments.curves import Curves, complete_curves, group_curves, plot_curves
 from pets.experiments.publication import FIGURES, Product, Publication, results_path
 from pets.experiments.report import csv_number, fmt, md_table, read_csv_rows, write_rounded_csv
+from pets.experiments.statistics import sign_flip_p
 from pets.presets import PRESETS
 
 RESULTS = Path("docs") / "results"
@@ -99,8 +100,9 @@ def _is_ablation(r: dict[str, str]) -> bool:
 
 def ablation_table(tree: Path) -> str:
     """The ``locomotion-ablation`` block: per arm the endpoint at the budget of each seed (or how far a partial run
-    got), the mean over its complete seeds and the mean paired difference to the full preset over the seeds both
-    have complete (3 seeds at most: a direction, never significance)."""
+    got), the mean over its complete seeds, and over the seeds both it and the full preset have complete: the mean
+    paired difference, in how many pairs the arm ends below, and the exact sign-flip p (3 pairs at most, whose
+    smallest p is 0.25: a direction, never significance)."""
     done: dict[str, dict[str, float]] = {arm: {} for arm in ABLATION}
     cells: dict[str, dict[str, str]] = {arm: {} for arm in ABLATION}
     for r in read_csv_rows(tree / RESULTS / "locomotion_pilots.csv"):
@@ -112,13 +114,16 @@ def ablation_table(tree: Path) -> str:
     body = []
     for arm, label in ABLATION.items():
         pairs = sorted(set(done[arm]) & set(done[""]))
-        diff = fmt(float(np.mean([done[arm][s] - done[""][s] for s in pairs]))) if pairs and arm else "-"
+        differences = [done[arm][s] - done[""][s] for s in pairs]
+        diff = fmt(float(np.mean(differences))) if pairs and arm else "-"
         mean = fmt(float(np.mean(list(done[arm].values())))) if done[arm] else "-"
         seeds = [cells[arm].get(s, "not run") for s in ABLATION_SEEDS]
         pairs_text = f"{len(pairs)} pair" + ("" if len(pairs) == 1 else "s")
-        body.append([label, *seeds, mean, f"{diff} ({pairs_text})" if arm else "-"])
+        lower = f"{sum(d < 0 for d in differences)} of {len(pairs)}" if pairs and arm else "-"
+        p = fmt(sign_flip_p(differences), 3) if pairs and arm else "-"
+        body.append([label, *seeds, mean, f"{diff} ({pairs_text})" if arm else "-", lower, p])
     header = ["arm", *(f"seed {s}" for s in ABLATION_SEEDS), "mean (complete)", "minus the full preset"]
-    return md_table(header, body)
+    return md_table([*header, "pairs below the full preset", "exact sign-flip p"], body)
 
 
 def compute_table(tree: Path) -> str:
