@@ -305,7 +305,7 @@ PUBLICATION = Publication(
                 results_path("locomotion_gate_summary.csv"),
                 f"{FIGURES}/locomotion_gate.png",
                 f"{FIGURES}/locomotion_pilots.png",
-            ),  # fmt: skip
+            ),
             tuple(
                 results_path(n)
                 for n in (
@@ -314,7 +314,7 @@ PUBLICATION = Publication(
                     "locomotion_pilots_curves.csv",
                     "locomotion_oracle.csv",
                 )
-            ),  # fmt: skip
+            ),
             lambda: write_summary(RESULTS, Path(FIGURES)),
         ),
     ),

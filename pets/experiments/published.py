@@ -225,6 +225,7 @@ _PLANNING = (
     "the planning study's per-seed results (open and closed loop) are not committed, only its summaries, so they "
     "cannot be regenerated (and its p-values not recomputed) from docs/results"
 )
+_PEER_SUMMARY = "docs/scripts/peer_mbrl.py summarise (CRLF line ends); not in report"
 _GEMSE_ENVS = ("halfcheetah", "hopper", "walker2d", "ant", "humanoid")
 
 #: The planning study (docs/results.md, "Planning"): its summaries only are committed.
@@ -322,11 +323,7 @@ ONLINE_FAST = Publication(
     not_generated={
         _path("online_idp_replan5_summary.csv"): _CRLF,
         _path("online_reacher_replan5_summary.csv"): _CRLF,
-        **{
-            _path(f"peer_learning_{e}_summary.csv"): "docs/scripts/peer_mbrl.py summarise (CRLF line ends); not in "
-            "report"
-            for e in ("invertedpendulum", "reacher")
-        },
+        **{_path(f"peer_learning_{e}_summary.csv"): _PEER_SUMMARY for e in ("invertedpendulum", "reacher")},
     },
 )
 #: The headline across the studies (``pets.compare headline``).
