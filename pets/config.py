@@ -12,7 +12,7 @@ from __future__ import annotations
 import difflib
 import math
 import warnings
-from collections.abc import Collection, Iterable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass, field, fields, make_dataclass
 from functools import cache
 from pathlib import Path
@@ -33,10 +33,29 @@ from pets.planning.planners import PLANNER_CLASSES, ICEMConfig, MPPIConfig, chec
 from pets.planning.propagation import CANDIDATES, PROPAGATIONS
 from pets.planning.value import ValueConfig
 from pets.presets import ENV_DEFAULTS, PRESET_ENV_DEFAULTS, PRESETS, head_defaults
+from pets.runs.config_files import (
+    config_yaml,
+    flatten,
+    override_text,
+    overrides_with_file,
+    read_config_file,
+    shared_config,
+)
 from pets.runs.hardware import CONCRETE_PRECISIONS
-from pets.runs.user_yaml import load_user_yaml
 
-__all__ = ["ConfigError", "FeedbackConfig", "ICEMConfig", "MPPIConfig", "ValueConfig"]  # defined by their owners
+__all__ = [  # defined by their owners: the planners' and the value's configs, the config files' functions
+    "ConfigError",
+    "FeedbackConfig",
+    "ICEMConfig",
+    "MPPIConfig",
+    "ValueConfig",
+    "config_yaml",
+    "flatten",
+    "override_text",
+    "overrides_with_file",
+    "read_config_file",
+    "shared_config",
+]
 
 #: ``--model`` values (config key ``head``): the names of ``pets.models.MODELS`` (a live view: ``register_model``).
 HEADS = MODELS.keys()
@@ -188,68 +207,6 @@ _CHOICES = {
 def all_keys(cfg: DictConfig | None = None) -> list[str]:
     """Every dotted key of ``cfg`` (e.g. ``planner.population``); of the schema if None (once per planner table)."""
     return list(_schema_keys(_sections())) if cfg is None else list(flatten(OmegaConf.to_container(cfg)))
-
-
-def read_config_file(path: str | Path) -> dict[str, Any]:
-    """A config file's settings as dotted keys (``{"planner.horizon": 10}``), nested or dotted; ConfigError (one
-    line) for a file not read (:mod:`pets.runs.user_yaml`) or not a mapping; keys and values checked where applied."""
-    path = Path(path)
-    try:
-        data = load_user_yaml(path)  # bounded, no aliases
-    except (OSError, ValueError) as err:  # ValueError: too big, not YAML, binary (UnicodeDecodeError), an alias
-        raise ConfigError(f"--config {path}: not a readable YAML file ({str(err).splitlines()[0]})") from None
-    if data is None:
-        return {}
-    if not isinstance(data, dict):
-        raise ConfigError(f"--config {path}: expected a mapping of config keys, got a {type(data).__name__}")
-    return flatten(data)
-
-
-def flatten(nested: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
-    """``{"planner": {"horizon": 10}}`` -> ``{"planner.horizon": 10}`` (lists are values)."""
-    out: dict[str, Any] = {}
-    for k, v in nested.items():
-        out.update(flatten(v, f"{prefix}{k}.") if isinstance(v, Mapping) else {f"{prefix}{k}": v})
-    return out
-
-
-def overrides_with_file(
-    path: str | Path | None, overrides: Mapping[str, Any], aside: Collection[str] = ("env", "head")
-) -> tuple[dict[str, Any], dict[str, Any]]:
-    """A command's overrides with ``--config FILE``: the file's keys, then ``overrides`` (the command line wins).
-    The file's keys in ``aside``, the ones the command sets through its own options (``env``, ``head``), come back
-    apart, for the command to use where its option is not given. ConfigError (one line) for a bad file."""
-    from_file = read_config_file(path) if path is not None else {}
-    kept = {k: from_file.pop(k) for k in aside if k in from_file}
-    return {**from_file, **overrides}, kept
-
-
-def override_text(key: str, value: Any) -> str:
-    """``key=value`` as the command line writes it (``null``, ``true``, ``[1, 2]``), e.g. a config file's setting."""
-    if value is None or isinstance(value, bool | list):
-        value = yaml.safe_dump(value, default_flow_style=True).splitlines()[0]
-    return f"{key}={value}"
-
-
-def shared_config(configs: Iterable[DictConfig], drop: Collection[str] = ()) -> tuple[dict[str, Any], list[str]]:
-    """The settings every one of ``configs`` has alike, as dotted keys (less ``drop``), and the keys that differ."""
-    flat = [flatten(OmegaConf.to_container(c)) for c in configs]
-    same = {k: v for k, v in flat[0].items() if k not in drop and all(f.get(k, v) == v for f in flat)}
-    return same, [k for k in flat[0] if k not in drop and k not in same]
-
-
-def config_yaml(cfg: DictConfig | Mapping[str, Any]) -> str:
-    """YAML of a resolved config or of dotted keys (nested as the schema), valid as a ``--config`` file."""
-    if not isinstance(cfg, DictConfig):
-        nested: dict[str, Any] = {}
-        for key, value in cfg.items():
-            *parents, last = key.split(".")
-            node = nested
-            for part in parents:
-                node = node.setdefault(part, {})
-            node[last] = value
-        cfg = OmegaConf.create(nested)
-    return OmegaConf.to_yaml(cfg)
 
 
 def parse_overrides(items: list[str]) -> dict[str, str]:
