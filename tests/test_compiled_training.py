@@ -75,15 +75,19 @@ def fp32_predictions(reacher_data) -> torch.Tensor:
     return predictions
 
 
-def assert_within_bf16(r_e: list, r_c: list, p_e: torch.Tensor, p_c: torch.Tensor, p_32: torch.Tensor) -> None:
+def assert_within_bf16(
+    r_e: list, r_c: list, p_e: torch.Tensor, p_c: torch.Tensor, p_32: torch.Tensor, truth: torch.Tensor
+) -> None:
     """The compiled bf16 step within the tolerance of bf16 training itself: its holdout errors within
-    :data:`BF16_RELATIVE` of the eager step's, and its predictions no further from the fp32 model's than twice the
-    eager bf16 model's are (two bf16 roundings of the same training drift apart by about as much as either drifts
-    from fp32: measured 1.33x with aot_eager and 0.94x with inductor on an AVX2 CPU that emulates bf16, where
-    the two paths' predictions differ by 6 % of the model's error; a wrong step is far outside)."""
+    :data:`BF16_RELATIVE` of the eager step's, and its predictions near the fp32 model's: within 5 % of the model's
+    own error (``truth``: the test transitions' next states), or no further than twice the eager bf16 model's are
+    (two bf16 roundings of the same training drift apart by about as much as either drifts from fp32: on an AVX2 CPU
+    that emulates bf16, aot_eager's predictions were 1.33x and inductor's 0.94x the eager distance from fp32, 4.6 %
+    of the error, while aot_eager's and eager's differed by 6 %). A wrong step is far outside either."""
     for a, b in zip(r_e, r_c):
         assert b.val_loss == pytest.approx(a.val_loss, rel=BF16_RELATIVE)
-    assert (p_c - p_32).abs().mean() < 2 * (p_e - p_32).abs().mean()
+    err = (p_32 - truth).abs().mean()
+    assert (p_c - p_32).abs().mean() < max(0.05 * err, 2 * (p_e - p_32).abs().mean())
 
 
 def test_compiled_fp32_matches_eager(reacher_data, monkeypatch) -> None:
@@ -110,7 +114,7 @@ def test_compiled_fp32_matches_eager(reacher_data, monkeypatch) -> None:
 def test_compiled_bf16_within_the_bf16_tolerance(reacher_data, fp32_predictions) -> None:
     """bf16 autocast: the holdout errors and predictions within the tolerance bf16 training has against fp32."""
     (_, r_e, p_e), (_, r_c, p_c) = train_pair(reacher_data, "bf16", "aot_eager")
-    assert_within_bf16(r_e, r_c, p_e, p_c, fp32_predictions)
+    assert_within_bf16(r_e, r_c, p_e, p_c, fp32_predictions, reacher_data[5])
 
 
 def test_inductor_step_within_tolerance(reacher_data, fp32_predictions) -> None:
@@ -118,7 +122,7 @@ def test_inductor_step_within_tolerance(reacher_data, fp32_predictions) -> None:
     compiled once for both trials."""
     (_, r_e, p_e), (comp, r_c, p_c) = train_pair(reacher_data, "bf16", "inductor")
     assert not comp._compile_failed
-    assert_within_bf16(r_e, r_c, p_e, p_c, fp32_predictions)
+    assert_within_bf16(r_e, r_c, p_e, p_c, fp32_predictions, reacher_data[5])
 
 
 def test_a_failing_compile_warns_and_trains_eagerly(reacher_data) -> None:
