@@ -1,6 +1,7 @@
 """``pip install .`` outside the source tree: the wheel built from pyproject.toml, installed with ``--no-deps`` into
 a venv that sees this environment's packages, runs its commands and every docs/api.md example from another
-directory, importing the venv's copy (not the source tree, not the editable install)."""
+directory, importing the venv's copy (not the source tree, not the editable install). It is the suite's one run of
+docs/api.md's examples: they run as written, in order, and what they make is checked."""
 
 from __future__ import annotations
 
@@ -26,6 +27,15 @@ BUILD_INPUTS = (
     "envs",
     "dynamics",
 )
+
+
+#: Appended to docs/api.md's examples: what they must have made (their objects, by name), one line when all hold.
+EXAMPLES_MADE = """
+assert agent.trials_done == 2 and same.trials_done == 3 and len(rewards) == 2, (agent, same, rewards)
+assert isinstance(next_obs, np.ndarray) and next_obs.shape == (8, 10), type(next_obs)
+assert path.shape == (8, 10, 10), path.shape
+print("what the examples made: as documented")
+"""
 
 
 def run(*cmd: str | Path, cwd: Path, env: dict[str, str] | None = None) -> str:
@@ -113,12 +123,15 @@ def test_the_wheel_installs_and_runs_outside_the_source_tree(tmp_path):
     )
     assert out.startswith("done: 1 trials") and (elsewhere / "run" / "checkpoint.pt").is_file()
 
-    # every docs/api.md example, as written and in order (they build on each other), with the installed package
+    # every docs/api.md example, as written and in order (they build on each other), with the installed package (the
+    # suite's one run of them), then what they must have made
     blocks = re.findall(r"```python\n(.*?)```", (ROOT / "docs" / "api.md").read_text(), re.S)
-    (elsewhere / "examples.py").write_text("\n".join(blocks))
+    assert len(blocks) >= 3
+    (elsewhere / "examples.py").write_text("\n".join([*blocks, EXAMPLES_MADE]))
     out = run(python, "examples.py", cwd=elsewhere, env=env)
     assert (
         out.startswith("PETS(env='reacher', model='gem', trials_done=2")
         and "10 MPC steps: reward" in out
+        and out.rstrip().endswith("what the examples made: as documented")
         and (elsewhere / "runs" / "reacher-gem-api" / "checkpoint.pt").is_file()
     )
