@@ -15,14 +15,14 @@ from pathlib import Path
 import numpy as np
 
 import envs
-from pets.experiments import gate
+from pets.experiments import gate, publication
 from pets.experiments.curves import Curves, complete_curves, group_curves, plot_curves
 from pets.experiments.publication import FIGURES, Product, Publication, results_path
 from pets.experiments.report import csv_number, fmt, md_table, read_csv_rows, write_rounded_csv
 from pets.experiments.statistics import sign_flip_p
 from pets.presets import PRESETS
 
-RESULTS = Path("docs") / "results"
+RESULTS = Path(publication.RESULTS)
 SEED_STEPS = PRESETS["locomotion"]["seed_steps"]  # the random episodes before the first planned one
 ANT_TOP = 1.0  # the top of gymnasium Ant-v5's healthy_z_range [0.2, 1.0]: a torso above it fell by jumping
 

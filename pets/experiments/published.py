@@ -21,7 +21,8 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from pets.experiments import gate_published, offline_tables
-from pets.experiments.publication import RESULTS, Product, Publication
+from pets.experiments.publication import RESULTS as RESULTS  # re-exported: answer.py and the tests read it here
+from pets.experiments.publication import Product, Publication, results_path
 from pets.experiments.report import read_csv_rows
 from pets.experiments.studies import composition, locomotion
 from pets.experiments.studies.online import study_table
@@ -60,10 +61,6 @@ ONLINE = (
 )
 
 
-def _path(name: str) -> str:
-    return f"{RESULTS}/{name}"
-
-
 def _levels(envs: Sequence[str], data: bool) -> dict[str, tuple[float, str]]:
     """{env: (level, source)}: the data sets' levels (``data``) or sqrt(2) where the data are not at hand."""
     if not data:
@@ -74,9 +71,9 @@ def _levels(envs: Sequence[str], data: bool) -> dict[str, tuple[float, str]]:
 def _offline_summary(study: str, data_levels: bool, relative: bool = True) -> Product:
     """``paper_STUDY_summary.csv`` (and ``_relative_error.csv``) from ``paper_STUDY_runs.csv``, env by env at its
     level (``docs/scripts/resummarise_offline.py``)."""
-    runs = _path(f"paper_{study}_runs.csv")
+    runs = results_path(f"paper_{study}_runs.csv")
     names = ("summary", "relative_error") if relative else ("summary",)
-    outputs = tuple(_path(f"paper_{study}_{name}.csv") for name in names)
+    outputs = tuple(results_path(f"paper_{study}_{name}.csv") for name in names)
 
     def make() -> None:
         from pets.experiments.report import write_csv
@@ -103,8 +100,8 @@ OWN_PAIRS = (("gem2-x1", "delta-det-x1"), ("gem2", "delta-det"))
 def _own_comparison() -> Product:
     """``paper_own_comparison.csv``: per original study and :data:`OWN_PAIRS` pair (where the study ran both), the
     offline summary's comparison of the model with that baseline in place of delta (``baseline`` names it)."""
-    inputs = tuple(_path(f"paper_{s}_runs.csv") for s in ORIGINAL)
-    out = _path("paper_own_comparison.csv")
+    inputs = tuple(results_path(f"paper_{s}_runs.csv") for s in ORIGINAL)
+    out = results_path("paper_own_comparison.csv")
 
     def make() -> None:
         from pets.experiments.report import write_csv
@@ -129,7 +126,7 @@ def _own_comparison() -> Product:
 def _per_data_set() -> Product:
     """``paper_data3_per_data_set.csv``: the primary endpoint of each of the 3-data-set study's data sets alone
     (:func:`pets.experiments.studies.primary.per_data_set_rows`), at the data sets' levels."""
-    runs, out = _path("paper_data3_runs.csv"), _path("paper_data3_per_data_set.csv")
+    runs, out = results_path("paper_data3_runs.csv"), results_path("paper_data3_per_data_set.csv")
 
     def make() -> None:
         from pets.experiments.report import write_csv
@@ -148,11 +145,11 @@ def _primary(
     """The primary endpoint of ``paper_STUDY_runs.csv`` files (``docs/scripts/offline_primary.py``): ``OUT.csv`` and
     the past-level file, the versus file with ``versus=`` (file names as committed: ``past_level=``, ``versus=``;
     ``past_level=""``: the study never committed one; ``primary=""``: ``OUT.csv`` is made but not published)."""
-    inputs = tuple(_path(f"paper_{s}_runs.csv") for s in studies)
-    past = _path(files.get("past_level") or f"{out}_past_level.csv")
-    versus = _path(files["versus"]) if "versus" in files else None
+    inputs = tuple(results_path(f"paper_{s}_runs.csv") for s in studies)
+    past = results_path(files.get("past_level") or f"{out}_past_level.csv")
+    versus = results_path(files["versus"]) if "versus" in files else None
     published = () if files.get("past_level") == "" else (past,)  # "": made, never committed, so not an output
-    primary = () if files.get("primary") == "" else (_path(f"{out}.csv"),)  # "": made, excluded (NOT_GENERATED)
+    primary = () if files.get("primary") == "" else (results_path(f"{out}.csv"),)  # "": made, excluded (NOT_GENERATED)
     outputs = (*primary, *published, *((versus,) if versus else ()))
 
     def make() -> None:
@@ -163,7 +160,7 @@ def _primary(
         envs = list(dict.fromkeys(r["env"] for r in rows))
         levels = _levels(envs, True) if data_levels else {}
         comparisons = [("gem-se", "gem")] if versus else []
-        write_primary_files(rows, _path(out), levels, comparisons, past_level=past, versus=versus)
+        write_primary_files(rows, results_path(out), levels, comparisons, past_level=past, versus=versus)
 
     return Product(f"primary {out}", outputs, inputs, make)
 
@@ -179,7 +176,7 @@ def _committed_columns(path: str, default: Sequence[str]) -> list[str]:
 def _online_summary(study: str) -> Product:
     """``STUDY_summary.csv`` from ``STUDY_runs.csv`` (the statistics of ``pets.compare online``), with the columns
     the committed file has (columns added since, such as the exact p of older studies, are not written)."""
-    runs, out = _path(f"{study}_runs.csv"), _path(f"{study}_summary.csv")
+    runs, out = results_path(f"{study}_runs.csv"), results_path(f"{study}_summary.csv")
 
     def make() -> None:
         from pets.experiments.report import write_csv
@@ -192,22 +189,22 @@ def _online_summary(study: str) -> Product:
 
 def _headline() -> Product:
     """docs/results/headline (``pets.compare headline`` with docs/results.md's command) and its figures."""
-    offline = [_path(f"paper_{e}_summary.csv") for e in ORIGINAL]
-    relative = [_path(f"paper_{e}_relative_error.csv") for e in ORIGINAL]
-    online = [_path(f"{s}_summary.csv") for s in ONLINE[:4]]
-    openloop = [_path(f"openloop_{e}_summary.csv") for e in PLANNING_ENVS]
-    closedloop = [_path(f"planning_{e}_summary.csv") for e in PLANNING_ENVS]
-    primary = [_path("offline_primary_gem.csv"), _path("paper_gemse_primary.csv")]
+    offline = [results_path(f"paper_{e}_summary.csv") for e in ORIGINAL]
+    relative = [results_path(f"paper_{e}_relative_error.csv") for e in ORIGINAL]
+    online = [results_path(f"{s}_summary.csv") for s in ONLINE[:4]]
+    openloop = [results_path(f"openloop_{e}_summary.csv") for e in PLANNING_ENVS]
+    closedloop = [results_path(f"planning_{e}_summary.csv") for e in PLANNING_ENVS]
+    primary = [results_path("offline_primary_gem.csv"), results_path("paper_gemse_primary.csv")]
     names = ("headline.md", "headline_offline.csv", "headline_online.csv", "headline_planning.csv")
     figures = ("headline_ratio.png", "headline_relative.png", "headline_fig2_ratio.png")
-    outputs = (*(_path(f"headline/{n}") for n in names), *(f"docs/figures/{n}" for n in figures))
+    outputs = (*(results_path(f"headline/{n}") for n in names), *(f"docs/figures/{n}" for n in figures))
 
     def make() -> None:
         from pets.experiments.headline import write_headline
 
         write_headline(
             *([Path(p) for p in paths] for paths in (offline, online)),
-            Path(_path("headline")),
+            Path(results_path("headline")),
             caption="runs: AMD EPYC Zen 4, one thread per run",
             relative=[Path(p) for p in relative],
             figures=Path("docs/figures"),
@@ -234,22 +231,25 @@ PLANNING = Publication(
     blocks={"planning": planning_table},
     not_generated={
         **{
-            _path(f"{kind}_{e}{ext}"): _PLANNING
+            results_path(f"{kind}_{e}{ext}"): _PLANNING
             for kind in ("openloop", "planning")
             for e in PLANNING_ENVS
             for ext in (".md", "_summary.csv")
         },  # fmt: skip
-        _path("planning_walker2d_cem.md"): _PLANNING,
-        _path("planning_walker2d_cem_summary.csv"): _PLANNING,
+        results_path("planning_walker2d_cem.md"): _PLANNING,
+        results_path("planning_walker2d_cem_summary.csv"): _PLANNING,
     },
 )
 #: The offline studies of the paper's protocol: the original 8, the 3-data-set, 50k and gem-se studies.
 OFFLINE = Publication(
     "offline",
     raw=(
-        *(_path(f"paper_{s}_runs.csv") for s in (*ORIGINAL, "data3", "50k", "gemse", "gemse_partial", "idp_h50")),
-        _path("learning_curves_50k.csv"),
-        _path("learning_curves_paper.csv"),
+        *(
+            results_path(f"paper_{s}_runs.csv")
+            for s in (*ORIGINAL, "data3", "50k", "gemse", "gemse_partial", "idp_h50")
+        ),
+        results_path("learning_curves_50k.csv"),
+        results_path("learning_curves_paper.csv"),
     ),
     products=(
         *(_offline_summary(e, data_levels=False) for e in ORIGINAL),
@@ -286,17 +286,21 @@ OFFLINE = Publication(
         "offline-learning-curves": offline_tables.curves_table,
     },
     not_generated={
-        _path("paper_gemse_summary.csv"): _CRLF,
-        _path("paper_ip_primary.csv"): (
+        results_path("paper_gemse_summary.csv"): _CRLF,
+        results_path("paper_ip_primary.csv"): (
             "written by pets.compare offline before the ci_exact_note column; today's code gives the same values "
             "and that column (its past-level file is generated)"
         ),
-        _path("paper_idp_h50_per_horizon.csv"): (
+        results_path("paper_idp_h50_per_horizon.csv"): (
             "per-horizon statistics in an older column set (p_ci_low, no n_diverged or exact p) by a command not "
             "kept in the repository; its per-run rows (paper_idp_h50_runs.csv) are committed"
         ),
-        _path("onestep_before_issue18.csv"): "one-step errors per dimension of trained models that are not committed",
-        _path("onestep_after_issue18.csv"): "one-step errors per dimension of trained models that are not committed",
+        results_path(
+            "onestep_before_issue18.csv"
+        ): "one-step errors per dimension of trained models that are not committed",
+        results_path(
+            "onestep_after_issue18.csv"
+        ): "one-step errors per dimension of trained models that are not committed",
     },
 )
 _REPLAN5 = ("online_idp_replan5", "online_reacher_replan5")
@@ -304,16 +308,16 @@ _REPLAN5 = ("online_idp_replan5", "online_reacher_replan5")
 ONLINE_FAST = Publication(
     "online (fast presets)",
     raw=(
-        *(_path(f"{s}_runs.csv") for s in (*ONLINE, *_REPLAN5)),
-        *(_path(f"{s}_runs.csv") for s in ("time_to_solve_ip", "time_to_solve_reacher")),
-        *(_path(f"{s}_runs.csv") for s in ("ip_fast_5seeds", "ip_fast_ablation", "ip_fast_diagnosis")),
-        *(_path(f"{s}_runs.csv") for s in ("ip_fast_value", "idp_feedback_ablation", "idp_feedback_fast")),
-        _path("online_ant_metrics"),
-        _path("online_replan5_metrics"),
-        _path("time_to_solve_halfcheetah_compiled_metrics"),
-        _path("peer_learning_invertedpendulum.csv"),
-        _path("peer_learning_reacher.csv"),
-        _path("peer_planning_step.csv"),
+        *(results_path(f"{s}_runs.csv") for s in (*ONLINE, *_REPLAN5)),
+        *(results_path(f"{s}_runs.csv") for s in ("time_to_solve_ip", "time_to_solve_reacher")),
+        *(results_path(f"{s}_runs.csv") for s in ("ip_fast_5seeds", "ip_fast_ablation", "ip_fast_diagnosis")),
+        *(results_path(f"{s}_runs.csv") for s in ("ip_fast_value", "idp_feedback_ablation", "idp_feedback_fast")),
+        results_path("online_ant_metrics"),
+        results_path("online_replan5_metrics"),
+        results_path("time_to_solve_halfcheetah_compiled_metrics"),
+        results_path("peer_learning_invertedpendulum.csv"),
+        results_path("peer_learning_reacher.csv"),
+        results_path("peer_planning_step.csv"),
     ),
     products=tuple(_online_summary(s) for s in ONLINE),
     blocks={
@@ -321,9 +325,9 @@ ONLINE_FAST = Publication(
         "online-replan5": functools.partial(study_table, study=_REPLAN5),
     },
     not_generated={
-        _path("online_idp_replan5_summary.csv"): _CRLF,
-        _path("online_reacher_replan5_summary.csv"): _CRLF,
-        **{_path(f"peer_learning_{e}_summary.csv"): _PEER_SUMMARY for e in ("invertedpendulum", "reacher")},
+        results_path("online_idp_replan5_summary.csv"): _CRLF,
+        results_path("online_reacher_replan5_summary.csv"): _CRLF,
+        **{results_path(f"peer_learning_{e}_summary.csv"): _PEER_SUMMARY for e in ("invertedpendulum", "reacher")},
     },
 )
 #: The headline across the studies (``pets.compare headline``).

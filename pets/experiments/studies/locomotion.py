@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from pets.experiments import curves, gate, gate_published
+from pets.experiments import curves, gate, gate_published, publication
 from pets.experiments.publication import Product, Publication, results_path
 from pets.experiments.report import (
     cell_text,
@@ -261,7 +261,7 @@ def claim_lines(summary: Sequence[Mapping[str, str]], gate_summary: Sequence[Map
     return [f'The paper\'s claim, "{CLAIM}", per env of the design (at family-wise {ALPHA:g}):', "", *lines]
 
 
-RESULTS = Path("docs") / "results"
+RESULTS = Path(publication.RESULTS)
 RUNS, SUMMARY, VERSUS, CURVES = (f"online_locomotion_{kind}.csv" for kind in ("runs", "summary", "versus", "curves"))
 GATE_SUMMARY = "locomotion_gate_summary.csv"
 FIGURE = Path("docs") / "figures" / "online_locomotion.png"
