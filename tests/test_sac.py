@@ -198,14 +198,20 @@ def test_paper_protocol_trains_and_evaluates_on_the_sac_data(sac_run):
         assert row["rotation_error"] > 0
 
 
-def test_sac_collection_goes_on_from_its_checkpoint(tmp_path, threads1):
+def test_sac_collection_goes_on_from_its_checkpoint(tmp_path, threads1, monkeypatch):
     """A SAC collection writes a checkpoint (agent, replay buffer, episodes) every ``checkpoint_every`` steps; run
     again with the same settings it goes on from there: the steps before it are the uninterrupted run's, SB3's
     replay buffer still holds every recorded transition, the running episode ends at the checkpoint, and the data
-    set says where it was resumed. Other settings are refused in one line."""
+    set says where it was resumed. Other settings are refused in one line. Neither the new agent nor the resumed one
+    leaves SB3's logger folder (an empty ``SB3-<date>``) in the temporary directory."""
+    import tempfile
+
     from pets.data.collect import pack_episodes
     from pets.data.sb3 import read_sac_checkpoint, train_sac
 
+    temp = tmp_path / "temp"
+    temp.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(temp))  # what SB3's logger asks tempfile.gettempdir() for
     spec, ckpt = envs.get("invertedpendulum"), tmp_path / "ip-train.npz.sac-checkpoint"
     whole, ref, resumed_at = train_sac(spec, 260, seed=2, max_steps=5, checkpoint=ckpt, checkpoint_every=150)
     assert resumed_at == [] and ckpt.is_file()  # the one at step 150 (none at the end: the caller saves the data)
@@ -227,6 +233,7 @@ def test_sac_collection_goes_on_from_its_checkpoint(tmp_path, threads1):
     again, _ = collect_sac(spec, 260, seed=2, max_steps=5, checkpoint=ckpt)  # the same checkpoint: the same data
     for key in ("obs", "act", "rew", "lengths"):
         np.testing.assert_array_equal(again[key], data[key])
+    assert list(temp.iterdir()) == []
     with pytest.raises(ValueError, match=r"other settings \(seed: 2 != 3\); delete it"):
         collect_sac(spec, 260, seed=3, max_steps=5, checkpoint=ckpt)
     ckpt.write_bytes(b"not a checkpoint")

@@ -174,6 +174,7 @@ def train_sac(
     require_sb3()
     from stable_baselines3 import SAC
     from stable_baselines3.common.callbacks import BaseCallback
+    from stable_baselines3.common.logger import Logger
     from tqdm.auto import tqdm
 
     from pets.runs.fileio import atomic_write_bytes
@@ -214,9 +215,11 @@ def train_sac(
     try:
         if state is None:
             agent = SAC("MlpPolicy", env, seed=int(seed), device=device, verbose=0, **(sac_kwargs or {}))
+            agent.set_logger(Logger(folder=None, output_formats=[]))  # else learn() makes an empty /tmp/SB3-<date>
             agent.learn(total_timesteps=steps, callback=StepBar())
         else:
             agent = SAC.load(io.BytesIO(state["agent"]), env=env, device=device)
+            agent.set_logger(Logger(folder=None, output_formats=[]))
             refill_replay_buffer(agent, state["episodes"])
             agent.set_random_seed(int(seed) + state["steps_done"])
             env.resume(state["episodes"])
