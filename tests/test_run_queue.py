@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import os
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -90,30 +89,3 @@ def test_sac_cpu_is_left_unknown_when_a_segment_went_unmeasured(tmp_path, queue)
 def test_an_unknown_kind_is_logged_and_skipped(tmp_path, queue):
     assert queue([f"{tmp_path}|{tmp_path / 'x'}|slurm|whatever"]) == []
     assert "unknown kind 'slurm'" in (tmp_path / "logs" / "x.log").read_text()
-
-
-def test_study_jobs_lists_each_run_the_committed_rows_lack_once_in_queue_format(tmp_path: Path):
-    """docs/scripts/study_jobs.py: every online-study (arm, seed) without a complete committed row is queued exactly
-    once over the two files, no complete one is; every line is WORKDIR|OUT|KIND|ARGS; --write never overwrites."""
-    import csv
-    import importlib.util
-
-    path = QUEUE.parent / "study_jobs.py"
-    spec = importlib.util.spec_from_file_location("study_jobs", path)
-    jobs = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(jobs)
-    core1, core2 = jobs.queues(tmp_path, Path("/wt/gate"), Path("/wt/comp"))
-    lines = [line for line in core1 + core2 if not line.startswith("#")]
-    assert all(len(line.split("|")) == 4 and line.split("|")[2] in ("pets", "cmd") for line in lines)
-    with open(jobs.RESULTS / "online_locomotion_runs.csv", newline="") as f:
-        complete = {(r["model"], r["seed"]) for r in csv.DictReader(f) if r["status"] == "complete"}
-    queued = [line.split("|")[1].rsplit("/", 1)[1] for line in lines if "/online/" in line]
-    assert len(queued) == len(set(queued))
-    expected = {f"halfcheetah-{a}-s{s}" for s in range(10) for a in jobs.ONLINE_ARMS if (a, str(s)) not in complete}
-    assert set(queued) == expected and "halfcheetah-gem-se-s0" not in queued
-    assert all(line.startswith("/wt/gate|") for line in lines if "/online/" in line or "/pilots/" in line)
-    (tmp_path / "next_core1.jobs").write_text("# a running queue's file\n")
-    args = ["--runs", str(tmp_path), "--gate-worktree", "/wt/gate", "--composition-worktree", "/wt/comp", "--write"]
-    done = subprocess.run([sys.executable, str(path), *args], capture_output=True, text=True)
-    assert done.returncode != 0 and "exists (a queue may be reading it)" in done.stderr
-    assert (tmp_path / "next_core1.jobs").read_text() == "# a running queue's file\n"

@@ -17,6 +17,7 @@ import numpy as np
 import envs
 from pets.experiments import gate, publication
 from pets.experiments.curves import Curves, complete_curves, group_curves, plot_curves
+from pets.experiments.design import Design, Job
 from pets.experiments.publication import FIGURES, Product, Publication, results_path
 from pets.experiments.report import csv_number, fmt, md_table, read_csv_rows, write_rounded_csv
 from pets.experiments.statistics import sign_flip_p
@@ -87,9 +88,15 @@ def reward_prediction_table(tree: Path) -> str:
     return csv_table(tree / RESULTS / "locomotion_reward_prediction.csv", columns)
 
 
-#: The ablation's arms (docs/studies/locomotion_gate.md, amendment of 2026-11-28 06:35 UTC): a pilot row's overrides
-#: name its arm; HalfCheetah, pilot seeds 100-102.
-ABLATION = {"": "full preset", "value.enabled=False": "without the value", "model.iterations=0": "epoch training"}
+#: The ablation's arms (docs/studies/locomotion_gate.md, amendment of 2026-11-28 06:35 UTC), `delta` on HalfCheetah,
+#: pilot seeds 100-102: each its runs' name, its overrides on the command line and as a pilot row records them (a
+#: row's overrides name its arm), and its label.
+ABLATION_ARMS = (
+    ("v2", "", "", "full preset"),
+    ("novalue", "value.enabled=false", "value.enabled=False", "without the value"),
+    ("epochs", "model.iterations=0", "model.iterations=0", "epoch training"),
+)
+ABLATION = {recorded: label for _, _, recorded, label in ABLATION_ARMS}
 ABLATION_SEEDS = ("100", "101", "102")
 
 
@@ -281,6 +288,26 @@ def write_summary(results: Path, figures: Path) -> None:
     write_rounded_csv(results / "locomotion_gate_summary.csv", gate.summary_rows(rows), gate.SUMMARY_COLUMNS)
     write_figures(results, figures)
 
+
+def ablation_jobs(tree: Path) -> list[Job]:
+    """The ablation's runs, seed-major (every arm of seed 100, then 101, 102)."""
+    base = ("--env", "halfcheetah", "--model", "delta", "--preset", "locomotion")
+    return [
+        Job(f"halfcheetah-{name}-s{s}", int(s), "pilots", "pets", (*base, "--seed", s, "threads=1", *overrides.split()))
+        for s in ABLATION_SEEDS
+        for name, overrides, _, _ in ABLATION_ARMS
+    ]
+
+
+def ablation_left(tree: Path) -> list[Job]:
+    """The ablation's runs whose committed pilot row is not at the gate's budget."""
+    rows = read_csv_rows(tree / RESULTS / "locomotion_pilots.csv")
+    done = {r["run"] for r in rows if float(r["env_steps"] or 0) >= gate.BUDGET}
+    return [job for job in ablation_jobs(tree) if job.name not in done]
+
+
+#: The ablation's registered runs (:mod:`pets.experiments.design`), made from the gate's pinned commit.
+DESIGN = Design("locomotion gate ablation", 56, "1f6591b", ablation_jobs, ablation_left)
 
 #: The gate's committed rows: its runs and curves, the pilots (and the ablation's runs among them), the
 #: true-dynamics episodes, mbrl-lib's runs beside it and the diagnosis files (docs/studies/locomotion_gate.md).

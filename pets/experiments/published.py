@@ -21,6 +21,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from pets.experiments import gate_published, offline_tables
+from pets.experiments.design import Design
 from pets.experiments.publication import RESULTS as RESULTS  # re-exported: answer.py and the tests read it here
 from pets.experiments.publication import Product, Publication, results_path
 from pets.experiments.report import read_csv_rows
@@ -349,6 +350,9 @@ PRODUCTS: tuple[Product, ...] = tuple(p for unit in PUBLICATIONS for p in unit.p
 NOT_GENERATED: dict[str, str] = {path: why for unit in PUBLICATIONS for path, why in unit.not_generated.items()}
 #: Committed per-seed (or per-trial) data: what summaries are made from, nothing to regenerate.
 RAW: tuple[str, ...] = tuple(path for unit in PUBLICATIONS for path in unit.raw)
+#: The registered work of the studies that declare it (:mod:`pets.experiments.design`): what runs, in what order,
+#: from which commit, and what their committed rows lack (``docs/scripts/study_jobs.py`` queues it).
+DESIGNS: tuple[Design, ...] = (gate_published.DESIGN, locomotion.DESIGN, composition.DESIGN)
 
 
 def outputs() -> list[str]:

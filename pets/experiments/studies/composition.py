@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from pets.experiments.design import Design, Job
 from pets.experiments.publication import FIGURES, RESULTS, Product, Publication, results_path
 from pets.experiments.report import fmt, fmt_interval, md_table
 from pets.experiments.statistics import sign_flip_p
@@ -291,6 +292,43 @@ def write_products(results: Path, figures: Path) -> None:
     for name, (table, columns) in zip(OUTPUTS, tables, strict=True):
         write_csv(results / name, table, columns)
     plot(horizons, figures / FIGURE)
+
+
+#: The registered data sets (SAC data seeds) of each env, and the models each sweep trains: every arm of the study.
+DATA_SETS, SEEDS, MODELS = (0, 1, 2), tuple(range(5)), (BASELINE, *ARMS, LONG_HORIZON[1])
+
+
+def _sweep(env: str, data_set: int, seed: int) -> Job:
+    """The sweep of one model seed on one data set, every arm."""
+    data = ("--seeds", str(seed), "--data-seeds", str(data_set), "--policy", "sac", "--protocol", "paper")
+    args = ("offline", "--envs", env, "--models", ",".join(MODELS), *data, "--workers", "1", "--threads", "1")
+    return Job(f"{env}-d{data_set}-s{seed}", seed, "composition", "compare", (*args, "--out", "{out}/results"))
+
+
+def design_jobs(tree: Path) -> list[Job]:
+    """The study's sweeps, data set by data set (Ant's, then Humanoid's), one per model seed with every arm."""
+    return [_sweep(env, d, seed) for env in ENVS for d in DATA_SETS for seed in SEEDS]
+
+
+def design_left(tree: Path) -> list[Job]:
+    """Every sweep of a data set with a (model, seed) not in the committed runs: a data set and its runs are made on
+    one machine (docs/studies/composition.md, amendment of 2026-11-28), so its finished sweeps run again there (the
+    sweep reuses finished runs on the same machine)."""
+    from pets.experiments.offline_data import data_paths
+    from pets.experiments.report import read_csv_rows
+
+    done = {(r["env"], r["model"], r["data"], int(r["seed"])) for r in read_csv_rows(tree / RESULTS / RUNS)}
+    left = {
+        (env, d)
+        for env in ENVS
+        for d in DATA_SETS
+        if any((env, m, data_paths(Path(), env, d)[1].name, s) not in done for m in MODELS for s in SEEDS)
+    }
+    return [_sweep(env, d, seed) for env in ENVS for d in DATA_SETS if (env, d) in left for seed in SEEDS]
+
+
+#: The study's registered sweeps (:mod:`pets.experiments.design`), made from its pinned commit.
+DESIGN = Design("composition", 53, "975e50e", design_jobs, design_left)
 
 
 def study_table(tree: Path) -> str:

@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from pets.experiments import curves, gate, gate_published, publication
+from pets.experiments.design import Design, Job
 from pets.experiments.publication import Product, Publication, results_path
 from pets.experiments.report import (
     cell_text,
@@ -219,6 +220,41 @@ ARMS, SEEDS = ("delta-groupfeat", "gem", "gem-se"), tuple(range(10))
 ENVS = ("halfcheetah", "ant", "hopper")
 #: The paper's claim the study tests, and the arm that is the paper's GEM.
 CLAIM, PAPER_ARM = "GEM+PETS consistently achieves higher rewards on complex environments", "gem"
+
+
+#: A seed's runs, in their registered order (docs/studies/online_locomotion.md, amendment of 2026-11-28 07:50 UTC).
+RUN_ORDER = ("gem-se", "gem", "delta-groupfeat", "delta")
+
+
+def design_jobs(tree: Path) -> list[Job]:
+    """The study's runs, seed-major, on the envs of :data:`ENVS` where the gate passed (its committed summary): per
+    seed the arms of :data:`RUN_ORDER`, ``delta-groupfeat`` left out on a planar env (it takes ``gem``'s run)."""
+    from pets.experiments.report import read_csv_rows
+
+    gates = tree / RESULTS / GATE_SUMMARY
+    verdicts = {(r["env"], r["agent"]): r["verdict"] for r in (read_csv_rows(gates) if gates.is_file() else [])}
+    passed = [env for env in ENVS if verdicts.get((env, BASELINE)) == "passed"]
+    return [
+        Job(f"{env}-{arm}-s{seed}", seed, "online", "pets",
+            ("--env", env, "--model", arm, "--preset", "locomotion", "--seed", str(seed), "threads=1"))
+        for seed in SEEDS
+        for env in passed
+        for arm in RUN_ORDER
+        if not (arm == IDENTICAL[0] and planar(env))
+    ]  # fmt: skip
+
+
+def design_left(tree: Path) -> list[Job]:
+    """The study's runs without a complete committed row."""
+    from pets.experiments.report import read_csv_rows
+
+    rows = read_csv_rows(tree / RESULTS / RUNS)
+    done = {f"{r['env']}-{r['model']}-s{r['seed']}" for r in rows if r["status"] == "complete"}
+    return [job for job in design_jobs(tree) if job.name not in done]
+
+
+#: The study's registered runs (:mod:`pets.experiments.design`), made from the gate's pinned commit.
+DESIGN = Design("online locomotion", 52, gate_published.DESIGN.commit, design_jobs, design_left)
 
 
 def _verdict(row: Mapping[str, str]) -> str:

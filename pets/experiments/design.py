@@ -1,0 +1,52 @@
+"""What a study runs, as one unit (:class:`Design`): its registered jobs in their registered order (seed-major, so
+a study cut short is still paired), the commit its runs are made from, and which jobs its committed rows do not
+hold yet. A study declares its design in its own module as ``DESIGN``, beside its ``PUBLICATION``; the one table of
+designs is :data:`pets.experiments.published.DESIGNS`, from which ``docs/scripts/study_jobs.py`` makes the
+background queues of a machine (which core runs what is that script's choice, not the design's).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+#: A job's kinds: ``run_pets.py ARGS`` (one run; its directory is the job's) or ``python -m pets.compare ARGS`` (a
+#: sweep; the job's directory holds its log only).
+KINDS = ("pets", "compare")
+
+
+@dataclass(frozen=True)
+class Job:
+    """One registered job. ``name``: its directory's, unique in the study; ``seed``: the model seed it runs (the
+    pairing unit); ``folder``: the study's folder of directories (under a machine's runs folder); ``args``: the
+    command's arguments, where ``{out}`` stands for that folder (a sweep's ``--out``)."""
+
+    name: str
+    seed: int
+    folder: str
+    kind: str
+    args: tuple[str, ...]
+
+    def __post_init__(self) -> None:
+        if self.kind not in KINDS:
+            raise ValueError(f"Job {self.name!r}: kind must be one of {', '.join(KINDS)}, got {self.kind!r}")
+
+    def command(self, runs: Path) -> str:
+        """The command line, ``{out}`` resolved under ``runs``."""
+        args = " ".join(a.replace("{out}", str(runs / self.folder)) for a in self.args)
+        return args if self.kind == "pets" else f"python -m pets.compare {args}"
+
+
+@dataclass(frozen=True)
+class Design:
+    """One study's registered work. ``commit``: the commit every run of the study is made from (a worktree pinned
+    there: a refactor never changes code under a running study); ``jobs(tree)``: every registered job, in the
+    registered order, under a repository tree (a design may depend on committed results, e.g. the envs where a
+    gate passed); ``left(tree)``: the jobs the committed rows under ``tree`` do not complete, in the same order."""
+
+    name: str
+    issue: int
+    commit: str
+    jobs: Callable[[Path], Sequence[Job]]
+    left: Callable[[Path], Sequence[Job]]
