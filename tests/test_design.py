@@ -165,3 +165,44 @@ def test_study_jobs_refuses_a_worktree_not_at_the_studys_commit(tmp_path: Path):
         assert done.returncode == 1 and found in done.stderr, done.stderr
         assert f"git worktree add --detach {gate_wt} {gate_published.DESIGN.commit}" in done.stderr
         assert len(done.stderr.strip().splitlines()) == 1 and not list(tmp_path.glob("*.jobs"))
+
+
+def test_pets_compare_design_prints_a_studys_jobs_or_those_left_as_commands(capsys):
+    from pets.experiments.cli import main
+
+    assert main(["design", "composition", "--left", "--runs", "/r", "--root", str(ROOT)]) == 0
+    head, *lines = capsys.readouterr().out.strip().splitlines()
+    left = composition.DESIGN.left(ROOT)
+    assert head.startswith(f"# composition (issue 53): 30 registered jobs, {len(left)} not complete")
+    assert f"git worktree add --detach ../wt-composition {composition.DESIGN.commit}" in head
+    assert lines == [job.shell_line(Path("/r")) for job in left]
+    assert main(["design", "--root", str(ROOT)]) == 0
+    out = capsys.readouterr().out
+    assert [line.split(" (issue")[0][2:] for line in out.splitlines() if line.startswith("# ")] == [
+        d.name for d in DESIGNS
+    ]
+    assert "python run_pets.py --env halfcheetah --model gem-se --preset locomotion --seed 9 threads=1 --out " in out
+
+
+def test_pets_compare_design_refuses_an_unknown_study_or_root_in_one_line(tmp_path, capsys):
+    from pets.experiments.cli import main
+
+    for argv, fragment in (
+        (["design", "nope", "--root", str(ROOT)], "no study named 'nope' has a design; accepted: locomotion-gate"),
+        (["design", "--root", str(tmp_path)], f"{tmp_path} has no docs/results"),
+    ):
+        with pytest.raises(SystemExit) as exit_info:
+            main(argv)
+        err = capsys.readouterr().err.strip().splitlines()
+        assert exit_info.value.code == 2 and len(err) == 1 and fragment in err[0], err
+
+
+def test_a_reader_that_closes_the_pipe_early_gets_no_error_line():
+    """``pets.compare design | head -1``: the reader goes away before the listing is written; no traceback and no
+    'writing a file failed' line (nothing of the command's own failed), exit 1 as Python does on EPIPE."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "pets.compare", "design"], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE
+    )
+    proc.stdout.close()  # before the command has imported anything: its first write meets a closed pipe
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=120) == 1 and err == ""

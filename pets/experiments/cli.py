@@ -44,6 +44,7 @@ The options: :mod:`pets.experiments.options`. The modes: :mod:`pets.experiments.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -184,6 +185,22 @@ def headline_main(args: argparse.Namespace) -> int:
     return 0
 
 
+def design_main(args: argparse.Namespace) -> int:
+    """``pets.compare design``: each named study's registered jobs (or those left) as commands; exit 2 for a study
+    without a design, or a root without committed results."""
+    from pets.experiments.published import DESIGNS
+
+    known = {design.name: design for design in DESIGNS}
+    unknown = [name for name in args.studies if name not in known]
+    if unknown:
+        fail(PROG, f"no study named {', '.join(map(repr, unknown))} has a design; accepted: {', '.join(known)}")
+    if not (args.root / "docs" / "results").is_dir():
+        fail(PROG, f"{args.root} has no docs/results: run from the repository root or give --root")
+    chosen = [known[name] for name in args.studies] or list(DESIGNS)
+    print("\n\n".join(design.listing(args.root, args.runs, args.left) for design in chosen))
+    return 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run ``compare`` with ``argv`` and print the report; 0, 3 (a run failed), exit 2 (bad input) or exit 3 with one
     line where a file of the command's own could not be written (a full disk: the finished runs are kept)."""
@@ -191,6 +208,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     args.command_line = command_line(sys.argv[1:] if argv is None else argv)
     try:
         return _main(args)
+    except BrokenPipeError:  # the reader of stdout went away (`| head`): nothing of ours failed
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # else Python's flush at exit raises again
+        return 1  # as Python's documentation does on EPIPE
     except OSError as err:  # the runs' own failures are reported per run: this is a summary, table or figure
         write_failed(PROG, err, "what was finished is kept: free space, then rerun the same command")
 
@@ -210,6 +230,8 @@ def _main(args: argparse.Namespace) -> int:
         from pets.experiments.regenerate import report_main
 
         return report_main(args)
+    if args.mode == "design":
+        return design_main(args)
     try:
         result, report = _run_mode(args)
     except UsageError as err:

@@ -33,9 +33,16 @@ class Job:
             raise ValueError(f"Job {self.name!r}: kind must be one of {', '.join(KINDS)}, got {self.kind!r}")
 
     def command(self, runs: Path) -> str:
-        """The command line, ``{out}`` resolved under ``runs``."""
+        """The command as a queue line holds it (``docs/scripts/run_queue.sh``: a ``pets`` job's arguments, a
+        ``compare`` job's whole line), ``{out}`` resolved under ``runs``."""
         args = " ".join(a.replace("{out}", str(runs / self.folder)) for a in self.args)
         return args if self.kind == "pets" else f"python -m pets.compare {args}"
+
+    def shell_line(self, runs: Path) -> str:
+        """The whole command to type in a worktree at the study's commit; a run's ``--out`` is its directory."""
+        if self.kind == "pets":
+            return f"python run_pets.py {self.command(runs)} --out {runs / self.folder / self.name}"
+        return self.command(runs)
 
 
 @dataclass(frozen=True)
@@ -50,3 +57,11 @@ class Design:
     commit: str
     jobs: Callable[[Path], Sequence[Job]]
     left: Callable[[Path], Sequence[Job]]
+
+    def listing(self, tree: Path, runs: Path, left_only: bool = False) -> str:
+        """The design as shell lines under a comment line: every job (or those left), ``runs`` their folder."""
+        jobs, left = list(self.jobs(tree)), list(self.left(tree))
+        head = (f"# {self.name} (issue {self.issue}): {len(jobs)} registered jobs, {len(left)} not complete in the "
+                f"committed rows; from a worktree at {self.commit}: git worktree add --detach ../wt-{self.name} "
+                f"{self.commit}")  # fmt: skip
+        return "\n".join([head, *(job.shell_line(runs) for job in (left if left_only else jobs))])

@@ -307,7 +307,7 @@ def ablation_left(tree: Path) -> list[Job]:
 
 
 #: The ablation's registered runs (:mod:`pets.experiments.design`), made from the gate's pinned commit.
-DESIGN = Design("locomotion gate ablation", 56, "1f6591b", ablation_jobs, ablation_left)
+DESIGN = Design("locomotion-gate-ablation", 56, "1f6591b", ablation_jobs, ablation_left)
 
 #: The gate's committed rows: its runs and curves, the pilots (and the ablation's runs among them), the
 #: true-dynamics episodes, mbrl-lib's runs beside it and the diagnosis files (docs/studies/locomotion_gate.md).

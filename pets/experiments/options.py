@@ -28,6 +28,7 @@ def build_parser() -> OneLineParser:
     _add_offline(sub)
     _add_headline(sub)
     _add_report(sub)
+    _add_design(sub)
     return p
 
 
@@ -211,3 +212,16 @@ def _add_report(sub: Any) -> None:
     )
     rep.add_argument("--check", action="store_true", help="write nothing; exit 1 if any committed file differs")
     rep.add_argument("--root", type=Path, default=Path("."), help="the repository root (default: .)")
+
+
+def _add_design(sub: Any) -> None:
+    """The ``design`` mode: the studies' registered jobs as commands (:mod:`pets.experiments.design`)."""
+    des = sub.add_parser(
+        "design",
+        prog=f"{PROG} design",
+        help="print a study's registered jobs (every one, or those its committed rows lack) as commands to run",
+    )
+    des.add_argument("studies", nargs="*", metavar="STUDY", help="the studies (default: every study with a design)")
+    des.add_argument("--left", action="store_true", help="only the jobs the committed rows do not complete")
+    des.add_argument("--runs", type=Path, default=Path("runs"), help="the folder of the runs (default: runs)")
+    des.add_argument("--root", type=Path, default=Path("."), help="the repository root (default: .)")

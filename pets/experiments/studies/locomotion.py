@@ -254,7 +254,7 @@ def design_left(tree: Path) -> list[Job]:
 
 
 #: The study's registered runs (:mod:`pets.experiments.design`), made from the gate's pinned commit.
-DESIGN = Design("online locomotion", 52, gate_published.DESIGN.commit, design_jobs, design_left)
+DESIGN = Design("online-locomotion", 52, gate_published.DESIGN.commit, design_jobs, design_left)
 
 
 def _verdict(row: Mapping[str, str]) -> str:
