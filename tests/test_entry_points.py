@@ -75,3 +75,22 @@ def test_the_tools_threads_option_is_one_check_in_one_line(tool, value, capsys):
         exit_info.value.code == 2
         and f"argument --threads: must be an int >= 0 (0: torch's default), got '{value}'" in line
     )
+
+
+def test_a_reader_that_goes_away_early_ends_a_command_quietly_and_another_broken_pipe_is_not_hidden():
+    """``run_pets.py --print-config | head -1``: the reader of stdout is gone before the command writes; no
+    traceback, exit 1 (as Python's documentation does on EPIPE). A broken pipe that is not stdout's (a child's, a
+    socket) is the command's own failure: it is not silenced."""
+    proc = subprocess.Popen(
+        [sys.executable, "run_pets.py", "--env", "halfcheetah", "--print-config"],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
+    proc.stdout.close()  # before the command has imported anything: its first write meets a closed pipe
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=120) == 1 and err == ""
+    other = "from pets.tools.cli import run_command\ndef main():\n    raise BrokenPipeError(32, 'a child went away')\n"
+    other += "run_command('x', main)\n"
+    done = subprocess.run([sys.executable, "-c", other], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 1 and "BrokenPipeError: [Errno 32] a child went away" in done.stderr

@@ -44,7 +44,6 @@ The options: :mod:`pets.experiments.options`. The modes: :mod:`pets.experiments.
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -64,7 +63,7 @@ from pets.experiments.backend import Backend
 from pets.experiments.offline import compare_offline
 from pets.experiments.online import compare_online
 from pets.experiments.options import build_parser
-from pets.tools.cli import EXIT_FAILED, EXIT_INTERRUPTED, OneLineParser, fail, import_given, write_failed
+from pets.tools.cli import EXIT_FAILED, EXIT_INTERRUPTED, OneLineParser, fail, import_given, stdout_gone, write_failed
 
 
 def make_backend(args: argparse.Namespace) -> Backend:
@@ -208,10 +207,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     args.command_line = command_line(sys.argv[1:] if argv is None else argv)
     try:
         return _main(args)
-    except BrokenPipeError:  # the reader of stdout went away (`| head`): nothing of ours failed
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # else Python's flush at exit raises again
-        return 1  # as Python's documentation does on EPIPE
     except OSError as err:  # the runs' own failures are reported per run: this is a summary, table or figure
+        if isinstance(err, BrokenPipeError) and stdout_gone():
+            raise  # the reader of stdout went away (`| head`): nothing of ours failed (run_command ends quietly)
         write_failed(PROG, err, "what was finished is kept: free space, then rerun the same command")
 
 

@@ -4,8 +4,9 @@ Exit status of every command, run_pets.py, pets.train, pets.collect, pets.evalua
 pets.compare (docs/cli.md, "Exit codes"; :data:`EXIT_CODES` is the one table):
 
 - 0: done;
-- 1 (:data:`EXIT_DIFFERS`): ``pets.compare report --check`` only: a generated file or block differs from what
-  ``report`` makes (as ``diff`` exits 1);
+- 1 (:data:`EXIT_DIFFERS`): ``pets.compare report --check``: a generated file or block differs from what
+  ``report`` makes (as ``diff`` exits 1); (:data:`EXIT_READER_GONE`) any command, quietly, where the reader of its
+  standard output went away first (``| head``), as Python's documentation exits on EPIPE;
 - 2 (:data:`EXIT_USAGE`): bad input, checked before any long work: a bad option, key or value; a missing,
   corrupt or mismatched file (checkpoint, config.yaml, data set); an output location that cannot be written
   (read-only, under /proc, a file in place of a directory); a run directory in use by another run;
@@ -26,6 +27,7 @@ import argparse
 import errno
 import functools
 import json
+import os
 import signal
 import sys
 import threading
@@ -45,10 +47,13 @@ EXIT_TERMINATED = 143
 EXIT_FAILED = 3
 #: Exit status of ``pets.compare report --check`` when a generated file differs from what ``report`` makes.
 EXIT_DIFFERS = 1
+#: Exit status of a command whose standard output's reader went away before it wrote (no line: nothing failed).
+EXIT_READER_GONE = 1
 #: Every exit status of the commands and what it means.
 EXIT_CODES = {
     0: "done",
-    EXIT_DIFFERS: "pets.compare report --check: a generated file is out of date",
+    EXIT_DIFFERS: "pets.compare report --check: a generated file is out of date; any command: its output's reader "
+    "went away first (| head)",
     EXIT_USAGE: "bad input, one line before any long work",
     EXIT_FAILED: "the work failed on good input (what completed before is kept)",
     EXIT_INTERRUPTED: "interrupted (Ctrl-C; pets.compare: SIGTERM too)",
@@ -249,6 +254,11 @@ def run_command(prog: str, main: Callable[[], int | None], kept: str = "", sigte
         code = EXIT_INTERRUPTED
     except SystemExit as done:  # fail(): its line is printed
         code = done.code
+    except BrokenPipeError:
+        if not stdout_gone():
+            raise  # another pipe of the command's (a child's, a socket): its own failure
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # else Python's flush at exit raises again
+        code = EXIT_READER_GONE  # the reader of stdout went away (`| head`): quietly, as Python does on EPIPE
     # The work is over: a Ctrl-C while the process ends (pools, threads, files closing) is ignored. A Python handler
     # would not do: the interpreter's finalisation puts SIGINT back to its default, and the process would end by the
     # signal (-2), while an ignored signal stays ignored to the end.
@@ -260,11 +270,23 @@ def run_command(prog: str, main: Callable[[], int | None], kept: str = "", sigte
     sys.exit(code)
 
 
+def stdout_gone() -> bool:
+    """Whether standard output is a pipe whose reader has gone (``| head`` read what it wanted): ``poll`` reports
+    an error on the writing end of a pipe with no reader left."""
+    import select
+
+    try:
+        poller = select.poll()
+        poller.register(sys.stdout.fileno(), select.POLLOUT)
+        return any(events & select.POLLERR for _, events in poller.poll(0))
+    except (AttributeError, OSError, ValueError):  # no poll (Windows), stdout closed or not a file
+        return False
+
+
 def _import_first(prog: str, name: str) -> None:
     """Import one of :data:`UNCUTTABLE_IMPORTS`; mujoco failing with a ``MUJOCO_GL`` set (an invalid value, a backend
     whose library is missing: ``import mujoco`` loads it) is one line and exit 2, never a traceback."""
     import importlib
-    import os
 
     try:
         importlib.import_module(name)
@@ -289,7 +311,6 @@ def _end_by_sigterm() -> NoReturn:
     (its Ray backend retries it). The exit handlers run first; the interpreter's finalisation is skipped, as the
     signal's."""
     import atexit
-    import os
 
     atexit._run_exitfuncs()
     sys.stdout.flush()
@@ -354,7 +375,6 @@ def _forget_handled_interrupt(code: int | str | None) -> None:
         if code != EXIT_INTERRUPTED and not _interrupted.is_set():
             return
         import atexit
-        import os
 
         if code is not None and not isinstance(code, int):  # as sys.exit(text): the text, then status 1
             print(code, file=sys.stderr)
