@@ -4,16 +4,12 @@ machine (its run directories gone) starts from.
 
     python docs/scripts/study_jobs.py --runs /work/runs --gate-worktree WT --composition-worktree WT [--write]
 
-Core 1: the locomotion gate's ablation (docs/studies/locomotion_gate.md: `delta` on HalfCheetah, seeds 100-102
-seed-major, the full preset, `value.enabled=false`, `model.iterations=0`), then the online locomotion study's seeds
-upwards (docs/studies/online_locomotion.md: per seed `gem-se`, `gem`, `delta`; on a planar env `delta-groupfeat` is
-`gem`'s run). Core 2: the composition study's data sets (docs/studies/composition.md: Ant 1-2, then Humanoid 0-2,
-each data set's seeds 0-4 with its four arms), then the online study's seeds downwards from 9. A run is done when its
-row is complete (100k env steps; a composition run: its rows at every horizon); an online seed is taken by one core
-only. Prints both files; ``--write`` writes RUNS/next_core1.jobs and RUNS/next_core2.jobs (refused where one exists:
-a running queue reads its file as it goes). What each study runs, in what order and from which commit is its
-``DESIGN`` (:mod:`pets.experiments.design`); this script only splits the work over the two cores, and refuses a
-worktree that is not at its study's commit.
+Core 1: the locomotion gate's ablation, then the online locomotion study's seeds upwards; core 2: the composition
+study, then the online study's seeds downwards from 9 (an online seed is taken by one core only, its arms one after
+another). What each study runs, in what order and from which commit is its ``DESIGN`` (:mod:`pets.experiments.design`;
+``python -m pets.compare design`` lists it): this script only splits what the committed rows lack over the two
+cores, and refuses a worktree that is not at its study's commit. Prints both files; ``--write`` writes
+RUNS/next_core1.jobs and RUNS/next_core2.jobs (refused where one exists: a running queue reads its file as it goes).
 """
 
 from __future__ import annotations
@@ -73,9 +69,12 @@ def main(argv: list[str] | None = None) -> int:
     existing = [str(path) for path in files if path.exists()]
     if args.write and existing:
         sys.exit(f"study_jobs.py: {', '.join(existing)} exists (a queue may be reading it); move it away first")
-    for design, worktree in ((ABLATION, args.gate_worktree), (ONLINE, args.gate_worktree)):
+    for design, worktree in (
+        (ABLATION, args.gate_worktree),
+        (ONLINE, args.gate_worktree),
+        (COMPOSITION, args.composition_worktree),
+    ):
         check_pinned(design, worktree)
-    check_pinned(COMPOSITION, args.composition_worktree)
     for path, lines in zip(files, queues(args.runs, args.gate_worktree, args.composition_worktree)):
         text = "\n".join(lines) + "\n"
         if args.write:
