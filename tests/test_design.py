@@ -182,6 +182,9 @@ def test_pets_compare_design_prints_a_studys_jobs_or_those_left_as_commands(caps
         d.name for d in DESIGNS
     ]
     assert "python run_pets.py --env halfcheetah --model gem-se --preset locomotion --seed 9 threads=1 --out " in out
+    assert main(["design", "online-locomotion", "--runs", "/my runs", "--root", str(ROOT)]) == 0
+    line = capsys.readouterr().out.splitlines()[-1]  # a folder with a space: each path one word of the shell line
+    assert shlex.split(line)[-2:] == ["--out", "/my runs/online/halfcheetah-delta-s9"]
 
 
 def test_pets_compare_design_refuses_an_unknown_study_or_root_in_one_line(tmp_path, capsys):

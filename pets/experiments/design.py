@@ -7,6 +7,7 @@ background queues of a machine (which core runs what is that script's choice, no
 
 from __future__ import annotations
 
+import shlex
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,13 +36,13 @@ class Job:
     def command(self, runs: Path) -> str:
         """The command as a queue line holds it (``docs/scripts/run_queue.sh``: a ``pets`` job's arguments, a
         ``compare`` job's whole line), ``{out}`` resolved under ``runs``."""
-        args = " ".join(a.replace("{out}", str(runs / self.folder)) for a in self.args)
+        args = shlex.join(a.replace("{out}", str(runs / self.folder)) for a in self.args)
         return args if self.kind == "pets" else f"python -m pets.compare {args}"
 
     def shell_line(self, runs: Path) -> str:
         """The whole command to type in a worktree at the study's commit; a run's ``--out`` is its directory."""
         if self.kind == "pets":
-            return f"python run_pets.py {self.command(runs)} --out {runs / self.folder / self.name}"
+            return f"python run_pets.py {self.command(runs)} --out {shlex.quote(str(runs / self.folder / self.name))}"
         return self.command(runs)
 
 
