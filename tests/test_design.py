@@ -209,3 +209,18 @@ def test_a_reader_that_closes_the_pipe_early_gets_no_error_line():
     proc.stdout.close()  # before the command has imported anything: its first write meets a closed pipe
     err = proc.stderr.read().decode()
     assert proc.wait(timeout=120) == 1 and err == ""
+
+
+@pytest.mark.parametrize("design", DESIGNS, ids=lambda d: d.name)
+def test_each_design_has_a_generated_progress_block_on_a_study_page(design: Design):
+    """A study page never types how far its study has got: a report block renders it from the committed rows."""
+    from pets.experiments import regenerate
+
+    (name,) = [n for n, render in regenerate.BLOCKS.items() if render == design.progress]
+    assert any(f"<!-- report:{name} -->" in (ROOT / page).read_text() for page in regenerate.BLOCK_FILES)
+    text = design.progress(ROOT)
+    jobs, left = design.jobs(ROOT), design.left(ROOT)
+    assert f"**{len(jobs) - len(left)} of {len(jobs)}**" in text and f"`{design.commit}`" in text
+    assert [part.strip(" `.") for part in text.split("registered order: ")[1].split(",")] == (
+        [job.name for job in left] or ["none"]
+    )

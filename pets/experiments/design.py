@@ -51,13 +51,26 @@ class Design:
     """One study's registered work. ``commit``: the commit every run of the study is made from (a worktree pinned
     there: a refactor never changes code under a running study); ``jobs(tree)``: every registered job, in the
     registered order, under a repository tree (a design may depend on committed results, e.g. the envs where a
-    gate passed); ``left(tree)``: the jobs the committed rows under ``tree`` do not complete, in the same order."""
+    gate passed); ``left(tree)``: the jobs the committed rows under ``tree`` do not complete, in the same order;
+    ``rule``: how ``left`` counts a job done where that is not simply its own rows (said beside the counts)."""
 
     name: str
     issue: int
     commit: str
     jobs: Callable[[Path], Sequence[Job]]
     left: Callable[[Path], Sequence[Job]]
+    rule: str = ""
+
+    def progress(self, tree: Path) -> str:
+        """A study's progress block: how many registered jobs the committed rows under ``tree`` complete, and which
+        are left, in their order (generated: a study page never types these counts)."""
+        jobs, left = list(self.jobs(tree)), list(self.left(tree))
+        rest = ", ".join(f"`{job.name}`" for job in left) if left else "none"
+        rule = f" ({self.rule})" if self.rule else ""
+        done = f"**{len(jobs) - len(left)} of {len(jobs)}**{rule}"
+        return (f"Registered jobs complete in the committed rows: {done}, run from commit `{self.commit}` (`python -m "
+                f"pets.compare design {self.name} --left` prints the commands of the rest). Left, in the registered "
+                f"order: {rest}.")  # fmt: skip
 
     def listing(self, tree: Path, runs: Path, left_only: bool = False) -> str:
         """The design as shell lines under a comment line: every job (or those left), ``runs`` their folder."""

@@ -354,6 +354,7 @@ PUBLICATION = Publication(
         "locomotion-reward-prediction": reward_prediction_table,
         "locomotion-gate": gate_table,
         "locomotion-ablation": ablation_table,
+        "locomotion-ablation-progress": DESIGN.progress,
         "locomotion-peer": peer_table,
         "locomotion-compute": compute_table,
         "locomotion-cost": cost_table,

@@ -328,7 +328,10 @@ def design_left(tree: Path) -> list[Job]:
 
 
 #: The study's registered sweeps (:mod:`pets.experiments.design`), made from its pinned commit.
-DESIGN = Design("composition", 53, "975e50e", design_jobs, design_left)
+DESIGN = Design(
+    "composition", 53, "975e50e", design_jobs, design_left,
+    rule="a data set's five sweeps count only together: a data set and its 20 runs are made on one machine",
+)  # fmt: skip
 
 
 def study_table(tree: Path) -> str:
@@ -366,6 +369,6 @@ PUBLICATION = Publication(
             lambda: write_products(Path(RESULTS), Path(FIGURES)),
         ),
     ),
-    blocks={"composition": study_table},
+    blocks={"composition": study_table, "composition-progress": DESIGN.progress},
     pages=("docs/studies/composition.md",),
 )

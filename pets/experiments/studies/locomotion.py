@@ -377,7 +377,11 @@ PUBLICATION = Publication(
             lambda: write_summary(RESULTS),
         ),
     ),
-    blocks={"online-locomotion-runs": runs_table, "online-locomotion": summary_table},
+    blocks={
+        "online-locomotion-runs": runs_table,
+        "online-locomotion": summary_table,
+        "online-locomotion-progress": DESIGN.progress,
+    },
     pages=("docs/studies/online_locomotion.md",),
 )
 
