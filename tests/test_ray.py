@@ -12,6 +12,7 @@ import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -103,7 +104,8 @@ def start_head(env: dict[str, str], log: Path, attempts: int = 3, wait_s: float 
     once (CI, 2026-11-26: "Timed out while waiting for GCS", the head exited), so a head that exits during its
     start is started again, on fresh ports, up to ``attempts`` times; every attempt's output stays in ``log``."""
     for attempt in range(1, attempts + 1):
-        ports = [f"--port={free_port()}", f"--ray-client-server-port={free_port()}"]
+        gcs_port = free_port()
+        ports = [f"--port={gcs_port}", f"--ray-client-server-port={free_port()}"]
         offset = log.stat().st_size if log.exists() else 0
         with open(log, "a") as f:
             f.write(f"--- ray start, attempt {attempt}\n")
@@ -113,6 +115,7 @@ def start_head(env: dict[str, str], log: Path, attempts: int = 3, wait_s: float 
                  "--disable-usage-stats"],
                 env=env, stdout=f, stderr=subprocess.STDOUT, start_new_session=True,
             )  # fmt: skip
+        head.gcs_port = gcs_port  # what stop_head looks for in the address file the head leaves
         deadline = time.monotonic() + wait_s
         while time.monotonic() < deadline and head.poll() is None:
             if "Ray runtime started" in log.read_text()[offset:]:
@@ -124,7 +127,9 @@ def start_head(env: dict[str, str], log: Path, attempts: int = 3, wait_s: float 
 
 def stop_head(head: subprocess.Popen) -> None:
     """Stop ``ray start --block`` as Ctrl-C in its terminal does: SIGINT to its group ends it in ~1.5 s, where
-    SIGTERM took 32 s (Ray 2.60, 2026-12-01); SIGKILL if it is still there after 60 s."""
+    SIGTERM took 32 s (Ray 2.60, 2026-12-01); SIGKILL if it is still there after 60 s. Then remove the address file
+    it left for ``--address auto`` (Ray's temporary folder's ``ray_current_cluster``) if it still names this head:
+    the machine keeps no pointer to a cluster that is gone."""
     if head.poll() is None:
         os.killpg(head.pid, signal.SIGINT)
     try:
@@ -132,6 +137,9 @@ def stop_head(head: subprocess.Popen) -> None:
     except subprocess.TimeoutExpired:
         os.killpg(head.pid, signal.SIGKILL)
         head.wait()
+    current = Path(os.environ.get("RAY_TMPDIR") or tempfile.gettempdir()) / "ray" / "ray_current_cluster"
+    if current.is_file() and current.read_text().strip().endswith(f":{head.gcs_port}"):
+        current.unlink()
 
 
 def test_sweep_on_a_cluster_started_with_ray_start_gives_the_local_backends_metrics(online, tmp_path):
