@@ -1,5 +1,6 @@
 """precision=auto (pets.runs.hardware, pets.config) and bf16 model training (issue 13)."""
 
+import contextlib
 import math
 
 import pytest
@@ -8,6 +9,7 @@ from omegaconf import OmegaConf
 
 from pets.config import ConfigError, load_config, make_config
 from pets.runs import hardware
+from tests.bf16 import emulated_bf16_warning
 
 AMX = frozenset({"avx512f", "amx_tile", "amx_bf16", "avx512_bf16"})
 ZEN4 = frozenset({"avx512f", "avx512_bf16"})
@@ -108,7 +110,8 @@ def _train(precision: str, epochs: int = 8):
     obs, act, nxt = (torch.as_tensor(x) for x in collect_random(spec, 1500, 0))
     torch.manual_seed(0)
     model = make_model(cfg, spec, torch.device("cpu"))
-    trainer = make_trainer(cfg, model)
+    with emulated_bf16_warning() if precision == "bf16" else contextlib.nullcontext():
+        trainer = make_trainer(cfg, model)
     assert trainer.precision == precision
     trainer.patience = epochs + 1  # a fixed budget: no early stop
     result = trainer.train(obs, act, nxt, torch.Generator().manual_seed(1))

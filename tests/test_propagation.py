@@ -19,6 +19,7 @@ from dynamics.model import DynamicsModel
 from envs.layout import Group, ObsLayout
 from pets.planning.particles import PROPAGATION_TABLE
 from pets.planning.propagation import PROPAGATIONS, TrajectoryEvaluator
+from tests.bf16 import emulated_bf16_warning
 
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 OBS_DIM, ACT_DIM = 3, 2
@@ -702,7 +703,8 @@ def test_bench_rows_and_json_keys(tmp_path, monkeypatch) -> None:
     relu_calls = []
     monkeypatch.setitem(networks.ACTIVATIONS, "relu", (lambda h: relu_calls.append(1) or F.relu(h), "relu"))
     specs = [("cem bf16", {"precision": "bf16"}), ("icem", {"name": "icem"}), ("mppi", {"name": "mppi"})]
-    rows = bench.time_rows(cfg, [*specs[:3], ("cem relu", {"activation": "relu"})], repeats=1)
+    with emulated_bf16_warning():  # the bf16 row, on a CPU that emulates bf16
+        rows = bench.time_rows(cfg, [*specs[:3], ("cem relu", {"activation": "relu"})], repeats=1)
     assert [r["activation"] for r in rows] == ["silu", "silu", "silu", "relu"]
     # the relu row's three steps (warm-up, timed, memory), each 4 model steps x 2 iterations x 2 hidden layers
     assert len(relu_calls) == 3 * 4 * 2 * cfg.model.num_layers
