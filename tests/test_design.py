@@ -25,7 +25,7 @@ def rows(name: str) -> list[dict[str, str]]:
 
 
 @pytest.mark.parametrize("design", DESIGNS, ids=lambda d: d.name)
-def test_a_designs_jobs_are_unique_seed_ordered_and_what_is_left_is_a_subsequence(design: Design):
+def test_a_designs_jobs_are_unique_and_what_is_left_keeps_their_order(design: Design):
     jobs = list(design.jobs(ROOT))
     names = [job.name for job in jobs]
     assert jobs and len(set(names)) == len(names)

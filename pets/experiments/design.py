@@ -1,10 +1,10 @@
-"""What a study runs, as one unit (:class:`Design`): its registered jobs in their registered order (seed-major, so
-a study cut short is still paired), the commit its runs are made from, and which jobs its committed rows do not
-hold yet. A study declares its design in its own module as ``DESIGN``, beside its ``PUBLICATION``; the one table of
-designs is :data:`pets.experiments.published.DESIGNS`, from which ``docs/scripts/study_jobs.py`` makes the
-background queues of a machine (which core runs what is that script's choice, not the design's).
+"""What a study runs, as one unit (:class:`Design`): its registered jobs in their registered order (seed-major, or
+each job a sweep of every arm of one seed, so a study cut short is still paired), the commit its runs are made from,
+and which jobs its committed rows do not hold yet. A study declares its design in its own module as ``DESIGN``,
+beside its ``PUBLICATION``; the one table of designs is :data:`pets.experiments.published.DESIGNS`, from which
+``docs/scripts/study_jobs.py`` makes the background queues of a machine (which core runs what is that script's
+choice, not the design's) and ``pets.compare design`` prints the commands.
 """
-
 from __future__ import annotations
 
 import shlex
