@@ -5,6 +5,7 @@ beside its ``PUBLICATION``; the one table of designs is :data:`pets.experiments.
 ``docs/scripts/study_jobs.py`` makes the background queues of a machine (which core runs what is that script's
 choice, not the design's) and ``pets.compare design`` prints the commands.
 """
+
 from __future__ import annotations
 
 import shlex
