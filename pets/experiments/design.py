@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import shlex
 from collections.abc import Callable, Sequence
+from collections.abc import Set as AbstractSet
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -52,20 +53,29 @@ class Design:
     """One study's registered work. ``commit``: the commit every run of the study is made from (a worktree pinned
     there: a refactor never changes code under a running study); ``jobs(tree)``: every registered job, in the
     registered order, under a repository tree (a design may depend on committed results, e.g. the envs where a
-    gate passed); ``left(tree)``: the jobs the committed rows under ``tree`` do not complete, in the same order;
-    ``rule``: how ``left`` counts a job done where that is not simply its own rows (said beside the counts)."""
+    gate passed); ``done(tree)``: the names of the jobs the committed rows under ``tree`` complete; ``rule``: how
+    ``done`` counts a job where that is not simply its own rows (said beside the counts)."""
 
     name: str
     issue: int
     commit: str
     jobs: Callable[[Path], Sequence[Job]]
-    left: Callable[[Path], Sequence[Job]]
+    done: Callable[[Path], AbstractSet[str]]
     rule: str = ""
+
+    def left(self, tree: Path) -> list[Job]:
+        """The jobs the committed rows under ``tree`` do not complete, in the registered order."""
+        return self._state(tree)[1]
+
+    def _state(self, tree: Path) -> tuple[list[Job], list[Job]]:
+        """Every registered job, and those left."""
+        jobs, done = list(self.jobs(tree)), self.done(tree)
+        return jobs, [job for job in jobs if job.name not in done]
 
     def progress(self, tree: Path) -> str:
         """A study's progress block: how many registered jobs the committed rows under ``tree`` complete, and which
         are left, in their order (generated: a study page never types these counts)."""
-        jobs, left = list(self.jobs(tree)), list(self.left(tree))
+        jobs, left = self._state(tree)
         rest = ", ".join(f"`{job.name}`" for job in left) if left else "none"
         rule = f" ({self.rule})" if self.rule else ""
         done = f"**{len(jobs) - len(left)} of {len(jobs)}**{rule}"
@@ -75,7 +85,7 @@ class Design:
 
     def listing(self, tree: Path, runs: Path, left_only: bool = False) -> str:
         """The design as shell lines under a comment line: every job (or those left), ``runs`` their folder."""
-        jobs, left = list(self.jobs(tree)), list(self.left(tree))
+        jobs, left = self._state(tree)
         head = (f"# {self.name} (issue {self.issue}): {len(jobs)} registered jobs, {len(left)} not complete in the "
                 f"committed rows; from a worktree at {self.commit}: git worktree add --detach ../wt-{self.name} "
                 f"{self.commit}")  # fmt: skip

@@ -310,26 +310,26 @@ def design_jobs(tree: Path) -> list[Job]:
     return [_sweep(env, d, seed) for env in ENVS for d in DATA_SETS for seed in SEEDS]
 
 
-def design_left(tree: Path) -> list[Job]:
-    """Every sweep of a data set with a (model, seed) not in the committed runs: a data set and its runs are made on
-    one machine (docs/studies/composition.md, amendment of 2026-11-28), so its finished sweeps run again there (the
-    sweep reuses finished runs on the same machine)."""
+def design_done(tree: Path) -> set[str]:
+    """The sweeps of every data set whose (model, seed) runs are all in the committed rows: a data set and its runs
+    are made on one machine (docs/studies/composition.md, amendment of 2026-11-28), so a data set's finished sweeps
+    count only with the rest of it (on the same machine the sweep reuses its finished runs)."""
     from pets.experiments.offline_data import data_paths
     from pets.experiments.report import read_csv_rows
 
-    done = {(r["env"], r["model"], r["data"], int(r["seed"])) for r in read_csv_rows(tree / RESULTS / RUNS)}
-    left = {
-        (env, d)
+    runs = {(r["env"], r["model"], r["data"], int(r["seed"])) for r in read_csv_rows(tree / RESULTS / RUNS)}
+    return {
+        _sweep(env, d, seed).name
         for env in ENVS
         for d in DATA_SETS
-        if any((env, m, data_paths(Path(), env, d)[1].name, s) not in done for m in MODELS for s in SEEDS)
+        if all((env, m, data_paths(Path(), env, d)[1].name, s) in runs for m in MODELS for s in SEEDS)
+        for seed in SEEDS
     }
-    return [_sweep(env, d, seed) for env in ENVS for d in DATA_SETS if (env, d) in left for seed in SEEDS]
 
 
 #: The study's registered sweeps (:mod:`pets.experiments.design`), made from its pinned commit.
 DESIGN = Design(
-    "composition", 53, "975e50e", design_jobs, design_left,
+    "composition", 53, "975e50e", design_jobs, design_done,
     rule="a data set's five sweeps count only together: a data set and its 20 runs are made on one machine",
 )  # fmt: skip
 
